@@ -1,0 +1,100 @@
+"""The data catalog: what datasets exist, with schema, kind, partitioning and versioning.
+
+``data_catalog/*.yaml`` holds ``datasets: {name: {schema, kind, partitioning, versioning, doc}}``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from pipeline.errors import ConfigError
+
+PARTITION_COLUMNS = ("drive", "chunk", "tile_i", "tile_j")
+
+
+class DatasetSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    schema_ref: str | None = Field(default=None, alias="schema")  # registry name or "module:ATTR"
+    kind: Literal["table", "artifacts"] = "table"
+    partitioning: tuple[str, ...] = ()
+    versioning: Literal["fingerprint", "published"] = "fingerprint"
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Catalog:
+    datasets: dict[str, DatasetSpec]
+    sources: tuple[str, ...]
+
+    def schema(self, name: str):
+        import pyarrow as pa
+
+        from pipeline.declare import resolve
+        from schemas import schema_of
+
+        ref = self.datasets[name].schema_ref
+        if ref is None:
+            return None
+        obj = resolve(ref) if ":" in ref else schema_of(ref)
+        assert isinstance(obj, pa.Schema)
+        return obj
+
+
+def _yaml_files(paths: list[Path]) -> list[Path]:
+    files: list[Path] = []
+    for p in paths:
+        files += sorted(p.glob("*.yaml")) if p.is_dir() else [p]
+    return files
+
+
+def load_catalog(paths: list[Path]) -> Catalog:
+    """Load and validate every catalog file; every problem is reported in one ConfigError."""
+    problems: list[str] = []
+    datasets: dict[str, DatasetSpec] = {}
+    files = _yaml_files(paths)
+    for file in files:
+        try:
+            doc = yaml.safe_load(file.read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            problems.append(f"{file}: cannot read YAML: {exc}")
+            continue
+        unknown = set(doc) - {"datasets"}
+        if unknown:
+            problems.append(f"{file}: unknown top-level keys {sorted(unknown)}; expected only 'datasets'")
+        for name, raw in (doc.get("datasets") or {}).items():
+            try:
+                spec = DatasetSpec.model_validate(raw or {})
+            except ValidationError as exc:
+                for err in exc.errors():
+                    loc = ".".join(str(x) for x in err["loc"])
+                    problems.append(f"{file}: dataset {name!r}: {loc}: {err['msg']}")
+                continue
+            if name in datasets:
+                problems.append(f"{file}: dataset {name!r} is declared twice")
+            bad = [c for c in spec.partitioning if c not in PARTITION_COLUMNS]
+            if bad:
+                problems.append(f"{file}: dataset {name!r}: partition columns {bad} not among {PARTITION_COLUMNS}")
+            datasets[name] = spec
+    if not files:
+        problems.append(f"no catalog files found in {[str(p) for p in paths]}")
+    catalog = Catalog(datasets, tuple(str(f) for f in files))
+    for name, spec in datasets.items():
+        if spec.kind == "table":
+            try:
+                schema = catalog.schema(name)
+            except Exception as exc:  # noqa: BLE001 - reported as a config problem
+                problems.append(f"dataset {name!r}: schema {spec.schema_ref!r} cannot be loaded: {exc}")
+                continue
+            if schema is None:
+                problems.append(f"dataset {name!r}: a table dataset needs a schema")
+            elif any(c not in schema.names for c in spec.partitioning):
+                problems.append(f"dataset {name!r}: partition columns {list(spec.partitioning)} "
+                                f"must be fields of its schema {spec.schema_ref!r}")
+    if problems:
+        raise ConfigError(f"data catalog ({', '.join(str(p) for p in paths)})", problems)
+    return catalog

@@ -1,0 +1,197 @@
+"""The typer root app ``cornermap``. Heavy imports happen inside commands so ``--help`` is instant."""
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from pipeline.errors import CornermapError
+
+app = typer.Typer(
+    name="cornermap", no_args_is_help=True, add_completion=False, rich_markup_mode="rich",
+    help="Batch production of LiDAR localization maps (vertical-corner landmarks + road-marking rasters).\n\n"
+         "Examples:\n\n"
+         "  cornermap run workflows/demo.yaml --root runs/demo\n\n"
+         "  cornermap run workflows/map_rebuild.yaml --dry-run\n\n"
+         "  cornermap build --drive drives/d1/drive.yaml --map gangnam --root /data/maps\n\n"
+         "  cornermap corners params",
+)
+catalog_app = typer.Typer(no_args_is_help=True, help="Inspect and validate the data catalog.")
+app.add_typer(catalog_app, name="catalog")
+
+ROOT_OPT = typer.Option(None, "--root", help="Output root (datasets/, maps/); default: the workflow's root.")
+SCHED_OPT = typer.Option(None, "--scheduler",
+                         help="local (processes sized to the machine) | sync | threads | distributed | tcp://HOST:PORT")
+QUIET_OPT = typer.Option(False, "--quiet", "-q", help="No progress display.")
+PARAMS_OPT = typer.Option(None, "--params", help="YAML file {stage: {param: value}} overriding workflow params.")
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        from importlib.metadata import version
+
+        import dask
+        import gtsam  # noqa: F401
+        import open3d
+
+        typer.echo(f"cornermap {version('cornermap')} (open3d {open3d.__version__}, "
+                   f"gtsam {version('gtsam')}, dask {dask.__version__})")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True,
+                                       help="Print versions of cornermap, open3d, gtsam and dask."),
+          verbose: bool = typer.Option(False, "--verbose", "-v", help="Log at INFO level.")) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def _load_param_file(path: Optional[Path]) -> dict:
+    if path is None:
+        return {}
+    import yaml
+
+    from pipeline.errors import ConfigError
+
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(str(path), [f"cannot read params file: {exc}"]) from exc
+    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
+        raise ConfigError(str(path), ["expected a mapping {stage: {param: value}}"])
+    return data
+
+
+def execute_workflow(workflow_path: Path, *, root: Optional[Path], scheduler: Optional[str], only: list[str] | None,
+                     dry_run: bool, quiet: bool, params_file: Optional[Path] = None) -> dict:
+    from pipeline.execute import Scheduler, run_plan
+    from pipeline.plan import describe_plan, make_plan
+    from pipeline.progress import StageProgress, print_plan
+    from pipeline.workflow import load_workflow
+
+    wf = load_workflow(workflow_path, param_overrides=_load_param_file(params_file))
+    if only:
+        from pipeline.errors import UnknownNameError
+        from pipeline.registry import suggest
+
+        for name in only:
+            if name not in wf.stages:
+                raise UnknownNameError(f"--only {name!r}: not a stage of {workflow_path}{suggest(name, wf.stages)}")
+    plan = make_plan(wf, Path(root or wf.spec.root), only=only)
+    if dry_run:
+        print_plan(describe_plan(plan), plan.root)
+        return {"dry_run": True}
+    sched = Scheduler(scheduler or wf.spec.scheduler)
+    try:
+        with StageProgress(enabled=not quiet) as progress:
+            summary = run_plan(plan, sched, progress.update)
+    finally:
+        sched.close()
+    if not quiet:
+        print_plan(describe_plan(plan), plan.root, summary)
+    return {"plan": plan, "summary": summary}
+
+
+@app.command("run")
+def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML, e.g. workflows/demo.yaml"),
+            root: Optional[Path] = ROOT_OPT, scheduler: Optional[str] = SCHED_OPT,
+            only: Optional[list[str]] = typer.Option(None, "--only", help="Run only these stages (repeatable)."),
+            dry_run: bool = typer.Option(False, "--dry-run", help="Print order, partitions, fingerprints, decisions."),
+            quiet: bool = QUIET_OPT, params: Optional[Path] = PARAMS_OPT) -> None:
+    """Run a workflow: stages in dependency order; unchanged stages are skipped.
+
+    Examples: [b]cornermap run workflows/demo.yaml[/b]; [b]cornermap run workflows/map_rebuild.yaml --only corners[/b];
+    [b]cornermap run W.yaml --scheduler tcp://10.0.0.5:8786[/b]
+    """
+    result = execute_workflow(workflow, root=root, scheduler=scheduler, only=only, dry_run=dry_run, quiet=quiet,
+                              params_file=params)
+    if not dry_run:
+        from pipeline.progress import print_outcomes
+
+        print_outcomes(result["plan"])
+
+
+@app.command("build")
+def build_cmd(drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml of a map drive (repeatable)."),
+              map_name: str = typer.Option(..., "--map", help="Map name: publishes ROOT/maps/NAME/vNNNN."),
+              root: Path = typer.Option(..., "--root", help="Output root."),
+              scheduler: Optional[str] = SCHED_OPT, quiet: bool = QUIET_OPT,
+              workflow: Path = typer.Option(Path("workflows/map_rebuild.yaml"), "--workflow",
+                                            help="The standard map workflow to run on these drives.")) -> None:
+    """Build and publish the next version of map NAME from drives (the standard map workflow).
+
+    Example: [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps[/b]
+    """
+    from pipeline.build import write_build_workflow
+
+    path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root)
+    result = execute_workflow(path, root=root, scheduler=scheduler, only=None, dry_run=False, quiet=quiet)
+    from pipeline.progress import print_outcomes
+
+    print_outcomes(result["plan"])
+
+
+@catalog_app.command("ls")
+def catalog_ls(catalog: Path = typer.Argument(Path("data_catalog"), help="Catalog folder or file.")) -> None:
+    """List every dataset with kind, schema, partitioning and versioning."""
+    from pipeline.catalog import load_catalog
+
+    cat = load_catalog([catalog])
+    for name, spec in cat.datasets.items():
+        typer.echo(f"{name:22s} {spec.kind:9s} schema={spec.schema_ref or '-':22s} "
+                   f"partitioning={','.join(spec.partitioning) or '-':14s} {spec.versioning}")
+
+
+@catalog_app.command("validate")
+def catalog_validate(catalog: Path = typer.Argument(Path("data_catalog")),
+                     workflows: list[Path] = typer.Option([], "--workflow", help="Also validate these workflows.")) -> None:
+    """Validate the catalog (and workflows): every problem is listed at once."""
+    from pipeline.catalog import load_catalog
+    from pipeline.workflow import load_workflow
+
+    cat = load_catalog([catalog])
+    for wf in workflows:
+        load_workflow(wf)
+    typer.echo(f"ok: {len(cat.datasets)} datasets" + (f", {len(workflows)} workflow(s)" if workflows else ""))
+
+
+def _register_stages() -> None:
+    from pipeline.registry import load_stages
+    from pipeline.stage_cli import stage_app
+
+    for name, decl in load_stages().items():
+        sub = stage_app(decl)
+        if decl.cli:
+            import importlib
+
+            import inspect
+
+            register = importlib.import_module(decl.cli).register
+            # register(app) adds top-level commands; register(app, stage_app) may also extend the stage's group.
+            register(app, sub) if len(inspect.signature(register).parameters) >= 2 else register(app)
+        if sub is not None:
+            app.add_typer(sub, name=name, help=decl.summary)
+
+
+def main() -> None:
+    import click
+
+    try:
+        _register_stages()
+        command = typer.main.get_command(app)
+        command.main(prog_name="cornermap", standalone_mode=False)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except click.exceptions.Abort:
+        typer.echo("aborted", err=True)
+        sys.exit(130)
+    except CornermapError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        sys.exit(exc.exit_code)

@@ -1,0 +1,131 @@
+"""Stage declarations: a stage is data (name, summary, code version, inputs, outputs, params, partitioning)
+plus a ``compute`` referenced by import path so that declaring a stage imports nothing heavy.
+
+Convention: ``compute(ctx: StageContext) -> Mapping[str, pa.Table | Iterable[pa.Table]]`` keyed by output key.
+An iterable of tables is written piece by piece (streaming); each piece must hold one value per partition
+column of its dataset.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Mapping
+
+from pydantic import BaseModel, ConfigDict
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pyarrow as pa
+
+
+class Params(BaseModel):
+    """Base of every stage's params: defaults in code, unknown keys rejected, immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Partitioning(str, Enum):
+    SINGLE = "single"
+    PER_DRIVE = "per_drive"
+    PER_SCAN_CHUNK = "per_scan_chunk"
+    PER_TILE = "per_tile"
+
+
+@dataclass(frozen=True, order=True)
+class PartitionKey:
+    """Which slice of the work one task does. Fields unused by a partitioning stay None."""
+
+    drive: str | None = None
+    chunk: int | None = None
+    tile_i: int | None = None
+    tile_j: int | None = None
+
+    @property
+    def label(self) -> str:
+        parts = []
+        if self.drive is not None:
+            parts.append(self.drive.replace("_", ""))
+        if self.chunk is not None:
+            parts.append(f"chunk{self.chunk:04d}")
+        if self.tile_i is not None:
+            parts.append(f"tile{self.tile_i:+05d}{self.tile_j:+05d}")
+        return "-".join(parts) or "all"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if v is not None}
+
+
+@dataclass(frozen=True)
+class StageDecl:
+    name: str
+    summary: str
+    code_version: str
+    inputs: Mapping[str, str]  # argument -> dataset name
+    outputs: Mapping[str, str]  # output key -> dataset name
+    params: type[Params]
+    partition: Partitioning
+    compute: str  # "module:function", imported only when the stage runs
+    # Which input argument's committed partitions define this stage's partitions (per_scan_chunk / per_tile).
+    partition_source: str | None = None
+    # Per-drive stages read the workflow's drives (drive.yaml paths) rather than a dataset.
+    uses_drives: bool = False
+    # Optional "module:function" that enumerates partitions: f(ctx: PlanContext) -> list[PartitionKey].
+    plan: str | None = None
+    # Optional "module" whose register(app) adds stage-specific CLI commands (imports heavy code lazily).
+    cli: str | None = None
+    optional_inputs: frozenset[str] = field(default_factory=frozenset)
+    # Per-drive stages: which drives they run on ("map", "eval" or None for all the workflow's drives).
+    drive_role: str | None = None
+    # Workflow settings that affect the output (part of the fingerprint); None means all of them.
+    settings_keys: frozenset[str] | None = None
+
+    def load_compute(self) -> Callable[["StageContext"], Mapping[str, Any]]:
+        return resolve(self.compute)
+
+
+def resolve(ref: str) -> Any:
+    module, _, attr = ref.partition(":")
+    obj = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+@dataclass
+class StageContext:
+    """Everything one partition task sees. Built inside the task; holds only plain data and readers."""
+
+    stage: str
+    partition: PartitionKey
+    params: Params
+    inputs: "InputReader"
+    drives: Mapping[str, Path]  # drive name -> drive.yaml path (resolved)
+    settings: Mapping[str, Any]  # workflow-level settings (map name, ENU origin, tile size, ...)
+    scratch_dir: Path  # private, deleted after the task
+    artifact_dirs: Mapping[str, Path]  # output key -> staging dir for non-tabular files of this partition
+
+    def artifact_dir(self, key: str) -> Path:
+        path = self.artifact_dirs[key]
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+
+
+class InputReader:
+    """Reads committed input datasets of a stage. Implemented by the store; declared here for typing."""
+
+    def read(self, arg: str, *, partition: PartitionKey | None = None, columns: list[str] | None = None,
+             filters: Any = None) -> "pa.Table":  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def partitions(self, arg: str) -> list[PartitionKey]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def metadata(self, arg: str) -> dict[str, Any]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def artifact_dir(self, arg: str, partition: PartitionKey | None = None) -> Path:  # pragma: no cover
+        raise NotImplementedError
+
+    def has(self, arg: str) -> bool:  # pragma: no cover - interface
+        raise NotImplementedError

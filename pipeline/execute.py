@@ -1,0 +1,281 @@
+"""Runs a plan on dask: one delayed task per partition (readable keys), then one commit task per stage.
+
+Tasks receive and return small JSON-able manifests, never arrays, so the same graph runs on the synchronous,
+threaded or multiprocessing scheduler, or on a dask.distributed cluster (``tcp://host:port``).
+"""
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import os
+import shutil
+import uuid
+from pathlib import Path
+from typing import Any, Callable
+
+from pipeline.declare import PartitionKey, Partitioning, StageContext
+from pipeline.errors import CornermapError, StageError
+from pipeline.plan import Plan, StagePlan
+from pipeline.registry import get_stage
+from pipeline.store import (StoreInputReader, atomic_write_json, commit_artifacts, dataset_dir, read_manifest,
+                            write_pieces)
+
+log = logging.getLogger(__name__)
+
+
+def _schema_for(ref: str | None):
+    import pyarrow as pa
+
+    from pipeline.declare import resolve
+    from schemas import schema_of
+
+    if ref is None:
+        return None
+    obj = resolve(ref) if ":" in ref else schema_of(ref)
+    assert isinstance(obj, pa.Schema)
+    return obj
+
+
+def _task_spec(plan: Plan, sp: StagePlan) -> dict[str, Any]:
+    catalog = plan.workflow.catalog
+    ds_spec = lambda ds: catalog.datasets.get(ds)  # noqa: E731
+    return {
+        "stage": sp.name,
+        "fingerprint": sp.fingerprint,
+        "root": str(plan.root),
+        "params": sp.params,
+        "inputs": {a: list(v) for a, v in sp.inputs.items()},
+        "input_schemas": {a: (ds_spec(ds).schema_ref if ds_spec(ds) else None) for a, (ds, _) in sp.inputs.items()},
+        "outputs": {k: {"dataset": ds, "kind": ds_spec(ds).kind, "schema": ds_spec(ds).schema_ref,
+                        "partitioning": list(ds_spec(ds).partitioning)} for k, ds in sp.outputs.items()},
+        "drives": {k: str(v) for k, v in sp.drives.items()},
+        "settings": sp.settings,
+        "extra_stages": os.environ.get("CORNERMAP_EXTRA_STAGES", ""),
+    }
+
+
+def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
+             artifact_dirs: dict[str, Path]) -> StageContext:
+    decl = get_stage(spec["stage"])
+    reader = StoreInputReader(Path(spec["root"]), {a: tuple(v) for a, v in spec["inputs"].items()},
+                              {a: _schema_for(r) for a, r in spec["input_schemas"].items()})
+    return StageContext(stage=spec["stage"], partition=partition, params=decl.params.model_validate(spec["params"]),
+                        inputs=reader, drives={k: Path(v) for k, v in spec["drives"].items()},
+                        settings=spec["settings"], scratch_dir=scratch, artifact_dirs=artifact_dirs)
+
+
+def _ensure_extra_stages(spec: dict[str, Any]) -> None:
+    if spec.get("extra_stages") and os.environ.get("CORNERMAP_EXTRA_STAGES") != spec["extra_stages"]:
+        from pipeline.registry import load_stages
+
+        os.environ["CORNERMAP_EXTRA_STAGES"] = spec["extra_stages"]
+        load_stages.cache_clear()
+
+
+def _part_marker(spec: dict[str, Any], key: str, label: str) -> Path:
+    out = spec["outputs"][key]
+    return dataset_dir(Path(spec["root"]), out["dataset"], spec["fingerprint"]) / "_parts" / f"{label}.json"
+
+
+def run_partition(spec: dict[str, Any], partition: dict[str, Any]) -> dict[str, Any]:
+    """One task: compute one partition, write its outputs atomically, then its part markers (commit)."""
+    import json
+
+    _ensure_extra_stages(spec)
+    pk = PartitionKey(**partition)
+    label = pk.label
+    markers = {k: _part_marker(spec, k, label) for k in spec["outputs"]}
+    if markers and all(m.is_file() for m in markers.values()):
+        log.info("%s %s: already committed by an earlier run; reused", spec["stage"], label)
+        first = json.loads(next(iter(markers.values())).read_text())
+        return {"label": label, "partition": partition, "outputs": {k: json.loads(m.read_text())["output"]
+                                                                   for k, m in markers.items()},
+                "extra": first.get("extra", {}), "reused": True}
+    root = Path(spec["root"])
+    token = uuid.uuid4().hex[:8]
+    scratch = root / "tmp" / f"{spec['stage']}-{label}-{token}"
+    staging = {k: dataset_dir(root, o["dataset"], spec["fingerprint"]) / "artifacts" / f".staging-{label}-{token}"
+               for k, o in spec["outputs"].items() if o["kind"] == "artifacts"}
+    scratch.mkdir(parents=True, exist_ok=True)
+    try:
+        ctx = _context(spec, pk, scratch, staging)
+        compute = get_stage(spec["stage"]).load_compute()
+        try:
+            result = dict(compute(ctx) or {})
+            extra = result.pop("_extra", {}) or {}
+            outputs: dict[str, Any] = {}
+            for key, out in spec["outputs"].items():
+                ds_dir = dataset_dir(root, out["dataset"], spec["fingerprint"])
+                where = f"stage {spec['stage']!r} partition {label} output {key!r} (dataset {out['dataset']!r})"
+                if out["kind"] == "artifacts":
+                    files = commit_artifacts(staging[key], ds_dir / "artifacts" / label)
+                    outputs[key] = {"files": [], "artifacts": files}
+                else:
+                    files = write_pieces(result.get(key), out_dir=ds_dir, label=label,
+                                         schema=_schema_for(out["schema"]),
+                                         partitioning=tuple(out["partitioning"]), where=where)
+                    outputs[key] = {"files": files, "artifacts": None}
+        except CornermapError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - wrapped with where it happened, cause kept
+            raise StageError(f"stage {spec['stage']!r} partition {label} failed: {type(exc).__name__}: {exc}") \
+                from exc
+        for key, marker in markers.items():
+            atomic_write_json(marker, {"label": label, "partition": partition, "output": outputs[key],
+                                       "extra": extra})
+        return {"label": label, "partition": partition, "outputs": outputs, "extra": extra, "reused": False}
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+        for path in staging.values():
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def commit_stage(spec: dict[str, Any], parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """Write each output dataset's manifest last: the commit marker that readers look for."""
+    root = Path(spec["root"])
+    extra: dict[str, Any] = {}
+    for p in sorted(parts, key=lambda p: p["label"]):
+        for k, v in p["extra"].items():
+            extra.setdefault(k, v) if k != "partitions" else None
+    extra["partitions"] = {p["label"]: p["extra"] for p in parts if p["extra"]}
+    manifests = {}
+    for key, out in spec["outputs"].items():
+        files = [f for p in parts for f in p["outputs"][key]["files"]]
+        artifacts = {p["label"]: p["outputs"][key]["artifacts"] for p in parts
+                     if p["outputs"][key]["artifacts"] is not None}
+        manifest = {
+            "dataset": out["dataset"], "stage": spec["stage"], "fingerprint": spec["fingerprint"],
+            "code_version": get_stage(spec["stage"]).code_version, "params": spec["params"],
+            "inputs": {a: {"dataset": ds, "fingerprint": fp} for a, (ds, fp) in spec["inputs"].items()},
+            "drives": spec["drives"], "settings": spec["settings"],
+            "partitions": sorted(p["label"] for p in parts),
+            "rows": sum(f["rows"] for f in files), "files": sorted(files, key=lambda f: f["path"]),
+            "artifacts": artifacts, "extra": extra,
+            "committed_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        }
+        atomic_write_json(dataset_dir(root, out["dataset"], spec["fingerprint"]) / "_manifest.json", manifest)
+        manifests[key] = {"dataset": out["dataset"], "rows": manifest["rows"], "files": len(files)}
+    return manifests
+
+
+def enumerate_partitions(plan: Plan, sp: StagePlan) -> list[PartitionKey]:
+    if sp.partitions is not None:
+        return sp.partitions
+    spec = _task_spec(plan, sp)
+    ctx = _context(spec, PartitionKey(), plan.root / "tmp" / f"plan-{sp.name}", {})
+    if sp.decl.plan:
+        from pipeline.declare import resolve
+
+        keys = list(resolve(sp.decl.plan)(ctx))
+    elif sp.decl.partition == Partitioning.PER_DRIVE:
+        keys = [PartitionKey(drive=d) for d in sp.drives]
+    else:
+        src = sp.decl.partition_source
+        if not src:
+            raise StageError(f"stage {sp.name!r} is {sp.decl.partition.value} but names no partition_source or plan")
+        fields = ("drive", "chunk") if sp.decl.partition == Partitioning.PER_SCAN_CHUNK else ("tile_i", "tile_j")
+        keys = sorted({PartitionKey(**{k: v for k, v in pk.as_dict().items() if k in fields})
+                       for pk in ctx.inputs.partitions(src)})
+    sp.partitions = keys
+    return keys
+
+
+def task_key(sp: StagePlan, pk: PartitionKey) -> str:
+    return f"{sp.name}-{pk.label}-{sp.fp8}"
+
+
+Progress = Callable[[str, int, int], None]
+
+
+def run_stage(plan: Plan, sp: StagePlan, scheduler: "Scheduler", progress: Progress | None = None) -> dict:
+    from dask import delayed
+
+    keys = enumerate_partitions(plan, sp)
+    spec = _task_spec(plan, sp)
+    tasks = [delayed(run_partition, pure=False)(spec, pk.as_dict(), dask_key_name=task_key(sp, pk)) for pk in keys]
+    parts = scheduler.compute(tasks, label=sp.name, progress=progress)
+    result = scheduler.compute([delayed(commit_stage, pure=False)(spec, parts,
+                                                                  dask_key_name=f"commit-{sp.name}-{sp.fp8}")],
+                               label=f"commit {sp.name}", progress=None)[0]
+    sp.committed = True
+    return result
+
+
+class Scheduler:
+    """Local dask schedulers (sync, threads, processes) or a dask.distributed cluster at ``tcp://...``."""
+
+    def __init__(self, address: str = "local", workers: int | None = None):
+        self.address = address
+        self.workers = workers or os.cpu_count() or 1
+        self._client = None
+        if address.startswith("tcp://") or address == "distributed":
+            from distributed import Client
+
+            self._client = Client(address) if address.startswith("tcp://") else Client(
+                n_workers=self.workers, threads_per_worker=1, processes=True)
+        elif address not in ("local", "sync", "synchronous", "threads", "processes"):
+            raise StageError(f"unknown scheduler {address!r}; use local | sync | threads | processes | "
+                             f"distributed | tcp://HOST:PORT")
+
+    @property
+    def kind(self) -> str:
+        if self._client is not None:
+            return "distributed"
+        return {"local": "processes", "synchronous": "sync"}.get(self.address, self.address)
+
+    def compute(self, tasks: list, *, label: str, progress: Progress | None) -> list:
+        import dask
+
+        total = len(tasks)
+        if self._client is not None:
+            from distributed import as_completed
+
+            futures = self._client.compute(tasks)
+            done = 0
+            for _ in as_completed(futures):
+                done += 1
+                if progress:
+                    progress(label, done, total)
+            return self._client.gather(futures)
+        kind = self.kind
+        if kind == "processes" and total <= 1:
+            kind = "sync"  # no pool to spin up for a single task
+        from dask.callbacks import Callback
+
+        counter = {"n": 0}
+
+        def posttask(key, result, dsk, state, worker_id):
+            if isinstance(key, str) and not key.startswith("commit-"):
+                counter["n"] += 1
+                if progress:
+                    progress(label, counter["n"], total)
+
+        with Callback(posttask=posttask):
+            if kind == "processes":
+                return list(dask.compute(*tasks, scheduler="processes", num_workers=self.workers))
+            if kind == "threads":
+                return list(dask.compute(*tasks, scheduler="threads", num_workers=self.workers))
+            return list(dask.compute(*tasks, scheduler="sync"))
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+
+
+def run_plan(plan: Plan, scheduler: Scheduler, progress: Progress | None = None) -> dict[str, Any]:
+    summary: dict[str, Any] = {}
+    for name, sp in plan.stages.items():
+        if not sp.selected:
+            continue
+        if sp.committed:
+            log.info("stage %s: skipped (fingerprint %s already committed)", name, sp.fp8)
+            summary[name] = {"decision": "skipped", "fingerprint": sp.fingerprint[:16]}
+            continue
+        for arg, (ds, fp) in sp.inputs.items():
+            if fp and read_manifest(dataset_dir(plan.root, ds, fp)) is None and arg not in sp.decl.optional_inputs:
+                raise StageError(f"stage {name!r} input {arg!r}: dataset {ds!r} (fingerprint {fp[:8]}) is not "
+                                 f"committed under {plan.root}; hint: run its producer (drop --only)")
+        log.info("stage %s: running (fingerprint %s)", name, sp.fp8)
+        summary[name] = {"decision": "ran", "fingerprint": sp.fingerprint[:16],
+                         "outputs": run_stage(plan, sp, scheduler, progress)}
+    return summary

@@ -1,0 +1,111 @@
+"""Planning: fingerprints, resolved drive paths and run/skip decisions for every stage of a workflow."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.declare import PartitionKey, Partitioning, StageDecl
+from pipeline.fingerprint import drive_fingerprint, stable_hash, stage_fingerprint
+from pipeline.store import dataset_dir, read_manifest
+from pipeline.workflow import TEMPLATE, Workflow
+
+
+@dataclass
+class StagePlan:
+    name: str
+    decl: StageDecl
+    fingerprint: str
+    params: dict[str, Any]
+    inputs: dict[str, tuple[str, str]]  # arg -> (dataset, fingerprint or "" when absent)
+    outputs: dict[str, str]  # key -> dataset
+    drives: dict[str, Path]  # drives this stage sees
+    settings: dict[str, Any]
+    committed: bool = False
+    partitions: list[PartitionKey] | None = None  # None until known (dynamic partitioning)
+    selected: bool = True
+
+    @property
+    def fp8(self) -> str:
+        return self.fingerprint[:8]
+
+    @property
+    def decision(self) -> str:
+        if not self.selected:
+            return "not selected"
+        return "skip (committed)" if self.committed else "run"
+
+
+@dataclass
+class Plan:
+    workflow: Workflow
+    root: Path
+    stages: dict[str, StagePlan] = field(default_factory=dict)
+
+
+def _resolve_template(text: str, root: Path, producer_fp: dict[str, str]) -> tuple[Path, str | None]:
+    """Expand ${dataset} to that dataset's committed artifact directory; returns (path, fingerprint basis)."""
+    basis = None
+    for ds in TEMPLATE.findall(text):
+        fp = producer_fp[ds]
+        text = text.replace("${" + ds + "}", str(dataset_dir(root, ds, fp) / "artifacts" / PartitionKey().label))
+        basis = f"{ds}:{fp}"
+    return Path(text), basis
+
+
+def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> Plan:
+    root = Path(root).resolve()
+    plan = Plan(workflow, root)
+    dataset_fp: dict[str, str] = {}
+    base_settings = workflow.settings(root)
+    for name, decl in workflow.stages.items():
+        # Resolve drives and references with the fingerprints of upstream producers known so far.
+        drives: dict[str, Path] = {}
+        drive_fps: dict[str, str] = {}
+        for d in workflow.spec.drives:
+            if decl.drive_role and d.role != decl.drive_role:
+                continue
+            if TEMPLATE.search(d.path):
+                path, basis = _resolve_template(d.path, root, dataset_fp)
+                drive_fps[d.name] = stable_hash({"template": d.path, "basis": basis})
+            else:
+                path = Path(d.path) if Path(d.path).is_absolute() else (workflow.base_dir / d.path)
+                drive_fps[d.name] = drive_fingerprint(path)
+            drives[d.name] = path.resolve()
+        settings = dict(base_settings)
+        settings["references"] = {
+            d.name: (str(_resolve_template(d.reference, root, dataset_fp)[0]) if d.reference else None)
+            for d in workflow.spec.drives
+        }
+        keys = decl.settings_keys if decl.settings_keys is not None else set(settings) - {"root"}
+        fp_settings = {k: settings[k] for k in sorted(keys) if k in settings}
+        inputs = {arg: (ds, dataset_fp.get(ds, "")) for arg, ds in decl.inputs.items()}
+        params = workflow.params[name].model_dump(mode="json")
+        fp = stage_fingerprint(stage=name, code_version=decl.code_version, params=params,
+                               inputs={a: f for a, (_, f) in inputs.items()},
+                               drives=drive_fps if decl.uses_drives or decl.partition == Partitioning.PER_DRIVE
+                               else {}, settings=fp_settings)
+        for ds in decl.outputs.values():
+            dataset_fp[ds] = fp
+        committed = all(read_manifest(dataset_dir(root, ds, fp)) is not None for ds in decl.outputs.values())
+        sp = StagePlan(name, decl, fp, params, inputs, dict(decl.outputs), drives, settings, committed,
+                       selected=(only is None or name in only))
+        if decl.partition == Partitioning.SINGLE:
+            sp.partitions = [PartitionKey()]
+        elif decl.partition == Partitioning.PER_DRIVE and not decl.plan:
+            sp.partitions = [PartitionKey(drive=n) for n in drives]
+        plan.stages[name] = sp
+    return plan
+
+
+def describe_plan(plan: Plan) -> list[dict[str, Any]]:
+    rows = []
+    for sp in plan.stages.values():
+        if sp.partitions is not None:
+            parts = f"{len(sp.partitions)} ({sp.decl.partition.value})"
+        else:
+            src = sp.decl.partition_source
+            parts = f"dynamic ({sp.decl.partition.value}" + (f" of {sp.inputs[src][0]})" if src else ")")
+        rows.append({"stage": sp.name, "fingerprint": sp.fingerprint[:16], "partitions": parts,
+                     "decision": sp.decision, "outputs": ", ".join(sp.outputs.values())})
+    return rows

@@ -1,0 +1,55 @@
+"""Discovers stage declarations through the ``cornermap.stages`` entry points (plus, for tests, the
+``CORNERMAP_EXTRA_STAGES`` environment variable: comma-separated ``module:ATTR`` references).
+
+Only declarations are imported here (they import nothing heavy), so ``cornermap --help`` stays fast.
+"""
+from __future__ import annotations
+
+import difflib
+import logging
+import os
+from functools import lru_cache
+from importlib.metadata import entry_points
+
+from pipeline.declare import StageDecl, resolve
+from pipeline.errors import ConfigError, UnknownNameError
+
+log = logging.getLogger(__name__)
+STAGE_ORDER = ("simulate", "ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "tiles", "evaluate")
+
+
+@lru_cache(maxsize=1)
+def load_stages() -> dict[str, StageDecl]:
+    refs: list[tuple[str, str]] = [(ep.name, ep.value) for ep in entry_points(group="cornermap.stages")]
+    extra = os.environ.get("CORNERMAP_EXTRA_STAGES", "")
+    refs += [(ref.split(":")[-1], ref) for ref in extra.split(",") if ref.strip()]
+    stages: dict[str, StageDecl] = {}
+    problems: list[str] = []
+    for name, ref in refs:
+        try:
+            decl = resolve(ref)
+        except (ImportError, AttributeError) as exc:
+            log.debug("stage %s (%s) is not available: %s", name, ref, exc)
+            continue
+        if not isinstance(decl, StageDecl):
+            problems.append(f"entry point {ref} is a {type(decl).__name__}, expected a StageDecl")
+            continue
+        if decl.name in stages:
+            problems.append(f"two stages are named {decl.name!r}")
+        stages[decl.name] = decl
+    if problems:
+        raise ConfigError("stage declarations", problems)
+    order = {n: i for i, n in enumerate(STAGE_ORDER)}
+    return dict(sorted(stages.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
+
+
+def suggest(name: str, known) -> str:
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def get_stage(name: str) -> StageDecl:
+    stages = load_stages()
+    if name not in stages:
+        raise UnknownNameError(f"unknown stage {name!r}{suggest(name, stages)}; known: {', '.join(stages)}")
+    return stages[name]

@@ -1,0 +1,61 @@
+"""The generic per-stage sub-app: ``cornermap <stage> run|describe|params``."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from pipeline.declare import StageDecl
+
+
+def format_params(decl: StageDecl) -> str:
+    lines = [f"# {decl.name} params (defaults); override in a workflow's params.{decl.name} or --params FILE"]
+    for name, f in decl.params.model_fields.items():
+        default = f.get_default(call_default_factory=True)
+        doc = f" # {f.description}" if f.description else ""
+        lines.append(f"{name}: {default!r}{doc}")
+    return "\n".join(lines)
+
+
+def format_describe(decl: StageDecl) -> str:
+    ins = "\n".join(f"  {a} <- {ds}" + (" (optional)" if a in decl.optional_inputs else "")
+                    for a, ds in decl.inputs.items()) or "  (none)"
+    outs = "\n".join(f"  {k} -> {ds}" for k, ds in decl.outputs.items())
+    return (f"{decl.name}: {decl.summary}\ncode_version: {decl.code_version}\npartition: {decl.partition.value}"
+            + (f" (from {decl.partition_source})" if decl.partition_source else "")
+            + f"\ninputs:\n{ins}\noutputs:\n{outs}\ncompute: {decl.compute}\n\n{format_params(decl)}")
+
+
+def stage_app(decl: StageDecl) -> typer.Typer:
+    sub = typer.Typer(no_args_is_help=True, help=decl.summary)
+
+    @sub.command("run")
+    def run(workflow: Path = typer.Option(Path("workflows/map_rebuild.yaml"), "--workflow", "-w",
+                                          help="Workflow whose inputs this stage reads."),
+            root: Optional[Path] = typer.Option(None, "--root", help="Output root; default: the workflow's."),
+            scheduler: Optional[str] = typer.Option(None, "--scheduler"),
+            params: Optional[Path] = typer.Option(None, "--params", help="YAML {stage: {param: value}}."),
+            dry_run: bool = typer.Option(False, "--dry-run"), quiet: bool = typer.Option(False, "--quiet", "-q")):
+        """Run this stage alone on committed inputs of a workflow."""
+        from pipeline.cli import execute_workflow
+        from pipeline.progress import print_outcomes
+
+        result = execute_workflow(workflow, root=root, scheduler=scheduler, only=[decl.name], dry_run=dry_run,
+                                  quiet=quiet, params_file=params)
+        if not dry_run:
+            print_outcomes(result["plan"])
+
+    @sub.command("describe")
+    def describe():
+        """Inputs, outputs, partitioning, code version and params of this stage."""
+        typer.echo(format_describe(decl))
+
+    @sub.command("params")
+    def params_cmd():
+        """Print this stage's params with their defaults and units."""
+        typer.echo(format_params(decl))
+
+    run.__doc__ = f"Run the {decl.name} stage alone on committed inputs.\n\nExample: cornermap {decl.name} run " \
+                  f"--workflow workflows/map_rebuild.yaml --root runs/city"
+    return sub

@@ -1,0 +1,214 @@
+"""The Parquet store: schema-validated, atomic writes; manifests as commit markers; readers see committed data.
+
+Layout under the output root::
+
+    datasets/<dataset>/<fp16>/_manifest.json          written last: the commit marker of the dataset
+    datasets/<dataset>/<fp16>/_parts/<label>.json      per-partition commit markers (resume after a kill)
+    datasets/<dataset>/<fp16>/data/drive=../chunk=../part-<label>-<seq>.parquet
+    datasets/<dataset>/<fp16>/artifacts/<label>/...   non-tabular files of a partition
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from pathlib import Path
+from typing import Any, Iterable
+
+import pyarrow as pa
+import pyarrow.dataset as pads
+import pyarrow.parquet as pq
+
+from pipeline.declare import InputReader, PartitionKey
+from pipeline.errors import DatasetIOError, SchemaMismatchError
+from pipeline.fingerprint import file_sha256
+
+FP_LEN = 16
+
+
+def dataset_dir(root: Path, dataset: str, fingerprint: str) -> Path:
+    return Path(root) / "datasets" / dataset / fingerprint[:FP_LEN]
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    with open(tmp, "w") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=1, sort_keys=True, default=str))
+
+
+def conform_table(table: pa.Table, schema: pa.Schema, where: str) -> pa.Table:
+    """Check a table against its schema; numeric types are cast safely, everything else must match.
+
+    Raises SchemaMismatchError listing every bad column with expected vs actual type.
+    """
+    problems: list[str] = []
+    got = {f.name: f.type for f in table.schema}
+    for f in schema:
+        if f.name not in got:
+            problems.append(f"missing column {f.name!r} (expected {f.type})")
+        elif got[f.name] != f.type:
+            a, b = got[f.name], f.type
+            numeric = lambda t: pa.types.is_integer(t) or pa.types.is_floating(t)  # noqa: E731
+            castable = (numeric(a) and numeric(b)) or (pa.types.is_list(a) and pa.types.is_list(b)) or \
+                pa.types.is_null(a) or (pa.types.is_large_string(a) and pa.types.is_string(b))
+            if not castable:
+                problems.append(f"column {f.name!r}: expected {b}, got {a}")
+    for name in got:
+        if name not in schema.names:
+            problems.append(f"unexpected column {name!r} ({got[name]}); the schema has {schema.names}")
+    if problems:
+        raise SchemaMismatchError(f"{where}: {len(problems)} bad column(s):\n  - " + "\n  - ".join(problems) +
+                                  "\n  hint: fix the stage's compute or the schema in schemas/")
+    try:
+        table = table.select(schema.names).cast(schema, safe=True)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+        raise SchemaMismatchError(f"{where}: values do not fit the schema's types: {exc}") from exc
+    nulls = [f.name for f in schema if not f.nullable and table[f.name].null_count]
+    if nulls:
+        raise SchemaMismatchError(f"{where}: nulls in non-nullable column(s) {nulls}")
+    return table
+
+
+def write_parquet_atomic(table: pa.Table, path: Path) -> dict[str, Any]:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        pq.write_table(table, tmp, compression="zstd")
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise DatasetIOError(f"cannot write {path}: {exc}") from exc
+    return {"rows": table.num_rows, "bytes": path.stat().st_size, "sha256": file_sha256(path)}
+
+
+def _hive_subdir(table: pa.Table, partitioning: tuple[str, ...], where: str) -> tuple[str, dict[str, Any]]:
+    parts: dict[str, Any] = {}
+    for col in partitioning:
+        values = table[col].unique().to_pylist()
+        if len(values) != 1:
+            raise SchemaMismatchError(f"{where}: each written piece must hold one value of partition column "
+                                      f"{col!r}; got {values[:5]}")
+        parts[col] = values[0]
+    return "/".join(f"{k}={v}" for k, v in parts.items()), parts
+
+
+def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path, label: str,
+                 schema: pa.Schema, partitioning: tuple[str, ...], where: str) -> list[dict[str, Any]]:
+    """Write one output of one partition task; returns the file records for its part manifest."""
+    for stale in (out_dir / "data").glob(f"**/part-{label}-*.parquet"):
+        stale.unlink()  # left by a killed attempt; never listed in a manifest
+    if pieces is None:
+        return []
+    if isinstance(pieces, pa.Table):
+        pieces = [pieces]
+    records = []
+    for seq, table in enumerate(pieces):
+        if table is None or table.num_rows == 0 and records:
+            continue
+        table = conform_table(table, schema, where)
+        if table.num_rows == 0:
+            continue
+        sub, parts = _hive_subdir(table, partitioning, where)
+        path = out_dir / "data" / sub / f"part-{label}-{seq:05d}.parquet"
+        rec = write_parquet_atomic(table, path)
+        rec.update(path=str(path.relative_to(out_dir)), partition=parts)
+        records.append(rec)
+    return records
+
+
+def read_manifest(out_dir: Path) -> dict[str, Any] | None:
+    path = out_dir / "_manifest.json"
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DatasetIOError(f"{path}: unreadable manifest ({exc}); delete the directory to rebuild") from exc
+
+
+def _matches(record_partition: dict[str, Any], partition: PartitionKey | None) -> bool:
+    if partition is None:
+        return True
+    return all(record_partition.get(k) == v for k, v in partition.as_dict().items() if k in record_partition)
+
+
+class StoreInputReader(InputReader):
+    """Reads committed datasets through their manifests (never by listing directories)."""
+
+    def __init__(self, root: Path, inputs: dict[str, tuple[str, str]], schemas: dict[str, pa.Schema | None]):
+        self.root = Path(root)
+        self._inputs = inputs  # arg -> (dataset, fingerprint) ; fingerprint "" = absent optional input
+        self._schemas = schemas
+        self._manifests: dict[str, dict | None] = {}
+
+    def _manifest(self, arg: str) -> dict | None:
+        if arg not in self._manifests:
+            dataset, fp = self._inputs.get(arg, ("", ""))
+            self._manifests[arg] = read_manifest(dataset_dir(self.root, dataset, fp)) if fp else None
+        return self._manifests[arg]
+
+    def has(self, arg: str) -> bool:
+        return self._manifest(arg) is not None
+
+    def _require(self, arg: str) -> dict:
+        m = self._manifest(arg)
+        if m is None:
+            dataset = self._inputs.get(arg, ("?", ""))[0]
+            raise DatasetIOError(f"input {arg!r} (dataset {dataset!r}) has no committed data under {self.root}; "
+                                 f"hint: run the stage that produces it first")
+        return m
+
+    def read(self, arg, *, partition=None, columns=None, filters=None) -> pa.Table:
+        m = self._require(arg)
+        dataset, fp = self._inputs[arg]
+        base = dataset_dir(self.root, dataset, fp)
+        files = [str(base / r["path"]) for r in m["files"] if _matches(r.get("partition", {}), partition)]
+        schema = self._schemas[arg]
+        if not files:
+            empty = schema.empty_table()
+            return empty.select(columns) if columns else empty
+        try:
+            ds = pads.dataset(files, schema=schema, format="parquet")
+            return ds.to_table(columns=columns, filter=filters)
+        except (OSError, pa.ArrowInvalid) as exc:
+            raise DatasetIOError(f"cannot read dataset {dataset!r} ({base}): {exc}") from exc
+
+    def partitions(self, arg: str) -> list[PartitionKey]:
+        m = self._require(arg)
+        keys = {tuple(sorted(r.get("partition", {}).items())) for r in m["files"]}
+        return sorted(PartitionKey(**dict(k)) for k in keys)
+
+    def metadata(self, arg: str) -> dict[str, Any]:
+        m = self._require(arg)
+        return {**m.get("extra", {}), "fingerprint": m["fingerprint"]}
+
+    def artifact_dir(self, arg: str, partition: PartitionKey | None = None) -> Path:
+        m = self._require(arg)
+        dataset, fp = self._inputs[arg]
+        label = (partition or PartitionKey()).label
+        path = dataset_dir(self.root, dataset, fp) / "artifacts" / label
+        if label not in m.get("artifacts", {}):
+            raise DatasetIOError(f"dataset {dataset!r} has no committed artifacts for partition {label!r}; "
+                                 f"has {sorted(m.get('artifacts', {}))}")
+        return path
+
+
+def commit_artifacts(staging: Path, final: Path) -> list[dict[str, Any]]:
+    """Move a partition's staged artifact directory into place; returns (path, bytes, sha256) records."""
+    if not staging.exists():
+        return []
+    if final.exists():
+        shutil.rmtree(final)  # a killed attempt's leftovers; never listed in a manifest
+    final.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(staging, final)
+    return [{"path": str(p.relative_to(final)), "bytes": p.stat().st_size}
+            for p in sorted(final.rglob("*")) if p.is_file()]

@@ -1,0 +1,70 @@
+"""In-memory stand-ins for stage tests: run a stage's compute on Arrow tables without a store."""
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping
+
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from pipeline.declare import InputReader, Params, PartitionKey, StageContext
+from pipeline.errors import UnknownNameError
+
+_PARTITION_COLUMNS = ("drive", "chunk", "tile_i", "tile_j")
+
+
+class MemoryInputReader(InputReader):
+    """Serves tables from memory; ``partition=`` filters on the partition columns present in the table."""
+
+    def __init__(self, tables: Mapping[str, pa.Table], metadata: Mapping[str, dict] | None = None,
+                 artifact_dirs: Mapping[str, Path] | None = None):
+        self._tables = dict(tables)
+        self._metadata = dict(metadata or {})
+        self._artifacts = dict(artifact_dirs or {})
+
+    def has(self, arg: str) -> bool:
+        return arg in self._tables or arg in self._artifacts
+
+    def read(self, arg, *, partition=None, columns=None, filters=None) -> pa.Table:
+        if arg not in self._tables:
+            raise UnknownNameError(f"no input {arg!r} in this test context; have {sorted(self._tables)}")
+        table = self._tables[arg]
+        if partition is not None:
+            for name, value in partition.as_dict().items():
+                if name in table.column_names:
+                    table = table.filter(pc.equal(table[name], value))
+        if filters is not None:
+            table = table.filter(filters)
+        return table.select(columns) if columns else table
+
+    def partitions(self, arg: str) -> list[PartitionKey]:
+        table = self._tables[arg]
+        cols = [c for c in _PARTITION_COLUMNS if c in table.column_names]
+        if not cols:
+            return [PartitionKey()]
+        rows = table.select(cols).group_by(cols).aggregate([]).to_pylist()
+        return sorted(PartitionKey(**row) for row in rows)
+
+    def metadata(self, arg: str) -> dict[str, Any]:
+        return dict(self._metadata.get(arg, {}))
+
+    def artifact_dir(self, arg: str, partition: PartitionKey | None = None) -> Path:
+        return self._artifacts[arg]
+
+
+def make_context(stage: str, params: Params, tables: Mapping[str, pa.Table] | None = None, *,
+                 partition: PartitionKey | None = None, drives: Mapping[str, Path] | None = None,
+                 settings: Mapping[str, Any] | None = None, metadata: Mapping[str, dict] | None = None,
+                 input_artifacts: Mapping[str, Path] | None = None, outputs: tuple[str, ...] = (),
+                 workdir: Path | None = None) -> StageContext:
+    workdir = Path(workdir or tempfile.mkdtemp(prefix=f"cornermap-{stage}-"))
+    base_settings = {"map_name": "test", "enu_origin": None, "tile_size_m": 100.0, "map_drives": [],
+                     "eval_drives": [], "root": str(workdir), "references": {}}
+    base_settings.update(settings or {})
+    return StageContext(
+        stage=stage, partition=partition or PartitionKey(), params=params,
+        inputs=MemoryInputReader(tables or {}, metadata, input_artifacts), drives=dict(drives or {}),
+        settings=base_settings, scratch_dir=workdir / "scratch",
+        artifact_dirs={key: workdir / "artifacts" / key for key in outputs},
+    )

@@ -1,0 +1,306 @@
+"""Versioned, immutable directories with an atomic ``LATEST`` pointer (knows nothing about LiDAR).
+
+Layout of one collection (e.g. ``ROOT/maps/NAME``)::
+
+    NAME/
+      LATEST            one line "vNNNN\\n", replaced atomically (temp file + fsync + os.replace)
+      .publish.lock     empty; an exclusive fcntl.flock held by the one publisher at work
+      v0001/            immutable; manifest.json lists every other file with its sha256 and size
+      v0002/ ...
+
+Publishing (``publish_version``):
+  1. take the lock without waiting (a second publisher fails at once with ``PublishConflictError`` and
+     creates nothing); remove staging/trash directories that killed publishers left behind;
+  2. the caller's ``write(staging_dir)`` writes the files and returns its manifest fields;
+  3. every file is hashed, ``manifest.json`` is written last, then every checksum is re-read and verified;
+  4. files and directories are fsynced, the staging directory is renamed to ``vNNNN`` (never onto an
+     existing one), then ``LATEST`` is replaced;
+  5. retention removes the oldest versions beyond ``keep_last``, never the one ``LATEST`` names.
+A process killed at any point leaves ``LATEST`` naming the previous complete version (or absent).
+The flock is released by the kernel when its holder dies, so a killed publisher never wedges the next one.
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import hashlib
+import json
+import logging
+import os
+import re
+import secrets
+import shutil
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+from pipeline.errors import ChecksumError, DatasetIOError, MapFormatError, PublishConflictError, UnknownNameError
+
+log = logging.getLogger(__name__)
+
+MANIFEST_NAME = "manifest.json"
+LATEST_NAME = "LATEST"
+LOCK_NAME = ".publish.lock"
+_STAGING_PREFIX = ".staging-"
+_TRASH_PREFIX = ".trash-"
+_VERSION_RE = re.compile(r"^v(\d{4,})$")
+_CHUNK = 1 << 20
+
+
+@dataclass(frozen=True)
+class PublishedVersion:
+    """One complete version of a collection."""
+
+    version: int
+    path: Path
+    manifest_sha256: str
+    manifest: dict[str, Any]
+    created: bool  # False when an existing version was returned instead of publishing
+
+    @property
+    def name(self) -> str:
+        return version_name(self.version)
+
+
+def version_name(version: int) -> str:
+    return f"v{int(version):04d}"
+
+
+def parse_version(text: str | int) -> int:
+    """``3``, ``"3"``, ``"v3"`` or ``"v0003"`` -> 3."""
+    if isinstance(text, int):
+        return text
+    s = str(text).strip()
+    m = _VERSION_RE.match(s) or re.match(r"^v?(\d+)$", s)
+    if not m:
+        raise UnknownNameError(f"{text!r} is not a version; expected vNNNN (e.g. v0003), a number, or LATEST")
+    return int(m.group(1))
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(_CHUNK), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def list_versions(collection_dir: Path) -> list[int]:
+    """Complete version numbers present, ascending (staging and trash directories are ignored)."""
+    collection_dir = Path(collection_dir)
+    if not collection_dir.is_dir():
+        return []
+    out = []
+    for entry in os.scandir(collection_dir):
+        m = _VERSION_RE.match(entry.name)
+        if m and entry.is_dir():
+            out.append(int(m.group(1)))
+    return sorted(out)
+
+
+def read_latest(collection_dir: Path) -> int | None:
+    """The version ``LATEST`` names, or None before the first publish."""
+    path = Path(collection_dir) / LATEST_NAME
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None
+    first = text.strip().split()[0] if text.strip() else ""
+    if not _VERSION_RE.match(first):
+        raise MapFormatError(f"{path}: expected one line 'vNNNN'; got {text[:40]!r}. "
+                             "hint: rewrite it with the name of a complete version directory")
+    return int(first[1:])
+
+
+def resolve_version(collection_dir: Path, version: str | int = "LATEST") -> Path:
+    """Directory of ``version`` ("LATEST", "v0003", 3); raises UnknownNameError when absent."""
+    collection_dir = Path(collection_dir)
+    if isinstance(version, str) and version.upper() == "LATEST":
+        number = read_latest(collection_dir)
+        if number is None:
+            raise UnknownNameError(f"{collection_dir}: nothing published yet (no {LATEST_NAME} file)")
+    else:
+        number = parse_version(version)
+    path = collection_dir / version_name(number)
+    if not path.is_dir():
+        have = ", ".join(version_name(v) for v in list_versions(collection_dir)) or "none"
+        raise UnknownNameError(f"{collection_dir}: no version {version_name(number)}; have {have}")
+    return path
+
+
+def read_manifest(version_dir: Path) -> tuple[dict[str, Any], str]:
+    """(manifest dict, sha256 of manifest.json)."""
+    path = Path(version_dir) / MANIFEST_NAME
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError as exc:
+        raise MapFormatError(f"{path}: missing; a complete version always has one") from exc
+    try:
+        return json.loads(raw), hashlib.sha256(raw).hexdigest()
+    except json.JSONDecodeError as exc:
+        raise MapFormatError(f"{path}: not valid JSON ({exc})") from exc
+
+
+def verify_version(version_dir: Path) -> list[str]:
+    """Every problem of a version directory (missing, extra or corrupted files); empty when intact."""
+    version_dir = Path(version_dir)
+    manifest, _ = read_manifest(version_dir)
+    listed = manifest.get("files")
+    if not isinstance(listed, dict):
+        return [f"{version_dir / MANIFEST_NAME}: no 'files' table"]
+    problems = []
+    for rel, entry in sorted(listed.items()):
+        path = version_dir / rel
+        if not path.is_file():
+            problems.append(f"{path}: missing (manifest lists it)")
+            continue
+        got = sha256_file(path)
+        if got != entry.get("sha256"):
+            problems.append(f"{path}: sha256 {got[:16]}... differs from manifest {str(entry.get('sha256'))[:16]}...")
+    present = {p.relative_to(version_dir).as_posix() for p in version_dir.rglob("*") if p.is_file()}
+    for rel in sorted(present - set(listed) - {MANIFEST_NAME}):
+        problems.append(f"{version_dir / rel}: not listed in the manifest")
+    return problems
+
+
+def check_version(version_dir: Path) -> None:
+    """Raise ChecksumError listing every problem, or return when the version is intact."""
+    problems = verify_version(version_dir)
+    if problems:
+        raise ChecksumError(f"{version_dir}: {len(problems)} problem(s):\n" + "\n".join(f"  - {p}" for p in problems)
+                            + "\nhint: the version is corrupt; republish it or restore it from backup")
+
+
+@contextmanager
+def publish_lock(collection_dir: Path) -> Iterator[None]:
+    """Exclusive, non-waiting publisher lock; released by the kernel if the holder dies."""
+    collection_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(collection_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise PublishConflictError(
+                    f"{collection_dir}: another publisher holds {LOCK_NAME}; this one stops without writing. "
+                    "hint: wait for it to finish, then run again (a no-op if its inputs were the same)") from exc
+            raise
+        yield
+    finally:
+        os.close(fd)
+
+
+def _fsync_path(path: Path, directory: bool = False) -> None:
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _remove_leftovers(collection_dir: Path) -> None:
+    """Staging/trash dirs can only be leftovers of dead publishers: we hold the lock."""
+    for entry in os.scandir(collection_dir):
+        if entry.name.startswith((_STAGING_PREFIX, _TRASH_PREFIX)):
+            log.warning("removing %s left by an interrupted publisher", entry.path)
+            shutil.rmtree(entry.path, ignore_errors=False)
+        elif entry.name.startswith(f".{LATEST_NAME}.tmp"):
+            os.unlink(entry.path)
+
+
+def write_latest(collection_dir: Path, version: int, durable: bool = True) -> None:
+    tmp = collection_dir / f".{LATEST_NAME}.tmp-{os.getpid()}"
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(version_name(version) + "\n")
+        fh.flush()
+        if durable:
+            os.fsync(fh.fileno())
+    os.replace(tmp, collection_dir / LATEST_NAME)
+    if durable:
+        _fsync_path(collection_dir, directory=True)
+
+
+def _hash_tree(staging: Path, durable: bool) -> dict[str, dict[str, Any]]:
+    files = {}
+    for path in sorted(p for p in staging.rglob("*") if p.is_file()):
+        rel = path.relative_to(staging).as_posix()
+        if rel == MANIFEST_NAME:
+            raise DatasetIOError(f"{path}: the writer must not create {MANIFEST_NAME}; the publisher writes it")
+        if durable:
+            _fsync_path(path)
+        files[rel] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+    return files
+
+
+def _apply_retention(collection_dir: Path, keep_last: int) -> list[int]:
+    latest = read_latest(collection_dir)
+    versions = list_versions(collection_dir)
+    doomed = [v for v in versions[:max(0, len(versions) - keep_last)] if v != latest]
+    for v in doomed:
+        trash = collection_dir / f"{_TRASH_PREFIX}{version_name(v)}-{secrets.token_hex(4)}"
+        os.rename(collection_dir / version_name(v), trash)  # the version vanishes atomically
+        shutil.rmtree(trash)
+        log.info("retention: removed %s of %s (keep_last=%d)", version_name(v), collection_dir, keep_last)
+    return doomed
+
+
+def publish_version(collection_dir: Path, write: Callable[[Path], Mapping[str, Any]], *,
+                    keep_last: int | None = None, durable: bool = True,
+                    reuse: Callable[[dict[str, Any]], bool] | None = None) -> PublishedVersion:
+    """Publish ``write``'s files as the next version and point ``LATEST`` at it.
+
+    ``write(staging_dir)`` writes files under staging_dir and returns JSON-able manifest fields; the
+    publisher adds ``version``, ``parent_version``, ``created_utc`` and ``files``. ``reuse(latest_manifest)``
+    returning True skips publishing and returns the latest version (idempotent rebuilds).
+    """
+    collection_dir = Path(collection_dir)
+    if keep_last is not None and keep_last < 1:
+        raise ValueError(f"keep_last must be >= 1 (LATEST is always kept); got {keep_last}")
+    with publish_lock(collection_dir):
+        _remove_leftovers(collection_dir)
+        parent = read_latest(collection_dir)
+        if parent is not None and reuse is not None:
+            parent_dir = collection_dir / version_name(parent)
+            manifest, sha = read_manifest(parent_dir)
+            if reuse(manifest):
+                log.info("%s: inputs unchanged since %s; not publishing", collection_dir, version_name(parent))
+                return PublishedVersion(parent, parent_dir, sha, manifest, created=False)
+        existing = list_versions(collection_dir)
+        number = max(existing + [parent or 0]) + 1
+        final = collection_dir / version_name(number)
+        staging = collection_dir / f"{_STAGING_PREFIX}{version_name(number)}-{os.getpid()}-{secrets.token_hex(4)}"
+        staging.mkdir()
+        try:
+            fields = dict(write(staging))
+            reserved = {"version", "parent_version", "created_utc", "files"} & set(fields)
+            if reserved:
+                raise ValueError(f"writer returned reserved manifest keys {sorted(reserved)}")
+            files = _hash_tree(staging, durable)
+            manifest = {**fields, "version": number, "parent_version": parent,
+                        "created_utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+                        "files": files}
+            raw = json.dumps(manifest, indent=1, sort_keys=False).encode("utf-8")
+            with open(staging / MANIFEST_NAME, "wb") as fh:
+                fh.write(raw)
+                fh.flush()
+                if durable:
+                    os.fsync(fh.fileno())
+            check_version(staging)
+            if durable:
+                for d in sorted({p.parent for p in staging.rglob("*")} | {staging}, key=lambda p: -len(p.parts)):
+                    _fsync_path(d, directory=True)
+            if final.exists():  # impossible under the lock unless someone wrote by hand; never overwrite
+                raise PublishConflictError(f"{final}: already exists; a published version is never overwritten")
+            os.rename(staging, final)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        if durable:
+            _fsync_path(collection_dir, directory=True)
+        write_latest(collection_dir, number, durable)
+        if keep_last is not None:
+            _apply_retention(collection_dir, keep_last)
+        log.info("published %s (%d files)", final, len(files))
+        return PublishedVersion(number, final, hashlib.sha256(raw).hexdigest(), manifest, created=True)

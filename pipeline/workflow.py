@@ -1,0 +1,207 @@
+"""Workflows: what to build (drives, stages, params, root, map name, scheduler), validated at load time.
+
+Every problem in a workflow is collected and raised once, with "did you mean" for unknown names.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from pipeline.catalog import Catalog, load_catalog
+from pipeline.declare import Params, StageDecl
+from pipeline.errors import ConfigError
+from pipeline.registry import load_stages, suggest
+
+TEMPLATE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
+
+
+class DriveEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str
+    path: str  # drive.yaml; may reference a dataset's artifacts as ${dataset}/...
+    role: Literal["map", "eval"] = "map"
+    reference: str | None = None  # truth trajectory (TUM) for evaluation
+
+
+class EnuOriginSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    lat_deg: float
+    lon_deg: float
+    h_m: float = 0.0
+
+
+class WorkflowSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str
+    description: str = ""
+    catalog: list[str] = ["data_catalog"]
+    root: str = "runs/default"
+    map_name: str = "map"
+    scheduler: str = "local"
+    enu_origin: EnuOriginSpec | None = None
+    tile_size_m: float = 100.0
+    drives: list[DriveEntry] = []
+    stages: list[str]
+    params: dict[str, dict[str, Any]] = {}
+
+
+@dataclass
+class Workflow:
+    spec: WorkflowSpec
+    path: Path
+    base_dir: Path  # relative paths in the workflow resolve against the repository (cwd) or this
+    catalog: Catalog
+    stages: dict[str, StageDecl]  # in execution order
+    params: dict[str, Params]
+    producers: dict[str, str] = field(default_factory=dict)  # dataset -> stage
+    deps: dict[str, set[str]] = field(default_factory=dict)  # stage -> upstream stages
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    def settings(self, root: Path) -> dict[str, Any]:
+        s = self.spec
+        return {
+            "map_name": s.map_name,
+            "enu_origin": s.enu_origin.model_dump() if s.enu_origin else None,
+            "tile_size_m": s.tile_size_m,
+            "map_drives": [d.name for d in s.drives if d.role == "map"],
+            "eval_drives": [d.name for d in s.drives if d.role == "eval"],
+            "root": str(root),
+            "references": {d.name: d.reference for d in s.drives},
+        }
+
+
+def _pydantic_problems(where: str, exc: ValidationError) -> list[str]:
+    out = []
+    for err in exc.errors():
+        loc = ".".join(str(x) for x in err["loc"])
+        if err["type"] == "extra_forbidden":
+            out.append(f"{where}: unknown key {loc!r}")
+        else:
+            out.append(f"{where}: {loc}: {err['msg']}")
+    return out
+
+
+def validate_params(stage: StageDecl, overrides: dict[str, Any], where: str) -> tuple[Params | None, list[str]]:
+    problems = []
+    known = set(stage.params.model_fields)
+    for key in overrides:
+        if key not in known:
+            problems.append(f"{where}: stage {stage.name!r} has no param {key!r}{suggest(key, known)}; "
+                            f"known: {', '.join(sorted(known)) or '(none)'}")
+    if problems:
+        return None, problems
+    try:
+        return stage.params.model_validate(overrides), []
+    except ValidationError as exc:
+        return None, _pydantic_problems(f"{where}: params of {stage.name!r}", exc)
+
+
+def load_workflow(path: Path | str, *, param_overrides: dict[str, dict[str, Any]] | None = None) -> Workflow:
+    path = Path(path)
+    where = str(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(where, [f"cannot read the workflow file: {exc.strerror or exc}"]) from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(where, [f"not valid YAML: {exc}"]) from exc
+    try:
+        spec = WorkflowSpec.model_validate(raw or {})
+    except ValidationError as exc:
+        raise ConfigError(where, _pydantic_problems(where, exc)) from exc
+    base_dir = Path.cwd()
+    problems: list[str] = []
+
+    catalog_paths = [(base_dir / c) if not Path(c).is_absolute() else Path(c) for c in spec.catalog]
+    try:
+        catalog = load_catalog(catalog_paths)
+    except ConfigError as exc:
+        problems += exc.problems
+        catalog = Catalog({}, ())
+
+    registry = load_stages()
+    stages: dict[str, StageDecl] = {}
+    for name in spec.stages:
+        if name not in registry:
+            problems.append(f"unknown stage {name!r}{suggest(name, registry)}; known: {', '.join(registry)}")
+        elif name in stages:
+            problems.append(f"stage {name!r} is listed twice")
+        else:
+            stages[name] = registry[name]
+
+    overrides = {k: dict(v) for k, v in spec.params.items()}
+    for stage_name, extra in (param_overrides or {}).items():
+        overrides.setdefault(stage_name, {}).update(extra)
+    params: dict[str, Params] = {}
+    for stage_name, values in overrides.items():
+        if stage_name not in stages:
+            problems.append(f"params given for {stage_name!r}, which is not a stage of this workflow"
+                            f"{suggest(stage_name, stages)}")
+    for name, decl in stages.items():
+        p, probs = validate_params(decl, overrides.get(name, {}), where)
+        problems += probs
+        if p is not None:
+            params[name] = p
+
+    producers: dict[str, str] = {}
+    for name, decl in stages.items():
+        for key, ds in decl.outputs.items():
+            if catalog.datasets and ds not in catalog.datasets:
+                problems.append(f"stage {name!r} output {key!r} writes dataset {ds!r}, which the catalog does not "
+                                f"declare{suggest(ds, catalog.datasets)}")
+            if ds in producers:
+                problems.append(f"dataset {ds!r} is written by both {producers[ds]!r} and {name!r}")
+            producers[ds] = name
+    deps: dict[str, set[str]] = {name: set() for name in stages}
+    for name, decl in stages.items():
+        for arg, ds in decl.inputs.items():
+            if catalog.datasets and ds not in catalog.datasets:
+                problems.append(f"stage {name!r} input {arg!r} reads dataset {ds!r}, which the catalog does not "
+                                f"declare{suggest(ds, catalog.datasets)}")
+            elif ds in producers:
+                deps[name].add(producers[ds])
+            elif arg not in decl.optional_inputs:
+                problems.append(f"stage {name!r} input {arg!r} needs dataset {ds!r}, which no stage of this "
+                                f"workflow produces (add its producer to 'stages')")
+    # Templated drive paths and references make the drive readers depend on the producing stage.
+    for d in spec.drives:
+        for text in (d.path, d.reference or ""):
+            for ds in TEMPLATE.findall(text):
+                if ds not in producers:
+                    problems.append(f"drive {d.name!r}: ${{{ds}}} names no dataset produced by this workflow"
+                                    f"{suggest(ds, producers)}")
+                    continue
+                for name, decl in stages.items():
+                    if name != producers[ds]:
+                        deps[name].add(producers[ds])
+    names = [d.name for d in spec.drives]
+    if len(set(names)) != len(names):
+        problems.append(f"drive names must be unique; got {names}")
+    if problems:
+        raise ConfigError(f"workflow {path.name}", problems)
+    order = _topological(deps, list(stages), where)
+    return Workflow(spec, path, base_dir, catalog, {n: stages[n] for n in order}, params, producers, deps)
+
+
+def _topological(deps: dict[str, set[str]], listed: list[str], where: str) -> list[str]:
+    order: list[str] = []
+    pending = {n: set(d) for n, d in deps.items()}
+    while pending:
+        ready = [n for n in listed if n in pending and not (pending[n] - set(order))]
+        if not ready:
+            raise ConfigError(where, [f"stages form a cycle: {sorted(pending)}"])
+        for n in ready:
+            order.append(n)
+            del pending[n]
+    return order

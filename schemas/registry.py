@@ -1,0 +1,30 @@
+"""Schema registry. Every field carries ``unit`` and, where it has one, ``frame`` metadata."""
+from __future__ import annotations
+
+import pyarrow as pa
+
+SCHEMAS: dict[str, pa.Schema] = {}
+
+
+def field(name: str, type_: pa.DataType, unit: str = "", frame: str = "", doc: str = "",
+          nullable: bool = False) -> pa.Field:
+    meta = {k: v for k, v in {"unit": unit, "frame": frame, "doc": doc}.items() if v}
+    return pa.field(name, type_, nullable=nullable, metadata=meta or None)
+
+
+def register(name: str, doc: str, *fields: pa.Field) -> pa.Schema:
+    schema = pa.schema(list(fields), metadata={"dataset": name, "doc": doc})
+    SCHEMAS[name] = schema
+    return schema
+
+
+def schema_of(name: str) -> pa.Schema:
+    from pipeline.errors import UnknownNameError
+
+    if name not in SCHEMAS:
+        raise UnknownNameError(f"no schema named {name!r}; known: {', '.join(sorted(SCHEMAS))}")
+    return SCHEMAS[name]
+
+
+# Import the modules that register schemas (kept small, one per data-flow step).
+from schemas import raw, trajectory, landmarks, products  # noqa: E402,F401

@@ -1,0 +1,43 @@
+"""Schemas of the pose graph stage."""
+import pyarrow as pa
+
+from schemas.registry import field as f, register
+
+DRIVE = f("drive", pa.string())
+POSE = [
+    f("x_m", pa.float64(), "m", "enu"), f("y_m", pa.float64(), "m", "enu"), f("z_m", pa.float64(), "m", "enu"),
+    f("qx", pa.float64()), f("qy", pa.float64()), f("qz", pa.float64()), f("qw", pa.float64()),
+]
+
+register(
+    "odometry_edges", "ICP between consecutive scans: T_prev_curr of the vehicle frame, with quality.",
+    DRIVE, f("chunk", pa.int32()),
+    f("scan_id", pa.int64(), doc="the later scan of the pair; the earlier is scan_id - 1"),
+    f("stamp_ns", pa.int64(), "ns"),
+    f("dx_m", pa.float64(), "m", "vehicle_prev"), f("dy_m", pa.float64(), "m", "vehicle_prev"),
+    f("dz_m", pa.float64(), "m", "vehicle_prev"),
+    f("qx", pa.float64()), f("qy", pa.float64()), f("qz", pa.float64()), f("qw", pa.float64()),
+    f("fitness", pa.float64(), doc="share of source points with a correspondence"),
+    f("inlier_rmse_m", pa.float64(), "m"),
+    f("information", pa.list_(pa.float64(), 36), doc="6x6 row-major, gtsam order (rx ry rz tx ty tz)"),
+    f("converged", pa.bool_()),
+)
+
+register(
+    "poses_odometry", "Dead-reckoned vehicle poses from chained ICP edges (T_odom_vehicle).",
+    DRIVE, f("scan_id", pa.int64()), f("stamp_ns", pa.int64(), "ns"), *POSE,
+)
+
+register(
+    "poses_optimized", "Pose-graph optimized vehicle poses T_map_vehicle with marginal covariance.",
+    DRIVE, f("scan_id", pa.int64()), f("stamp_ns", pa.int64(), "ns"), *POSE,
+    f("cov_xy_yaw", pa.list_(pa.float64(), 9), doc="3x3 row-major marginal covariance of (east m, north m, yaw rad)"),
+)
+
+register(
+    "loop_closures", "Every loop-closure candidate with its scores and decision.",
+    f("drive_a", pa.string()), f("scan_a", pa.int64()), f("drive_b", pa.string()), f("scan_b", pa.int64()),
+    f("prior_distance_m", pa.float64(), "m"), f("fitness", pa.float64()), f("inlier_rmse_m", pa.float64(), "m"),
+    f("dx_m", pa.float64(), "m"), f("dy_m", pa.float64(), "m"), f("dyaw_rad", pa.float64(), "rad"),
+    f("accepted", pa.bool_()), f("reason", pa.string()),
+)

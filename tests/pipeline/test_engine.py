@@ -1,0 +1,179 @@
+"""Engine oracles on LiDAR-free toy stages: skip on rerun, param change re-runs downstream only,
+sync vs distributed equality, kill -9 then resume, and all workflow mistakes reported at once."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow as pa
+import pytest
+import yaml
+
+from tests.pipeline.toy_stages import EXTRA
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(autouse=True)
+def toy_stages(monkeypatch):
+    from pipeline.registry import load_stages
+
+    monkeypatch.setenv("CORNERMAP_EXTRA_STAGES", EXTRA)
+    monkeypatch.setenv("PYTHONPATH", str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    load_stages.cache_clear()
+    yield
+    load_stages.cache_clear()
+
+
+def write_toy(tmp: Path, *, params: dict | None = None, stages=("numbers", "squares", "total")) -> Path:
+    (tmp / "catalog").mkdir(exist_ok=True)
+    (tmp / "catalog" / "toy.yaml").write_text(yaml.safe_dump({"datasets": {
+        "toy_numbers": {"schema": "tests.pipeline.toy_stages:NUMBERS", "partitioning": ["drive", "chunk"]},
+        "toy_squares": {"schema": "tests.pipeline.toy_stages:SQUARES", "partitioning": ["drive", "chunk"]},
+        "toy_notes": {"kind": "artifacts"},
+        "toy_total": {"schema": "tests.pipeline.toy_stages:TOTAL"},
+    }}))
+    for d in ("d0", "d1"):
+        (tmp / d).mkdir(exist_ok=True)
+        (tmp / d / "drive.yaml").write_text(f"name: {d}\n")
+    wf = {"name": "toy", "catalog": [str(tmp / "catalog")], "root": str(tmp / "root"), "scheduler": "sync",
+          "drives": [{"name": "d0", "path": str(tmp / "d0" / "drive.yaml")},
+                     {"name": "d1", "path": str(tmp / "d1" / "drive.yaml")}],
+          "stages": list(stages), "params": params or {}}
+    path = tmp / "toy.yaml"
+    path.write_text(yaml.safe_dump(wf))
+    return path
+
+
+def run(path: Path, **kw):
+    from pipeline.cli import execute_workflow
+
+    return execute_workflow(path, root=kw.pop("root", None), scheduler=kw.pop("scheduler", None),
+                            only=kw.pop("only", None), dry_run=False, quiet=True, **kw)
+
+
+def read_output(root: Path, dataset: str) -> pa.Table:
+    import pyarrow.parquet as pq
+
+    [fp_dir] = [p for p in (root / "datasets" / dataset).iterdir() if (p / "_manifest.json").exists()]
+    m = json.loads((fp_dir / "_manifest.json").read_text())
+    tables = [pq.read_table(fp_dir / f["path"]) for f in m["files"]]
+    return pa.concat_tables(tables).sort_by([(c, "ascending") for c in tables[0].column_names])
+
+
+def decisions(result) -> dict[str, str]:
+    return {k: v["decision"] for k, v in result["summary"].items()}
+
+
+def test_second_run_skips_and_param_change_reruns_downstream(tmp_path):
+    path = write_toy(tmp_path)
+    assert decisions(run(path)) == {"numbers": "ran", "squares": "ran", "total": "ran"}
+    assert decisions(run(path)) == {"numbers": "skipped", "squares": "skipped", "total": "skipped"}
+    path = write_toy(tmp_path, params={"squares": {"offset": 1.0}})
+    assert decisions(run(path)) == {"numbers": "skipped", "squares": "ran", "total": "ran"}
+    path = write_toy(tmp_path, params={"squares": {"offset": 1.0}, "total": {"scale": 2.0}})
+    assert decisions(run(path)) == {"numbers": "skipped", "squares": "skipped", "total": "ran"}
+    committed = lambda ds: len(list((tmp_path / "root" / "datasets" / ds).glob("*/_manifest.json")))  # noqa: E731
+    assert (committed("toy_numbers"), committed("toy_squares"), committed("toy_total")) == (1, 2, 3)
+
+
+def test_manifest_records_provenance_and_partitions(tmp_path):
+    path = write_toy(tmp_path)
+    run(path)
+    root = tmp_path / "root"
+    [fp_dir] = list((root / "datasets" / "toy_squares").iterdir())
+    m = json.loads((fp_dir / "_manifest.json").read_text())
+    assert m["rows"] == 800 and len(m["partitions"]) == 8
+    assert m["params"] == {"offset": 0.0, "sleep_s": 0.0} and m["code_version"] == "1"
+    assert m["inputs"]["numbers"]["dataset"] == "toy_numbers"
+    assert all(len(f["sha256"]) == 64 and "drive=" in f["path"] and "chunk=" in f["path"] for f in m["files"])
+    [notes] = list((root / "datasets" / "toy_notes").iterdir())
+    assert sorted(p.name for p in (notes / "artifacts").iterdir()) == sorted(m["partitions"])
+
+
+def test_sync_and_distributed_local_cluster_give_equal_tables(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    path = write_toy(tmp_path)
+    run(path, root=tmp_path / "sync")
+    with distributed.LocalCluster(n_workers=2, processes=True, threads_per_worker=1, dashboard_address=None) as cl:
+        run(path, root=tmp_path / "dist", scheduler=cl.scheduler_address)
+    for ds in ("toy_numbers", "toy_squares", "toy_total"):
+        assert read_output(tmp_path / "sync", ds).equals(read_output(tmp_path / "dist", ds)), ds
+
+
+def test_processes_scheduler_equals_sync(tmp_path):
+    path = write_toy(tmp_path)
+    run(path, root=tmp_path / "sync")
+    run(path, root=tmp_path / "proc", scheduler="processes")
+    assert read_output(tmp_path / "sync", "toy_squares").equals(read_output(tmp_path / "proc", "toy_squares"))
+
+
+def test_sigkill_mid_stage_then_rerun_equals_uninterrupted(tmp_path):
+    path = write_toy(tmp_path, params={"squares": {"sleep_s": 0.4}})
+    ref = write_toy(tmp_path / "ref" if (tmp_path / "ref").mkdir() is None else tmp_path,
+                    params={"squares": {"sleep_s": 0.0}})
+    run(ref, root=tmp_path / "ref_root")
+    env = dict(os.environ)
+    cmd = [sys.executable, "-m", "pipeline", "run", str(path), "--scheduler", "sync", "--quiet"]
+    proc = subprocess.Popen(cmd, env=env, cwd=REPO, start_new_session=True)
+    squares_root = tmp_path / "root" / "datasets" / "toy_squares"
+    deadline = time.time() + 60
+    while time.time() < deadline:  # wait until some but not all squares partitions are committed
+        parts = list(squares_root.glob("*/_parts/*.json"))
+        if len(parts) >= 2:
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    committed = list(squares_root.glob("*/_manifest.json"))
+    assert not committed, "the stage must not be committed after a kill in its middle"
+    # A reader during the kill sees nothing of the partial stage.
+    from pipeline.store import read_manifest
+
+    assert all(read_manifest(p) is None for p in squares_root.iterdir())
+    result = run(path)
+    assert result["summary"]["squares"]["decision"] == "ran"
+    a, b = read_output(tmp_path / "root", "toy_squares"), read_output(tmp_path / "ref_root", "toy_squares")
+    assert a.equals(b)
+    assert read_output(tmp_path / "root", "toy_total").equals(read_output(tmp_path / "ref_root", "toy_total"))
+
+
+def test_three_mistakes_reported_at_once_exit_1_no_traceback(tmp_path):
+    path = write_toy(tmp_path, params={"numbers": {"n_chunk": 3}}, stages=("numbers", "squarez", "total"))
+    env = dict(os.environ)
+    out = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path)], env=env, cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1, out.stderr
+    err = out.stderr
+    assert "Traceback" not in err
+    assert "unknown stage 'squarez'" in err and "did you mean 'squares'" in err
+    assert "'n_chunk'" in err and "did you mean 'n_chunks'" in err
+    assert "toy_squares" in err  # total needs a dataset no stage produces
+    assert err.count("\n  - ") >= 3
+
+
+def test_dry_run_prints_order_and_decisions(tmp_path):
+    path = write_toy(tmp_path)
+    out = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "--dry-run"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120, env=dict(os.environ, COLUMNS="200"))
+    assert out.returncode == 0, out.stderr
+    text = out.stdout
+    assert text.index("numbers") < text.index("squares") < text.index("total")
+    assert "dynamic" in text and "run" in text
+
+
+def test_schema_mismatch_lists_every_bad_column():
+    from pipeline.errors import SchemaMismatchError
+    from pipeline.store import conform_table
+    from tests.pipeline.toy_stages import NUMBERS
+
+    bad = pa.table({"drive": [1], "value": ["x"], "extra": [0]})
+    with pytest.raises(SchemaMismatchError) as info:
+        conform_table(bad, NUMBERS, "test")
+    msg = str(info.value)
+    assert "'drive'" in msg and "'chunk'" in msg and "'value'" in msg and "'extra'" in msg
