@@ -1,0 +1,240 @@
+"""Ingest adapter: drive.yaml -> the eight ingest datasets (Arrow tables, scans streamed by piece)."""
+from __future__ import annotations
+
+import logging
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+
+from pipeline.declare import StageContext
+from pipeline.errors import ConfigError
+from stages.common.geodesy import EnuOrigin, geodetic_to_enu
+from stages.ingest.drive_file import DriveSpec, load_drive_file
+from stages.ingest.gnss_csv import NS_PER_WEEK, find_gaps, read_gnss, read_odometry, read_scan_stamps, stamps_ns
+from stages.ingest.origin import resolve_enu_origin
+from stages.ingest.params import IngestParams
+from stages.ingest.pose_interpolation import attitude_from_rpy, interpolate_poses, vehicle_origin_from_reference
+from stages.ingest.report import IngestReport
+from stages.ingest.scan_pass import (PIECE_ROWS, ScanFile, ScanResult, iter_scan_results, list_scan_files,
+                                     points_table, stamp_from_filename_us)
+from stages.ingest.survey import iter_survey_enu
+
+log = logging.getLogger(__name__)
+
+
+class _Deferred:
+    """An iterable of tables computed on first iteration (after the scan pass when it has run)."""
+
+    def __init__(self, produce: Callable[[], Iterable]):
+        self._produce = produce
+
+    def __iter__(self) -> Iterator:
+        yield from self._produce()
+
+
+def _table(name: str, columns: dict):
+    import pyarrow as pa
+
+    from schemas import SCHEMAS
+
+    return pa.table(columns, schema=SCHEMAS[name])
+
+
+class DriveIngest:
+    def __init__(self, drive: str, spec: DriveSpec, params: IngestParams, origin: EnuOrigin | None,
+                 drive_file: str = ""):
+        self.drive, self.spec, self.params, self.origin = drive, spec, params, origin
+        self.drive_file = drive_file or str(spec.drive_dir / "drive.yaml")
+        self.report = IngestReport()
+        self.gnss = None
+        if spec.gnss:
+            self.gnss, issues = read_gnss(spec.path(spec.gnss.file), spec.gnss)
+            for issue in issues:
+                self.report.add("timestamp", spec.gnss.file, issue.record, 1, issue.reason)
+            for i, gap_s in find_gaps(self.gnss.stamp_ns, params.gnss_gap_s):
+                self.report.add("gnss_gap", spec.gnss.file, int(self.gnss.records[i]), 1,
+                                f"{gap_s:.3f} s without a fix after this record (threshold {params.gnss_gap_s} s)")
+        self.scans = self._scan_files()
+        self._index_rows: list[dict] | None = None
+
+    # ---- scan list and stamps --------------------------------------------------------------------------
+    def _scan_files(self) -> list[ScanFile]:
+        spec = self.spec
+        files = list_scan_files(spec.path(spec.scans.folder), spec.scans.format)
+        source = spec.scan_times.source
+        if source == "rate":
+            t0 = stamps_ns(spec.scan_times.t0_s) if spec.scan_times.t0_s is not None else \
+                (int(self.gnss.stamp_ns[0]) if self.gnss is not None and len(self.gnss.stamp_ns) else 0)
+            scans = [ScanFile(i, p, t0 + round(i * 1e9 / spec.scan_rate_hz)) for i, p in enumerate(files)]
+        elif source == "filename_us":
+            scans = [ScanFile(i, p, stamp_from_filename_us(p)) for i, p in enumerate(files)]
+        else:
+            week = None
+            if spec.gnss and spec.gnss.time.week_column and self.gnss is not None and len(self.gnss.stamp_ns):
+                week = int(self.gnss.stamp_ns[0] // NS_PER_WEEK)
+            stamps = read_scan_stamps(spec.stamps_file, week)
+            n = max(len(files), max(stamps, default=-1) + 1)
+            scans = [ScanFile(i, files[i] if i < len(files) else None, stamps.get(i)) for i in range(n)]
+        if self.params.max_scans is not None:
+            scans = scans[:self.params.max_scans]
+        known = [s for s in scans if s.stamp_ns is not None]
+        stamp_file = spec.scan_times.file or "scan stamps"
+        for prev, cur in zip(known, known[1:]):
+            if cur.stamp_ns <= prev.stamp_ns:
+                self.report.add("timestamp", stamp_file, cur.scan_id, 1,
+                                f"scan stamp {'repeats' if cur.stamp_ns == prev.stamp_ns else 'goes back'} "
+                                f"after scan {prev.scan_id}")
+        return scans
+
+    # ---- the scan pass -----------------------------------------------------------------------------------
+    def _results(self) -> Iterator[ScanResult]:
+        p = self.params
+        return iter_scan_results(self.scans, self.spec, p.chunk_size_scans, p.min_range_m, p.ring_vote_min_share)
+
+    def _record(self, rows: list[dict], result: ScanResult) -> None:
+        row = result.index_row
+        rows.append(row)
+        file = row["source_file"] or f"scan {row['scan_id']}"
+        if row["status"] != "ok":
+            self.report.add("quarantined_file", file, row["scan_id"], 1, row["reason"])
+            return
+        reasons = {"nonfinite": "non-finite coordinate", "zero": "zero point (0, 0, 0)",
+                   "near": f"closer than min_range_m {self.params.min_range_m} m"}
+        for key, count in result.drops.items():
+            if count:
+                self.report.add("dropped_points", file, row["scan_id"], count, reasons[key])
+        if result.missing_rings:
+            self.report.add("ring_coverage", file, row["scan_id"], len(result.missing_rings),
+                            f"{row['rings_present']} rings present; missing {result.missing_rings[:16]}")
+
+    def iter_scan_tables(self) -> Iterator:
+        rows: list[dict] = []
+        pending: list[ScanResult] = []
+        pending_rows = 0
+        already_counted = self._index_rows is not None
+        for result in self._results():
+            if not already_counted:
+                self._record(rows, result)
+            if pending and (result.index_row["chunk"] != pending[0].index_row["chunk"]
+                            or pending_rows + result.index_row["n_points"] > PIECE_ROWS):
+                yield points_table(self.drive, pending[0].index_row["chunk"], pending)
+                pending, pending_rows = [], 0
+            if result.points is not None:
+                pending.append(result)
+                pending_rows += len(result.points)
+        if pending:
+            yield points_table(self.drive, pending[0].index_row["chunk"], pending)
+        if not already_counted:
+            self._index_rows = rows
+
+    def index_rows(self) -> list[dict]:
+        if self._index_rows is None:  # scans not streamed (yet): a counting pass without tables
+            rows: list[dict] = []
+            for result in self._results():
+                self._record(rows, result)
+            self._index_rows = rows
+        return self._index_rows
+
+    # ---- tables -----------------------------------------------------------------------------------------
+    def scan_index_table(self):
+        rows = self.index_rows()
+        cols = ["chunk", "scan_id", "stamp_ns", "source_file", "n_points", "n_dropped_nonfinite",
+                "n_dropped_zero", "rings_present", "ring_source", "status", "reason"]
+        return _table("scan_index", {"drive": [self.drive] * len(rows), **{c: [r[c] for r in rows] for c in cols}})
+
+    def _vehicle_fixes(self):
+        g = self.gnss
+        attitude = attitude_from_rpy(g.roll_rad, g.pitch_rad, g.yaw_enu_rad)
+        reference = geodetic_to_enu(g.lat_deg, g.lon_deg, g.h_m, self.origin)
+        return vehicle_origin_from_reference(reference, attitude, self.spec.gnss.lever_arm_m), attitude
+
+    def gnss_table(self):
+        g = self.gnss
+        if g is None or self.origin is None or not len(g.stamp_ns):
+            return _table("gnss_enu", {n: [] for n in _names("gnss_enu")})
+        position, _ = self._vehicle_fixes()
+        return _table("gnss_enu", {
+            "drive": [self.drive] * len(g.stamp_ns), "stamp_ns": g.stamp_ns, "east_m": position[:, 0],
+            "north_m": position[:, 1], "up_m": position[:, 2], "roll_rad": g.roll_rad, "pitch_rad": g.pitch_rad,
+            "yaw_enu_rad": g.yaw_enu_rad, "std_east_m": g.std_enu_m[:, 0], "std_north_m": g.std_enu_m[:, 1],
+            "std_up_m": g.std_enu_m[:, 2], "std_yaw_rad": g.std_yaw_rad})
+
+    def poses_table(self):
+        g = self.gnss
+        scans = [s for s in self.scans if s.stamp_ns is not None]
+        if g is None or self.origin is None or not len(g.stamp_ns) or not scans:
+            return _table("poses_gnss", {n: [] for n in _names("poses_gnss")})
+        position, attitude = self._vehicle_fixes()
+        std = np.column_stack([g.std_enu_m, g.std_yaw_rad])
+        query = np.array([s.stamp_ns for s in scans], np.int64)
+        poses = interpolate_poses(g.stamp_ns, position, attitude, std, query, self.params.gnss_gap_s)
+        q = poses.quat_xyzw
+        return _table("poses_gnss", {
+            "drive": [self.drive] * len(query), "scan_id": [s.scan_id for s in scans], "stamp_ns": query,
+            "x_m": poses.position_enu_m[:, 0], "y_m": poses.position_enu_m[:, 1], "z_m": poses.position_enu_m[:, 2],
+            "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3], "std_east_m": poses.std[:, 0],
+            "std_north_m": poses.std[:, 1], "std_up_m": poses.std[:, 2], "std_yaw_rad": poses.std[:, 3],
+            "valid": poses.valid})
+
+    def odometry_table(self):
+        if self.spec.odometry is None:
+            return _table("odometry_raw", {n: [] for n in _names("odometry_raw")})
+        cols, issues = read_odometry(self.spec.path(self.spec.odometry.file), self.spec.odometry)
+        for issue in issues:
+            self.report.add("timestamp", self.spec.odometry.file, issue.record, 1, issue.reason)
+        return _table("odometry_raw", {"drive": [self.drive] * len(cols["stamp_ns"]), **cols})
+
+    def drive_info_table(self):
+        rows = self.index_rows()
+        o = self.origin
+        return _table("drive_info", {
+            "drive": [self.drive], "sensor": [self.spec.sensor],
+            "T_vehicle_lidar": [self.spec.T_vehicle_lidar_matrix.ravel().tolist()],
+            "origin_lat_deg": [o.lat_deg if o else np.nan], "origin_lon_deg": [o.lon_deg if o else np.nan],
+            "origin_h_m": [o.h_m if o else np.nan], "n_scans": [len(rows)],
+            "n_quarantined": [sum(r["status"] != "ok" for r in rows)],
+            "drive_file": [self.drive_file]})
+
+    def iter_survey_tables(self) -> Iterator:
+        s = self.spec.survey
+        if s is None:
+            yield _table("survey_enu", {n: [] for n in _names("survey_enu")})
+            return
+        if self.origin is None:
+            raise ConfigError(f"drive {self.drive}", ["survey needs an ENU origin: name enu_origin in the "
+                                                      "workflow, or give a drive GNSS"])
+        for enu, intensity in iter_survey_enu(self.spec.path(s.file), s.crs, self.origin,
+                                              self.params.survey_chunk_points):
+            yield _table("survey_enu", {"drive": [self.drive] * len(enu), "east_m": enu[:, 0],
+                                        "north_m": enu[:, 1], "up_m": enu[:, 2], "intensity": intensity})
+
+
+def _names(dataset: str) -> list[str]:
+    from schemas import SCHEMAS
+
+    return SCHEMAS[dataset].names
+
+
+def compute(ctx: StageContext) -> dict:
+    drive = ctx.partition.drive
+    if drive not in ctx.drives:
+        raise ConfigError(f"ingest partition {drive!r}", [f"no drive file for {drive!r}; drives: "
+                                                          f"{', '.join(ctx.drives)}"])
+    spec = load_drive_file(ctx.drives[drive])
+    if spec.name != drive:
+        log.warning("drive file %s names the drive %r; the workflow calls it %r (used)", ctx.drives[drive],
+                    spec.name, drive)
+    origin = resolve_enu_origin(ctx.settings.get("enu_origin"), list(ctx.drives.values()))
+    ingest = DriveIngest(drive, spec, ctx.params, origin, str(ctx.drives[drive]))
+    return {
+        "scans": ingest.iter_scan_tables(),
+        "scan_index": _Deferred(lambda: [ingest.scan_index_table()]),
+        "gnss": ingest.gnss_table(),
+        "odometry": ingest.odometry_table(),
+        "poses_gnss": ingest.poses_table(),
+        "drive_info": _Deferred(lambda: [ingest.drive_info_table()]),
+        "survey": ingest.iter_survey_tables(),
+        "report": _Deferred(lambda: [ingest.report.to_table(drive)]),
+        "_extra": {"enu_origin": origin.as_dict() if origin else None, "drive": drive,
+                   "time_base": spec.gnss.time.base if spec.gnss else None},
+    }

@@ -1,0 +1,19 @@
+"""Declaration of the ingest stage (imports nothing heavy)."""
+from pipeline.declare import Partitioning, StageDecl
+from stages.ingest.params import IngestParams
+
+STAGE = StageDecl(
+    name="ingest",
+    summary="Read a recorded drive (PCD / KITTI / nuScenes / LAS scans, GNSS/INS CSV, odometry, survey) into "
+            "Parquet in the map's ENU frame",
+    code_version="1",
+    inputs={},
+    outputs={"scans": "scans_raw", "scan_index": "scan_index", "gnss": "gnss_enu", "odometry": "odometry_raw",
+             "poses_gnss": "poses_gnss", "drive_info": "drive_info", "survey": "survey_enu",
+             "report": "ingest_report"},
+    params=IngestParams,
+    partition=Partitioning.PER_DRIVE,
+    uses_drives=True,
+    compute="stages.ingest.compute:compute",
+    cli="stages.ingest.cli",
+)

@@ -1,0 +1,17 @@
+"""Ingest parameters (defaults in code; unknown keys rejected)."""
+from __future__ import annotations
+
+from pydantic import Field
+
+from pipeline.declare import Params
+
+
+class IngestParams(Params):
+    chunk_size_scans: int = Field(100, ge=1, description="scans per chunk (the partition of downstream stages)")
+    max_scans: int | None = Field(None, ge=1, description="ingest only the first N scans (smoke runs)")
+    gnss_gap_s: float = Field(1.0, gt=0, description="GNSS fixes further apart than this are a gap (flagged; "
+                                                      "poses inside are valid=false)")
+    min_range_m: float = Field(0.0, ge=0, description="drop points closer than this to the sensor (0 = keep)")
+    survey_chunk_points: int = Field(1_000_000, ge=1000, description="survey points per streamed table")
+    ring_vote_min_share: float = Field(0.5, gt=0, le=1, description="majority a firing slot needs before "
+                                                                     "elevation-table rings are voted per slot")

@@ -1,0 +1,146 @@
+"""Scan file formats -> ``ScanPoints`` (float32 x/y/z in the sensor frame, intensity, optional ring and time).
+
+Formats: PCD v0.7 (see ``pcd.py``), KITTI ``.bin`` (float32 x y z reflectance), nuScenes-style ``.bin``
+(float32 x y z intensity ring), LAS/LAZ (laspy). Every malformed file raises ``FormatError`` naming it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import DatasetIOError, FormatError
+from stages.ingest.pcd import PcdCloud, read_pcd
+
+SCAN_SUFFIXES = {"pcd": (".pcd",), "kitti_bin": (".bin",), "nuscenes_bin": (".bin",), "las": (".las", ".laz")}
+_INTENSITY = ("intensity", "reflectance", "i")
+_RING = ("ring", "ring_index", "laser_id", "line")
+_TIME = ("time", "time_offset", "timestamp", "t", "offset_time")  # float: seconds; integer: nanoseconds
+
+
+@dataclass(frozen=True)
+class ScanPoints:
+    x_m: np.ndarray  # float32, sensor frame
+    y_m: np.ndarray
+    z_m: np.ndarray
+    intensity: np.ndarray  # float32, raw as recorded
+    ring: np.ndarray | None  # int16 from the file, or None
+    time_offset_s: np.ndarray | None  # float32 seconds since scan start, or None
+
+    def __len__(self) -> int:
+        return len(self.x_m)
+
+    def select(self, mask: np.ndarray) -> "ScanPoints":
+        return ScanPoints(self.x_m[mask], self.y_m[mask], self.z_m[mask], self.intensity[mask],
+                          None if self.ring is None else self.ring[mask],
+                          None if self.time_offset_s is None else self.time_offset_s[mask])
+
+
+def _first(columns: dict[str, np.ndarray], names: tuple[str, ...]) -> tuple[str, np.ndarray] | tuple[None, None]:
+    for name in names:
+        if name in columns:
+            col = columns[name]
+            return name, (col[:, 0] if col.ndim > 1 else col)
+    return None, None
+
+
+def _rings_checked(values: np.ndarray, source: str, field: str) -> np.ndarray:
+    finite = np.isfinite(values) if values.dtype.kind == "f" else np.ones(len(values), bool)
+    ok = finite & (values >= 0) & (values <= 1023)
+    if values.dtype.kind == "f":
+        ok &= np.floor(np.where(finite, values, 0)) == np.where(finite, values, 0)
+    if not np.all(ok):
+        bad = int(np.flatnonzero(~ok)[0])
+        raise FormatError(f"{source}: {field} of point {bad} is {values[bad]!r}, expected an integer ring 0..1023 "
+                          f"({int((~ok).sum())} bad points). Hint: the column order is not x y z intensity ring")
+    return values.astype(np.int16)
+
+
+def _relative_time_s(values: np.ndarray) -> np.ndarray:
+    t = values.astype(np.float64) * (1e-9 if values.dtype.kind in "iu" else 1.0)
+    if t.size and np.nanmin(t) > 1e5:  # absolute times (e.g. GPS seconds): make them relative to the first
+        t = t - np.nanmin(t)
+    return t.astype(np.float32)
+
+
+def points_from_pcd(cloud: PcdCloud, source: str = "<pcd>") -> ScanPoints:
+    cols = cloud.columns
+    missing = [c for c in ("x", "y", "z") if c not in cols]
+    if missing:
+        raise FormatError(f"{source}: PCD fields {' '.join(cloud.header.fields)} lack {', '.join(missing)}")
+    n = cloud.header.points
+    _, intensity = _first(cols, _INTENSITY)
+    ring_name, ring = _first(cols, _RING)
+    _, time = _first(cols, _TIME)
+    return ScanPoints(cols["x"].astype(np.float32), cols["y"].astype(np.float32), cols["z"].astype(np.float32),
+                      np.zeros(n, np.float32) if intensity is None else intensity.astype(np.float32),
+                      None if ring is None else _rings_checked(ring, source, ring_name),
+                      None if time is None else _relative_time_s(time))
+
+
+def _read_float32_records(path: Path, width: int, what: str) -> np.ndarray:
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DatasetIOError(f"{path}: cannot read {what} scan: {exc.strerror or exc}") from exc
+    record = 4 * width
+    if len(raw) % record:
+        raise FormatError(f"{path}: {len(raw)} bytes is not a whole number of {record}-byte {what} records "
+                          f"(record {len(raw) // record} is incomplete). Hint: truncated file, or the wrong "
+                          f"format (kitti_bin has 4 float32 columns, nuscenes_bin 5)")
+    return np.frombuffer(raw, "<f4").reshape(-1, width)
+
+
+def read_kitti_bin(path: Path) -> ScanPoints:
+    a = _read_float32_records(path, 4, "kitti_bin")
+    return ScanPoints(a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy(), a[:, 3].copy(), None, None)
+
+
+def read_nuscenes_bin(path: Path) -> ScanPoints:
+    a = _read_float32_records(path, 5, "nuscenes_bin")
+    return ScanPoints(a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy(), a[:, 3].copy(),
+                      _rings_checked(a[:, 4], str(path), "column 5 (ring)"), None)
+
+
+def read_las_points(path: Path) -> ScanPoints:
+    import laspy
+
+    try:
+        las = laspy.read(path)
+    except FileNotFoundError as exc:
+        raise DatasetIOError(f"{path}: LAS file not found") from exc
+    except Exception as exc:  # laspy/lazrs raise many types for corrupt files  # noqa: BLE001
+        raise FormatError(f"{path}: not a readable LAS/LAZ file: {type(exc).__name__}: {exc}") from exc
+    names = set(las.point_format.dimension_names)
+    time = _relative_time_s(np.asarray(las.gps_time)) if "gps_time" in names else None
+    return ScanPoints(np.asarray(las.x, np.float32), np.asarray(las.y, np.float32), np.asarray(las.z, np.float32),
+                      np.asarray(las.intensity, np.float32), None, time)
+
+
+def read_scan(path: str | Path, fmt: str) -> ScanPoints:
+    """Read one scan file of format ``pcd | kitti_bin | nuscenes_bin | las``."""
+    path = Path(path)
+    if fmt == "pcd":
+        return points_from_pcd(read_pcd(path), str(path))
+    readers = {"kitti_bin": read_kitti_bin, "nuscenes_bin": read_nuscenes_bin, "las": read_las_points}
+    if fmt not in readers:
+        raise FormatError(f"{path}: unknown scan format {fmt!r}; expected one of pcd, {', '.join(readers)}")
+    return readers[fmt](path)
+
+
+def drop_invalid_points(points: ScanPoints, min_range_m: float = 0.0) -> tuple[ScanPoints, dict[str, int]]:
+    """Drop non-finite points, exact (0,0,0) points and points closer than ``min_range_m``; count each."""
+    x, y, z = points.x_m, points.y_m, points.z_m
+    finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    zero = finite & (x == 0) & (y == 0) & (z == 0)
+    keep = finite & ~zero
+    counts = {"nonfinite": int((~finite).sum()), "zero": int(zero.sum()), "near": 0}
+    if min_range_m > 0:
+        near = keep & ((x.astype(np.float64) ** 2 + y.astype(np.float64) ** 2 + z.astype(np.float64) ** 2)
+                       < min_range_m ** 2)
+        counts["near"] = int(near.sum())
+        keep &= ~near
+    if keep.all():
+        return points, counts
+    return points.select(keep), counts

@@ -1,0 +1,138 @@
+"""One pass over a drive's scan files: read, drop invalid points, assign rings, build Arrow pieces.
+
+Memory is bounded by one piece (``PIECE_ROWS`` points) plus one scan, whatever the drive length.
+"""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from pipeline.errors import DatasetIOError, FormatError
+from stages.ingest.drive_file import DriveSpec
+from stages.ingest.scan_formats import SCAN_SUFFIXES, ScanPoints, drop_invalid_points, read_scan
+from stages.ingest.sensors import (SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order)
+
+log = logging.getLogger(__name__)
+PIECE_ROWS = 2_000_000
+
+
+@dataclass(frozen=True)
+class ScanFile:
+    scan_id: int
+    path: Path | None  # None: listed in the stamps file but missing on disk
+    stamp_ns: int | None  # None: no stamp known
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    index_row: dict
+    points: ScanPoints | None  # kept points (None when quarantined)
+    ring: np.ndarray | None
+    missing_rings: list[int]
+    drops: dict[str, int]
+
+
+def list_scan_files(folder: Path, fmt: str) -> list[Path]:
+    suffixes = SCAN_SUFFIXES[fmt]
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.name.lower().endswith(suffixes))
+
+
+def stamp_from_filename_us(path: Path) -> int:
+    match = re.search(r"(\d{10,})(?:\.[A-Za-z]+)*$", path.name)
+    if not match:
+        raise FormatError(f"{path}: no microsecond time stamp at the end of the file name (scan_times "
+                          f"source filename_us, e.g. '...__1532402927647951.pcd.bin')")
+    return int(match.group(1)) * 1000
+
+
+def elevation_table(spec: DriveSpec) -> tuple[float, ...]:
+    return tuple(spec.elevations_deg) if spec.elevations_deg else SENSORS[spec.sensor].elevations_deg
+
+
+def choose_ring_method(spec: DriveSpec, has_file_ring: bool) -> str:
+    wanted = spec.scans.ring_from
+    if wanted != "auto":
+        return wanted
+    if has_file_ring:
+        return "file"
+    table = elevation_table(spec)
+    if spec.scans.format == "kitti_bin" or SENSORS[spec.sensor].ring_from_order or not table:
+        return "point_order" if spec.scans.format in ("pcd", "kitti_bin") else "none"
+    return "elevation_table"
+
+
+def assign_rings(points: ScanPoints, spec: DriveSpec, vote_min_share: float) -> tuple[np.ndarray, str]:
+    method = choose_ring_method(spec, points.ring is not None)
+    if method == "file":
+        if points.ring is None:
+            raise FormatError("scans.ring_from is 'file' but the scan has no ring field")
+        return points.ring, "file"
+    if method == "elevation_table":
+        ring, _ = rings_from_elevation_voted(points.x_m, points.y_m, points.z_m, elevation_table(spec),
+                                             vote_min_share)
+        return ring, "elevation_table"
+    if method == "point_order":
+        return rings_from_point_order(points.x_m, points.y_m, points.z_m), "point_order"
+    return np.full(len(points), -1, np.int16), "none"
+
+
+def process_scan(scan: ScanFile, spec: DriveSpec, chunk: int, min_range_m: float, vote_min_share: float
+                 ) -> ScanResult:
+    rel = "" if scan.path is None else str(scan.path.relative_to(spec.drive_dir)
+                                           if scan.path.is_relative_to(spec.drive_dir) else scan.path)
+    row = {"scan_id": scan.scan_id, "stamp_ns": scan.stamp_ns if scan.stamp_ns is not None else -1,
+           "source_file": rel, "n_points": 0, "n_dropped_nonfinite": 0, "n_dropped_zero": 0, "rings_present": 0,
+           "ring_source": "", "status": "quarantined", "reason": None, "chunk": chunk}
+    if scan.path is None:
+        return ScanResult({**row, "reason": "file listed in the scan stamps is missing"}, None, None, [], {})
+    if scan.stamp_ns is None:
+        return ScanResult({**row, "reason": "no time stamp for this scan in the stamps file"}, None, None, [], {})
+    try:
+        raw = read_scan(scan.path, spec.scans.format)
+        points, drops = drop_invalid_points(raw, min_range_m)
+        ring, source = assign_rings(points, spec, vote_min_share)
+    except (FormatError, DatasetIOError) as exc:
+        log.warning("quarantined %s: %s", scan.path, exc)
+        return ScanResult({**row, "reason": str(exc)}, None, None, [], {})
+    n_rings = len(elevation_table(spec)) or (int(ring.max()) + 1 if len(ring) and source != "none" else 0)
+    present, missing = ring_coverage(ring, n_rings)
+    row.update(n_points=len(points), n_dropped_nonfinite=drops["nonfinite"], n_dropped_zero=drops["zero"],
+               rings_present=present, ring_source=source, status="ok")
+    return ScanResult(row, points, ring, missing, drops)
+
+
+def points_table(drive: str, chunk: int, results: list[ScanResult]):
+    import pyarrow as pa
+
+    from schemas import SCHEMAS
+
+    ok = [r for r in results if r.points is not None]
+    n = [len(r.points) for r in ok]
+    total = int(sum(n))
+
+    def cat(get, dtype) -> np.ndarray:
+        return np.concatenate([get(r) for r in ok]).astype(dtype, copy=False) if ok else np.zeros(0, dtype)
+
+    zeros = lambda r: np.zeros(len(r.points), np.float32)  # noqa: E731
+    return pa.table({
+        "drive": pa.repeat(pa.scalar(drive, pa.string()), total),
+        "chunk": np.full(total, chunk, np.int32),
+        "scan_id": np.repeat([r.index_row["scan_id"] for r in ok], n).astype(np.int64),
+        "stamp_ns": np.repeat([r.index_row["stamp_ns"] for r in ok], n).astype(np.int64),
+        "x_m": cat(lambda r: r.points.x_m, np.float32), "y_m": cat(lambda r: r.points.y_m, np.float32),
+        "z_m": cat(lambda r: r.points.z_m, np.float32), "intensity": cat(lambda r: r.points.intensity, np.float32),
+        "ring": cat(lambda r: r.ring, np.int16),
+        "time_offset_s": cat(lambda r: r.points.time_offset_s if r.points.time_offset_s is not None else zeros(r),
+                             np.float32),
+    }, schema=SCHEMAS["scans_raw"])
+
+
+def iter_scan_results(scans: list[ScanFile], spec: DriveSpec, chunk_size: int, min_range_m: float,
+                      vote_min_share: float) -> Iterator[ScanResult]:
+    for scan in scans:
+        yield process_scan(scan, spec, scan.scan_id // chunk_size, min_range_m, vote_min_share)

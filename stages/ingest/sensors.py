@@ -1,0 +1,119 @@
+"""Spinning-LiDAR sensor models: beam elevation tables and ring (laser index) recovery.
+
+Ring convention: 0 is the lowest beam, increasing upwards (the table index after sorting by elevation).
+Three ways to get a point's ring, in order of preference:
+1. from the file (a ``ring`` field);
+2. from the sensor's elevation table: nearest table elevation to atan2(z, hypot(x, y));
+3. from point order (KITTI exports store points laser by laser, each line starting near azimuth 0 and
+   running counter-clockwise; a new line starts where atan2(y, x) steps from negative to non-negative).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    name: str
+    elevations_deg: tuple[float, ...]  # ascending: index = ring
+    ring_from_order: bool  # the usual export stores points laser by laser (KITTI HDL-64E)
+
+    @property
+    def n_rings(self) -> int:
+        return len(self.elevations_deg)
+
+
+def _hdl64e_nominal_deg() -> tuple[float, ...]:
+    upper = 2.0 - np.arange(32) / 3.0  # +2.0 .. -8.33 deg, 1/3 deg apart
+    lower = -8.83 - 0.5 * np.arange(32)  # -8.83 .. -24.33 deg, 1/2 deg apart
+    return tuple(np.round(np.sort(np.concatenate([upper, lower])), 3))
+
+
+SENSORS: dict[str, SensorModel] = {
+    # Velodyne HDL-32E manual: -30.67 .. +10.67 deg in 4/3 deg steps.
+    "hdl32e": SensorModel("hdl32e", tuple(np.round(-30.67 + np.arange(32) * (41.34 / 31), 3)), False),
+    # Velodyne HDL-64E S2 nominal: two blocks of 32 lasers (per-unit calibration differs by a few 0.1 deg).
+    "hdl64e": SensorModel("hdl64e", _hdl64e_nominal_deg(), True),
+    # Velodyne VLP-16: -15 .. +15 deg in 2 deg steps.
+    "vlp16": SensorModel("vlp16", tuple(float(v) for v in np.arange(-15.0, 16.0, 2.0)), False),
+    # Generic: no table unless the drive file gives one (elevations_deg); rings from the file or point order.
+    "generic": SensorModel("generic", (), False),
+}
+
+
+def elevation_deg(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arctan2(np.asarray(z, np.float64), np.hypot(x, y)))
+
+
+def rings_from_elevation(x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                         elevations_deg: tuple[float, ...] | np.ndarray) -> np.ndarray:
+    """Nearest beam of an ascending elevation table -> int16 ring per point."""
+    table = np.asarray(elevations_deg, np.float64)
+    if table.size == 0:
+        raise ValueError("empty elevation table")
+    elev = elevation_deg(x, y, z)
+    idx = np.clip(np.searchsorted(table, elev), 1, max(1, table.size - 1))
+    if table.size == 1:
+        return np.zeros(elev.shape, np.int16)
+    lower_closer = (elev - table[idx - 1]) < (table[idx] - elev)
+    return (idx - lower_closer).astype(np.int16)
+
+
+def rings_from_point_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, min_points_per_ring: int = 20
+                           ) -> np.ndarray:
+    """Rings of a laser-by-laser export: split where azimuth steps from < 0 to >= 0, then rank the lines by
+    median elevation so that ring 0 is the lowest. Lines shorter than ``min_points_per_ring`` (spurious
+    splits from azimuth jitter at the seam) are merged into the previous line."""
+    n = len(x)
+    if n == 0:
+        return np.zeros(0, np.int16)
+    azimuth = np.arctan2(y, x)
+    starts = np.flatnonzero((azimuth[:-1] < 0) & (azimuth[1:] >= 0)) + 1
+    bounds = np.concatenate([[0], starts, [n]])
+    keep = np.diff(bounds) >= min_points_per_ring
+    keep[0] = True  # the first line always starts at 0
+    line_starts = bounds[:-1][keep]
+    line_of_point = np.searchsorted(line_starts, np.arange(n), side="right") - 1
+    elev = elevation_deg(x, y, z)
+    order = np.argsort(line_of_point, kind="stable")
+    split_at = np.searchsorted(line_of_point[order], np.arange(1, len(line_starts)))
+    medians = np.array([np.median(part) for part in np.split(elev[order], split_at)])
+    rank = np.empty(len(medians), np.int64)
+    rank[np.argsort(medians, kind="stable")] = np.arange(len(medians))
+    return rank[line_of_point].astype(np.int16)
+
+
+def ring_coverage(rings: np.ndarray, n_rings: int) -> tuple[int, list[int]]:
+    """(number of distinct rings with points, missing rings in 0..n_rings-1)."""
+    present = np.unique(rings[rings >= 0])
+    missing = sorted(set(range(n_rings)) - set(present.tolist())) if n_rings else []
+    return int(present.size), missing
+
+
+def rings_from_elevation_voted(x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                               elevations_deg: tuple[float, ...] | np.ndarray, min_share: float = 0.5,
+                               min_vote_range_m: float = 2.0) -> tuple[np.ndarray, bool]:
+    """Elevation-table rings, made robust for organised scans.
+
+    Per point, the nearest table elevation is noisy near the vehicle (beam origins are offset from the
+    sensor origin, and motion-compensated exports move near points). When the cloud is organised in firing
+    blocks of ``n_rings`` points (count divisible by ``n_rings``), every slot of the block is the same laser:
+    each slot takes the majority ring of its points. Used only when every slot has a clear majority
+    (``min_share``, counting points beyond ``min_vote_range_m``) and the winners are a permutation of all rings; otherwise the per-point result stands.
+    Returns (rings, voted).
+    """
+    per_point = rings_from_elevation(x, y, z, elevations_deg)
+    k = len(elevations_deg)
+    n = len(per_point)
+    if k < 2 or n < 4 * k or n % k:
+        return per_point, False
+    slot = np.arange(n) % k
+    far = np.hypot(x, y) >= min_vote_range_m
+    votes = np.bincount(slot[far] * k + per_point[far].astype(np.int64), minlength=k * k).reshape(k, k)
+    winners = votes.argmax(axis=1)
+    share = votes.max(axis=1) / np.maximum(votes.sum(axis=1), 1)
+    if np.all(share >= min_share) and np.array_equal(np.sort(winners), np.arange(k)):
+        return winners[slot].astype(np.int16), True
+    return per_point, False
