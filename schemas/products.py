@@ -15,10 +15,12 @@ register(
 
 register(
     "eval_epochs", "Per-epoch localization estimate, covariance and error vs the reference.",
-    f("method", pa.string()), f("epoch", pa.int64()), f("stamp_ns", pa.int64(), "ns"),
+    f("drive", pa.string()), f("method", pa.string()), f("epoch", pa.int64()), f("stamp_ns", pa.int64(), "ns"),
     f("x_m", pa.float64(), "m", "enu"), f("y_m", pa.float64(), "m", "enu"), f("yaw_rad", pa.float64(), "rad", "enu"),
     f("cov_xy_yaw", pa.list_(pa.float64(), 9)),
     f("err_x_m", pa.float64(), "m"), f("err_y_m", pa.float64(), "m"), f("err_yaw_rad", pa.float64(), "rad"),
     f("err_lateral_m", pa.float64(), "m"), f("err_longitudinal_m", pa.float64(), "m"),
-    f("n_associated", pa.int32()),
+    f("n_associated", pa.int32(), doc="EKF: map corners associated this epoch"),
+    f("n_features", pa.int32(), doc="MCL: road-feature points used this epoch"),
+    f("nees", pa.float64(), nullable=True, doc="normalised estimation error squared (3 dof)"),
 )

@@ -1,0 +1,187 @@
+"""Adapter of the evaluate stage: Arrow tables and the published map in, eval_epochs and the report out.
+
+The map is read ONLY through the product's public consumer API ``stages.tiles.loader.open_map`` (imported
+lazily here, the one documented exception to "stages never import each other": the loader is what a vehicle
+links against, and evaluating through it is the point of this stage).
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+from scipy.spatial.transform import Rotation
+
+from pipeline.declare import PartitionKey, StageContext
+from pipeline.errors import DatasetIOError, DataQualityError
+from stages.evaluate import mcl
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
+from stages.evaluate.localize_mcl import odometry_increments
+from stages.evaluate.params import EvaluateParams
+from stages.evaluate.road_features import extract_road_features
+from stages.evaluate.run import DriveArrays, evaluate_drive
+
+log = logging.getLogger(__name__)
+
+
+def yaw_of_quaternions(t: pa.Table) -> np.ndarray:
+    q = np.column_stack([t[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
+    return Rotation.from_quat(q).as_euler("ZYX")[:, 0]
+
+
+def _rows_of(ctx: StageContext, arg: str, drive: str, columns: list[str] | None = None) -> pa.Table:
+    table = ctx.inputs.read(arg, partition=PartitionKey(drive=drive), columns=columns)
+    if "drive" in table.column_names:
+        table = table.filter(pc.equal(table["drive"], drive))
+    return table
+
+
+def epoch_index(scan_ids: np.ndarray, epoch_scan_ids: np.ndarray) -> np.ndarray:
+    """Epoch of each scan id (-1 when the scan is not an epoch)."""
+    pos = np.clip(np.searchsorted(epoch_scan_ids, scan_ids), 0, len(epoch_scan_ids) - 1)
+    return np.where(epoch_scan_ids[pos] == scan_ids, pos, -1)
+
+
+def read_icp_increments(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndarray:
+    inc = np.full((len(epoch_scan_ids), 3), np.nan)
+    if edges.num_rows == 0:
+        return inc
+    edges = edges.filter(pc.equal(edges["converged"], True))
+    k = epoch_index(edges["scan_id"].to_numpy(), epoch_scan_ids)
+    ok = k > 0
+    yaw = yaw_of_quaternions(edges)
+    inc[k[ok]] = np.column_stack([edges["dx_m"].to_numpy(), edges["dy_m"].to_numpy(), yaw])[ok]
+    return inc
+
+
+def read_corners(corners: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar: np.ndarray) -> CornerObservations:
+    k = epoch_index(corners["scan_id"].to_numpy(), epoch_scan_ids)
+    order = np.argsort(k, kind="stable")
+    order = order[k[order] >= 0]
+    col = lambda name: corners[name].to_numpy()[order]  # noqa: E731
+    cov = np.stack([np.stack([col("cov_xx_m2"), col("cov_xy_m2")], -1), np.stack([col("cov_xy_m2"), col("cov_yy_m2")], -1)],
+                   -2)
+    xy, cov_v, dirs = corners_to_vehicle(T_vehicle_lidar, np.column_stack([col("x_m"), col("y_m")]), cov,
+                                         np.column_stack([col("theta1_rad"), col("theta2_rad")]))
+    return CornerObservations(k[order], xy, cov_v, dirs)
+
+
+def extract_features(ctx: StageContext, drive: str, epoch_scan_ids: np.ndarray, T_vehicle_lidar: np.ndarray,
+                     p: EvaluateParams) -> tuple[np.ndarray, np.ndarray]:
+    """Road features of every scan of the drive, chunk by chunk (memory bounded by one chunk)."""
+    epochs, points = [], []
+    cols = ["scan_id", "x_m", "y_m", "z_m", "intensity", "ring"]
+    for part in ctx.inputs.partitions("scans"):
+        if part.drive != drive:
+            continue
+        t = ctx.inputs.read("scans", partition=part, columns=cols)
+        sid = t["scan_id"].to_numpy()
+        order = np.argsort(sid, kind="stable")
+        sid = sid[order]
+        xyz = np.column_stack([t[c].to_numpy()[order] for c in ("x_m", "y_m", "z_m")])
+        inten, ring = t["intensity"].to_numpy()[order], t["ring"].to_numpy()[order]
+        bounds = np.flatnonzero(np.diff(sid)) + 1
+        for lo, hi in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(sid)]])):
+            k = epoch_index(sid[lo:lo + 1], epoch_scan_ids)[0]
+            if k < 0:
+                continue
+            f = extract_road_features(xyz[lo:hi], inten[lo:hi], ring[lo:hi], T_vehicle_lidar,
+                                      voxel_m=p.feature_voxel_m, window_m=p.feature_window_m,
+                                      offset_sigma=p.feature_offset_sigma, ground_band_m=p.feature_ground_band_m,
+                                      max_range_m=p.feature_max_range_m)
+            epochs.append(np.full(len(f), k)), points.append(f)
+    if not epochs:
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    ep, pts = np.concatenate(epochs), np.concatenate(points)
+    order = np.argsort(ep, kind="stable")
+    return ep[order], pts[order]
+
+
+def open_published_map(ctx: StageContext):
+    from stages.tiles.loader import open_map  # the public consumer API (see the module doc)
+
+    row = ctx.inputs.read("map").to_pylist()
+    if not row:
+        raise DatasetIOError("input 'map' (map_tiles) has no published version; hint: run the tiles stage first")
+    path = Path(row[-1]["path"])
+    if not path.is_absolute():
+        path = Path(ctx.settings["root"]) / path
+    return open_map(path)
+
+
+def map_inputs(reader, gnss_q: np.ndarray, p: EvaluateParams):
+    """Corner map over the drive's extent, and a raster fetcher (row 0 south) when the map has markings."""
+    xy = gnss_q[np.all(np.isfinite(gnss_q), axis=1), :2]
+    margin = p.sensor_range_m + 200.0
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    t = reader.corners_in_bbox(lo[0], lo[1], hi[0], hi[1])
+    cmap = CornerMap(np.column_stack([t["east_m"].to_numpy(), t["north_m"].to_numpy()]), reader.covariances(t),
+                     np.column_stack([t["theta1_rad"].to_numpy(), t["theta2_rad"].to_numpy()]))
+    fetch = None
+    if reader.cell_m is not None:
+        def fetch(e0: float, n0: float, e1: float, n1: float) -> mcl.Raster:
+            mask, origin, cell = reader.marking_window(e0, n0, e1, n1)
+            return mcl.Raster(mcl.smooth_marking_mask(np.flipud(mask), cell, p.raster_blur_m), origin, cell)
+    return cmap, fetch
+
+
+def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveArrays, np.ndarray]:
+    poses = _rows_of(ctx, "poses_gnss", drive).sort_by("scan_id")
+    if poses.num_rows == 0:
+        raise DataQualityError(f"drive {drive!r}: poses_gnss has no rows; hint: was the drive ingested?")
+    scan_ids = poses["scan_id"].to_numpy()
+    stamps = poses["stamp_ns"].to_numpy()
+    info = _rows_of(ctx, "drive_info", drive).to_pylist()[0]
+    T_vl = np.asarray(info["T_vehicle_lidar"], dtype=float).reshape(4, 4)
+    gnss_q = np.column_stack([poses["x_m"].to_numpy(), poses["y_m"].to_numpy(), yaw_of_quaternions(poses)])
+    gnss_std = np.column_stack([poses[c].to_numpy() for c in ("std_east_m", "std_north_m", "std_yaw_rad")])
+    odo = _rows_of(ctx, "odometry", drive).sort_by("stamp_ns")
+    odo_inc = odometry_increments(odo["stamp_ns"].to_numpy(), odo["speed_mps"].to_numpy(),
+                                  odo["yaw_rate_radps"].to_numpy(), stamps)
+    icp = read_icp_increments(_rows_of(ctx, "edges", drive), scan_ids)
+    missing = ~np.all(np.isfinite(icp), axis=1)
+    icp[missing] = odo_inc[missing]  # a failed ICP edge falls back on wheel odometry
+    corners = read_corners(_rows_of(ctx, "corners", drive), scan_ids, T_vl)
+    if "mcl" in p.methods:
+        f_ep, f_xy = extract_features(ctx, drive, scan_ids, T_vl, p)
+    else:
+        f_ep, f_xy = np.zeros(0, np.int64), np.zeros((0, 2))
+    return DriveArrays(stamps, icp, odo_inc, gnss_q, gnss_std, poses["valid"].to_numpy(zero_copy_only=False),
+                       corners, f_ep, f_xy), scan_ids
+
+
+def read_references(ctx: StageContext, drive: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    from stages.common.geometry import read_tum
+
+    refs = {}
+    if ctx.inputs.has("reference"):
+        t = _rows_of(ctx, "reference", drive)
+        if t.num_rows:
+            refs["map"] = (t["stamp_ns"].to_numpy(), np.column_stack([t["x_m"].to_numpy(), t["y_m"].to_numpy(),
+                                                                       yaw_of_quaternions(t)]))
+    truth = (ctx.settings.get("references") or {}).get(drive)
+    if truth:
+        stamps_s, T = read_tum(truth)
+        refs["truth"] = (np.round(stamps_s * 1e9).astype(np.int64),
+                         np.column_stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])]))
+    return refs
+
+
+def compute(ctx: StageContext) -> dict:
+    from stages.evaluate.outputs import epochs_table, write_report
+
+    p: EvaluateParams = ctx.params  # type: ignore[assignment]
+    drive = ctx.partition.drive
+    d, scan_ids = read_drive(ctx, drive, p)
+    reader = open_published_map(ctx)
+    cmap, fetch = map_inputs(reader, d.gnss_q, p)
+    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive), p)
+    import pyarrow.parquet as pq
+
+    out = ctx.artifact_dir("report")
+    write_report(out, ev, cmap, fetch, drive=drive, map_info={"path": str(reader.path), "version": reader.version})
+    table = epochs_table(ev, drive)
+    pq.write_table(table, out / "epochs.parquet")  # the per-epoch table beside the report, for DIR users
+    return {"epochs": table}

@@ -1,0 +1,141 @@
+"""Extended Kalman filter on (x, y, yaw) with range/bearing updates to map corners (Im et al. 2016 s.4).
+
+State ``q = (x_m, y_m, yaw_rad)``: the vehicle reference point in the map's ENU frame and its heading
+(counter-clockwise from east). Pure numpy; every function returns new arrays.
+
+Motion (eq. 2): ``q_{k+1} = q_k + G(yaw_k) u_k`` with ``u = (dx, dy, dyaw)`` the ICP increment expressed in the
+previous vehicle frame. The paper writes ``F = I``; the exact linearisation keeps the heading column
+``dG/dyaw u`` so that the covariance grows with heading uncertainty (needed for a consistent NEES).
+
+Measurement (eqs. 3-5): for each associated corner i, ``r_i = |p_i - p|`` and
+``alpha_i = atan2(y_i - y, x_i - x) - yaw``; the rows of ``H`` follow eq. (5).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.common.geometry import wrap_angle_rad
+
+
+@dataclass(frozen=True)
+class EkfState:
+    q: np.ndarray  # (3,) x_m, y_m, yaw_rad in ENU
+    P: np.ndarray  # (3, 3)
+
+
+def rotation_2d(yaw_rad: float) -> np.ndarray:
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s], [s, c]])
+
+
+def predict(state: EkfState, increment: np.ndarray, Q: np.ndarray) -> EkfState:
+    """Motion update with an increment ``(dx_m, dy_m, dyaw_rad)`` in the previous vehicle frame.
+
+    ``Q`` (3x3) is the increment's covariance in that same vehicle frame; it is rotated into ENU by G.
+    """
+    x, y, yaw = state.q
+    dx, dy, dyaw = np.asarray(increment, dtype=float)
+    c, s = np.cos(yaw), np.sin(yaw)
+    G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    F = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+    q = np.array([x + c * dx - s * dy, y + s * dx + c * dy, float(wrap_angle_rad(yaw + dyaw))])
+    P = F @ state.P @ F.T + G @ Q @ G.T
+    return EkfState(q, 0.5 * (P + P.T))
+
+
+def predict_range_bearing(q: np.ndarray, corners_en_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted (range_m, bearing_rad) of map corners (N,2) and the stacked Jacobian H (2N, 3), eq. (5).
+
+    Rows alternate range, bearing per corner. Bearing is in the vehicle frame, wrapped to [-pi, pi).
+    """
+    d = np.asarray(corners_en_m, dtype=float).reshape(-1, 2) - q[:2]
+    r2 = np.maximum(np.einsum("ij,ij->i", d, d), 1e-12)
+    r = np.sqrt(r2)
+    z = np.empty((len(d), 2))
+    z[:, 0] = r
+    z[:, 1] = wrap_angle_rad(np.arctan2(d[:, 1], d[:, 0]) - q[2])
+    H = np.zeros((len(d), 2, 3))
+    H[:, 0, 0] = -d[:, 0] / r
+    H[:, 0, 1] = -d[:, 1] / r
+    H[:, 1, 0] = d[:, 1] / r2
+    H[:, 1, 1] = -d[:, 0] / r2
+    H[:, 1, 2] = -1.0
+    return z, H.reshape(-1, 3)
+
+
+def map_corner_jacobian(H: np.ndarray) -> np.ndarray:
+    """(2N, 3) vehicle Jacobian -> (N, 2, 2) Jacobians of each (range, bearing) w.r.t. its corner's (e, n)."""
+    return -H[:, :2].reshape(-1, 2, 2)
+
+
+def update(state: EkfState, z_meas: np.ndarray, corners_en_m: np.ndarray, R_blocks: np.ndarray,
+           yaw_meas_rad: np.ndarray | None = None, yaw_sigma_rad: float = 0.0) -> tuple[EkfState, np.ndarray]:
+    """Measurement update with N associated corners (eqs. 3-5), Joseph form.
+
+    ``z_meas`` (N,2) measured range/bearing; ``corners_en_m`` (N,2) associated map corners; ``R_blocks``
+    (N,2,2) the total measurement noise per corner (extraction + map-corner covariance in range/bearing).
+    Optional direct heading measurements ``yaw_meas_rad`` (M,) with std ``yaw_sigma_rad`` are stacked below.
+    Returns the updated state and the stacked innovation (2N+M,).
+    """
+    z_meas = np.asarray(z_meas, dtype=float).reshape(-1, 2)
+    yaw_meas = np.zeros(0) if yaw_meas_rad is None else np.asarray(yaw_meas_rad, dtype=float).reshape(-1)
+    n, m = len(z_meas), len(yaw_meas)
+    if n + m == 0:
+        return state, np.zeros(0)
+    z_pred, H_rb = predict_range_bearing(state.q, np.asarray(corners_en_m, dtype=float).reshape(-1, 2))
+    nu_rb = z_meas - z_pred
+    nu_rb[:, 1] = wrap_angle_rad(nu_rb[:, 1])
+    H = np.zeros((2 * n + m, 3))
+    H[:2 * n] = H_rb
+    H[2 * n:, 2] = 1.0
+    nu = np.concatenate([nu_rb.reshape(-1), wrap_angle_rad(yaw_meas - state.q[2])])
+    R = np.zeros((2 * n + m, 2 * n + m))
+    idx = np.arange(n) * 2
+    R[idx[:, None, None] + np.arange(2)[None, :, None], idx[:, None, None] + np.arange(2)[None, None, :]] = R_blocks
+    R[np.arange(2 * n, 2 * n + m), np.arange(2 * n, 2 * n + m)] = yaw_sigma_rad**2
+    PHt = state.P @ H.T
+    S = H @ PHt + R
+    K = np.linalg.solve(S, PHt.T).T  # P H^T S^-1 (S, P symmetric)
+    q = state.q + K @ nu
+    q[2] = wrap_angle_rad(q[2])
+    I_KH = np.eye(3) - K @ H
+    P = I_KH @ state.P @ I_KH.T + K @ R @ K.T
+    return EkfState(q, 0.5 * (P + P.T)), nu
+
+
+def update_heading(state: EkfState, yaw_meas_rad: np.ndarray, sigma_rad: float) -> EkfState:
+    """Linear update with direct heading measurements (N,), e.g. from wall directions, Joseph form."""
+    yaw_meas = np.asarray(yaw_meas_rad, dtype=float).reshape(-1)
+    if len(yaw_meas) == 0:
+        return state
+    H = np.zeros((len(yaw_meas), 3))
+    H[:, 2] = 1.0
+    R = np.eye(len(yaw_meas)) * sigma_rad**2
+    nu = wrap_angle_rad(yaw_meas - state.q[2])
+    S = H @ state.P @ H.T + R
+    K = np.linalg.solve(S, H @ state.P).T
+    q = state.q + K @ nu
+    q[2] = wrap_angle_rad(q[2])
+    I_KH = np.eye(3) - K @ H
+    P = I_KH @ state.P @ I_KH.T + K @ R @ K.T
+    return EkfState(q, 0.5 * (P + P.T))
+
+
+def nees(q_est: np.ndarray, P: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+    """Normalised estimation error squared per epoch: (M,3) estimates, (M,3,3) covariances, (M,3) reference."""
+    e = np.asarray(q_est, dtype=float) - np.asarray(q_ref, dtype=float)
+    e[:, 2] = wrap_angle_rad(e[:, 2])
+    return np.einsum("ij,ij->i", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
+
+
+def nees_band(n_epochs: int, dof: int = 3, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided chi-square band of the mean NEES over ``n_epochs`` independent epochs."""
+    from scipy.stats import chi2
+
+    if n_epochs <= 0:
+        return float("nan"), float("nan")
+    a = (1.0 - confidence) / 2.0
+    k = dof * n_epochs
+    return float(chi2.ppf(a, k) / n_epochs), float(chi2.ppf(1.0 - a, k) / n_epochs)

@@ -1,0 +1,91 @@
+"""Localisation errors in the reference frame and their summary statistics (pure numpy).
+
+Errors are estimate minus reference. Lateral / longitudinal components are taken in the reference heading
+(longitudinal along the reference's forward axis, lateral to its left).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.common.geometry import wrap_angle_rad
+from stages.evaluate.ekf import nees, nees_band
+
+METRIC_KEYS = ("rms_2d_m", "max_2d_m", "p95_2d_m", "p99_2d_m", "heading_rms_deg", "lateral_rms_m",
+               "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean",
+               "epochs")
+
+
+@dataclass(frozen=True)
+class Errors:
+    err_xy_m: np.ndarray  # (E,2) east, north
+    err_yaw_rad: np.ndarray  # (E,)
+    err_lateral_m: np.ndarray
+    err_longitudinal_m: np.ndarray
+    nees: np.ndarray  # (E,) NaN where no covariance
+
+
+def interpolate_poses(stamps_ns: np.ndarray, ref_stamps_ns: np.ndarray, ref_q: np.ndarray,
+                      max_gap_ns: int | None = None) -> np.ndarray:
+    """Reference (x, y, yaw) at ``stamps_ns`` by linear interpolation (yaw unwrapped); NaN outside the
+    reference's time span or across gaps longer than ``max_gap_ns``."""
+    ref_stamps = np.asarray(ref_stamps_ns, dtype=np.int64)
+    order = np.argsort(ref_stamps)
+    ref_stamps, ref_q = ref_stamps[order], np.asarray(ref_q, dtype=float)[order]
+    t = (np.asarray(stamps_ns, dtype=np.int64) - ref_stamps[0]).astype(float)
+    tr = (ref_stamps - ref_stamps[0]).astype(float)
+    out = np.column_stack([np.interp(t, tr, ref_q[:, 0]), np.interp(t, tr, ref_q[:, 1]),
+                           wrap_angle_rad(np.interp(t, tr, np.unwrap(ref_q[:, 2])))])
+    outside = (t < tr[0]) | (t > tr[-1])
+    if max_gap_ns is not None and len(tr) > 1:
+        i = np.clip(np.searchsorted(tr, t), 1, len(tr) - 1)
+        outside |= (tr[i] - tr[i - 1]) > max_gap_ns
+    out[outside] = np.nan
+    return out
+
+
+def compute_errors(q_est: np.ndarray, q_ref: np.ndarray, P: np.ndarray | None = None) -> Errors:
+    q_est, q_ref = np.asarray(q_est, dtype=float), np.asarray(q_ref, dtype=float)
+    exy = q_est[:, :2] - q_ref[:, :2]
+    eyaw = wrap_angle_rad(q_est[:, 2] - q_ref[:, 2])
+    c, s = np.cos(q_ref[:, 2]), np.sin(q_ref[:, 2])
+    lon = c * exy[:, 0] + s * exy[:, 1]
+    lat = -s * exy[:, 0] + c * exy[:, 1]
+    n = np.full(len(q_est), np.nan)
+    if P is not None:
+        ok = np.all(np.isfinite(q_est), axis=1) & np.all(np.isfinite(q_ref), axis=1) & \
+            np.all(np.isfinite(P), axis=(1, 2))
+        ok[ok] &= np.linalg.det(P[ok]) > 0
+        if ok.any():
+            n[ok] = nees(q_est[ok], P[ok], q_ref[ok])
+    return Errors(exy, eyaw, lat, lon, n)
+
+
+def _json_float(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def summarize(errors: Errors) -> dict:
+    """The metrics.json entry of one method against one reference (NaN epochs excluded)."""
+    ok = np.all(np.isfinite(errors.err_xy_m), axis=1) & np.isfinite(errors.err_yaw_rad)
+    if not ok.any():
+        return {key: None for key in METRIC_KEYS} | {"epochs": 0, "nees_band95": [None, None]}
+    h = np.hypot(errors.err_xy_m[ok, 0], errors.err_xy_m[ok, 1])
+    yaw_deg = np.rad2deg(errors.err_yaw_rad[ok])
+    nees_ok = errors.nees[ok][np.isfinite(errors.nees[ok])]
+    band = nees_band(len(nees_ok))
+    out = {
+        "rms_2d_m": float(np.sqrt(np.mean(h**2))), "max_2d_m": float(h.max()),
+        "p95_2d_m": float(np.percentile(h, 95)), "p99_2d_m": float(np.percentile(h, 99)),
+        "heading_rms_deg": float(np.sqrt(np.mean(yaw_deg**2))),
+        "lateral_rms_m": float(np.sqrt(np.mean(errors.err_lateral_m[ok] ** 2))),
+        "longitudinal_rms_m": float(np.sqrt(np.mean(errors.err_longitudinal_m[ok] ** 2))),
+        "mean_abs_x_m": float(np.mean(np.abs(errors.err_xy_m[ok, 0]))),
+        "mean_abs_y_m": float(np.mean(np.abs(errors.err_xy_m[ok, 1]))),
+        "mean_abs_heading_deg": float(np.mean(np.abs(yaw_deg))),
+        "nees_mean": _json_float(float(np.mean(nees_ok))) if len(nees_ok) else None,
+        "epochs": int(ok.sum()),
+        "nees_band95": [_json_float(band[0]), _json_float(band[1])],
+    }
+    return out

@@ -1,0 +1,148 @@
+"""What an evaluation writes: the eval_epochs table, metrics.json, TUM trajectories and report.html."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from stages.evaluate.metrics import METRIC_KEYS, compute_errors
+from stages.evaluate.run import Evaluation
+
+log = logging.getLogger(__name__)
+
+# Issue 10 targets (map-relative errors; gangnam map from drive 0, evaluated on drive 1).
+TARGETS = {
+    "ekf": {"rms_2d_m": 0.10, "p95_2d_m": 0.20, "p99_2d_m": 0.28, "max_2d_m": 0.40, "heading_rms_deg": 0.15},
+    "mcl": {"mean_abs_x_m": 0.10, "mean_abs_y_m": 0.10, "mean_abs_heading_deg": 0.15},
+}
+PAPER = {
+    "ekf": {"rms_2d_m": 0.138, "p95_2d_m": 0.25, "p99_2d_m": 0.33, "max_2d_m": 0.46, "heading_rms_deg": 0.168},
+    "mcl": {"mean_abs_x_m": 0.125, "mean_abs_y_m": 0.129, "mean_abs_heading_deg": 0.195},
+}
+METHOD_ORDER = ("ekf", "mcl", "rtk_ins", "icp_dr")
+
+
+def epochs_table(ev: Evaluation, drive: str | None = None) -> pa.Table:
+    from schemas import schema_of
+
+    schema = schema_of("eval_epochs")
+    ref = ev.references.get(ev.primary) if ev.primary else None
+    cols: dict[str, list] = {name: [] for name in schema.names}
+    for method in (m for m in METHOD_ORDER if m in ev.runs):
+        r = ev.runs[method]
+        ok = np.all(np.isfinite(r.q), axis=1)
+        k = np.flatnonzero(ok)
+        P = r.P[k] if r.P is not None else np.full((len(k), 3, 3), np.nan)
+        e = compute_errors(r.q[k], ref[k] if ref is not None else np.full((len(k), 3), np.nan), None)
+        cols["method"] += [method] * len(k)
+        cols["epoch"] += k.tolist()
+        cols["stamp_ns"] += ev.stamps_ns[k].tolist()
+        for i, name in enumerate(("x_m", "y_m", "yaw_rad")):
+            cols[name] += r.q[k, i].tolist()
+        cols["cov_xy_yaw"] += P.reshape(len(k), 9).tolist()
+        cols["err_x_m"] += e.err_xy_m[:, 0].tolist()
+        cols["err_y_m"] += e.err_xy_m[:, 1].tolist()
+        cols["err_yaw_rad"] += e.err_yaw_rad.tolist()
+        cols["err_lateral_m"] += e.err_lateral_m.tolist()
+        cols["err_longitudinal_m"] += e.err_longitudinal_m.tolist()
+        counts = r.n_associated[k].astype(int).tolist()
+        zeros = [0] * len(k)
+        cols["n_associated"] += zeros if method == "mcl" else counts
+        cols["n_features"] += counts if method == "mcl" else zeros
+        err = np.column_stack([e.err_xy_m, e.err_yaw_rad])
+        with np.errstate(invalid="ignore"):
+            ok_p = np.all(np.isfinite(P.reshape(len(k), 9)), axis=1) & np.all(np.isfinite(err), axis=1)
+            nees = np.full(len(k), np.nan)
+            if ok_p.any():
+                nees[ok_p] = np.einsum("ni,ni->n", err[ok_p], np.linalg.solve(P[ok_p], err[ok_p][..., None])[..., 0])
+        cols["nees"] += [None if not np.isfinite(v) else float(v) for v in nees]
+        if "drive" in cols:
+            cols["drive"] += [drive] * len(k)
+    return pa.table({name: pa.array(cols[name], type=schema.field(name).type) for name in schema.names},
+                     schema=schema)
+
+
+def check_targets(method: str, summary: dict) -> dict | None:
+    if method not in TARGETS:
+        return None
+    out = {key: {"target": lim, "paper": PAPER[method][key], "value": summary.get(key),
+                 "ok": summary.get(key) is not None and summary[key] <= lim} for key, lim in TARGETS[method].items()}
+    if method == "ekf":
+        lo, hi = summary.get("nees_band95") or [None, None]
+        val = summary.get("nees_mean")
+        out["nees_mean"] = {"band95": [lo, hi], "value": val,
+                            "ok": None not in (lo, hi, val) and lo <= val <= hi}
+    return out
+
+
+def metrics_document(ev: Evaluation, drive: str | None, map_info: dict) -> dict:
+    methods = {}
+    for m in (m for m in METHOD_ORDER if m in ev.runs):
+        by_ref = ev.metrics.get(m, {})
+        primary = by_ref.get(ev.primary, {key: None for key in METRIC_KEYS}) if ev.primary else {}
+        r = ev.runs[m]
+        n_run = int(np.all(np.isfinite(r.q), axis=1).sum())
+        methods[m] = {**primary, "map_relative": by_ref.get("map"), "absolute": by_ref.get("truth"),
+                      "seconds": round(r.seconds, 4),
+                      "epochs_per_s": round(n_run / r.seconds, 1) if r.seconds > 0 else None,
+                      "targets": check_targets(m, primary) if ev.primary == "map" else None}
+    return {"drive": drive, "map": map_info, "primary_reference": ev.primary,
+            "references": sorted(ev.references), "methods": methods}
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_tum_files(out_dir: Path, ev: Evaluation) -> list[Path]:
+    from stages.common.geometry import se3_from_xyz_rpy, write_tum
+
+    paths = []
+    for m, r in ev.runs.items():
+        ok = np.all(np.isfinite(r.q), axis=1)
+        T = np.stack([se3_from_xyz_rpy(x, y, 0.0, 0.0, 0.0, yaw) for x, y, yaw in r.q[ok]]) if ok.any() \
+            else np.zeros((0, 4, 4))
+        path = out_dir / f"{m}_tum.txt"
+        write_tum(path, ev.stamps_ns[ok] * 1e-9, T)
+        paths.append(path)
+    return paths
+
+
+def write_report(out_dir: Path, ev: Evaluation, cmap, fetch, *, drive: str | None, map_info: dict) -> dict:
+    """metrics.json, <method>_tum.txt and the self-contained report.html into ``out_dir``."""
+    from stages.evaluate.report import render_report
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    doc = metrics_document(ev, drive, map_info)
+    _atomic_write(out_dir / "metrics.json", json.dumps(doc, indent=2))
+    write_tum_files(out_dir, ev)
+    _atomic_write(out_dir / "report.html", render_report(ev, doc, cmap))
+    log.info("evaluation report written to %s", out_dir / "report.html")
+    return doc
+
+
+def metrics_table_text(doc: dict) -> str:
+    """The metrics as a fixed-width text table (for the CLI)."""
+    keys = ("rms_2d_m", "p95_2d_m", "p99_2d_m", "max_2d_m", "heading_rms_deg", "lateral_rms_m",
+            "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean", "epochs")
+    short = ("rms_2d", "p95_2d", "p99_2d", "max_2d", "hdg_rms_deg", "lat_rms", "lon_rms", "mean|x|", "mean|y|",
+             "mean|hdg|deg", "nees_mean", "epochs")
+    head = f"{'method':<8} {'ref':<6} " + " ".join(f"{k:>12}" for k in short)
+    lines = [head]
+    for m, entry in doc["methods"].items():
+        for ref_name, summary in (("map", entry.get("map_relative")), ("truth", entry.get("absolute"))):
+            if not summary:
+                continue
+            vals = []
+            for k in keys:
+                v = summary.get(k)
+                vals.append(f"{'-':>12}" if v is None else (f"{v:>12d}" if isinstance(v, int) else f"{v:>12.4f}"))
+            lines.append(f"{m:<8} {ref_name:<6} " + " ".join(vals))
+    return "\n".join(lines)

@@ -1,0 +1,50 @@
+"""Parameters of the evaluate stage: the EKF (Im et al. s.4), the MCL (Kim et al. s.2.3), the report."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from pipeline.declare import Params
+
+
+class EvaluateParams(Params):
+    methods: list[Literal["ekf", "mcl"]] = Field(["ekf", "mcl"], description="localizers; baselines always run")
+    # EKF motion noise (ICP increments, eq. 2)
+    icp_sigma_frac: float = Field(0.02, ge=0, description="ICP translation std per metre travelled")
+    icp_sigma_xy_m: float = Field(0.01, ge=0, description="ICP translation std floor per scan")
+    icp_sigma_yaw_deg: float = Field(0.05, ge=0, description="ICP heading std floor per scan")
+    icp_sigma_yaw_frac: float = Field(0.02, ge=0, description="ICP heading std per radian turned")
+    # EKF association and measurement (s.3.3, eqs. 3-5)
+    sensor_range_m: float = Field(60.0, gt=0, description="map corners farther than this are not predicted")
+    gate_probability: float = Field(0.99, gt=0, lt=1, description="Mahalanobis gate, chi-square 2 dof")
+    angle_gate_deg: float = Field(15.0, gt=0, le=180, description="max wall direction difference")
+    association: Literal["gnn", "nn"] = "gnn"
+    range_sigma_floor_m: float = Field(0.03, ge=0, description="added to extracted corners' range std")
+    bearing_sigma_floor_deg: float = Field(0.15, ge=0, description="added to extracted corners' bearing std")
+    wall_heading_sigma_deg: float = Field(1.5, ge=0, description="heading from wall directions; 0 = off")
+    # MCL (s.2.3) and road features (s.2.2)
+    n_particles: int = Field(1000, ge=10)
+    seed: int = 0
+    mcl_init_sigma_xy_m: float = Field(1.0, gt=0)
+    mcl_init_sigma_yaw_deg: float = Field(1.0, gt=0)
+    mcl_sigma_frac: float = Field(0.03, ge=0, description="wheel odometry translation std per metre")
+    mcl_sigma_xy_m: float = Field(0.02, ge=0)
+    mcl_sigma_yaw_deg: float = Field(0.1, ge=0)
+    mcl_sharpness: float = Field(8.0, gt=0, description="log-likelihood gain per effective feature point")
+    mcl_effective_points: float = Field(60.0, gt=0)
+    mcl_max_features: int = Field(400, ge=10)
+    raster_blur_m: float = Field(0.2, ge=0, description="Gaussian blur of the marking raster")
+    feature_voxel_m: float = Field(0.1, gt=0)
+    feature_window_m: float = Field(3.0, gt=0, description="moving-average window along a ring, metres of arc")
+    feature_offset_sigma: float = Field(3.0, gt=0, description="threshold in robust std of the ring residual")
+    feature_ground_band_m: float = Field(0.15, gt=0)
+    feature_max_range_m: float = Field(30.0, gt=0)
+    # References
+    reference_max_gap_s: float = Field(1.0, gt=0, description="no reference across gaps longer than this")
+
+    @model_validator(mode="after")
+    def _methods(self) -> "EvaluateParams":
+        if not self.methods:
+            raise ValueError("methods: name at least one of 'ekf', 'mcl'")
+        return self

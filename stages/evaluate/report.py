@@ -1,0 +1,169 @@
+"""report.html: the papers' figures as PNGs embedded (base64) in one self-contained page.
+
+Figures: trajectories over the map (Im Fig. 15), horizontal error over time (Fig. 16/17), heading error
+(Fig. 18), CDF of horizontal error (Fig. 19), corners used per epoch (Fig. 21/22), covariance ellipses where
+corners are sparse (Fig. 23).
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+
+import numpy as np
+
+from stages.evaluate.metrics import compute_errors
+
+COLORS = {"ekf": "tab:red", "mcl": "tab:green", "rtk_ins": "tab:blue", "icp_dr": "tab:orange",
+          "map": "k", "truth": "tab:gray"}
+
+
+def _png(fig) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _horizontal_errors(ev) -> dict[str, np.ndarray]:
+    ref = ev.references.get(ev.primary) if ev.primary else None
+    if ref is None:
+        return {}
+    return {m: np.hypot(*compute_errors(r.q, ref).err_xy_m.T) for m, r in ev.runs.items()}
+
+
+def figure_trajectories(ev, cmap) -> str:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 7))
+    if cmap is not None and len(cmap.en_m):
+        ax.scatter(cmap.en_m[:, 0], cmap.en_m[:, 1], s=6, c="0.6", marker="s", label="map corners")
+    for name, ref in ev.references.items():
+        ax.plot(ref[:, 0], ref[:, 1], color=COLORS.get(name, "k"), lw=2.0, alpha=0.5, label=f"reference: {name}")
+    for m, r in ev.runs.items():
+        ax.plot(r.q[:, 0], r.q[:, 1], color=COLORS.get(m), lw=0.9, label=m)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("east (m)"), ax.set_ylabel("north (m)"), ax.legend(fontsize=8), ax.set_title("Trajectories")
+    return _png(fig)
+
+
+def figure_errors_over_time(ev) -> str:
+    import matplotlib.pyplot as plt
+
+    t = (ev.stamps_ns - ev.stamps_ns[0]) * 1e-9
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    ref = ev.references.get(ev.primary) if ev.primary else None
+    for m, h in _horizontal_errors(ev).items():
+        a1.plot(t, h, color=COLORS.get(m), lw=0.8, label=m)
+        if m in ("ekf", "mcl"):
+            a2.plot(t, np.rad2deg(compute_errors(ev.runs[m].q, ref).err_yaw_rad), color=COLORS.get(m), lw=0.8,
+                    label=m)
+    a1.set_ylabel("horizontal error (m)"), a1.set_yscale("log"), a1.legend(fontsize=8)
+    a1.set_title(f"Errors against the '{ev.primary}' reference")
+    a2.set_ylabel("heading error (deg)"), a2.set_xlabel("time (s)"), a2.legend(fontsize=8)
+    return _png(fig)
+
+
+def figure_cdf(ev) -> str:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for m, h in _horizontal_errors(ev).items():
+        h = np.sort(h[np.isfinite(h)])
+        if len(h):
+            ax.plot(h, np.arange(1, len(h) + 1) / len(h), color=COLORS.get(m), label=m)
+    for p in (0.95, 0.99):
+        ax.axhline(p, color="0.7", lw=0.6, ls="--")
+    ax.set_xscale("log"), ax.set_xlabel("horizontal error (m)"), ax.set_ylabel("CDF"), ax.legend(fontsize=8)
+    ax.set_title("CDF of the horizontal error")
+    return _png(fig)
+
+
+def figure_corners_per_epoch(ev) -> str:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    if "ekf" in ev.runs:
+        ax.step(np.arange(len(ev.stamps_ns)), ev.runs["ekf"].n_associated, where="mid", color=COLORS["ekf"], lw=0.7)
+    ax.set_xlabel("epoch"), ax.set_ylabel("corners associated"), ax.set_title("Corners used per epoch (EKF)")
+    return _png(fig)
+
+
+def sparse_window(n_associated: np.ndarray, width: int) -> tuple[int, int]:
+    """Epoch window of ``width`` around the longest run without associations (where the EKF dead-reckons)."""
+    n = len(n_associated)
+    zero = np.concatenate([[0], (n_associated == 0).astype(int), [0]])
+    edges = np.flatnonzero(np.diff(zero))
+    if len(edges) < 2:
+        return 0, min(n, width)
+    starts, ends = edges[::2], edges[1::2]
+    i = int(np.argmax(ends - starts))
+    mid = (starts[i] + ends[i]) // 2
+    lo = int(np.clip(mid - width // 2, 0, max(0, n - width)))
+    return lo, min(n, lo + width)
+
+
+def figure_ellipses(ev, cmap, width: int = 200, every: int = 10) -> str | None:
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Ellipse
+
+    if "ekf" not in ev.runs:
+        return None
+    r = ev.runs["ekf"]
+    lo, hi = sparse_window(r.n_associated, width)
+    fig, ax = plt.subplots(figsize=(8, 6))
+    ref = ev.references.get(ev.primary) if ev.primary else None
+    if ref is not None:
+        ax.plot(ref[lo:hi, 0], ref[lo:hi, 1], color="tab:blue", lw=1.5, label=f"reference ({ev.primary})")
+    ax.plot(r.q[lo:hi, 0], r.q[lo:hi, 1], color="tab:red", lw=1.0, label="EKF")
+    scale = 10.0
+    for k in range(lo, hi, every):
+        if not np.all(np.isfinite(r.P[k])):
+            continue
+        w, v = np.linalg.eigh(r.P[k][:2, :2])
+        angle = np.degrees(np.arctan2(v[1, 1], v[0, 1]))
+        ax.add_patch(Ellipse(r.q[k, :2], 2 * scale * 2.4477 * np.sqrt(max(w[1], 0)),
+                             2 * scale * 2.4477 * np.sqrt(max(w[0], 0)), angle=angle, fill=False, color="tab:red",
+                             lw=0.6))
+    sel = (r.assoc_epoch >= lo) & (r.assoc_epoch < hi) & (cmap is not None)
+    for k, i in zip(r.assoc_epoch[sel][::3], r.assoc_map_idx[sel][::3]):
+        ax.plot([r.q[k, 0], cmap.en_m[i, 0]], [r.q[k, 1], cmap.en_m[i, 1]], color="tab:green", lw=0.3)
+    ax.set_aspect("equal", adjustable="datalim"), ax.legend(fontsize=8)
+    ax.set_title(f"Epochs {lo}-{hi}: 95 % covariance ellipses x{scale:g} (sparsest corners), green: associations")
+    return _png(fig)
+
+
+def _metrics_html(doc: dict) -> str:
+    keys = ("rms_2d_m", "p95_2d_m", "p99_2d_m", "max_2d_m", "heading_rms_deg", "lateral_rms_m",
+            "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean", "epochs")
+    rows = []
+    for m, entry in doc["methods"].items():
+        for ref_name, s in (("map-relative", entry.get("map_relative")), ("absolute (truth)", entry.get("absolute"))):
+            if not s:
+                continue
+            cells = "".join(f"<td>{'' if s.get(k) is None else (s[k] if isinstance(s[k], int) else f'{s[k]:.4f}')}</td>"
+                            for k in keys)
+            rows.append(f"<tr><th>{html.escape(m)}</th><td>{ref_name}</td>{cells}</tr>")
+    head = "".join(f"<th>{k}</th>" for k in keys)
+    return f"<table><tr><th>method</th><th>reference</th>{head}</tr>{''.join(rows)}</table>"
+
+
+def render_report(ev, doc: dict, cmap) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    figs = [("Trajectories over the map", figure_trajectories(ev, cmap)),
+            ("Error over time", figure_errors_over_time(ev) if ev.primary else None),
+            ("CDF of horizontal error", figure_cdf(ev) if ev.primary else None),
+            ("Corners used per epoch", figure_corners_per_epoch(ev)),
+            ("Covariance ellipses where corners are sparse", figure_ellipses(ev, cmap))]
+    body = "".join(f"<h2>{t}</h2><img alt='{t}' src='data:image/png;base64,{b}'/>" for t, b in figs if b)
+    title = f"cornermap evaluation: drive {html.escape(str(doc.get('drive')))}"
+    meta = html.escape(str(doc.get("map")))
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{title}</title><style>"
+            "body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:12px}"
+            "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}img{max-width:100%}</style></head>"
+            f"<body><h1>{title}</h1><p>map: {meta}; primary reference: {doc.get('primary_reference')}</p>"
+            f"{_metrics_html(doc)}{body}</body></html>")

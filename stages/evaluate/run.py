@@ -1,0 +1,123 @@
+"""Evaluate one drive: run every localizer and baseline on arrays, then score them against each reference.
+
+``evaluate_drive`` is the whole evaluation without I/O: ``compute`` (the stage) and ``cli`` feed it arrays
+read through the store and the map loader. Methods: ``ekf`` (corners), ``mcl`` (markings), and the paper's
+baselines ``rtk_ins`` (the GNSS/INS solution alone) and ``icp_dr`` (ICP dead reckoning alone).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, dead_reckon, run_ekf
+from stages.evaluate.localize_mcl import MclConfig, RasterFetcher, run_mcl
+from stages.evaluate.metrics import compute_errors, interpolate_poses, summarize
+from stages.evaluate.params import EvaluateParams
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DriveArrays:
+    """Everything a vehicle has on one drive, one epoch per scan."""
+
+    stamps_ns: np.ndarray  # (E,)
+    icp_increments: np.ndarray  # (E,3) dx, dy, dyaw from epoch k-1 in its vehicle frame; NaN where missing
+    odo_increments: np.ndarray  # (E,3) the same from wheel speed + gyro
+    gnss_q: np.ndarray  # (E,3) GNSS/INS x, y, yaw at each epoch
+    gnss_std: np.ndarray  # (E,3) std of east, north, yaw
+    gnss_valid: np.ndarray  # (E,) bool
+    corners: CornerObservations
+    feature_epoch: np.ndarray  # (F,) int, sorted
+    features_vehicle_m: np.ndarray  # (F,2)
+
+
+@dataclass
+class MethodRun:
+    q: np.ndarray  # (E,3)
+    P: np.ndarray | None  # (E,3,3)
+    n_associated: np.ndarray  # (E,)
+    seconds: float = 0.0
+    assoc_epoch: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    assoc_map_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+@dataclass
+class Evaluation:
+    stamps_ns: np.ndarray
+    runs: dict[str, MethodRun]
+    references: dict[str, np.ndarray]  # name -> (E,3) reference at the epochs (NaN where none)
+    metrics: dict[str, dict[str, dict]]  # method -> reference name -> summary
+    primary: str | None  # reference the per-epoch errors and the targets use
+
+
+def ekf_config(p: EvaluateParams) -> EkfConfig:
+    from scipy.stats import chi2
+
+    return EkfConfig(icp_sigma_frac=p.icp_sigma_frac, icp_sigma_xy_m=p.icp_sigma_xy_m,
+                     icp_sigma_yaw_rad=np.deg2rad(p.icp_sigma_yaw_deg), icp_sigma_yaw_frac=p.icp_sigma_yaw_frac,
+                     sensor_range_m=p.sensor_range_m, gate_chi2=float(chi2.ppf(p.gate_probability, 2)),
+                     angle_tol_rad=np.deg2rad(p.angle_gate_deg), association=p.association,
+                     range_sigma_floor_m=p.range_sigma_floor_m,
+                     bearing_sigma_floor_rad=np.deg2rad(p.bearing_sigma_floor_deg),
+                     wall_heading_sigma_rad=np.deg2rad(p.wall_heading_sigma_deg))
+
+
+def mcl_config(p: EvaluateParams) -> MclConfig:
+    return MclConfig(n_particles=p.n_particles, init_sigma_xy_m=p.mcl_init_sigma_xy_m,
+                     init_sigma_yaw_rad=np.deg2rad(p.mcl_init_sigma_yaw_deg), sigma_frac=p.mcl_sigma_frac,
+                     sigma_xy_m=p.mcl_sigma_xy_m, sigma_yaw_rad=np.deg2rad(p.mcl_sigma_yaw_deg),
+                     sharpness=p.mcl_sharpness, effective_points=p.mcl_effective_points,
+                     max_features=p.mcl_max_features, feature_range_m=p.feature_max_range_m)
+
+
+def first_fix(d: DriveArrays) -> int:
+    """Index of the first epoch with a valid, finite GNSS/INS fix (the filters start there)."""
+    ok = d.gnss_valid & np.all(np.isfinite(d.gnss_q), axis=1) & np.all(np.isfinite(d.gnss_std), axis=1)
+    if not ok.any():
+        from pipeline.errors import DataQualityError
+
+        raise DataQualityError(f"no valid GNSS/INS fix among {len(ok)} epochs: the filters cannot be initialised; "
+                               "hint: check poses_gnss.valid of this drive")
+    return int(np.argmax(ok))
+
+
+def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None, p: EvaluateParams
+                ) -> dict[str, MethodRun]:
+    k0 = first_fix(d)
+    q0 = d.gnss_q[k0]
+    P0 = np.diag(np.maximum(d.gnss_std[k0], [0.02, 0.02, np.deg2rad(0.1)]) ** 2)
+    runs: dict[str, MethodRun] = {}
+    n = len(d.stamps_ns)
+    valid = d.gnss_valid[:, None] & np.isfinite(d.gnss_q)
+    rtk_P = np.zeros((n, 3, 3))
+    rtk_P[:, [0, 1, 2], [0, 1, 2]] = d.gnss_std**2
+    runs["rtk_ins"] = MethodRun(np.where(valid, d.gnss_q, np.nan), rtk_P, np.zeros(n, np.int32))
+    runs["icp_dr"] = MethodRun(dead_reckon(d.icp_increments, q0, k0), None, np.zeros(n, np.int32))
+    if "ekf" in p.methods and cmap is not None:
+        t0 = time.perf_counter()
+        r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_config(p))
+        runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx)
+        log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
+    if "mcl" in p.methods and fetch is not None:
+        t0 = time.perf_counter()
+        r = run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, k0,
+                    np.random.default_rng(p.seed), mcl_config(p))
+        runs["mcl"] = MethodRun(r.q, r.P, r.n_features, time.perf_counter() - t0)
+        log.info("mcl: %d epochs in %.2f s", n - k0, runs["mcl"].seconds)
+    return runs
+
+
+def evaluate_drive(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None,
+                   references: dict[str, tuple[np.ndarray, np.ndarray]], p: EvaluateParams) -> Evaluation:
+    """Run the methods and score them. ``references``: name ('map' or 'truth') -> (stamps_ns, (R,3) x y yaw)."""
+    runs = run_methods(d, cmap, fetch, p)
+    gap = int(p.reference_max_gap_s * 1e9)
+    refs = {name: interpolate_poses(d.stamps_ns, st, q, gap) for name, (st, q) in references.items() if len(st)}
+    metrics = {m: {name: summarize(compute_errors(r.q, ref, r.P)) for name, ref in refs.items()}
+               for m, r in runs.items()}
+    primary = "map" if "map" in refs else ("truth" if "truth" in refs else None)
+    return Evaluation(d.stamps_ns, runs, refs, metrics, primary)
