@@ -1,0 +1,103 @@
+"""Elevation grid (Kim et al. 2.1, after [3]): per cell min / max / mean height, point count, mean intensity.
+
+Pure numpy: points in, arrays out. Raster convention of stages/common/tiling.py: row 0 is the NORTH edge,
+column 0 the WEST edge; the grid's georeference is its south-west corner (origin_east_m, origin_north_m).
+Points can be added in pieces (``GridAccumulator``) so a tile is built from a stream with bounded memory.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ElevationGrid:
+    """Per-cell statistics, all (rows, cols). Empty cells: count 0 and NaN elsewhere."""
+
+    min_up_m: np.ndarray
+    max_up_m: np.ndarray
+    mean_up_m: np.ndarray
+    count: np.ndarray  # int64
+    mean_intensity: np.ndarray  # float64, raw units
+    origin_east_m: float
+    origin_north_m: float
+    cell_m: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.count.shape
+
+    def crop(self, row0: int, col0: int, rows: int, cols: int) -> "ElevationGrid":
+        """Sub-grid starting at (row0, col0) (row 0 = north), with its own south-west origin."""
+        sl = (slice(row0, row0 + rows), slice(col0, col0 + cols))
+        below = self.shape[0] - (row0 + rows)  # rows south of the crop
+        return ElevationGrid(self.min_up_m[sl], self.max_up_m[sl], self.mean_up_m[sl], self.count[sl],
+                             self.mean_intensity[sl], self.origin_east_m + col0 * self.cell_m,
+                             self.origin_north_m + below * self.cell_m, self.cell_m)
+
+
+def cell_index_of(east_m: np.ndarray, north_m: np.ndarray, origin_east_m: float, origin_north_m: float,
+                  cell_m: float, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points -> (row, col, inside) with row 0 = north; ``inside`` marks points that fall in the grid."""
+    rows, cols = shape
+    col = np.floor((east_m - origin_east_m) / cell_m).astype(np.int64)
+    row = rows - 1 - np.floor((north_m - origin_north_m) / cell_m).astype(np.int64)
+    inside = (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
+    return row, col, inside
+
+
+class GridAccumulator:
+    """Running sums / minima / maxima on flat cell indices; ``add`` pieces, then ``finish``."""
+
+    def __init__(self, origin_east_m: float, origin_north_m: float, cell_m: float, shape: tuple[int, int]):
+        self.origin_east_m, self.origin_north_m, self.cell_m = float(origin_east_m), float(origin_north_m), cell_m
+        self.shape = (int(shape[0]), int(shape[1]))
+        n = self.shape[0] * self.shape[1]
+        self._count = np.zeros(n, np.int64)
+        self._sum_up = np.zeros(n)
+        self._sum_intensity = np.zeros(n)
+        self._min_up = np.full(n, np.inf)
+        self._max_up = np.full(n, -np.inf)
+        self.n_points = 0
+
+    def add(self, points_enu_m: np.ndarray, intensity: np.ndarray) -> int:
+        """Add (N,3) east/north/up points with (N,) intensity; returns how many fell inside the grid."""
+        pts = np.asarray(points_enu_m, float).reshape(-1, 3)
+        inten = np.asarray(intensity, float).reshape(-1)
+        finite = np.isfinite(pts).all(axis=1) & np.isfinite(inten)
+        row, col, inside = cell_index_of(pts[:, 0], pts[:, 1], self.origin_east_m, self.origin_north_m,
+                                         self.cell_m, self.shape)
+        keep = inside & finite
+        flat = row[keep] * self.shape[1] + col[keep]
+        up = pts[keep, 2]
+        n = self._count.size
+        self._count += np.bincount(flat, minlength=n)
+        self._sum_up += np.bincount(flat, weights=up, minlength=n)
+        self._sum_intensity += np.bincount(flat, weights=inten[keep], minlength=n)
+        np.minimum.at(self._min_up, flat, up)
+        np.maximum.at(self._max_up, flat, up)
+        self.n_points += int(flat.size)
+        return int(flat.size)
+
+    def finish(self, min_points: int = 1) -> ElevationGrid:
+        """Cells with fewer than ``min_points`` points are reported empty (count kept, heights NaN)."""
+        ok = self._count >= max(1, min_points)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_up = np.where(ok, self._sum_up / np.maximum(self._count, 1), np.nan)
+            mean_int = np.where(ok, self._sum_intensity / np.maximum(self._count, 1), np.nan)
+        shape = self.shape
+        return ElevationGrid(
+            min_up_m=np.where(ok, self._min_up, np.nan).reshape(shape),
+            max_up_m=np.where(ok, self._max_up, np.nan).reshape(shape),
+            mean_up_m=mean_up.reshape(shape), count=self._count.reshape(shape).copy(),
+            mean_intensity=mean_int.reshape(shape), origin_east_m=self.origin_east_m,
+            origin_north_m=self.origin_north_m, cell_m=self.cell_m)
+
+
+def grid_points(points_enu_m: np.ndarray, intensity: np.ndarray, origin_east_m: float, origin_north_m: float,
+                cell_m: float, shape: tuple[int, int], min_points: int = 1) -> ElevationGrid:
+    """One-shot elevation grid of (N,3) ENU points; see ``GridAccumulator``."""
+    acc = GridAccumulator(origin_east_m, origin_north_m, cell_m, shape)
+    acc.add(points_enu_m, intensity)
+    return acc.finish(min_points)
