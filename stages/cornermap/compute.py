@@ -1,0 +1,152 @@
+"""Adapter of the corner map stage: Arrow tables in, Arrow tables out (the algorithms are in the sibling modules)."""
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+from scipy.spatial.transform import Rotation
+
+from pipeline.errors import DataQualityError
+from schemas import SCHEMAS
+from stages.cornermap.aggregate import aggregate_clusters
+from stages.cornermap.clustering import cluster_observations
+from stages.cornermap.filtering import FilterThresholds, reject_reasons
+from stages.cornermap.params import CornerMapParams
+from stages.cornermap.partition import cluster_partitioned
+from stages.cornermap.transform import covariance_from_components, transform_to_enu
+
+log = logging.getLogger(__name__)
+
+def _select_drives(table: pa.Table, drives: list[str]) -> pa.Table:
+    return table.filter(pc.is_in(table["drive"], pa.array(drives, pa.string()))) if drives else table
+
+
+def match_poses(corners: pa.Table, poses: pa.Table) -> tuple[np.ndarray, np.ndarray]:
+    """Row of ``poses`` holding each corner's (drive, scan_id) -> (pose_row, has_pose), vectorised."""
+    c_drive = corners["drive"].to_numpy(zero_copy_only=False)
+    p_drive = poses["drive"].to_numpy(zero_copy_only=False)
+    names, codes = np.unique(np.concatenate([c_drive, p_drive]), return_inverse=True)
+    shift = np.int64(1) << np.int64(40)
+    c_key = codes[:len(c_drive)].astype(np.int64) * shift + corners["scan_id"].to_numpy()
+    p_key = codes[len(c_drive):].astype(np.int64) * shift + poses["scan_id"].to_numpy()
+    order = np.argsort(p_key, kind="stable")
+    sorted_keys = p_key[order]
+    if len(sorted_keys) > 1 and np.any(dup := sorted_keys[1:] == sorted_keys[:-1]):
+        first = order[1:][dup][0]
+        raise DataQualityError(f"cornermap: poses_optimized has {int(dup.sum())} duplicate (drive, scan_id) rows, "
+                               f"e.g. drive {p_drive[first]!r} scan {poses['scan_id'][int(first)].as_py()}; "
+                               "expected one pose per scan; hint: rerun posegraph")
+    pos = np.clip(np.searchsorted(sorted_keys, c_key), 0, max(len(sorted_keys) - 1, 0))
+    has = (sorted_keys[pos] == c_key) if len(sorted_keys) else np.zeros(len(c_key), bool)
+    return order[pos] if len(sorted_keys) else pos, has
+
+
+def _finite_rows(t: pa.Table) -> np.ndarray:
+    cols = ["x_m", "y_m", "theta1_rad", "theta2_rad", "cov_xx_m2", "cov_xy_m2", "cov_yy_m2"]
+    return np.all([np.isfinite(t[c].to_numpy()) for c in cols], axis=0)
+
+
+def _extrinsics(drive_info: pa.Table, drive_names: list[str]) -> np.ndarray:
+    """(D,4,4) T_vehicle_lidar per drive name."""
+    rows = {r["drive"]: r["T_vehicle_lidar"] for r in drive_info.select(["drive", "T_vehicle_lidar"]).to_pylist()}
+    missing = [d for d in drive_names if d not in rows]
+    if missing:
+        raise DataQualityError(f"cornermap: drives {missing} have corners but no drive_info row (T_vehicle_lidar); "
+                               f"drive_info has {sorted(rows)}; hint: run ingest for those drives")
+    return np.stack([np.asarray(rows[d], dtype=float).reshape(4, 4) for d in drive_names])
+
+
+def _pose_matrices(poses: pa.Table, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n = len(rows)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    quat = np.column_stack([poses[c].to_numpy()[rows] for c in ("qx", "qy", "qz", "qw")])
+    T[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
+    T[:, :3, 3] = np.column_stack([poses[c].to_numpy()[rows] for c in ("x_m", "y_m", "z_m")])
+    cov_all = np.asarray(poses["cov_xy_yaw"].combine_chunks().flatten().to_numpy(), dtype=float)
+    return T, cov_all.reshape(-1, 3, 3)[rows]
+
+
+def _empty(name: str) -> pa.Table:
+    return SCHEMAS[name].empty_table()
+
+
+def compute(ctx) -> dict[str, Any]:
+    p: CornerMapParams = ctx.params
+    drives = list(ctx.settings.get("map_drives") or [])
+    corners = _select_drives(ctx.inputs.read("corners"), drives)
+    poses = _select_drives(ctx.inputs.read("poses"), drives)
+    pose_row, has_pose = match_poses(corners, poses)
+    finite = _finite_rows(corners)
+    keep = has_pose & finite
+    n_no_pose, n_nonfinite = int(np.sum(~has_pose)), int(np.sum(has_pose & ~finite))
+    joined = corners.filter(pa.array(keep))
+    pose_row = pose_row[keep]
+    if n_no_pose or n_nonfinite:
+        log.warning("cornermap: dropped %d observations without an optimized pose and %d with non-finite values",
+                    n_no_pose, n_nonfinite)
+    extra = {"cornermap": {"n_observations": joined.num_rows, "n_dropped_no_pose": n_no_pose,
+                           "n_dropped_nonfinite": n_nonfinite, "drives": drives}}
+    if joined.num_rows == 0:
+        log.warning("cornermap: no corner observations with poses; writing an empty map")
+        return {"corner_map": _empty("corner_map"), "rejected": _empty("corner_map_rejected"), "_extra": extra}
+
+    drive_names, drive_code = np.unique(joined["drive"].to_numpy(zero_copy_only=False), return_inverse=True)
+    drive_names = [str(d) for d in drive_names]
+    T_vehicle_lidar = _extrinsics(ctx.inputs.read("drive_info"), drive_names)[drive_code]
+    T_map_vehicle, cov_pose = _pose_matrices(poses, pose_row)
+    col = lambda c: joined[c].to_numpy()  # noqa: E731
+    obs = transform_to_enu(
+        np.column_stack([col("x_m"), col("y_m")]), np.column_stack([col("theta1_rad"), col("theta2_rad")]),
+        covariance_from_components(col("cov_xx_m2"), col("cov_xy_m2"), col("cov_yy_m2")),
+        T_map_vehicle, T_vehicle_lidar, cov_pose)
+
+    def cluster(en, theta):
+        return cluster_observations(en, theta, link_radius_m=p.link_radius_m, angle_tol_rad=np.radians(p.angle_tol_deg),
+                                    max_neighbors=p.max_neighbors, split_spread_m=p.split_spread_m)
+
+    labels, report = cluster_partitioned(obs.en_m, obs.theta_enu_rad, cell_size_m=p.cell_size_m, halo_m=p.halo_m,
+                                         link_radius_m=p.link_radius_m, workers=p.workers, cluster=cluster)
+    summary = aggregate_clusters(labels, obs, drive_code, drive_names, col("stamp_ns"), col("interior_angle_rad"),
+                                 col("convex"))
+    reasons = reject_reasons(summary, FilterThresholds(
+        min_obs=p.min_obs, min_drives=p.min_drives, max_spread_m=p.max_spread_m,
+        max_cov_trace_m2=p.max_cov_trace_m2, max_angle_spread_rad=np.radians(p.max_angle_spread_deg)))
+    kept = np.array([r == "" for r in reasons], bool)
+    extra["cornermap"].update({"n_cells": report.n_cells, "n_wide_clusters": report.n_wide_clusters,
+                               "n_partition_conflicts": report.n_conflicts, "n_clusters": len(kept),
+                               "n_kept": int(kept.sum()), "n_rejected": int((~kept).sum())})
+    log.info("cornermap: %d observations -> %d clusters -> %d corners kept", len(labels), len(kept), kept.sum())
+    return {"corner_map": corner_map_table(summary, kept), "rejected": rejected_table(summary, kept, reasons),
+            "_extra": extra}
+
+
+def corner_map_table(s, kept: np.ndarray) -> pa.Table:
+    """Kept clusters -> corner_map, corner_id 1..K in order of (east, north)."""
+    idx = np.flatnonzero(kept)
+    idx = idx[np.lexsort((s.en_m[idx, 1], s.en_m[idx, 0]))]
+    cov = s.cov_map_m2[idx]
+    cols = {
+        "corner_id": np.arange(1, len(idx) + 1, dtype=np.int64),
+        "east_m": s.en_m[idx, 0], "north_m": s.en_m[idx, 1],
+        "theta1_rad": s.theta_rad[idx, 0], "theta2_rad": s.theta_rad[idx, 1],
+        "cov_ee_m2": cov[:, 0, 0], "cov_en_m2": cov[:, 0, 1], "cov_nn_m2": cov[:, 1, 1],
+        "n_obs": s.n_obs[idx], "n_drives": s.n_drives[idx].astype(np.int32),
+        "drives": [s.drives[i] for i in idx],
+        "first_seen_ns": s.first_seen_ns[idx], "last_seen_ns": s.last_seen_ns[idx],
+        "interior_angle_rad": s.interior_angle_rad[idx], "convex": s.convex[idx],
+    }
+    return pa.Table.from_pydict(cols, schema=SCHEMAS["corner_map"])
+
+
+def rejected_table(s, kept: np.ndarray, reasons: list[str]) -> pa.Table:
+    idx = np.flatnonzero(~kept)
+    cols = {
+        "east_m": s.en_m[idx, 0], "north_m": s.en_m[idx, 1], "n_obs": s.n_obs[idx],
+        "cov_trace_m2": np.trace(s.cov_map_m2[idx], axis1=1, axis2=2) if len(idx) else np.empty(0),
+        "reason": [reasons[i] for i in idx],
+    }
+    return pa.Table.from_pydict(cols, schema=SCHEMAS["corner_map_rejected"])
+

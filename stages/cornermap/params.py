@@ -1,0 +1,36 @@
+"""Typed params of the corner map stage (defaults in code, unknown keys rejected)."""
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from pipeline.declare import Params
+
+
+class CornerMapParams(Params):
+    # Clustering (clustering.py): a radius graph on east/north, capped at k neighbours, gated by direction angles.
+    link_radius_m: float = Field(0.35, gt=0.0, description="two observations closer than this may be linked")
+    angle_tol_deg: float = Field(12.0, gt=0.0, lt=90.0,
+                                 description="both wall directions must agree within this to link")
+    max_neighbors: int = Field(24, ge=2, description="k of the k-nearest-neighbour graph (bounds the work)")
+    split_spread_m: float = Field(0.25, gt=0.0,
+                                  description="a cluster whose principal std exceeds this is split by 2-means")
+    # Spatial partitioning: square cells with a halo; a cluster belongs to the cell holding its centroid.
+    cell_size_m: float = Field(200.0, gt=0.0)
+    halo_m: float = Field(10.0, gt=0.0, description="must exceed twice the widest cluster plus link_radius_m")
+    workers: int = Field(2, ge=1, description="threads clustering cells in parallel")
+    # Filtering (filtering.py), after Im et al.: drop clusters with a large covariance or a small count.
+    min_obs: int = Field(8, ge=1, description="fewer observations than this -> rejected")
+    min_drives: int = Field(1, ge=1)
+    max_spread_m: float = Field(0.15, gt=0.0,
+                                description="largest std of the observations' scatter about the mean")
+    max_cov_trace_m2: float = Field(0.01, gt=0.0, description="trace of the stored map covariance")
+    max_angle_spread_deg: float = Field(6.0, gt=0.0, description="circular std of either wall direction")
+
+    @model_validator(mode="after")
+    def _check_halo(self) -> "CornerMapParams":
+        if self.halo_m < 4.0 * self.link_radius_m:
+            raise ValueError(f"halo_m {self.halo_m} m must be >= 4 x link_radius_m ({4 * self.link_radius_m} m) "
+                             "so that no cluster is cut at a cell border")
+        if self.halo_m >= self.cell_size_m:
+            raise ValueError(f"halo_m {self.halo_m} m must be < cell_size_m {self.cell_size_m} m")
+        return self
