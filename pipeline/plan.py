@@ -47,6 +47,8 @@ def _resolve_template(text: str, root: Path, producer_fp: dict[str, str]) -> tup
     """Expand ${dataset} to that dataset's committed artifact directory; returns (path, fingerprint basis)."""
     basis = None
     for ds in TEMPLATE.findall(text):
+        if ds not in producer_fp:  # a stage upstream of the producer: the path is not available to it
+            continue
         fp = producer_fp[ds]
         text = text.replace("${" + ds + "}", str(dataset_dir(root, ds, fp) / "artifacts" / PartitionKey().label))
         basis = f"{ds}:{fp}"

@@ -90,15 +90,24 @@ def write_parquet_atomic(table: pa.Table, path: Path) -> dict[str, Any]:
     return {"rows": table.num_rows, "bytes": path.stat().st_size, "sha256": file_sha256(path)}
 
 
-def _hive_subdir(table: pa.Table, partitioning: tuple[str, ...], where: str) -> tuple[str, dict[str, Any]]:
-    parts: dict[str, Any] = {}
-    for col in partitioning:
-        values = table[col].unique().to_pylist()
-        if len(values) != 1:
-            raise SchemaMismatchError(f"{where}: each written piece must hold one value of partition column "
-                                      f"{col!r}; got {values[:5]}")
-        parts[col] = values[0]
-    return "/".join(f"{k}={v}" for k, v in parts.items()), parts
+def _split_by_partition(table: pa.Table, partitioning: tuple[str, ...]) -> list[tuple[str, dict[str, Any], pa.Table]]:
+    """Split a piece into one table per value combination of the partition columns (hive sub-directories)."""
+    import pyarrow.compute as pc
+
+    if not partitioning:
+        return [("", {}, table)]
+    combos = table.select(list(partitioning)).group_by(list(partitioning)).aggregate([]).to_pylist()
+    out = []
+    for combo in sorted(combos, key=lambda c: tuple(str(v) for v in c.values())):
+        sub = table
+        if len(combos) > 1:
+            mask = None
+            for k, v in combo.items():
+                m = pc.equal(table[k], v)
+                mask = m if mask is None else pc.and_(mask, m)
+            sub = table.filter(mask)
+        out.append(("/".join(f"{k}={v}" for k, v in combo.items()), combo, sub))
+    return out
 
 
 def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path, label: str,
@@ -111,17 +120,19 @@ def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path,
     if isinstance(pieces, pa.Table):
         pieces = [pieces]
     records = []
-    for seq, table in enumerate(pieces):
-        if table is None or table.num_rows == 0 and records:
+    seq = 0
+    for table in pieces:
+        if table is None:
             continue
         table = conform_table(table, schema, where)
         if table.num_rows == 0:
             continue
-        sub, parts = _hive_subdir(table, partitioning, where)
-        path = out_dir / "data" / sub / f"part-{label}-{seq:05d}.parquet"
-        rec = write_parquet_atomic(table, path)
-        rec.update(path=str(path.relative_to(out_dir)), partition=parts)
-        records.append(rec)
+        for sub, parts, piece in _split_by_partition(table, partitioning):
+            path = out_dir / "data" / sub / f"part-{label}-{seq:05d}.parquet"
+            seq += 1
+            rec = write_parquet_atomic(piece, path)
+            rec.update(path=str(path.relative_to(out_dir)), partition=parts)
+            records.append(rec)
     return records
 
 

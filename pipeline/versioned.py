@@ -234,7 +234,8 @@ def _hash_tree(staging: Path, durable: bool) -> dict[str, dict[str, Any]]:
     return files
 
 
-def _apply_retention(collection_dir: Path, keep_last: int) -> list[int]:
+def apply_retention(collection_dir: Path, keep_last: int) -> list[int]:
+    """Delete the oldest versions beyond keep_last, never the one LATEST names; call under publish_lock."""
     latest = read_latest(collection_dir)
     versions = list_versions(collection_dir)
     doomed = [v for v in versions[:max(0, len(versions) - keep_last)] if v != latest]
@@ -301,6 +302,6 @@ def publish_version(collection_dir: Path, write: Callable[[Path], Mapping[str, A
             _fsync_path(collection_dir, directory=True)
         write_latest(collection_dir, number, durable)
         if keep_last is not None:
-            _apply_retention(collection_dir, keep_last)
+            apply_retention(collection_dir, keep_last)
         log.info("published %s (%d files)", final, len(files))
         return PublishedVersion(number, final, hashlib.sha256(raw).hexdigest(), manifest, created=True)

@@ -1,0 +1,151 @@
+"""``cornermap tiles ls|diff|export|verify``: inspect, compare, export and check published map versions.
+
+Heavy imports happen inside the commands so ``cornermap --help`` stays instant.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+ROOT_OPT = typer.Option(Path("."), "--root", envvar="CORNERMAP_ROOT",
+                        help="Output root holding maps/NAME/ (env CORNERMAP_ROOT).")
+MAP_OPT = typer.Option(None, "--map", "-m", help="Map name under ROOT/maps; default: the only map there.")
+VERSION_OPT = typer.Option("LATEST", "--version", help="LATEST, vNNNN or N.")
+
+EXAMPLES = ("Examples:\n\n"
+            "  cornermap tiles ls --root runs/demo\n\n"
+            "  cornermap tiles diff v0001 v0002 --root runs/demo --map demo\n\n"
+            "  cornermap tiles export --format geojson --out city.geojson --root runs/demo\n\n"
+            "  cornermap tiles export --format autoware --out autoware_map/ --root runs/demo\n\n"
+            "  cornermap tiles verify --all --root runs/demo")
+
+
+def map_dir_of(root: Path, name: Optional[str]) -> Path:
+    """ROOT/maps/NAME; with no name, the only map under ROOT/maps."""
+    from pipeline.errors import UnknownNameError
+
+    maps = Path(root) / "maps"
+    have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
+    if name is None:
+        if len(have) != 1:
+            raise UnknownNameError(f"{maps}: {'no maps' if not have else 'several maps: ' + ', '.join(have)}; "
+                                   "hint: pass --map NAME (and --root ROOT)")
+        name = have[0]
+    if name not in have:
+        from pipeline.registry import suggest
+
+        raise UnknownNameError(f"{maps}: no map {name!r}; have {', '.join(have) or 'none'}{suggest(name, have)}")
+    return maps / name
+
+
+def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
+    """List the versions of a map (* marks LATEST) with tiles, corners, parent and creation time.
+
+    Example: [b]cornermap tiles ls --root runs/demo[/b]
+    """
+    from pipeline.errors import MapFormatError
+    from pipeline.versioned import list_versions, read_latest, read_manifest, version_name
+
+    d = map_dir_of(root, map_name)
+    latest = read_latest(d)
+    typer.echo(f"{d}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
+    for v in list_versions(d):
+        mark = "*" if v == latest else " "
+        try:
+            m, sha = read_manifest(d / version_name(v))
+        except MapFormatError as exc:
+            typer.echo(f"{mark} {version_name(v)}  unreadable: {exc}")
+            continue
+        parent = m.get("parent_version")
+        typer.echo(f"{mark} {version_name(v)}  {m.get('created_utc', '?')}  tiles={m.get('n_tiles', '?'):<5} "
+                   f"corners={m.get('n_corners', '?'):<7} drives={len(m.get('source_drives', []))} "
+                   f"parent={version_name(parent) if parent is not None else '-'}  format={m.get('format_version')} "
+                   f"sha256={sha[:12]}")
+
+
+def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LATEST)."),
+         version_b: str = typer.Argument(..., help="New version."),
+         root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+         move_threshold_m: float = typer.Option(0.1, "--move-threshold-m", help="A matched corner moved more "
+                                                "than this is reported as moved."),
+         match_radius_m: float = typer.Option(1.0, "--match-radius-m", help="Corners further apart never match."),
+         as_json: bool = typer.Option(False, "--json", help="Print the per-tile diff as JSON.")) -> None:
+    """Per tile: corners added, removed, moved more than a threshold; marking pixels changed (A -> B).
+
+    Example: [b]cornermap tiles diff v0001 LATEST --root runs/demo --map demo[/b]
+    """
+    from stages.tiles.diff import diff_maps
+    from stages.tiles.loader import open_map
+
+    d = map_dir_of(root, map_name)
+    a, b = open_map(d, version_a), open_map(d, version_b)
+    diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m)
+    if as_json:
+        typer.echo(json.dumps({"a": a.version, "b": b.version, "tiles": [t.as_dict() for t in diffs]}, indent=1))
+        return
+    typer.echo(f"diff v{a.version:04d} -> v{b.version:04d}: {len(diffs)} tile(s) changed")
+    for t in diffs:
+        typer.echo(f"  tile ({t.i},{t.j}): +{t.corners_added} -{t.corners_removed} ~{t.corners_moved} corners, "
+                   f"{t.marking_px_changed} marking px changed")
+    totals = [sum(getattr(t, k) for t in diffs) for k in ("corners_added", "corners_removed", "corners_moved",
+                                                         "marking_px_changed")]
+    typer.echo("total: +{} -{} ~{} corners, {} marking px changed".format(*totals))
+
+
+def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | geojson | autoware"),
+           out: Path = typer.Option(..., "--out", "-o", help="Output file (directory for autoware)."),
+           root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
+           column_height_m: float = typer.Option(10.0, "--column-height-m",
+                                                 help="autoware: each corner drawn as a vertical column this tall")) -> None:
+    """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), or Autoware (projector info + PCD).
+
+    Examples: [b]cornermap tiles export -f geojson -o city.geojson --root runs/demo[/b];
+    [b]cornermap tiles export -f autoware -o autoware_map/ --root runs/demo --version v0002[/b]
+    """
+    from stages.tiles.export import FORMATS, export_map
+    from stages.tiles.loader import open_map
+
+    if fmt not in FORMATS:
+        raise typer.BadParameter(f"{fmt!r}; expected one of {', '.join(FORMATS)}", param_hint="--format")
+    reader = open_map(map_dir_of(root, map_name), version)
+    for path in export_map(reader, fmt, out, column_height_m=column_height_m):
+        typer.echo(f"wrote {path}")
+
+
+def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
+           all_versions: bool = typer.Option(False, "--all", help="Verify every version, not only one.")) -> None:
+    """Recompute every file's sha256 and compare with the manifest; exit 1 on any mismatch.
+
+    Example: [b]cornermap tiles verify --all --root runs/demo[/b]
+    """
+    from pipeline.errors import ChecksumError
+    from pipeline.versioned import list_versions, resolve_version, version_name
+    from stages.tiles.verify import verify_map
+
+    d = map_dir_of(root, map_name)
+    dirs = [d / version_name(v) for v in list_versions(d)] if all_versions else [resolve_version(d, version)]
+    bad = []
+    for vdir in dirs:
+        problems = verify_map(vdir)
+        typer.echo(f"{vdir.name}: {'ok' if not problems else f'{len(problems)} problem(s)'}")
+        for p in problems:
+            typer.echo(f"  - {p}")
+        bad += problems
+    if bad:
+        raise ChecksumError(f"{d}: {len(bad)} integrity problem(s) (listed above); hint: republish the version")
+
+
+def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
+    """Add ls/diff/export/verify to the ``tiles`` group (created on ``app`` when not given)."""
+    target = stage_app
+    if target is None:
+        target = typer.Typer(no_args_is_help=True, help="Published map versions: ls, diff, export, verify.")
+        app.add_typer(target, name="tiles")
+    target.info.help = (target.info.help or "Published map versions.") + "\n\n" + EXAMPLES
+    target.command("ls")(ls)
+    target.command("diff")(diff)
+    target.command("export")(export)
+    target.command("verify")(verify)

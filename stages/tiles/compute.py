@@ -1,0 +1,155 @@
+"""Adapter of the tiles stage: read inputs, run the quality gates, publish version N+1 of the map."""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from pipeline.declare import PartitionKey, StageContext
+from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
+from pipeline.versioned import publish_version
+from stages.common.geodesy import EnuOrigin
+from stages.tiles import core, layout
+from stages.tiles.decl import STAGE
+from stages.tiles.writer import DriveTrajectory, RasterTile, write_map_files
+
+log = logging.getLogger(__name__)
+
+_INPUT_ARGS = ("corner_map", "raster", "rasters", "poses", "drive_info")
+_RASTER_META = ("origin_east_m", "origin_north_m", "cell_m", "width_px", "height_px", "n_marking_px",
+                "n_traversable_px", "n_points", "source")
+
+
+def compute(ctx: StageContext) -> dict[str, Any]:
+    import schemas.tiles  # noqa: F401  registers map_tiles
+    from schemas import schema_of
+
+    params = ctx.params
+    size_m = float(params.tile_size_m or ctx.settings.get("tile_size_m") or 100.0)
+    corners = ctx.inputs.read("corner_map")
+    poses = ctx.inputs.read("poses").sort_by([("drive", "ascending"), ("stamp_ns", "ascending")])
+    drive_info = ctx.inputs.read("drive_info")
+    raster_rows = ctx.inputs.read("raster") if ctx.inputs.has("raster") else None
+
+    problems = _schema_problems(corners, schema_of("corner_map")) if params.check_schema else []
+    rasters = _collect_rasters(ctx, raster_rows, size_m, problems)
+    trajectories = _trajectories(poses, drive_info)
+    measured: dict[str, float] = {}
+    if params.gates_enabled:
+        if params.check_schema and not problems:
+            problems += core.check_corner_values(*(corners[c].to_numpy() for c in (
+                "corner_id", "east_m", "north_m", "theta1_rad", "theta2_rad", "cov_ee_m2", "cov_en_m2", "cov_nn_m2")))
+        paths = [t.pose_xyz_qxyzw[:, :2] for t in trajectories]
+        corner_tiles = set(core.group_by_tile(corners["east_m"].to_numpy(), corners["north_m"].to_numpy(), size_m))
+        measured, failures = core.evaluate_gates(
+            corners.num_rows, sum(core.path_length_m(p) for p in paths), corner_tiles,
+            core.path_tiles(paths, size_m, params.path_step_m), params.min_corners_per_km,
+            params.max_empty_path_tile_share)
+        problems += failures
+    if problems and not params.gates_enabled:
+        log.warning("tiles: gates disabled; publishing despite %d problem(s): %s", len(problems), problems)
+    elif problems:
+        raise DataQualityError(f"tiles: {len(problems)} quality gate failure(s); nothing published, LATEST "
+                               "unchanged:\n" + "\n".join(f"  - {p}" for p in problems))
+
+    name = str(ctx.settings["map_name"])
+    inputs = {arg: {"dataset": STAGE.inputs[arg], "fingerprint": ctx.inputs.metadata(arg).get("fingerprint")}
+              for arg in _INPUT_ARGS if arg in ("corner_map", "poses", "drive_info") or ctx.inputs.has(arg)}
+    resolved = {**params.model_dump(mode="json"), "tile_size_m": size_m}
+    fields = {"format": layout.FORMAT_NAME, "format_version": layout.FORMAT_VERSION, "map_name": name,
+              "enu_origin": _enu_origin(ctx, drive_info).as_dict(), "tile_size_m": size_m,
+              "n_corners": corners.num_rows, "corner_columns": list(layout.CORNER_COLUMNS),
+              "stage": STAGE.name, "code_version": STAGE.code_version, "params": resolved, "inputs": inputs,
+              "quality": measured}
+
+    def write(staging: Path) -> dict[str, Any]:
+        files = write_map_files(staging, corners, size_m, rasters, trajectories)
+        return {**fields, "n_tiles": len(files["tiles"]), **files}
+
+    def unchanged(latest: dict[str, Any]) -> bool:
+        fps = [v["fingerprint"] for v in inputs.values()]
+        return (all(fps) and latest.get("inputs") == inputs and latest.get("params") == resolved
+                and latest.get("code_version") == STAGE.code_version)
+
+    map_dir = Path(ctx.settings["root"]) / "maps" / name
+    pub = publish_version(map_dir, write, keep_last=params.keep_last, reuse=unchanged)
+    table = pa.table({
+        "map_name": pa.array([name], pa.string()), "version": pa.array([pub.version], pa.int32()),
+        "path": pa.array([str(pub.path.resolve())], pa.string()),
+        "n_tiles": pa.array([int(pub.manifest["n_tiles"])], pa.int32()),
+        "n_corners": pa.array([int(pub.manifest["n_corners"])], pa.int64()),
+        "manifest_sha256": pa.array([pub.manifest_sha256], pa.string())}, schema=schema_of("map_tiles"))
+    return {"published": table}
+
+
+def _schema_problems(table: pa.Table, expected: pa.Schema) -> list[str]:
+    problems = []
+    for fld in expected:
+        if fld.name not in table.column_names:
+            problems.append(f"corner_map: column {fld.name!r} missing (expected {fld.type})")
+        elif not table.schema.field(fld.name).type.equals(fld.type):
+            problems.append(f"corner_map: column {fld.name!r} is {table.schema.field(fld.name).type}, "
+                            f"expected {fld.type}")
+    return problems
+
+
+def _collect_rasters(ctx: StageContext, rows: pa.Table | None, size_m: float, problems: list[str]) -> list[RasterTile]:
+    """Raster rows + their artifact files (every file of the tile is copied)."""
+    if rows is None or rows.num_rows == 0:
+        return []
+    arg = "rasters" if ctx.inputs.has("rasters") else "raster"
+    out = []
+    for row in rows.to_pylist():
+        i, j = int(row["tile_i"]), int(row["tile_j"])
+        if abs(row["origin_east_m"] - i * size_m) > 1e-6 or abs(row["origin_north_m"] - j * size_m) > 1e-6:
+            problems.append(f"marking_raster tile ({i},{j}): origin ({row['origin_east_m']}, {row['origin_north_m']})"
+                            f" m is not the tile's lower-left corner ({i * size_m}, {j * size_m}) for tile_size_m "
+                            f"{size_m}; hint: the markings and tiles stages must use the same tile_size_m")
+        try:
+            src_dir = ctx.inputs.artifact_dir(arg, PartitionKey(tile_i=i, tile_j=j))
+        except DatasetIOError as exc:
+            problems.append(f"marking_raster tile ({i},{j}): no artifact files ({exc})")
+            continue
+        files = {}
+        for src in sorted(Path(src_dir).iterdir()) if Path(src_dir).is_dir() else []:
+            name = layout.published_name_of(src.name, i, j)
+            if src.is_file() and name is not None:
+                files[name] = src
+        if not set(layout.MARKING_MASK_FILES) & set(files):
+            problems.append(f"marking_raster tile ({i},{j}): no marking mask ({' or '.join(layout.MARKING_MASK_FILES)})"
+                            f" in {src_dir}")
+        out.append(RasterTile(i, j, {k: row[k] for k in _RASTER_META if k in row}, files))
+    return out
+
+
+def _trajectories(poses: pa.Table, drive_info: pa.Table) -> list[DriveTrajectory]:
+    cols = ["x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
+    drives = np.asarray(poses["drive"].to_pylist(), dtype=object)
+    arr = np.column_stack([poses[c].to_numpy() for c in cols]) if poses.num_rows else np.zeros((0, 7))
+    stamps = poses["stamp_ns"].to_numpy()
+    info = {r["drive"]: r for r in drive_info.to_pylist()}
+    out = []
+    for drive in sorted(set(drives.tolist())):
+        sel = drives == drive
+        h = hashlib.sha256(json.dumps(info.get(drive), sort_keys=True, default=str).encode())
+        h.update(np.ascontiguousarray(stamps[sel]).tobytes())
+        h.update(np.ascontiguousarray(arr[sel]).tobytes())
+        out.append(DriveTrajectory(drive, stamps[sel], arr[sel], h.hexdigest()[:16]))
+    return out
+
+
+def _enu_origin(ctx: StageContext, drive_info: pa.Table) -> EnuOrigin:
+    for source in (ctx.inputs.metadata("drive_info").get("enu_origin"), ctx.settings.get("enu_origin")):
+        if source:
+            return EnuOrigin.from_dict(source)
+    if drive_info.num_rows:
+        r = drive_info.slice(0, 1).to_pylist()[0]
+        if r.get("origin_lat_deg") is not None:
+            return EnuOrigin(r["origin_lat_deg"], r["origin_lon_deg"], r["origin_h_m"])
+    raise ConfigError("tiles stage", ["no ENU origin: drive_info metadata has no 'enu_origin', the workflow "
+                                      "sets none and drive_info has no rows; a published map must be geo-referenced"])

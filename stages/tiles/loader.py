@@ -1,0 +1,212 @@
+"""Loader API for localizers: open a published map version and query corners and marking rasters.
+
+    reader = open_map("ROOT/maps/city", version="LATEST")   # or "v0003", 3, or a version directory
+    near = reader.corners_within(east_m, north_m, 100.0)       # pa.Table with corner_map columns
+    mask, (e0_m, n0_m), cell_m = reader.marking_window(e0, n0, e1, n1)   # row 0 = north edge
+
+The version is pinned when the reader opens (LATEST is read once), so a publish running meanwhile never
+mixes two versions under one reader. Tiles load lazily and stay in an LRU cache (``cache_tiles`` each for
+corners and for marking rasters). Query boxes are half-open like tiles: [e0, e1) x [n0, n1).
+"""
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from pipeline.errors import MapFormatError, UnknownNameError
+from pipeline.versioned import MANIFEST_NAME, read_manifest, resolve_version
+from stages.common.geodesy import EnuOrigin
+from stages.common.tiling import tile_key_of
+from stages.tiles import layout
+
+
+class _Lru:
+    def __init__(self, capacity: int, load: Callable[[tuple[int, int]], Any]):
+        self._capacity, self._load = max(1, capacity), load
+        self._items: OrderedDict[tuple[int, int], Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple[int, int]) -> Any:
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        value = self._load(key)
+        with self._lock:
+            self._items[key] = value
+            while len(self._items) > self._capacity:
+                self._items.popitem(last=False)
+        return value
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+
+
+def check_manifest_format(manifest: dict[str, Any], where: Path) -> None:
+    fmt, ver = manifest.get("format"), manifest.get("format_version")
+    if fmt != layout.FORMAT_NAME or ver not in layout.SUPPORTED_FORMAT_VERSIONS:
+        raise MapFormatError(
+            f"{where}: map format {fmt!r} version {ver!r} is not readable by this code (reads {layout.FORMAT_NAME!r} "
+            f"versions {sorted(layout.SUPPORTED_FORMAT_VERSIONS)}); hint: upgrade cornermap or open an older version")
+
+
+class MapReader:
+    """A pinned, read-only view of one map version."""
+
+    def __init__(self, version_dir: Path, cache_tiles: int = 64):
+        self.path = Path(version_dir)
+        self.manifest, self.manifest_sha256 = read_manifest(self.path)
+        check_manifest_format(self.manifest, self.path / MANIFEST_NAME)
+        self.version: int = int(self.manifest["version"])
+        self.tile_size_m: float = float(self.manifest["tile_size_m"])
+        self.origin = EnuOrigin.from_dict(self.manifest["enu_origin"])
+        self._tiles = {(int(t["i"]), int(t["j"])): t for t in self.manifest["tiles"]}
+        cells = {float(t["marking"]["cell_m"]) for t in self._tiles.values() if t.get("marking")}
+        if len(cells) > 1:
+            raise MapFormatError(f"{self.path}: marking rasters use several cell sizes {sorted(cells)} m")
+        self.cell_m: float | None = cells.pop() if cells else None
+        self._schema = _corner_schema()
+        self._empty = self._schema.empty_table()
+        self._corners = _Lru(cache_tiles, self._load_corners)
+        self._markings = _Lru(cache_tiles, self._load_marking)
+
+    # -- tiles -------------------------------------------------------------------------------------------
+    def tile_keys(self) -> list[tuple[int, int]]:
+        return sorted(self._tiles)
+
+    def tile_entry(self, i: int, j: int) -> dict[str, Any]:
+        try:
+            return self._tiles[(int(i), int(j))]
+        except KeyError as exc:
+            raise UnknownNameError(f"{self.path}: no tile ({i},{j}); the map has {len(self._tiles)} tiles") from exc
+
+    def tile_corners(self, i: int, j: int) -> pa.Table:
+        """All corners of tile (i, j) (an empty table for a tile the map does not have)."""
+        if (i, j) not in self._tiles:
+            return self._empty
+        return self._corners.get((int(i), int(j)))[0]
+
+    def tile_marking(self, i: int, j: int) -> np.ndarray | None:
+        """Tile (i, j)'s marking raster (uint8, row 0 = north edge) or None when it has none."""
+        if (i, j) not in self._tiles or not (self._tiles[(i, j)].get("marking") or {}).get("mask_file"):
+            return None
+        return self._markings.get((int(i), int(j)))
+
+    def _load_corners(self, key: tuple[int, int]) -> tuple[pa.Table, np.ndarray, np.ndarray]:
+        path = self.path / self._tiles[key]["dir"] / layout.CORNERS_FILE
+        try:
+            table = pq.ParquetFile(path).read(use_threads=False).cast(self._schema)
+        except (OSError, pa.ArrowInvalid, ValueError) as exc:
+            raise MapFormatError(f"{path}: cannot read tile corners ({exc}); hint: run `cornermap tiles verify`") from exc
+        return table, table["east_m"].to_numpy(), table["north_m"].to_numpy()
+
+    def _load_marking(self, key: tuple[int, int]) -> np.ndarray:
+        import cv2
+
+        path = self.path / self._tiles[key]["dir"] / self._tiles[key]["marking"]["mask_file"]
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise MapFormatError(f"{path}: missing or not a PNG; hint: run `cornermap tiles verify`")
+        return img
+
+    # -- queries -----------------------------------------------------------------------------------------
+    def _keys_in_box(self, e0: float, n0: float, e1: float, n1: float) -> list[tuple[int, int]]:
+        i0, j0 = (int(k) for k in tile_key_of(e0, n0, self.tile_size_m))
+        i1, j1 = (int(k) for k in tile_key_of(e1, n1, self.tile_size_m))
+        if (i1 - i0 + 1) * (j1 - j0 + 1) > len(self._tiles):  # a huge box: filter the map's tiles instead
+            return [k for k in sorted(self._tiles) if i0 <= k[0] <= i1 and j0 <= k[1] <= j1]
+        return [(i, j) for i in range(i0, i1 + 1) for j in range(j0, j1 + 1) if (i, j) in self._tiles]
+
+    def _select(self, e0, n0, e1, n1, keep: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> pa.Table:
+        parts = []
+        for key in self._keys_in_box(e0, n0, e1, n1):
+            table, east, north = self._corners.get(key)
+            mask = keep(east, north)
+            if mask.all():
+                parts.append(table)
+            elif mask.any():
+                parts.append(table.filter(pa.array(mask)))
+        if not parts:
+            return self._empty
+        return parts[0] if len(parts) == 1 else pa.concat_tables(parts)
+
+    def corners_in_bbox(self, e0: float, n0: float, e1: float, n1: float) -> pa.Table:
+        """Corners with e0 <= east < e1 and n0 <= north < n1 (map ENU metres), corner_map columns."""
+        return self._select(e0, n0, e1, n1, lambda e, n: (e >= e0) & (e < e1) & (n >= n0) & (n < n1))
+
+    def corners_within(self, east_m: float, north_m: float, radius_m: float) -> pa.Table:
+        """Corners within ``radius_m`` (inclusive) of (east_m, north_m)."""
+        r2 = radius_m * radius_m
+        return self._select(east_m - radius_m, north_m - radius_m, east_m + radius_m, north_m + radius_m,
+                            lambda e, n: (e - east_m) ** 2 + (n - north_m) ** 2 <= r2)
+
+    def all_corners(self) -> pa.Table:
+        parts = [self._corners.get(k)[0] for k in self.tile_keys()]
+        return pa.concat_tables(parts) if parts else self._empty
+
+    def marking_window(self, e0: float, n0: float, e1: float, n1: float) -> tuple[np.ndarray, tuple[float, float], float]:
+        """Mosaic of the marking rasters over the box, on the raster cell lattice.
+
+        Returns (mask uint8 of shape (rows, cols), (east_m, north_m) of the window's lower-left corner, cell_m).
+        Row 0 is the north edge. Cells outside every published raster are 0. The window covers the box,
+        extended outwards to whole cells.
+        """
+        if self.cell_m is None:
+            raise UnknownNameError(f"{self.path}: this map has no marking rasters")
+        cell = self.cell_m
+        c0, c1 = int(np.floor(e0 / cell + 1e-9)), int(np.ceil(e1 / cell - 1e-9))
+        s0, s1 = int(np.floor(n0 / cell + 1e-9)), int(np.ceil(n1 / cell - 1e-9))
+        out = np.zeros((max(0, s1 - s0), max(0, c1 - c0)), np.uint8)
+        for key in self._keys_in_box(e0, n0, e1, n1):
+            meta = self._tiles[key].get("marking")
+            if not meta or not meta.get("mask_file"):
+                continue
+            img = self._markings.get(key)
+            if img.ndim == 3:
+                img = img[..., 0]
+            tc0 = int(round(meta["origin_east_m"] / cell))
+            ts0 = int(round(meta["origin_north_m"] / cell))
+            h, w = img.shape[:2]
+            # overlap in global (south-up row, column) cell indices
+            a_c, b_c = max(c0, tc0), min(c1, tc0 + w)
+            a_s, b_s = max(s0, ts0), min(s1, ts0 + h)
+            if a_c >= b_c or a_s >= b_s:
+                continue
+            src = img[(ts0 + h - b_s):(ts0 + h - a_s), (a_c - tc0):(b_c - tc0)]
+            out[(s1 - b_s):(s1 - a_s), (a_c - c0):(b_c - c0)] = src.astype(np.uint8, copy=False)
+        return out, (c0 * cell, s0 * cell), cell
+
+    @staticmethod
+    def covariances(corners: pa.Table) -> np.ndarray:
+        """(N, 2, 2) east/north covariances in m^2 of a corner table."""
+        ee, en, nn = (corners[c].to_numpy() for c in ("cov_ee_m2", "cov_en_m2", "cov_nn_m2"))
+        return np.stack([np.stack([ee, en], -1), np.stack([en, nn], -1)], -2)
+
+    def clear_cache(self) -> None:
+        self._corners.clear()
+        self._markings.clear()
+
+
+def _corner_schema() -> pa.Schema:
+    """The corner_map schema (with units) in the published column order."""
+    from schemas import schema_of
+
+    schema = schema_of("corner_map")
+    return pa.schema([schema.field(name) for name in layout.CORNER_COLUMNS], metadata=schema.metadata)
+
+
+def open_map(path: str | Path, version: str | int = "LATEST", cache_tiles: int = 64) -> MapReader:
+    """Open ``ROOT/maps/NAME`` at ``version`` ("LATEST", "v0003", 3), or a version directory itself."""
+    path = Path(path)
+    if (path / MANIFEST_NAME).is_file():
+        return MapReader(path, cache_tiles)
+    if not path.is_dir():
+        raise UnknownNameError(f"{path}: no such map directory; expected ROOT/maps/NAME or a vNNNN directory")
+    return MapReader(resolve_version(path, version), cache_tiles)

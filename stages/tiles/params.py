@@ -1,0 +1,22 @@
+"""Parameters of the tiles stage: grid, retention and the quality gates run before publishing."""
+from __future__ import annotations
+
+from pydantic import Field
+
+from pipeline.declare import Params
+
+
+class TilesParams(Params):
+    tile_size_m: float | None = Field(None, gt=0, description="tile edge in metres; None = the workflow's "
+                                                               "tile_size_m setting (100 m when unset), so "
+                                                               "tiles line up with the marking rasters")
+    keep_last: int = Field(5, ge=1, description="versions kept; older ones are deleted, never the LATEST one")
+    gates_enabled: bool = Field(True, description="run the quality gates below before publishing")
+    min_corners_per_km: float = Field(10.0, ge=0, description="corners per km of optimized driven path "
+                                                              "(Im et al. 2016 report ~135/km in Gangnam)")
+    max_empty_path_tile_share: float = Field(0.5, ge=0, le=1, description="largest share of tiles along the "
+                                                                          "driven path holding no corner")
+    check_schema: bool = Field(True, description="gate: corner table matches corner_map, finite values, "
+                                                 "PSD covariances, unique ids; raster rows on the tile grid")
+    path_step_m: float = Field(5.0, gt=0, description="spacing used to densify the driven path when "
+                                                      "finding the tiles it crosses")

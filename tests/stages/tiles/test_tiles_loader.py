@@ -1,0 +1,106 @@
+"""Loader API: bbox / radius queries against brute force, half-open tile borders, marking windows, LRU."""
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from pipeline.errors import UnknownNameError
+from stages.tiles.compute import compute
+from stages.tiles.loader import open_map
+from stages.tiles.params import TilesParams
+from tests.stages.tiles.tiles_synth import (CELL_M, LINE_EAST_M, building_corners, buildings, city_context,
+                                            corner_table)
+
+
+@pytest.fixture(scope="module")
+def published(tmp_path_factory):
+    root = tmp_path_factory.mktemp("loader")
+    xy, dirs, _ = building_corners(buildings())
+    extra_xy = np.array([[100.0, 37.0], [99.999999, 37.0], [0.0, 0.0]])  # on and next to tile borders
+    xy = np.vstack([xy, extra_xy])
+    dirs = np.vstack([dirs, np.zeros((3, 2))])
+    corners = corner_table(xy, dirs, seed=2, noise_m=0.0)
+    compute(city_context(root, corners))
+    return root / "maps" / "city", corners
+
+
+def _brute(corners: pa.Table, mask: np.ndarray) -> set[int]:
+    return set(corners["corner_id"].to_numpy()[mask].tolist())
+
+
+def test_bbox_and_radius_queries_match_brute_force(published):
+    map_dir, corners = published
+    reader = open_map(map_dir)
+    e, n = corners["east_m"].to_numpy(), corners["north_m"].to_numpy()
+    rng = np.random.default_rng(7)
+    for _ in range(25):
+        e0, n0 = rng.uniform(-20, 280, 2)
+        e1, n1 = e0 + rng.uniform(1, 150), n0 + rng.uniform(1, 150)
+        got = reader.corners_in_bbox(e0, n0, e1, n1)
+        assert set(got["corner_id"].to_pylist()) == _brute(corners, (e >= e0) & (e < e1) & (n >= n0) & (n < n1))
+        ce, cn, r = rng.uniform(0, 300), rng.uniform(0, 300), rng.uniform(5, 120)
+        got = reader.corners_within(ce, cn, r)
+        assert set(got["corner_id"].to_pylist()) == _brute(corners, (e - ce) ** 2 + (n - cn) ** 2 <= r * r)
+    assert reader.corners_in_bbox(1000, 1000, 1100, 1100).num_rows == 0
+    assert reader.corners_in_bbox(0, 0, 300, 300).schema.names == corners.schema.names
+
+
+def test_tile_borders_are_half_open(published):
+    map_dir, corners = published
+    reader = open_map(map_dir)
+    ids = corners["corner_id"].to_numpy()
+    on_border, just_west, at_origin = ids[-3], ids[-2], ids[-1]
+    assert on_border in reader.tile_corners(1, 0)["corner_id"].to_pylist()
+    assert just_west in reader.tile_corners(0, 0)["corner_id"].to_pylist()
+    assert at_origin in reader.tile_corners(0, 0)["corner_id"].to_pylist()
+    assert on_border not in reader.corners_in_bbox(0, 0, 100, 100)["corner_id"].to_pylist()
+
+
+def test_covariances_are_2x2_psd(published):
+    reader = open_map(published[0])
+    cov = reader.covariances(reader.corners_within(50, 50, 60))
+    assert cov.shape[1:] == (2, 2) and np.allclose(cov, np.swapaxes(cov, 1, 2))
+    assert (np.linalg.eigvalsh(cov) > 0).all()
+
+
+def test_marking_window_places_the_painted_line(published):
+    reader = open_map(published[0])
+    assert reader.cell_m == CELL_M
+    mask, (oe, on), cell = reader.marking_window(40.0, 90.0, 60.0, 130.0)  # spans tiles (0,0) and (0,1)
+    assert (oe, on, cell) == (40.0, 90.0, CELL_M) and mask.shape == (80, 40) and mask.dtype == np.uint8
+    cols = np.flatnonzero(mask.any(axis=0))
+    assert cols.tolist() == [int((LINE_EAST_M - oe) // cell)]
+    assert (mask[:, cols[0]] == 255).all()  # continuous across the tile border
+    mask2, _, _ = reader.marking_window(150.0, 0.0, 170.0, 10.0)  # a tile without rasters
+    assert mask2.shape == (20, 40) and not mask2.any()
+    tile = reader.tile_marking(0, 2)
+    assert tile.shape == (200, 200) and reader.tile_marking(2, 2) is None
+
+
+def test_lazy_lru_and_pinned_version(published):
+    map_dir, _ = published
+    reader = open_map(map_dir, "v0001", cache_tiles=2)
+    assert len(reader._corners._items) == 0  # nothing read at open
+    reader.corners_within(50, 50, 10)
+    reader.corners_in_bbox(0, 0, 300, 300)
+    assert len(reader._corners._items) == 2  # bounded by the cache size
+    with pytest.raises(UnknownNameError, match="no version v0007"):
+        open_map(map_dir, "v7")
+    with pytest.raises(UnknownNameError, match="no such map"):
+        open_map(map_dir.parent / "nope")
+
+
+def test_reader_pinned_while_a_new_version_is_published(published, tmp_path):
+    import shutil
+
+    src, corners = published
+    shutil.copytree(src.parent.parent, tmp_path / "root")  # do not change the shared fixture
+    map_dir = tmp_path / "root" / "maps" / "city"
+    reader = open_map(map_dir)
+    before = reader.corners_in_bbox(0, 0, 300, 300).num_rows
+    compute(city_context(tmp_path / "root", corners.slice(0, 100), fingerprint="other",
+                         params=TilesParams(min_corners_per_km=0, max_empty_path_tile_share=1.0)))
+    reader.clear_cache()
+    assert reader.corners_in_bbox(0, 0, 300, 300).num_rows == before
+    assert open_map(map_dir).all_corners().num_rows == 100
