@@ -1,0 +1,1 @@
+"""ICP odometry between consecutive scans (per scan chunk)."""

@@ -1,0 +1,116 @@
+"""Adapter of the odometry stage: Arrow tables in, ``odometry_edges`` out (one scan chunk per task).
+
+Chunk c also reads the last scan of chunk c-1 to produce the edge into its own first scan.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from pipeline.declare import PartitionKey, StageContext
+from pipeline.errors import DataQualityError, FormatError
+from schemas.registry import schema_of
+from stages.odometry.core import Edge, Scan, estimate_edges
+
+log = logging.getLogger(__name__)
+SCAN_COLUMNS = ["scan_id", "stamp_ns", "x_m", "y_m", "z_m", "time_offset_s"]
+
+
+def scans_from_table(table: pa.Table) -> list[Scan]:
+    """Split a scans_raw table into per-scan arrays (sorted by scan_id), vectorised."""
+    if table.num_rows == 0:
+        return []
+    ids = table["scan_id"].to_numpy()
+    order = np.argsort(ids, kind="stable")
+    ids = ids[order]
+    xyz = np.column_stack([table[c].to_numpy()[order].astype(np.float64) for c in ("x_m", "y_m", "z_m")])
+    stamps = table["stamp_ns"].to_numpy()[order]
+    toff = table["time_offset_s"].to_numpy()[order].astype(np.float64) if "time_offset_s" in table.column_names \
+        else None
+    uniq, starts = np.unique(ids, return_index=True)
+    ends = np.append(starts[1:], len(ids))
+    scans = []
+    for sid, a, b in zip(uniq, starts, ends):
+        t = None if toff is None else toff[a:b]
+        if t is not None and not np.any(t != 0):
+            t = None  # the scan carries no per-point time
+        scans.append(Scan(int(sid), int(stamps[a]), xyz[a:b], t))
+    return scans
+
+
+def poses_from_table(table: pa.Table, valid_only: bool = True) -> dict[int, np.ndarray]:
+    """poses_gnss / poses_* rows -> {scan_id: T_map_vehicle}."""
+    from scipy.spatial.transform import Rotation
+
+    if table.num_rows == 0:
+        return {}
+    if valid_only and "valid" in table.column_names:
+        table = table.filter(table["valid"])
+    q = np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
+    T = np.tile(np.eye(4), (table.num_rows, 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+    T[:, :3, 3] = np.column_stack([table[c].to_numpy() for c in ("x_m", "y_m", "z_m")])
+    return {int(s): T[i] for i, s in enumerate(table["scan_id"].to_numpy())}
+
+
+def extrinsic_from_drive_info(table: pa.Table, drive: str) -> np.ndarray:
+    rows = table.filter(pc.equal(table["drive"], drive)) if "drive" in table.column_names else table
+    if rows.num_rows == 0:
+        raise FormatError(f"drive_info: no row for drive {drive!r}; hint: run ingest for this drive first")
+    T = np.asarray(rows["T_vehicle_lidar"][0].as_py(), dtype=float).reshape(4, 4)
+    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6):
+        raise FormatError(f"drive_info[{drive}].T_vehicle_lidar: expected a rigid 4x4 transform; got {T.tolist()}")
+    return T
+
+
+def edges_to_table(edges: list[Edge], drive: str, chunk: int) -> pa.Table:
+    from scipy.spatial.transform import Rotation
+
+    n = len(edges)
+    T = np.array([e.T_prev_curr for e in edges]).reshape(n, 4, 4)
+    q = Rotation.from_matrix(T[:, :3, :3]).as_quat() if n else np.zeros((0, 4))
+    info = np.array([e.information.reshape(36) for e in edges]).reshape(n, 36)
+    cols = {
+        "drive": pa.array([drive] * n, pa.string()), "chunk": pa.array([chunk] * n, pa.int32()),
+        "scan_id": pa.array([e.scan_id for e in edges], pa.int64()),
+        "stamp_ns": pa.array([e.stamp_ns for e in edges], pa.int64()),
+        "dx_m": T[:, 0, 3], "dy_m": T[:, 1, 3], "dz_m": T[:, 2, 3],
+        "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3],
+        "fitness": pa.array([e.fitness for e in edges], pa.float64()),
+        "inlier_rmse_m": pa.array([e.inlier_rmse_m for e in edges], pa.float64()),
+        "information": pa.FixedSizeListArray.from_arrays(pa.array(info.reshape(-1), pa.float64()), 36)
+        if n else pa.array([], pa.list_(pa.float64(), 36)),
+        "converged": pa.array([e.converged for e in edges], pa.bool_()),
+    }
+    return pa.table(cols, schema=schema_of("odometry_edges"))
+
+
+def compute(ctx: StageContext) -> dict[str, pa.Table]:
+    p = ctx.params
+    drive, chunk = ctx.partition.drive, ctx.partition.chunk
+    scans_tab = ctx.inputs.read("scans", partition=ctx.partition, columns=SCAN_COLUMNS)
+    scans = scans_from_table(scans_tab)
+    if not scans:
+        raise DataQualityError(f"odometry {ctx.partition.label}: chunk has no scans; hint: check ingest's "
+                               "scan_index for quarantined files")
+    prev_key = PartitionKey(drive=drive, chunk=chunk - 1)
+    if chunk > 0 and prev_key in set(ctx.inputs.partitions("scans")):
+        prev_tab = ctx.inputs.read("scans", partition=prev_key, columns=SCAN_COLUMNS,
+                                   filters=pc.field("scan_id") == scans[0].scan_id - 1)
+        scans = scans_from_table(prev_tab) + scans
+    T_vehicle_lidar = extrinsic_from_drive_info(ctx.inputs.read("drive_info"), drive)
+    gnss_tab = ctx.inputs.read("poses_gnss", partition=PartitionKey(drive=drive))
+    edges = estimate_edges(scans, T_vehicle_lidar, poses_from_table(gnss_tab), method=p.method,
+                           voxel_m=p.voxel_m, knn=p.knn, max_corr_m=p.max_corr_m,
+                           max_iterations=p.max_iterations, relative_tolerance=p.relative_tolerance,
+                           min_range_m=p.min_range_m, max_range_m=p.max_range_m, deskew=p.deskew,
+                           min_fitness=p.min_fitness, max_deviation_m=p.max_deviation_m,
+                           point_sigma_m=p.point_sigma_m, min_sigma_m=p.min_sigma_m,
+                           min_sigma_rad=p.min_sigma_rad)
+    n_bad = sum(not e.converged for e in edges)
+    if n_bad:
+        log.warning("odometry %s: %d of %d edges did not converge", ctx.partition.label, n_bad, len(edges))
+    return {"edges": edges_to_table(edges, drive, chunk)}

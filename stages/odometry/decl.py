@@ -1,0 +1,15 @@
+"""Declaration of the odometry stage (imports nothing heavy)."""
+from pipeline.declare import Partitioning, StageDecl
+from stages.odometry.params import OdometryParams
+
+STAGE = StageDecl(
+    name="odometry",
+    summary="ICP (open3d GICP) between consecutive scans: vehicle-frame edges with fitness, RMSE, information.",
+    code_version="1",
+    inputs={"scans": "scans_raw", "poses_gnss": "poses_gnss", "drive_info": "drive_info"},
+    outputs={"edges": "odometry_edges"},
+    params=OdometryParams,
+    partition=Partitioning.PER_SCAN_CHUNK,
+    partition_source="scans",
+    compute="stages.odometry.compute:compute",
+)

@@ -1,0 +1,105 @@
+"""Adapter of the posegraph stage: reads edges, GNSS poses, scans (only loop/anchor candidates), survey;
+solves the map drives jointly, then each reference (eval) drive against the fixed map; writes tables,
+TUM/KITTI trajectories and the report into the ``report`` artifact directory.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from pipeline.declare import StageContext
+from pipeline.errors import ConfigError
+from stages.common.geometry import write_kitti, write_tum
+from stages.posegraph.core import dead_reckoning
+from stages.posegraph.graph import marginal_cov_xy_yaw
+from stages.posegraph.report import write_report
+from stages.posegraph.solve import solve_map, solve_reference
+from stages.posegraph.tables import drive_input, loops_table, poses_table
+
+log = logging.getLogger(__name__)
+
+
+def scan_loader(ctx: StageContext):
+    """Reads only the requested scans (pyarrow filters on drive and scan_id)."""
+    def load(requests: list[tuple[str, int]]):
+        out = {}
+        for drive in sorted({d for d, _ in requests}):
+            ids = sorted({s for d, s in requests if d == drive})
+            tab = ctx.inputs.read("scans", columns=["drive", "scan_id", "x_m", "y_m", "z_m", "time_offset_s"],
+                                  filters=(pc.field("drive") == drive) & pc.field("scan_id").isin(ids))
+            sid = tab["scan_id"].to_numpy()
+            xyz = np.column_stack([tab[c].to_numpy().astype(np.float64) for c in ("x_m", "y_m", "z_m")])
+            toff = tab["time_offset_s"].to_numpy().astype(np.float64)
+            for s in ids:
+                m = sid == s
+                t = toff[m]
+                out[(drive, s)] = (xyz[m], t if np.any(t != 0) else None)
+        return out
+    return load
+
+
+def _loop_rows(loops, names: list[tuple[str, int]]) -> list[dict]:
+    rows = []
+    for r in loops:
+        (da, sa), (db, sb) = names[r.i], names[r.j]
+        dx, dy, dyaw = float(r.T_i_j[0, 3]), float(r.T_i_j[1, 3]), float(np.arctan2(r.T_i_j[1, 0], r.T_i_j[0, 0]))
+        rows.append({"drive_a": da, "scan_a": sa, "drive_b": db, "scan_b": sb, "prior_distance_m": r.prior_distance_m,
+                     "fitness": r.fitness, "inlier_rmse_m": r.inlier_rmse_m if np.isfinite(r.inlier_rmse_m) else 0.0,
+                     "dx_m": dx, "dy_m": dy, "dyaw_rad": dyaw, "accepted": r.accepted, "reason": r.reason})
+    return rows
+
+
+def compute(ctx: StageContext) -> dict[str, pa.Table]:
+    p = ctx.params
+    gnss = ctx.inputs.read("poses_gnss")
+    edges = ctx.inputs.read("edges")
+    info = ctx.inputs.read("drive_info")
+    all_drives = sorted(set(gnss["drive"].to_pylist()))
+    map_names = list(ctx.settings.get("map_drives") or all_drives)
+    eval_names = [d for d in (ctx.settings.get("eval_drives") or []) if d not in map_names]
+    missing = [d for d in map_names + eval_names if d not in all_drives]
+    if missing:
+        raise ConfigError("posegraph settings", [f"drive {d!r} has no poses_gnss rows; have {all_drives}"
+                                                 for d in missing])
+    drives = [drive_input(d, gnss, edges, info) for d in map_names]
+    load = scan_loader(ctx)
+    survey_cb, survey_matches = None, []
+    if ctx.inputs.has("survey"):
+        survey = ctx.inputs.read("survey", columns=["east_m", "north_m", "up_m"])
+        if survey.num_rows:
+            from stages.posegraph.survey_anchor import survey_anchor_callback
+
+            pts = np.column_stack([survey[c].to_numpy() for c in ("east_m", "north_m", "up_m")])
+            survey_cb = survey_anchor_callback(drives, load, pts, p, survey_matches)
+    sol = solve_map(drives, load, p, survey_priors=survey_cb)
+    names = [(d.name, int(s)) for d in drives for s in d.scan_ids]
+    cov = marginal_cov_xy_yaw(sol.problem, sol.poses) if p.compute_marginals else np.zeros((len(names), 9))
+    offsets = np.cumsum([0] + [d.n for d in drives])
+    optimized = [poses_table("poses_optimized", d, sol.poses[a:b], cov[a:b])
+                 for d, a, b in zip(drives, offsets[:-1], offsets[1:])]
+    odometry = [poses_table("poses_odometry", d, dead_reckoning(d)) for d in drives]
+    loop_rows = _loop_rows(sol.loops, names)
+    refs = {}
+    for name in eval_names:
+        d = drive_input(name, gnss, edges, info)
+        ref = solve_reference(d, drives, sol.poses, load, p)
+        rcov = marginal_cov_xy_yaw(ref.problem, np.concatenate(
+            [ref.poses, ref.problem.initial[d.n:]]))[:d.n] if p.compute_marginals else np.zeros((d.n, 9))
+        optimized.append(poses_table("poses_optimized", d, ref.poses, rcov))
+        odometry.append(poses_table("poses_odometry", d, dead_reckoning(d)))
+        loop_rows += _loop_rows(ref.loops, [(d.name, int(s)) for s in d.scan_ids] + names)
+        refs[name] = (d, ref)
+    out_dir = ctx.artifact_dir("report")
+    for d, a, b in zip(drives, offsets[:-1], offsets[1:]):
+        write_tum(out_dir / f"{d.name}_optimized_tum.txt", d.stamps_ns * 1e-9, sol.poses[a:b])
+        write_kitti(out_dir / f"{d.name}_optimized_kitti.txt", sol.poses[a:b])
+        write_tum(out_dir / f"{d.name}_odometry_tum.txt", d.stamps_ns * 1e-9, dead_reckoning(d))
+    for name, (d, ref) in refs.items():
+        write_tum(out_dir / f"{name}_optimized_tum.txt", d.stamps_ns * 1e-9, ref.poses)
+        write_kitti(out_dir / f"{name}_optimized_kitti.txt", ref.poses)
+    write_report(out_dir, drives, sol, refs, loop_rows, survey_matches)
+    return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
+            "loop_closures": loops_table(loop_rows)}

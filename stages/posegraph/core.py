@@ -1,0 +1,115 @@
+"""Per-drive inputs of the pose graph, dead reckoning, initial values and the base factors (odometry, bridges,
+GNSS, attitude). Arrays in, arrays out; ``T_map_vehicle`` poses in the workflow's ENU frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.common.geometry import se3_inverse
+from stages.posegraph.gnss_factors import attitude_priors, gnss_position_priors
+from stages.posegraph.graph import Between, PosePrior, Problem
+
+
+@dataclass
+class DriveInput:
+    """One drive: a row per scan (from poses_gnss) and the ICP edge into each scan where one exists."""
+
+    name: str
+    scan_ids: np.ndarray  # (N,) sorted
+    stamps_ns: np.ndarray  # (N,)
+    gnss_T: np.ndarray  # (N,4,4) T_map_vehicle from GNSS/INS (meaningless where not valid)
+    gnss_std_enu_m: np.ndarray  # (N,3)
+    gnss_std_yaw_rad: np.ndarray  # (N,)
+    gnss_valid: np.ndarray  # (N,) bool
+    edge_T: np.ndarray  # (N,4,4) T_prev_curr into scan k (identity where none)
+    edge_info: np.ndarray  # (N,6,6)
+    edge_ok: np.ndarray  # (N,) bool: an ICP edge from scan k-1 into scan k exists and converged
+    T_vehicle_lidar: np.ndarray  # (4,4)
+
+    @property
+    def n(self) -> int:
+        return len(self.scan_ids)
+
+
+def bridge_increment(drive: DriveInput, k: int) -> np.ndarray:
+    """Relative pose k-1 -> k when ICP gave none: the GNSS/INS increment, else the neighbouring edge."""
+    if drive.gnss_valid[k] and drive.gnss_valid[k - 1]:
+        return se3_inverse(drive.gnss_T[k - 1]) @ drive.gnss_T[k]
+    ok = np.flatnonzero(drive.edge_ok)
+    if len(ok) == 0:
+        return np.eye(4)
+    return drive.edge_T[ok[np.argmin(np.abs(ok - k))]]
+
+
+def increments(drive: DriveInput) -> np.ndarray:
+    """(N,4,4) T_prev_curr for every scan (index 0 is the identity): ICP where it converged, else bridged."""
+    inc = np.tile(np.eye(4), (drive.n, 1, 1))
+    for k in range(1, drive.n):
+        inc[k] = drive.edge_T[k] if drive.edge_ok[k] else bridge_increment(drive, k)
+    return inc
+
+
+def chain(start: np.ndarray, inc: np.ndarray) -> np.ndarray:
+    out = np.empty_like(inc)
+    out[0] = start
+    for k in range(1, len(inc)):
+        out[k] = out[k - 1] @ inc[k]
+    return out
+
+
+def dead_reckoning(drive: DriveInput) -> np.ndarray:
+    """ICP-only poses, started at the first valid GNSS/INS pose (identity if the drive has none)."""
+    inc = increments(drive)
+    valid = np.flatnonzero(drive.gnss_valid)
+    if len(valid) == 0:
+        return chain(np.eye(4), inc)
+    k0 = valid[0]
+    T = chain(np.eye(4), inc)
+    return drive.gnss_T[k0] @ se3_inverse(T[k0]) @ T
+
+
+def initial_poses(drive: DriveInput) -> np.ndarray:
+    """GNSS/INS pose where valid; through outages, odometry from the last valid pose."""
+    inc = increments(drive)
+    out = np.empty_like(inc)
+    dr = dead_reckoning(drive)
+    for k in range(drive.n):
+        if drive.gnss_valid[k]:
+            out[k] = drive.gnss_T[k]
+        else:
+            out[k] = out[k - 1] @ inc[k] if k > 0 else dr[0]
+    return out
+
+
+def odometry_betweens(drive: DriveInput, offset: int, failed_sigma_m: float,
+                      failed_sigma_rad: float) -> list[Between]:
+    bridge_info = np.diag([failed_sigma_rad ** -2] * 3 + [failed_sigma_m ** -2] * 3)
+    out = []
+    for k in range(1, drive.n):
+        if drive.edge_ok[k]:
+            out.append(Between(offset + k - 1, offset + k, drive.edge_T[k], drive.edge_info[k], "odometry"))
+        else:
+            out.append(Between(offset + k - 1, offset + k, bridge_increment(drive, k), bridge_info, "bridge"))
+    return out
+
+
+def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
+    """Odometry + bridges + GNSS + attitude for all drives in one graph; returns it and the drive offsets."""
+    offsets = np.cumsum([0] + [d.n for d in drives])
+    initial = np.concatenate([initial_poses(d) for d in drives]) if drives else np.zeros((0, 4, 4))
+    problem = Problem(int(offsets[-1]), initial)
+    for d, off in zip(drives, offsets):
+        idx = off + np.arange(d.n)
+        problem.betweens += odometry_betweens(d, int(off), p.failed_edge_sigma_m, p.failed_edge_sigma_rad)
+        problem.positions += gnss_position_priors(
+            idx, d.stamps_ns, d.gnss_T, d.gnss_std_enu_m, d.gnss_valid, every_s=p.gnss_every_s,
+            inflation=p.gnss_std_inflation, min_std_m=p.gnss_min_std_m, robust=p.gnss_kernel,
+            kernel_k=p.gnss_kernel_k, lever_arm_m=np.asarray(p.gnss_lever_arm_m))
+        problem.attitudes += attitude_priors(
+            idx, d.stamps_ns, d.gnss_T, d.gnss_std_yaw_rad, d.gnss_valid, every_s=p.gnss_every_s,
+            roll_pitch_sigma_rad=p.attitude_sigma_rad, yaw_inflation=p.heading_std_inflation)
+        if not d.gnss_valid.any():  # no GNSS at all: hold the drive's first pose (loops may still move it)
+            problem.pose_priors.append(PosePrior(int(off), initial[off], np.eye(6) * 1e-2, "fixed"))
+    return problem, offsets

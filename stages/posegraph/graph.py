@@ -1,0 +1,161 @@
+"""The pose graph in GTSAM: Pose3 per scan, between factors (ICP odometry, loops), GNSS position factors,
+INS attitude priors, absolute pose priors (survey anchors, fixed map poses); LM or GNC; marginals.
+
+Pose indices are plain ints 0..N-1 (the caller maps (drive, scan_id) to them). Information matrices are 6x6
+in gtsam order (rx ry rz tx ty tz) for a body-frame perturbation. ``T_a_b`` maps frame b into frame a.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Between:
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    information: np.ndarray
+    kind: str = "odometry"  # odometry | bridge | loop
+    robust: str = "none"  # none | huber | cauchy
+    kernel_k: float = 1.0
+
+
+@dataclass(frozen=True)
+class PositionPrior:
+    i: int
+    position_enu_m: np.ndarray  # antenna position
+    sigma_enu_m: np.ndarray  # (3,)
+    robust: str = "huber"
+    kernel_k: float = 1.345
+    lever_arm_m: np.ndarray = field(default_factory=lambda: np.zeros(3))  # antenna in the vehicle frame
+
+
+@dataclass(frozen=True)
+class AttitudePrior:
+    i: int
+    R_map_vehicle: np.ndarray
+    sigma_rad: np.ndarray  # (3,) body-frame (roll, pitch, yaw-ish) axes
+
+
+@dataclass(frozen=True)
+class PosePrior:
+    i: int
+    T_map_vehicle: np.ndarray
+    information: np.ndarray
+    kind: str = "survey"  # survey | fixed
+    robust: str = "none"
+    kernel_k: float = 1.0
+
+
+@dataclass
+class Problem:
+    n_poses: int
+    initial: np.ndarray  # (N,4,4)
+    betweens: list[Between] = field(default_factory=list)
+    positions: list[PositionPrior] = field(default_factory=list)
+    attitudes: list[AttitudePrior] = field(default_factory=list)
+    pose_priors: list[PosePrior] = field(default_factory=list)
+
+
+def _key(i: int) -> int:
+    return gtsam.symbol("x", i)
+
+
+def _noise(information: np.ndarray, robust: str, k: float):
+    base = gtsam.noiseModel.Gaussian.Information(0.5 * (information + information.T))
+    return _robustify(base, robust, k)
+
+
+def _robustify(base, robust: str, k: float):
+    if robust == "none":
+        return base
+    est = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust]
+    return gtsam.noiseModel.Robust.Create(est.Create(k), base)
+
+
+def build_graph(problem: Problem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[tuple[str, int]]]:
+    """Factor graph + initial values; ``tags[f] = (list name, index)`` says where factor f came from."""
+    graph = gtsam.NonlinearFactorGraph()
+    tags: list[tuple[str, int]] = []
+    values = gtsam.Values()
+    for i in range(problem.n_poses):
+        values.insert(_key(i), gtsam.Pose3(problem.initial[i]))
+    for n, b in enumerate(problem.betweens):
+        graph.add(gtsam.BetweenFactorPose3(_key(b.i), _key(b.j), gtsam.Pose3(b.T_i_j),
+                                           _noise(b.information, b.robust, b.kernel_k)))
+        tags.append(("betweens", n))
+    for n, g in enumerate(problem.positions):
+        model = _robustify(gtsam.noiseModel.Diagonal.Sigmas(np.asarray(g.sigma_enu_m, float)), g.robust,
+                           g.kernel_k)
+        if np.any(g.lever_arm_m):
+            graph.add(gtsam.GPSFactorArm(_key(g.i), np.asarray(g.position_enu_m, float),
+                                         np.asarray(g.lever_arm_m, float), model))
+        else:
+            graph.add(gtsam.GPSFactor(_key(g.i), np.asarray(g.position_enu_m, float), model))
+        tags.append(("positions", n))
+    for n, a in enumerate(problem.attitudes):
+        graph.add(gtsam.PoseRotationPrior3D(_key(a.i), gtsam.Rot3(a.R_map_vehicle),
+                                            gtsam.noiseModel.Diagonal.Sigmas(np.asarray(a.sigma_rad, float))))
+        tags.append(("attitudes", n))
+    for n, p in enumerate(problem.pose_priors):
+        graph.add(gtsam.PriorFactorPose3(_key(p.i), gtsam.Pose3(p.T_map_vehicle),
+                                         _noise(p.information, p.robust, p.kernel_k)))
+        tags.append(("pose_priors", n))
+    return graph, values, tags
+
+
+def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = False) -> np.ndarray:
+    """Levenberg-Marquardt (or GNC for the loop factors, all others known inliers) -> (N,4,4) poses."""
+    graph, values, tags = build_graph(problem)
+    if gnc_loops:
+        params = gtsam.GncLMParams()
+        inliers = [f for f, (name, n) in enumerate(tags)
+                   if not (name == "betweens" and problem.betweens[n].kind == "loop")]
+        params.setKnownInliers(inliers)
+        params.setMaxIterations(max_iterations)
+        result = gtsam.GncLMOptimizer(graph, values, params).optimize()
+    else:
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(1e-7)
+        params.setAbsoluteErrorTol(1e-9)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    return poses_from_values(result, problem.n_poses)
+
+
+def poses_from_values(values: gtsam.Values, n: int) -> np.ndarray:
+    return np.array([values.atPose3(_key(i)).matrix() for i in range(n)])
+
+
+def marginal_cov_xy_yaw(problem: Problem, poses: np.ndarray) -> np.ndarray:
+    """(N,9): marginal covariance of (east m, north m, yaw rad) per pose, rotated into ENU axes."""
+    graph, _, _ = build_graph(problem)
+    values = gtsam.Values()
+    for i in range(problem.n_poses):
+        values.insert(_key(i), gtsam.Pose3(poses[i]))
+    marginals = gtsam.Marginals(graph, values)
+    out = np.empty((problem.n_poses, 9))
+    for i in range(problem.n_poses):
+        cov = marginals.marginalCovariance(_key(i))  # body frame, (rot, trans)
+        R = poses[i, :3, :3]
+        B = np.zeros((6, 6))
+        B[:3, :3] = R
+        B[3:, 3:] = R
+        cw = B @ cov @ B.T
+        sel = [3, 4, 2]
+        out[i] = 0.5 * (cw[np.ix_(sel, sel)] + cw[np.ix_(sel, sel)].T).reshape(9)
+    return out
+
+
+def between_residuals(betweens: list[Between], poses: np.ndarray) -> np.ndarray:
+    """Whitened residual norm of each between factor at ``poses`` (no robust kernel: the raw misfit)."""
+    out = np.empty(len(betweens))
+    for n, b in enumerate(betweens):
+        est = gtsam.Pose3(poses[b.i]).between(gtsam.Pose3(poses[b.j]))
+        err = gtsam.Pose3.Logmap(gtsam.Pose3(b.T_i_j).between(est))
+        L = np.linalg.cholesky(0.5 * (b.information + b.information.T))
+        out[n] = float(np.linalg.norm(L.T @ err))
+    return out

@@ -1,0 +1,104 @@
+"""Trajectory accuracy against ground truth (numpy; used by the bench and other stages' docs).
+
+All functions take matching (N,4,4) ``T_map_vehicle`` arrays (estimate, truth) of the same scans.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from stages.common.geometry import se3_inverse, wrap_angle_rad
+
+
+def horizontal_errors_m(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(T_est[:, :2, 3] - T_true[:, :2, 3], axis=1)
+
+
+def vertical_errors_m(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    return T_est[:, 2, 3] - T_true[:, 2, 3]
+
+
+def _ypr(T: np.ndarray) -> np.ndarray:
+    return Rotation.from_matrix(T[:, :3, :3]).as_euler("ZYX")  # yaw, pitch, roll
+
+
+def heading_errors_rad(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    return wrap_angle_rad(_ypr(T_est)[:, 0] - _ypr(T_true)[:, 0])
+
+
+def pitch_errors_rad(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    return wrap_angle_rad(_ypr(T_est)[:, 1] - _ypr(T_true)[:, 1])
+
+
+def rms(x: np.ndarray) -> float:
+    x = np.asarray(x, float)
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+
+
+def revisit_pairs(T_true: np.ndarray, stamps_s: np.ndarray, radius_m: float = 2.0, min_dt_s: float = 60.0,
+                  max_pairs: int = 200_000, seed: int = 0) -> np.ndarray:
+    """(M,2) scan pairs within ``radius_m`` of each other in truth (horizontal) and ``min_dt_s`` apart.
+
+    With several drives, concatenate them and give each drive a time offset larger than ``min_dt_s``.
+    """
+    pairs = cKDTree(T_true[:, :2, 3]).query_pairs(radius_m, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.zeros((0, 2), np.int64)
+    pairs = pairs[np.abs(stamps_s[pairs[:, 0]] - stamps_s[pairs[:, 1]]) >= min_dt_s]
+    if len(pairs) > max_pairs:
+        pairs = pairs[np.random.default_rng(seed).choice(len(pairs), max_pairs, replace=False)]
+    return pairs
+
+
+def self_consistency_errors_m(T_est: np.ndarray, T_true: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Horizontal difference of the pairs' relative position (ENU), estimated vs true: do passes agree?"""
+    d_est = T_est[pairs[:, 1], :2, 3] - T_est[pairs[:, 0], :2, 3]
+    d_true = T_true[pairs[:, 1], :2, 3] - T_true[pairs[:, 0], :2, 3]
+    return np.linalg.norm(d_est - d_true, axis=1)
+
+
+def _pairs_at_travel(T_true: np.ndarray, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    step = np.linalg.norm(np.diff(T_true[:, :3, 3], axis=0), axis=1)
+    travel = np.concatenate([[0.0], np.cumsum(step)])
+    j = np.searchsorted(travel, travel + distance_m)
+    i = np.flatnonzero(j < len(travel))
+    return i, j[i]
+
+
+def relative_errors_m(T_est: np.ndarray, T_true: np.ndarray, distance_m: float = 10.0) -> np.ndarray:
+    """Translation error of the relative pose over ``distance_m`` of travel (KITTI style, body frame)."""
+    i, j = _pairs_at_travel(T_true, distance_m)
+    if len(i) == 0:
+        return np.zeros(0)
+    rel_true = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_true[i]]), T_true[j])
+    rel_est = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_est[i]]), T_est[j])
+    err = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in rel_true]), rel_est)
+    return np.linalg.norm(err[:, :3, 3], axis=1)
+
+
+def drift_percent(T_est: np.ndarray, T_true: np.ndarray, segment_m: float = 100.0) -> float:
+    """Mean horizontal translation error of relative poses over ``segment_m`` segments, % of the length."""
+    i, j = _pairs_at_travel(T_true, segment_m)
+    if len(i) == 0:
+        return float("nan")
+    rel_true = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_true[i]]), T_true[j])
+    rel_est = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_est[i]]), T_est[j])
+    err = np.linalg.norm(rel_est[:, :2, 3] - rel_true[:, :2, 3], axis=1)
+    return float(100.0 * np.mean(err) / segment_m)
+
+
+def summarize(T_est: np.ndarray, T_true: np.ndarray, stamps_s: np.ndarray) -> dict[str, float]:
+    """The issue's target figures for one trajectory."""
+    pairs = revisit_pairs(T_true, stamps_s)
+    sc = self_consistency_errors_m(T_est, T_true, pairs)
+    h = horizontal_errors_m(T_est, T_true)
+    return {
+        "abs_horizontal_rms_m": rms(h), "abs_horizontal_max_m": float(h.max()) if h.size else float("nan"),
+        "self_consistency_rms_m": rms(sc), "n_revisit_pairs": int(len(pairs)),
+        "relative_10m_rms_m": rms(relative_errors_m(T_est, T_true, 10.0)),
+        "heading_rms_deg": float(np.rad2deg(rms(heading_errors_rad(T_est, T_true)))),
+        "vertical_rms_m": rms(vertical_errors_m(T_est, T_true)),
+        "pitch_rms_deg": float(np.rad2deg(rms(pitch_errors_rad(T_est, T_true)))),
+        "drift_100m_percent": drift_percent(T_est, T_true, 100.0),
+    }

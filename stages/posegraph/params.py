@@ -1,0 +1,52 @@
+"""Parameters of the posegraph stage (defaults measured on simulated drives, see docs/posegraph.md)."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from pipeline.declare import Params
+
+
+class PosegraphParams(Params):
+    # odometry edges
+    failed_edge_sigma_m: float = Field(0.5, gt=0, description="std of a bridge over a missing/failed ICP edge")
+    failed_edge_sigma_rad: float = Field(0.05, gt=0)
+    # GNSS / INS priors
+    gnss_std_inflation: float = Field(3.0, ge=1, description="receivers understate their error in canyons")
+    gnss_min_std_m: float = Field(0.05, gt=0)
+    gnss_every_s: float = Field(1.0, ge=0, description="one GNSS factor per this many seconds (0: every scan)")
+    gnss_kernel: Literal["huber", "cauchy", "none"] = "huber"
+    gnss_kernel_k: float = Field(1.345, gt=0, description="kernel width in whitened units")
+    gnss_lever_arm_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0),
+                                                          description="antenna in the vehicle frame")
+    attitude_sigma_rad: float = Field(0.005, gt=0, description="INS roll/pitch prior (gravity anchor)")
+    heading_std_inflation: float = Field(3.0, ge=1, description="INS yaw std inflation (weak heading prior)")
+    # loop closures
+    loop_radius_m: float = Field(6.0, gt=0, description="candidate search radius on the pass-1 estimate")
+    loop_min_separation_s: float = Field(30.0, ge=0, description="same drive: minimum time between scans")
+    loop_stride_m: float = Field(5.0, gt=0, description="one loop query scan per this much travel")
+    loop_max_per_scan: int = Field(2, ge=1)
+    loop_voxel_m: float = Field(0.4, gt=0)
+    loop_max_corr_m: float = Field(1.5, gt=0)
+    loop_min_fitness: float = Field(0.6, ge=0, le=1)
+    loop_max_rmse_m: float = Field(0.5, gt=0, description="open3d inlier RMSE (point-to-point, sparse rings)")
+    loop_max_correction_m: float = Field(4.0, gt=0, description="ICP vs prior relative pose")
+    loop_max_correction_rad: float = Field(0.2, gt=0)
+    loop_consistency_m: float = Field(0.1, gt=0, description="two ICP starts must agree within this")
+    loop_kernel: Literal["cauchy", "huber", "gnc"] = "cauchy"
+    loop_kernel_k: float = Field(1.0, gt=0)
+    loop_max_whitened_residual: float = Field(10.0, gt=0, description="post-check: reject loops above")
+    loop_min_sigma_m: float = Field(0.02, gt=0)
+    loop_min_sigma_rad: float = Field(0.0005, gt=0)
+    # survey anchoring
+    survey_stride_m: float = Field(10.0, gt=0)
+    survey_crop_m: float = Field(40.0, gt=0)
+    survey_max_height_m: float = Field(0.5, description="scan points below this (vehicle frame) are ground/curb")
+    survey_min_fitness: float = Field(0.5, ge=0, le=1)
+    survey_max_rmse_m: float = Field(0.15, gt=0)
+    survey_min_sigma_m: float = Field(0.01, gt=0)
+    # optimisation / outputs
+    max_iterations: int = Field(100, ge=1)
+    fixed_prior_sigma_m: float = Field(1e-3, gt=0, description="map poses held fixed for reference drives")
+    compute_marginals: bool = True

@@ -1,0 +1,200 @@
+"""The pose-graph passes: (1) odometry + GNSS, (2) verified loops under a robust kernel (or GNC), (3) loops
+inconsistent with the result removed; optional survey anchors; reference drives localised in a fixed map.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from stages.common.geometry import se3_inverse
+from stages.odometry.icp import crop_range, deskew_points
+from stages.posegraph.core import DriveInput, base_problem, increments
+from stages.posegraph.graph import Between, PosePrior, Problem, between_residuals, optimize
+from stages.posegraph.loops import find_candidates, keyframes_by_travel, verify_loop
+
+log = logging.getLogger(__name__)
+# (drive, scan_id) list -> {(drive, scan_id): (points_lidar_m (N,3), time_offset_s (N,) or None)}
+ScanLoader = Callable[[list[tuple[str, int]]], dict[tuple[str, int], tuple[np.ndarray, np.ndarray | None]]]
+
+
+@dataclass
+class LoopRecord:
+    i: int
+    j: int
+    prior_distance_m: float
+    fitness: float
+    inlier_rmse_m: float
+    T_i_j: np.ndarray
+    accepted: bool
+    reason: str
+    information: np.ndarray | None = None  # 6x6 gtsam order, body frame of T_i_j
+
+
+@dataclass
+class Solution:
+    poses: np.ndarray  # (N,4,4)
+    problem: Problem
+    loops: list[LoopRecord] = field(default_factory=list)
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def vehicle_clouds(drives: list[DriveInput], offsets: np.ndarray, wanted: np.ndarray, load: ScanLoader,
+                   voxel_m: float, batch: int = 64) -> dict[int, np.ndarray]:
+    """Deskewed, voxel-downsampled vehicle-frame points of the wanted pose indices, loaded in batches."""
+    import open3d as o3d
+
+    owner = np.searchsorted(offsets, wanted, side="right") - 1
+    incs = {}
+    out: dict[int, np.ndarray] = {}
+    for start in range(0, len(wanted), batch):
+        chunk = [(int(g), int(o)) for g, o in zip(wanted[start:start + batch], owner[start:start + batch])]
+        got = load([(drives[o].name, int(drives[o].scan_ids[g - offsets[o]])) for g, o in chunk])
+        for g, o in chunk:
+            d, k = drives[o], g - offsets[o]
+            pts, toff = got[(d.name, int(d.scan_ids[k]))]
+            keep = crop_range(pts, 2.0, 80.0)
+            pts = np.asarray(pts, float)[keep]
+            if toff is not None and k + 1 < d.n:
+                if o not in incs:
+                    incs[o] = increments(d)
+                T_l = se3_inverse(d.T_vehicle_lidar) @ incs[o][k + 1] @ d.T_vehicle_lidar
+                pts = deskew_points(pts, np.asarray(toff, float)[keep], T_l, (d.stamps_ns[k + 1] - d.stamps_ns[k]) * 1e-9)
+            pts = pts @ d.T_vehicle_lidar[:3, :3].T + d.T_vehicle_lidar[:3, 3]
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel_m)
+            out[g] = np.asarray(cloud.points)
+    return out
+
+
+def verify_candidates(candidates, poses: np.ndarray, clouds: dict[int, np.ndarray], p,
+                      fixed: dict[int, np.ndarray] | None = None) -> list[LoopRecord]:
+    """ICP-verify each candidate from the current estimate's relative pose (``fixed`` poses override)."""
+    fixed = fixed or {}
+    out = []
+    for c in candidates:
+        Ti = fixed.get(c.i, poses[c.i] if c.i < len(poses) else None)
+        Tj = fixed.get(c.j, poses[c.j] if c.j < len(poses) else None)
+        v = verify_loop(clouds[c.i], clouds[c.j], se3_inverse(Ti) @ Tj, voxel_m=p.loop_voxel_m,
+                        max_corr_m=p.loop_max_corr_m, min_fitness=p.loop_min_fitness,
+                        max_rmse_m=p.loop_max_rmse_m, max_correction_m=p.loop_max_correction_m,
+                        max_correction_rad=p.loop_max_correction_rad, consistency_m=p.loop_consistency_m,
+                        min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad)
+        out.append(LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted,
+                              v.reason, v.information))
+    return out
+
+
+def loop_betweens(loops: list[LoopRecord], p) -> list[Between]:
+    robust = "none" if p.loop_kernel == "gnc" else p.loop_kernel
+    return [Between(r.i, r.j, r.T_i_j, r.information, "loop", robust, p.loop_kernel_k) for r in loops if r.accepted]
+
+
+def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds: int = 8) -> np.ndarray:
+    """Pass 2 with the accepted loops under the robust kernel; pass 3 removes, worst first, the loops the
+    result cannot explain (whitened residual above ``loop_max_whitened_residual``), re-optimising each round,
+    then re-admits removed loops that the final graph does explain."""
+    base = list(problem.betweens)
+    gnc = p.loop_kernel == "gnc"
+
+    def solve() -> np.ndarray:
+        problem.betweens = base + loop_betweens(loops, p)
+        return optimize(problem, max_iterations=p.max_iterations, gnc_loops=gnc)
+
+    poses = solve()
+    removed: list[LoopRecord] = []
+    for _ in range(max_rounds):
+        accepted = [r for r in loops if r.accepted]
+        if not accepted:
+            break
+        res = between_residuals(loop_betweens(accepted, p), poses)
+        worst = float(res.max())
+        if worst <= p.loop_max_whitened_residual:
+            break
+        for r, x in zip(accepted, res):
+            if x > max(p.loop_max_whitened_residual, 0.5 * worst):
+                r.accepted, r.reason = False, f"inconsistent with the optimised graph (whitened residual {x:.1f})"
+                removed.append(r)
+        poses = solve()
+    if removed:
+        res = between_residuals(loop_betweens([_as_accepted(r) for r in removed], p), poses)
+        back = [r for r, x in zip(removed, res) if x <= p.loop_max_whitened_residual]
+        for r in back:
+            r.accepted, r.reason = True, "accepted (re-admitted after pass 3)"
+        log.info("pass 3: %d loops removed as inconsistent, %d re-admitted", len(removed), len(back))
+        if back:
+            poses = solve()
+    return poses
+
+
+def _as_accepted(r: LoopRecord) -> LoopRecord:
+    return LoopRecord(r.i, r.j, r.prior_distance_m, r.fitness, r.inlier_rmse_m, r.T_i_j, True, r.reason,
+                      r.information)
+
+
+def solve_map(drives: list[DriveInput], load: ScanLoader, p, *, extra_loops: list[LoopRecord] = (),
+              survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None = None) -> Solution:
+    """All map drives in one graph. ``extra_loops`` enter as accepted (tests/bench plant false loops here);
+    ``survey_priors(poses, offsets)`` returns absolute anchors computed on the pass-2 estimate."""
+    import time
+
+    t0 = time.perf_counter()
+    problem, offsets = base_problem(drives, p)
+    poses = optimize(problem, max_iterations=p.max_iterations)
+    t1 = time.perf_counter()
+    group = np.repeat(np.arange(len(drives)), [d.n for d in drives])
+    stamps_s = np.concatenate([d.stamps_ns for d in drives]) * 1e-9
+    query = keyframes_by_travel(poses[:, :3, 3], group, p.loop_stride_m)
+    cands = find_candidates(poses[:, :3, 3], stamps_s, group, query, radius_m=p.loop_radius_m,
+                            min_separation_s=p.loop_min_separation_s, max_per_scan=p.loop_max_per_scan)
+    wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
+    clouds = vehicle_clouds(drives, offsets, wanted, load, p.loop_voxel_m)
+    loops = verify_candidates(cands, poses, clouds, p) + list(extra_loops)
+    t2 = time.perf_counter()
+    poses = optimize_with_loops(problem, loops, p)
+    t3 = time.perf_counter()
+    if survey_priors is not None:
+        anchors = survey_priors(poses, offsets)
+        if anchors:
+            problem.pose_priors += anchors
+            poses = optimize(problem, max_iterations=p.max_iterations, gnc_loops=p.loop_kernel == "gnc")
+    t4 = time.perf_counter()
+    log.info("posegraph: %d poses, %d candidates, %d loops accepted", len(poses), len(cands),
+             sum(r.accepted for r in loops))
+    return Solution(poses, problem, loops, {"pass1_s": t1 - t0, "loops_s": t2 - t1, "pass23_s": t3 - t2,
+                                            "survey_s": t4 - t3})
+
+
+def solve_reference(drive: DriveInput, map_drives: list[DriveInput], map_poses: np.ndarray, load: ScanLoader,
+                    p) -> Solution:
+    """One eval drive in the map's frame: its odometry + GNSS, plus loops onto map scans held fixed."""
+    problem, _ = base_problem([drive], p)
+    poses = optimize(problem, max_iterations=p.max_iterations)
+    n = drive.n
+    stamps = np.concatenate([drive.stamps_ns] + [d.stamps_ns for d in map_drives]) * 1e-9
+    positions = np.concatenate([poses[:, :3, 3], map_poses[:, :3, 3]])
+    group = np.concatenate([np.zeros(n, int), np.ones(len(map_poses), int)])
+    query = keyframes_by_travel(positions[:n], group[:n], p.loop_stride_m)
+    cands = find_candidates(positions, stamps, group, query, radius_m=p.loop_radius_m,
+                            min_separation_s=p.loop_min_separation_s, max_per_scan=p.loop_max_per_scan,
+                            allowed_targets=group == 1)
+    all_drives = [drive] + list(map_drives)
+    offsets = np.cumsum([0] + [d.n for d in all_drives])
+    wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
+    clouds = vehicle_clouds(all_drives, offsets, wanted, load, p.loop_voxel_m)
+    fixed = {g: map_poses[g - n] for g in wanted if g >= n}
+    loops = verify_candidates(cands, poses, clouds, p, fixed=fixed)
+    # map poses in loops become extra variables held by tight priors
+    extra = sorted({g for r in loops if r.accepted for g in (r.i, r.j) if g >= n})
+    remap = {g: n + m for m, g in enumerate(extra)}
+    problem.n_poses = n + len(extra)
+    problem.initial = np.concatenate([poses] + [fixed[g][None] for g in extra])
+    tight = np.diag([(p.fixed_prior_sigma_m / 10.0) ** -2] * 3 + [p.fixed_prior_sigma_m ** -2] * 3)
+    problem.pose_priors += [PosePrior(remap[g], fixed[g], tight, "fixed") for g in extra]
+    local = [LoopRecord(remap.get(r.i, r.i), remap.get(r.j, r.j), r.prior_distance_m, r.fitness, r.inlier_rmse_m,
+                        r.T_i_j, r.accepted, r.reason, r.information) for r in loops]
+    poses = optimize_with_loops(problem, local, p)[:n]
+    for r_local, r in zip(local, loops):  # decisions of pass 3 back onto the global indices
+        r.accepted, r.reason = r_local.accepted, r_local.reason
+    return Solution(poses, problem, loops)

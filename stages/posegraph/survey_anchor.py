@@ -1,0 +1,94 @@
+"""Survey anchoring: register a scan's ground and curb points to the absolute survey cloud (ENU, cm-accurate)
+and turn each verified registration into an absolute pose prior, so that every map layer shares its frame.
+
+Registration runs in a local frame centred on the pose (float precision); the information matrix comes from
+the point-to-plane Hessian, so directions the ground alone does not fix (along a straight curb) stay weak.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from stages.odometry.icp import floor_information, prepare_cloud, register_clouds
+from stages.posegraph.graph import PosePrior
+
+
+@dataclass(frozen=True)
+class SurveyMatch:
+    i: int
+    T_map_vehicle: np.ndarray
+    information: np.ndarray
+    fitness: float
+    inlier_rmse_m: float
+    accepted: bool
+    reason: str
+
+
+def build_survey_index(survey_enu_m: np.ndarray, voxel_m: float) -> tuple[np.ndarray, cKDTree]:
+    """Voxel-downsample the survey cloud once and index it in 2-D for cropping."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(survey_enu_m, float)))
+    pts = np.asarray(cloud.voxel_down_sample(voxel_m).points)
+    return pts, cKDTree(pts[:, :2])
+
+
+def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.ndarray, survey_pts: np.ndarray,
+                survey_tree: cKDTree, *, crop_m: float, max_height_m: float, voxel_m: float,
+                min_fitness: float, max_rmse_m: float, min_sigma_m: float, min_sigma_rad: float) -> SurveyMatch:
+    """GICP of the scan's low points onto the survey crop around the current estimate."""
+    origin = T_map_vehicle_init[:3, 3].copy()
+    low = points_vehicle_m[points_vehicle_m[:, 2] < max_height_m]
+    near = survey_tree.query_ball_point(origin[:2], crop_m)
+    if len(low) < 100 or len(near) < 100:
+        return SurveyMatch(i, T_map_vehicle_init, np.zeros((6, 6)), 0.0, float("nan"), False,
+                           f"too few points (scan {len(low)}, survey {len(near)})")
+    target = prepare_cloud(survey_pts[near] - origin, voxel_m)
+    source = prepare_cloud(low, voxel_m)
+    T_local_init = T_map_vehicle_init.copy()
+    T_local_init[:3, 3] -= origin
+    res = register_clouds(source, target, T_local_init, method="gicp", max_corr_m=1.0, max_iterations=50,
+                          min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad)
+    T = res.T_target_source.copy()
+    T[:3, 3] += origin
+    reason = "accepted"
+    if res.fitness < min_fitness:
+        reason = f"fitness {res.fitness:.2f} < {min_fitness:.2f}"
+    elif res.inlier_rmse_m > max_rmse_m:
+        reason = f"rmse {res.inlier_rmse_m:.3f} m > {max_rmse_m:.3f} m"
+    info = floor_information(res.information, min_sigma_m, min_sigma_rad)
+    return SurveyMatch(i, T, info, res.fitness, res.inlier_rmse_m, reason == "accepted", reason)
+
+
+def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345) -> list[PosePrior]:
+    """Accepted matches as robust (Huber) absolute pose priors."""
+    return [PosePrior(m.i, m.T_map_vehicle, m.information, "survey", "huber", kernel_k)
+            for m in matches if m.accepted]
+
+
+def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_out: list | None = None):
+    """A ``survey_priors(poses, offsets)`` callback for ``solve_map``: anchors keyframes every
+    ``p.survey_stride_m`` that the survey covers; every match (accepted or not) is appended to ``matches_out``."""
+    from stages.posegraph.loops import keyframes_by_travel
+    from stages.posegraph.solve import vehicle_clouds
+
+    survey_pts, tree = build_survey_index(survey_enu_m, p.loop_voxel_m / 2)
+
+    def callback(poses: np.ndarray, offsets: np.ndarray) -> list[PosePrior]:
+        group = np.repeat(np.arange(len(drives)), np.diff(offsets))
+        keys = keyframes_by_travel(poses[:, :3, 3], group, p.survey_stride_m)
+        covered = np.array([len(tree.query_ball_point(poses[k, :2, 3], 5.0)) > 0 for k in keys], bool)
+        keys = keys[covered] if len(keys) else keys
+        clouds = vehicle_clouds(drives, offsets, keys, load, p.loop_voxel_m / 2)
+        matches = [anchor_scan(int(k), clouds[int(k)], poses[k], survey_pts, tree, crop_m=p.survey_crop_m,
+                               max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,
+                               min_fitness=p.survey_min_fitness, max_rmse_m=p.survey_max_rmse_m,
+                               min_sigma_m=p.survey_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad)
+                   for k in keys]
+        if matches_out is not None:
+            matches_out.extend(matches)
+        return survey_priors(matches)
+
+    return callback

@@ -1,0 +1,69 @@
+"""Arrow tables <-> pose-graph arrays (DriveInput, pose rows, loop rows). No algorithms here."""
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+from scipy.spatial.transform import Rotation
+
+from pipeline.errors import FormatError
+from schemas.registry import schema_of
+from stages.posegraph.core import DriveInput
+
+
+def _T_from_columns(table: pa.Table, x: str, y: str, z: str) -> np.ndarray:
+    n = table.num_rows
+    T = np.tile(np.eye(4), (n, 1, 1))
+    if n:
+        q = np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
+        T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+        T[:, :3, 3] = np.column_stack([table[c].to_numpy() for c in (x, y, z)])
+    return T
+
+
+def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Table) -> DriveInput:
+    """One drive's rows of poses_gnss (one per scan), odometry_edges and drive_info."""
+    g = gnss.filter(pc.equal(gnss["drive"], drive)).sort_by("scan_id")
+    if g.num_rows == 0:
+        raise FormatError(f"poses_gnss: no rows for drive {drive!r}; hint: is it in the workflow's drives?")
+    info_rows = drive_info.filter(pc.equal(drive_info["drive"], drive))
+    if info_rows.num_rows == 0:
+        raise FormatError(f"drive_info: no row for drive {drive!r}; hint: run ingest for this drive first")
+    T_vl = np.asarray(info_rows["T_vehicle_lidar"][0].as_py(), float).reshape(4, 4)
+    ids = g["scan_id"].to_numpy()
+    n = len(ids)
+    e = edges.filter(pc.equal(edges["drive"], drive))
+    e_ids = e["scan_id"].to_numpy()
+    pos = np.searchsorted(ids, e_ids)
+    inside = (pos < n) & (pos > 0)
+    inside[inside] &= (ids[pos[inside]] == e_ids[inside]) & (ids[pos[inside] - 1] == e_ids[inside] - 1)
+    edge_T = np.tile(np.eye(4), (n, 1, 1))
+    edge_info = np.tile(np.eye(6), (n, 1, 1))
+    edge_ok = np.zeros(n, bool)
+    if e.num_rows:
+        Te = _T_from_columns(e, "dx_m", "dy_m", "dz_m")
+        info = np.asarray(e["information"].combine_chunks().flatten().to_numpy(), float).reshape(-1, 6, 6)
+        conv = e["converged"].to_numpy(zero_copy_only=False)
+        edge_T[pos[inside]] = Te[inside]
+        edge_info[pos[inside]] = info[inside]
+        edge_ok[pos[inside]] = conv[inside]
+    std = np.column_stack([g[c].to_numpy() for c in ("std_east_m", "std_north_m", "std_up_m")])
+    return DriveInput(drive, ids, g["stamp_ns"].to_numpy(), _T_from_columns(g, "x_m", "y_m", "z_m"), std,
+                      g["std_yaw_rad"].to_numpy(), g["valid"].to_numpy(zero_copy_only=False), edge_T, edge_info,
+                      edge_ok, T_vl)
+
+
+def poses_table(name: str, drive: DriveInput, T: np.ndarray, cov_xy_yaw: np.ndarray | None = None) -> pa.Table:
+    q = Rotation.from_matrix(T[:, :3, :3]).as_quat() if len(T) else np.zeros((0, 4))
+    cols = {"drive": pa.array([drive.name] * drive.n, pa.string()), "scan_id": pa.array(drive.scan_ids, pa.int64()),
+            "stamp_ns": pa.array(drive.stamps_ns, pa.int64()), "x_m": T[:, 0, 3], "y_m": T[:, 1, 3],
+            "z_m": T[:, 2, 3], "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]}
+    if cov_xy_yaw is not None:
+        cols["cov_xy_yaw"] = pa.FixedSizeListArray.from_arrays(
+            pa.array(np.asarray(cov_xy_yaw, float).reshape(-1), pa.float64()), 9)
+    return pa.table(cols, schema=schema_of(name))
+
+
+def loops_table(rows: list[dict]) -> pa.Table:
+    schema = schema_of("loop_closures")
+    return pa.Table.from_pylist(rows, schema=schema) if rows else schema.empty_table()
