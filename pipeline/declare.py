@@ -110,6 +110,10 @@ class StageContext:
         path.mkdir(parents=True, exist_ok=True)
         return path
 
+    def committed_artifact_dir(self, key: str) -> Path:
+        """Where ``artifact_dir(key)`` will be once this partition commits (for messages and manifests)."""
+        return self.artifact_dirs[key].parent / self.partition.label
+
 
 class InputReader:
     """Reads committed input datasets of a stage. Implemented by the store; declared here for typing."""

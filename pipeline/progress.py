@@ -48,15 +48,18 @@ def print_plan(rows: list[dict[str, Any]], root: Path, summary: dict | None = No
 
 
 def print_outcomes(plan) -> None:
-    """Where the products are: a published map version, an evaluation report."""
-    import json
-
+    """Print what stages said about their products (a published map version, a report path), once per stage."""
     from pipeline.store import dataset_dir, read_manifest
 
     for sp in plan.stages.values():
-        for key, ds in sp.outputs.items():
+        if not sp.selected:
+            continue
+        for ds in sp.outputs.values():
             m = read_manifest(dataset_dir(plan.root, ds, sp.fingerprint))
             if not m:
                 continue
-            for line in m.get("extra", {}).get("outcome", []) if isinstance(m.get("extra"), dict) else []:
-                print(line)
+            parts = (m.get("extra") or {}).get("partitions") or {}
+            for label in sorted(parts):
+                for line in parts[label].get("outcome", []):
+                    print(line)
+            break

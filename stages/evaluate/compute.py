@@ -184,4 +184,12 @@ def compute(ctx: StageContext) -> dict:
     write_report(out, ev, cmap, fetch, drive=drive, map_info={"path": str(reader.path), "version": reader.version})
     table = epochs_table(ev, drive)
     pq.write_table(table, out / "epochs.parquet")  # the per-epoch table beside the report, for DIR users
-    return {"epochs": table}
+    import json
+
+    from stages.evaluate.outputs import metrics_table_text
+
+    final = ctx.committed_artifact_dir("report")
+    doc = json.loads((out / "metrics.json").read_text())
+    outcome = [f"evaluation of {drive} on map version {reader.version}:", metrics_table_text(doc),
+               f"report: {final / 'report.html'}", f"metrics: {final / 'metrics.json'}"]
+    return {"epochs": table, "_extra": {"outcome": outcome}}

@@ -84,7 +84,9 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         "n_tiles": pa.array([int(pub.manifest["n_tiles"])], pa.int32()),
         "n_corners": pa.array([int(pub.manifest["n_corners"])], pa.int64()),
         "manifest_sha256": pa.array([pub.manifest_sha256], pa.string())}, schema=schema_of("map_tiles"))
-    return {"published": table}
+    outcome = [f"published map {name!r} version {pub.name}: {pub.path.resolve()} "
+               f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles)"]
+    return {"published": table, "_extra": {"outcome": outcome}}
 
 
 def _schema_problems(table: pa.Table, expected: pa.Schema) -> list[str]:
