@@ -1,0 +1,144 @@
+"""``simulate``: city -> drives -> files. Deterministic from (preset, seed): every random component draws
+from its own generator derived from the seed and the component's name.
+
+Layout of ``out_dir``: ``drive_K/`` (drive.yaml, scans/NNNNNN.pcd, scans/stamps.csv, gnss_inspva.csv,
+wheel_gyro.csv), ``survey/survey.las``, ``truth/`` (drive_K_poses_tum.txt, drive_K_gnss_stats.json,
+corners.csv, markings.png/json, city.json) and ``simulation.json``.
+"""
+from __future__ import annotations
+
+import logging
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+from stages.simulate import writers
+from stages.simulate.city import generate_city
+from stages.simulate.drive import DriveSpec, simulate_drive
+from stages.simulate.markings import asphalt_albedo, generate_markings, rasterize_markings
+from stages.simulate.mesh import Scene, build_building_soup, build_static_soup
+from stages.simulate.presets import Preset, get_preset
+from stages.simulate.sensor import MOUNT_HEIGHT_M, LaserCalibration, build_beam_table
+from stages.simulate.survey import generate_survey
+from stages.simulate.trajectory import choose_loop_cells, lane_polyline, loop_nodes
+from stages.simulate.truth import building_corners, city_description, count_visible_scans
+
+log = logging.getLogger(__name__)
+CODE_VERSION = "1"
+
+
+@dataclass(frozen=True)
+class SimulationSummary:
+    preset: str
+    seed: int
+    out_dir: Path
+    drives: list[str]
+    n_scans: dict[str, int]
+    enu_origin: dict
+    utm_epsg: int
+    gnss_stats: dict[str, dict] = field(default_factory=dict)
+
+
+def component_rng(seed: int, name: str) -> np.random.Generator:
+    """An independent generator per (seed, component name); stable across runs and platforms."""
+    return np.random.default_rng(np.random.SeedSequence(entropy=seed, spawn_key=(zlib.crc32(name.encode()),)))
+
+
+def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | None = None,
+             motion_distortion: bool = True, scan_limit: int | None = None,
+             progress: Callable[[str, int, int], None] | None = None) -> SimulationSummary:
+    """Generate a city, ``n_drives`` drives over it (drive 0 maps, later drives evaluate), a survey cloud
+    and ground truth into ``out_dir``. ``scan_limit`` caps the scans written per drive (tests)."""
+    from stages.common.geodesy import EnuOrigin, utm_epsg_for
+
+    p = get_preset(preset) if isinstance(preset, str) else preset
+    n_drives = p.default_drives if n_drives is None else int(n_drives)
+    if n_drives < 1:
+        raise ConfigError("simulate", [f"drives must be >= 1; got {n_drives}"])
+    if p.max_scans_per_drive is not None:
+        scan_limit = p.max_scans_per_drive if scan_limit is None else min(scan_limit, p.max_scans_per_drive)
+    out_dir = Path(out_dir)
+    for sub in ("survey", "truth"):
+        (out_dir / sub).mkdir(parents=True, exist_ok=True)
+    origin = EnuOrigin(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m)
+    epsg = utm_epsg_for(origin.lat_deg, origin.lon_deg)
+
+    city = generate_city(p, component_rng(seed, "city"))
+    marks = rasterize_markings(generate_markings(city), city.bounds_en)
+    albedo = asphalt_albedo(city.bounds_en, component_rng(seed, "albedo"))
+    static = Scene(build_static_soup(city, component_rng(seed, "mesh")))
+    buildings = Scene(build_building_soup(city))
+    cells = choose_loop_cells(p.n_rows, p.n_cols, city.nodes_en, p.lap_length_m, component_rng(seed, "route"))
+    loop = loop_nodes(cells)
+    beams = build_beam_table()
+    calib = LaserCalibration.draw(component_rng(seed, "laser_calibration"))
+    corners = building_corners(city)
+    T_vehicle_lidar = np.eye(4)
+    T_vehicle_lidar[2, 3] = MOUNT_HEIGHT_M
+
+    names, n_scans, stats, visible = [], {}, {}, {}
+    route0 = None
+    for k in range(n_drives):
+        spec = DriveSpec.for_index(k, loop, p, city, seed)
+        name = f"drive_{k}"
+        drive_dir = out_dir / name
+        result = simulate_drive(spec, p, city, static, buildings, marks, albedo, beams, calib, origin,
+                                drive_dir, out_dir / "truth", motion_distortion, scan_limit,
+                                component_rng(seed, f"drive{k}"),
+                                (lambda i, n, _name=name: progress(_name, i, n)) if progress else None)
+        writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}")
+        names.append(name)
+        n_scans[name] = result.n_scans
+        stats[name] = result.gnss_stats
+        visible[name] = count_visible_scans(corners, static, result.scan_positions_en, MOUNT_HEIGHT_M)
+        if k == 0:
+            route0 = result.route_en
+        log.info("%s: %d scans, GNSS horizontal RMS %.2f m", name, result.n_scans, result.gnss_stats["rms_m"])
+
+    _write_survey(city, route0, p, marks, albedo, origin, epsg, out_dir, component_rng(seed, "survey"))
+    _write_truth(out_dir / "truth", city, corners, visible, marks, origin, epsg)
+    summary = SimulationSummary(p.name, seed, out_dir, names, n_scans, origin.as_dict(), epsg, stats)
+    writers.write_json(out_dir / "simulation.json", {
+        "preset": p.name, "seed": seed, "code_version": CODE_VERSION, "motion_distortion": motion_distortion,
+        "scan_limit": scan_limit, "drives": names, "n_scans": n_scans, "enu_origin": origin.as_dict(),
+        "utm_epsg": epsg, "gnss_error_stats": stats, "T_vehicle_lidar": T_vehicle_lidar.tolist(),
+        "vehicle_frame": "x forward, y left, z up; origin on the ground under the lidar",
+        "laser_calibration": {"gain": np.round(calib.gain, 6).tolist(), "offset": np.round(calib.offset, 6).tolist()},
+    })
+    return summary
+
+
+def _write_survey(city, route_en, p: Preset, marks, albedo, origin, epsg, out_dir: Path, rng) -> None:
+    from stages.common.geodesy import enu_to_geodetic, geodetic_to_projected
+
+    corridor = max(city.hw_row_m, city.hw_col_m) + p.sidewalk_m
+    xyz_enu, refl = generate_survey(city, route_en, corridor, marks, albedo, rng)
+    llh = enu_to_geodetic(xyz_enu, origin)
+    xyz_utm = geodetic_to_projected(llh[:, 0], llh[:, 1], llh[:, 2], f"EPSG:{epsg}")
+    writers.write_las(out_dir / "survey" / "survey.las", xyz_utm, np.round(refl * 65535.0), epsg)
+
+
+def _write_truth(truth_dir: Path, city, corners, visible, marks, origin, epsg) -> None:
+    header = ["id", "east_m", "north_m", "theta1_deg", "theta2_deg", "interior_angle_deg", "glass_walls"]
+    cols = [corners[h] for h in header]
+    fmts = ["%d", "%.4f", "%.4f", "%.4f", "%.4f", "%.4f", "%d"]
+    for name, counts in visible.items():
+        header.append(f"scans_visible_{name.split('_')[-1]}")
+        cols.append(counts)
+        fmts.append("%d")
+    header.append("height_m")
+    cols.append(corners["height_m"])
+    fmts.append("%.3f")
+    writers.write_csv(truth_dir / "corners.csv", header, cols, fmts)
+    writers.write_png(truth_dir / "markings.png", np.where(marks.data > 0, 255, 0).astype(np.uint8))
+    writers.write_json(truth_dir / "markings.json", {
+        "frame": "ENU", "origin": origin.as_dict(), "resolution_m": marks.res_m,
+        "west_m": marks.west_m, "north_m": marks.north_m, "width_px": int(marks.data.shape[1]),
+        "height_px": int(marks.data.shape[0]),
+        "pixel_centre": "east = west_m + (col + 0.5) * res, north = north_m - (row + 0.5) * res",
+        "values": {"0": "unpainted", "255": "painted (white or yellow)"}})
+    writers.write_json(truth_dir / "city.json", city_description(city, origin.as_dict(), epsg))

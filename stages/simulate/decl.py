@@ -1,0 +1,26 @@
+"""Stage declaration of ``simulate`` (imports nothing heavy)."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pipeline.declare import Params, Partitioning, StageDecl
+
+
+class SimulateParams(Params):
+    preset: Literal["tiny", "demo", "gangnam"] = "tiny"
+    seed: int = 0
+    drives: int | None = None  # None: the preset's default (2)
+    motion_distortion: bool = True
+
+
+STAGE = StageDecl(
+    name="simulate",
+    summary="Synthetic city and drives (HDL-32E scans, urban RTK/INS, odometry, survey LAS, ground truth).",
+    code_version="2",
+    inputs={},
+    outputs={"drives": "raw_drives"},
+    params=SimulateParams,
+    partition=Partitioning.SINGLE,
+    compute="stages.simulate.compute:compute",
+    cli="stages.simulate.cli",
+)

@@ -1,0 +1,135 @@
+"""One drive over the city: its lane and direction, trajectory, traffic, lidar scans, GNSS/INS solution,
+wheel/gyro stream and ground-truth poses, written into ``drive_dir`` and ``truth_dir``.
+
+Drive 0 follows the loop counter-clockwise in the outer lane (the mapping drive, ``map_laps`` laps);
+odd drives run the same streets the other way round, even drives use the inner lane; every drive starts
+at a different point of the loop.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from stages.simulate import writers
+from stages.simulate.gnss import GNSS_RATE_HZ, simulate_gnss_errors, simulate_odometry, sky_blocked_fraction
+from stages.simulate.mesh import VEHICLE, Scene, TriangleSoup, box_triangles
+from stages.simulate.presets import Preset
+from stages.simulate.sensor import N_AZIMUTH, SCAN_PERIOD_S, rotations_enu_vehicle, simulate_scan
+from stages.simulate.traffic import ego_lanes, generate_traffic
+from stages.simulate.trajectory import lane_polyline, plan_drive
+
+GPS_START_S = 200_000.0
+ANTENNA_HEIGHT_M = 2.0
+
+
+@dataclass(frozen=True)
+class DriveSpec:
+    index: int
+    loop: list  # intersection nodes in driving order
+    lane: int  # 0 = next to the centre line; large = outermost
+    laps: int
+    gps_t0_s: float
+
+    @staticmethod
+    def for_index(k: int, loop: list, p: Preset, city, seed: int) -> "DriveSpec":
+        nodes = loop[::-1] if k % 2 == 1 else list(loop)
+        shift = (k * len(nodes)) // 3 % len(nodes)
+        nodes = nodes[shift:] + nodes[:shift]
+        lane = 9 if k % 4 in (0, 3) else 0
+        return DriveSpec(k, nodes, lane, p.map_laps if k == 0 else p.eval_laps, GPS_START_S + 5000.0 * k)
+
+
+@dataclass(frozen=True)
+class DriveResult:
+    n_scans: int
+    gnss_stats: dict
+    scan_positions_en: np.ndarray
+    route_en: np.ndarray
+
+
+def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: Scene, marks, albedo, beams,
+                   calib, origin, drive_dir: Path, truth_dir: Path, motion_distortion: bool,
+                   scan_limit: int | None, rng: np.random.Generator,
+                   progress: Callable[[int, int], None] | None = None) -> DriveResult:
+    from stages.common.geometry import write_tum
+
+    rng_route, rng_traffic, rng_sensor, rng_gnss, rng_odo = rng.spawn(5)
+    poly, turns = lane_polyline(city, spec.loop, spec.lane)
+    traj = plan_drive(poly, turns, spec.laps, p.cruise_mps, p.stop_share, rng_route)
+    traffic = generate_traffic(city, p.traffic_per_km, ego_lanes(city, spec.loop, spec.lane), rng_traffic)
+    scan_dir = drive_dir / "scans"
+    scan_dir.mkdir(parents=True, exist_ok=True)
+
+    duration = float(traj.t_s[-1])
+    n_scans = int((duration - SCAN_PERIOD_S) / SCAN_PERIOD_S) + 1
+    if scan_limit is not None:
+        n_scans = min(n_scans, int(scan_limit))
+    t_scan = np.arange(n_scans) * SCAN_PERIOD_S
+    t_col = np.arange(N_AZIMUTH) * (SCAN_PERIOD_S / N_AZIMUTH)
+    for i, t0 in enumerate(t_scan):
+        poses = traj.sample(t0 + t_col) if motion_distortion else np.repeat(traj.sample(np.array([t0])), N_AZIMUTH, 0)
+        boxes, refl = traffic.boxes_at(float(t0), poses[0, :2])
+        dyn_tris = box_triangles(boxes)
+        dynamic = Scene(TriangleSoup(dyn_tris.astype(np.float32), np.full(len(dyn_tris), VEHICLE, np.uint8),
+                                     np.repeat(refl, 12).astype(np.float32)))
+        pts = simulate_scan(beams, poses, static, dynamic, marks, albedo, calib, rng_sensor)
+        writers.write_pcd(scan_dir / f"{i:06d}.pcd", pts)
+        if progress and (i % 10 == 9 or i == n_scans - 1):
+            progress(i + 1, n_scans)
+    gps_scan = spec.gps_t0_s + t_scan
+    writers.write_csv(scan_dir / "stamps.csv", ["scan_id", "gps_week", "gps_seconds"],
+                      [np.arange(n_scans), np.full(n_scans, p.gps_week), gps_scan], ["%d", "%d", "%.6f"])
+
+    truth = traj.sample(t_scan)
+    T = np.tile(np.eye(4), (n_scans, 1, 1))
+    T[:, :3, :3] = rotations_enu_vehicle(truth[:, 2], truth[:, 3], truth[:, 4])
+    T[:, :2, 3] = truth[:, :2]
+    # TUM time = the drive's time base as ingested: GPS seconds since the GPS epoch (week * 604800 + seconds).
+    write_tum(truth_dir / f"drive_{spec.index}_poses_tum.txt", p.gps_week * 604800.0 + gps_scan, T)
+
+    stats = _write_gnss(spec, p, traj, buildings, origin, drive_dir, truth_dir, rng_gnss)
+    wheel, gyro = simulate_odometry(traj.speed_mps, traj.yaw_rate_radps, 0.01, rng_odo)
+    writers.write_csv(drive_dir / "wheel_gyro.csv", ["gps_week", "gps_seconds", "wheel_speed_mps", "yaw_rate_radps"],
+                      [np.full(len(traj.t_s), p.gps_week), spec.gps_t0_s + traj.t_s, wheel, gyro],
+                      ["%d", "%.3f", "%.3f", "%.6f"])
+    return DriveResult(n_scans, stats, truth[:, :2], poly)
+
+
+def gnss_errors_for(traj, buildings: Scene, p: Preset, rng: np.random.Generator):
+    """GNSS epochs (20 Hz, s from drive start), true states there, blocked-sky fraction and errors."""
+    t = np.arange(0.0, float(traj.t_s[-1]), 1.0 / GNSS_RATE_HZ)
+    state = traj.sample(t)
+    t1 = np.arange(0.0, float(traj.t_s[-1]) + 1.0, 1.0)
+    s1 = traj.sample(t1)
+    canyon = np.interp(t, t1, sky_blocked_fraction(
+        buildings, np.column_stack([s1[:, :2], np.full(len(t1), ANTENNA_HEIGHT_M)])))
+    dist = np.interp(t, traj.t_s, np.cumsum(traj.speed_mps) * (traj.t_s[1] - traj.t_s[0]))
+    err = simulate_gnss_errors(t, canyon, dist, p.gnss_target_rms_m, p.gnss_bias_open_m, p.gnss_bias_canyon_m,
+                               p.multipath_per_km, p.outage_per_km, rng)
+    return t, state, canyon, err
+
+
+def _write_gnss(spec: DriveSpec, p: Preset, traj, buildings: Scene, origin, drive_dir: Path, truth_dir: Path,
+                rng: np.random.Generator) -> dict:
+    from stages.common.geodesy import enu_to_geodetic
+
+    t, state, canyon, err = gnss_errors_for(traj, buildings, p, rng)
+    enu = np.column_stack([state[:, :2], np.zeros(len(t))]) + err.err_enu_m
+    v = err.valid
+    llh = enu_to_geodetic(enu[v], origin)
+    azimuth = (90.0 - np.degrees(state[:, 2] + err.err_yaw_rad)) % 360.0
+    writers.write_gnss_csv(drive_dir / "gnss_inspva.csv", p.gps_week, spec.gps_t0_s + t[v], llh,
+                           np.degrees(state[v, 4] + err.err_roll_rad[v]), np.degrees(state[v, 3] + err.err_pitch_rad[v]),
+                           azimuth[v], err.std_enu_m[v], np.degrees(err.std_yaw_rad[v]))
+    h = np.linalg.norm(err.err_enu_m[v, :2], axis=1)
+    stats = {"rms_m": round(float(np.sqrt(np.mean(h ** 2))), 4), "max_m": round(float(h.max()), 4),
+             "seconds_above_1m": round(float((h > 1.0).sum() / GNSS_RATE_HZ), 2),
+             "heading_rms_deg": round(float(np.degrees(np.sqrt(np.mean(err.err_yaw_rad[v] ** 2)))), 4),
+             "mean_reported_std_h_m": round(float(np.mean(np.hypot(err.std_enu_m[v, 0], err.std_enu_m[v, 1]))), 4),
+             "outage_seconds": round(float((~v).sum() / GNSS_RATE_HZ), 2),
+             "mean_sky_blocked": round(float(canyon.mean()), 4), "epochs": int(v.sum())}
+    writers.write_json(truth_dir / f"drive_{spec.index}_gnss_stats.json", stats)
+    return stats
