@@ -94,10 +94,11 @@ def main() -> None:
 
         simulate(args.preset, args.seed, sim)
     drives = sorted(p.name for p in sim.iterdir() if p.name.startswith("drive_"))
+    from stages.odometry.params import OdometryParams
     print(f"machine: {os.cpu_count()} cores; preset {args.preset} seed {args.seed}; drives {drives}")
     tables = ingest(sim, drives)
     edges, dt, n = run_odometry(tables)
-    print(f"odometry: {n} edges in {dt:.1f} s = {n / dt:.1f} scans/s incl. in-memory table filtering (GICP, 1.0 m voxels)")
+    print(f"odometry: {n} edges in {dt:.1f} s = {n / dt:.1f} scans/s incl. in-memory table filtering (GICP, {OdometryParams().voxel_m} m voxels)")
     tables["edges"] = edges
     scans = tables["scans"]
 

@@ -108,8 +108,9 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
                            max_iterations=p.max_iterations, relative_tolerance=p.relative_tolerance,
                            min_range_m=p.min_range_m, max_range_m=p.max_range_m, deskew=p.deskew,
                            min_fitness=p.min_fitness, max_deviation_m=p.max_deviation_m,
+                           max_deviation_rad=p.max_deviation_rad,
                            point_sigma_m=p.point_sigma_m, min_sigma_m=p.min_sigma_m,
-                           min_sigma_rad=p.min_sigma_rad)
+                           min_sigma_rad=p.min_sigma_rad, rot_sigma_per_rad=p.rot_sigma_per_rad)
     n_bad = sum(not e.converged for e in edges)
     if n_bad:
         log.warning("odometry %s: %d of %d edges did not converge", ctx.partition.label, n_bad, len(edges))

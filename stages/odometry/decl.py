@@ -5,7 +5,7 @@ from stages.odometry.params import OdometryParams
 STAGE = StageDecl(
     name="odometry",
     summary="ICP (open3d GICP) between consecutive scans: vehicle-frame edges with fitness, RMSE, information.",
-    code_version="1",
+    code_version="2",
     inputs={"scans": "scans_raw", "poses_gnss": "poses_gnss", "drive_info": "drive_info"},
     outputs={"edges": "odometry_edges"},
     params=OdometryParams,

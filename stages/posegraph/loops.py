@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.common.geometry import se3_inverse
-from stages.odometry.icp import floor_information, prepare_cloud, register_clouds
+from stages.common.registration import floor_information, prepare_cloud, register_clouds
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,9 @@ from pipeline.declare import Params
 
 class PosegraphParams(Params):
     # odometry edges
-    failed_edge_sigma_m: float = Field(0.5, gt=0, description="std of a bridge over a missing/failed ICP edge")
-    failed_edge_sigma_rad: float = Field(0.05, gt=0)
+    failed_edge_sigma_m: float = Field(0.15, gt=0, description="std of a bridge over a missing/failed ICP edge "
+                                       "(the 10 Hz GNSS/INS increment: ~0.1 m RMS on the simulator)")
+    failed_edge_sigma_rad: float = Field(0.003, gt=0, description="same, rotation (INS increments ~0.001 rad)")
     # GNSS / INS priors
     gnss_std_inflation: float = Field(3.0, ge=1, description="receivers understate their error in canyons")
     gnss_min_std_m: float = Field(0.05, gt=0)

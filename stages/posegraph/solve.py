@@ -10,7 +10,7 @@ from typing import Callable
 import numpy as np
 
 from stages.common.geometry import se3_inverse
-from stages.odometry.icp import crop_range, deskew_points
+from stages.common.registration import crop_range, deskew_points
 from stages.posegraph.core import DriveInput, base_problem, increments
 from stages.posegraph.graph import Between, PosePrior, Problem, between_residuals, optimize
 from stages.posegraph.loops import find_candidates, keyframes_by_travel, verify_loop

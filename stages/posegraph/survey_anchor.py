@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from stages.odometry.icp import floor_information, prepare_cloud, register_clouds
+from stages.common.registration import floor_information, prepare_cloud, register_clouds
 from stages.posegraph.graph import PosePrior
 
 

@@ -133,6 +133,10 @@ def plan_drive(poly_en: np.ndarray, turn_starts_m: list[float], laps: int, cruis
     s = np.arange(0.0, laps * lap_len, ds_m)
     s_lap = s % lap_len
     east, north = np.interp(s_lap, s_poly, poly_en[:, 0]), np.interp(s_lap, s_poly, poly_en[:, 1])
+    # A car's path is smooth: round the polyline's 0.5 m facets (sigma 1 m) so that heading and yaw rate are
+    # continuous; otherwise the true heading steps by degrees at every facet inside a turn.
+    sigma = 1.0 / ds_m
+    east, north = gaussian_filter1d(east, sigma, mode="wrap"), gaussian_filter1d(north, sigma, mode="wrap")
     yaw = np.unwrap(np.arctan2(np.gradient(north), np.gradient(east)))
     curv = np.abs(gaussian_filter1d(np.gradient(yaw, ds_m), 5))
     wobble = 1.0 - 0.08 * (1 + np.sin(2 * np.pi * s / rng.uniform(150, 300) + rng.uniform(0, 6.3)))

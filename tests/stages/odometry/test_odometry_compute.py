@@ -41,7 +41,7 @@ def _tables(scene, T_map_vehicle, chunk_of, drive="d0", seed=0):
     scans = pa.concat_tables(parts)
     n = len(T_map_vehicle)
     noisy = T_map_vehicle.copy()
-    noisy[:, :2, 3] += rng.normal(0, 0.3, (n, 2))  # GNSS increments are a rough guess only
+    noisy[:, :2, 3] += rng.normal(0, 0.05, (n, 2))  # 10 Hz GNSS/INS increments: good to ~0.1 m
     q = Rotation.from_matrix(noisy[:, :3, :3]).as_quat()
     gnss = pa.table({
         "drive": [drive] * n, "scan_id": pa.array(range(n), pa.int64()),

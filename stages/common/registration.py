@@ -125,6 +125,9 @@ def register_clouds(source: o3d.geometry.PointCloud, target: o3d.geometry.PointC
     else:  # validated by params; kept for direct callers
         raise ValueError(f"registration method {method!r} unknown; expected one of {METHODS}")
     T = np.asarray(res.transformation, dtype=float).copy()
+    if not np.isfinite(T).all():  # GICP on degenerate covariances can diverge to NaN
+        return RegistrationResult(np.asarray(T_init, float).copy(), 0.0, float("inf"),
+                                  floor_information(np.zeros((6, 6)), min_sigma_m, min_sigma_rad), False)
     info = information_from_registration(source, target, T, max_corr_m, point_sigma_m, min_sigma_m,
                                          min_sigma_rad)
     converged = bool(res.fitness > 0 and np.isfinite(T).all())
