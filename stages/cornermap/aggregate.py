@@ -41,6 +41,7 @@ class ClusterSummary:
     last_seen_ns: np.ndarray
     interior_angle_rad: np.ndarray
     convex: np.ndarray  # majority vote
+    cov_pose_m2: np.ndarray | None = None  # (K,2,2) the pose-graph part of cov_map (frame uncertainty)
 
 
 def _sum2x2(labels: np.ndarray, m: np.ndarray, k: int) -> np.ndarray:
@@ -107,6 +108,7 @@ def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.
         en_m=en, theta_rad=theta, cov_map_m2=cov_map, cov_scatter_m2=scatter, angle_spread_rad=spread,
         n_obs=n_obs.astype(np.int64), n_drives=n_drives, drives=drives, first_seen_ns=first_seen,
         last_seen_ns=last_seen, interior_angle_rad=np.mod(interior, 2.0 * np.pi), convex=convex_share >= 0.5,
+        cov_pose_m2=cov_pose_mean,
     )
 
 

@@ -31,14 +31,18 @@ def reject_reasons(summary: ClusterSummary, th: FilterThresholds) -> list[str]:
     min_eig = np.linalg.eigvalsh(safe)[:, 0] if k else np.empty(0)
     non_pd = ~finite | (min_eig <= 0.0)
     spread = largest_std_m(summary.cov_scatter_m2) if k else np.empty(0)
-    trace = np.trace(cov, axis1=1, axis2=2) if k else np.empty(0)
+    # The gate judges the corner itself (extraction and scatter), not the pose graph's absolute uncertainty: that
+    # part is a frame error shared by every corner nearby (GNSS-anchored marginals of 0.1-0.3 m), which the map
+    # still stores in cov_map but which says nothing about whether this cluster is a good landmark.
+    relative = cov - summary.cov_pose_m2 if summary.cov_pose_m2 is not None else cov
+    trace = np.trace(relative, axis1=1, axis2=2) if k else np.empty(0)
     rules = [
         (non_pd, lambda i: "non_positive_definite: map covariance not SPD"),
         (summary.n_obs < th.min_obs, lambda i: f"few_observations: {summary.n_obs[i]} < {th.min_obs}"),
         (summary.n_drives < th.min_drives, lambda i: f"few_drives: {summary.n_drives[i]} < {th.min_drives}"),
         (spread > th.max_spread_m, lambda i: f"large_spread: {spread[i]:.3f} m > {th.max_spread_m:.3f} m"),
         (trace > th.max_cov_trace_m2,
-         lambda i: f"large_covariance: trace {trace[i]:.2e} m^2 > {th.max_cov_trace_m2:.2e} m^2"),
+         lambda i: f"large_covariance: trace (without pose part) {trace[i]:.2e} m^2 > {th.max_cov_trace_m2:.2e} m^2"),
         (summary.angle_spread_rad > th.max_angle_spread_rad,
          lambda i: f"angle_spread: {np.degrees(summary.angle_spread_rad[i]):.1f} deg > "
                    f"{np.degrees(th.max_angle_spread_rad):.1f} deg"),
