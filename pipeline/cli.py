@@ -173,23 +173,27 @@ def _register_stages() -> None:
             register = importlib.import_module(decl.cli).register
             # register(app) adds top-level commands; register(app, stage_app) may also extend the stage's group.
             register(app, sub) if len(inspect.signature(register).parameters) >= 2 else register(app)
-        if sub is not None:
+        # A stage whose CLI module adds a top-level command of its own name (simulate, evaluate) is used that way.
+        if not any(c.name == name for c in app.registered_commands):
             app.add_typer(sub, name=name, help=decl.summary)
 
 
 def main() -> None:
-    import click
+    try:  # typer >= 0.20 vendors click
+        from typer._click.exceptions import ClickException
+    except ImportError:  # pragma: no cover - older typer
+        from click.exceptions import ClickException
 
     try:
         _register_stages()
         command = typer.main.get_command(app)
         command.main(prog_name="cornermap", standalone_mode=False)
-    except click.exceptions.Exit as exc:
-        sys.exit(exc.exit_code)
-    except click.ClickException as exc:
+    except typer.Exit as exc:
+        sys.exit(getattr(exc, "exit_code", 0))
+    except ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)
-    except click.exceptions.Abort:
+    except typer.Abort:
         typer.echo("aborted", err=True)
         sys.exit(130)
     except CornermapError as exc:
