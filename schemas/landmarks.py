@@ -14,6 +14,8 @@ register(
     f("cov_xx_m2", pa.float64(), "m^2"), f("cov_xy_m2", pa.float64(), "m^2"), f("cov_yy_m2", pa.float64(), "m^2"),
     f("n_layers", pa.int16()), f("range_m", pa.float64(), "m"),
     f("interior_angle_rad", pa.float64(), "rad"), f("convex", pa.bool_()),
+    f("time_offset_s", pa.float64(), "s", doc="time after the scan start at which the corner position holds; "
+      "0 when deskewed"),
 )
 
 register(

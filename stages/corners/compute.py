@@ -1,0 +1,143 @@
+"""Table adapter of the corners stage: scans_raw rows of one scan chunk -> corners_per_scan rows."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pyarrow as pa
+
+from pipeline.declare import StageContext
+from schemas.registry import schema_of
+from stages.corners.core import extract_corners, select_scan_layers
+from stages.corners.deskew import deskew_points
+from stages.corners.determine import Corners
+from stages.corners.params import CornerParams
+
+log = logging.getLogger(__name__)
+
+SCAN_COLUMNS = ["drive", "chunk", "scan_id", "stamp_ns", "x_m", "y_m", "z_m", "ring", "time_offset_s"]
+
+
+def split_scans(scan_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stable order grouping rows by scan, and the boundaries (start offsets, length n_scans + 1)."""
+    order = np.argsort(scan_id, kind="stable")
+    if scan_id.size == 0:
+        return order, np.zeros(1, np.int64)
+    sorted_ids = scan_id[order]
+    bounds = np.r_[0, np.flatnonzero(sorted_ids[1:] != sorted_ids[:-1]) + 1, sorted_ids.size]
+    return order, bounds
+
+
+def corners_table(drive: str, chunk: int, scan_ids: list[int], stamps_ns: list[int], corners: list[Corners]
+                  ) -> pa.Table:
+    """Assemble corners_per_scan rows (sensor frame) for the scans of one chunk."""
+    counts = np.array([len(c) for c in corners], dtype=np.int64)
+    n = int(counts.sum())
+
+    def cat(attr: str, dtype, shape=()) -> np.ndarray:
+        parts = [getattr(c, attr) for c in corners]
+        return np.concatenate(parts).astype(dtype) if parts else np.zeros((0, *shape), dtype)
+
+    cov = cat("cov_m2", np.float64, (2, 2))
+    columns = {
+        "drive": pa.array([drive] * n, pa.string()),
+        "chunk": pa.array(np.full(n, chunk, np.int32)),
+        "scan_id": pa.array(np.repeat(np.asarray(scan_ids, np.int64), counts)),
+        "stamp_ns": pa.array(np.repeat(np.asarray(stamps_ns, np.int64), counts)),
+        "corner_idx": pa.array(np.concatenate([np.arange(k, dtype=np.int32) for k in counts])
+                               if counts.size else np.zeros(0, np.int32)),
+        "x_m": pa.array(cat("x_m", np.float64)), "y_m": pa.array(cat("y_m", np.float64)),
+        "theta1_rad": pa.array(cat("theta1_rad", np.float64)), "theta2_rad": pa.array(cat("theta2_rad", np.float64)),
+        "cov_xx_m2": pa.array(cov[:, 0, 0]), "cov_xy_m2": pa.array(cov[:, 0, 1]),
+        "cov_yy_m2": pa.array(cov[:, 1, 1]),
+        "n_layers": pa.array(cat("n_layers", np.int16)), "range_m": pa.array(cat("range_m", np.float64)),
+        "interior_angle_rad": pa.array(cat("interior_angle_rad", np.float64)),
+        "convex": pa.array(cat("convex", bool)),
+    }
+    schema = schema_of("corners_per_scan")
+    if "time_offset_s" in schema.names:  # forward compatible: the corner's own time within the scan
+        columns["time_offset_s"] = pa.array(cat("time_offset_s", np.float64)).cast(schema.field("time_offset_s").type)
+    return pa.Table.from_pydict(columns, schema=schema)
+
+
+class OdometryTrack:
+    """odometry_raw rows of one drive, sorted by time: speed [m/s] and yaw rate [rad/s] around any scan."""
+
+    def __init__(self, odometry: pa.Table):
+        stamp = odometry["stamp_ns"].to_numpy()
+        order = np.argsort(stamp, kind="stable")
+        self.stamp_ns = stamp[order]
+        self.speed_mps = odometry["speed_mps"].to_numpy()[order].astype(np.float64)
+        self.yaw_rate_radps = odometry["yaw_rate_radps"].to_numpy()[order].astype(np.float64)
+
+    def covers(self, start_ns: int, duration_s: float, tolerance_s: float = 0.5) -> bool:
+        """Whether the odometry spans the scan (within ``tolerance_s``); guards against a time-base mismatch."""
+        tol = int(tolerance_s * 1e9)
+        return bool(self.stamp_ns[0] - tol <= start_ns and start_ns + int(duration_s * 1e9) <= self.stamp_ns[-1] + tol)
+
+    def around(self, start_ns: int, duration_s: float, margin_s: float = 0.05
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Samples (time relative to ``start_ns`` [s], speed, yaw rate) covering the scan; at least two, taken
+        from the nearest samples (interpolated) when the odometry is sparser than the scan."""
+        lo = np.searchsorted(self.stamp_ns, start_ns - int(margin_s * 1e9))
+        hi = np.searchsorted(self.stamp_ns, start_ns + int((duration_s + margin_s) * 1e9), side="right")
+        if hi - lo >= 2:
+            sl = slice(lo, hi)
+            return ((self.stamp_ns[sl] - start_ns) * 1e-9, self.speed_mps[sl], self.yaw_rate_radps[sl])
+        t_rel = (self.stamp_ns - start_ns) * 1e-9
+        q = np.array([0.0, duration_s])
+        return q, np.interp(q, t_rel, self.speed_mps), np.interp(q, t_rel, self.yaw_rate_radps)
+
+
+def _extrinsic(ctx: StageContext) -> np.ndarray | None:
+    if not ctx.inputs.has("drive_info"):
+        return None
+    info = ctx.inputs.read("drive_info", partition=ctx.partition, columns=["T_vehicle_lidar"])
+    return np.asarray(info["T_vehicle_lidar"][0].as_py(), float).reshape(4, 4) if info.num_rows else None
+
+
+def _odometry_track(ctx: StageContext, params: CornerParams) -> OdometryTrack | None:
+    if not (params.deskew and ctx.inputs.has("odometry")):
+        return None
+    odo = ctx.inputs.read("odometry", partition=ctx.partition, columns=["stamp_ns", "speed_mps", "yaw_rate_radps"])
+    return OdometryTrack(odo) if odo.num_rows >= 2 else None
+
+
+def compute(ctx: StageContext) -> dict[str, pa.Table]:
+    params: CornerParams = ctx.params  # type: ignore[assignment]
+    table = ctx.inputs.read("scans", partition=ctx.partition, columns=SCAN_COLUMNS)
+    drive = ctx.partition.drive or (table["drive"][0].as_py() if table.num_rows else "")
+    chunk = ctx.partition.chunk if ctx.partition.chunk is not None else (
+        int(table["chunk"][0].as_py()) if table.num_rows else 0)
+    scan_id = table["scan_id"].to_numpy()
+    order, bounds = split_scans(scan_id)
+    xyz = np.column_stack([table[c].to_numpy() for c in ("x_m", "y_m", "z_m")])[order]
+    ring = table["ring"].to_numpy()[order]
+    stamp = table["stamp_ns"].to_numpy()[order]
+    t_s = table["time_offset_s"].to_numpy()[order].astype(np.float64)
+    # a ring's elevation is a constant of the sensor: select the upper layers once per chunk
+    layers = select_scan_layers(xyz, ring, params) if table.num_rows else np.zeros(0, np.intp)
+    track = _odometry_track(ctx, params)
+    T_vehicle_lidar = _extrinsic(ctx) if track is not None else None
+    scan_ids, stamps, corners, n_deskewed = [], [], [], 0
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        scan_ids.append(int(scan_id[order[a]]))
+        stamps.append(int(stamp[a]))
+        duration_s = float(t_s[a:b].max())
+        if track is not None and track.covers(stamps[-1], duration_s):
+            odo_t, speed, yaw_rate = track.around(stamps[-1], duration_s)
+            pts = deskew_points(xyz[a:b], t_s[a:b], speed, yaw_rate, T_vehicle_lidar, odo_time_s=odo_t)
+            # corners are now in the lidar frame at the scan start: their time offset is 0
+            corners.append(extract_corners(pts, ring[a:b], params, layers=layers, time_offset_s=np.zeros(b - a)))
+            n_deskewed += 1
+        else:
+            corners.append(extract_corners(xyz[a:b], ring[a:b], params, layers=layers, time_offset_s=t_s[a:b]))
+    if track is not None and n_deskewed < len(scan_ids):
+        log.warning("corners %s: odometry (stamp_ns %d..%d) does not cover %d of %d scans (first scan stamp_ns %d);"
+                    " those scans are not deskewed; hint: check that scans_raw and odometry_raw share a time base",
+                    ctx.partition.label, track.stamp_ns[0], track.stamp_ns[-1], len(scan_ids) - n_deskewed,
+                    len(scan_ids), stamps[0])
+    out = corners_table(drive, chunk, scan_ids, stamps, corners)
+    log.info("corners %s: %d scans (%d deskewed), %d corners", ctx.partition.label, len(scan_ids), n_deskewed,
+             out.num_rows)
+    return {"corners": out}

@@ -1,0 +1,88 @@
+"""Typed parameters of corner extraction. Every field states its unit; `cornermap corners params` prints them."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from pipeline.declare import Params
+
+
+class CornerParams(Params):
+    """Defaults are tuned for Velodyne HDL-32E / HDL-64E class sensors (about 0.1-0.2 deg azimuth step)."""
+
+    # 1. Layer selection
+    layer_selection: Literal["elevation", "top_n"] = Field(
+        "elevation", description="'elevation': rings whose estimated elevation (robust mean of atan2(z, hypot(x, y))) "
+        ">= min_elevation_deg, at most n_upper_layers of the highest; 'top_n': the n_upper_layers highest ring "
+        "indices (trusting ring 0 = lowest beam).")
+    n_upper_layers: int = Field(8, ge=1, le=128, description="Number of upper layers used [rings]; the paper "
+                                "uses the eight upper HDL-32E beams.")
+    min_elevation_deg: float = Field(-1.0, ge=-90.0, le=90.0, description="Lowest ring elevation kept in "
+                                     "'elevation' mode [deg], sensor frame.")
+    min_range_m: float = Field(2.0, ge=0.0, description="Points nearer than this are dropped (own vehicle) [m].")
+    max_range_m: float = Field(80.0, gt=0.0, description="Points farther than this are dropped [m].")
+    deskew: bool = Field(True, description="Motion-compensate each scan to its start time by integrating the "
+                         "wheel speed and yaw rate of odometry_raw over the revolution, when that input exists; "
+                         "otherwise each corner carries the mean time of its points [bool].")
+    # 2. Line extraction
+    break_incidence_deg: float = Field(10.0, gt=0.0, lt=90.0, description="Adaptive breakpoint (Borges & "
+                                       "Aldon 2004): a surface seen at a grazing angle below this breaks the "
+                                       "ring between consecutive points [deg].")
+    range_sigma_m: float = Field(0.03, gt=0.0, description="Range noise of the sensor, 1 sigma [m]; widens the "
+                                 "breakpoint threshold by 3 sigma.")
+    max_azimuth_gap_deg: float = Field(1.0, gt=0.0, description="A gap in azimuth between consecutive returns "
+                                       "larger than this (missing returns: glass, sky) breaks the ring [deg].")
+    split_distance_m: float = Field(0.10, gt=0.0, description="IEPF: a segment is split at its farthest point "
+                                    "when that point is farther than this from the end-point chord [m].")
+    merge_max_angle_deg: float = Field(2.0, ge=0.0, description="Merge step: adjacent split segments whose "
+                                       "directions differ by less than this and whose centroids lie within "
+                                       "split_distance_m of each other's line are merged [deg].")
+    end_trim_points: int = Field(1, ge=0, le=5, description="Points left out at each end of a segment in the "
+                                 "total-least-squares refit (mixed pixels at corners and edges) [points].")
+    # 3. Outlier removal
+    max_residual_var_m2: float = Field(0.0016, gt=0.0, description="Paper Figure 5: lines whose mean squared "
+                                       "perpendicular residual exceeds this are outliers (tree crowns) [m^2]; "
+                                       "0.0016 m^2 = (0.04 m)^2.")
+    min_points: int = Field(6, ge=3, description="Minimum points of a line [points].")
+    min_length_m: float = Field(0.8, ge=0.0, description="Minimum length of a line along its direction [m].")
+    # 4. Corner candidates
+    max_corner_gap_m: float = Field(0.6, gt=0.0, description="The intersection of two neighbouring lines must "
+                                    "lie within this of the facing end point of each line [m].")
+    min_interior_angle_deg: float = Field(50.0, gt=0.0, lt=180.0, description="Smallest angle between the two "
+                                          "walls of a candidate [deg].")
+    max_interior_angle_deg: float = Field(155.0, gt=0.0, lt=180.0, description="Largest angle between the two "
+                                          "walls of a candidate [deg]; obtuse and chamfered corners are kept.")
+    # 5. Corner determination
+    cluster_radius_m: float = Field(0.3, gt=0.0, description="Candidates of different layers closer than this "
+                                    "in the horizontal plane belong to the same corner [m].")
+    cluster_max_angle_deg: float = Field(15.0, gt=0.0, description="... and whose wall directions differ by "
+                                         "less than this [deg].")
+    min_layers: int = Field(3, ge=2, description="Redundancy check: a corner needs candidates from at least "
+                            "this many distinct layers [layers].")
+    min_corner_range_m: float = Field(8.0, ge=0.0, description="Corners nearer than this are dropped: there even "
+                                      "the top HDL-32E layer passes only 1.5 m above the sensor, so a building "
+                                      "cannot be told from a bus or truck alongside [m].")
+    max_passover_height_m: float = Field(2.5, ge=0.0, description="Short-object check: a corner is dropped when "
+                                         "a higher layer, passing at most this high above the sensor at the "
+                                         "corner's range, returns nothing at or before the corner (it flew over "
+                                         "a truck or bus); 0 disables [m].")
+    angular_sigma_mrad: float = Field(1.0, ge=0.0, description="Angular error common to all layers of a scan "
+                                      "(deskew residual, azimuth jitter), added to each corner's covariance as "
+                                      "an isotropic (range x sigma)^2 term; 1 mrad = 0.05 m at 50 m [mrad].")
+    min_sigma_m: float = Field(0.01, gt=0.0, description="Floor of each line's residual sigma and of every "
+                               "corner covariance eigenvalue, 1 sigma (range and azimuth quantisation) [m].")
+
+    @model_validator(mode="after")
+    def _check_ranges(self) -> "CornerParams":
+        problems = []
+        if self.min_range_m >= self.max_range_m:
+            problems.append(f"min_range_m ({self.min_range_m}) must be < max_range_m ({self.max_range_m})")
+        if self.min_interior_angle_deg >= self.max_interior_angle_deg:
+            problems.append(f"min_interior_angle_deg ({self.min_interior_angle_deg}) must be < "
+                            f"max_interior_angle_deg ({self.max_interior_angle_deg})")
+        if self.min_layers > self.n_upper_layers:
+            problems.append(f"min_layers ({self.min_layers}) cannot exceed n_upper_layers ({self.n_upper_layers})")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
