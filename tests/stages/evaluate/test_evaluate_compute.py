@@ -86,7 +86,8 @@ def stage_context(tmp_path, monkeypatch):
             "corner_idx": np.zeros(len(ep), int), "x_m": xy[:, 0], "y_m": xy[:, 1], "theta1_rad": cdirs[:, 0],
             "theta2_rad": cdirs[:, 1], "cov_xx_m2": cov[:, 0, 0], "cov_xy_m2": cov[:, 0, 1], "cov_yy_m2": cov[:, 1, 1],
             "n_layers": np.full(len(ep), 8), "range_m": np.hypot(xy[:, 0], xy[:, 1]),
-            "interior_angle_rad": np.full(len(ep), np.pi / 2), "convex": np.ones(len(ep), bool)}),
+            "interior_angle_rad": np.full(len(ep), np.pi / 2), "convex": np.ones(len(ep), bool),
+            "time_offset_s": np.zeros(len(ep))}),
         "reference": _table("poses_optimized", {
             "drive": [DRIVE] * N, "scan_id": np.arange(N), "stamp_ns": stamps, "x_m": truth[:, 0], "y_m": truth[:, 1],
             "z_m": zeros, "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3],
