@@ -107,9 +107,15 @@ def build_graph(problem: Problem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Val
     return graph, values, tags
 
 
-def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = False) -> np.ndarray:
-    """Levenberg-Marquardt (or GNC for the loop factors, all others known inliers) -> (N,4,4) poses."""
+def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = False,
+             initial: np.ndarray | None = None) -> np.ndarray:
+    """Levenberg-Marquardt (or GNC for the loop factors, all others known inliers) -> (N,4,4) poses, from
+    ``initial`` when given (else ``problem.initial``)."""
     graph, values, tags = build_graph(problem)
+    if initial is not None:
+        values = gtsam.Values()
+        for i in range(problem.n_poses):
+            values.insert(_key(i), gtsam.Pose3(initial[i]))
     if gnc_loops:
         params = gtsam.GncLMParams()
         inliers = [f for f, (name, n) in enumerate(tags)

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.common.geometry import se3_inverse
-from stages.common.registration import floor_information, prepare_cloud, register_clouds
+from stages.common.registration import floor_information, register_coarse_to_fine, score_alignment
 
 
 @dataclass(frozen=True)
@@ -81,31 +81,35 @@ def find_candidates(positions_m: np.ndarray, stamps_s: np.ndarray, group: np.nda
 def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_j_prior: np.ndarray, *,
                 voxel_m: float, max_corr_m: float, min_fitness: float, max_rmse_m: float,
                 max_correction_m: float, max_correction_rad: float, consistency_m: float,
-                min_sigma_m: float, min_sigma_rad: float) -> Verdict:
-    """GICP of scan j onto scan i from the prior relative pose, and again from a start shifted by 1 m along
-    and across; accepted only when both agree, fit well and stay near the prior."""
-    target = prepare_cloud(points_i_vehicle, voxel_m)
-    source = prepare_cloud(points_j_vehicle, voxel_m)
-    reg = dict(method="gicp", max_corr_m=max_corr_m, max_iterations=50, min_sigma_m=min_sigma_m,
-               min_sigma_rad=min_sigma_rad)
-    res = register_clouds(source, target, T_i_j_prior, **reg)
+                min_sigma_m: float, min_sigma_rad: float, coarse_voxel_m: float = 1.0,
+                coarse_corr_m: float = 3.0, inlier_m: float = 1.0,
+                plane_tol_m: float = 0.1) -> Verdict:
+    """Coarse-to-fine GICP of scan j onto scan i from the prior relative pose (1-2 m off between passes), and
+    again from a start shifted by 1 m along and 0.7 m across; accepted only when both agree, at least
+    ``min_fitness`` of the scan lies on the other scan's surfaces (``score_alignment``) with a point-to-plane
+    RMS below ``max_rmse_m``, and the correction stays inside the prior's envelope. ``Verdict.fitness`` and
+    ``inlier_rmse_m`` are that inlier share and plane RMS."""
+    stages = ((coarse_voxel_m, coarse_corr_m), (voxel_m, max_corr_m), (voxel_m, max_corr_m / 2))
+    reg = dict(stages=stages, max_iterations=40, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad)
+    res, source, target = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, T_i_j_prior, **reg)
     T = res.T_target_source
+    score = score_alignment(source, target, T, inlier_m, plane_tol_m)
     correction = se3_inverse(T_i_j_prior) @ T
     corr_m = float(np.linalg.norm(correction[:3, 3]))
     corr_rad = float(np.arccos(np.clip((np.trace(correction[:3, :3]) - 1) / 2, -1, 1)))
     info = floor_information(res.information, min_sigma_m, min_sigma_rad)
     reason = "accepted"
-    if not res.converged or res.fitness < min_fitness:
-        reason = f"fitness {res.fitness:.2f} < {min_fitness:.2f}"
-    elif res.inlier_rmse_m > max_rmse_m:
-        reason = f"rmse {res.inlier_rmse_m:.3f} m > {max_rmse_m:.3f} m"
+    if not res.converged or score.inlier_share < min_fitness:
+        reason = f"inlier share {score.inlier_share:.2f} < {min_fitness:.2f}"
+    elif score.plane_rmse_m > max_rmse_m:
+        reason = f"point-to-plane rmse {score.plane_rmse_m:.3f} m > {max_rmse_m:.3f} m"
     elif corr_m > max_correction_m or corr_rad > max_correction_rad:
         reason = f"correction {corr_m:.2f} m / {np.rad2deg(corr_rad):.1f} deg beyond the prior's envelope"
     else:
         shifted = T_i_j_prior.copy()
         shifted[:3, 3] += T_i_j_prior[:3, :3] @ np.array([1.0, -0.7, 0.0])
-        res2 = register_clouds(source, target, shifted, **reg)
+        res2, _, _ = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, shifted, **reg)
         gap_m = float(np.linalg.norm(res2.T_target_source[:3, 3] - T[:3, 3]))
         if gap_m > consistency_m:
             reason = f"ambiguous: two ICP starts disagree by {gap_m:.2f} m"
-    return Verdict(reason == "accepted", reason, T, res.fitness, res.inlier_rmse_m, info)
+    return Verdict(reason == "accepted", reason, T, score.inlier_share, score.plane_rmse_m, info)

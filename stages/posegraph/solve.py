@@ -80,7 +80,9 @@ def verify_candidates(candidates, poses: np.ndarray, clouds: dict[int, np.ndarra
                         max_corr_m=p.loop_max_corr_m, min_fitness=p.loop_min_fitness,
                         max_rmse_m=p.loop_max_rmse_m, max_correction_m=p.loop_max_correction_m,
                         max_correction_rad=p.loop_max_correction_rad, consistency_m=p.loop_consistency_m,
-                        min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad)
+                        min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad,
+                        coarse_voxel_m=p.loop_coarse_voxel_m, coarse_corr_m=p.loop_coarse_corr_m,
+                        inlier_m=p.loop_inlier_m, plane_tol_m=p.loop_plane_tol_m)
         out.append(LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted,
                               v.reason, v.information))
     return out
@@ -100,7 +102,19 @@ def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds
 
     def solve() -> np.ndarray:
         problem.betweens = base + loop_betweens(loops, p)
-        return optimize(problem, max_iterations=p.max_iterations, gnc_loops=gnc)
+        if gnc:
+            return optimize(problem, max_iterations=p.max_iterations, gnc_loops=True)
+        # A redescending kernel (Cauchy) started where a true loop is 1-2 m (50-100 sigma) off gives it
+        # almost no weight: the GNSS bias wins and pass 3 then drops every loop. A convex Huber pass first
+        # (bounded influence, so one false loop cannot bend the map far) brings the true loops into the
+        # kernel's basin; the configured kernel then refines from there.
+        warm = [Between(b.i, b.j, b.T_i_j, b.information, b.kind, "huber", p.loop_kernel_k)
+                if b.kind == "loop" else b for b in problem.betweens]
+        full = problem.betweens
+        problem.betweens = warm
+        start = optimize(problem, max_iterations=p.max_iterations)
+        problem.betweens = full
+        return optimize(problem, max_iterations=p.max_iterations, initial=start)
 
     poses = solve()
     removed: list[LoopRecord] = []
