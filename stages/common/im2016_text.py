@@ -50,7 +50,9 @@ def parse_im2016_text(text: str, *, source: str = "<text>") -> dict[str, np.ndar
             raise FormatError(f"{source} line {lineno}: not a number in {line[:80]!r}") from exc
     bad = ~np.isfinite(rows).all(axis=1)
     asym = np.abs(rows[:, 6] - rows[:, 7]) > 1e-9 + 1e-6 * np.abs(rows[:, 6:8]).max(axis=1)
-    for mask, what in ((bad, "non-finite value"), (asym, "covariance not symmetric (en != ne)")):
+    not_pd = (rows[:, 5] <= 0.0) | (rows[:, 8] <= 0.0) | (rows[:, 5] * rows[:, 8] - rows[:, 6] * rows[:, 7] <= 0.0)
+    for mask, what in ((bad, "non-finite value"), (asym, "covariance not symmetric (en != ne)"),
+                       (not_pd, "covariance is not positive definite")):
         if mask.any():
             lineno = lines[int(np.argmax(mask))][0]
             raise FormatError(f"{source} line {lineno}: {what}")
