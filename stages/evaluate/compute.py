@@ -152,8 +152,27 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
                        corners, f_ep, f_xy), scan_ids
 
 
-def read_references(ctx: StageContext, drive: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def read_truth_corners(reference_path: Path) -> np.ndarray | None:
+    """(K,2) east/north of the simulator's ``corners.csv`` beside the truth trajectory, or None (real data)."""
+    path = Path(reference_path).with_name("corners.csv")
+    if not path.is_file():
+        return None
+    try:
+        rows = np.genfromtxt(path, delimiter=",", names=True)
+        return np.column_stack([np.atleast_1d(rows["east_m"]), np.atleast_1d(rows["north_m"])])
+    except (ValueError, KeyError) as exc:
+        from pipeline.errors import FormatError
+
+        raise FormatError(f"{path}: expected a CSV with east_m, north_m columns ({exc}); hint: it is the simulator's "
+                          "truth/corners.csv, remove it if it is something else") from exc
+
+
+def read_references(ctx: StageContext, drive: str, cmap: CornerMap | None = None
+                    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``map`` (poses_optimized), ``truth`` (TUM) and, when the simulator's true corners sit beside the truth,
+    ``truth_in_map``: the truth moved into the map frame by a rigid fit of the map corners on the true ones."""
     from stages.common.geometry import read_tum
+    from stages.evaluate.metrics import align_truth_to_map, transform_poses
 
     refs = {}
     if ctx.inputs.has("reference"):
@@ -166,6 +185,13 @@ def read_references(ctx: StageContext, drive: str) -> dict[str, tuple[np.ndarray
         stamps_s, T = read_tum(truth)
         refs["truth"] = (np.round(stamps_s * 1e9).astype(np.int64),
                          np.column_stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])]))
+        truth_corners = read_truth_corners(Path(truth))
+        fit = align_truth_to_map(cmap.en_m, truth_corners) if cmap is not None and truth_corners is not None else None
+        if fit is not None:
+            R, t, resid = fit
+            log.info("truth_in_map: map frame = truth + (%.3f, %.3f) m, %.3f deg; %d corners, residual rms %.3f m",
+                     t[0], t[1], np.degrees(np.arctan2(R[1, 0], R[0, 0])), len(resid), np.sqrt(np.mean(resid**2)))
+            refs["truth_in_map"] = (refs["truth"][0], transform_poses(refs["truth"][1], R, t))
     return refs
 
 
@@ -177,7 +203,7 @@ def compute(ctx: StageContext) -> dict:
     d, scan_ids = read_drive(ctx, drive, p)
     reader = open_published_map(ctx)
     cmap, fetch = map_inputs(reader, d.gnss_q, p)
-    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive), p)
+    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, cmap), p)
     import pyarrow.parquet as pq
 
     out = ctx.artifact_dir("report")

@@ -89,3 +89,42 @@ def summarize(errors: Errors) -> dict:
         "nees_band95": [_json_float(band[0]), _json_float(band[1])],
     }
     return out
+
+
+def fit_rigid_2d(src_m: np.ndarray, dst_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rotation R (2x2) and translation t with ``dst ~ src @ R.T + t`` (Kabsch, no scale)."""
+    src, dst = np.asarray(src_m, dtype=float), np.asarray(dst_m, dtype=float)
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cd - R @ cs
+
+
+def align_truth_to_map(map_en_m: np.ndarray, truth_en_m: np.ndarray, max_match_m: float = 1.5,
+                       min_pairs: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Rigid transform from the truth frame to the map frame, fitted on map corners matched to their nearest true
+    corner (within ``max_match_m``): (R, t, residuals_m of the matched map corners), or None (< ``min_pairs``).
+
+    With a GNSS-level pose graph the map frame is offset from the truth by the map drive's GNSS bias; truth moved
+    by this transform is the map-relative reference the localizer can be held to (``truth_in_map``)."""
+    from scipy.spatial import cKDTree
+
+    map_en, truth_en = np.asarray(map_en_m, dtype=float).reshape(-1, 2), np.asarray(truth_en_m, dtype=float).reshape(-1, 2)
+    if len(map_en) < min_pairs or len(truth_en) == 0:
+        return None
+    d, j = cKDTree(truth_en).query(map_en)
+    ok = d <= max_match_m
+    if ok.sum() < min_pairs:
+        return None
+    R, t = fit_rigid_2d(truth_en[j[ok]], map_en[ok])
+    return R, t, np.linalg.norm(truth_en[j[ok]] @ R.T + t - map_en[ok], axis=1)
+
+
+def transform_poses(q: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(N,3) x, y, yaw moved by the planar rigid transform (R, t)."""
+    q = np.asarray(q, dtype=float)
+    out = q.copy()
+    out[:, :2] = q[:, :2] @ np.asarray(R).T + t
+    out[:, 2] = wrap_angle_rad(q[:, 2] + np.arctan2(R[1, 0], R[0, 0]))
+    return out

@@ -87,6 +87,7 @@ def metrics_document(ev: Evaluation, drive: str | None, map_info: dict) -> dict:
         r = ev.runs[m]
         n_run = int(np.all(np.isfinite(r.q), axis=1).sum())
         methods[m] = {**primary, "map_relative": by_ref.get("map"), "absolute": by_ref.get("truth"),
+                      "truth_in_map": by_ref.get("truth_in_map"),
                       "seconds": round(r.seconds, 4),
                       "epochs_per_s": round(n_run / r.seconds, 1) if r.seconds > 0 else None,
                       "targets": check_targets(m, primary) if ev.primary == "map" else None}
@@ -134,15 +135,16 @@ def metrics_table_text(doc: dict) -> str:
             "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean", "epochs")
     short = ("rms_2d", "p95_2d", "p99_2d", "max_2d", "hdg_rms_deg", "lat_rms", "lon_rms", "mean|x|", "mean|y|",
              "mean|hdg|deg", "nees_mean", "epochs")
-    head = f"{'method':<8} {'ref':<6} " + " ".join(f"{k:>12}" for k in short)
+    head = f"{'method':<8} {'ref':<12} " + " ".join(f"{k:>12}" for k in short)
     lines = [head]
     for m, entry in doc["methods"].items():
-        for ref_name, summary in (("map", entry.get("map_relative")), ("truth", entry.get("absolute"))):
+        for ref_name, summary in (("map", entry.get("map_relative")), ("truth", entry.get("absolute")),
+                                  ("truth_in_map", entry.get("truth_in_map"))):
             if not summary:
                 continue
             vals = []
             for k in keys:
                 v = summary.get(k)
                 vals.append(f"{'-':>12}" if v is None else (f"{v:>12d}" if isinstance(v, int) else f"{v:>12.4f}"))
-            lines.append(f"{m:<8} {ref_name:<6} " + " ".join(vals))
+            lines.append(f"{m:<8} {ref_name:<12} " + " ".join(vals))
     return "\n".join(lines)

@@ -1,0 +1,45 @@
+"""truth_in_map: rigid fit of the map corners on the true ones (oracle: a known planar transform)."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from stages.evaluate.metrics import align_truth_to_map, fit_rigid_2d, transform_poses
+
+
+def _transform(yaw_rad: float, t: np.ndarray):
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s], [s, c]]), np.asarray(t, float)
+
+
+def test_fit_rigid_2d_recovers_a_known_transform_and_agrees_with_scipy():
+    rng = np.random.default_rng(3)
+    src = rng.uniform(-50, 50, (12, 2))
+    R, t = _transform(np.deg2rad(0.7), [-0.2, 0.4])
+    dst = src @ R.T + t + rng.normal(0, 0.01, src.shape)
+    R_fit, t_fit = fit_rigid_2d(src, dst)
+    assert np.degrees(np.arctan2(R_fit[1, 0], R_fit[0, 0])) == pytest.approx(0.7, abs=0.02)
+    assert np.allclose(t_fit, t, atol=0.02)
+    # independent: scipy's Kabsch on the centred 3D-lifted points
+    lift = lambda p: np.column_stack([p - p.mean(0), np.zeros(len(p))])  # noqa: E731
+    rot, _ = Rotation.align_vectors(lift(dst), lift(src))
+    assert rot.as_euler("ZYX")[0] == pytest.approx(np.arctan2(R_fit[1, 0], R_fit[0, 0]), abs=1e-9)
+
+
+def test_align_truth_to_map_ignores_unmapped_true_corners_and_moves_poses():
+    rng = np.random.default_rng(5)
+    truth = rng.uniform(-100, 100, (30, 2))
+    R, t = _transform(np.deg2rad(-0.3), [0.5, -0.3])
+    mapped = truth[:8] @ R.T + t + rng.normal(0, 0.02, (8, 2))
+    R_fit, t_fit, resid = align_truth_to_map(mapped, truth)
+    assert len(resid) == 8 and resid.max() < 0.1
+    q = np.array([[1.0, 2.0, 0.1], [-5.0, 3.0, 3.1]])
+    moved = transform_poses(q, R_fit, t_fit)
+    expected = transform_poses(q, R, t)
+    assert np.allclose(moved[:, :2], expected[:, :2], atol=0.05)
+    assert np.allclose(np.angle(np.exp(1j * (moved[:, 2] - expected[:, 2]))), 0.0, atol=np.deg2rad(0.05))
+
+
+def test_align_truth_to_map_needs_three_matches():
+    truth = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
+    assert align_truth_to_map(truth[:2] + 0.1, truth) is None
+    assert align_truth_to_map(truth + 5.0, truth) is None  # nothing within 1.5 m
