@@ -32,17 +32,22 @@ class Catalog:
     sources: tuple[str, ...]
 
     def schema(self, name: str):
-        import pyarrow as pa
+        return resolve_schema(self.datasets[name].schema_ref)
 
-        from pipeline.declare import resolve
-        from schemas import schema_of
 
-        ref = self.datasets[name].schema_ref
-        if ref is None:
-            return None
-        obj = resolve(ref) if ":" in ref else schema_of(ref)
-        assert isinstance(obj, pa.Schema)
-        return obj
+def resolve_schema(ref: str | None):
+    """A schema reference: a name in ``schemas.SCHEMAS`` or ``module:ATTR`` (None for artifact datasets)."""
+    import pyarrow as pa
+
+    from pipeline.declare import resolve
+    from schemas import schema_of
+
+    if ref is None:
+        return None
+    obj = resolve(ref) if ":" in ref else schema_of(ref)
+    if not isinstance(obj, pa.Schema):
+        raise TypeError(f"schema reference {ref!r} is a {type(obj).__name__}, expected a pyarrow.Schema")
+    return obj
 
 
 def _yaml_files(paths: list[Path]) -> list[Path]:

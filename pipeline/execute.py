@@ -13,6 +13,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable
 
+from pipeline.catalog import resolve_schema
 from pipeline.declare import PartitionKey, Partitioning, StageContext
 from pipeline.errors import CornermapError, StageError
 from pipeline.plan import Plan, StagePlan
@@ -21,19 +22,6 @@ from pipeline.store import (StoreInputReader, atomic_write_json, commit_artifact
                             write_pieces)
 
 log = logging.getLogger(__name__)
-
-
-def _schema_for(ref: str | None):
-    import pyarrow as pa
-
-    from pipeline.declare import resolve
-    from schemas import schema_of
-
-    if ref is None:
-        return None
-    obj = resolve(ref) if ":" in ref else schema_of(ref)
-    assert isinstance(obj, pa.Schema)
-    return obj
 
 
 def _task_spec(plan: Plan, sp: StagePlan) -> dict[str, Any]:
@@ -58,7 +46,7 @@ def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
              artifact_dirs: dict[str, Path]) -> StageContext:
     decl = get_stage(spec["stage"])
     reader = StoreInputReader(Path(spec["root"]), {a: tuple(v) for a, v in spec["inputs"].items()},
-                              {a: _schema_for(r) for a, r in spec["input_schemas"].items()})
+                              {a: resolve_schema(r) for a, r in spec["input_schemas"].items()})
     return StageContext(stage=spec["stage"], partition=partition, params=decl.params.model_validate(spec["params"]),
                         inputs=reader, drives={k: Path(v) for k, v in spec["drives"].items()},
                         settings=spec["settings"], scratch_dir=scratch, artifact_dirs=artifact_dirs)
@@ -112,7 +100,7 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any]) -> dict[str, 
                     outputs[key] = {"files": [], "artifacts": files}
                 else:
                     files = write_pieces(result.get(key), out_dir=ds_dir, label=label,
-                                         schema=_schema_for(out["schema"]),
+                                         schema=resolve_schema(out["schema"]),
                                          partitioning=tuple(out["partitioning"]), where=where)
                     outputs[key] = {"files": files, "artifacts": None}
         except CornermapError:

@@ -11,7 +11,7 @@ import pyarrow.compute as pc
 from pipeline.declare import InputReader, Params, PartitionKey, StageContext
 from pipeline.errors import UnknownNameError
 
-_PARTITION_COLUMNS = ("drive", "chunk", "tile_i", "tile_j")
+from pipeline.catalog import PARTITION_COLUMNS as _PARTITION_COLUMNS
 
 
 class MemoryInputReader(InputReader):

@@ -61,12 +61,19 @@ def poses_to_tum_rows(stamps_s: np.ndarray, T_world_body: np.ndarray) -> np.ndar
     return np.column_stack([stamps_s, T_world_body[:, :3, 3], q])
 
 
+def poses_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """(N,3) translations and (N,4) quaternions (qx, qy, qz, qw) -> (N,4,4) homogeneous poses; N may be 0."""
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    T = np.tile(np.eye(4), (len(xyz), 1, 1))
+    if len(xyz):
+        T[:, :3, :3] = Rotation.from_quat(np.asarray(quat_xyzw, dtype=float).reshape(-1, 4)).as_matrix()
+        T[:, :3, 3] = xyz
+    return T
+
+
 def tum_rows_to_poses(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rows = np.atleast_2d(np.asarray(rows, dtype=float))
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()
-    T[:, :3, 3] = rows[:, 1:4]
-    return rows[:, 0], T
+    return rows[:, 0], poses_from_xyz_quat(rows[:, 1:4], rows[:, 4:8])
 
 
 def write_tum(path, stamps_s: np.ndarray, T_world_body: np.ndarray) -> None:

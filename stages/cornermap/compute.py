@@ -7,10 +7,10 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from scipy.spatial.transform import Rotation
 
 from pipeline.errors import DataQualityError
 from schemas import SCHEMAS
+from stages.common.geometry import poses_from_xyz_quat
 from stages.cornermap.aggregate import aggregate_clusters
 from stages.cornermap.clustering import cluster_observations
 from stages.cornermap.filtering import FilterThresholds, reject_reasons
@@ -60,11 +60,8 @@ def _extrinsics(drive_info: pa.Table, drive_names: list[str]) -> np.ndarray:
 
 
 def _pose_matrices(poses: pa.Table, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n = len(rows)
-    T = np.tile(np.eye(4), (n, 1, 1))
-    quat = np.column_stack([poses[c].to_numpy()[rows] for c in ("qx", "qy", "qz", "qw")])
-    T[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
-    T[:, :3, 3] = np.column_stack([poses[c].to_numpy()[rows] for c in ("x_m", "y_m", "z_m")])
+    T = poses_from_xyz_quat(np.column_stack([poses[c].to_numpy()[rows] for c in ("x_m", "y_m", "z_m")]),
+                            np.column_stack([poses[c].to_numpy()[rows] for c in ("qx", "qy", "qz", "qw")]))
     cov_all = np.asarray(poses["cov_xy_yaw"].combine_chunks().flatten().to_numpy(), dtype=float)
     return T, cov_all.reshape(-1, 3, 3)[rows]
 

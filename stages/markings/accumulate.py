@@ -8,17 +8,13 @@ scan), ``T_vehicle_lidar`` from ``drive_info``; a point p_lidar of scan s lands 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from stages.common.geometry import poses_from_xyz_quat
 
 
 def pose_matrices(x_m, y_m, z_m, qx, qy, qz, qw) -> np.ndarray:
     """Pose columns (quaternion x, y, z, w) -> (M,4,4) homogeneous matrices."""
-    quat = np.column_stack([qx, qy, qz, qw]).astype(float)
-    T = np.tile(np.eye(4), (len(quat), 1, 1))
-    if len(quat):
-        T[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
-    T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = x_m, y_m, z_m
-    return T
+    return poses_from_xyz_quat(np.column_stack([x_m, y_m, z_m]), np.column_stack([qx, qy, qz, qw]))
 
 
 def scans_to_enu(points_lidar_m: np.ndarray, point_scan_ids: np.ndarray, pose_scan_ids: np.ndarray,

@@ -43,16 +43,14 @@ def scans_from_table(table: pa.Table) -> list[Scan]:
 
 def poses_from_table(table: pa.Table, valid_only: bool = True) -> dict[int, np.ndarray]:
     """poses_gnss / poses_* rows -> {scan_id: T_map_vehicle}."""
-    from scipy.spatial.transform import Rotation
-
     if table.num_rows == 0:
         return {}
     if valid_only and "valid" in table.column_names:
         table = table.filter(table["valid"])
-    q = np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
-    T = np.tile(np.eye(4), (table.num_rows, 1, 1))
-    T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
-    T[:, :3, 3] = np.column_stack([table[c].to_numpy() for c in ("x_m", "y_m", "z_m")])
+    from stages.common.geometry import poses_from_xyz_quat
+
+    T = poses_from_xyz_quat(np.column_stack([table[c].to_numpy() for c in ("x_m", "y_m", "z_m")]),
+                            np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")]))
     return {int(s): T[i] for i, s in enumerate(table["scan_id"].to_numpy())}
 
 

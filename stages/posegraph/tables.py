@@ -8,17 +8,13 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.errors import FormatError
 from schemas.registry import schema_of
+from stages.common.geometry import poses_from_xyz_quat
 from stages.posegraph.core import DriveInput
 
 
 def _T_from_columns(table: pa.Table, x: str, y: str, z: str) -> np.ndarray:
-    n = table.num_rows
-    T = np.tile(np.eye(4), (n, 1, 1))
-    if n:
-        q = np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
-        T[:, :3, :3] = Rotation.from_quat(q).as_matrix()
-        T[:, :3, 3] = np.column_stack([table[c].to_numpy() for c in (x, y, z)])
-    return T
+    return poses_from_xyz_quat(np.column_stack([table[c].to_numpy() for c in (x, y, z)]),
+                               np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")]))
 
 
 def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Table) -> DriveInput:
