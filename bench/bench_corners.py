@@ -137,7 +137,7 @@ def bench_accuracy(sim_dir: Path, drive: str, max_scans: int | None, params: Cor
     import yaml
 
     from stages.common.geometry import read_tum
-    from stages.corners.deskew import deskew_points
+    from stages.common.wheel_deskew import deskew_points
 
     truth = np.genfromtxt(sim_dir / "truth" / "corners.csv", delimiter=",", names=True)
     stamps_s, T_world_vehicle = read_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")

@@ -40,14 +40,28 @@ def ingest(sim: Path, drives: list[str]) -> dict[str, pa.Table]:
         ctx = make_context("ingest", IngestParams(), {}, partition=PartitionKey(drive=d), drives=paths,
                            settings={"enu_origin": origin})
         out = compute(ctx)
-        for key in ("scans", "poses_gnss", "drive_info", "survey"):
+        for key in ("scans", "poses_gnss", "drive_info", "survey", "odometry"):
             t = _tables(out[key])
             if t is not None and t.num_rows:
                 acc.setdefault(key, []).append(t)
     return {k: pa.concat_tables(v) for k, v in acc.items()}
 
 
-def run_odometry(tables) -> tuple[pa.Table, float, int]:
+def _overrides(pairs: list[str]) -> dict:
+    """KEY=VALUE strings -> dict (values parsed as JSON when possible, else kept as strings)."""
+    import json
+
+    out = {}
+    for kv in pairs:
+        key, _, value = kv.partition("=")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def run_odometry(tables, overrides: dict | None = None) -> tuple[pa.Table, float, int]:
     from stages.odometry.compute import compute
     from stages.odometry.params import OdometryParams
 
@@ -55,7 +69,8 @@ def run_odometry(tables) -> tuple[pa.Table, float, int]:
     t0 = time.perf_counter()
     edges = []
     for d, c in parts:
-        ctx = make_context("odometry", OdometryParams(), tables, partition=PartitionKey(drive=d, chunk=c))
+        ctx = make_context("odometry", OdometryParams(**(overrides or {})), tables,
+                           partition=PartitionKey(drive=d, chunk=c))
         edges.append(compute(ctx)["edges"])
     dt = time.perf_counter() - t0
     e = pa.concat_tables(edges)
@@ -78,6 +93,10 @@ def main() -> None:
     ap.add_argument("--preset", default="tiny")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--sim", type=Path, default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a posegraph param (repeatable), e.g. --set gnss_every_s=2")
+    ap.add_argument("--odometry-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override an odometry param (repeatable)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     from stages.posegraph import metrics as M
@@ -97,7 +116,7 @@ def main() -> None:
     from stages.odometry.params import OdometryParams
     print(f"machine: {os.cpu_count()} cores; preset {args.preset} seed {args.seed}; drives {drives}")
     tables = ingest(sim, drives)
-    edges, dt, n = run_odometry(tables)
+    edges, dt, n = run_odometry(tables, _overrides(args.odometry_set))
     print(f"odometry: {n} edges in {dt:.1f} s = {n / dt:.1f} scans/s incl. in-memory table filtering (GICP, {OdometryParams().voxel_m} m voxels)")
     tables["edges"] = edges
     scans = tables["scans"]
@@ -115,7 +134,7 @@ def main() -> None:
                 out[(d, s)] = (xyz[m], toff[m] if np.any(toff[m] != 0) else None)
         return out
 
-    p = PosegraphParams()
+    p = PosegraphParams(**_overrides(args.set))
     map_d = [drive_input(drives[0], tables["poses_gnss"], edges, tables["drive_info"])]
     truth = truth_poses(sim, drives[0], map_d[0].stamps_ns)
     stamps_s = map_d[0].stamps_ns * 1e-9

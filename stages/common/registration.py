@@ -70,16 +70,13 @@ def adjoint_se3(T: np.ndarray) -> np.ndarray:
     return Ad
 
 
-def information_from_registration(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
-                                  T_target_source: np.ndarray, max_corr_m: float, point_sigma_m: float,
-                                  min_sigma_m: float, min_sigma_rad: float) -> np.ndarray:
-    """Fisher information of a registration, body frame, gtsam order, floored to realistic std devs.
+def point_to_plane_hessian(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
+                           T_target_source: np.ndarray, max_corr_m: float, point_sigma_m: float) -> np.ndarray:
+    """Gauss-Newton Hessian (6x6, body frame, gtsam order) of the point-to-plane residuals of an alignment.
 
-    Point-to-plane Gauss-Newton Hessian: each source point p (moved by T) with its nearest target point q
-    and normal n within ``max_corr_m`` contributes J = [p x n, n] / point_sigma_m for a left perturbation in the
-    target frame; the sum is moved to the body frame with the adjoint, so directions the scene does not
-    constrain (a tunnel's axis) keep a small information. The covariance is then floored at ``min_sigma_m`` /
-    ``min_sigma_rad`` because ICP residuals are correlated and the raw Hessian is overconfident.
+    Each source point p (moved by T) with its nearest target point q and normal n within ``max_corr_m``
+    contributes J = [p x n, n] / point_sigma_m for a left perturbation in the target frame; the sum is moved to
+    the body frame with the adjoint. Hessians of disjoint point sets (ground, structure) add up.
     """
     from scipy.spatial import cKDTree
 
@@ -87,14 +84,26 @@ def information_from_registration(source: o3d.geometry.PointCloud, target: o3d.g
     tgt = np.asarray(target.points)
     normals = np.asarray(target.normals)
     if len(src) == 0 or len(tgt) == 0 or len(normals) != len(tgt):
-        return floor_information(np.zeros((6, 6)), min_sigma_m, min_sigma_rad)
+        return np.zeros((6, 6))
     dist_m, idx = cKDTree(tgt).query(src, distance_upper_bound=max_corr_m)
     ok = np.isfinite(dist_m)
     p, n = src[ok], normals[idx[ok]]
     J = np.hstack([np.cross(p, n), n])
     H_target = J.T @ J / point_sigma_m ** 2
     Ad = adjoint_se3(T_target_source)
-    H_body = Ad.T @ H_target @ Ad
+    return Ad.T @ H_target @ Ad
+
+
+def information_from_registration(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
+                                  T_target_source: np.ndarray, max_corr_m: float, point_sigma_m: float,
+                                  min_sigma_m: float, min_sigma_rad: float) -> np.ndarray:
+    """Fisher information of a registration, body frame, gtsam order, floored to realistic std devs.
+
+    The point-to-plane Hessian keeps directions the scene does not constrain (a tunnel's axis) weak; the
+    covariance is then floored at ``min_sigma_m`` / ``min_sigma_rad`` because ICP residuals are correlated and
+    the raw Hessian is overconfident.
+    """
+    H_body = point_to_plane_hessian(source, target, T_target_source, max_corr_m, point_sigma_m)
     return floor_information(H_body, min_sigma_m, min_sigma_rad)
 
 

@@ -9,7 +9,7 @@ import pyarrow as pa
 from pipeline.declare import StageContext
 from schemas.registry import schema_of
 from stages.corners.core import extract_corners, select_scan_layers
-from stages.corners.deskew import deskew_points
+from stages.common.wheel_deskew import OdometryTrack, deskew_points
 from stages.corners.determine import Corners
 from stages.corners.params import CornerParams
 
@@ -60,35 +60,6 @@ def corners_table(drive: str, chunk: int, scan_ids: list[int], stamps_ns: list[i
     return pa.Table.from_pydict(columns, schema=schema)
 
 
-class OdometryTrack:
-    """odometry_raw rows of one drive, sorted by time: speed [m/s] and yaw rate [rad/s] around any scan."""
-
-    def __init__(self, odometry: pa.Table):
-        stamp = odometry["stamp_ns"].to_numpy()
-        order = np.argsort(stamp, kind="stable")
-        self.stamp_ns = stamp[order]
-        self.speed_mps = odometry["speed_mps"].to_numpy()[order].astype(np.float64)
-        self.yaw_rate_radps = odometry["yaw_rate_radps"].to_numpy()[order].astype(np.float64)
-
-    def covers(self, start_ns: int, duration_s: float, tolerance_s: float = 0.5) -> bool:
-        """Whether the odometry spans the scan (within ``tolerance_s``); guards against a time-base mismatch."""
-        tol = int(tolerance_s * 1e9)
-        return bool(self.stamp_ns[0] - tol <= start_ns and start_ns + int(duration_s * 1e9) <= self.stamp_ns[-1] + tol)
-
-    def around(self, start_ns: int, duration_s: float, margin_s: float = 0.05
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Samples (time relative to ``start_ns`` [s], speed, yaw rate) covering the scan; at least two, taken
-        from the nearest samples (interpolated) when the odometry is sparser than the scan."""
-        lo = np.searchsorted(self.stamp_ns, start_ns - int(margin_s * 1e9))
-        hi = np.searchsorted(self.stamp_ns, start_ns + int((duration_s + margin_s) * 1e9), side="right")
-        if hi - lo >= 2:
-            sl = slice(lo, hi)
-            return ((self.stamp_ns[sl] - start_ns) * 1e-9, self.speed_mps[sl], self.yaw_rate_radps[sl])
-        t_rel = (self.stamp_ns - start_ns) * 1e-9
-        q = np.array([0.0, duration_s])
-        return q, np.interp(q, t_rel, self.speed_mps), np.interp(q, t_rel, self.yaw_rate_radps)
-
-
 def _extrinsic(ctx: StageContext) -> np.ndarray | None:
     if not ctx.inputs.has("drive_info"):
         return None
@@ -100,7 +71,7 @@ def _odometry_track(ctx: StageContext, params: CornerParams) -> OdometryTrack | 
     if not (params.deskew and ctx.inputs.has("odometry")):
         return None
     odo = ctx.inputs.read("odometry", partition=ctx.partition, columns=["stamp_ns", "speed_mps", "yaw_rate_radps"])
-    return OdometryTrack(odo) if odo.num_rows >= 2 else None
+    return OdometryTrack.from_table(odo) if odo.num_rows >= 2 else None
 
 
 def compute(ctx: StageContext) -> dict[str, pa.Table]:

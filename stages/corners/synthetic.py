@@ -69,7 +69,7 @@ def cast_scan(scene: Scene, pose_xy_yaw: tuple[float, float, float], *, sensor_h
     With ``speed_mps`` / ``yaw_rate_radps`` the sensor moves during the revolution (forward along its x axis,
     constant twist from ``pose_xy_yaw`` at time 0); each point is in the lidar frame at its own firing time.
     """
-    from stages.corners.deskew import vehicle_motion_xy_yaw
+    from stages.common.wheel_deskew import vehicle_motion_xy_yaw
 
     rng = np.random.default_rng(seed)
     elev = np.radians(np.asarray(elevation_deg, float))

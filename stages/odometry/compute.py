@@ -13,6 +13,7 @@ import pyarrow.compute as pc
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import DataQualityError, FormatError
 from schemas.registry import schema_of
+from stages.common.wheel_deskew import OdometryTrack, deskew_points, integrate_odometry_xy_yaw
 from stages.odometry.core import Edge, Scan, estimate_edges
 
 log = logging.getLogger(__name__)
@@ -64,6 +65,52 @@ def extrinsic_from_drive_info(table: pa.Table, drive: str) -> np.ndarray:
     return T
 
 
+def _odometry_track(ctx: StageContext) -> OdometryTrack | None:
+    if not ctx.inputs.has("odometry"):
+        return None
+    odo = ctx.inputs.read("odometry", partition=PartitionKey(drive=ctx.partition.drive),
+                          columns=["stamp_ns", "speed_mps", "yaw_rate_radps"])
+    return OdometryTrack.from_table(odo) if odo.num_rows >= 2 else None
+
+
+def deskew_with_wheel_odometry(scans: list[Scan], track: OdometryTrack | None, T_vehicle_lidar: np.ndarray,
+                               ) -> tuple[list[Scan], int]:
+    """Motion-compensate every timed scan that the wheel odometry covers (its points are then in the lidar
+    frame at the scan start and carry no time); the rest are returned unchanged. Returns (scans, n deskewed)."""
+    if track is None:
+        return scans, 0
+    out, n = [], 0
+    for s in scans:
+        duration_s = float(s.time_offset_s.max()) if s.time_offset_s is not None and len(s.time_offset_s) else 0.0
+        if s.time_offset_s is None or not track.covers(s.stamp_ns, duration_s):
+            out.append(s)
+            continue
+        odo_t, speed, yaw_rate = track.around(s.stamp_ns, duration_s)
+        pts = deskew_points(s.points_lidar_m, s.time_offset_s, speed, yaw_rate, T_vehicle_lidar, odo_time_s=odo_t)
+        out.append(Scan(s.scan_id, s.stamp_ns, pts, None))
+        n += 1
+    return out, n
+
+
+def wheel_increments(scans: list[Scan], track: OdometryTrack | None) -> dict[int, np.ndarray]:
+    """scan_id -> planar vehicle increment from the previous scan, integrated from wheel speed and yaw rate
+    (for consecutive scans the odometry covers)."""
+    out: dict[int, np.ndarray] = {}
+    if track is None:
+        return out
+    for a, b in zip(scans[:-1], scans[1:]):
+        dt_s = (b.stamp_ns - a.stamp_ns) * 1e-9
+        if b.scan_id != a.scan_id + 1 or dt_s <= 0 or not track.covers(a.stamp_ns, dt_s):
+            continue
+        odo_t, speed, yaw_rate = track.around(a.stamp_ns, dt_s)
+        x, y, yaw = integrate_odometry_xy_yaw(np.array([dt_s]), odo_t, speed, yaw_rate)
+        T = np.eye(4)
+        T[:2, :2] = [[np.cos(yaw[0]), -np.sin(yaw[0])], [np.sin(yaw[0]), np.cos(yaw[0])]]
+        T[:2, 3] = x[0], y[0]
+        out[b.scan_id] = T
+    return out
+
+
 def edges_to_table(edges: list[Edge], drive: str, chunk: int) -> pa.Table:
     from scipy.spatial.transform import Rotation
 
@@ -100,15 +147,25 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
                                    filters=pc.field("scan_id") == scans[0].scan_id - 1)
         scans = scans_from_table(prev_tab) + scans
     T_vehicle_lidar = extrinsic_from_drive_info(ctx.inputs.read("drive_info"), drive)
+    track = _odometry_track(ctx)
+    guides = wheel_increments(scans, track)
+    if p.deskew == "odometry":
+        n_timed = sum(s.time_offset_s is not None for s in scans)
+        scans, n_wheel = deskew_with_wheel_odometry(scans, track, T_vehicle_lidar)
+        if n_wheel < n_timed:
+            log.info("odometry %s: %d scans deskewed with wheel odometry, the others with their own sweep",
+                     ctx.partition.label, n_wheel)
     gnss_tab = ctx.inputs.read("poses_gnss", partition=PartitionKey(drive=drive))
     edges = estimate_edges(scans, T_vehicle_lidar, poses_from_table(gnss_tab), method=p.method,
                            voxel_m=p.voxel_m, knn=p.knn, max_corr_m=p.max_corr_m,
                            max_iterations=p.max_iterations, relative_tolerance=p.relative_tolerance,
-                           min_range_m=p.min_range_m, max_range_m=p.max_range_m, deskew=p.deskew,
+                           min_range_m=p.min_range_m, max_range_m=p.max_range_m, deskew=p.deskew != "none",
                            min_fitness=p.min_fitness, max_deviation_m=p.max_deviation_m,
                            max_deviation_rad=p.max_deviation_rad,
                            point_sigma_m=p.point_sigma_m, min_sigma_m=p.min_sigma_m,
-                           min_sigma_rad=p.min_sigma_rad, rot_sigma_per_rad=p.rot_sigma_per_rad)
+                           min_sigma_rad=p.min_sigma_rad, rot_sigma_per_rad=p.rot_sigma_per_rad,
+                           ground_split=p.ground_split, ground_tolerance_m=p.ground_tolerance_m,
+                           guide_increments=guides)
     n_bad = sum(not e.converged for e in edges)
     if n_bad:
         log.warning("odometry %s: %d of %d edges did not converge", ctx.partition.label, n_bad, len(edges))

@@ -4,9 +4,11 @@ from stages.odometry.params import OdometryParams
 
 STAGE = StageDecl(
     name="odometry",
-    summary="ICP (open3d GICP) between consecutive scans: vehicle-frame edges with fitness, RMSE, information.",
-    code_version="2",
-    inputs={"scans": "scans_raw", "poses_gnss": "poses_gnss", "drive_info": "drive_info"},
+    summary="Deskewed structure-only GICP between consecutive scans, road planes for height/roll/pitch: vehicle-frame "
+            "edges with fitness, RMSE, information.",
+    code_version="3",
+    inputs={"scans": "scans_raw", "poses_gnss": "poses_gnss", "drive_info": "drive_info", "odometry": "odometry_raw"},
+    optional_inputs=frozenset({"odometry"}),
     outputs={"edges": "odometry_edges"},
     params=OdometryParams,
     partition=Partitioning.PER_SCAN_CHUNK,

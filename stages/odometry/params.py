@@ -10,23 +10,30 @@ from pipeline.declare import Params
 
 class OdometryParams(Params):
     method: Literal["gicp", "point_to_plane"] = "gicp"
-    voxel_m: float = Field(0.7, gt=0, description="voxel size of the downsampled clouds")
+    voxel_m: float = Field(1.0, gt=0, description="voxel size of the downsampled clouds")
     knn: int = Field(20, ge=5, description="neighbours for covariances / normals")
-    max_corr_m: float = Field(0.7, gt=0, description="ICP correspondence distance")
+    max_corr_m: float = Field(1.0, gt=0, description="ICP correspondence distance")
     max_iterations: int = Field(15, ge=1)
     relative_tolerance: float = Field(1e-4, gt=0)
     min_range_m: float = Field(2.0, ge=0, description="drop points closer (vehicle body)")
     max_range_m: float = Field(80.0, gt=0)
-    deskew: bool = Field(False, description="register, deskew both scans with that motion, register again "
-                         "(2x cost; no gain on consecutive scans at near-constant velocity, see docs)")
+    deskew: Literal["odometry", "own_sweep", "none"] = Field(
+        "odometry", description="motion compensation of each sweep: 'odometry' = wheel speed + yaw rate where the "
+        "drive has them (own_sweep for the other scans), 'own_sweep' = a first ICP pass gives each scan the motion "
+        "over its own sweep, then register again (2x cost), 'none'")
+    ground_split: bool = Field(True, description="register the structure above the road plane only and take "
+                               "height, roll and pitch from the two scans' road planes (removes the ground ring "
+                               "pattern's pull towards zero motion)")
+    ground_tolerance_m: float = Field(0.25, gt=0, description="points within this distance of the fitted road "
+                                      "plane are ground")
     min_fitness: float = Field(0.3, ge=0, le=1, description="below: edge marked not converged")
     max_deviation_m: float = Field(0.3, gt=0, description="ICP vs valid GNSS/INS increment (good to ~0.1 m); "
                                    "above: edge rejected")
     max_deviation_rad: float = Field(0.0175, gt=0, description="same, rotation angle (1 deg)")
-    point_sigma_m: float = Field(0.15, gt=0, description="per-point residual std for the information matrix "
+    point_sigma_m: float = Field(0.05, gt=0, description="per-point residual std for the information matrix "
                                  "(calibrated against truth, absorbs correlated residuals)")
-    min_sigma_m: float = Field(0.01, gt=0, description="floor of an edge's translation std")
-    min_sigma_rad: float = Field(0.0003, gt=0, description="floor of an edge's rotation std")
+    min_sigma_m: float = Field(0.003, gt=0, description="floor of an edge's translation std")
+    min_sigma_rad: float = Field(0.0001, gt=0, description="floor of an edge's rotation std")
     rot_sigma_per_rad: float = Field(0.03, ge=0, description="extra rotation std per radian of edge rotation "
                                      "(turns; calibrated against truth)")
 

@@ -103,10 +103,15 @@ def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
     for d, off in zip(drives, offsets):
         idx = off + np.arange(d.n)
         problem.betweens += odometry_betweens(d, int(off), p.failed_edge_sigma_m, p.failed_edge_sigma_rad)
-        problem.positions += gnss_position_priors(
+        gnss = gnss_position_priors(
             idx, d.stamps_ns, d.gnss_T, d.gnss_std_enu_m, d.gnss_valid, every_s=p.gnss_every_s,
             inflation=p.gnss_std_inflation, min_std_m=p.gnss_min_std_m, robust=p.gnss_kernel,
-            kernel_k=p.gnss_kernel_k, lever_arm_m=np.asarray(p.gnss_lever_arm_m))
+            kernel_k=p.gnss_kernel_k, lever_arm_m=np.asarray(p.gnss_lever_arm_m), bias_tau_s=p.gnss_bias_tau_s,
+            white_sigma_m=p.gnss_white_sigma_m, bias_offset=problem.n_biases)
+        problem.positions += gnss.positions
+        problem.bias_links += gnss.bias_links
+        problem.bias_priors += gnss.bias_priors
+        problem.n_biases += gnss.n_biases
         problem.attitudes += attitude_priors(
             idx, d.stamps_ns, d.gnss_T, d.gnss_std_yaw_rad, d.gnss_valid, every_s=p.gnss_every_s,
             roll_pitch_sigma_rad=p.attitude_sigma_rad, yaw_inflation=p.heading_std_inflation)

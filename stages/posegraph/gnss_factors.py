@@ -1,14 +1,23 @@
 """GNSS position factors and INS attitude priors from per-scan GNSS/INS poses.
 
 Receivers understate their error in street canyons, so the reported std is inflated and the factor gets a
-robust kernel; consecutive fixes share a slowly varying bias, so only one factor per ``every_s`` seconds
-enters the graph (more would count the same bias many times). Outages (``valid`` false) have no factor.
+robust kernel. Consecutive fixes share a slowly varying bias (metres between tall buildings, correlated over
+a minute or more). Two models:
+- ``bias_tau_s > 0`` (default): each selected fix measures the antenna position plus a bias state; the bias
+  states form the exact first-order Gauss-Markov chain (b_n = exp(-dt/tau) b_{n-1} + w, the first state with
+  the stationary variance). The trajectory's shape then comes from
+  ICP and loops, and GNSS pins only the frame: treating the bias as white noise bends the map along it
+  (measured in docs/posegraph.md).
+- ``bias_tau_s == 0``: white noise, one factor per ``every_s`` seconds (the earlier model).
+Outages (``valid`` false) have no factor.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from stages.posegraph.graph import AttitudePrior, PositionPrior
+from dataclasses import dataclass, field
+
+from stages.posegraph.graph import AttitudePrior, BiasLink, BiasPrior, PositionPrior
 
 
 def select_epochs(stamps_ns: np.ndarray, valid: np.ndarray, every_s: float) -> np.ndarray:
@@ -25,18 +34,41 @@ def select_epochs(stamps_ns: np.ndarray, valid: np.ndarray, every_s: float) -> n
     return np.asarray(keep, dtype=np.int64)
 
 
+@dataclass
+class GnssFactors:
+    positions: list[PositionPrior] = field(default_factory=list)
+    bias_links: list[BiasLink] = field(default_factory=list)
+    bias_priors: list[BiasPrior] = field(default_factory=list)
+    n_biases: int = 0
+
+
 def gnss_position_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_vehicle: np.ndarray,
                          std_enu_m: np.ndarray, valid: np.ndarray, *, every_s: float, inflation: float,
-                         min_std_m: float, robust: str, kernel_k: float,
-                         lever_arm_m: np.ndarray) -> list[PositionPrior]:
-    """One robust position factor per selected epoch; the measured point is the antenna position."""
+                         min_std_m: float, robust: str, kernel_k: float, lever_arm_m: np.ndarray,
+                         bias_tau_s: float = 0.0, white_sigma_m: float = 0.05, bias_offset: int = 0) -> GnssFactors:
+    """One robust position factor per selected epoch (the measured point is the antenna position), with a
+    Gauss-Markov bias chain when ``bias_tau_s`` > 0. The bias std per axis is the inflated reported std;
+    bias state indices start at ``bias_offset`` (one chain per drive)."""
     lever = np.asarray(lever_arm_m, dtype=float)
-    out = []
-    for k in select_epochs(stamps_ns, valid, every_s):
+    out = GnssFactors()
+    epochs = select_epochs(stamps_ns, valid, every_s)
+    for n, k in enumerate(epochs):
         T = T_map_vehicle[k]
         antenna = T[:3, 3] + T[:3, :3] @ lever
         sigma = np.maximum(np.asarray(std_enu_m[k], float) * inflation, min_std_m)
-        out.append(PositionPrior(int(pose_index[k]), antenna, sigma, robust, kernel_k, lever))
+        if bias_tau_s <= 0:
+            out.positions.append(PositionPrior(int(pose_index[k]), antenna, sigma, robust, kernel_k, lever))
+            continue
+        j = bias_offset + n
+        out.positions.append(PositionPrior(int(pose_index[k]), antenna, np.full(3, white_sigma_m), robust, kernel_k,
+                                           lever, bias=j))
+        if n == 0:  # stationary process: the first state has the full variance
+            out.bias_priors.append(BiasPrior(j, sigma))
+        else:
+            dt_s = max((stamps_ns[k] - stamps_ns[epochs[n - 1]]) * 1e-9, 1e-3)
+            decay = float(np.exp(-dt_s / bias_tau_s))
+            out.bias_links.append(BiasLink(j - 1, j, sigma * np.sqrt(1.0 - decay ** 2), decay))
+    out.n_biases = len(epochs) if bias_tau_s > 0 else 0
     return out
 
 

@@ -31,6 +31,25 @@ class PositionPrior:
     robust: str = "huber"
     kernel_k: float = 1.345
     lever_arm_m: np.ndarray = field(default_factory=lambda: np.zeros(3))  # antenna in the vehicle frame
+    bias: int = -1  # index of the GNSS bias state this fix measures through (-1: none, white noise only)
+
+
+@dataclass(frozen=True)
+class BiasLink:
+    """First-order Gauss-Markov step between consecutive GNSS bias states: b_b - decay * b_a ~ N(0, sigma^2)."""
+
+    a: int
+    b: int
+    sigma_m: np.ndarray  # (3,)
+    decay: float = 1.0  # exp(-dt / tau); 1 = random walk
+
+
+@dataclass(frozen=True)
+class BiasPrior:
+    """Zero-mean prior on one GNSS bias state (the process is stationary)."""
+
+    index: int
+    sigma_m: np.ndarray  # (3,)
 
 
 @dataclass(frozen=True)
@@ -58,10 +77,46 @@ class Problem:
     positions: list[PositionPrior] = field(default_factory=list)
     attitudes: list[AttitudePrior] = field(default_factory=list)
     pose_priors: list[PosePrior] = field(default_factory=list)
+    n_biases: int = 0
+    bias_links: list[BiasLink] = field(default_factory=list)
+    bias_priors: list[BiasPrior] = field(default_factory=list)
 
 
 def _key(i: int) -> int:
     return gtsam.symbol("x", i)
+
+
+def _bias_key(j: int) -> int:
+    return gtsam.symbol("b", j)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def gnss_with_bias_factor(pose_key: int, bias_key: int, measured_enu_m: np.ndarray, lever_arm_m: np.ndarray,
+                          model, axes: tuple[int, ...] = (0, 1, 2)) -> gtsam.CustomFactor:
+    """GNSS fix = antenna position (pose translation + R lever) + the receiver's slowly varying bias, on the
+    ENU ``axes`` given (horizontal and vertical go in separate factors, so that a robust kernel judging a
+    poor height does not also discard a good horizontal fix).
+
+    Jacobians for gtsam's Pose3 retraction (body-frame rotation, then translation): d/d(omega) = -R [lever]x,
+    d/d(v) = R; d/d(bias) = I.
+    """
+    z = np.asarray(measured_enu_m, float)
+    lever = np.asarray(lever_arm_m, float)
+    rows = list(axes)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        T = values.atPose3(this.keys()[0])
+        b = values.atPoint3(this.keys()[1])
+        R = T.rotation().matrix()
+        if jacobians is not None:
+            jacobians[0] = np.hstack([-R @ _skew(lever), R])[rows]
+            jacobians[1] = np.eye(3)[rows]
+        return (T.translation() + R @ lever + b - z)[rows]
+
+    return gtsam.CustomFactor(model, [pose_key, bias_key], error)
 
 
 def _noise(information: np.ndarray, robust: str, k: float):
@@ -76,6 +131,18 @@ def _robustify(base, robust: str, k: float):
     return gtsam.noiseModel.Robust.Create(est.Create(k), base)
 
 
+def gauss_markov_factor(key_a: int, key_b: int, decay: float, model) -> gtsam.CustomFactor:
+    """b_b - decay * b_a = process noise (linear; Jacobians -decay I and I)."""
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        if jacobians is not None:
+            jacobians[0] = -decay * np.eye(3)
+            jacobians[1] = np.eye(3)
+        return values.atPoint3(this.keys()[1]) - decay * values.atPoint3(this.keys()[0])
+
+    return gtsam.CustomFactor(model, [key_a, key_b], error)
+
+
 def build_graph(problem: Problem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[tuple[str, int]]]:
     """Factor graph + initial values; ``tags[f] = (list name, index)`` says where factor f came from."""
     graph = gtsam.NonlinearFactorGraph()
@@ -88,6 +155,14 @@ def build_graph(problem: Problem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Val
                                            _noise(b.information, b.robust, b.kernel_k)))
         tags.append(("betweens", n))
     for n, g in enumerate(problem.positions):
+        if g.bias >= 0:
+            for axes in ((0, 1), (2,)):
+                sub = _robustify(gtsam.noiseModel.Diagonal.Sigmas(np.asarray(g.sigma_enu_m, float)[list(axes)]),
+                                 g.robust, g.kernel_k)
+                graph.add(gnss_with_bias_factor(_key(g.i), _bias_key(g.bias), g.position_enu_m, g.lever_arm_m,
+                                                sub, axes))
+                tags.append(("positions", n))
+            continue
         model = _robustify(gtsam.noiseModel.Diagonal.Sigmas(np.asarray(g.sigma_enu_m, float)), g.robust,
                            g.kernel_k)
         if np.any(g.lever_arm_m):
@@ -104,7 +179,21 @@ def build_graph(problem: Problem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Val
         graph.add(gtsam.PriorFactorPose3(_key(p.i), gtsam.Pose3(p.T_map_vehicle),
                                          _noise(p.information, p.robust, p.kernel_k)))
         tags.append(("pose_priors", n))
+    _insert_biases(values, problem.n_biases)
+    for n, link in enumerate(problem.bias_links):
+        graph.add(gauss_markov_factor(_bias_key(link.a), _bias_key(link.b), link.decay,
+                                      gtsam.noiseModel.Diagonal.Sigmas(np.asarray(link.sigma_m, float))))
+        tags.append(("bias_links", n))
+    for n, bp in enumerate(problem.bias_priors):
+        graph.add(gtsam.PriorFactorPoint3(_bias_key(bp.index), np.zeros(3),
+                                          gtsam.noiseModel.Diagonal.Sigmas(np.asarray(bp.sigma_m, float))))
+        tags.append(("bias_priors", n))
     return graph, values, tags
+
+
+def _insert_biases(values: gtsam.Values, n_biases: int) -> None:
+    for j in range(n_biases):
+        values.insert(_bias_key(j), np.zeros(3))
 
 
 def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = False,
@@ -116,6 +205,7 @@ def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = F
         values = gtsam.Values()
         for i in range(problem.n_poses):
             values.insert(_key(i), gtsam.Pose3(initial[i]))
+        _insert_biases(values, problem.n_biases)
     if gnc_loops:
         params = gtsam.GncLMParams()
         inliers = [f for f, (name, n) in enumerate(tags)
@@ -138,10 +228,12 @@ def poses_from_values(values: gtsam.Values, n: int) -> np.ndarray:
 
 def marginal_cov_xy_yaw(problem: Problem, poses: np.ndarray) -> np.ndarray:
     """(N,9): marginal covariance of (east m, north m, yaw rad) per pose, rotated into ENU axes."""
-    graph, _, _ = build_graph(problem)
+    graph, start, _ = build_graph(problem)
     values = gtsam.Values()
     for i in range(problem.n_poses):
         values.insert(_key(i), gtsam.Pose3(poses[i]))
+    for j in range(problem.n_biases):  # the marginal of a pose does not depend on the bias linearisation point
+        values.insert(_bias_key(j), start.atPoint3(_bias_key(j)))
     marginals = gtsam.Marginals(graph, values)
     out = np.empty((problem.n_poses, 9))
     for i in range(problem.n_poses):

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from pipeline.declare import Params
 
@@ -17,6 +17,9 @@ class PosegraphParams(Params):
     gnss_std_inflation: float = Field(3.0, ge=1, description="receivers understate their error in canyons")
     gnss_min_std_m: float = Field(0.05, gt=0)
     gnss_every_s: float = Field(1.0, ge=0, description="one GNSS factor per this many seconds (0: every scan)")
+    gnss_bias_tau_s: float = Field(60.0, ge=0, description="correlation time of the GNSS bias (Gauss-Markov "
+                                   "states in the graph); 0: treat GNSS errors as white noise")
+    gnss_white_sigma_m: float = Field(0.05, gt=0, description="std of a fix around antenna position + bias")
     gnss_kernel: Literal["huber", "cauchy", "none"] = "huber"
     gnss_kernel_k: float = Field(1.345, gt=0, description="kernel width in whitened units")
     gnss_lever_arm_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0),
@@ -59,3 +62,10 @@ class PosegraphParams(Params):
     max_iterations: int = Field(100, ge=1)
     fixed_prior_sigma_m: float = Field(1e-3, gt=0, description="map poses held fixed for reference drives")
     compute_marginals: bool = True
+
+    @model_validator(mode="after")
+    def _gnc_needs_white_gnss(self) -> "PosegraphParams":
+        if self.loop_kernel == "gnc" and self.gnss_bias_tau_s > 0:
+            raise ValueError("loop_kernel 'gnc' needs gnss_bias_tau_s = 0: gtsam's GNC optimizer clones every "
+                             "factor and the GNSS bias chain is made of Python factors, which cannot be cloned")
+        return self

@@ -172,7 +172,8 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, p, *, extra_loops: lis
         anchors = survey_priors(poses, offsets)
         if anchors:
             problem.pose_priors += anchors
-            poses = optimize(problem, max_iterations=p.max_iterations, gnc_loops=p.loop_kernel == "gnc")
+            poses = optimize(problem, max_iterations=p.max_iterations, gnc_loops=p.loop_kernel == "gnc",
+                             initial=poses)
     t4 = time.perf_counter()
     log.info("posegraph: %d poses, %d candidates, %d loops accepted", len(poses), len(cands),
              sum(r.accepted for r in loops))

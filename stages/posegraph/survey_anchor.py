@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from stages.common.ground_plane import rotation_between
 from stages.common.registration import floor_information, prepare_cloud, register_clouds
 from stages.posegraph.graph import PosePrior
 
@@ -60,12 +61,28 @@ def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.nda
         reason = f"fitness {res.fitness:.2f} < {min_fitness:.2f}"
     elif res.inlier_rmse_m > max_rmse_m:
         reason = f"rmse {res.inlier_rmse_m:.3f} m > {max_rmse_m:.3f} m"
-    info = vertical_information(min_sigma_m, min_sigma_rad) if vertical_only else \
-        floor_information(res.information, min_sigma_m, min_sigma_rad)
+    if vertical_only:
+        T = vertical_part(T, T_map_vehicle_init)
+        info = vertical_information(min_sigma_m, min_sigma_rad)
+    else:
+        info = floor_information(res.information, min_sigma_m, min_sigma_rad)
     return SurveyMatch(i, T, info, res.fitness, res.inlier_rmse_m, reason == "accepted", reason)
 
 
-def vertical_information(sigma_z_m: float, sigma_tilt_rad: float, weak: float = 1e-6) -> np.ndarray:
+def vertical_part(T_registered: np.ndarray, T_init: np.ndarray) -> np.ndarray:
+    """The pose a ground-only registration actually determines, nearest to ``T_init``: the registered tilt
+    (the smallest rotation turning the initial up axis onto the registered one, heading kept) and the initial
+    position slid along the registered up axis onto the registered ground height. A prior at the registered
+    pose itself, slid metres along the road, couples its height error to horizontal position through the
+    tilt (measured: the anchors moved the tiny map 0.1 m horizontally)."""
+    n = T_registered[:3, 2]
+    out = np.eye(4)
+    out[:3, :3] = rotation_between(T_init[:3, 2], n) @ T_init[:3, :3]
+    out[:3, 3] = T_init[:3, 3] - n * float(n @ (T_init[:3, 3] - T_registered[:3, 3]))
+    return out
+
+
+def vertical_information(sigma_z_m: float, sigma_tilt_rad: float, weak: float = 1e-12) -> np.ndarray:
     """Body-frame information fixing height, roll and pitch only. The survey holds road and sidewalk *tops*
     (no curb faces, facades or poles), so its registration pins the ground plane to centimetres but slides
     horizontally (measured on tiny: 0.0-3.6 m horizontal error after GICP, < 0.02 m vertical)."""

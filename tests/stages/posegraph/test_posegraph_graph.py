@@ -58,7 +58,7 @@ def test_gnss_and_odometry_recover_truth_better_than_gnss(two_lap_drive):
 def test_loops_make_passes_agree_and_planted_false_loop_is_rejected(two_lap_drive, kernel):
     T_true, drive = two_lap_drive
     rng = np.random.default_rng(5)
-    p = PosegraphParams(loop_kernel=kernel)
+    p = PosegraphParams(loop_kernel=kernel, gnss_bias_tau_s=0.0 if kernel == "gnc" else 60.0)
     problem, _ = base_problem([drive], p)
     lap = _lap_len(T_true)
     loops = _true_loops(T_true, rng, lap)
@@ -76,17 +76,27 @@ def test_loops_make_passes_agree_and_planted_false_loop_is_rejected(two_lap_driv
     assert sc < 0.05, sc
 
 
-def test_marginal_covariances_positive_definite_and_grow_in_outage(two_lap_drive):
+@pytest.mark.parametrize("bias_tau_s", [0.0, 60.0])
+def test_marginal_covariances_positive_definite_and_grow_in_outage(two_lap_drive, bias_tau_s):
+    """White GNSS: the outage's middle is much less certain. With the bias chain the absolute uncertainty is
+    the bias's (shared by every fix of the last minute), so the outage adds only the odometry's drift."""
     from tests.stages.posegraph.conftest import circuit_truth, make_drive
 
     T_true = circuit_truth(n_laps=1)
     drive = make_drive(T_true, np.random.default_rng(2), outage=slice(80, 180))
     drive.stamps_ns = drive.stamps_ns.astype(np.int64)
-    problem, _ = base_problem([drive], PosegraphParams())
+    problem, _ = base_problem([drive], PosegraphParams(gnss_bias_tau_s=bias_tau_s))
     assert not any(80 <= g.i < 180 for g in problem.positions)  # outages have no factor
     poses = optimize(problem)
     cov = marginal_cov_xy_yaw(problem, poses).reshape(-1, 3, 3)
     assert np.all(np.linalg.eigvalsh(cov) > 0)
-    assert cov[130, 0, 0] > 1.2 * cov[20, 0, 0]  # less certain in the middle of the outage
+    assert cov[130, 0, 0] > (1.2 if bias_tau_s == 0 else 1.0) * cov[20, 0, 0]
     gnss_rms = rms(horizontal_errors_m(drive.gnss_T[drive.gnss_valid], T_true[drive.gnss_valid]))
     assert rms(horizontal_errors_m(poses, T_true)) < 1.1 * gnss_rms  # a common bias cannot be averaged out
+
+
+def test_gnc_with_the_gnss_bias_chain_is_a_named_configuration_error():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="gnss_bias_tau_s"):
+        PosegraphParams(loop_kernel="gnc", gnss_bias_tau_s=60.0)

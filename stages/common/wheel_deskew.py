@@ -1,4 +1,4 @@
-"""Motion compensation of one scan from wheel speed and yaw rate.
+"""Motion compensation of one scan from wheel speed and yaw rate (shared by odometry and corners).
 
 A spinning lidar takes ~0.1 s per revolution; at 10 m/s the vehicle moves 1 m meanwhile and, when turning,
 walls are bent. Each point is moved from the lidar frame at its firing time into the lidar frame at the scan
@@ -64,3 +64,37 @@ def deskew_points(points_xyz: np.ndarray, time_offset_s: np.ndarray, speed_mps, 
     c, s = np.cos(yaw), np.sin(yaw)
     pv0 = np.column_stack([c * pv[:, 0] - s * pv[:, 1] + x, s * pv[:, 0] + c * pv[:, 1] + y, pv[:, 2]])
     return (pv0 - t_vl) @ R_vl  # back into the lidar frame at the scan start (R^T applied on the right)
+
+
+class OdometryTrack:
+    """Wheel speed [m/s] and yaw rate [rad/s] samples of one drive, sorted by time, looked up around any scan."""
+
+    def __init__(self, stamp_ns: np.ndarray, speed_mps: np.ndarray, yaw_rate_radps: np.ndarray):
+        order = np.argsort(np.asarray(stamp_ns), kind="stable")
+        self.stamp_ns = np.asarray(stamp_ns)[order]
+        self.speed_mps = np.asarray(speed_mps, np.float64)[order]
+        self.yaw_rate_radps = np.asarray(yaw_rate_radps, np.float64)[order]
+
+    @classmethod
+    def from_table(cls, odometry) -> "OdometryTrack":
+        """From an ``odometry_raw`` Arrow table (columns stamp_ns, speed_mps, yaw_rate_radps)."""
+        return cls(odometry["stamp_ns"].to_numpy(), odometry["speed_mps"].to_numpy(),
+                   odometry["yaw_rate_radps"].to_numpy())
+
+    def covers(self, start_ns: int, duration_s: float, tolerance_s: float = 0.5) -> bool:
+        """Whether the odometry spans the scan (within ``tolerance_s``); guards against a time-base mismatch."""
+        tol = int(tolerance_s * 1e9)
+        return bool(self.stamp_ns[0] - tol <= start_ns and start_ns + int(duration_s * 1e9) <= self.stamp_ns[-1] + tol)
+
+    def around(self, start_ns: int, duration_s: float, margin_s: float = 0.05
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Samples (time relative to ``start_ns`` [s], speed, yaw rate) covering the scan; at least two, taken
+        from the nearest samples (interpolated) when the odometry is sparser than the scan."""
+        lo = np.searchsorted(self.stamp_ns, start_ns - int(margin_s * 1e9))
+        hi = np.searchsorted(self.stamp_ns, start_ns + int((duration_s + margin_s) * 1e9), side="right")
+        if hi - lo >= 2:
+            sl = slice(lo, hi)
+            return ((self.stamp_ns[sl] - start_ns) * 1e-9, self.speed_mps[sl], self.yaw_rate_radps[sl])
+        t_rel = (self.stamp_ns - start_ns) * 1e-9
+        q = np.array([0.0, duration_s])
+        return q, np.interp(q, t_rel, self.speed_mps), np.interp(q, t_rel, self.yaw_rate_radps)

@@ -1,0 +1,82 @@
+"""The road plane under a scan: a trimmed least-squares fit, ground/structure split, and the alignment of two
+scans' ground planes (height, roll and pitch of a relative pose).
+
+Why: registering whole scans lets the ground's ring pattern, which moves with the sensor, pull each increment
+towards zero motion; registering the structure only (facades, poles) removes that bias but leaves height, roll
+and pitch weakly observed. The road plane restores those three. Measured on the simulator (docs/posegraph.md):
+structure-only GICP with ground-plane alignment has 3.8 mm per-edge error against 9.9 mm for whole scans.
+
+Pure numpy and deterministic (open3d's RANSAC ``segment_plane`` draws random samples, which would make
+two runs of one stage differ). ``T_vehicle_lidar`` maps lidar points into the vehicle frame, whose origin lies on
+the ground under the sensor with z up.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GroundPlane:
+    normal: np.ndarray  # (3,) unit normal in the lidar frame, pointing up
+    offset_m: float  # plane: normal . p + offset_m = 0
+    n_points: int  # points of the final fit
+    rms_m: float  # RMS distance of those points to the plane
+
+
+def fit_ground_plane(points_lidar_m: np.ndarray, T_vehicle_lidar: np.ndarray, *, radius_m: float = 20.0,
+                     band_m: float = 0.4, tolerances_m: tuple[float, ...] = (0.3, 0.15, 0.08),
+                     min_points: int = 100) -> GroundPlane | None:
+    """Fit the road plane to points within ``radius_m`` (horizontal) and ``band_m`` of the vehicle's ground,
+    re-fitting on the points within each of the decreasing ``tolerances_m`` of the last plane (cars, curbs
+    and sidewalks drop out). None when fewer than ``min_points`` remain (a scan without visible ground)."""
+    p = np.asarray(points_lidar_m, np.float64)[:, :3]
+    R, t = T_vehicle_lidar[:3, :3], T_vehicle_lidar[:3, 3]
+    pv = p @ R.T + t
+    cand = p[(np.abs(pv[:, 2]) < band_m) & (np.hypot(pv[:, 0], pv[:, 1]) < radius_m)]
+    up = R[2, :]  # vehicle z axis in the lidar frame (R^T e_z)
+    normal, offset = up.copy(), float(t[2])  # the vehicle's ground: z_vehicle = up . p + t_z = 0
+    inl = cand
+    for tol in tolerances_m:
+        inl = cand[np.abs(cand @ normal + offset) < tol]
+        if len(inl) < min_points:
+            return None
+        centroid = inl.mean(axis=0)
+        _, _, Vt = np.linalg.svd(inl - centroid, full_matrices=False)
+        normal = Vt[2] if Vt[2] @ up > 0 else -Vt[2]
+        offset = float(-normal @ centroid)
+    d = inl @ normal + offset
+    return GroundPlane(normal, offset, len(inl), float(np.sqrt(np.mean(d ** 2))))
+
+
+def ground_mask(points_lidar_m: np.ndarray, plane: GroundPlane, tolerance_m: float) -> np.ndarray:
+    """Points within ``tolerance_m`` of the plane (boolean mask)."""
+    return np.abs(np.asarray(points_lidar_m)[:, :3] @ plane.normal + plane.offset_m) < tolerance_m
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotation taking unit vector a onto unit vector b (Rodrigues)."""
+    v = np.cross(a, b)
+    c = float(a @ b)
+    s = float(np.linalg.norm(v))
+    if s < 1e-12:
+        return np.eye(3)
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]]) / s
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def align_ground_planes(T_target_source: np.ndarray, source_plane: GroundPlane,
+                        target_plane: GroundPlane) -> np.ndarray:
+    """Correct the height, roll and pitch of a relative pose so that the source scan's ground plane lands on
+    the target scan's: the smallest rotation turning the moved source normal onto the target normal (heading
+    unchanged to first order), then a shift along the target normal. Consecutive scans see overlapping road,
+    so the two fits describe one surface."""
+    R, t = T_target_source[:3, :3], T_target_source[:3, 3]
+    n_t = target_plane.normal
+    D = rotation_between(R @ source_plane.normal, n_t)
+    R2, t2 = D @ R, D @ t
+    t2 = t2 + (source_plane.offset_m - target_plane.offset_m - n_t @ t2) * n_t
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = R2, t2
+    return out
