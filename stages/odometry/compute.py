@@ -165,7 +165,8 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
                            point_sigma_m=p.point_sigma_m, min_sigma_m=p.min_sigma_m,
                            min_sigma_rad=p.min_sigma_rad, rot_sigma_per_rad=p.rot_sigma_per_rad,
                            ground_split=p.ground_split, ground_tolerance_m=p.ground_tolerance_m,
-                           guide_increments=guides)
+                           guide_increments=guides, max_deviation_guide_m=p.max_deviation_wheel_m,
+                           max_deviation_guide_rad=p.max_deviation_wheel_rad)
     n_bad = sum(not e.converged for e in edges)
     if n_bad:
         log.warning("odometry %s: %d of %d edges did not converge", ctx.partition.label, n_bad, len(edges))

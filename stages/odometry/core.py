@@ -71,15 +71,20 @@ def rotation_angle_rad(T: np.ndarray) -> float:
 
 
 def gate_edge(T_v: np.ndarray, T_gnss_v: np.ndarray | None, fitness: float, registered: bool, *,
-              min_fitness: float, max_deviation_m: float, max_deviation_rad: float) -> bool:
-    """Accept an ICP edge: registration converged, enough overlap, and (when a GNSS/INS increment exists)
+              min_fitness: float, max_deviation_m: float, max_deviation_rad: float, planar: bool = False) -> bool:
+    """Accept an ICP edge: registration converged, enough overlap, and (when a reference increment exists)
     within ``max_deviation_m`` / ``max_deviation_rad`` of it. 10 Hz GNSS/INS increments are good to ~0.1 m and
-    ~0.05 deg on the simulator, so an edge far from them is a registration failure (degenerate scene)."""
+    ~0.05 deg on the simulator, so an edge far from them is a registration failure (degenerate scene).
+    ``planar``: the reference is a wheel-odometry increment, which knows nothing of height, roll and pitch;
+    only the horizontal translation and the heading are compared."""
     if not registered or fitness < min_fitness:
         return False
     if T_gnss_v is None:
         return True
     D = se3_inverse(T_gnss_v) @ T_v
+    if planar:
+        return bool(np.linalg.norm(D[:2, 3]) <= max_deviation_m
+                    and abs(np.arctan2(D[1, 0], D[0, 0])) <= max_deviation_rad)
     return bool(np.linalg.norm(D[:3, 3]) <= max_deviation_m and rotation_angle_rad(D) <= max_deviation_rad)
 
 
@@ -113,7 +118,8 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
                    min_fitness: float, max_deviation_m: float, max_deviation_rad: float, point_sigma_m: float,
                    min_sigma_m: float, min_sigma_rad: float, rot_sigma_per_rad: float = 0.0,
                    ground_split: bool = True, ground_tolerance_m: float = 0.25,
-                   guide_increments: dict[int, np.ndarray] | None = None) -> list[Edge]:
+                   guide_increments: dict[int, np.ndarray] | None = None,
+                   max_deviation_guide_m: float = 0.05, max_deviation_guide_rad: float = 0.0035) -> list[Edge]:
     """Register each scan onto its predecessor (``scans`` sorted by id; pairs need consecutive ids).
 
     ``gnss_poses`` maps scan_id -> T_map_vehicle for scans with a valid GNSS/INS solution (initial guesses and
@@ -127,7 +133,8 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
     ``rot_sigma_per_rad`` adds a rotation std proportional to the edge's rotation angle.
     ``guide_increments`` (scan_id -> vehicle increment from the previous scan, e.g. wheel odometry) replace the
     GNSS/INS increments as initial guess and gate reference where given: a multipath jump makes a GNSS
-    increment tens of centimetres wrong, which rejected correct ICP edges (measured on the simulator).
+    increment tens of centimetres wrong, which rejected correct ICP edges (measured on the simulator). Edges
+    with a guide are gated at ``max_deviation_guide_m`` / ``_rad`` (the guide is far better than GNSS/INS).
     """
     T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
     to_lidar = lambda T_v: T_lidar_vehicle @ T_v @ T_vehicle_lidar  # noqa: E731
@@ -143,9 +150,9 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
     dt_s = {k: (scans[k].stamp_ns - scans[k - 1].stamp_ns) * 1e-9 for k in pairs}
     T_gnss_v = {k: se3_inverse(gnss_poses[scans[k - 1].scan_id]) @ gnss_poses[scans[k].scan_id]
                 for k in pairs if scans[k - 1].scan_id in gnss_poses and scans[k].scan_id in gnss_poses}
-    for k in pairs:
-        if guide_increments and scans[k].scan_id in guide_increments:
-            T_gnss_v[k] = guide_increments[scans[k].scan_id]
+    guided = {k for k in pairs if guide_increments and scans[k].scan_id in guide_increments}
+    for k in guided:
+        T_gnss_v[k] = guide_increments[scans[k].scan_id]
     reg = dict(method=method, max_corr_m=max_corr_m, max_iterations=max_iterations, point_sigma_m=point_sigma_m,
                min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad, relative_tolerance=relative_tolerance)
 
@@ -200,7 +207,9 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
         if rot_sigma_per_rad > 0:  # turns: residual rotation error grows with the edge's rotation
             info_v = floor_information(info_v, 1e-9, rot_sigma_per_rad * rotation_angle_rad(T_v) + 1e-12)
         accepted = gate_edge(T_v, T_gnss_v.get(k), res.fitness, res.converged, min_fitness=min_fitness,
-                             max_deviation_m=max_deviation_m, max_deviation_rad=max_deviation_rad)
+                             max_deviation_m=max_deviation_guide_m if k in guided else max_deviation_m,
+                             max_deviation_rad=max_deviation_guide_rad if k in guided else max_deviation_rad,
+                             planar=k in guided)
         edges.append(Edge(scans[k].scan_id, scans[k].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
                           accepted))
     return edges

@@ -30,6 +30,9 @@ class OdometryParams(Params):
     max_deviation_m: float = Field(0.3, gt=0, description="ICP vs valid GNSS/INS increment (good to ~0.1 m); "
                                    "above: edge rejected")
     max_deviation_rad: float = Field(0.0175, gt=0, description="same, rotation angle (1 deg)")
+    max_deviation_wheel_m: float = Field(0.05, gt=0, description="ICP vs the wheel-odometry increment where the "
+                                         "drive has one (10 Hz increments good to 1.5 cm on the simulator)")
+    max_deviation_wheel_rad: float = Field(0.0035, gt=0, description="same, rotation (0.2 deg)")
     point_sigma_m: float = Field(0.05, gt=0, description="per-point residual std for the information matrix "
                                  "(calibrated against truth, absorbs correlated residuals)")
     min_sigma_m: float = Field(0.003, gt=0, description="floor of an edge's translation std")

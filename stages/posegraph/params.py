@@ -27,7 +27,8 @@ class PosegraphParams(Params):
     attitude_sigma_rad: float = Field(0.005, gt=0, description="INS roll/pitch prior (gravity anchor)")
     heading_std_inflation: float = Field(3.0, ge=1, description="INS yaw std inflation (weak heading prior)")
     # loop closures
-    loop_radius_m: float = Field(6.0, gt=0, description="candidate search radius on the pass-1 estimate")
+    loop_radius_m: float = Field(12.0, gt=0, description="candidate search radius on the pass-1 estimate (two "
+                                 "drives in different lanes of one street are 3.5-7 m apart)")
     loop_min_separation_s: float = Field(30.0, ge=0, description="same drive: minimum time between scans")
     loop_stride_m: float = Field(5.0, gt=0, description="one loop query scan per this much travel")
     loop_max_per_scan: int = Field(2, ge=1)

@@ -158,3 +158,15 @@ def test_structure_only_registration_with_road_planes_and_own_sweep_deskew(swept
         assert errs[:, 0].max() < 0.01 and errs[:, 1].max() < 0.03, errs
         sigma = np.sqrt(np.diag(np.linalg.inv(edges[2].information)))
         assert sigma[5] < 0.02  # height is held by the road planes although only structure was registered
+
+
+def test_wheel_gate_compares_only_horizontal_motion_and_heading():
+    """A wheel-odometry increment is planar: a true edge with pitch and height change (a speed bump) must pass,
+    a 10 cm slide or a 0.5 deg heading error must not."""
+    T_w = se3_from_xyz_rpy(1.0, 0.0, 0.0, 0.0, 0.0, 0.01)
+    kw = dict(min_fitness=0.3, max_deviation_m=0.05, max_deviation_rad=0.0035, planar=True)
+    bump = T_w @ se3_from_xyz_rpy(0.0, 0.0, 0.04, 0.004, 0.008, 0.0)
+    assert gate_edge(bump, T_w, 0.9, True, **kw)
+    assert not gate_edge(bump, T_w, 0.9, True, **{**kw, "planar": False})  # the full-pose gate rejects it
+    assert not gate_edge(T_w @ se3_from_xyz_rpy(0.0, 0.1, 0.0, 0, 0, 0), T_w, 0.9, True, **kw)
+    assert not gate_edge(T_w @ se3_from_xyz_rpy(0.0, 0.0, 0.0, 0, 0, np.deg2rad(0.5)), T_w, 0.9, True, **kw)
