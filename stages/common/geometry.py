@@ -41,6 +41,11 @@ def se3_to_xyz_rpy(T: np.ndarray) -> np.ndarray:
     return np.array([T[0, 3], T[1, 3], T[2, 3], roll, pitch, yaw])
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """3x3 cross-product matrix: skew(a) @ b = a x b."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def se3_inverse(T: np.ndarray) -> np.ndarray:
     Ti = np.eye(4)
     R = T[:3, :3]

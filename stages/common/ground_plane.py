@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.common.geometry import skew
+
 
 @dataclass(frozen=True)
 class GroundPlane:
@@ -62,7 +64,7 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     s = float(np.linalg.norm(v))
     if s < 1e-12:
         return np.eye(3)
-    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]]) / s
+    K = skew(v) / s
     return np.eye(3) + s * K + (1.0 - c) * (K @ K)
 
 

@@ -12,6 +12,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
+from stages.common.geometry import skew
+
 _REG = o3d.pipelines.registration
 METHODS = ("gicp", "point_to_plane")
 
@@ -62,11 +64,10 @@ def prepare_cloud(points_m: np.ndarray, voxel_m: float, knn: int = 20,
 def adjoint_se3(T: np.ndarray) -> np.ndarray:
     """6x6 adjoint in (rot, trans) order: T Exp(xi) T^-1 = Exp(Ad_T xi)."""
     R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
     Ad = np.zeros((6, 6))
     Ad[:3, :3] = R
     Ad[3:, 3:] = R
-    Ad[3:, :3] = tx @ R
+    Ad[3:, :3] = skew(t) @ R
     return Ad
 
 

@@ -98,3 +98,12 @@ class OdometryTrack:
         t_rel = (self.stamp_ns - start_ns) * 1e-9
         q = np.array([0.0, duration_s])
         return q, np.interp(q, t_rel, self.speed_mps), np.interp(q, t_rel, self.yaw_rate_radps)
+
+    def deskew_scan(self, points_xyz: np.ndarray, time_offset_s: np.ndarray, start_ns: int,
+                    T_vehicle_lidar: np.ndarray | None = None) -> np.ndarray | None:
+        """The scan's points in the lidar frame at its start, or None when the odometry does not cover it."""
+        duration_s = float(np.max(time_offset_s)) if len(time_offset_s) else 0.0
+        if not self.covers(start_ns, duration_s):
+            return None
+        odo_t, speed, yaw_rate = self.around(start_ns, duration_s)
+        return deskew_points(points_xyz, time_offset_s, speed, yaw_rate, T_vehicle_lidar, odo_time_s=odo_t)

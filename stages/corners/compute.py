@@ -9,7 +9,7 @@ import pyarrow as pa
 from pipeline.declare import StageContext
 from schemas.registry import schema_of
 from stages.corners.core import extract_corners, select_scan_layers
-from stages.common.wheel_deskew import OdometryTrack, deskew_points
+from stages.common.wheel_deskew import OdometryTrack
 from stages.corners.determine import Corners
 from stages.corners.params import CornerParams
 
@@ -94,10 +94,8 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     for a, b in zip(bounds[:-1], bounds[1:]):
         scan_ids.append(int(scan_id[order[a]]))
         stamps.append(int(stamp[a]))
-        duration_s = float(t_s[a:b].max())
-        if track is not None and track.covers(stamps[-1], duration_s):
-            odo_t, speed, yaw_rate = track.around(stamps[-1], duration_s)
-            pts = deskew_points(xyz[a:b], t_s[a:b], speed, yaw_rate, T_vehicle_lidar, odo_time_s=odo_t)
+        pts = None if track is None else track.deskew_scan(xyz[a:b], t_s[a:b], stamps[-1], T_vehicle_lidar)
+        if pts is not None:
             # corners are now in the lidar frame at the scan start: their time offset is 0
             corners.append(extract_corners(pts, ring[a:b], params, layers=layers, time_offset_s=np.zeros(b - a)))
             n_deskewed += 1

@@ -13,7 +13,8 @@ import pyarrow.compute as pc
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import DataQualityError, FormatError
 from schemas.registry import schema_of
-from stages.common.wheel_deskew import OdometryTrack, deskew_points, integrate_odometry_xy_yaw
+from stages.common.geometry import se3_from_xyz_rpy
+from stages.common.wheel_deskew import OdometryTrack, integrate_odometry_xy_yaw
 from stages.odometry.core import Edge, Scan, estimate_edges
 
 log = logging.getLogger(__name__)
@@ -81,14 +82,10 @@ def deskew_with_wheel_odometry(scans: list[Scan], track: OdometryTrack | None, T
         return scans, 0
     out, n = [], 0
     for s in scans:
-        duration_s = float(s.time_offset_s.max()) if s.time_offset_s is not None and len(s.time_offset_s) else 0.0
-        if s.time_offset_s is None or not track.covers(s.stamp_ns, duration_s):
-            out.append(s)
-            continue
-        odo_t, speed, yaw_rate = track.around(s.stamp_ns, duration_s)
-        pts = deskew_points(s.points_lidar_m, s.time_offset_s, speed, yaw_rate, T_vehicle_lidar, odo_time_s=odo_t)
-        out.append(Scan(s.scan_id, s.stamp_ns, pts, None))
-        n += 1
+        pts = None if s.time_offset_s is None else track.deskew_scan(s.points_lidar_m, s.time_offset_s, s.stamp_ns,
+                                                                    T_vehicle_lidar)
+        out.append(s if pts is None else Scan(s.scan_id, s.stamp_ns, pts, None))
+        n += pts is not None
     return out, n
 
 
@@ -104,10 +101,7 @@ def wheel_increments(scans: list[Scan], track: OdometryTrack | None) -> dict[int
             continue
         odo_t, speed, yaw_rate = track.around(a.stamp_ns, dt_s)
         x, y, yaw = integrate_odometry_xy_yaw(np.array([dt_s]), odo_t, speed, yaw_rate)
-        T = np.eye(4)
-        T[:2, :2] = [[np.cos(yaw[0]), -np.sin(yaw[0])], [np.sin(yaw[0]), np.cos(yaw[0])]]
-        T[:2, 3] = x[0], y[0]
-        out[b.scan_id] = T
+        out[b.scan_id] = se3_from_xyz_rpy(x[0], y[0], 0.0, 0.0, 0.0, yaw[0])
     return out
 
 

@@ -6,6 +6,7 @@ Arrays in, arrays out. ``T_vehicle_lidar`` maps lidar points into the vehicle fr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -90,14 +91,24 @@ def gate_edge(T_v: np.ndarray, T_gnss_v: np.ndarray | None, fitness: float, regi
 
 @dataclass
 class _Prepared:
-    """One scan ready for registration: structure cloud (registration), ground cloud and plane (height, roll,
-    pitch and their information)."""
+    """One scan ready for registration: structure cloud (registration), road plane and ground points (height,
+    roll, pitch and their information)."""
 
     points_m: np.ndarray
     time_offset_s: np.ndarray | None
     structure: o3d.geometry.PointCloud
-    ground: o3d.geometry.PointCloud | None
     plane: GroundPlane | None
+    ground_points_m: np.ndarray | None
+    voxel_m: float
+    knn: int
+
+    @cached_property
+    def ground(self) -> o3d.geometry.PointCloud | None:
+        """Ground cloud with normals, built on first use (only the final edges' information needs it; scans
+        deskewed after a first pass are prepared again)."""
+        if self.ground_points_m is None:
+            return None
+        return prepare_cloud(self.ground_points_m, self.voxel_m, self.knn, with_covariances=False)
 
 
 def _prepare(points_m: np.ndarray, time_offset_s: np.ndarray | None, T_vehicle_lidar: np.ndarray, *,
@@ -105,11 +116,11 @@ def _prepare(points_m: np.ndarray, time_offset_s: np.ndarray | None, T_vehicle_l
     plane = fit_ground_plane(points_m, T_vehicle_lidar) if ground_split else None
     if plane is None:
         return _Prepared(points_m, time_offset_s, prepare_cloud(points_m, voxel_m, knn, with_covariances=with_cov),
-                         None, None)
+                         None, None, voxel_m, knn)
     on_ground = ground_mask(points_m, plane, ground_tolerance_m)
     return _Prepared(points_m, time_offset_s,
-                     prepare_cloud(points_m[~on_ground], voxel_m, knn, with_covariances=with_cov),
-                     prepare_cloud(points_m[on_ground], voxel_m, knn, with_covariances=False), plane)
+                     prepare_cloud(points_m[~on_ground], voxel_m, knn, with_covariances=with_cov), plane,
+                     points_m[on_ground], voxel_m, knn)
 
 
 def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: dict[int, np.ndarray], *,
@@ -200,7 +211,7 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
         res, src, tgt = results[k], prepared[k], prepared[k - 1]
         H = point_to_plane_hessian(src.structure, tgt.structure, res.T_target_source, max_corr_m, point_sigma_m)
         T_l = with_road(k, res)
-        if src.ground is not None and tgt.ground is not None and T_l is not res.T_target_source:
+        if T_l is not res.T_target_source and src.ground is not None and tgt.ground is not None:
             H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, max_corr_m, point_sigma_m)
         info_l = floor_information(H, min_sigma_m, min_sigma_rad)
         T_v, info_v = lidar_to_vehicle_edge(T_l, info_l, T_vehicle_lidar)

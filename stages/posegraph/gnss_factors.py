@@ -13,9 +13,9 @@ Outages (``valid`` false) have no factor.
 """
 from __future__ import annotations
 
-import numpy as np
-
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from stages.posegraph.graph import AttitudePrior, BiasLink, BiasPrior, PositionPrior
 

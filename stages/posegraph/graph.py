@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from stages.common.geometry import skew
+
 
 @dataclass(frozen=True)
 class Between:
@@ -90,10 +92,6 @@ def _bias_key(j: int) -> int:
     return gtsam.symbol("b", j)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def gnss_with_bias_factor(pose_key: int, bias_key: int, measured_enu_m: np.ndarray, lever_arm_m: np.ndarray,
                           model, axes: tuple[int, ...] = (0, 1, 2)) -> gtsam.CustomFactor:
     """GNSS fix = antenna position (pose translation + R lever) + the receiver's slowly varying bias, on the
@@ -112,7 +110,7 @@ def gnss_with_bias_factor(pose_key: int, bias_key: int, measured_enu_m: np.ndarr
         b = values.atPoint3(this.keys()[1])
         R = T.rotation().matrix()
         if jacobians is not None:
-            jacobians[0] = np.hstack([-R @ _skew(lever), R])[rows]
+            jacobians[0] = np.hstack([-R @ skew(lever), R])[rows]
             jacobians[1] = np.eye(3)[rows]
         return (T.translation() + R @ lever + b - z)[rows]
 
@@ -228,12 +226,11 @@ def poses_from_values(values: gtsam.Values, n: int) -> np.ndarray:
 
 def marginal_cov_xy_yaw(problem: Problem, poses: np.ndarray) -> np.ndarray:
     """(N,9): marginal covariance of (east m, north m, yaw rad) per pose, rotated into ENU axes."""
-    graph, start, _ = build_graph(problem)
+    graph, _, _ = build_graph(problem)
     values = gtsam.Values()
     for i in range(problem.n_poses):
         values.insert(_key(i), gtsam.Pose3(poses[i]))
-    for j in range(problem.n_biases):  # the marginal of a pose does not depend on the bias linearisation point
-        values.insert(_bias_key(j), start.atPoint3(_bias_key(j)))
+    _insert_biases(values, problem.n_biases)  # factors are linear in the biases: any linearisation point will do
     marginals = gtsam.Marginals(graph, values)
     out = np.empty((problem.n_poses, 9))
     for i in range(problem.n_poses):
