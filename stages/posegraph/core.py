@@ -114,7 +114,8 @@ def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
         problem.n_biases += gnss.n_biases
         problem.attitudes += attitude_priors(
             idx, d.stamps_ns, d.gnss_T, d.gnss_std_yaw_rad, d.gnss_valid, every_s=p.gnss_every_s,
-            roll_pitch_sigma_rad=p.attitude_sigma_rad, yaw_inflation=p.heading_std_inflation)
+            roll_pitch_sigma_rad=p.attitude_sigma_rad, yaw_inflation=p.heading_std_inflation,
+            with_yaw=p.heading_prior)
         if not d.gnss_valid.any():  # no GNSS at all: hold the drive's first pose (loops may still move it)
             problem.pose_priors.append(PosePrior(int(off), initial[off], np.eye(6) * 1e-2, "fixed"))
     return problem, offsets

@@ -74,13 +74,15 @@ def gnss_position_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_ve
 
 def attitude_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_vehicle: np.ndarray,
                     std_yaw_rad: np.ndarray, valid: np.ndarray, *, every_s: float, roll_pitch_sigma_rad: float,
-                    yaw_inflation: float) -> list[AttitudePrior]:
-    """INS roll/pitch (gravity) as a firm prior, INS yaw as a weak one; same epochs as the GNSS factors."""
+                    yaw_inflation: float, with_yaw: bool = True) -> list[AttitudePrior]:
+    """INS roll/pitch (gravity) as a firm prior and, if ``with_yaw``, INS yaw as a weak one; same epochs as
+    the GNSS factors. An INS heading error is a slowly varying bias like the GNSS one: epoch after epoch of
+    independent yaw priors average it into the map (docs/posegraph.md, fifth pass), hence optional."""
     out = []
     for k in select_epochs(stamps_ns, valid, every_s):
         sigma_yaw = max(float(std_yaw_rad[k]) * yaw_inflation, roll_pitch_sigma_rad)
         out.append(AttitudePrior(int(pose_index[k]), T_map_vehicle[k][:3, :3].copy(),
-                                 np.array([roll_pitch_sigma_rad, roll_pitch_sigma_rad, sigma_yaw])))
+                                 np.array([roll_pitch_sigma_rad, roll_pitch_sigma_rad, sigma_yaw]), with_yaw))
     return out
 
 

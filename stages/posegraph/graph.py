@@ -56,9 +56,13 @@ class BiasPrior:
 
 @dataclass(frozen=True)
 class AttitudePrior:
+    """INS attitude at pose i. ``with_yaw`` false: gravity direction only (roll/pitch, ``sigma_rad[0]``
+    isotropic), heading left to odometry, loops and the GNSS track."""
+
     i: int
     R_map_vehicle: np.ndarray
     sigma_rad: np.ndarray  # (3,) body-frame (roll, pitch, yaw-ish) axes
+    with_yaw: bool = True
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,9 @@ class Problem:
     n_biases: int = 0
     bias_links: list[BiasLink] = field(default_factory=list)
     bias_priors: list[BiasPrior] = field(default_factory=list)
+
+
+_UP = np.array([0.0, 0.0, 1.0])
 
 
 def _key(i: int) -> int:
@@ -170,8 +177,14 @@ def build_graph(problem: Problem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Val
             graph.add(gtsam.GPSFactor(_key(g.i), np.asarray(g.position_enu_m, float), model))
         tags.append(("positions", n))
     for n, a in enumerate(problem.attitudes):
-        graph.add(gtsam.PoseRotationPrior3D(_key(a.i), gtsam.Rot3(a.R_map_vehicle),
-                                            gtsam.noiseModel.Diagonal.Sigmas(np.asarray(a.sigma_rad, float))))
+        if a.with_yaw:
+            graph.add(gtsam.PoseRotationPrior3D(_key(a.i), gtsam.Rot3(a.R_map_vehicle),
+                                                gtsam.noiseModel.Diagonal.Sigmas(np.asarray(a.sigma_rad, float))))
+        else:  # the map's up axis seen in the vehicle frame: invariant to heading
+            up_vehicle = np.asarray(a.R_map_vehicle, float).T @ _UP
+            graph.add(gtsam.AttitudeFactorPose3(_key(a.i), gtsam.Unit3(_UP),
+                                                gtsam.noiseModel.Isotropic.Sigma(2, float(a.sigma_rad[0])),
+                                                gtsam.Unit3(up_vehicle)))
         tags.append(("attitudes", n))
     for n, p in enumerate(problem.pose_priors):
         graph.add(gtsam.PriorFactorPose3(_key(p.i), gtsam.Pose3(p.T_map_vehicle),

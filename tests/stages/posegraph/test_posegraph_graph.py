@@ -85,7 +85,9 @@ def test_marginal_covariances_positive_definite_and_grow_in_outage(two_lap_drive
     T_true = circuit_truth(n_laps=1)
     drive = make_drive(T_true, np.random.default_rng(2), outage=slice(80, 180))
     drive.stamps_ns = drive.stamps_ns.astype(np.int64)
-    problem, _ = base_problem([drive], PosegraphParams(gnss_bias_tau_s=bias_tau_s))
+    # this synthetic INS heading is white (0.1 deg, no bias), which a heading prior fits: with a 100-epoch
+    # outage on a 60 m square it is what holds the trajectory's rotation
+    problem, _ = base_problem([drive], PosegraphParams(gnss_bias_tau_s=bias_tau_s, heading_prior=True))
     assert not any(80 <= g.i < 180 for g in problem.positions)  # outages have no factor
     poses = optimize(problem)
     cov = marginal_cov_xy_yaw(problem, poses).reshape(-1, 3, 3)
@@ -100,3 +102,26 @@ def test_gnc_with_the_gnss_bias_chain_is_a_named_configuration_error():
 
     with pytest.raises(ValidationError, match="gnss_bias_tau_s"):
         PosegraphParams(loop_kernel="gnc", gnss_bias_tau_s=60.0)
+
+
+def test_gravity_only_attitude_prior_leaves_heading_free_and_holds_roll_pitch():
+    """heading_prior off: the INS enters as the up direction only; any heading costs nothing, a pitch error does."""
+    import gtsam
+
+    from stages.common.geometry import se3_from_xyz_rpy
+    from stages.posegraph.graph import AttitudePrior, Problem, build_graph
+
+    T_ins = se3_from_xyz_rpy(0, 0, 0, 0.01, -0.02, 0.3)
+    for with_yaw in (False, True):
+        problem = Problem(1, T_ins[None], attitudes=[AttitudePrior(0, T_ins[:3, :3], np.full(3, 0.005), with_yaw)])
+        graph, _, _ = build_graph(problem)
+
+        def cost(roll, pitch, yaw):
+            v = gtsam.Values()
+            v.insert(gtsam.symbol("x", 0), gtsam.Pose3(se3_from_xyz_rpy(5, 1, 0, roll, pitch, yaw)))
+            return graph.error(v)
+
+        assert cost(0.01, -0.02, 0.3) < 1e-12
+        rotated = cost(0.01, -0.02, 2.0)
+        assert (rotated < 1e-12) if not with_yaw else rotated > 1e3
+        assert cost(0.01, -0.03, 0.3 if with_yaw else 1.0) == pytest.approx(0.5 * (0.01 / 0.005) ** 2, rel=0.02)
