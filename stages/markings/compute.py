@@ -41,19 +41,31 @@ def survey_available(inputs) -> bool:
                for key in inputs.partitions("survey"))
 
 
+def cloud_source(ctx) -> str:
+    """'survey' or 'drives', from ``params.source`` (auto: the survey when it has points)."""
+    wanted = ctx.params.source
+    if wanted == "survey" and not survey_available(ctx.inputs):
+        raise ConfigError("markings stage inputs", ["source 'survey' asked for, but the workflow's survey cloud is "
+                                                     "missing or empty"])
+    if wanted == "auto":
+        return "survey" if survey_available(ctx.inputs) else "drives"
+    return wanted
+
+
 def plan_tiles(ctx) -> list[PartitionKey]:
     """Tiles covering the survey cloud's points, or the drives' poses buffered by ``pose_buffer_m``."""
     params: MarkingParams = ctx.params
     size_m = _tile_size_m(ctx)
     keys: set[tuple[int, int]] = set()
-    if survey_available(ctx.inputs):
+    source = cloud_source(ctx)
+    if source == "survey":
         for part in ctx.inputs.partitions("survey"):
             table = ctx.inputs.read("survey", partition=part, columns=["east_m", "north_m"])
             i, j = tile_key_of(table["east_m"].to_numpy(), table["north_m"].to_numpy(), size_m)
             packed = np.unique((i << 32) | (j & 0xFFFFFFFF))  # one 1-D sort instead of a row-wise unique
             keys.update(zip((packed >> 32).tolist(), ((packed & 0xFFFFFFFF).astype(np.int32)).tolist()))
     elif ctx.inputs.has("poses") and ctx.inputs.has("scans"):
-        poses = ctx.inputs.read("poses", columns=["x_m", "y_m"])
+        poses = _map_drive_poses(ctx, ["drive", "x_m", "y_m"])
         keys.update(tiles_touching(poses["x_m"].to_numpy(), poses["y_m"].to_numpy(), params.pose_buffer_m,
                                    size_m))
     else:
@@ -88,7 +100,7 @@ def _extrinsics(ctx) -> dict[str, np.ndarray]:
 def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     params: MarkingParams = ctx.params
     reach = params.max_range_m
-    poses = ctx.inputs.read("poses", columns=_POSE_COLUMNS)
+    poses = _map_drive_poses(ctx, _POSE_COLUMNS)
     x, y = poses["x_m"].to_numpy(), poses["y_m"].to_numpy()
     near = (x >= e0 - reach) & (x < e1 + reach) & (y >= n0 - reach) & (y < n1 + reach)
     poses = poses.filter(pa.array(near))
@@ -116,6 +128,15 @@ def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[t
             yield enu, table["intensity"].to_numpy().astype(float)[keep]
 
 
+def _map_drive_poses(ctx, columns: list[str]) -> pa.Table:
+    """Optimized poses of the workflow's map drives only (evaluation drives never go into the map)."""
+    poses = ctx.inputs.read("poses", columns=list(dict.fromkeys(["drive", *columns])))
+    drives = list(ctx.settings.get("map_drives") or [])
+    if drives:
+        poses = poses.filter(pc.is_in(poses["drive"], pa.array(drives)))
+    return poses.select(columns)
+
+
 def _rasterize_kwargs(p: MarkingParams) -> dict[str, Any]:
     return dict(min_points=p.min_points_per_cell, max_step_m=p.max_step_m, max_spread_m=p.max_spread_m,
                 ground_window_m=p.ground_window_m, max_above_ground_m=p.max_above_ground_m,
@@ -137,7 +158,7 @@ def compute(ctx) -> dict[str, Any]:
     halo_px = halo_px_for(cell_m, params.threshold_block_m, params.ground_window_m)
     halo_m = halo_px * cell_m
     acc = GridAccumulator(e0 - halo_m, n0 - halo_m, cell_m, (rows + 2 * halo_px, cols + 2 * halo_px))
-    source = "survey" if survey_available(ctx.inputs) else "drives"
+    source = cloud_source(ctx)
     pieces = (_survey_pieces if source == "survey" else _drive_pieces)(ctx, e0 - halo_m, n0 - halo_m,
                                                                        e1 + halo_m, n1 + halo_m)
     for points, intensity in pieces:

@@ -1,12 +1,17 @@
 """Typed parameters of the markings stage (defaults in code; unknown keys rejected)."""
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, model_validator
 
 from pipeline.declare import Params
 
 
 class MarkingParams(Params):
+    source: Literal["auto", "survey", "drives"] = Field(
+        "auto", description="point cloud behind the rasters: the survey cloud, the map drives' scans placed with "
+        "poses_optimized (a mobile-mapping cloud), or auto = the survey when the workflow has one")
     # Grid
     cell_m: float = Field(0.1, gt=0, description="raster cell size, metres")
     min_points_per_cell: int = Field(1, ge=1, description="cells with fewer points are empty")

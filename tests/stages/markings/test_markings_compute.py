@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute  # noqa: F401  (pa.compute)
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -120,6 +121,34 @@ def test_drive_scans_rebuild_the_same_map(street, tmp_path):
     truth = truth_raster(200, 200, *OFFSET, 0.1, *OFFSET)
     scores = match_masks(rasters.marking_mask, truth)
     assert scores["precision"] >= 0.97 and scores["recall"] >= 0.97, scores
+
+
+def test_source_param_picks_the_cloud_and_eval_drives_stay_out(street, tmp_path):
+    """source='drives' with a survey present builds from the map drives' scans; an evaluation drive's scans
+    (here the same scans placed 3 m north) never enter the map; source='survey' without survey points is named."""
+    points, intensity = street
+    tables = _drive_tables(points, intensity, np.random.default_rng(2))
+    tables["survey"] = _survey_table(points, intensity)
+
+    def as_drive(t: pa.Table, name: str) -> pa.Table:
+        return t.set_column(0, "drive", pa.array([name] * t.num_rows)).cast(t.schema)
+
+    ev_poses = as_drive(tables["poses"], "d2")
+    ev_poses = ev_poses.set_column(4, "y_m", pa.compute.add(ev_poses["y_m"], 3.0)).cast(ev_poses.schema)
+    for name, extra in (("scans", as_drive(tables["scans"], "d2")), ("poses", ev_poses),
+                        ("drive_info", as_drive(tables["drive_info"], "d2"))):
+        tables[name] = pa.concat_tables([tables[name], extra])
+    params = MarkingParams(min_range_m=0.0, source="drives")
+    ctx = make_context("markings", params, tables, partition=PartitionKey(tile_i=1, tile_j=2),
+                       settings={"tile_size_m": 20.0, "map_drives": ["d1"], "eval_drives": ["d2"]},
+                       outputs=("raster", "rasters"), workdir=tmp_path)
+    row = compute(ctx)["raster"].to_pylist()[0]
+    assert row["source"] == "drives" and row["n_points"] == len(points)
+    survey_row = _run({**tables, "poses": tables["poses"].slice(0, 0)}, (1, 2), tmp_path=tmp_path / "s")[0]
+    assert survey_row["raster"].to_pylist()[0]["source"] == "survey"
+    empty = {**tables, "survey": _survey_table(points[:0], intensity[:0])}
+    with pytest.raises(ConfigError, match="source 'survey'"):
+        plan_tiles(make_context("markings", MarkingParams(source="survey"), empty, settings={"tile_size_m": 20.0}))
 
 
 def test_no_source_is_a_config_error():
