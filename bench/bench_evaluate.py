@@ -25,7 +25,7 @@ def main() -> None:
     from stages.evaluate.localize_mcl import run_mcl
     from stages.evaluate.outputs import metrics_document, metrics_table_text
     from stages.evaluate.params import EvaluateParams
-    from stages.evaluate.road_features import extract_road_features
+    from stages.common.road_features import extract_road_features
     from stages.evaluate.run import ekf_config, evaluate_drive, mcl_config
     from stages.evaluate.synthetic import ground_ring_scan, paint_markings, synthetic_drive
 

@@ -4,6 +4,13 @@
     .venv/bin/python -m bench.bench_markings --sim /tmp/sim/gangnam  # precision/recall vs truth/markings.png
     .venv/bin/python -m bench.bench_markings --sim DIR --figure docs/figures/markings_gangnam.png
     .venv/bin/python -m bench.bench_markings --amsterdam --figure docs/figures/markings_amsterdam_2293_9698.png
+    .venv/bin/python -m bench.bench_markings --sim DIR --rasters ROOT/datasets/marking_rasters/<fp> \
+        --poses ROOT/datasets/poses_optimized/<fp>   # a pipeline's tiles (e.g. source: drives) vs truth
+
+With ``--rasters`` the tiles the pipeline wrote are scored as they are (absolute) and in the map's own frame:
+a map built from drive scans sits where ``poses_optimized`` puts it, which can be decimetres off the true
+frame (GNSS bias); each tile is shifted back by the local offset of drive 0's optimized poses vs truth within
+50 m of the tile centre (the same rule as the corner-map bench).
 
 Every tile goes through the real stage code (``plan_tiles`` + ``compute`` on an in-memory input reader), so
 the timings include reading the tile's rows, the elevation grid, both masks and writing the PNG rasters.
@@ -182,6 +189,60 @@ def bench_sim(params: MarkingParams, workdir: Path, sim_dir: Path, figure: Path 
     return result
 
 
+def _pipeline_tiles(rasters_dir: Path) -> list[dict]:
+    tiles = []
+    for sidecar in sorted(rasters_dir.glob("artifacts/*/raster.json")):
+        tiles.append({"rasters": read_tile_rasters(sidecar.parent)})
+    if not tiles:
+        raise SystemExit(f"{rasters_dir}: no artifacts/*/raster.json tiles (expected a marking_rasters dataset)")
+    return tiles
+
+
+def _tile_offsets(tiles: list[dict], poses_dir: Path, sim_dir: Path, radius_m: float = 50.0) -> list[np.ndarray]:
+    """Per tile: mean (optimized - true) position of drive 0's poses within ``radius_m`` of the tile centre."""
+    import pyarrow.compute as pc
+    import pyarrow.dataset as ds
+
+    from stages.common.geometry import read_tum
+    from stages.cornermap.metrics import local_frame_offset
+
+    poses = ds.dataset(str(poses_dir), format="parquet", partitioning="hive").to_table()
+    drive0 = sorted(set(poses["drive"].to_pylist()))[0]
+    p0 = poses.filter(pc.equal(poses["drive"], drive0)).sort_by("scan_id")
+    _, T_true = read_tum(sim_dir / "truth" / f"{drive0}_poses_tum.txt")
+    true_en = T_true[p0["scan_id"].to_numpy(), :2, 3]
+    opt_en = np.column_stack([p0["x_m"].to_numpy(), p0["y_m"].to_numpy()])
+    centres = np.array([[t["rasters"].origin_east_m + 0.5 * t["rasters"].cell_m * t["rasters"].marking_mask.shape[1],
+                         t["rasters"].origin_north_m + 0.5 * t["rasters"].cell_m * t["rasters"].marking_mask.shape[0]]
+                        for t in tiles])
+    return list(local_frame_offset(centres, true_en, opt_en, radius_m))
+
+
+def bench_pipeline_rasters(sim_dir: Path, rasters_dir: Path, poses_dir: Path | None) -> dict:
+    """Score the tiles a pipeline run wrote (absolute, and in the map's frame when poses are given)."""
+    from dataclasses import replace
+
+    truth = cv2.imread(str(sim_dir / "truth" / "markings.png"), cv2.IMREAD_UNCHANGED) > 0
+    meta = json.loads((sim_dir / "truth" / "markings.json").read_text())
+    tiles = _pipeline_tiles(rasters_dir)
+    out = {"tiles": len(tiles), "source": sorted({t["rasters"].meta.get("source", "?") for t in tiles})}
+    frames = {"absolute": tiles}
+    if poses_dir is not None:
+        offsets = _tile_offsets(tiles, poses_dir, sim_dir)
+        out["frame_offset_m_median"] = round(float(np.median([np.hypot(*o) for o in offsets])), 3)
+        frames["map_frame"] = [{"rasters": replace(t["rasters"], origin_east_m=t["rasters"].origin_east_m - o[0],
+                                                   origin_north_m=t["rasters"].origin_north_m - o[1])}
+                               for t, o in zip(tiles, offsets)]
+    for name, ts in frames.items():
+        pred, covered = _paste_into_truth_frame(ts, meta, truth.shape)
+        one = match_masks(pred & covered, truth & covered, tolerance_px=1)
+        two = match_masks(pred & covered, truth & covered, tolerance_px=2)
+        out[name] = {"precision_1cell": round(one["precision"], 4), "recall_1cell": round(one["recall"], 4),
+                     "precision_2cells": round(two["precision"], 4), "recall_2cells": round(two["recall"], 4),
+                     "n_predicted": one["n_predicted"], "n_truth_covered": one["n_truth"]}
+    return out
+
+
 def _sim_figure(tiles, truth, meta, params, figure: Path, name: str) -> None:
     """The tile with the most marking pixels, with the truth overlay."""
     from stages.markings.figure import plot_marking_layers
@@ -213,11 +274,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--figure", type=Path, help="write the documentation figure here")
     ap.add_argument("--tile-size", type=float, default=100.0, help="tile size for --sim, metres")
     ap.add_argument("--cell", type=float, default=0.1, help="cell size, metres")
+    ap.add_argument("--rasters", type=Path, help="a pipeline's marking_rasters dataset folder (with --sim): score "
+                                                 "its tiles instead of running the stage on the survey")
+    ap.add_argument("--poses", type=Path, help="poses_optimized dataset folder of that run (map-frame score)")
     args = ap.parse_args(argv)
     params = MarkingParams(cell_m=args.cell)
     print(f"machine: {_machine()}")
     with tempfile.TemporaryDirectory(prefix="bench-markings-") as tmp:
         workdir = Path(tmp)
+        if args.sim and args.rasters:
+            print("pipeline rasters", json.dumps(bench_pipeline_rasters(args.sim, args.rasters, args.poses)))
+            return
         if args.sim:
             print("sim", json.dumps(bench_sim(params, workdir / "sim", args.sim, args.figure, args.tile_size)))
             return

@@ -20,7 +20,7 @@ from stages.evaluate import mcl
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
 from stages.evaluate.localize_mcl import odometry_increments
 from stages.evaluate.params import EvaluateParams
-from stages.evaluate.road_features import extract_road_features
+from stages.common.road_features import extract_road_features
 from stages.evaluate.run import DriveArrays, evaluate_drive
 
 log = logging.getLogger(__name__)

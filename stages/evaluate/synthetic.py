@@ -163,7 +163,7 @@ def synthetic_drive(n: int, rng: np.random.Generator, *, outage_s: tuple[float, 
     ep, xy, cov, cdirs = observe_corners(truth, corners, dirs, rng)
     if features == "rings":
         f_ep, f_xy = [], []
-        from stages.evaluate.road_features import extract_road_features
+        from stages.common.road_features import extract_road_features
         T = np.eye(4)
         T[2, 3] = 1.8
         for k in range(n):

@@ -5,7 +5,7 @@ import numpy as np
 
 from stages.evaluate import mcl
 from stages.evaluate.localize_mcl import MclConfig, odometry_increments, run_mcl
-from stages.evaluate.road_features import extract_road_features, ring_adaptive_threshold, voxel_filter_per_ring
+from stages.common.road_features import extract_road_features, ring_adaptive_threshold, voxel_filter_per_ring
 from stages.evaluate.synthetic import ground_ring_scan, paint_markings, relative_increments
 
 CELL = 0.1
