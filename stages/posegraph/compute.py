@@ -22,13 +22,15 @@ from stages.posegraph.tables import drive_input, loops_table, poses_table
 log = logging.getLogger(__name__)
 
 
-def scan_loader(ctx: StageContext):
-    """Reads only the requested scans (pyarrow filters on drive and scan_id)."""
+def scan_loader(ctx: StageContext, extra_columns: tuple[str, ...] = ()):
+    """Reads only the requested scans (pyarrow filters on drive and scan_id): (xyz, time offsets or None,
+    *extra columns) per scan."""
     def load(requests: list[tuple[str, int]]):
         out = {}
         for drive in sorted({d for d, _ in requests}):
             ids = sorted({s for d, s in requests if d == drive})
-            tab = ctx.inputs.read("scans", columns=["drive", "scan_id", "x_m", "y_m", "z_m", "time_offset_s"],
+            tab = ctx.inputs.read("scans", columns=["drive", "scan_id", "x_m", "y_m", "z_m", "time_offset_s",
+                                                    *extra_columns],
                                   filters=(pc.field("drive") == drive) & pc.field("scan_id").isin(ids))
             sid = tab["scan_id"].to_numpy()
             xyz = np.column_stack([tab[c].to_numpy().astype(np.float64) for c in ("x_m", "y_m", "z_m")])
@@ -36,7 +38,8 @@ def scan_loader(ctx: StageContext):
             for s in ids:
                 m = sid == s
                 t = toff[m]
-                out[(drive, s)] = (xyz[m], t if np.any(t != 0) else None)
+                out[(drive, s)] = (xyz[m], t if np.any(t != 0) else None,
+                                   *(tab[c].to_numpy()[m] for c in extra_columns))
         return out
     return load
 
@@ -68,12 +71,14 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     load = scan_loader(ctx)
     survey_cb, survey_matches = None, []
     if ctx.inputs.has("survey"):
-        survey = ctx.inputs.read("survey", columns=["east_m", "north_m", "up_m"])
+        survey = ctx.inputs.read("survey", columns=["east_m", "north_m", "up_m", "intensity"])
         if survey.num_rows:
             from stages.posegraph.survey_anchor import survey_anchor_callback
 
             pts = np.column_stack([survey[c].to_numpy() for c in ("east_m", "north_m", "up_m")])
-            survey_cb = survey_anchor_callback(drives, load, pts, p, survey_matches)
+            survey_cb = survey_anchor_callback(drives, load, pts, p, survey_matches,
+                                               survey_intensity=survey["intensity"].to_numpy(),
+                                               feature_load=scan_loader(ctx, ("intensity", "ring")))
     sol = solve_map(drives, load, p, survey_priors=survey_cb)
     names = [(d.name, int(s)) for d in drives for s in d.scan_ids]
     cov = marginal_cov_xy_yaw(sol.problem, sol.poses) if p.compute_marginals else np.zeros((len(names), 9))

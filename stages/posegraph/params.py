@@ -62,6 +62,12 @@ class PosegraphParams(Params):
     survey_min_sigma_rad: float = Field(0.001, gt=0)
     survey_vertical_only: bool = Field(True, description="anchor height/roll/pitch only: the survey has no "
                                        "vertical structure, its horizontal fit slides (docs/posegraph.md)")
+    survey_markings: bool = Field(True, description="also anchor horizontally: match each keyframe's road-marking "
+                                  "points (a few scans) to the survey's marking mask")
+    survey_marking_half_travel_m: float = Field(8.0, gt=0, description="submap: scans within this travel")
+    survey_marking_max_scans: int = Field(10, ge=0, description="submap: at most this many scans each side")
+    survey_marking_search_m: float = Field(2.0, gt=0, description="horizontal search (the pass-2 estimate is "
+                                           "GNSS-level: RMS 0.6 m, max 1.6 m on the simulator)")
     # optimisation / outputs
     max_iterations: int = Field(100, ge=1)
     fixed_prior_sigma_m: float = Field(1e-3, gt=0, description="map poses held fixed for reference drives")

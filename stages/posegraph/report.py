@@ -44,7 +44,9 @@ def write_report(out_dir: Path, drives, sol, refs: dict, loop_rows: list[dict], 
               "map": summarize_solution(drives, sol),
               "references": {name: summarize_solution([d], ref) for name, (d, ref) in refs.items()},
               "survey_anchors": {"tried": len(survey_matches),
-                                 "accepted": sum(m.accepted for m in survey_matches)},
+                                 "accepted": sum(m.accepted for m in survey_matches),
+                                 "horizontal_accepted": sum(bool(m.horizontal is not None and m.horizontal.accepted)
+                                                            for m in survey_matches)},
               "loops": loop_rows}
     path = out_dir / "posegraph_report.json"
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")

@@ -54,7 +54,7 @@ def vehicle_clouds(drives: list[DriveInput], offsets: np.ndarray, wanted: np.nda
         got = load([(drives[o].name, int(drives[o].scan_ids[g - offsets[o]])) for g, o in chunk])
         for g, o in chunk:
             d, k = drives[o], g - offsets[o]
-            pts, toff = got[(d.name, int(d.scan_ids[k]))]
+            pts, toff = got[(d.name, int(d.scan_ids[k]))][:2]
             keep = crop_range(pts, 2.0, 80.0)
             pts = np.asarray(pts, float)[keep]
             if toff is not None and k + 1 < d.n:

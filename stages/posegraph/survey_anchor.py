@@ -6,7 +6,7 @@ the point-to-plane Hessian, so directions the ground alone does not fix (along a
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -25,6 +25,7 @@ class SurveyMatch:
     inlier_rmse_m: float
     accepted: bool
     reason: str
+    horizontal: object | None = None  # marking_match.MarkingMatch when markings were tried
 
 
 def build_survey_index(survey_enu_m: np.ndarray, voxel_m: float) -> tuple[np.ndarray, cKDTree]:
@@ -90,18 +91,48 @@ def vertical_information(sigma_z_m: float, sigma_tilt_rad: float, weak: float = 
 
 
 def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345) -> list[PosePrior]:
-    """Accepted matches as robust (Huber) absolute pose priors."""
-    return [PosePrior(m.i, m.T_map_vehicle, m.information, "survey", "huber", kernel_k)
-            for m in matches if m.accepted]
+    """Accepted matches as robust (Huber) absolute pose priors: the vertical part from the ground
+    registration, the horizontal part from the marking match, each where accepted."""
+    from stages.posegraph.survey_markings import horizontal_information_body
+
+    out = []
+    for m in matches:
+        T, info = m.T_map_vehicle.copy(), (m.information if m.accepted else np.zeros((6, 6)))
+        h = m.horizontal
+        if h is not None and h.accepted:
+            T[:2, 3] += h.shift_en_m
+            info = info + horizontal_information_body(h.information_en, T[:3, :3])
+        if np.any(info):
+            out.append(PosePrior(m.i, T, info, "survey", "huber", kernel_k))
+    return out
 
 
-def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_out: list | None = None):
+def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_out: list | None = None,
+                           survey_intensity: np.ndarray | None = None, feature_load=None):
     """A ``survey_priors(poses, offsets)`` callback for ``solve_map``: anchors keyframes every
-    ``p.survey_stride_m`` that the survey covers; every match (accepted or not) is appended to ``matches_out``."""
+    ``p.survey_stride_m`` that the survey covers; every match (accepted or not) is appended to ``matches_out``.
+    With the survey's intensities and a ``feature_load``er (scans with intensity and ring), each keyframe is
+    also matched horizontally on the painted markings (``survey_markings``)."""
+    from stages.posegraph.core import increments
     from stages.posegraph.loops import keyframes_by_travel
     from stages.posegraph.solve import vehicle_clouds
 
     survey_pts, tree = build_survey_index(survey_enu_m, p.loop_voxel_m / 2)
+    markings = None
+    if p.survey_markings and survey_intensity is not None and feature_load is not None:
+        from stages.posegraph.survey_markings import build_survey_marking_index, marking_anchor
+
+        markings = build_survey_marking_index(survey_enu_m, survey_intensity)
+    incs: dict[int, np.ndarray] = {}
+
+    def horizontal(k: int, poses: np.ndarray, offsets: np.ndarray):
+        o = int(np.searchsorted(offsets, k, side="right") - 1)
+        if o not in incs:
+            incs[o] = increments(drives[o])
+        a, b = int(offsets[o]), int(offsets[o + 1])
+        return marking_anchor(k - a, drives[o], poses[a:b], incs[o], feature_load, markings,
+                              half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
+                              search_m=p.survey_marking_search_m)
 
     def callback(poses: np.ndarray, offsets: np.ndarray) -> list[PosePrior]:
         group = np.repeat(np.arange(len(drives)), np.diff(offsets))
@@ -115,6 +146,8 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
                                min_sigma_m=p.survey_min_sigma_m, min_sigma_rad=p.survey_min_sigma_rad,
                                vertical_only=p.survey_vertical_only)
                    for k in keys]
+        if markings is not None:
+            matches = [replace(m, horizontal=horizontal(m.i, poses, offsets)) for m in matches]
         if matches_out is not None:
             matches_out.extend(matches)
         return survey_priors(matches)

@@ -1,0 +1,123 @@
+"""Horizontal survey anchors from painted road markings.
+
+The survey cloud holds road and sidewalk tops only, so a 3-D registration against it fixes height, roll and
+pitch but slides horizontally (``survey_anchor.vertical_part``). Its painted markings do fix the horizontal
+position: around a keyframe, the road-marking points of a few consecutive scans (per-ring adaptive threshold,
+Kim et al. s.2.2, deskewed, placed with the current pose estimate) are matched against the survey's marking
+mask (the markings stage's own adaptive threshold, Kim et al. s.2.1) by ``marking_match.match_markings``,
+whose peak shape says which directions the markings fix (lane lines: across only).
+Pure functions on arrays; the scans come through the caller's loader.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from stages.common.geometry import se3_inverse
+from stages.common.registration import deskew_points
+from stages.common.road_features import extract_road_features
+from stages.markings.elevation_grid import GridAccumulator
+from stages.markings.params import MarkingParams
+from stages.markings.rasterize import halo_px_for, rasterize_grid
+from stages.posegraph.marking_match import MarkingMatch, match_markings
+
+# (drive, scan_id) list -> {(drive, scan_id): (xyz_lidar (N,3), time_offset_s (N,) or None, intensity, ring)}
+FeatureLoader = Callable[[list[tuple[str, int]]], dict[tuple[str, int], tuple]]
+
+
+@dataclass
+class SurveyMarkingIndex:
+    points_enu_m: np.ndarray  # (N,3)
+    intensity: np.ndarray  # (N,)
+    tree: cKDTree  # 2-D, east/north
+
+
+def build_survey_marking_index(points_enu_m: np.ndarray, intensity: np.ndarray) -> SurveyMarkingIndex:
+    pts = np.asarray(points_enu_m, float)
+    return SurveyMarkingIndex(pts, np.asarray(intensity, float), cKDTree(pts[:, :2]))
+
+
+def survey_marking_window(index: SurveyMarkingIndex, centre_en_m: np.ndarray, half_size_m: float,
+                          params: MarkingParams = MarkingParams()) -> tuple[np.ndarray, tuple[float, float]]:
+    """The survey's marking mask (rows north-first) over a square window around ``centre_en_m``, computed
+    with the markings stage's elevation grid + adaptive threshold; returns (mask, south-west origin)."""
+    cell = params.cell_m
+    halo_px = halo_px_for(cell, params.threshold_block_m, params.ground_window_m)
+    n_px = int(round(2 * half_size_m / cell))
+    e0 = float(np.floor((centre_en_m[0] - half_size_m) / cell) * cell)
+    n0 = float(np.floor((centre_en_m[1] - half_size_m) / cell) * cell)
+    halo_m = halo_px * cell
+    acc = GridAccumulator(e0 - halo_m, n0 - halo_m, cell, (n_px + 2 * halo_px, n_px + 2 * halo_px))
+    idx = index.tree.query_ball_point(np.asarray(centre_en_m[:2], float), half_size_m * np.sqrt(2) + halo_m)
+    if idx:
+        acc.add(index.points_enu_m[idx], index.intensity[idx])
+    layer = rasterize_grid(acc.finish(params.min_points_per_cell), halo_px, min_points=params.min_points_per_cell,
+                           max_step_m=params.max_step_m, max_spread_m=params.max_spread_m,
+                           ground_window_m=params.ground_window_m, max_above_ground_m=params.max_above_ground_m,
+                           threshold_block_m=params.threshold_block_m,
+                           threshold_offset_sigma=params.threshold_offset_sigma,
+                           threshold_min_offset_levels=params.threshold_min_offset_levels,
+                           intensity_low_pct=params.intensity_low_pct, intensity_high_pct=params.intensity_high_pct,
+                           open_m=params.open_m, close_m=params.close_m,
+                           min_marking_area_m2=params.min_marking_area_m2, min_region_m2=params.min_region_m2)
+    return layer.marking, (e0, n0)
+
+
+def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, max_scans: int) -> np.ndarray:
+    """Scans of one drive within ``half_travel_m`` of travel before and after scan ``k`` (at most
+    ``max_scans`` on each side)."""
+    step = np.r_[0.0, np.linalg.norm(np.diff(positions_m[:, :2], axis=0), axis=1)]
+    travel = np.cumsum(step)
+    lo = max(int(np.searchsorted(travel, travel[k] - half_travel_m, side="left")), k - max_scans)
+    hi = min(int(np.searchsorted(travel, travel[k] + half_travel_m, side="right")), k + max_scans + 1)
+    return np.arange(lo, hi)
+
+
+def features_in_map(scans: list[tuple], T_map_vehicle: np.ndarray, T_vehicle_lidar: np.ndarray,
+                    motions_lidar: list[np.ndarray | None], sweep_s: list[float]) -> np.ndarray:
+    """(F,2) ENU marking points of several scans: each deskewed with its sweep motion (lidar frame), reduced
+    to per-ring adaptive-threshold features in its vehicle frame, placed with its pose."""
+    out = []
+    for (xyz, toff, intensity, ring), T, motion, dt in zip(scans, T_map_vehicle, motions_lidar, sweep_s):
+        pts = np.asarray(xyz, float)
+        if toff is not None and motion is not None:
+            pts = deskew_points(pts, np.asarray(toff, float), motion, dt)
+        f = extract_road_features(pts, intensity, ring, T_vehicle_lidar)
+        if len(f):
+            out.append(f @ T[:2, :2].T + T[:2, 3])
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_drive: np.ndarray,
+                   load: FeatureLoader, index: SurveyMarkingIndex, *, half_travel_m: float, max_scans: int,
+                   search_m: float, window_margin_m: float = 6.0) -> MarkingMatch:
+    """Match the marking submap around scan ``k_local`` of ``drive`` (poses = current estimate) to the survey."""
+    ks = submap_scan_indices(poses_drive[:, :3, 3], k_local, half_travel_m, max_scans)
+    got = load([(drive.name, int(drive.scan_ids[j])) for j in ks])
+    T_vl = drive.T_vehicle_lidar
+    motions, sweeps = [], []
+    for j in ks:
+        if j + 1 < drive.n:
+            motions.append(se3_inverse(T_vl) @ increments_drive[j + 1] @ T_vl)
+            sweeps.append((drive.stamps_ns[j + 1] - drive.stamps_ns[j]) * 1e-9)
+        else:
+            motions.append(None)
+            sweeps.append(0.1)
+    feats = features_in_map([got[(drive.name, int(drive.scan_ids[j]))] for j in ks], poses_drive[ks], T_vl,
+                            motions, sweeps)
+    centre = poses_drive[k_local, :2, 3]
+    half = half_travel_m + 30.0 + window_margin_m  # features reach ~30 m from their scan
+    mask, origin = survey_marking_window(index, centre, half)
+    return match_markings(feats, mask, origin, MarkingParams().cell_m, search_m=search_m)
+
+
+def horizontal_information_body(information_en: np.ndarray, R_map_vehicle: np.ndarray) -> np.ndarray:
+    """6x6 gtsam-order (rot, trans) body-frame information holding only the ENU horizontal 2x2 block."""
+    I3 = np.zeros((3, 3))
+    I3[:2, :2] = information_en
+    out = np.zeros((6, 6))
+    out[3:, 3:] = R_map_vehicle.T @ I3 @ R_map_vehicle
+    return out

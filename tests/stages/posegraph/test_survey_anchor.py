@@ -1,0 +1,77 @@
+"""Survey anchors: the vertical part of a ground registration, horizontal anchors from marking matches, and
+their effect on a biased-GNSS graph (synthetic truth)."""
+from __future__ import annotations
+
+import numpy as np
+
+from stages.common.geometry import se3_from_xyz_rpy
+from stages.posegraph.core import base_problem
+from stages.posegraph.graph import optimize
+from stages.posegraph.marking_match import MarkingMatch
+from stages.posegraph.metrics import horizontal_errors_m, rms
+from stages.posegraph.params import PosegraphParams
+from stages.posegraph.survey_anchor import SurveyMatch, survey_priors, vertical_information, vertical_part
+from stages.posegraph.survey_markings import horizontal_information_body, submap_scan_indices
+
+
+def test_vertical_part_keeps_the_horizontal_position_and_takes_height_and_tilt():
+    T_init = se3_from_xyz_rpy(100.0, 50.0, 1.0, 0.0, 0.0, 0.7)
+    T_reg = se3_from_xyz_rpy(102.5, 48.0, 1.2, 0.01, -0.02, 0.75)  # slid 3 m along the road, other heading
+    T = vertical_part(T_reg, T_init)
+    assert np.linalg.norm(T[:2, 3] - T_init[:2, 3]) < 0.01
+    assert abs(T[2, 3] - 1.2) < 0.08  # onto the registered ground plane (tilted by 0.02 rad over 3 m)
+    assert np.allclose(T[:3, 2], T_reg[:3, 2], atol=1e-9)  # registered up axis
+    yaw = np.arctan2(T[1, 0], T[0, 0])
+    assert abs(yaw - 0.7) < 1e-3  # heading kept
+
+
+def test_horizontal_information_is_the_enu_block_seen_in_the_body_frame():
+    R = se3_from_xyz_rpy(0, 0, 0, 0.0, 0.0, np.pi / 2)[:3, :3]  # vehicle x points north
+    info_en = np.diag([1 / 0.5 ** 2, 1 / 0.03 ** 2])  # east weak, north strong
+    body = horizontal_information_body(info_en, R)
+    assert np.allclose(body[:3, :], 0) and np.allclose(body[:, :3], 0)
+    assert np.isclose(body[3, 3], 1 / 0.03 ** 2) and np.isclose(body[4, 4], 1 / 0.5 ** 2)  # body x = north
+
+
+def _match(accepted: bool, shift=(0.3, -0.2)) -> MarkingMatch:
+    info = np.diag([400.0, 900.0]) if accepted else np.zeros((2, 2))
+    return MarkingMatch(np.array(shift), info, 0.8, 1000, accepted, "accepted" if accepted else "score")
+
+
+def test_survey_priors_combine_vertical_and_horizontal_parts_where_each_was_accepted():
+    T = se3_from_xyz_rpy(10, 20, 1, 0, 0, 0.3)
+    vinfo = vertical_information(0.02, 0.001)
+    both = SurveyMatch(0, T, vinfo, 0.9, 0.1, True, "accepted", _match(True))
+    only_h = SurveyMatch(1, T, vinfo, 0.1, 0.3, False, "fitness", _match(True))
+    only_v = SurveyMatch(2, T, vinfo, 0.9, 0.1, True, "accepted", _match(False))
+    none = SurveyMatch(3, T, vinfo, 0.1, 0.3, False, "fitness", _match(False))
+    priors = {pr.i: pr for pr in survey_priors([both, only_h, only_v, none])}
+    assert sorted(priors) == [0, 1, 2]
+    assert np.allclose(priors[0].T_map_vehicle[:2, 3], [10.3, 19.8])
+    assert priors[0].information[5, 5] > 1e3 and priors[0].information[3, 3] > 100
+    assert priors[1].information[5, 5] == 0 and priors[1].information[3, 3] > 100
+    assert np.allclose(priors[2].T_map_vehicle[:2, 3], [10, 20]) and priors[2].information[3, 3] < 1e-6
+
+
+def test_submap_indices_follow_travel_and_the_scan_cap():
+    pos = np.column_stack([np.r_[np.zeros(20), np.arange(1, 61) * 0.9], np.zeros(80), np.zeros(80)])
+    ks = submap_scan_indices(pos, 40, half_travel_m=8.0, max_scans=10)
+    assert ks[0] == 32 and ks[-1] == 48  # 0.9 m steps: 8 each side within 8 m of travel (cap 10 not reached)
+    ks = submap_scan_indices(pos, 22, half_travel_m=8.0, max_scans=10)
+    assert ks[0] == 12  # standing still: the cap, not the travel, limits the scans before
+
+
+def test_horizontal_anchors_pull_a_gnss_biased_graph_onto_truth(two_lap_drive):
+    """Biased GNSS (0.85 m) alone leaves the graph decimetres off; horizontal anchors at truth every 10 poses
+    with 3 cm sigma (what an accepted marking match gives) bring it within 5 cm."""
+    T_true, drive = two_lap_drive
+    p = PosegraphParams()
+    problem, _ = base_problem([drive], p)
+    before = rms(horizontal_errors_m(optimize(problem), T_true))
+    anchors = [SurveyMatch(i, T_true[i], np.zeros((6, 6)), 0.0, 0.0, False, "no ground",
+                           MarkingMatch(np.zeros(2), np.eye(2) / 0.03 ** 2, 0.8, 1000, True, "accepted"))
+               for i in range(0, len(T_true), 10)]
+    problem.pose_priors += survey_priors(anchors)
+    after = rms(horizontal_errors_m(optimize(problem), T_true))
+    assert before > 0.15, before
+    assert after < 0.05, (before, after)
