@@ -169,8 +169,9 @@ def main(argv=None) -> None:
     data = pipeline_inputs(args) if args.corners else synthetic_inputs(args)
     t_inputs = time.perf_counter() - t0
     with tempfile.TemporaryDirectory(prefix="bench-cornermap-") as workdir:
+        # the map is built from the map drive only (a pipeline's tables also hold the evaluation drive)
         ctx = make_context("cornermap", CornerMapParams(), {k: data[k] for k in ("corners", "poses", "drive_info")},
-                           workdir=Path(workdir))
+                           workdir=Path(workdir), settings={"map_drives": [data["drive0"]]} if args.corners else None)
         t0 = time.perf_counter()
         result = STAGE.load_compute()(ctx)
         t_compute = time.perf_counter() - t0
