@@ -137,16 +137,6 @@ def _map_drive_poses(ctx, columns: list[str]) -> pa.Table:
     return poses.select(columns)
 
 
-def _rasterize_kwargs(p: MarkingParams) -> dict[str, Any]:
-    return dict(min_points=p.min_points_per_cell, max_step_m=p.max_step_m, max_spread_m=p.max_spread_m,
-                ground_window_m=p.ground_window_m, max_above_ground_m=p.max_above_ground_m,
-                threshold_block_m=p.threshold_block_m, threshold_offset_sigma=p.threshold_offset_sigma,
-                threshold_min_offset_levels=p.threshold_min_offset_levels,
-                intensity_low_pct=p.intensity_low_pct, intensity_high_pct=p.intensity_high_pct,
-                open_m=p.open_m, close_m=p.close_m, min_marking_area_m2=p.min_marking_area_m2,
-                min_region_m2=p.min_region_m2)
-
-
 def compute(ctx) -> dict[str, Any]:
     params: MarkingParams = ctx.params
     key = ctx.partition
@@ -163,7 +153,7 @@ def compute(ctx) -> dict[str, Any]:
                                                                        e1 + halo_m, n1 + halo_m)
     for points, intensity in pieces:
         acc.add(points, intensity)
-    layer = rasterize_grid(acc.finish(params.min_points_per_cell), halo_px, **_rasterize_kwargs(params))
+    layer = rasterize_grid(acc.finish(params.min_points_per_cell), halo_px, **params.rasterize_kwargs())
     grid = layer.grid
     n_points = int(grid.count.sum())
     origin = ctx.settings.get("enu_origin")

@@ -43,6 +43,17 @@ class MarkingParams(Params):
     max_range_m: float = Field(25.0, gt=0, description="horizontal lidar range kept when accumulating scans")
     pose_buffer_m: float = Field(30.0, ge=0, description="tiles planned around the poses' path")
 
+    def rasterize_kwargs(self) -> dict:
+        """Keyword arguments of ``rasterize.rasterize_grid`` from these params (the stage and the pose graph's
+        survey marking anchors build their marking masks with the same call)."""
+        return dict(min_points=self.min_points_per_cell, max_step_m=self.max_step_m, max_spread_m=self.max_spread_m,
+                    ground_window_m=self.ground_window_m, max_above_ground_m=self.max_above_ground_m,
+                    threshold_block_m=self.threshold_block_m, threshold_offset_sigma=self.threshold_offset_sigma,
+                    threshold_min_offset_levels=self.threshold_min_offset_levels,
+                    intensity_low_pct=self.intensity_low_pct, intensity_high_pct=self.intensity_high_pct,
+                    open_m=self.open_m, close_m=self.close_m, min_marking_area_m2=self.min_marking_area_m2,
+                    min_region_m2=self.min_region_m2)
+
     @model_validator(mode="after")
     def _check(self) -> "MarkingParams":
         problems = []

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.common.geometry import se3_inverse
+from stages.common.registration import deskew_points
 from stages.posegraph.gnss_factors import attitude_priors, gnss_position_priors
 from stages.posegraph.graph import Between, PosePrior, Problem
 
@@ -49,6 +50,16 @@ def increments(drive: DriveInput) -> np.ndarray:
     for k in range(1, drive.n):
         inc[k] = drive.edge_T[k] if drive.edge_ok[k] else bridge_increment(drive, k)
     return inc
+
+
+def deskew_scan_lidar(drive: DriveInput, increments_drive: np.ndarray | None, k: int, points_lidar_m: np.ndarray,
+                      time_offset_s: np.ndarray | None) -> np.ndarray:
+    """Scan k's lidar points compensated for its own sweep (the motion into scan k+1, in the lidar frame);
+    unchanged when the scan has no per-point times or is the drive's last."""
+    if time_offset_s is None or k + 1 >= drive.n:
+        return points_lidar_m
+    T_l = se3_inverse(drive.T_vehicle_lidar) @ increments_drive[k + 1] @ drive.T_vehicle_lidar
+    return deskew_points(points_lidar_m, time_offset_s, T_l, (drive.stamps_ns[k + 1] - drive.stamps_ns[k]) * 1e-9)
 
 
 def chain(start: np.ndarray, inc: np.ndarray) -> np.ndarray:

@@ -10,8 +10,8 @@ from typing import Callable
 import numpy as np
 
 from stages.common.geometry import se3_inverse
-from stages.common.registration import crop_range, deskew_points
-from stages.posegraph.core import DriveInput, base_problem, increments
+from stages.common.registration import crop_range
+from stages.posegraph.core import DriveInput, base_problem, deskew_scan_lidar, increments
 from stages.posegraph.graph import Between, PosePrior, Problem, between_residuals, optimize
 from stages.posegraph.loops import find_candidates, keyframes_by_travel, verify_loop
 
@@ -57,11 +57,9 @@ def vehicle_clouds(drives: list[DriveInput], offsets: np.ndarray, wanted: np.nda
             pts, toff = got[(d.name, int(d.scan_ids[k]))][:2]
             keep = crop_range(pts, 2.0, 80.0)
             pts = np.asarray(pts, float)[keep]
-            if toff is not None and k + 1 < d.n:
-                if o not in incs:
-                    incs[o] = increments(d)
-                T_l = se3_inverse(d.T_vehicle_lidar) @ incs[o][k + 1] @ d.T_vehicle_lidar
-                pts = deskew_points(pts, np.asarray(toff, float)[keep], T_l, (d.stamps_ns[k + 1] - d.stamps_ns[k]) * 1e-9)
+            if toff is not None and o not in incs:
+                incs[o] = increments(d)
+            pts = deskew_scan_lidar(d, incs.get(o), k, pts, None if toff is None else np.asarray(toff, float)[keep])
             pts = pts @ d.T_vehicle_lidar[:3, :3].T + d.T_vehicle_lidar[:3, 3]
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel_m)
             out[g] = np.asarray(cloud.points)

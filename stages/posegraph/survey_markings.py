@@ -16,12 +16,11 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from stages.common.geometry import se3_inverse
-from stages.common.registration import deskew_points
 from stages.common.road_features import extract_road_features
 from stages.markings.elevation_grid import GridAccumulator
 from stages.markings.params import MarkingParams
 from stages.markings.rasterize import halo_px_for, rasterize_grid
+from stages.posegraph.core import deskew_scan_lidar
 from stages.posegraph.marking_match import MarkingMatch, match_markings
 
 # (drive, scan_id) list -> {(drive, scan_id): (xyz_lidar (N,3), time_offset_s (N,) or None, intensity, ring)}
@@ -54,15 +53,7 @@ def survey_marking_window(index: SurveyMarkingIndex, centre_en_m: np.ndarray, ha
     idx = index.tree.query_ball_point(np.asarray(centre_en_m[:2], float), half_size_m * np.sqrt(2) + halo_m)
     if idx:
         acc.add(index.points_enu_m[idx], index.intensity[idx])
-    layer = rasterize_grid(acc.finish(params.min_points_per_cell), halo_px, min_points=params.min_points_per_cell,
-                           max_step_m=params.max_step_m, max_spread_m=params.max_spread_m,
-                           ground_window_m=params.ground_window_m, max_above_ground_m=params.max_above_ground_m,
-                           threshold_block_m=params.threshold_block_m,
-                           threshold_offset_sigma=params.threshold_offset_sigma,
-                           threshold_min_offset_levels=params.threshold_min_offset_levels,
-                           intensity_low_pct=params.intensity_low_pct, intensity_high_pct=params.intensity_high_pct,
-                           open_m=params.open_m, close_m=params.close_m,
-                           min_marking_area_m2=params.min_marking_area_m2, min_region_m2=params.min_region_m2)
+    layer = rasterize_grid(acc.finish(params.min_points_per_cell), halo_px, **params.rasterize_kwargs())
     return layer.marking, (e0, n0)
 
 
@@ -76,15 +67,12 @@ def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, m
     return np.arange(lo, hi)
 
 
-def features_in_map(scans: list[tuple], T_map_vehicle: np.ndarray, T_vehicle_lidar: np.ndarray,
-                    motions_lidar: list[np.ndarray | None], sweep_s: list[float]) -> np.ndarray:
-    """(F,2) ENU marking points of several scans: each deskewed with its sweep motion (lidar frame), reduced
-    to per-ring adaptive-threshold features in its vehicle frame, placed with its pose."""
+def features_in_map(scans: list[tuple[np.ndarray, np.ndarray, np.ndarray]], T_map_vehicle: np.ndarray,
+                    T_vehicle_lidar: np.ndarray) -> np.ndarray:
+    """(F,2) ENU marking points of several deskewed scans (lidar points, intensity, ring): per-ring
+    adaptive-threshold features in each vehicle frame, placed with its pose."""
     out = []
-    for (xyz, toff, intensity, ring), T, motion, dt in zip(scans, T_map_vehicle, motions_lidar, sweep_s):
-        pts = np.asarray(xyz, float)
-        if toff is not None and motion is not None:
-            pts = deskew_points(pts, np.asarray(toff, float), motion, dt)
+    for (pts, intensity, ring), T in zip(scans, T_map_vehicle):
         f = extract_road_features(pts, intensity, ring, T_vehicle_lidar)
         if len(f):
             out.append(f @ T[:2, :2].T + T[:2, 3])
@@ -97,17 +85,13 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
     """Match the marking submap around scan ``k_local`` of ``drive`` (poses = current estimate) to the survey."""
     ks = submap_scan_indices(poses_drive[:, :3, 3], k_local, half_travel_m, max_scans)
     got = load([(drive.name, int(drive.scan_ids[j])) for j in ks])
-    T_vl = drive.T_vehicle_lidar
-    motions, sweeps = [], []
+    scans = []
     for j in ks:
-        if j + 1 < drive.n:
-            motions.append(se3_inverse(T_vl) @ increments_drive[j + 1] @ T_vl)
-            sweeps.append((drive.stamps_ns[j + 1] - drive.stamps_ns[j]) * 1e-9)
-        else:
-            motions.append(None)
-            sweeps.append(0.1)
-    feats = features_in_map([got[(drive.name, int(drive.scan_ids[j]))] for j in ks], poses_drive[ks], T_vl,
-                            motions, sweeps)
+        xyz, toff, intensity, ring = got[(drive.name, int(drive.scan_ids[j]))]
+        pts = deskew_scan_lidar(drive, increments_drive, int(j), np.asarray(xyz, float),
+                                None if toff is None else np.asarray(toff, float))
+        scans.append((pts, intensity, ring))
+    feats = features_in_map(scans, poses_drive[ks], drive.T_vehicle_lidar)
     centre = poses_drive[k_local, :2, 3]
     half = half_travel_m + 30.0 + window_margin_m  # features reach ~30 m from their scan
     mask, origin = survey_marking_window(index, centre, half)

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from stages.markings.compute import _rasterize_kwargs
 from stages.markings.elevation_grid import GridAccumulator, grid_points
 from stages.markings.metrics import match_masks
 from stages.markings.params import MarkingParams
@@ -23,7 +22,7 @@ def _street_layer(seed: int, params: MarkingParams = MarkingParams()):
     halo = halo_px_for(CELL_M, params.threshold_block_m, params.ground_window_m)
     grid = grid_points(street.points_enu_m, street.intensity, -halo * CELL_M, -halo * CELL_M, CELL_M,
                        (200 + 2 * halo, 200 + 2 * halo))
-    return rasterize_grid(grid, halo, **_rasterize_kwargs(params))
+    return rasterize_grid(grid, halo, **params.rasterize_kwargs())
 
 
 @pytest.mark.parametrize("seed", [0, 1])
