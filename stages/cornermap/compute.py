@@ -6,10 +6,10 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from pipeline.errors import DataQualityError
 from schemas import SCHEMAS
+from stages.common.drive_tables import select_drives
 from stages.common.geometry import poses_from_xyz_quat
 from stages.cornermap.aggregate import aggregate_clusters
 from stages.cornermap.clustering import cluster_observations
@@ -19,10 +19,6 @@ from stages.cornermap.partition import cluster_partitioned
 from stages.cornermap.transform import covariance_from_components, transform_to_enu
 
 log = logging.getLogger(__name__)
-
-def _select_drives(table: pa.Table, drives: list[str]) -> pa.Table:
-    return table.filter(pc.is_in(table["drive"], pa.array(drives, pa.string()))) if drives else table
-
 
 def match_poses(corners: pa.Table, poses: pa.Table) -> tuple[np.ndarray, np.ndarray]:
     """Row of ``poses`` holding each corner's (drive, scan_id) -> (pose_row, has_pose), vectorised."""
@@ -73,8 +69,8 @@ def _empty(name: str) -> pa.Table:
 def compute(ctx) -> dict[str, Any]:
     p: CornerMapParams = ctx.params
     drives = list(ctx.settings.get("map_drives") or [])
-    corners = _select_drives(ctx.inputs.read("corners"), drives)
-    poses = _select_drives(ctx.inputs.read("poses"), drives)
+    corners = select_drives(ctx.inputs.read("corners"), drives)
+    poses = select_drives(ctx.inputs.read("poses"), drives)
     pose_row, has_pose = match_poses(corners, poses)
     finite = _finite_rows(corners)
     keep = has_pose & finite

@@ -17,6 +17,7 @@ import pyarrow.compute as pc
 from pipeline.declare import PartitionKey
 from pipeline.errors import ConfigError, FormatError
 from schemas import SCHEMAS
+from stages.common.drive_tables import select_drives
 from stages.common.tiling import tile_bounds, tile_key_of, tile_shape_px, tiles_touching
 from stages.markings.accumulate import pose_matrices, scans_to_enu
 from stages.markings.elevation_grid import GridAccumulator
@@ -131,10 +132,7 @@ def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[t
 def _map_drive_poses(ctx, columns: list[str]) -> pa.Table:
     """Optimized poses of the workflow's map drives only (evaluation drives never go into the map)."""
     poses = ctx.inputs.read("poses", columns=list(dict.fromkeys(["drive", *columns])))
-    drives = list(ctx.settings.get("map_drives") or [])
-    if drives:
-        poses = poses.filter(pc.is_in(poses["drive"], pa.array(drives)))
-    return poses.select(columns)
+    return select_drives(poses, list(ctx.settings.get("map_drives") or [])).select(columns)
 
 
 def compute(ctx) -> dict[str, Any]:
