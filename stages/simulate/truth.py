@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from stages.simulate.city import City
-from stages.simulate.geom2d import polygon_corners
+from stages.simulate.geom2d import point_in_polygon, polygon_corners
 from stages.simulate.mesh import Scene
 
 VISIBLE_RANGE_M = 60.0
@@ -48,6 +48,111 @@ def count_visible_scans(corners: dict[str, np.ndarray], static: Scene, lidar_en:
         dist = np.linalg.norm(vec, axis=1)
         t_hit, _ = static.cast(origin, vec / dist[:, None])
         np.add.at(counts, c, (t_hit >= dist - 0.05).astype(np.int64))
+    return counts
+
+
+def union_corner_walls(footprints_en: list[np.ndarray], corners_en: np.ndarray, theta_rad: np.ndarray, *,
+                       radius_m: float = 0.5, n_dirs: int = 720, snap_deg: float = 5.0,
+                       straight_deg: float = 20.0
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The corners as the union of the footprints shows them. Where buildings touch (a shared party wall), a
+    footprint vertex's own walls are not what a sensor sees: one may be hidden inside the neighbour and the
+    neighbour's wall continue past the vertex. Around each vertex, occupancy (inside any footprint) is
+    sampled on a circle of ``radius_m``; with exactly two occupied/free transitions the walls are the
+    transition directions (snapped to the direction of a footprint edge passing within ``radius_m / 2``,
+    within ``snap_deg``), and the inward direction is the occupied sector's mean. Returns theta (K,2) rad,
+    inward (K,2) unit, and not_corner (K,) bool: the vertex lies inside the union, or its union walls are
+    within ``straight_deg`` of a straight line (two facades continuing each other with a small step), or a
+    wall is not straight within ``radius_m`` (a step shorter than that: no line for an extractor).
+    Vertices with more than two transitions keep their own walls."""
+    polys = [np.asarray(f, float) for f in footprints_en]
+    lo = np.array([p.min(axis=0) for p in polys]) - radius_m
+    hi = np.array([p.max(axis=0) for p in polys]) + radius_m
+    phi = (np.arange(n_dirs) + 0.5) * 2 * np.pi / n_dirs
+    ring = radius_m * np.column_stack([np.cos(phi), np.sin(phi)])
+    theta = np.array(theta_rad, float).reshape(-1, 2).copy()
+    inward = np.zeros((len(theta), 2))
+    hidden = np.zeros(len(theta), bool)
+    for c, v in enumerate(np.asarray(corners_en, float)):
+        near = np.flatnonzero(np.all((lo <= v) & (v <= hi), axis=1))
+        occ = np.zeros(n_dirs, bool)
+        edge_dirs = list(theta[c])
+        for b in near:
+            occ |= point_in_polygon(v + ring, polys[b])
+            q = polys[b]
+            for a, e in zip(q, np.roll(q, -1, axis=0)):
+                seg = e - a
+                t = np.clip((v - a) @ seg / (seg @ seg), 0.0, 1.0)
+                if np.linalg.norm(a + t * seg - v) < radius_m / 2:
+                    ang = np.arctan2(seg[1], seg[0])
+                    edge_dirs += [ang, ang + np.pi]
+        if not occ.any() or occ.all():
+            hidden[c] = occ.all()
+            continue
+        trans = np.flatnonzero(occ != np.roll(occ, 1))
+        mean = np.array([np.cos(phi[occ]).sum(), np.sin(phi[occ]).sum()])
+        inward[c] = mean / max(np.linalg.norm(mean), 1e-12)
+        if len(trans) != 2:
+            continue
+        walls = phi[trans] - np.pi / n_dirs  # the boundary between sample j-1 and j
+        cand = np.asarray(edge_dirs)
+        snapped = 0
+        for w in range(2):
+            diff = np.abs((cand - walls[w] + np.pi) % (2 * np.pi) - np.pi)
+            if diff.min() <= np.radians(snap_deg):
+                walls[w] = cand[np.argmin(diff)]
+                snapped += 1
+        own = theta[c]
+        d_keep = sum(abs((walls[w] - own[w] + np.pi) % (2 * np.pi) - np.pi) for w in range(2))
+        d_swap = sum(abs((walls[1 - w] - own[w] + np.pi) % (2 * np.pi) - np.pi) for w in range(2))
+        theta[c] = walls if d_keep <= d_swap else walls[::-1]
+        theta[c] = (theta[c] + np.pi) % (2 * np.pi) - np.pi
+        bend = abs((walls[0] - walls[1]) % (2 * np.pi) - np.pi)
+        hidden[c] = bend < np.radians(straight_deg) or snapped < 2
+    return theta, inward, hidden
+
+
+def count_corner_views(corners: dict[str, np.ndarray], static: Scene, lidar_en: np.ndarray, lidar_z_m: float, *,
+                       min_range_m: float = 8.0, max_range_m: float = VISIBLE_RANGE_M,
+                       along_m: tuple[float, ...] = (0.3, 1.0), outside_m: float = 0.05) -> np.ndarray:
+    """Per corner: number of scan positions that see it *as a corner* (Im et al. extract a corner from two
+    walls): both walls opaque (a glass wall returns nothing), the sensor in front of both wall faces, within
+    [min_range_m, max_range_m], and an unobstructed line of sight to points ``along_m`` along each wall
+    (``outside_m`` in front of it) at the upper layers' height. ``count_visible_scans`` counts a line of
+    sight to the corner point alone, which a scan looking along one wall also has."""
+    from scipy.spatial import cKDTree
+
+    en = np.column_stack([corners["east_m"], corners["north_m"]])
+    th = np.radians(np.column_stack([corners["theta1_deg"], corners["theta2_deg"]]))
+    inward = np.asarray(corners["inward_en"], float)
+    z_t = np.minimum(lidar_z_m + 1.5, np.asarray(corners["height_m"], float) - 0.5)
+    counts = np.zeros(len(en), np.int64)
+    tree = cKDTree(lidar_en)
+    for c in np.flatnonzero(np.asarray(corners["glass_walls"]) == 0):
+        scans = np.asarray(tree.query_ball_point(en[c], max_range_m), np.int64)
+        if not len(scans):
+            continue
+        view = lidar_en[scans] - en[c]
+        rng = np.linalg.norm(view, axis=1)
+        ok = rng >= min_range_m
+        targets = []
+        for t in th[c]:
+            d = np.array([np.cos(t), np.sin(t)])
+            n = np.array([-d[1], d[0]])
+            n = -n if n @ inward[c] > 0 else n  # outward normal of this wall
+            ok &= view @ n > 0
+            targets += [en[c] + a * d + outside_m * n for a in along_m]
+        scans = scans[ok]
+        if not len(scans):
+            continue
+        origin = np.column_stack([lidar_en[scans], np.full(len(scans), lidar_z_m)])
+        clear = np.ones(len(scans), bool)
+        for tgt in targets:
+            vec = np.r_[tgt, z_t[c]] - origin
+            dist = np.linalg.norm(vec, axis=1)
+            t_hit, _ = static.cast(origin, vec / dist[:, None])
+            clear &= t_hit >= dist - 0.05
+        counts[c] = int(clear.sum())
     return counts
 
 
