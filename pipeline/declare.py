@@ -122,6 +122,11 @@ class InputReader:
              filters: Any = None) -> "pa.Table":  # pragma: no cover - interface
         raise NotImplementedError
 
+    def read_in(self, arg: str, column: str, values: Any, *, partition: PartitionKey | None = None,
+                columns: list[str] | None = None) -> "pa.Table":  # pragma: no cover - interface
+        """Rows whose ``column`` is one of ``values`` (a key lookup: only the data that can hold them is read)."""
+        raise NotImplementedError
+
     def partitions(self, arg: str) -> list[PartitionKey]:  # pragma: no cover - interface
         raise NotImplementedError
 

@@ -9,6 +9,7 @@ Layout under the output root::
 """
 from __future__ import annotations
 
+import bisect
 import json
 import os
 import shutil
@@ -17,6 +18,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
@@ -160,6 +162,7 @@ class StoreInputReader(InputReader):
         self._inputs = inputs  # arg -> (dataset, fingerprint) ; fingerprint "" = absent optional input
         self._schemas = schemas
         self._manifests: dict[str, dict | None] = {}
+        self._row_groups: dict[tuple[str, str], list[tuple[str, int, Any, Any]]] = {}
 
     def _manifest(self, arg: str) -> dict | None:
         if arg not in self._manifests:
@@ -192,6 +195,64 @@ class StoreInputReader(InputReader):
             return ds.to_table(columns=columns, filter=filters)
         except (OSError, pa.ArrowInvalid) as exc:
             raise DatasetIOError(f"cannot read dataset {dataset!r} ({base}): {exc}") from exc
+
+    def _row_group_index(self, arg: str, column: str) -> list[tuple[str, int, Any, Any]]:
+        """(file, row group, min, max of ``column``) of every file of the dataset, from the Parquet footers."""
+        key = (arg, column)
+        if key not in self._row_groups:
+            m = self._require(arg)
+            dataset, fp = self._inputs[arg]
+            base = dataset_dir(self.root, dataset, fp)
+            index = []
+            for r in m["files"]:
+                path = str(base / r["path"])
+                try:
+                    meta = pq.ParquetFile(path).metadata
+                except (OSError, pa.ArrowInvalid) as exc:
+                    raise DatasetIOError(f"cannot read the footer of {path} (dataset {dataset!r}): {exc}") from exc
+                col = meta.schema.to_arrow_schema().get_field_index(column)
+                if col < 0:
+                    raise DatasetIOError(f"{path}: no column {column!r} (dataset {dataset!r})")
+                for g in range(meta.num_row_groups):
+                    st = meta.row_group(g).column(col).statistics
+                    has = st is not None and st.has_min_max
+                    index.append((path, g, st.min if has else None, st.max if has else None))
+            self._row_groups[key] = index
+        return self._row_groups[key]
+
+    def read_in(self, arg, column, values, *, partition=None, columns=None) -> pa.Table:
+        """Reads only the row groups whose ``column`` statistics can hold one of ``values`` (pyarrow's dataset
+        filter prunes row groups on ranges but not on ``is_in``, so a scattered key lookup read every row group:
+        measured 26 s vs 2.9 s for 62 scans of a 9500-scan drive)."""
+        schema = self._schemas[arg]
+        names = list(columns) if columns else None
+        keys = sorted(set(values))
+        wanted_files = None
+        if partition is not None:
+            m = self._require(arg)
+            dataset, fp = self._inputs[arg]
+            base = dataset_dir(self.root, dataset, fp)
+            wanted_files = {str(base / r["path"]) for r in m["files"] if _matches(r.get("partition", {}), partition)}
+        read_cols = names if names is None or column in names else names + [column]
+        parts = []
+        for path, g, lo, hi in self._row_group_index(arg, column):
+            if wanted_files is not None and path not in wanted_files:
+                continue
+            first = bisect.bisect_left(keys, lo) if lo is not None else 0
+            if lo is not None and (first == len(keys) or keys[first] > hi):
+                continue
+            try:
+                tab = pq.ParquetFile(path).read_row_group(g, columns=read_cols)
+            except (OSError, pa.ArrowInvalid) as exc:
+                raise DatasetIOError(f"cannot read row group {g} of {path}: {exc}") from exc
+            tab = tab.filter(pc.is_in(tab[column], value_set=pa.array(keys, tab.schema.field(column).type)))
+            if tab.num_rows:
+                parts.append(tab.select(names) if names else tab)
+        if schema is not None:
+            target = pa.schema([schema.field(c) for c in (names or schema.names)])
+            parts = [t.cast(target) for t in parts]
+            return pa.concat_tables(parts) if parts else target.empty_table()
+        return pa.concat_tables(parts) if parts else pa.table({})
 
     def partitions(self, arg: str) -> list[PartitionKey]:
         m = self._require(arg)

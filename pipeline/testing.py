@@ -38,6 +38,11 @@ class MemoryInputReader(InputReader):
             table = table.filter(filters)
         return table.select(columns) if columns else table
 
+    def read_in(self, arg, column, values, *, partition=None, columns=None) -> pa.Table:
+        table = self.read(arg, partition=partition)
+        table = table.filter(pc.is_in(table[column], value_set=pa.array(list(values), table.schema.field(column).type)))
+        return table.select(columns) if columns else table
+
     def partitions(self, arg: str) -> list[PartitionKey]:
         table = self._tables[arg]
         cols = [c for c in _PARTITION_COLUMNS if c in table.column_names]

@@ -24,13 +24,27 @@ class MclConfig:
     n_particles: int = 1000
     init_sigma_xy_m: float = 1.0
     init_sigma_yaw_rad: float = np.deg2rad(1.0)
-    sigma_frac: float = 0.03  # translation noise per metre travelled
-    sigma_xy_m: float = 0.02  # translation noise floor per step
-    sigma_yaw_rad: float = np.deg2rad(0.1)  # heading noise per step
+    # motion noise on top of the per-particle calibration (wheel scale, gyro bias)
+    sigma_frac: float = 0.005  # along-track noise per metre travelled
+    sigma_lateral_frac: float = 0.002  # across-track noise per metre travelled
+    sigma_xy_m: float = 0.005  # translation noise floor per moving step
+    sigma_yaw_rad: float = np.deg2rad(0.01)  # heading noise per moving step
+    sigma_yaw_frac: float = 0.01  # heading noise per radian turned (gyro scale error)
+    init_sigma_scale: float = 0.015  # wheel-speed scale factor std about 1
+    sigma_scale_per_sqrt_m: float = 1e-4  # its random walk
+    init_sigma_gyro_bias_radps: float = 0.002  # gyro bias std about 0
+    sigma_gyro_bias_per_sqrt_s: float = 5e-5  # its random walk
+    epoch_s: float = 0.1  # scan period, used when the epoch stamps are not given
+    standstill_m: float = 1e-3  # a step shorter than this is a standstill: pose held, no update
+    decorrelation_m: float = 0.5  # travel after which a scan's features count as a fresh, full measurement
     sharpness: float = 8.0  # log-likelihood gain per effective feature point at full correlation
     effective_points: float = 60.0
     max_features: int = 400
     resample_neff_ratio: float = 0.5
+    roughen_xy_m: float = 0.005
+    roughen_yaw_rad: float = np.deg2rad(0.005)
+    min_ess_ratio: float = 0.05  # an update that would leave fewer effective particles is applied in pieces
+    max_corrections: int = 6  # pieces of one update at most (progressive correction)
     window_m: float = 240.0  # side of a fetched raster window
     feature_range_m: float = 30.0
     min_features: int = 10
@@ -41,6 +55,8 @@ class MclRun:
     q: np.ndarray  # (E,3), NaN before initialisation
     P: np.ndarray  # (E,3,3)
     n_features: np.ndarray  # (E,) int
+    calibration: np.ndarray | None = None  # (E,2) mean wheel scale and gyro bias [rad/s]
+    ess: np.ndarray | None = None  # (E,) effective sample size after the update
 
 
 def odometry_increments(odo_stamps_ns: np.ndarray, speed_mps: np.ndarray, yaw_rate_radps: np.ndarray,
@@ -73,38 +89,80 @@ def _window_around(q: np.ndarray, fetch: RasterFetcher, cfg: MclConfig) -> mcl.R
     return fetch(q[0] - half, q[1] - half, q[0] + half, q[1] + half)
 
 
+def _update(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, feats: np.ndarray, raster: mcl.Raster,
+            alpha: float, cfg: MclConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weight by ``alpha`` times the scan's log-likelihood; when that would leave fewer than ``min_ess_ratio * N``
+    effective particles, apply it in pieces with a resample and a regularisation move in between."""
+    log_w = np.log(np.maximum(weights, 1e-300))
+    remaining = alpha
+    min_ess = cfg.min_ess_ratio * cfg.n_particles
+    for piece in range(max(1, cfg.max_corrections)):
+        loglik = mcl.log_likelihood(mcl.correlation_scores(particles, feats, raster), len(feats), cfg.sharpness,
+                                    cfg.effective_points)
+        last = piece == cfg.max_corrections - 1
+        beta = remaining if last else mcl.tempering_step(log_w, loglik, remaining, min_ess)
+        weights = mcl.normalized_weights(log_w + beta * loglik)
+        remaining -= beta
+        if remaining <= 1e-9 * alpha:
+            break
+        idx = mcl.low_variance_resample(weights, rng)
+        particles = mcl.regularize(particles[idx], rng, floor=(cfg.roughen_xy_m, cfg.roughen_xy_m, cfg.roughen_yaw_rad))
+        calib = calib[idx]
+        log_w = np.full(cfg.n_particles, -np.log(cfg.n_particles))
+    return particles, calib, weights
+
+
 def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_m: np.ndarray,
             fetch: RasterFetcher, q0: np.ndarray, start_epoch: int, rng: np.random.Generator,
-            cfg: MclConfig = MclConfig()) -> MclRun:
-    """Run the particle filter from ``start_epoch`` (particles drawn about q0) to the last epoch."""
+            cfg: MclConfig = MclConfig(), stamps_ns: np.ndarray | None = None) -> MclRun:
+    """Run the particle filter from ``start_epoch`` (particles drawn about q0) to the last epoch.
+
+    Each epoch: predict with the wheel + gyro increment through every particle's calibration (a standstill holds
+    the pose: a car does not turn in place, whatever the gyro bias integrates); weight by the correlation of the
+    scan's features, tempered by the travel since the previous scan (overlapping scans repeat most of their
+    evidence); resample (low variance) when the effective sample size drops, then roughen.
+    """
     n = len(increments)
     q_out = np.full((n, 3), np.nan)
     P_out = np.full((n, 3, 3), np.nan)
+    cal_out = np.full((n, 2), np.nan)
+    ess_out = np.full(n, np.nan)
     n_feat = np.zeros(n, dtype=np.int32)
     off = np.searchsorted(feature_epoch, np.arange(n + 1))
+    dt = np.full(n, cfg.epoch_s) if stamps_ns is None else np.r_[cfg.epoch_s, np.diff(stamps_ns) * 1e-9]
     particles = mcl.init_particles(q0, cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad, cfg.n_particles, rng)
+    calib = mcl.init_calibration(cfg.n_particles, cfg.init_sigma_scale, cfg.init_sigma_gyro_bias_radps, rng)
     weights = np.full(cfg.n_particles, 1.0 / cfg.n_particles)
     raster = _window_around(q0, fetch, cfg)
     margin = cfg.feature_range_m + 3.0 * cfg.init_sigma_xy_m
+    travel = np.inf  # since the last update; the first scan is a full measurement
     for k in range(start_epoch, n):
-        if k > start_epoch:
+        step = float(np.hypot(increments[k, 0], increments[k, 1])) if k > start_epoch else 0.0
+        if step >= cfg.standstill_m:
             particles = mcl.predict_particles(particles, increments[k], cfg.sigma_frac, cfg.sigma_xy_m,
-                                              cfg.sigma_yaw_rad, rng)
+                                              cfg.sigma_yaw_rad, rng, calib, float(dt[k]), cfg.sigma_lateral_frac,
+                                              cfg.sigma_yaw_frac)
+            calib[:, 0] += cfg.sigma_scale_per_sqrt_m * np.sqrt(step) * rng.standard_normal(cfg.n_particles)
+            calib[:, 1] += cfg.sigma_gyro_bias_per_sqrt_s * np.sqrt(dt[k]) * rng.standard_normal(cfg.n_particles)
+            travel += step
         feats = features_vehicle_m[off[k]:off[k + 1]]
         if len(feats) > cfg.max_features:
             feats = feats[rng.choice(len(feats), cfg.max_features, replace=False)]
         n_feat[k] = len(feats)
-        if len(feats) >= cfg.min_features:
+        alpha = min(1.0, travel / cfg.decorrelation_m) if cfg.decorrelation_m > 0 else 1.0
+        if len(feats) >= cfg.min_features and alpha > 0:
             lo, hi = particles[:, :2].min(axis=0) - margin, particles[:, :2].max(axis=0) + margin
             if not raster.contains(lo[0], lo[1], hi[0], hi[1]):
                 raster = _window_around(np.average(particles, axis=0, weights=weights), fetch, cfg)
-            scores = mcl.correlation_scores(particles, feats, raster)
-            logw = np.log(weights) + mcl.log_likelihood(scores, len(feats), cfg.sharpness, cfg.effective_points)
-            weights = np.exp(logw - logw.max())
-            weights /= weights.sum()
-            if mcl.effective_sample_size(weights) < cfg.resample_neff_ratio * cfg.n_particles:
-                particles = particles[mcl.low_variance_resample(weights, rng)]
+            particles, calib, weights = _update(particles, calib, weights, feats, raster, alpha, cfg, rng)
+            travel = 0.0
+            ess_out[k] = mcl.effective_sample_size(weights)
+            if ess_out[k] < cfg.resample_neff_ratio * cfg.n_particles:
+                idx = mcl.low_variance_resample(weights, rng)
+                particles = mcl.roughen(particles[idx], cfg.roughen_xy_m, cfg.roughen_yaw_rad, rng)
+                calib = calib[idx]
                 weights = np.full(cfg.n_particles, 1.0 / cfg.n_particles)
         q_out[k], P_out[k] = mcl.estimate(particles, weights)
+        cal_out[k] = weights @ calib
     q_out[:, 2] = np.where(np.isfinite(q_out[:, 2]), wrap_angle_rad(q_out[:, 2]), np.nan)
-    return MclRun(q_out, P_out, n_feat)
+    return MclRun(q_out, P_out, n_feat, cal_out, ess_out)

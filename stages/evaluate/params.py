@@ -39,6 +39,8 @@ class EvaluateParams(Params):
     mcl_effective_points: float = Field(60.0, gt=0)
     mcl_max_features: int = Field(400, ge=10)
     raster_blur_m: float = Field(0.2, ge=0, description="Gaussian blur of the marking raster")
+    feature_deskew: bool = Field(True, description="motion-compensate each scan to its start (wheel speed + gyro) "
+                                 "before extracting road features")
     feature_voxel_m: float = Field(0.1, gt=0)
     feature_window_m: float = Field(3.0, gt=0, description="moving-average window along a ring, metres of arc")
     feature_offset_sigma: float = Field(3.0, gt=0, description="threshold in robust std of the ring residual")

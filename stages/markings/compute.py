@@ -116,11 +116,10 @@ def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[t
         T_vehicle_lidar = extrinsics.get(drive, np.eye(4))
         if drive not in extrinsics:
             log.warning("no drive_info for drive %s: using identity T_vehicle_lidar", drive)
-        wanted = pc.field("scan_id").isin(pa.array(ids))
         for part in (p for p in scan_parts if p.drive in (None, drive)):
-            table = ctx.inputs.read("scans", partition=part, columns=["drive", "scan_id", "x_m", "y_m", "z_m",
-                                                                     "intensity"],
-                                    filters=wanted & (pc.field("drive") == drive))
+            table = ctx.inputs.read_in("scans", "scan_id", ids.tolist(), partition=part,
+                                       columns=["drive", "scan_id", "x_m", "y_m", "z_m", "intensity"])
+            table = table.filter(pc.equal(table["drive"], drive))
             if table.num_rows == 0:
                 continue
             pts = np.column_stack([table[c].to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])

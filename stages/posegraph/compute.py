@@ -8,9 +8,8 @@ import logging
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
-from pipeline.declare import StageContext
+from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError
 from stages.common.geometry import write_kitti, write_tum
 from stages.posegraph.core import dead_reckoning
@@ -23,15 +22,14 @@ log = logging.getLogger(__name__)
 
 
 def scan_loader(ctx: StageContext, extra_columns: tuple[str, ...] = ()):
-    """Reads only the requested scans (pyarrow filters on drive and scan_id): (xyz, time offsets or None,
+    """Reads only the requested scans (the row groups that hold them): (xyz, time offsets or None,
     *extra columns) per scan."""
     def load(requests: list[tuple[str, int]]):
         out = {}
         for drive in sorted({d for d, _ in requests}):
             ids = sorted({s for d, s in requests if d == drive})
-            tab = ctx.inputs.read("scans", columns=["drive", "scan_id", "x_m", "y_m", "z_m", "time_offset_s",
-                                                    *extra_columns],
-                                  filters=(pc.field("drive") == drive) & pc.field("scan_id").isin(ids))
+            tab = ctx.inputs.read_in("scans", "scan_id", ids, partition=PartitionKey(drive=drive),
+                                     columns=["scan_id", "x_m", "y_m", "z_m", "time_offset_s", *extra_columns])
             sid = tab["scan_id"].to_numpy()
             xyz = np.column_stack([tab[c].to_numpy().astype(np.float64) for c in ("x_m", "y_m", "z_m")])
             toff = tab["time_offset_s"].to_numpy().astype(np.float64)

@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from stages.common.geometry import skew
 
 
 @dataclass(frozen=True)
@@ -99,29 +98,46 @@ def _bias_key(j: int) -> int:
     return gtsam.symbol("b", j)
 
 
-def gnss_with_bias_factor(pose_key: int, bias_key: int, measured_enu_m: np.ndarray, lever_arm_m: np.ndarray,
-                          model, axes: tuple[int, ...] = (0, 1, 2)) -> gtsam.CustomFactor:
-    """GNSS fix = antenna position (pose translation + R lever) + the receiver's slowly varying bias, on the
-    ENU ``axes`` given (horizontal and vertical go in separate factors, so that a robust kernel judging a
-    poor height does not also discard a good horizontal fix).
+def _antenna_key(n: int) -> int:
+    return gtsam.symbol("a", n)
 
-    Jacobians for gtsam's Pose3 retraction (body-frame rotation, then translation): d/d(omega) = -R [lever]x,
-    d/d(v) = R; d/d(bias) = I.
-    """
-    z = np.asarray(measured_enu_m, float)
-    lever = np.asarray(lever_arm_m, float)
-    rows = list(axes)
 
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
-        T = values.atPose3(this.keys()[0])
-        b = values.atPoint3(this.keys()[1])
-        R = T.rotation().matrix()
-        if jacobians is not None:
-            jacobians[0] = np.hstack([-R @ skew(lever), R])[rows]
-            jacobians[1] = np.eye(3)[rows]
-        return (T.translation() + R @ lever + b - z)[rows]
+def _lever_key(n: int) -> int:
+    return gtsam.symbol("l", n)
 
-    return gtsam.CustomFactor(model, [pose_key, bias_key], error)
+
+# The GNSS bias chain is built from gtsam's own factors: a Python CustomFactor receives a copy of the whole
+# Values on every call, which cost 5-6 s per LM iteration on 8448 poses (docs/posegraph.md, sixth pass).
+# Variables: per fix an antenna position a (ENU) tied to its pose by a ReferenceFrameFactor (a = T * lever, the
+# lever arm a variable held by a tight prior); per bias state the *negated* bias c = -b, so that the fix
+# z = a + b + white is BetweenFactorPoint3(c, a, z) (error a - c - z); the Gauss-Markov step c_b - decay c_a
+# is a JacobianFactor, exact as a LinearContainerFactor because c lives in a vector space.
+_LINK_SIGMA_M = 1e-3  # antenna-to-pose tie (a rigid lever arm)
+_LEVER_SIGMA_M = 1e-3
+_UNUSED_AXIS_SIGMA_M = 1e6  # horizontal and vertical fixes go in separate factors (each with its own kernel)
+
+
+def gnss_fix_factors(pose_key: int, bias_key: int, antenna_key: int, lever_key: int, measured_enu_m: np.ndarray,
+                     sigma_enu_m: np.ndarray, robust: str, kernel_k: float) -> list:
+    """Antenna tie + horizontal and vertical fixes through the bias (see the comment above)."""
+    out = [gtsam.ReferenceFrameFactorPoint3Pose3(lever_key, pose_key, antenna_key,
+                                                 gtsam.noiseModel.Isotropic.Sigma(3, _LINK_SIGMA_M))]
+    for axes in ((0, 1), (2,)):
+        sig = np.full(3, _UNUSED_AXIS_SIGMA_M)
+        sig[list(axes)] = np.asarray(sigma_enu_m, float)[list(axes)]
+        model = _robustify(gtsam.noiseModel.Diagonal.Sigmas(sig), robust, kernel_k)
+        out.append(gtsam.BetweenFactorPoint3(bias_key, antenna_key, np.asarray(measured_enu_m, float), model))
+    return out
+
+
+def gauss_markov_factor(key_a: int, key_b: int, decay: float, sigma_m: np.ndarray) -> gtsam.LinearContainerFactor:
+    """c_b - decay * c_a ~ N(0, diag(sigma^2)), linear and exact about a zero linearisation point."""
+    lin = gtsam.JacobianFactor(key_a, -decay * np.eye(3), key_b, np.eye(3), np.zeros(3),
+                               gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_m, float)))
+    zero = gtsam.Values()
+    zero.insert(key_a, np.zeros(3))
+    zero.insert(key_b, np.zeros(3))
+    return gtsam.LinearContainerFactor(lin, zero)
 
 
 def _noise(information: np.ndarray, robust: str, k: float):
@@ -136,36 +152,34 @@ def _robustify(base, robust: str, k: float):
     return gtsam.noiseModel.Robust.Create(est.Create(k), base)
 
 
-def gauss_markov_factor(key_a: int, key_b: int, decay: float, model) -> gtsam.CustomFactor:
-    """b_b - decay * b_a = process noise (linear; Jacobians -decay I and I)."""
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
-        if jacobians is not None:
-            jacobians[0] = -decay * np.eye(3)
-            jacobians[1] = np.eye(3)
-        return values.atPoint3(this.keys()[1]) - decay * values.atPoint3(this.keys()[0])
-
-    return gtsam.CustomFactor(model, [key_a, key_b], error)
-
-
-def build_graph(problem: Problem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[tuple[str, int]]]:
-    """Factor graph + initial values; ``tags[f] = (list name, index)`` says where factor f came from."""
+def build_graph(problem: Problem, poses: np.ndarray | None = None
+                ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[tuple[str, int]]]:
+    """Factor graph + values at ``poses`` (default ``problem.initial``; biases zero, antennas from the poses);
+    ``tags[f] = (list name, index)`` says where factor f came from."""
+    poses = problem.initial if poses is None else poses
     graph = gtsam.NonlinearFactorGraph()
     tags: list[tuple[str, int]] = []
     values = gtsam.Values()
     for i in range(problem.n_poses):
-        values.insert(_key(i), gtsam.Pose3(problem.initial[i]))
+        values.insert(_key(i), gtsam.Pose3(poses[i]))
+    levers: dict[tuple[float, ...], int] = {}
     for n, b in enumerate(problem.betweens):
         graph.add(gtsam.BetweenFactorPose3(_key(b.i), _key(b.j), gtsam.Pose3(b.T_i_j),
                                            _noise(b.information, b.robust, b.kernel_k)))
         tags.append(("betweens", n))
     for n, g in enumerate(problem.positions):
         if g.bias >= 0:
-            for axes in ((0, 1), (2,)):
-                sub = _robustify(gtsam.noiseModel.Diagonal.Sigmas(np.asarray(g.sigma_enu_m, float)[list(axes)]),
-                                 g.robust, g.kernel_k)
-                graph.add(gnss_with_bias_factor(_key(g.i), _bias_key(g.bias), g.position_enu_m, g.lever_arm_m,
-                                                sub, axes))
+            lever = tuple(float(v) for v in np.asarray(g.lever_arm_m, float))
+            if lever not in levers:
+                levers[lever] = _lever_key(len(levers))
+                values.insert(levers[lever], np.asarray(lever))
+                graph.add(gtsam.PriorFactorPoint3(levers[lever], np.asarray(lever),
+                                                  gtsam.noiseModel.Isotropic.Sigma(3, _LEVER_SIGMA_M)))
+                tags.append(("lever_arms", len(levers) - 1))
+            values.insert(_antenna_key(n), gtsam.Pose3(poses[g.i]).transformFrom(np.asarray(lever)))
+            for f in gnss_fix_factors(_key(g.i), _bias_key(g.bias), _antenna_key(n), levers[lever],
+                                      g.position_enu_m, g.sigma_enu_m, g.robust, g.kernel_k):
+                graph.add(f)
                 tags.append(("positions", n))
             continue
         model = _robustify(gtsam.noiseModel.Diagonal.Sigmas(np.asarray(g.sigma_enu_m, float)), g.robust,
@@ -192,8 +206,7 @@ def build_graph(problem: Problem) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Val
         tags.append(("pose_priors", n))
     _insert_biases(values, problem.n_biases)
     for n, link in enumerate(problem.bias_links):
-        graph.add(gauss_markov_factor(_bias_key(link.a), _bias_key(link.b), link.decay,
-                                      gtsam.noiseModel.Diagonal.Sigmas(np.asarray(link.sigma_m, float))))
+        graph.add(gauss_markov_factor(_bias_key(link.a), _bias_key(link.b), link.decay, link.sigma_m))
         tags.append(("bias_links", n))
     for n, bp in enumerate(problem.bias_priors):
         graph.add(gtsam.PriorFactorPoint3(_bias_key(bp.index), np.zeros(3),
@@ -211,17 +224,13 @@ def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = F
              initial: np.ndarray | None = None) -> np.ndarray:
     """Levenberg-Marquardt (or GNC for the loop factors, all others known inliers) -> (N,4,4) poses, from
     ``initial`` when given (else ``problem.initial``)."""
-    graph, values, tags = build_graph(problem)
-    if initial is not None:
-        values = gtsam.Values()
-        for i in range(problem.n_poses):
-            values.insert(_key(i), gtsam.Pose3(initial[i]))
-        _insert_biases(values, problem.n_biases)
+    graph, values, tags = build_graph(problem, initial)
     if gnc_loops:
         params = gtsam.GncLMParams()
         inliers = [f for f, (name, n) in enumerate(tags)
                    if not (name == "betweens" and problem.betweens[n].kind == "loop")]
         params.setKnownInliers(inliers)
+        params.setAllowNonNoiseModelFactors(True)  # the bias chain's LinearContainerFactors (known inliers)
         params.setMaxIterations(max_iterations)
         result = gtsam.GncLMOptimizer(graph, values, params).optimize()
     else:
@@ -239,11 +248,7 @@ def poses_from_values(values: gtsam.Values, n: int) -> np.ndarray:
 
 def marginal_cov_xy_yaw(problem: Problem, poses: np.ndarray) -> np.ndarray:
     """(N,9): marginal covariance of (east m, north m, yaw rad) per pose, rotated into ENU axes."""
-    graph, _, _ = build_graph(problem)
-    values = gtsam.Values()
-    for i in range(problem.n_poses):
-        values.insert(_key(i), gtsam.Pose3(poses[i]))
-    _insert_biases(values, problem.n_biases)  # factors are linear in the biases: any linearisation point will do
+    graph, values, _ = build_graph(problem, poses)  # linear in biases and antennas: any point for them will do
     marginals = gtsam.Marginals(graph, values)
     out = np.empty((problem.n_poses, 9))
     for i in range(problem.n_poses):

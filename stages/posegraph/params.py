@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from pipeline.declare import Params
 
@@ -72,10 +72,3 @@ class PosegraphParams(Params):
     max_iterations: int = Field(100, ge=1)
     fixed_prior_sigma_m: float = Field(1e-3, gt=0, description="map poses held fixed for reference drives")
     compute_marginals: bool = True
-
-    @model_validator(mode="after")
-    def _gnc_needs_white_gnss(self) -> "PosegraphParams":
-        if self.loop_kernel == "gnc" and self.gnss_bias_tau_s > 0:
-            raise ValueError("loop_kernel 'gnc' needs gnss_bias_tau_s = 0: gtsam's GNC optimizer clones every "
-                             "factor and the GNSS bias chain is made of Python factors, which cannot be cloned")
-        return self

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.common.geometry import se3_inverse
+from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.posegraph.core import base_problem, dead_reckoning
 from stages.posegraph.gnss_factors import select_epochs
 from stages.posegraph.graph import marginal_cov_xy_yaw, optimize
@@ -58,7 +58,7 @@ def test_gnss_and_odometry_recover_truth_better_than_gnss(two_lap_drive):
 def test_loops_make_passes_agree_and_planted_false_loop_is_rejected(two_lap_drive, kernel):
     T_true, drive = two_lap_drive
     rng = np.random.default_rng(5)
-    p = PosegraphParams(loop_kernel=kernel, gnss_bias_tau_s=0.0 if kernel == "gnc" else 60.0)
+    p = PosegraphParams(loop_kernel=kernel)  # GNC with the GNSS bias chain (built-in factors clone)
     problem, _ = base_problem([drive], p)
     lap = _lap_len(T_true)
     loops = _true_loops(T_true, rng, lap)
@@ -97,11 +97,34 @@ def test_marginal_covariances_positive_definite_and_grow_in_outage(two_lap_drive
     assert rms(horizontal_errors_m(poses, T_true)) < 1.1 * gnss_rms  # a common bias cannot be averaged out
 
 
-def test_gnc_with_the_gnss_bias_chain_is_a_named_configuration_error():
-    from pydantic import ValidationError
+def test_gnss_fix_and_bias_chain_errors_match_their_formulas():
+    """Built-in factors of the bias chain: fix z = T * lever + b + white (horizontal and vertical whitened
+    separately), Gauss-Markov step b_1 - decay * b_0; checked against the formulas at random values."""
+    import gtsam
 
-    with pytest.raises(ValidationError, match="gnss_bias_tau_s"):
-        PosegraphParams(loop_kernel="gnc", gnss_bias_tau_s=60.0)
+    from stages.posegraph.graph import (BiasLink, BiasPrior, PositionPrior, Problem, _antenna_key, _bias_key,
+                                        _key, build_graph)
+
+    rng = np.random.default_rng(0)
+    T = se3_from_xyz_rpy(*rng.normal(0, 5, 3), *rng.normal(0, 0.2, 3))
+    lever, z = np.array([0.4, -0.2, 1.5]), rng.normal(0, 3, 3)
+    sig, link_sig, decay = np.array([0.3, 0.4, 0.9]), np.array([0.05, 0.06, 0.1]), 0.97
+    problem = Problem(1, T[None], positions=[PositionPrior(0, z, sig, robust="none", lever_arm_m=lever, bias=0)],
+                      n_biases=2, bias_links=[BiasLink(0, 1, link_sig, decay)])
+    graph, values, tags = build_graph(problem)
+    b0, b1 = rng.normal(0, 1, 3), rng.normal(0, 1, 3)
+    v = gtsam.Values(values)
+    v.update(_bias_key(0), -b0)  # the graph holds the negated bias
+    v.update(_bias_key(1), -b1)
+    antenna = T[:3, :3] @ lever + T[:3, 3]
+    v.update(_antenna_key(0), antenna)
+    want = 0.5 * np.sum(((antenna + b0 - z) / sig) ** 2) + 0.5 * np.sum(((-b1 + decay * b0) / link_sig) ** 2)
+    assert graph.error(v) == pytest.approx(want, rel=1e-9)
+    # the antenna is tied to the pose: moving it off T * lever costs (1 mm sigma)
+    v.update(_antenna_key(0), antenna + np.array([0.01, 0, 0]))
+    assert graph.error(v) > want + 40
+    assert {name for name, _ in tags} == {"positions", "lever_arms", "bias_links"}
+    assert _key(0) in [k for k in values.keys()]
 
 
 def test_gravity_only_attitude_prior_leaves_heading_free_and_holds_roll_pitch():
