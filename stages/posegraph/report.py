@@ -38,6 +38,25 @@ def summarize_solution(drives, sol, top_k: int = 10) -> dict:
     }
 
 
+def _anchor_record(drives, m) -> dict:
+    """One survey anchor: the keyframe, the ground registration's decision, and the marking match's claimed
+    absolute horizontal position (estimate at match time + shift) with its standard deviations."""
+    offsets = np.cumsum([0] + [d.n for d in drives])
+    o = _drive_of(offsets, m.i)
+    rec = {"drive": drives[o].name, "scan_id": int(drives[o].scan_ids[m.i - offsets[o]]),
+           "vertical_accepted": bool(m.accepted), "vertical_reason": m.reason, "fitness": float(m.fitness)}
+    h = m.horizontal
+    if h is not None:
+        rec.update({"horizontal_accepted": bool(h.accepted), "horizontal_reason": h.reason,
+                    "marking_score": float(h.score), "n_features": int(h.n_features),
+                    "shift_en_m": [float(v) for v in h.shift_en_m]})
+        if h.accepted:
+            cov = np.linalg.pinv(np.asarray(h.information_en, float))
+            rec.update({"anchor_en_m": [float(v) for v in m.T_map_vehicle[:2, 3] + h.shift_en_m],
+                        "anchor_cov_en_m2": [float(v) for v in cov.reshape(-1)]})
+    return rec
+
+
 def write_report(out_dir: Path, drives, sol, refs: dict, loop_rows: list[dict], survey_matches) -> Path:
     out_dir = Path(out_dir)
     report = {"map_drives": [d.name for d in drives], "reference_drives": sorted(refs),
@@ -46,7 +65,8 @@ def write_report(out_dir: Path, drives, sol, refs: dict, loop_rows: list[dict], 
               "survey_anchors": {"tried": len(survey_matches),
                                  "accepted": sum(m.accepted for m in survey_matches),
                                  "horizontal_accepted": sum(bool(m.horizontal is not None and m.horizontal.accepted)
-                                                            for m in survey_matches)},
+                                                            for m in survey_matches),
+                                 "records": [_anchor_record(drives, m) for m in survey_matches]},
               "loops": loop_rows}
     path = out_dir / "posegraph_report.json"
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
