@@ -36,6 +36,7 @@ class MclConfig:
     sigma_gyro_bias_per_sqrt_s: float = 5e-5  # its random walk
     epoch_s: float = 0.1  # scan period, used when the epoch stamps are not given
     standstill_m: float = 1e-3  # a step shorter than this is a standstill: pose held, no update
+    standstill_weight: float = 0.0  # tempering of a scan taken without moving since the last update
     decorrelation_m: float = 0.5  # travel after which a scan's features count as a fresh, full measurement
     sharpness: float = 8.0  # log-likelihood gain per effective feature point at full correlation
     effective_points: float = 60.0
@@ -43,6 +44,13 @@ class MclConfig:
     resample_neff_ratio: float = 0.5
     roughen_xy_m: float = 0.005
     roughen_yaw_rad: float = np.deg2rad(0.005)
+    score_fast: float = 0.2  # smoothing of the short-term mean correlation score (Augmented MCL, Thrun Table 8.3)
+    score_slow: float = 0.01  # ... and of the long-term one
+    inject_ratio: float = 0.8  # particles are injected while short-term / long-term falls below this
+    max_inject: float = 0.3  # share of the particles injected at most per scan
+    inject_margin: float = 0.2  # a candidate must beat every particle by this share of the long-term score
+    inject_sigma_xy_m: float = 1.0  # injected particles: drawn about the estimate with these std
+    inject_sigma_yaw_rad: float = np.deg2rad(1.0)
     min_ess_ratio: float = 0.05  # an update that would leave fewer effective particles is applied in pieces
     max_corrections: int = 6  # pieces of one update at most (progressive correction)
     window_m: float = 240.0  # side of a fetched raster window
@@ -57,6 +65,8 @@ class MclRun:
     n_features: np.ndarray  # (E,) int
     calibration: np.ndarray | None = None  # (E,2) mean wheel scale and gyro bias [rad/s]
     ess: np.ndarray | None = None  # (E,) effective sample size after the update
+    score: np.ndarray | None = None  # (E,) prior-weighted mean correlation score of the scan
+    injected: np.ndarray | None = None  # (E,) particles injected before the update
 
 
 def odometry_increments(odo_stamps_ns: np.ndarray, speed_mps: np.ndarray, yaw_rate_radps: np.ndarray,
@@ -89,16 +99,49 @@ def _window_around(q: np.ndarray, fetch: RasterFetcher, cfg: MclConfig) -> mcl.R
     return fetch(q[0] - half, q[1] - half, q[0] + half, q[1] + half)
 
 
+def _inject(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, share: float, feats: np.ndarray,
+            raster: mcl.Raster, long_term_score: float, cfg: MclConfig, rng: np.random.Generator
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Augmented MCL (Thrun et al. Table 8.3), local and guarded: when the scans fit the particles much worse than
+    they used to, draw a share of candidate poses about the current estimate and let them replace as many particles
+    only if the best of them fits the scan at ``inject_ratio`` of the long-term score and beats every particle by
+    ``inject_margin`` of it. A wheel slip or a wrong dash leaves every particle off by more than the cloud's spread,
+    which no reweighting recovers; an unmapped intersection or a periodic crosswalk lowers every pose's fit or lets
+    a shifted pose fit about as well, and a lucky candidate there must not take over (on the demo drives the
+    spurious winners led by <= 0.13 of the long-term score, the real recoveries by 0.23-0.35)."""
+    m = int(round(share * cfg.n_particles))
+    if m <= 0:
+        return particles, calib, weights, 0
+    q, _ = mcl.estimate(particles, weights)
+    candidates = mcl.init_particles(q, cfg.inject_sigma_xy_m, cfg.inject_sigma_yaw_rad, m, rng)
+    best = mcl.correlation_scores(candidates, feats, raster).max()
+    current = mcl.correlation_scores(particles, feats, raster).max()
+    log.debug("mcl injection test: best candidate %.3f, best particle %.3f, long-term %.3f", best, current,
+              long_term_score)
+    if best < cfg.inject_ratio * long_term_score or best < current + cfg.inject_margin * long_term_score:
+        return particles, calib, weights, 0
+    idx = rng.choice(cfg.n_particles, m, replace=False)
+    particles, calib, weights = particles.copy(), calib.copy(), weights.copy()
+    particles[idx] = candidates
+    calib[idx] = calib[rng.choice(cfg.n_particles, m)]
+    weights[idx] = 1.0 / cfg.n_particles
+    return particles, calib, weights / weights.sum(), m
+
+
 def _update(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, feats: np.ndarray, raster: mcl.Raster,
-            alpha: float, cfg: MclConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            alpha: float, cfg: MclConfig, rng: np.random.Generator
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Weight by ``alpha`` times the scan's log-likelihood; when that would leave fewer than ``min_ess_ratio * N``
     effective particles, apply it in pieces with a resample and a regularisation move in between."""
     log_w = np.log(np.maximum(weights, 1e-300))
     remaining = alpha
     min_ess = cfg.min_ess_ratio * cfg.n_particles
+    prior_score = np.nan
     for piece in range(max(1, cfg.max_corrections)):
-        loglik = mcl.log_likelihood(mcl.correlation_scores(particles, feats, raster), len(feats), cfg.sharpness,
-                                    cfg.effective_points)
+        scores = mcl.correlation_scores(particles, feats, raster)
+        if piece == 0:
+            prior_score = float(weights @ scores)
+        loglik = mcl.log_likelihood(scores, len(feats), cfg.sharpness, cfg.effective_points)
         last = piece == cfg.max_corrections - 1
         beta = remaining if last else mcl.tempering_step(log_w, loglik, remaining, min_ess)
         weights = mcl.normalized_weights(log_w + beta * loglik)
@@ -109,7 +152,7 @@ def _update(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, feats
         particles = mcl.regularize(particles[idx], rng, floor=(cfg.roughen_xy_m, cfg.roughen_xy_m, cfg.roughen_yaw_rad))
         calib = calib[idx]
         log_w = np.full(cfg.n_particles, -np.log(cfg.n_particles))
-    return particles, calib, weights
+    return particles, calib, weights, prior_score
 
 
 def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_m: np.ndarray,
@@ -127,6 +170,7 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
     P_out = np.full((n, 3, 3), np.nan)
     cal_out = np.full((n, 2), np.nan)
     ess_out = np.full(n, np.nan)
+    score_out = np.full(n, np.nan)
     n_feat = np.zeros(n, dtype=np.int32)
     off = np.searchsorted(feature_epoch, np.arange(n + 1))
     dt = np.full(n, cfg.epoch_s) if stamps_ns is None else np.r_[cfg.epoch_s, np.diff(stamps_ns) * 1e-9]
@@ -136,6 +180,8 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
     raster = _window_around(q0, fetch, cfg)
     margin = cfg.feature_range_m + 3.0 * cfg.init_sigma_xy_m
     travel = np.inf  # since the last update; the first scan is a full measurement
+    s_slow = s_fast = np.nan
+    injected = np.zeros(n, dtype=np.int32)
     for k in range(start_epoch, n):
         step = float(np.hypot(increments[k, 0], increments[k, 1])) if k > start_epoch else 0.0
         if step >= cfg.standstill_m:
@@ -149,12 +195,21 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
         if len(feats) > cfg.max_features:
             feats = feats[rng.choice(len(feats), cfg.max_features, replace=False)]
         n_feat[k] = len(feats)
-        alpha = min(1.0, travel / cfg.decorrelation_m) if cfg.decorrelation_m > 0 else 1.0
+        alpha = max(min(1.0, travel / cfg.decorrelation_m), cfg.standstill_weight) if cfg.decorrelation_m > 0 else 1.0
         if len(feats) >= cfg.min_features and alpha > 0:
             lo, hi = particles[:, :2].min(axis=0) - margin, particles[:, :2].max(axis=0) + margin
             if not raster.contains(lo[0], lo[1], hi[0], hi[1]):
                 raster = _window_around(np.average(particles, axis=0, weights=weights), fetch, cfg)
-            particles, calib, weights = _update(particles, calib, weights, feats, raster, alpha, cfg, rng)
+            if np.isfinite(s_slow) and s_fast < cfg.inject_ratio * s_slow:
+                share = min(cfg.max_inject, 1.0 - s_fast / (cfg.inject_ratio * s_slow) + 1.0 / cfg.n_particles)
+                particles, calib, weights, injected[k] = _inject(particles, calib, weights, share, feats, raster,
+                                                                 s_slow, cfg, rng)
+                if injected[k]:
+                    s_fast = s_slow
+            particles, calib, weights, score_out[k] = _update(particles, calib, weights, feats, raster, alpha, cfg, rng)
+            if np.isfinite(score_out[k]):
+                s_slow = score_out[k] if np.isnan(s_slow) else s_slow + cfg.score_slow * (score_out[k] - s_slow)
+                s_fast = score_out[k] if np.isnan(s_fast) else s_fast + cfg.score_fast * (score_out[k] - s_fast)
             travel = 0.0
             ess_out[k] = mcl.effective_sample_size(weights)
             if ess_out[k] < cfg.resample_neff_ratio * cfg.n_particles:
@@ -165,4 +220,4 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
         q_out[k], P_out[k] = mcl.estimate(particles, weights)
         cal_out[k] = weights @ calib
     q_out[:, 2] = np.where(np.isfinite(q_out[:, 2]), wrap_angle_rad(q_out[:, 2]), np.nan)
-    return MclRun(q_out, P_out, n_feat, cal_out, ess_out)
+    return MclRun(q_out, P_out, n_feat, cal_out, ess_out, score_out, injected)

@@ -89,9 +89,14 @@ def _subcell_peak(patch: np.ndarray) -> np.ndarray:
 def match_markings(features_en_m: np.ndarray, survey_mask: np.ndarray, origin_en_m: tuple[float, float],
                    cell_m: float, *, search_m: float = 1.5, blur_m: float = 0.15, min_features: int = 200,
                    min_score: float = 0.4, min_sigma_m: float = 0.03, max_sigma_m: float = 0.5,
-                   min_peak_contrast: float = 0.25) -> MarkingMatch:
+                   min_peak_contrast: float = 0.25, sigma_scale: float = 1.0) -> MarkingMatch:
     """Best 2-D shift of the submap features onto the survey markings (north-up grid, row 0 = north edge,
-    origin = south-west corner), with a 2x2 information matrix from the peak shape and accept/reject gates."""
+    origin = south-west corner), with a 2x2 information matrix from the peak shape and accept/reject gates.
+
+    The peak's width per direction (second moment above ``1 - min_peak_contrast`` of the peak) says which
+    directions the markings fix (gate: ``max_sigma_m``); the position's standard deviation is that width times
+    ``sigma_scale`` (the peak of many features is located far better than its width), floored at
+    ``min_sigma_m``."""
     feats = np.asarray(features_en_m, dtype=np.float64).reshape(-1, 2)
     mask = np.asarray(survey_mask, dtype=bool)
     H, W = mask.shape
@@ -162,6 +167,7 @@ def match_markings(features_en_m: np.ndarray, survey_mask: np.ndarray, origin_en
                           f"e={peak_pos[0]:+.2f}, n={peak_pos[1]:+.2f} m): true shift likely outside",
                           shift_raw, peak)
     V = vecs[:, strong]
-    info = (V / sig[strong] ** 2) @ V.T
+    sig_pos = np.maximum(sig[strong] * sigma_scale, min_sigma_m)
+    info = (V / sig_pos ** 2) @ V.T
     shift = V @ (V.T @ shift_raw)                                  # drop the component the markings do not fix
     return MarkingMatch(shift, info, peak, n, True, "accepted")

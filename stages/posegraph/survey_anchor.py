@@ -124,6 +124,7 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
 
         markings = build_survey_marking_index(survey_enu_m, survey_intensity)
     incs: dict[int, np.ndarray] = {}
+    feature_caches: dict[int, dict] = {}  # per drive: the previous submap's features (submaps overlap)
 
     def horizontal(k: int, poses: np.ndarray, offsets: np.ndarray):
         o = int(np.searchsorted(offsets, k, side="right") - 1)
@@ -132,7 +133,9 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
         a, b = int(offsets[o]), int(offsets[o + 1])
         return marking_anchor(k - a, drives[o], poses[a:b], incs[o], feature_load, markings,
                               half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
-                              search_m=p.survey_marking_search_m)
+                              search_m=p.survey_marking_search_m, sigma_scale=p.survey_marking_sigma_scale,
+                              min_sigma_m=p.survey_marking_min_sigma_m,
+                              feature_cache=feature_caches.setdefault(o, {}))
 
     def callback(poses: np.ndarray, offsets: np.ndarray) -> list[PosePrior]:
         group = np.repeat(np.arange(len(drives)), np.diff(offsets))

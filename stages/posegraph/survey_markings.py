@@ -67,35 +67,35 @@ def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, m
     return np.arange(lo, hi)
 
 
-def features_in_map(scans: list[tuple[np.ndarray, np.ndarray, np.ndarray]], T_map_vehicle: np.ndarray,
-                    T_vehicle_lidar: np.ndarray) -> np.ndarray:
-    """(F,2) ENU marking points of several deskewed scans (lidar points, intensity, ring): per-ring
-    adaptive-threshold features in each vehicle frame, placed with its pose."""
-    out = []
-    for (pts, intensity, ring), T in zip(scans, T_map_vehicle):
-        f = extract_road_features(pts, intensity, ring, T_vehicle_lidar)
-        if len(f):
-            out.append(f @ T[:2, :2].T + T[:2, 3])
-    return np.concatenate(out) if out else np.zeros((0, 2))
-
-
 def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_drive: np.ndarray,
                    load: FeatureLoader, index: SurveyMarkingIndex, *, half_travel_m: float, max_scans: int,
-                   search_m: float, window_margin_m: float = 6.0) -> MarkingMatch:
-    """Match the marking submap around scan ``k_local`` of ``drive`` (poses = current estimate) to the survey."""
+                   search_m: float, window_margin_m: float = 6.0, sigma_scale: float = 1.0,
+                   min_sigma_m: float = 0.03, feature_cache: dict | None = None) -> MarkingMatch:
+    """Match the marking submap around scan ``k_local`` of ``drive`` (poses = current estimate) to the survey.
+    ``feature_cache`` ({scan index: vehicle-frame features}) carries the scans shared with the previous
+    keyframe's submap (consecutive submaps overlap); it is left holding this submap's scans only."""
     ks = submap_scan_indices(poses_drive[:, :3, 3], k_local, half_travel_m, max_scans)
-    got = load([(drive.name, int(drive.scan_ids[j])) for j in ks])
-    scans = []
-    for j in ks:
+    cache = {} if feature_cache is None else feature_cache
+    todo = [int(j) for j in ks if int(j) not in cache]
+    got = load([(drive.name, int(drive.scan_ids[j])) for j in todo]) if todo else {}
+    for j in todo:
         xyz, toff, intensity, ring = got[(drive.name, int(drive.scan_ids[j]))]
-        pts = deskew_scan_lidar(drive, increments_drive, int(j), np.asarray(xyz, float),
+        pts = deskew_scan_lidar(drive, increments_drive, j, np.asarray(xyz, float),
                                 None if toff is None else np.asarray(toff, float))
-        scans.append((pts, intensity, ring))
-    feats = features_in_map(scans, poses_drive[ks], drive.T_vehicle_lidar)
+        cache[j] = extract_road_features(pts, intensity, ring, drive.T_vehicle_lidar)
+    for j in [j for j in cache if j not in set(int(k) for k in ks)]:
+        del cache[j]
+    feats = _place(([cache[int(j)] for j in ks]), poses_drive[ks])
     centre = poses_drive[k_local, :2, 3]
     half = half_travel_m + 30.0 + window_margin_m  # features reach ~30 m from their scan
     mask, origin = survey_marking_window(index, centre, half)
-    return match_markings(feats, mask, origin, MarkingParams().cell_m, search_m=search_m)
+    return match_markings(feats, mask, origin, MarkingParams().cell_m, search_m=search_m, sigma_scale=sigma_scale,
+                          min_sigma_m=min_sigma_m)
+
+
+def _place(features_vehicle: list[np.ndarray], T_map_vehicle: np.ndarray) -> np.ndarray:
+    out = [f @ T[:2, :2].T + T[:2, 3] for f, T in zip(features_vehicle, T_map_vehicle) if len(f)]
+    return np.concatenate(out) if out else np.zeros((0, 2))
 
 
 def horizontal_information_body(information_en: np.ndarray, R_map_vehicle: np.ndarray) -> np.ndarray:

@@ -74,6 +74,18 @@ def test_recovers_known_shift_with_cross_markings():
     assert res.n_features > 0.9 * len(feats) * 0.8
 
 
+def test_sigma_scale_scales_the_position_std_not_the_shift_or_the_gates():
+    mask = intersection_mask()
+    feats = sample_features(mask, (0.37, -0.52), np.random.default_rng(3))
+    wide = match_markings(feats, mask, ORIGIN, CELL_M, min_sigma_m=1e-4)
+    sharp = match_markings(feats, mask, ORIGIN, CELL_M, min_sigma_m=1e-4, sigma_scale=0.25)
+    assert wide.accepted and sharp.accepted
+    np.testing.assert_allclose(sharp.shift_en_m, wide.shift_en_m)
+    np.testing.assert_allclose(sharp.information_en, wide.information_en / 0.25 ** 2, rtol=1e-9)
+    floored = match_markings(feats, mask, ORIGIN, CELL_M, min_sigma_m=0.05, sigma_scale=0.01)
+    np.testing.assert_allclose(sigmas_en(floored.information_en), 0.05, rtol=1e-6)
+
+
 def test_lane_lines_only_fix_north_not_east():
     mask = lane_lines_mask()
     feats = sample_features(mask, (0.37, -0.52), np.random.default_rng(4))
