@@ -126,6 +126,13 @@ def open_published_map(ctx: StageContext):
     return open_map(path)
 
 
+def marking_field(mask: np.ndarray, cell_m: float, p: EvaluateParams) -> np.ndarray:
+    """The MCL's likelihood field of a marking window (row 0 south): ``raster_field`` of the params."""
+    if p.raster_field == "distance":
+        return mcl.distance_likelihood_field(mask, cell_m, p.raster_sigma_m)
+    return mcl.smooth_marking_mask(mask, cell_m, p.raster_blur_m)
+
+
 def map_inputs(reader, gnss_q: np.ndarray, p: EvaluateParams):
     """Corner map over the drive's extent, and a raster fetcher (row 0 south) when the map has markings."""
     xy = gnss_q[np.all(np.isfinite(gnss_q), axis=1), :2]
@@ -138,7 +145,7 @@ def map_inputs(reader, gnss_q: np.ndarray, p: EvaluateParams):
     if reader.cell_m is not None:
         def fetch(e0: float, n0: float, e1: float, n1: float) -> mcl.Raster:
             mask, origin, cell = reader.marking_window(e0, n0, e1, n1)
-            return mcl.Raster(mcl.smooth_marking_mask(np.flipud(mask), cell, p.raster_blur_m), origin, cell)
+            return mcl.Raster(marking_field(np.flipud(mask), cell, p), origin, cell)
     return cmap, fetch
 
 

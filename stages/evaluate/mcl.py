@@ -49,13 +49,16 @@ def distance_likelihood_field(mask: np.ndarray, cell_m: float, sigma_m: float) -
     from the cell centre to the nearest marking cell (Thrun et al. s.6.4). Unlike a blurred mask, a point next to
     a thin line scores as high as one next to a wide crosswalk stripe, and the score keeps falling with distance
     (a blur of a 15 cm line is already flat at 0.3 m)."""
-    from scipy.ndimage import distance_transform_edt
+    import cv2
 
     paint = np.asarray(mask) > 0
     if not paint.any():
         return np.zeros(paint.shape, np.float32)
-    d = distance_transform_edt(~paint) * cell_m
-    return np.exp(-0.5 * (d / sigma_m) ** 2).astype(np.float32)
+    d = cv2.distanceTransform((~paint).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # exact, in cells
+    d *= np.float32(cell_m / sigma_m)
+    np.square(d, out=d)
+    d *= np.float32(-0.5)
+    return np.exp(d, out=d)
 
 
 def init_particles(q0: np.ndarray, sigma_xy_m: float, sigma_yaw_rad: float, n: int,
@@ -179,7 +182,8 @@ def regularize(particles: np.ndarray, rng: np.random.Generator, bandwidth: float
     n = len(particles)
     h = (4.0 / (n * 5.0)) ** (1.0 / 7.0) if bandwidth is None else bandwidth
     d = particles - particles.mean(axis=0)
-    d[:, 2] = wrap_angle_rad(particles[:, 2] - np.arctan2(np.sin(particles[:, 2]).mean(), np.cos(particles[:, 2]).mean()))
+    mean_yaw = np.arctan2(np.sin(particles[:, 2]).mean(), np.cos(particles[:, 2]).mean())
+    d[:, 2] = wrap_angle_rad(particles[:, 2] - mean_yaw)
     sigma = np.maximum(h * d.std(axis=0), np.asarray(floor))
     out = particles + rng.standard_normal(particles.shape) * sigma
     out[:, 2] = wrap_angle_rad(out[:, 2])

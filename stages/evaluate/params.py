@@ -27,18 +27,32 @@ class EvaluateParams(Params):
     range_sigma_floor_m: float = Field(0.03, ge=0, description="added to extracted corners' range std")
     bearing_sigma_floor_deg: float = Field(0.15, ge=0, description="added to extracted corners' bearing std")
     wall_heading_sigma_deg: float = Field(1.5, ge=0, description="heading from wall directions; 0 = off")
-    # MCL (s.2.3) and road features (s.2.2)
+    # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and
+    # gyro bias; weights from the correlation of the scan's features with a distance likelihood field; low-variance
+    # resampling; progressive correction and guarded injection (see localize_mcl.MclConfig for the measurements).
     n_particles: int = Field(1000, ge=10)
     seed: int = 0
     mcl_init_sigma_xy_m: float = Field(1.0, gt=0)
     mcl_init_sigma_yaw_deg: float = Field(1.0, gt=0)
-    mcl_sigma_frac: float = Field(0.03, ge=0, description="wheel odometry translation std per metre")
-    mcl_sigma_xy_m: float = Field(0.02, ge=0)
-    mcl_sigma_yaw_deg: float = Field(0.1, ge=0)
-    mcl_sharpness: float = Field(8.0, gt=0, description="log-likelihood gain per effective feature point")
+    mcl_sigma_frac: float = Field(0.005, ge=0, description="along-track motion noise per metre (beside the scale)")
+    mcl_sigma_lateral_frac: float = Field(0.002, ge=0, description="across-track motion noise per metre")
+    mcl_sigma_xy_m: float = Field(0.02, ge=0, description="translation motion noise floor per moving scan")
+    mcl_sigma_yaw_deg: float = Field(0.03, ge=0, description="heading motion noise per moving scan (beside the bias)")
+    mcl_sigma_yaw_frac: float = Field(0.01, ge=0, description="heading motion noise per radian turned")
+    mcl_init_sigma_scale: float = Field(0.01, ge=0, description="wheel-speed scale std per particle (0 = no state)")
+    mcl_sigma_scale_per_sqrt_m: float = Field(1e-3, ge=0, description="random walk of the wheel scale")
+    mcl_init_sigma_gyro_bias_deg_s: float = Field(0.115, ge=0, description="gyro bias std per particle, deg/s")
+    mcl_sigma_gyro_bias_deg_s_per_sqrt_s: float = Field(0.0057, ge=0, description="random walk of the gyro bias")
+    mcl_decorrelation_m: float = Field(0.5, ge=0, description="travel after which a scan counts fully (0 = always)")
+    mcl_sharpness: float = Field(5.0, gt=0, description="log-likelihood gain per effective feature point")
     mcl_effective_points: float = Field(60.0, gt=0)
     mcl_max_features: int = Field(400, ge=10)
-    raster_blur_m: float = Field(0.2, ge=0, description="Gaussian blur of the marking raster")
+    mcl_max_inject: float = Field(0.3, ge=0, le=1, description="share of particles a recovery may replace; 0 = off")
+    mcl_inject_sigma_xy_m: float = Field(1.0, gt=0, description="spread of recovery candidates about the estimate")
+    raster_field: Literal["distance", "blur"] = Field("distance", description="marking likelihood field: "
+                                                      "exp(-d^2/2 sigma^2) of the distance to paint, or a blurred mask")
+    raster_sigma_m: float = Field(0.2, gt=0, description="sigma of the distance likelihood field")
+    raster_blur_m: float = Field(0.2, ge=0, description="Gaussian blur of the marking raster (raster_field=blur)")
     feature_deskew: bool = Field(True, description="motion-compensate each scan to its start (wheel speed + gyro) "
                                  "before extracting road features")
     feature_voxel_m: float = Field(0.1, gt=0)

@@ -50,7 +50,9 @@ def sensed_corner_truth(sim_dir: Path, drive: str, **kwargs) -> SensedCornerTrut
     corners = building_corners(city)
     own = np.radians(np.column_stack([corners["theta1_deg"], corners["theta2_deg"]]))
     en = np.column_stack([corners["east_m"], corners["north_m"]])
-    theta, inward, not_corner = union_corner_walls([b.footprint_en for b in city.buildings], en, own)
+    owner = np.repeat(np.arange(len(city.buildings)), [len(b.footprint_en) for b in city.buildings])
+    theta, inward, not_corner = union_corner_walls([b.footprint_en for b in city.buildings], en, own,
+                                                   glass=[b.glass for b in city.buildings], owner=owner)
     sensed = {**corners, "theta1_deg": np.degrees(theta[:, 0]), "theta2_deg": np.degrees(theta[:, 1]),
               "inward_en": np.where(np.any(inward != 0, axis=1)[:, None], inward, corners["inward_en"])}
     views = count_corner_views(sensed, static, T[:, :2, 3], MOUNT_HEIGHT_M, **kwargs)

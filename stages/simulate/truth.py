@@ -52,6 +52,7 @@ def count_visible_scans(corners: dict[str, np.ndarray], static: Scene, lidar_en:
 
 
 def union_corner_walls(footprints_en: list[np.ndarray], corners_en: np.ndarray, theta_rad: np.ndarray, *,
+                       glass: list[np.ndarray] | None = None, owner: np.ndarray | None = None,
                        radius_m: float = 0.5, n_dirs: int = 720, snap_deg: float = 5.0,
                        straight_deg: float = 20.0
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -64,7 +65,9 @@ def union_corner_walls(footprints_en: list[np.ndarray], corners_en: np.ndarray, 
     inward (K,2) unit, and not_corner (K,) bool: the vertex lies inside the union, or its union walls are
     within ``straight_deg`` of a straight line (two facades continuing each other with a small step), or a
     wall is not straight within ``radius_m`` (a step shorter than that: no line for an extractor).
-    Vertices with more than two transitions keep their own walls."""
+    Vertices with more than two transitions keep their own walls. With ``glass`` (per building, per wall k from
+    vertex k to k+1) and ``owner`` (building of each corner), a neighbouring building whose glass wall passes
+    the vertex does not hide anything there: the sensor sees through it (the simulator's glass is transparent)."""
     polys = [np.asarray(f, float) for f in footprints_en]
     lo = np.array([p.min(axis=0) for p in polys]) - radius_m
     hi = np.array([p.max(axis=0) for p in polys]) + radius_m
@@ -75,6 +78,8 @@ def union_corner_walls(footprints_en: list[np.ndarray], corners_en: np.ndarray, 
     hidden = np.zeros(len(theta), bool)
     for c, v in enumerate(np.asarray(corners_en, float)):
         near = np.flatnonzero(np.all((lo <= v) & (v <= hi), axis=1))
+        if glass is not None and owner is not None:
+            near = [b for b in near if b == owner[c] or not _glass_wall_near(polys[b], glass[b], v, radius_m)]
         occ = np.zeros(n_dirs, bool)
         edge_dirs = list(theta[c])
         for b in near:
@@ -110,6 +115,16 @@ def union_corner_walls(footprints_en: list[np.ndarray], corners_en: np.ndarray, 
         bend = abs((walls[0] - walls[1]) % (2 * np.pi) - np.pi)
         hidden[c] = bend < np.radians(straight_deg) or snapped < 2
     return theta, inward, hidden
+
+
+def _glass_wall_near(poly: np.ndarray, glass: np.ndarray, v: np.ndarray, radius_m: float) -> bool:
+    for k in np.flatnonzero(np.asarray(glass, bool)):
+        a, e = poly[k], poly[(k + 1) % len(poly)]
+        seg = e - a
+        t = np.clip((v - a) @ seg / (seg @ seg), 0.0, 1.0)
+        if np.linalg.norm(a + t * seg - v) < radius_m:
+            return True
+    return False
 
 
 def count_corner_views(corners: dict[str, np.ndarray], static: Scene, lidar_en: np.ndarray, lidar_z_m: float, *,

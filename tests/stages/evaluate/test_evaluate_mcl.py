@@ -1,11 +1,16 @@
 """Oracle tests of the road-feature extraction and the marking MCL (Kim, Liu & Myung s.2.2-2.3)."""
 from __future__ import annotations
 
+from dataclasses import fields, replace
+
 import numpy as np
+import pytest
+from scipy.ndimage import distance_transform_edt
 
 from stages.evaluate import mcl
 from stages.evaluate.localize_mcl import MclConfig, odometry_increments, run_mcl
 from stages.common.road_features import extract_road_features, ring_adaptive_threshold, voxel_filter_per_ring
+from stages.evaluate.metrics import compute_errors
 from stages.evaluate.synthetic import ground_ring_scan, paint_markings, relative_increments
 
 CELL = 0.1
@@ -109,3 +114,223 @@ def test_mcl_converges_from_one_metre_offset():
     assert np.hypot(*(q0 - truth[0])[:2]) > 0.95
     assert np.all(h[20:] < 0.2), h[20:].max()
     assert np.mean(np.abs(np.rad2deg(err[20:, 2]))) < 0.3
+
+
+# --- issue 10, MCL sixth pass: deskew, distance field, odometry calibration, tempering, recovery -------------------
+
+def _ring_drive(n: int, rng: np.random.Generator, x0: float = 40.0):
+    """Truth weaving across the lane along the synthetic road at 1 m per scan, and its ring features."""
+    s = x0 + np.arange(n) * 1.0
+    truth = np.column_stack([s, 18.25 + 0.5 * np.sin(s / 15.0), np.zeros(n)])
+    truth[:, 2] = np.arctan2(np.gradient(truth[:, 1]), np.gradient(truth[:, 0]))
+    mask, origin = _world()
+    ep, pts = [], []
+    for k in range(n):
+        xyz, inten, ring = ground_ring_scan(truth[k], mask, origin, CELL, rng)
+        f = extract_road_features(xyz, inten, ring, T_VEHICLE_LIDAR)
+        ep.append(np.full(len(f), k)), pts.append(f)
+    return truth, np.concatenate(ep), np.concatenate(pts)
+
+
+def _distance_fetch(mask, origin, sigma_m=0.2):
+    field = mcl.distance_likelihood_field(mask, CELL, sigma_m)
+    return lambda e0, n0, e1, n1: mcl.Raster(field, origin, CELL)
+
+
+def _wheel_gyro(truth, rng, scale=1.02, gyro_bias_deg_per_scan=0.01):
+    """Wheel + gyro increments with a wheel scale error, a gyro bias and a little white noise."""
+    n = len(truth)
+    odo = relative_increments(truth)
+    odo[1:, 0] *= scale
+    odo[1:, 2] += np.deg2rad(gyro_bias_deg_per_scan)
+    odo[1:] += np.column_stack([0.002 * rng.standard_normal(n - 1), np.zeros(n - 1),
+                                np.deg2rad(0.005) * rng.standard_normal(n - 1)])
+    return odo
+
+
+@pytest.fixture(scope="module")
+def ring_drive():
+    rng = np.random.default_rng(7)
+    truth, ep, pts = _ring_drive(150, rng)
+    return truth, ep, pts, _wheel_gyro(truth, rng)
+
+
+def test_distance_field_is_a_gaussian_of_the_distance_to_paint():
+    mask = np.zeros((50, 80), np.uint8)
+    mask[20, 10:70] = 1  # a one-cell line along row 20
+    mask[30:33, 40] = 1
+    field = mcl.distance_likelihood_field(mask, 0.1, 0.2)
+    assert field.dtype == np.float32 and field[20, 30] == pytest.approx(1.0)
+    # straight above the line, k cells away: d = 0.1 k m
+    for k in (1, 2, 4, 6):
+        assert field[20 - k, 20] == pytest.approx(np.exp(-0.5 * (0.1 * k / 0.2) ** 2), rel=1e-5)
+    # cross-check against scipy's exact Euclidean distance transform everywhere
+    d = distance_transform_edt(mask == 0) * 0.1
+    np.testing.assert_allclose(field, np.exp(-0.5 * (d / 0.2) ** 2), atol=1e-6)
+    assert not mcl.distance_likelihood_field(np.zeros((4, 4)), 0.1, 0.2).any()
+
+
+def test_prediction_applies_each_particles_wheel_scale_and_gyro_bias():
+    rng = np.random.default_rng(0)
+    particles = np.array([[0.0, 0.0, 0.0], [10.0, 5.0, np.pi / 2]])
+    calib = np.array([[1.02, 0.0], [0.98, np.deg2rad(1.0)]])  # scale, gyro bias rad/s
+    out = mcl.predict_particles(particles, np.array([1.0, 0.0, np.deg2rad(2.0)]), 0.0, 0.0, 0.0, rng, calib,
+                                dt_s=0.5)
+    np.testing.assert_allclose(out[0], [1.02, 0.0, np.deg2rad(2.0)], atol=1e-12)
+    np.testing.assert_allclose(out[1], [10.0, 5.98, np.pi / 2 + np.deg2rad(2.0 - 0.5)], atol=1e-12)
+    # noise: along track sigma_frac * d + floor, across track its own fraction (vehicle frame, not the axes)
+    many = np.zeros((20000, 3))
+    out = mcl.predict_particles(many, np.array([2.0, 0.0, 0.0]), 0.01, 0.005, 0.0, rng, sigma_lateral_frac=0.0)
+    assert np.std(out[:, 0]) == pytest.approx(0.025, rel=0.05)
+    assert np.std(out[:, 1]) == pytest.approx(0.005, rel=0.05)
+
+
+def test_tempering_step_keeps_the_effective_sample_size():
+    rng = np.random.default_rng(4)
+    n = 1000
+    log_w = np.full(n, -np.log(n))
+    loglik = -0.5 * (rng.standard_normal(n) / 0.02) ** 2  # a likelihood 50x narrower than the cloud
+    assert mcl.effective_sample_size(mcl.normalized_weights(log_w + loglik)) < 50
+    beta = mcl.tempering_step(log_w, loglik, 1.0, min_ess=0.3 * n)
+    assert 0.0 < beta < 1.0
+    assert mcl.effective_sample_size(mcl.normalized_weights(log_w + beta * loglik)) >= 0.3 * n
+    assert mcl.effective_sample_size(mcl.normalized_weights(log_w + 1.1 * beta * loglik)) < 0.31 * n
+    assert mcl.tempering_step(log_w, 1e-3 * loglik, 1.0, min_ess=0.3 * n) == 1.0  # a gentle one goes in whole
+
+
+def test_mcl_absorbs_a_two_percent_wheel_scale_error_along_and_across(ring_drive):
+    truth, ep, pts, odo = ring_drive
+    mask, origin = _world()
+    q0 = truth[0] + [0.4, -0.3, np.deg2rad(0.3)]
+    run = run_mcl(odo, ep, pts, _distance_fetch(mask, origin), q0, 0, np.random.default_rng(3), MclConfig())
+    e = compute_errors(run.q, truth)
+    after = slice(30, None)
+    assert np.mean(np.abs(e.err_longitudinal_m[after])) < 0.05, np.abs(e.err_longitudinal_m[after]).max()
+    assert np.max(np.abs(e.err_longitudinal_m[after])) < 0.15
+    assert np.mean(np.abs(e.err_lateral_m[after])) < 0.02
+    assert np.mean(np.abs(np.rad2deg(e.err_yaw_rad[after]))) < 0.05
+    assert run.calibration[-1, 0] == pytest.approx(1 / 1.02, abs=0.006)  # the wheel scale it found
+    # the same filter without the scale state (and the along-track noise of the true odometry) drifts along track
+    no_scale = replace(MclConfig(), init_sigma_scale=0.0, sigma_scale_per_sqrt_m=0.0, sigma_frac=0.002,
+                       sigma_xy_m=0.005)
+    run0 = run_mcl(odo, ep, pts, _distance_fetch(mask, origin), q0, 0, np.random.default_rng(3), no_scale)
+    e0 = compute_errors(run0.q, truth)
+    assert np.mean(np.abs(e0.err_longitudinal_m[after])) > 5 * np.mean(np.abs(e.err_longitudinal_m[after]))
+
+
+def test_injection_recovers_from_a_sideways_slip_that_reweighting_cannot(ring_drive):
+    truth, ep, pts, odo = ring_drive
+    mask, origin = _world()
+    slipped = odo.copy()
+    slipped[70, 1] += 0.8  # the odometry misses a 0.8 m sideways jump at epoch 70
+    q0 = truth[0] + [0.4, -0.3, np.deg2rad(0.3)]
+    err = {}
+    for share in (0.3, 0.0):
+        run = run_mcl(slipped, ep, pts, _distance_fetch(mask, origin), q0, 0, np.random.default_rng(3),
+                      replace(MclConfig(), max_inject=share))
+        err[share] = np.hypot(*compute_errors(run.q, truth).err_xy_m.T)
+        assert (run.injected[:70] == 0).all()  # never while the particles fit the scans
+    assert err[0.3][71] > 0.5 and err[0.0][71] > 0.5
+    assert err[0.3][85:].max() < 0.15
+    assert err[0.0][85:].min() > 0.5
+
+
+def test_standstill_holds_the_pose_despite_the_gyro_bias():
+    rng = np.random.default_rng(12)
+    mask, origin = _world()
+    truth = np.tile([95.0, 18.25, 0.0], (40, 1))
+    ep, pts = [], []
+    for k in range(len(truth)):
+        xyz, inten, ring = ground_ring_scan(truth[k], mask, origin, CELL, rng)
+        f = extract_road_features(xyz, inten, ring, T_VEHICLE_LIDAR)
+        ep.append(np.full(len(f), k)), pts.append(f)
+    odo = np.zeros((len(truth), 3))
+    odo[1:, 2] = np.deg2rad(0.05)  # a gyro bias of 0.5 deg/s, speed 0: 2 deg of phantom turn over 4 s
+    run = run_mcl(odo, np.concatenate(ep), np.concatenate(pts), _distance_fetch(mask, origin), truth[0], 0,
+                  np.random.default_rng(1), MclConfig(init_sigma_xy_m=0.1, init_sigma_yaw_rad=np.deg2rad(0.1)))
+    np.testing.assert_allclose(run.q[1:], np.repeat(run.q[:1], len(truth) - 1, axis=0), atol=1e-12)
+    assert np.isnan(run.ess[1:]).all()  # one update: a scan repeated without moving brings nothing new
+
+
+def _moving_scan(q_start, speed_mps, rng, period_s=0.1, slots=50):
+    """A raw revolution while the vehicle drives: each azimuth slot is seen from the pose at its firing time,
+    azimuth falling with time like the simulator's lidar. Returns lidar-frame xyz, intensity, ring, time offsets."""
+    mask, origin = _world()
+    xyz, inten, ring, t_off = [], [], [], []
+    for j in range(slots):
+        t_mid = (j + 0.5) / slots * period_s
+        q = q_start + [speed_mps * t_mid * np.cos(q_start[2]), speed_mps * t_mid * np.sin(q_start[2]), 0.0]
+        p, i, r = ground_ring_scan(q, mask, origin, CELL, rng)
+        t = (np.pi - np.arctan2(p[:, 1], p[:, 0])) / (2 * np.pi) * period_s
+        keep = np.floor(t / period_s * slots) == j
+        xyz.append(p[keep]), inten.append(i[keep]), ring.append(r[keep]), t_off.append(t[keep])
+    return np.concatenate(xyz), np.concatenate(inten), np.concatenate(ring), np.concatenate(t_off)
+
+
+def test_extract_features_deskews_each_scan_with_the_wheel_odometry():
+    import pyarrow as pa
+
+    from pipeline.testing import make_context
+    from schemas import schema_of
+    from stages.common.wheel_deskew import OdometryTrack
+    from stages.evaluate import compute as compute_mod
+    from stages.evaluate.params import EvaluateParams
+
+    rng = np.random.default_rng(9)
+    q = np.array([50.0, 18.25, 0.0])  # the crosswalk at 60 m and the dashes give along-track evidence
+    speed = 10.0
+    xyz, inten, ring, t_off = _moving_scan(q, speed, rng)
+    stamp = 10**12
+    n = len(xyz)
+    cols = {"drive": ["d1"] * n, "chunk": np.zeros(n, int), "scan_id": np.zeros(n, int), "stamp_ns": np.full(n, stamp),
+            "x_m": xyz[:, 0], "y_m": xyz[:, 1], "z_m": xyz[:, 2], "intensity": inten, "ring": ring,
+            "time_offset_s": t_off}
+    schema = schema_of("scans_raw")
+    scans = pa.table({f.name: pa.array(cols[f.name], type=f.type) for f in schema}, schema=schema)
+    odo_t = stamp + np.arange(-20, 40) * 10_000_000  # 100 Hz around the scan
+    track = OdometryTrack(odo_t, np.full(len(odo_t), speed), np.zeros(len(odo_t)))
+    mask, origin = _world()
+    raster = _distance_fetch(mask, origin, 0.1)(0, 0, 0, 0)
+    shifts = np.arange(-1.0, 1.0001, 0.05)
+
+    def best_shift(feats):
+        cands = np.column_stack([q[0] + shifts, np.full(len(shifts), q[1]), np.zeros(len(shifts))])
+        return shifts[np.argmax(mcl.correlation_scores(cands, feats, raster))]
+
+    found = {}
+    for deskew in (True, False):
+        p = EvaluateParams(feature_deskew=deskew)
+        ctx = make_context("evaluate", p, {"scans": scans})
+        ep, feats = compute_mod.extract_features(ctx, "d1", np.array([0]), T_VEHICLE_LIDAR, p,
+                                                 track if deskew else None)
+        assert len(feats) > 100 and (ep == 0).all()
+        found[deskew] = best_shift(feats)
+    # raw points trail by speed * firing time (0.05 s on average): the scan-start pose must move ~0.5 m ahead to fit
+    assert abs(found[True]) <= 0.05
+    assert found[False] == pytest.approx(speed * 0.05, abs=0.15)
+
+
+def test_mcl_config_from_params_maps_every_mcl_field():
+    from stages.evaluate.localize_mcl import mcl_config_from_params
+    from stages.evaluate.params import EvaluateParams
+
+    p = EvaluateParams(mcl_sigma_yaw_deg=0.5, mcl_init_sigma_gyro_bias_deg_s=1.0, mcl_init_sigma_scale=0.03,
+                       mcl_max_inject=0.0, mcl_decorrelation_m=2.0, feature_max_range_m=25.0)
+    cfg = mcl_config_from_params(p)
+    assert cfg.sigma_yaw_rad == pytest.approx(np.deg2rad(0.5))
+    assert cfg.init_sigma_gyro_bias_radps == pytest.approx(np.deg2rad(1.0))
+    assert (cfg.init_sigma_scale, cfg.max_inject, cfg.decorrelation_m, cfg.feature_range_m) == (0.03, 0.0, 2.0, 25.0)
+    default = mcl_config_from_params(EvaluateParams())
+    for f in fields(MclConfig):  # the params' defaults are the config's defaults
+        assert getattr(default, f.name) == pytest.approx(getattr(MclConfig(), f.name), rel=1e-9), f.name
+
+
+def test_regularize_spreads_by_the_optimal_bandwidth_of_the_cloud():
+    rng = np.random.default_rng(2)
+    cloud = np.column_stack([rng.normal(5.0, 0.3, 4000), rng.normal(-2.0, 0.05, 4000), rng.normal(0.1, 0.01, 4000)])
+    moved = mcl.regularize(cloud, rng)
+    h = (4.0 / (4000 * 5.0)) ** (1.0 / 7.0)
+    np.testing.assert_allclose(np.std(moved - cloud, axis=0), h * np.std(cloud, axis=0), rtol=0.05)
+    np.testing.assert_allclose(moved.mean(axis=0), cloud.mean(axis=0), atol=0.02)
+    floored = mcl.regularize(np.zeros((4000, 3)), rng, floor=(0.01, 0.01, 0.001))  # a collapsed cloud still moves
+    np.testing.assert_allclose(np.std(floored, axis=0), [0.01, 0.01, 0.001], rtol=0.05)

@@ -106,3 +106,16 @@ def test_corner_views_blocked_by_an_occluder():
     free = count_corner_views(corners, _walls_scene([a]), np.array([[-15.0, -15.0]]), 1.9)
     blocked = count_corner_views(corners, _walls_scene([a, wall]), np.array([[-15.0, -15.0]]), 1.9)
     assert free.sum() == 1 and blocked.sum() == 0
+
+
+def test_a_glass_neighbour_hides_nothing():
+    # as in test_party_wall_vertex_takes_the_union_walls, but A's north wall (wall 2: (10,6)->(0,6)) is glass:
+    # the sensor sees through A, so B's south-east vertex keeps B's own walls (west + north)
+    a, b = _rect(0, 0, 10, 6), _rect(-4, 6, 6, 12)
+    own = np.vstack([_own_walls(a), _own_walls(b)])
+    glass = [np.array([False, False, True, False]), np.zeros(4, bool)]
+    owner = np.repeat([0, 1], 4)
+    theta, _, not_corner = union_corner_walls([a, b], np.vstack([a, b]), own, glass=glass, owner=owner)
+    assert _angle_set_deg(theta[5]) == [90, 180] and not not_corner[5]
+    theta_opaque, _, _ = union_corner_walls([a, b], np.vstack([a, b]), own)
+    assert _angle_set_deg(theta_opaque[5]) == [0, 90]
