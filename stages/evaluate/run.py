@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, dead_reckon, run_ekf
-from stages.evaluate.localize_mcl import MclConfig, RasterFetcher, run_mcl
+from stages.evaluate.localize_mcl import MclConfig, RasterFetcher, mcl_config_from_params, run_mcl
 from stages.evaluate.metrics import compute_errors, interpolate_poses, summarize
 from stages.evaluate.params import EvaluateParams
 
@@ -67,11 +67,7 @@ def ekf_config(p: EvaluateParams) -> EkfConfig:
 
 
 def mcl_config(p: EvaluateParams) -> MclConfig:
-    return MclConfig(n_particles=p.n_particles, init_sigma_xy_m=p.mcl_init_sigma_xy_m,
-                     init_sigma_yaw_rad=np.deg2rad(p.mcl_init_sigma_yaw_deg), sigma_frac=p.mcl_sigma_frac,
-                     sigma_xy_m=p.mcl_sigma_xy_m, sigma_yaw_rad=np.deg2rad(p.mcl_sigma_yaw_deg),
-                     sharpness=p.mcl_sharpness, effective_points=p.mcl_effective_points,
-                     max_features=p.mcl_max_features, feature_range_m=p.feature_max_range_m)
+    return mcl_config_from_params(p)
 
 
 def first_fix(d: DriveArrays) -> int:
@@ -105,7 +101,7 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
     if "mcl" in p.methods and fetch is not None:
         t0 = time.perf_counter()
         r = run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, k0,
-                    np.random.default_rng(p.seed), mcl_config(p))
+                    np.random.default_rng(p.seed), mcl_config(p), stamps_ns=d.stamps_ns)
         runs["mcl"] = MethodRun(r.q, r.P, r.n_features, time.perf_counter() - t0)
         log.info("mcl: %d epochs in %.2f s", n - k0, runs["mcl"].seconds)
     return runs

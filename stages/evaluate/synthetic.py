@@ -176,7 +176,7 @@ def synthetic_drive(n: int, rng: np.random.Generator, *, outage_s: tuple[float, 
     d = DriveArrays(stamps, icp, odo, gnss_q, std, valid, CornerObservations(ep, xy, cov, cdirs), f_ep, f_xy)
     map_noise = 0.03 * rng.standard_normal(corners.shape)
     cmap = CornerMap(corners + map_noise, np.tile(np.eye(2) * 0.03**2, (len(corners), 1, 1)), dirs)
-    field = mcl.smooth_marking_mask(mask, cell_m, 0.2)
+    field = mcl.distance_likelihood_field(mask, cell_m, 0.2)
 
     def fetch(e0: float, n0: float, e1: float, n1: float) -> mcl.Raster:
         return mcl.Raster(field, origin, cell_m)

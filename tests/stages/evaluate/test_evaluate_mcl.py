@@ -231,8 +231,8 @@ def test_injection_recovers_from_a_sideways_slip_that_reweighting_cannot(ring_dr
         err[share] = np.hypot(*compute_errors(run.q, truth).err_xy_m.T)
         assert (run.injected[:70] == 0).all()  # never while the particles fit the scans
     assert err[0.3][71] > 0.5 and err[0.0][71] > 0.5
-    assert err[0.3][85:].max() < 0.15
-    assert err[0.0][85:].min() > 0.5
+    assert err[0.3][80:].max() < 0.15  # back within 10 scans (filter seeds 0-9: recovered by scan 75-77)
+    assert err[0.0][76:96].min() > 0.5  # without it still lost 25 scans later (seeds 0-9; some never recover)
 
 
 def test_standstill_holds_the_pose_despite_the_gyro_bias():
