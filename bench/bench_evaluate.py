@@ -26,7 +26,8 @@ def main() -> None:
     from stages.evaluate.outputs import metrics_document, metrics_table_text
     from stages.evaluate.params import EvaluateParams
     from stages.common.road_features import extract_road_features
-    from stages.evaluate.run import ekf_config, evaluate_drive, mcl_config
+    from stages.evaluate.localize_mcl import mcl_config_from_params
+    from stages.evaluate.run import ekf_config, evaluate_drive
     from stages.evaluate.synthetic import ground_ring_scan, paint_markings, synthetic_drive
 
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared), "
@@ -47,7 +48,7 @@ def main() -> None:
 
     t0 = time.perf_counter()
     run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, 0, np.random.default_rng(0),
-            mcl_config(p))
+            mcl_config_from_params(p))
     dt = time.perf_counter() - t0
     print(f"MCL: {args.particles} particles, <= {p.mcl_max_features} features/epoch: {args.epochs / dt:.0f} epochs/s "
           "(features precomputed; target >= 50)")

@@ -141,10 +141,9 @@ def low_variance_resample(weights: np.ndarray, rng: np.random.Generator) -> np.n
 
 
 def roughen(particles: np.ndarray, sigma_xy_m: float, sigma_yaw_rad: float, rng: np.random.Generator) -> np.ndarray:
-    """Roughening after resampling (Gordon et al. 1993): a small jitter so duplicated particles spread again."""
-    out = particles + rng.standard_normal(particles.shape) * np.array([sigma_xy_m, sigma_xy_m, sigma_yaw_rad])
-    out[:, 2] = wrap_angle_rad(out[:, 2])
-    return out
+    """Roughening after resampling (Gordon et al. 1993): a small fixed jitter so duplicated particles spread
+    again (``regularize`` with no spread-scaled part)."""
+    return regularize(particles, rng, bandwidth=0.0, floor=(sigma_xy_m, sigma_xy_m, sigma_yaw_rad))
 
 
 def effective_sample_size(weights: np.ndarray) -> float:

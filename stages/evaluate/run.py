@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, dead_reckon, run_ekf
-from stages.evaluate.localize_mcl import MclConfig, RasterFetcher, mcl_config_from_params, run_mcl
+from stages.evaluate.localize_mcl import RasterFetcher, mcl_config_from_params, run_mcl
 from stages.evaluate.metrics import compute_errors, interpolate_poses, summarize
 from stages.evaluate.params import EvaluateParams
 
@@ -66,10 +66,6 @@ def ekf_config(p: EvaluateParams) -> EkfConfig:
                      wall_heading_sigma_rad=np.deg2rad(p.wall_heading_sigma_deg))
 
 
-def mcl_config(p: EvaluateParams) -> MclConfig:
-    return mcl_config_from_params(p)
-
-
 def first_fix(d: DriveArrays) -> int:
     """Index of the first epoch with a valid, finite GNSS/INS fix (the filters start there)."""
     ok = d.gnss_valid & np.all(np.isfinite(d.gnss_q), axis=1) & np.all(np.isfinite(d.gnss_std), axis=1)
@@ -101,7 +97,7 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
     if "mcl" in p.methods and fetch is not None:
         t0 = time.perf_counter()
         r = run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, k0,
-                    np.random.default_rng(p.seed), mcl_config(p), stamps_ns=d.stamps_ns)
+                    np.random.default_rng(p.seed), mcl_config_from_params(p), stamps_ns=d.stamps_ns)
         runs["mcl"] = MethodRun(r.q, r.P, r.n_features, time.perf_counter() - t0)
         log.info("mcl: %d epochs in %.2f s", n - k0, runs["mcl"].seconds)
     return runs

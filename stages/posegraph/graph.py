@@ -12,7 +12,6 @@ import gtsam
 import numpy as np
 
 
-
 @dataclass(frozen=True)
 class Between:
     i: int

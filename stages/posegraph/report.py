@@ -38,10 +38,9 @@ def summarize_solution(drives, sol, top_k: int = 10) -> dict:
     }
 
 
-def _anchor_record(drives, m) -> dict:
+def _anchor_record(drives, offsets: np.ndarray, m) -> dict:
     """One survey anchor: the keyframe, the ground registration's decision, and the marking match's claimed
     absolute horizontal position (estimate at match time + shift) with its standard deviations."""
-    offsets = np.cumsum([0] + [d.n for d in drives])
     o = _drive_of(offsets, m.i)
     rec = {"drive": drives[o].name, "scan_id": int(drives[o].scan_ids[m.i - offsets[o]]),
            "vertical_accepted": bool(m.accepted), "vertical_reason": m.reason, "fitness": float(m.fitness)}
@@ -59,6 +58,7 @@ def _anchor_record(drives, m) -> dict:
 
 def write_report(out_dir: Path, drives, sol, refs: dict, loop_rows: list[dict], survey_matches) -> Path:
     out_dir = Path(out_dir)
+    offsets = np.cumsum([0] + [d.n for d in drives])
     report = {"map_drives": [d.name for d in drives], "reference_drives": sorted(refs),
               "map": summarize_solution(drives, sol),
               "references": {name: summarize_solution([d], ref) for name, (d, ref) in refs.items()},
@@ -66,7 +66,7 @@ def write_report(out_dir: Path, drives, sol, refs: dict, loop_rows: list[dict], 
                                  "accepted": sum(m.accepted for m in survey_matches),
                                  "horizontal_accepted": sum(bool(m.horizontal is not None and m.horizontal.accepted)
                                                             for m in survey_matches),
-                                 "records": [_anchor_record(drives, m) for m in survey_matches]},
+                                 "records": [_anchor_record(drives, offsets, m) for m in survey_matches]},
               "loops": loop_rows}
     path = out_dir / "posegraph_report.json"
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")

@@ -4,6 +4,7 @@ inconsistent with the result removed; optional survey anchors; reference drives 
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -97,8 +98,6 @@ def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds
     result cannot explain (whitened residual above ``loop_max_whitened_residual``), re-optimising each round,
     then re-admits removed loops that the final graph does explain. ``solve_times_s`` collects the wall time
     of each complete solve (all poses, GNSS, loops)."""
-    import time
-
     base = list(problem.betweens)
     gnc = p.loop_kernel == "gnc"
 

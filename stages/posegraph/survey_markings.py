@@ -76,16 +76,16 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
     keyframe's submap (consecutive submaps overlap); it is left holding this submap's scans only."""
     ks = submap_scan_indices(poses_drive[:, :3, 3], k_local, half_travel_m, max_scans)
     cache = {} if feature_cache is None else feature_cache
-    todo = [int(j) for j in ks if int(j) not in cache]
+    for j in set(cache) - set(ks.tolist()):
+        del cache[j]
+    todo = [j for j in ks.tolist() if j not in cache]
     got = load([(drive.name, int(drive.scan_ids[j])) for j in todo]) if todo else {}
     for j in todo:
         xyz, toff, intensity, ring = got[(drive.name, int(drive.scan_ids[j]))]
         pts = deskew_scan_lidar(drive, increments_drive, j, np.asarray(xyz, float),
                                 None if toff is None else np.asarray(toff, float))
         cache[j] = extract_road_features(pts, intensity, ring, drive.T_vehicle_lidar)
-    for j in [j for j in cache if j not in set(int(k) for k in ks)]:
-        del cache[j]
-    feats = _place(([cache[int(j)] for j in ks]), poses_drive[ks])
+    feats = _place([cache[j] for j in ks.tolist()], poses_drive[ks])
     centre = poses_drive[k_local, :2, 3]
     half = half_travel_m + 30.0 + window_margin_m  # features reach ~30 m from their scan
     mask, origin = survey_marking_window(index, centre, half)

@@ -77,6 +77,13 @@ def polygon_corners(poly_en: np.ndarray) -> np.ndarray:
     return np.column_stack([th1, th2, interior])
 
 
+def point_segment_distance_m(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Distance from point ``p`` to the segment a-b."""
+    seg = b - a
+    t = np.clip((p - a) @ seg / (seg @ seg), 0.0, 1.0)
+    return float(np.linalg.norm(a + t * seg - p))
+
+
 def point_in_polygon(p: np.ndarray, poly_en: np.ndarray) -> np.ndarray:
     """Even-odd rule, vectorised over points."""
     inside = np.zeros(len(p), bool)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from stages.simulate.city import City
-from stages.simulate.geom2d import point_in_polygon, polygon_corners
+from stages.common.geometry import wrap_angle_rad
+from stages.simulate.geom2d import point_in_polygon, point_segment_distance_m, polygon_corners
 from stages.simulate.mesh import Scene
 
 VISIBLE_RANGE_M = 60.0
@@ -86,10 +87,8 @@ def union_corner_walls(footprints_en: list[np.ndarray], corners_en: np.ndarray, 
             occ |= point_in_polygon(v + ring, polys[b])
             q = polys[b]
             for a, e in zip(q, np.roll(q, -1, axis=0)):
-                seg = e - a
-                t = np.clip((v - a) @ seg / (seg @ seg), 0.0, 1.0)
-                if np.linalg.norm(a + t * seg - v) < radius_m / 2:
-                    ang = np.arctan2(seg[1], seg[0])
+                if point_segment_distance_m(v, a, e) < radius_m / 2:
+                    ang = np.arctan2(e[1] - a[1], e[0] - a[0])
                     edge_dirs += [ang, ang + np.pi]
         if not occ.any() or occ.all():
             hidden[c] = occ.all()
@@ -103,28 +102,22 @@ def union_corner_walls(footprints_en: list[np.ndarray], corners_en: np.ndarray, 
         cand = np.asarray(edge_dirs)
         snapped = 0
         for w in range(2):
-            diff = np.abs((cand - walls[w] + np.pi) % (2 * np.pi) - np.pi)
+            diff = np.abs(wrap_angle_rad(cand - walls[w]))
             if diff.min() <= np.radians(snap_deg):
                 walls[w] = cand[np.argmin(diff)]
                 snapped += 1
         own = theta[c]
-        d_keep = sum(abs((walls[w] - own[w] + np.pi) % (2 * np.pi) - np.pi) for w in range(2))
-        d_swap = sum(abs((walls[1 - w] - own[w] + np.pi) % (2 * np.pi) - np.pi) for w in range(2))
-        theta[c] = walls if d_keep <= d_swap else walls[::-1]
-        theta[c] = (theta[c] + np.pi) % (2 * np.pi) - np.pi
+        d_keep = np.abs(wrap_angle_rad(walls - own)).sum()
+        d_swap = np.abs(wrap_angle_rad(walls[::-1] - own)).sum()
+        theta[c] = wrap_angle_rad(walls if d_keep <= d_swap else walls[::-1])
         bend = abs((walls[0] - walls[1]) % (2 * np.pi) - np.pi)
         hidden[c] = bend < np.radians(straight_deg) or snapped < 2
     return theta, inward, hidden
 
 
 def _glass_wall_near(poly: np.ndarray, glass: np.ndarray, v: np.ndarray, radius_m: float) -> bool:
-    for k in np.flatnonzero(np.asarray(glass, bool)):
-        a, e = poly[k], poly[(k + 1) % len(poly)]
-        seg = e - a
-        t = np.clip((v - a) @ seg / (seg @ seg), 0.0, 1.0)
-        if np.linalg.norm(a + t * seg - v) < radius_m:
-            return True
-    return False
+    return any(point_segment_distance_m(v, poly[k], poly[(k + 1) % len(poly)]) < radius_m
+               for k in np.flatnonzero(np.asarray(glass, bool)))
 
 
 def count_corner_views(corners: dict[str, np.ndarray], static: Scene, lidar_en: np.ndarray, lidar_z_m: float, *,
