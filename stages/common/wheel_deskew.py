@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.common.geometry import se3_from_xyz_rpy
+
 _STEP_S = 0.001  # integration step of sampled odometry
 
 
@@ -107,3 +109,20 @@ class OdometryTrack:
             return None
         odo_t, speed, yaw_rate = self.around(start_ns, duration_s)
         return deskew_points(points_xyz, time_offset_s, speed, yaw_rate, T_vehicle_lidar, odo_time_s=odo_t)
+
+
+def wheel_increments(track: OdometryTrack | None, scan_ids: np.ndarray, stamps_ns: np.ndarray
+                     ) -> dict[int, np.ndarray]:
+    """scan_id -> planar vehicle increment T_prev_curr (4x4) from the previous scan, integrated from wheel speed
+    and yaw rate, for every pair of consecutive scan ids that the odometry covers (``scan_ids`` sorted)."""
+    out: dict[int, np.ndarray] = {}
+    if track is None:
+        return out
+    for a, b, ta, tb in zip(scan_ids[:-1], scan_ids[1:], stamps_ns[:-1], stamps_ns[1:]):
+        dt_s = (int(tb) - int(ta)) * 1e-9
+        if b != a + 1 or dt_s <= 0 or not track.covers(int(ta), dt_s):
+            continue
+        odo_t, speed, yaw_rate = track.around(int(ta), dt_s)
+        x, y, yaw = integrate_odometry_xy_yaw(np.array([dt_s]), odo_t, speed, yaw_rate)
+        out[int(b)] = se3_from_xyz_rpy(x[0], y[0], 0.0, 0.0, 0.0, yaw[0])
+    return out

@@ -13,8 +13,7 @@ import pyarrow.compute as pc
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import DataQualityError, FormatError
 from schemas.registry import schema_of
-from stages.common.geometry import se3_from_xyz_rpy
-from stages.common.wheel_deskew import OdometryTrack, integrate_odometry_xy_yaw
+from stages.common.wheel_deskew import OdometryTrack, wheel_increments
 from stages.odometry.core import Edge, Scan, estimate_edges
 
 log = logging.getLogger(__name__)
@@ -89,22 +88,6 @@ def deskew_with_wheel_odometry(scans: list[Scan], track: OdometryTrack | None, T
     return out, n
 
 
-def wheel_increments(scans: list[Scan], track: OdometryTrack | None) -> dict[int, np.ndarray]:
-    """scan_id -> planar vehicle increment from the previous scan, integrated from wheel speed and yaw rate
-    (for consecutive scans the odometry covers)."""
-    out: dict[int, np.ndarray] = {}
-    if track is None:
-        return out
-    for a, b in zip(scans[:-1], scans[1:]):
-        dt_s = (b.stamp_ns - a.stamp_ns) * 1e-9
-        if b.scan_id != a.scan_id + 1 or dt_s <= 0 or not track.covers(a.stamp_ns, dt_s):
-            continue
-        odo_t, speed, yaw_rate = track.around(a.stamp_ns, dt_s)
-        x, y, yaw = integrate_odometry_xy_yaw(np.array([dt_s]), odo_t, speed, yaw_rate)
-        out[b.scan_id] = se3_from_xyz_rpy(x[0], y[0], 0.0, 0.0, 0.0, yaw[0])
-    return out
-
-
 def edges_to_table(edges: list[Edge], drive: str, chunk: int) -> pa.Table:
     from scipy.spatial.transform import Rotation
 
@@ -142,7 +125,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
         scans = scans_from_table(prev_tab) + scans
     T_vehicle_lidar = extrinsic_from_drive_info(ctx.inputs.read("drive_info"), drive)
     track = _odometry_track(ctx)
-    guides = wheel_increments(scans, track)
+    guides = wheel_increments(track, np.array([s.scan_id for s in scans]), np.array([s.stamp_ns for s in scans]))
     if p.deskew == "odometry":
         n_timed = sum(s.time_offset_s is not None for s in scans)
         scans, n_wheel = deskew_with_wheel_odometry(scans, track, T_vehicle_lidar)

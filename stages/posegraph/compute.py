@@ -58,6 +58,8 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     gnss = ctx.inputs.read("poses_gnss")
     edges = ctx.inputs.read("edges")
     info = ctx.inputs.read("drive_info")
+    wheel = ctx.inputs.read("odometry", columns=["drive", "stamp_ns", "speed_mps", "yaw_rate_radps"]) \
+        if ctx.inputs.has("odometry") and p.wheel_bridges else None
     all_drives = sorted(set(gnss["drive"].to_pylist()))
     map_names = list(ctx.settings.get("map_drives") or all_drives)
     eval_names = [d for d in (ctx.settings.get("eval_drives") or []) if d not in map_names]
@@ -65,7 +67,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     if missing:
         raise ConfigError("posegraph settings", [f"drive {d!r} has no poses_gnss rows; have {all_drives}"
                                                  for d in missing])
-    drives = [drive_input(d, gnss, edges, info) for d in map_names]
+    drives = [drive_input(d, gnss, edges, info, wheel) for d in map_names]
     load = scan_loader(ctx)
     survey_cb, survey_matches = None, []
     if ctx.inputs.has("survey"):
@@ -87,7 +89,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     loop_rows = _loop_rows(sol.loops, names)
     refs = {}
     for name in eval_names:
-        d = drive_input(name, gnss, edges, info)
+        d = drive_input(name, gnss, edges, info, wheel)
         ref = solve_reference(d, drives, sol.poses, load, p)
         rcov = marginal_cov_xy_yaw(ref.problem, np.concatenate(
             [ref.poses, ref.problem.initial[d.n:]]))[:d.n] if p.compute_marginals else np.zeros((d.n, 9))

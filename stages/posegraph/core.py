@@ -28,14 +28,24 @@ class DriveInput:
     edge_info: np.ndarray  # (N,6,6)
     edge_ok: np.ndarray  # (N,) bool: an ICP edge from scan k-1 into scan k exists and converged
     T_vehicle_lidar: np.ndarray  # (4,4)
+    wheel_T: np.ndarray | None = None  # (N,4,4) planar wheel-odometry increment into scan k (where wheel_ok)
+    wheel_ok: np.ndarray | None = None  # (N,) bool
+    wheel_calibration: "WheelCalibration | None" = None  # applied to wheel_T (report)
 
     @property
     def n(self) -> int:
         return len(self.scan_ids)
 
 
+def has_wheel(drive: DriveInput, k: int) -> bool:
+    return drive.wheel_ok is not None and bool(drive.wheel_ok[k])
+
+
 def bridge_increment(drive: DriveInput, k: int) -> np.ndarray:
-    """Relative pose k-1 -> k when ICP gave none: the GNSS/INS increment, else the neighbouring edge."""
+    """Relative pose k-1 -> k when ICP gave none: the wheel-odometry increment, else the GNSS/INS increment,
+    else the neighbouring edge."""
+    if has_wheel(drive, k):
+        return drive.wheel_T[k]
     if drive.gnss_valid[k] and drive.gnss_valid[k - 1]:
         return se3_inverse(drive.gnss_T[k - 1]) @ drive.gnss_T[k]
     ok = np.flatnonzero(drive.edge_ok)
@@ -94,16 +104,89 @@ def initial_poses(drive: DriveInput) -> np.ndarray:
     return out
 
 
-def odometry_betweens(drive: DriveInput, offset: int, failed_sigma_m: float,
-                      failed_sigma_rad: float) -> list[Between]:
+@dataclass(frozen=True)
+class WheelCalibration:
+    scale: float  # true distance / wheel distance
+    yaw_rate_bias_radps: float  # true yaw rate - measured yaw rate
+    n_edges: int  # ICP edges it was estimated from (0: identity calibration)
+
+
+def calibrate_wheel(drive: DriveInput, min_step_m: float = 0.2, max_mismatch: float = 0.05,
+                    min_edges: int = 50) -> WheelCalibration:
+    """Wheel scale and gyro bias of one drive against its accepted ICP edges (robust medians over pairs where
+    both exist, the vehicle moves ``min_step_m`` and the two agree within ``max_mismatch`` of the step).
+    A bridge of 30 m on a 1 % scale error is 0.3 m off otherwise (measured: gangnam drive 0 -1.2 %)."""
+    if drive.wheel_ok is None:
+        return WheelCalibration(1.0, 0.0, 0)
+    k = np.flatnonzero(drive.edge_ok & drive.wheel_ok)
+    k = k[k > 0]
+    wx, ix = drive.wheel_T[k, 0, 3], drive.edge_T[k, 0, 3]
+    ok = (np.abs(wx) > min_step_m) & (np.abs(ix - wx) < max_mismatch * np.abs(wx))
+    if ok.sum() < min_edges:
+        return WheelCalibration(1.0, 0.0, int(ok.sum()))
+    k, wx, ix = k[ok], wx[ok], ix[ok]
+    dt_s = (drive.stamps_ns[k] - drive.stamps_ns[k - 1]) * 1e-9
+    yaw = lambda T: np.arctan2(T[:, 1, 0], T[:, 0, 0])  # noqa: E731
+    bias = np.median((yaw(drive.edge_T[k]) - yaw(drive.wheel_T[k])) / dt_s)
+    return WheelCalibration(float(np.median(ix / wx)), float(bias), int(len(k)))
+
+
+def calibrated_wheel_increments(drive: DriveInput, cal: WheelCalibration) -> np.ndarray:
+    """(N,4,4) wheel increments with the drive's scale and gyro bias applied (planar)."""
+    W = drive.wheel_T.copy()
+    dt_s = np.diff(drive.stamps_ns, prepend=drive.stamps_ns[0]) * 1e-9
+    dyaw = cal.yaw_rate_bias_radps * dt_s
+    c, s = np.cos(dyaw), np.sin(dyaw)
+    R = W[:, :2, :2].copy()
+    W[:, :2, :2] = np.einsum("nij,njk->nik", R, np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2))
+    W[:, :2, 3] *= cal.scale
+    return W
+
+
+@dataclass(frozen=True)
+class WheelNoise:
+    """Std devs of a wheel-odometry increment (vehicle frame): horizontal ``sigma_m`` plus ``scale_sigma`` of
+    the distance along track, heading ``sigma_rad``; a planar increment says little about height, roll and
+    pitch (``height_sigma_m``, ``tilt_sigma_rad``)."""
+
+    sigma_m: float
+    scale_sigma: float
+    sigma_rad: float
+    height_sigma_m: float
+    tilt_sigma_rad: float
+
+
+def wheel_information(T_prev_curr: np.ndarray, noise: WheelNoise) -> np.ndarray:
+    """6x6 information (gtsam order rx ry rz tx ty tz) of a planar wheel increment."""
+    along_m = noise.sigma_m + noise.scale_sigma * abs(float(T_prev_curr[0, 3]))
+    sig = [noise.tilt_sigma_rad, noise.tilt_sigma_rad, noise.sigma_rad, along_m, noise.sigma_m,
+           noise.height_sigma_m]
+    return np.diag(np.asarray(sig) ** -2.0)
+
+
+def odometry_betweens(drive: DriveInput, offset: int, failed_sigma_m: float, failed_sigma_rad: float,
+                      wheel_noise: WheelNoise | None = None) -> list[Between]:
+    """One factor per consecutive pair: the ICP edge where it was accepted; else a wheel-odometry increment
+    (kind "wheel", when the drive has one and ``wheel_noise`` is given); else a weak bridge (GNSS/INS
+    increment)."""
     bridge_info = np.diag([failed_sigma_rad ** -2] * 3 + [failed_sigma_m ** -2] * 3)
     out = []
     for k in range(1, drive.n):
         if drive.edge_ok[k]:
             out.append(Between(offset + k - 1, offset + k, drive.edge_T[k], drive.edge_info[k], "odometry"))
+        elif wheel_noise is not None and has_wheel(drive, k):
+            out.append(Between(offset + k - 1, offset + k, drive.wheel_T[k],
+                               wheel_information(drive.wheel_T[k], wheel_noise), "wheel"))
         else:
             out.append(Between(offset + k - 1, offset + k, bridge_increment(drive, k), bridge_info, "bridge"))
     return out
+
+
+def wheel_noise_from_params(p) -> WheelNoise | None:
+    if not p.wheel_bridges:
+        return None
+    return WheelNoise(p.wheel_sigma_m, p.wheel_scale_sigma, p.wheel_sigma_rad, p.wheel_height_sigma_m,
+                      p.wheel_tilt_sigma_rad)
 
 
 def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
@@ -113,7 +196,8 @@ def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
     problem = Problem(int(offsets[-1]), initial)
     for d, off in zip(drives, offsets):
         idx = off + np.arange(d.n)
-        problem.betweens += odometry_betweens(d, int(off), p.failed_edge_sigma_m, p.failed_edge_sigma_rad)
+        problem.betweens += odometry_betweens(d, int(off), p.failed_edge_sigma_m, p.failed_edge_sigma_rad,
+                                              wheel_noise_from_params(p))
         gnss = gnss_position_priors(
             idx, d.stamps_ns, d.gnss_T, d.gnss_std_enu_m, d.gnss_valid, every_s=p.gnss_every_s,
             inflation=p.gnss_std_inflation, min_std_m=p.gnss_min_std_m, robust=p.gnss_kernel,

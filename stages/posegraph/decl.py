@@ -5,13 +5,13 @@ from stages.posegraph.params import PosegraphParams
 STAGE = StageDecl(
     name="posegraph",
     summary="GTSAM pose graph: ICP odometry, verified robust loop closures, robust GNSS priors, survey anchors.",
-    code_version="8",
+    code_version="9",
     inputs={"edges": "odometry_edges", "poses_gnss": "poses_gnss", "scans": "scans_raw",
-            "drive_info": "drive_info", "survey": "survey_enu"},
+            "drive_info": "drive_info", "survey": "survey_enu", "odometry": "odometry_raw"},
     outputs={"poses_odometry": "poses_odometry", "poses_optimized": "poses_optimized",
              "loop_closures": "loop_closures", "report": "posegraph_report"},
     params=PosegraphParams,
     partition=Partitioning.SINGLE,
     compute="stages.posegraph.compute:compute",
-    optional_inputs=frozenset({"survey"}),
+    optional_inputs=frozenset({"survey", "odometry"}),
 )

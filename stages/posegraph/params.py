@@ -13,6 +13,15 @@ class PosegraphParams(Params):
     failed_edge_sigma_m: float = Field(0.15, gt=0, description="std of a bridge over a missing/failed ICP edge "
                                        "(the 10 Hz GNSS/INS increment: ~0.1 m RMS on the simulator)")
     failed_edge_sigma_rad: float = Field(0.003, gt=0, description="same, rotation (INS increments ~0.001 rad)")
+    wheel_bridges: bool = Field(True, description="where ICP failed and the drive has wheel odometry, bridge with "
+                                "the wheel increment (gangnam: 1.2 % scale error, 0.01 deg yaw per scan) instead of "
+                                "the GNSS/INS increment")
+    wheel_sigma_m: float = Field(0.01, gt=0, description="wheel increment: horizontal std")
+    wheel_scale_sigma: float = Field(0.015, ge=0, description="wheel increment: extra along-track std per metre")
+    wheel_sigma_rad: float = Field(0.0003, gt=0, description="wheel increment: heading std after the gyro-bias "
+                                   "calibration (gangnam: 0.009-0.012 deg RMS per scan)")
+    wheel_height_sigma_m: float = Field(0.03, gt=0, description="wheel increment: height std (planar model)")
+    wheel_tilt_sigma_rad: float = Field(0.005, gt=0, description="wheel increment: roll/pitch std")
     # GNSS / INS priors
     gnss_std_inflation: float = Field(3.0, ge=1, description="receivers understate their error in canyons")
     gnss_min_std_m: float = Field(0.05, gt=0)

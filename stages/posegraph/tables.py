@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 from pipeline.errors import FormatError
 from schemas.registry import schema_of
 from stages.common.geometry import poses_from_xyz_quat
-from stages.posegraph.core import DriveInput
+from stages.common.wheel_deskew import OdometryTrack, wheel_increments
+from stages.posegraph.core import DriveInput, calibrate_wheel, calibrated_wheel_increments
 
 
 def _T_from_columns(table: pa.Table, x: str, y: str, z: str) -> np.ndarray:
@@ -17,8 +18,10 @@ def _T_from_columns(table: pa.Table, x: str, y: str, z: str) -> np.ndarray:
                                np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")]))
 
 
-def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Table) -> DriveInput:
-    """One drive's rows of poses_gnss (one per scan), odometry_edges and drive_info."""
+def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Table,
+                odometry: pa.Table | None = None) -> DriveInput:
+    """One drive's rows of poses_gnss (one per scan), odometry_edges, drive_info and (optional) odometry_raw
+    (wheel speed and yaw rate: increments where ICP failed)."""
     g = gnss.filter(pc.equal(gnss["drive"], drive)).sort_by("scan_id")
     if g.num_rows == 0:
         raise FormatError(f"poses_gnss: no rows for drive {drive!r}; hint: is it in the workflow's drives?")
@@ -44,9 +47,30 @@ def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Tabl
         edge_info[pos[inside]] = info[inside]
         edge_ok[pos[inside]] = conv[inside]
     std = np.column_stack([g[c].to_numpy() for c in ("std_east_m", "std_north_m", "std_up_m")])
-    return DriveInput(drive, ids, g["stamp_ns"].to_numpy(), _T_from_columns(g, "x_m", "y_m", "z_m"), std,
-                      g["std_yaw_rad"].to_numpy(), g["valid"].to_numpy(zero_copy_only=False), edge_T, edge_info,
-                      edge_ok, T_vl)
+    d = DriveInput(drive, ids, g["stamp_ns"].to_numpy(), _T_from_columns(g, "x_m", "y_m", "z_m"), std,
+                   g["std_yaw_rad"].to_numpy(), g["valid"].to_numpy(zero_copy_only=False), edge_T, edge_info,
+                   edge_ok, T_vl, *_wheel_arrays(drive, ids, g["stamp_ns"].to_numpy(), odometry))
+    if d.wheel_T is not None:
+        d.wheel_calibration = calibrate_wheel(d)
+        d.wheel_T = calibrated_wheel_increments(d, d.wheel_calibration)
+    return d
+
+
+def _wheel_arrays(drive: str, ids: np.ndarray, stamps_ns: np.ndarray, odometry: pa.Table | None
+                  ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    if odometry is None:
+        return None, None
+    rows = odometry.filter(pc.equal(odometry["drive"], drive)) if "drive" in odometry.column_names else odometry
+    if rows.num_rows < 2:
+        return None, None
+    inc = wheel_increments(OdometryTrack.from_table(rows), ids, stamps_ns)
+    wheel_T = np.tile(np.eye(4), (len(ids), 1, 1))
+    wheel_ok = np.zeros(len(ids), bool)
+    pos = np.searchsorted(ids, np.fromiter(inc, dtype=np.int64, count=len(inc)))
+    for k, T in zip(pos, inc.values()):
+        wheel_T[k] = T
+        wheel_ok[k] = True
+    return wheel_T, wheel_ok
 
 
 def poses_table(name: str, drive: DriveInput, T: np.ndarray, cov_xy_yaw: np.ndarray | None = None) -> pa.Table:

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import (adjoint_se3, deskew_points, floor_information, prepare_cloud,
-                                        register_clouds)
+                                        register_clouds, regularize_covariances)
 from stages.odometry.core import scale_motion
 
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
@@ -68,3 +68,39 @@ def test_deskew_undoes_constant_velocity_sweep():
     out = deskew_points(p_t, t, T_sweep, period_s)
     assert np.abs(out - p_start).max() < 1e-3  # rotation/translation interpolation coupling is second order
     assert np.abs(p_t - p_start).max() > 0.5  # the skew was real
+
+
+def _exact_plane_street(rng: np.random.Generator, n: int = 6000) -> np.ndarray:
+    """Two walls, an end wall and a flat layer of points at one height (what a ring at 0 deg elevation gives
+    when range noise lies along the ray): every neighbourhood is exactly planar."""
+    t = rng.uniform(-20, 20, n)
+    walls = [np.column_stack([t, np.full(n, y), rng.uniform(-1.5, 8, n)]) for y in (6.0, -7.0)]
+    layer = np.column_stack([rng.uniform(-30, 30, n), rng.uniform(-30, 30, n), np.zeros(n)])
+    end = np.column_stack([np.full(n, 25.0), rng.uniform(-7, 6, n), rng.uniform(-1.5, 8, n)])
+    return np.vstack([*walls, layer[np.abs(layer[:, 1]) > 8], end])
+
+
+def test_gicp_on_exactly_planar_neighbourhoods_needs_regularised_covariances():
+    """Raw covariances of exact planes are singular; GICP then diverges (NaN, reported not converged).
+    With the (1 mm)^2 eigenvalue floor it recovers the motion to 1 mm."""
+    pts = _exact_plane_street(np.random.default_rng(3))
+    T = se3_from_xyz_rpy(0.4, 0.03, 0.0, 0.0, 0.0, np.radians(0.5))
+    src = (pts - T[:3, 3]) @ T[:3, :3]
+    raw = register_clouds(prepare_cloud(src, 0.5, 20, min_cov_eigenvalue_m2=0.0),
+                          prepare_cloud(pts, 0.5, 20, min_cov_eigenvalue_m2=0.0), np.eye(4), max_corr_m=1.0)
+    assert not raw.converged
+    fixed = register_clouds(prepare_cloud(src, 0.5, 20), prepare_cloud(pts, 0.5, 20), np.eye(4), max_corr_m=1.0)
+    dt_m, dr_deg = _pose_error(fixed.T_target_source, T)
+    assert fixed.converged and dt_m < 1e-3 and dr_deg < 0.01, (dt_m, dr_deg)
+
+
+def test_regularize_covariances_floors_eigenvalues_and_keeps_eigenvectors():
+    rng = np.random.default_rng(0)
+    R = Rotation.random(50, random_state=1).as_matrix()
+    w = np.column_stack([np.zeros(50), rng.uniform(1e-4, 1e-2, 50), rng.uniform(0.1, 1.0, 50)])
+    C = np.einsum("nij,nj,nkj->nik", R, w, R)
+    out = regularize_covariances(C, 1e-6)
+    w_out, V_out = np.linalg.eigh(out)
+    np.testing.assert_allclose(w_out, np.sort(np.maximum(w, 1e-6), axis=1), rtol=1e-6, atol=1e-12)
+    # the smallest axis stays the plane normal
+    np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", V_out[:, :, 0], R[:, :, 0])), 1.0, atol=1e-6)
