@@ -165,8 +165,7 @@ def odometry_ours(chunks: Iterable[list], T_vehicle_lidar: np.ndarray, track=Non
                   engine: str = "ours", **overrides) -> Run:
     """Our odometry stage's algorithm, chunk by chunk as the stage runs it, without GNSS/INS (ICP-only);
     wheel deskew and wheel guides where ``track`` is given and the params say deskew='odometry'."""
-    from stages.common.wheel_deskew import wheel_increments
-    from stages.odometry.compute import deskew_with_wheel_odometry
+    from stages.odometry.compute import deskew_with_wheel_odometry, wheel_guides
     from stages.odometry.core import estimate_edges
     from stages.odometry.params import OdometryParams
 
@@ -176,7 +175,7 @@ def odometry_ours(chunks: Iterable[list], T_vehicle_lidar: np.ndarray, track=Non
     for chunk in chunks:
         scans = ([prev] if prev is not None else []) + chunk
         t0 = time.perf_counter()
-        guides = wheel_increments(track, np.array([s.scan_id for s in scans]), np.array([s.stamp_ns for s in scans]))
+        guides = wheel_guides(scans, track)
         if p.deskew == "odometry":
             scans, _ = deskew_with_wheel_odometry(scans, track, T_vehicle_lidar)
         edges += estimate_edges(scans, T_vehicle_lidar, {}, guide_increments=guides or None, **kw)

@@ -76,7 +76,7 @@ def prepare_cloud(points_m: np.ndarray, voxel_m: float, knn: int = 20, with_cova
     search = o3d.geometry.KDTreeSearchParamKNN(knn)
     if with_covariances:
         cloud.estimate_covariances(search)
-        if min_cov_eigenvalue_m2 > 0 and cloud.has_covariances() and len(cloud.points):
+        if min_cov_eigenvalue_m2 > 0 and cloud.has_covariances():  # False for an empty cloud
             cloud.covariances = o3d.utility.Matrix3dVector(
                 regularize_covariances(np.asarray(cloud.covariances), min_cov_eigenvalue_m2))
     cloud.estimate_normals(search)

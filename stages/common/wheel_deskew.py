@@ -111,6 +111,11 @@ class OdometryTrack:
         return deskew_points(points_xyz, time_offset_s, speed, yaw_rate, T_vehicle_lidar, odo_time_s=odo_t)
 
 
+def track_from_table(odometry) -> OdometryTrack | None:
+    """An ``OdometryTrack`` of one drive's odometry_raw rows, or None when there are fewer than two samples."""
+    return OdometryTrack.from_table(odometry) if odometry.num_rows >= 2 else None
+
+
 def wheel_increments(track: OdometryTrack | None, scan_ids: np.ndarray, stamps_ns: np.ndarray
                      ) -> dict[int, np.ndarray]:
     """scan_id -> planar vehicle increment T_prev_curr (4x4) from the previous scan, integrated from wheel speed

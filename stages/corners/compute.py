@@ -9,7 +9,7 @@ import pyarrow as pa
 from pipeline.declare import StageContext
 from schemas.registry import schema_of
 from stages.corners.core import extract_corners, select_scan_layers
-from stages.common.wheel_deskew import OdometryTrack
+from stages.common.wheel_deskew import OdometryTrack, track_from_table
 from stages.corners.determine import Corners
 from stages.corners.params import CornerParams
 
@@ -71,7 +71,7 @@ def _odometry_track(ctx: StageContext, params: CornerParams) -> OdometryTrack | 
     if not (params.deskew and ctx.inputs.has("odometry")):
         return None
     odo = ctx.inputs.read("odometry", partition=ctx.partition, columns=["stamp_ns", "speed_mps", "yaw_rate_radps"])
-    return OdometryTrack.from_table(odo) if odo.num_rows >= 2 else None
+    return track_from_table(odo)
 
 
 def compute(ctx: StageContext) -> dict[str, pa.Table]:

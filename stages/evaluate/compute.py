@@ -21,7 +21,7 @@ from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_
 from stages.evaluate.localize_mcl import odometry_increments
 from stages.evaluate.params import EvaluateParams
 from stages.common.road_features import extract_road_features
-from stages.common.wheel_deskew import OdometryTrack
+from stages.common.wheel_deskew import OdometryTrack, track_from_table
 from stages.evaluate.run import DriveArrays, evaluate_drive
 
 log = logging.getLogger(__name__)
@@ -167,7 +167,7 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     icp[missing] = odo_inc[missing]  # a failed ICP edge falls back on wheel odometry
     corners = read_corners(_rows_of(ctx, "corners", drive), scan_ids, T_vl)
     if "mcl" in p.methods:
-        track = OdometryTrack.from_table(odo) if p.feature_deskew and odo.num_rows >= 2 else None
+        track = track_from_table(odo) if p.feature_deskew else None
         f_ep, f_xy = extract_features(ctx, drive, scan_ids, T_vl, p, track)
     else:
         f_ep, f_xy = np.zeros(0, np.int64), np.zeros((0, 2))

@@ -13,7 +13,7 @@ import pyarrow.compute as pc
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import DataQualityError, FormatError
 from schemas.registry import schema_of
-from stages.common.wheel_deskew import OdometryTrack, wheel_increments
+from stages.common.wheel_deskew import OdometryTrack, track_from_table, wheel_increments
 from stages.odometry.core import Edge, Scan, estimate_edges
 
 log = logging.getLogger(__name__)
@@ -70,7 +70,7 @@ def _odometry_track(ctx: StageContext) -> OdometryTrack | None:
         return None
     odo = ctx.inputs.read("odometry", partition=PartitionKey(drive=ctx.partition.drive),
                           columns=["stamp_ns", "speed_mps", "yaw_rate_radps"])
-    return OdometryTrack.from_table(odo) if odo.num_rows >= 2 else None
+    return track_from_table(odo)
 
 
 def deskew_with_wheel_odometry(scans: list[Scan], track: OdometryTrack | None, T_vehicle_lidar: np.ndarray,
@@ -86,6 +86,11 @@ def deskew_with_wheel_odometry(scans: list[Scan], track: OdometryTrack | None, T
         out.append(s if pts is None else Scan(s.scan_id, s.stamp_ns, pts, None))
         n += pts is not None
     return out, n
+
+
+def wheel_guides(scans: list[Scan], track: OdometryTrack | None) -> dict[int, np.ndarray]:
+    """scan_id -> planar wheel increment from the previous scan (initial guess and gate of the ICP edge)."""
+    return wheel_increments(track, np.array([s.scan_id for s in scans]), np.array([s.stamp_ns for s in scans]))
 
 
 def edges_to_table(edges: list[Edge], drive: str, chunk: int) -> pa.Table:
@@ -125,7 +130,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
         scans = scans_from_table(prev_tab) + scans
     T_vehicle_lidar = extrinsic_from_drive_info(ctx.inputs.read("drive_info"), drive)
     track = _odometry_track(ctx)
-    guides = wheel_increments(track, np.array([s.scan_id for s in scans]), np.array([s.stamp_ns for s in scans]))
+    guides = wheel_guides(scans, track)
     if p.deskew == "odometry":
         n_timed = sum(s.time_offset_s is not None for s in scans)
         scans, n_wheel = deskew_with_wheel_odometry(scans, track, T_vehicle_lidar)

@@ -32,8 +32,7 @@ def summarize_solution(drives, sol, top_k: int = 10) -> dict:
         "n_poses": int(sol.problem.n_poses), "n_gnss_factors": len(sol.problem.positions),
         "n_bridges": sum(b.kind == "bridge" for b in sol.problem.betweens),
         "n_wheel_bridges": sum(b.kind == "wheel" for b in sol.problem.betweens),
-        "wheel_calibration": {d.name: vars(d.wheel_calibration) for d in drives
-                              if getattr(d, "wheel_calibration", None) is not None},
+        "wheel_calibration": {d.name: vars(d.wheel_calibration) for d in drives if d.wheel_calibration is not None},
         "gnss_residual_horizontal_rms_m": float(np.sqrt(np.mean(h ** 2))) if h.size else None,
         "gnss_residual_horizontal_max_m": float(h.max()) if h.size else None,
         "loops_candidates": len(sol.loops), "loops_accepted": sum(r.accepted for r in sol.loops),

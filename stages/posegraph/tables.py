@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.errors import FormatError
 from schemas.registry import schema_of
 from stages.common.geometry import poses_from_xyz_quat
-from stages.common.wheel_deskew import OdometryTrack, wheel_increments
+from stages.common.wheel_deskew import track_from_table, wheel_increments
 from stages.posegraph.core import DriveInput, calibrate_wheel, calibrated_wheel_increments
 
 
@@ -61,9 +61,10 @@ def _wheel_arrays(drive: str, ids: np.ndarray, stamps_ns: np.ndarray, odometry: 
     if odometry is None:
         return None, None
     rows = odometry.filter(pc.equal(odometry["drive"], drive)) if "drive" in odometry.column_names else odometry
-    if rows.num_rows < 2:
+    track = track_from_table(rows)
+    if track is None:
         return None, None
-    inc = wheel_increments(OdometryTrack.from_table(rows), ids, stamps_ns)
+    inc = wheel_increments(track, ids, stamps_ns)
     wheel_T = np.tile(np.eye(4), (len(ids), 1, 1))
     wheel_ok = np.zeros(len(ids), bool)
     pos = np.searchsorted(ids, np.fromiter(inc, dtype=np.int64, count=len(inc)))

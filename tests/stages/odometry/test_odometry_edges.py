@@ -136,8 +136,8 @@ def test_gate_rejects_edges_far_from_the_gnss_increment():
 def test_structure_only_registration_with_road_planes_and_own_sweep_deskew(swept_sequence):
     """The production path: road plane split (the extrinsic puts the vehicle origin on the road), structure-only
     GICP, both deskew routes (wheel odometry before registration; own sweep in a second pass)."""
-    from stages.common.wheel_deskew import OdometryTrack, wheel_increments
-    from stages.odometry.compute import deskew_with_wheel_odometry
+    from stages.common.wheel_deskew import OdometryTrack
+    from stages.odometry.compute import deskew_with_wheel_odometry, wheel_guides
 
     scans, step = swept_sequence
     T_vl = se3_from_xyz_rpy(0.0, 0.0, 1.9, 0.0, 0.0, 0.0)
@@ -146,7 +146,7 @@ def test_structure_only_registration_with_road_planes_and_own_sweep_deskew(swept
     track = OdometryTrack(t_ns, np.full(len(t_ns), speed), np.full(len(t_ns), yaw_rate))
     wheel_scans, n = deskew_with_wheel_odometry(scans, track, T_vl)
     assert n == len(scans) and all(s.time_offset_s is None for s in wheel_scans)
-    guides = wheel_increments(track, np.array([s.scan_id for s in scans]), np.array([s.stamp_ns for s in scans]))
+    guides = wheel_guides(scans, track)
     g_err = np.array([_err(T, step) for T in guides.values()])
     # the wheel model drives an arc, the sequence a chord (1.3 cm apart after 1.2 m): a guide, not the answer
     assert len(guides) == 5 and g_err[:, 0].max() < 0.02 and g_err[:, 1].max() < 0.01
