@@ -1,4 +1,4 @@
-"""The road plane under a scan: a trimmed least-squares fit, ground/structure split, and the alignment of two
+"""The road plane under a scan: a robust (biweight) least-squares fit, ground/structure split, and the alignment of two
 scans' ground planes (height, roll and pitch of a relative pose).
 
 Why: registering whole scans lets the ground's ring pattern, which moves with the sensor, pull each increment
@@ -28,28 +28,42 @@ class GroundPlane:
 
 
 def fit_ground_plane(points_lidar_m: np.ndarray, T_vehicle_lidar: np.ndarray, *, radius_m: float = 20.0,
-                     band_m: float = 0.4, tolerances_m: tuple[float, ...] = (0.3, 0.15, 0.08),
+                     band_m: float = 0.4, lane_half_width_m: float = 3.0,
+                     widths_m: tuple[float, ...] = (0.15, 0.08, 0.05, 0.05, 0.05), lane_iterations: int = 2,
                      min_points: int = 100) -> GroundPlane | None:
-    """Fit the road plane to points within ``radius_m`` (horizontal) and ``band_m`` of the vehicle's ground,
-    re-fitting on the points within each of the decreasing ``tolerances_m`` of the last plane (cars, curbs
-    and sidewalks drop out). None when fewer than ``min_points`` remain (a scan without visible ground)."""
+    """Fit the road plane to points within ``radius_m`` (horizontal) and ``band_m`` of the vehicle's ground.
+
+    Iteratively reweighted least squares with Tukey's biweight of decreasing ``widths_m``, started from the
+    vehicle's nominal ground. The first ``lane_iterations`` use only the corridor ahead of and behind the
+    vehicle (``|y| < lane_half_width_m``, the lane it drives in), the rest every candidate. Why: a sensor sees
+    far more points near itself, and the sidewalk (0.15 m up, 4-6 m to the side) then held the fit in a
+    compromise tilted 0.5 deg and 6 cm low in most gangnam scans; the corridor is road, and from its plane the
+    sidewalk is out of the biweight's reach (measured: normal 0.41 -> 0.012 deg, offset 42 -> 0.7 mm RMS).
+    Falls back to every candidate when the corridor has too few points; None when fewer than ``min_points``
+    carry weight (a scan without visible ground)."""
     p = np.asarray(points_lidar_m, np.float64)[:, :3]
     R, t = T_vehicle_lidar[:3, :3], T_vehicle_lidar[:3, 3]
     pv = p @ R.T + t
-    cand = p[(np.abs(pv[:, 2]) < band_m) & (np.hypot(pv[:, 0], pv[:, 1]) < radius_m)]
+    near = (np.abs(pv[:, 2]) < band_m) & (np.hypot(pv[:, 0], pv[:, 1]) < radius_m)
+    cand = p[near]
+    lane = cand[np.abs(pv[near, 1]) < lane_half_width_m]
+    if len(lane) < min_points:
+        lane = cand
     up = R[2, :]  # vehicle z axis in the lidar frame (R^T e_z)
     normal, offset = up.copy(), float(t[2])  # the vehicle's ground: z_vehicle = up . p + t_z = 0
-    inl = cand
-    for tol in tolerances_m:
-        inl = cand[np.abs(cand @ normal + offset) < tol]
-        if len(inl) < min_points:
+    for it, width in enumerate(widths_m):
+        use = lane if it < lane_iterations else cand
+        d = use @ normal + offset
+        w = np.where(np.abs(d) < width, (1.0 - (d / width) ** 2) ** 2, 0.0)
+        if np.count_nonzero(w) < min_points:
             return None
-        centroid = inl.mean(axis=0)
-        _, _, Vt = np.linalg.svd(inl - centroid, full_matrices=False)
+        centroid = (w[:, None] * use).sum(axis=0) / w.sum()
+        _, _, Vt = np.linalg.svd((use - centroid) * np.sqrt(w)[:, None], full_matrices=False)
         normal = Vt[2] if Vt[2] @ up > 0 else -Vt[2]
         offset = float(-normal @ centroid)
-    d = inl @ normal + offset
-    return GroundPlane(normal, offset, len(inl), float(np.sqrt(np.mean(d ** 2))))
+    d = cand @ normal + offset
+    inl = np.abs(d) < widths_m[-1]
+    return GroundPlane(normal, offset, int(inl.sum()), float(np.sqrt(np.mean(d[inl] ** 2))))
 
 
 def ground_mask(points_lidar_m: np.ndarray, plane: GroundPlane, tolerance_m: float) -> np.ndarray:

@@ -6,7 +6,7 @@ STAGE = StageDecl(
     name="odometry",
     summary="Deskewed structure-only GICP between consecutive scans, road planes for height/roll/pitch: vehicle-frame "
             "edges with fitness, RMSE, information.",
-    code_version="5",
+    code_version="6",
     inputs={"scans": "scans_raw", "poses_gnss": "poses_gnss", "drive_info": "drive_info", "odometry": "odometry_raw"},
     optional_inputs=frozenset({"odometry"}),
     outputs={"edges": "odometry_edges"},

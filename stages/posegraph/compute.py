@@ -59,7 +59,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     edges = ctx.inputs.read("edges")
     info = ctx.inputs.read("drive_info")
     wheel = ctx.inputs.read("odometry", columns=["drive", "stamp_ns", "speed_mps", "yaw_rate_radps"]) \
-        if ctx.inputs.has("odometry") and p.wheel_bridges else None
+        if ctx.inputs.has("odometry") and (p.wheel_bridges or p.wheel_fusion) else None
     all_drives = sorted(set(gnss["drive"].to_pylist()))
     map_names = list(ctx.settings.get("map_drives") or all_drives)
     eval_names = [d for d in (ctx.settings.get("eval_drives") or []) if d not in map_names]

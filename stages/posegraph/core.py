@@ -165,15 +165,20 @@ def wheel_information(T_prev_curr: np.ndarray, noise: WheelNoise) -> np.ndarray:
 
 
 def odometry_betweens(drive: DriveInput, offset: int, failed_sigma_m: float, failed_sigma_rad: float,
-                      wheel_noise: WheelNoise | None = None) -> list[Between]:
+                      wheel_noise: WheelNoise | None = None, fusion_noise: WheelNoise | None = None) -> list[Between]:
     """One factor per consecutive pair: the ICP edge where it was accepted; else a wheel-odometry increment
     (kind "wheel", when the drive has one and ``wheel_noise`` is given); else a weak bridge (GNSS/INS
-    increment)."""
+    increment). With ``fusion_noise``, every accepted ICP edge that has a wheel increment gets it as a second
+    factor (kind "wheel_fused"): the calibrated wheel is the better along-track sensor over a few scans (gangnam:
+    1.2 mm per scan against ICP's 3.7 mm, which a street with few cross structures biases by 1-4 cm per edge)."""
     bridge_info = np.diag([failed_sigma_rad ** -2] * 3 + [failed_sigma_m ** -2] * 3)
     out = []
     for k in range(1, drive.n):
         if drive.edge_ok[k]:
             out.append(Between(offset + k - 1, offset + k, drive.edge_T[k], drive.edge_info[k], "odometry"))
+            if fusion_noise is not None and has_wheel(drive, k):
+                out.append(Between(offset + k - 1, offset + k, drive.wheel_T[k],
+                                   wheel_information(drive.wheel_T[k], fusion_noise), "wheel_fused"))
         elif wheel_noise is not None and has_wheel(drive, k):
             out.append(Between(offset + k - 1, offset + k, drive.wheel_T[k],
                                wheel_information(drive.wheel_T[k], wheel_noise), "wheel"))
@@ -189,6 +194,13 @@ def wheel_noise_from_params(p) -> WheelNoise | None:
                       p.wheel_tilt_sigma_rad)
 
 
+def wheel_fusion_noise_from_params(p) -> WheelNoise | None:
+    if not p.wheel_fusion:
+        return None
+    return WheelNoise(p.wheel_fusion_sigma_m, p.wheel_fusion_scale_sigma, p.wheel_fusion_sigma_rad,
+                      p.wheel_height_sigma_m, p.wheel_tilt_sigma_rad)
+
+
 def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
     """Odometry + bridges + GNSS + attitude for all drives in one graph; returns it and the drive offsets."""
     offsets = np.cumsum([0] + [d.n for d in drives])
@@ -197,7 +209,7 @@ def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
     for d, off in zip(drives, offsets):
         idx = off + np.arange(d.n)
         problem.betweens += odometry_betweens(d, int(off), p.failed_edge_sigma_m, p.failed_edge_sigma_rad,
-                                              wheel_noise_from_params(p))
+                                              wheel_noise_from_params(p), wheel_fusion_noise_from_params(p))
         gnss = gnss_position_priors(
             idx, d.stamps_ns, d.gnss_T, d.gnss_std_enu_m, d.gnss_valid, every_s=p.gnss_every_s,
             inflation=p.gnss_std_inflation, min_std_m=p.gnss_min_std_m, robust=p.gnss_kernel,

@@ -18,7 +18,7 @@ def _drive_of(offsets: np.ndarray, i: int) -> int:
 def summarize_solution(drives, sol, top_k: int = 10) -> dict:
     offsets = np.cumsum([0] + [d.n for d in drives])
     res_gnss = gnss_residuals_enu(sol.poses, sol.problem.positions)
-    odo = [b for b in sol.problem.betweens if b.kind in ("odometry", "wheel", "bridge")]
+    odo = [b for b in sol.problem.betweens if b.kind in ("odometry", "wheel", "bridge", "wheel_fused")]
     res_odo = between_residuals(odo, sol.poses) if odo else np.zeros(0)
     worst = np.argsort(res_odo)[::-1][:top_k]
     edges = []
@@ -32,6 +32,7 @@ def summarize_solution(drives, sol, top_k: int = 10) -> dict:
         "n_poses": int(sol.problem.n_poses), "n_gnss_factors": len(sol.problem.positions),
         "n_bridges": sum(b.kind == "bridge" for b in sol.problem.betweens),
         "n_wheel_bridges": sum(b.kind == "wheel" for b in sol.problem.betweens),
+        "n_wheel_fused": sum(b.kind == "wheel_fused" for b in sol.problem.betweens),
         "wheel_calibration": {d.name: vars(d.wheel_calibration) for d in drives if d.wheel_calibration is not None},
         "gnss_residual_horizontal_rms_m": float(np.sqrt(np.mean(h ** 2))) if h.size else None,
         "gnss_residual_horizontal_max_m": float(h.max()) if h.size else None,

@@ -35,6 +35,38 @@ def test_fit_recovers_a_tilted_road_under_clutter():
     assert mask[:n_road].mean() > 0.99 and not mask[n_road:n_road + 3000].any()  # the car is structure
 
 
+def _ring_scan_street(pitch_rad: float, roll_rad: float, sidewalk_y_m: float = 4.5) -> np.ndarray:
+    """Lidar-frame points of a 32-ring sensor 1.9 m above a flat road whose sidewalk (0.15 m up) starts
+    ``sidewalk_y_m`` to the left: the point density falls with range as on a real scan, so the near sidewalk
+    outweighs the far road."""
+    elev = np.radians(np.linspace(-30.67, 10.67, 32))
+    az = np.radians(np.arange(0.0, 360.0, 0.2))
+    e, a = np.meshgrid(elev[elev < 0], az)
+    d_vehicle = np.column_stack([np.cos(e.ravel()) * np.cos(a.ravel()), np.cos(e.ravel()) * np.sin(a.ravel()),
+                                 np.sin(e.ravel())])
+    T = se3_from_xyz_rpy(0.0, 0.0, 1.9, roll_rad, pitch_rad, 0.0)  # world <- lidar: vehicle pitched on the road
+    d_world = d_vehicle @ T[:3, :3].T
+    t_road = 1.9 / -d_world[:, 2]
+    hit = t_road[:, None] * d_world
+    walk = hit[:, 1] > sidewalk_y_m
+    hit[walk] = (1.75 / -d_world[walk, 2])[:, None] * d_world[walk]  # the sidewalk surface, 0.15 m up
+    keep = np.hypot(hit[:, 0], hit[:, 1]) < 40.0
+    return hit[keep] @ T[:3, :3]  # back into the lidar frame (rotation only: hit is relative to the sensor)
+
+
+def test_fit_is_not_pulled_by_a_near_sidewalk_on_a_ring_scan():
+    # the trimmed fit this replaced settled on a plane tilted ~0.5 deg towards the sidewalk, 6 cm low
+    pitch, roll = 0.004, -0.003
+    pts = _ring_scan_street(pitch, roll)
+    plane = fit_ground_plane(pts, T_VEHICLE_LIDAR)
+    assert plane is not None
+    T = se3_from_xyz_rpy(0.0, 0.0, 1.9, roll, pitch, 0.0)
+    n_true = T[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    assert np.degrees(np.arccos(min(1.0, plane.normal @ n_true))) < 0.01
+    assert abs(plane.offset_m - 1.9) < 0.002
+    assert plane.rms_m < 1e-6  # no sidewalk point among the inliers
+
+
 def test_no_visible_ground_gives_none():
     rng = np.random.default_rng(4)
     wall = np.column_stack([np.full(5000, 6.0), rng.uniform(-10, 10, 5000), rng.uniform(0, 8, 5000)])
