@@ -66,15 +66,17 @@ def _pairs_at_travel(T_true: np.ndarray, distance_m: float) -> tuple[np.ndarray,
     return i, j[i]
 
 
-def relative_errors_m(T_est: np.ndarray, T_true: np.ndarray, distance_m: float = 10.0) -> np.ndarray:
-    """Translation error of the relative pose over ``distance_m`` of travel (KITTI style, body frame)."""
+def relative_errors_m(T_est: np.ndarray, T_true: np.ndarray, distance_m: float = 10.0,
+                      horizontal: bool = False) -> np.ndarray:
+    """Translation error of the relative pose over ``distance_m`` of travel (KITTI style, body frame; 3-D, or
+    its x-y part with ``horizontal``)."""
     i, j = _pairs_at_travel(T_true, distance_m)
     if len(i) == 0:
         return np.zeros(0)
     rel_true = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_true[i]]), T_true[j])
     rel_est = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_est[i]]), T_est[j])
     err = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in rel_true]), rel_est)
-    return np.linalg.norm(err[:, :3, 3], axis=1)
+    return np.linalg.norm(err[:, :2 if horizontal else 3, 3], axis=1)
 
 
 def drift_percent(T_est: np.ndarray, T_true: np.ndarray, segment_m: float = 100.0) -> float:
@@ -97,6 +99,7 @@ def summarize(T_est: np.ndarray, T_true: np.ndarray, stamps_s: np.ndarray) -> di
         "abs_horizontal_rms_m": rms(h), "abs_horizontal_max_m": float(h.max()) if h.size else float("nan"),
         "self_consistency_rms_m": rms(sc), "n_revisit_pairs": int(len(pairs)),
         "relative_10m_rms_m": rms(relative_errors_m(T_est, T_true, 10.0)),
+        "relative_10m_horizontal_rms_m": rms(relative_errors_m(T_est, T_true, 10.0, horizontal=True)),
         "heading_rms_deg": float(np.rad2deg(rms(heading_errors_rad(T_est, T_true)))),
         "vertical_rms_m": rms(vertical_errors_m(T_est, T_true)),
         "pitch_rms_deg": float(np.rad2deg(rms(pitch_errors_rad(T_est, T_true)))),

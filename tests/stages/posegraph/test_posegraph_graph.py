@@ -8,11 +8,12 @@ from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.posegraph.core import base_problem, calibrate_wheel, calibrated_wheel_increments, dead_reckoning
 from stages.posegraph.gnss_factors import select_epochs
 from stages.posegraph.graph import marginal_cov_xy_yaw, optimize
-from stages.posegraph.metrics import horizontal_errors_m, revisit_pairs, rms, self_consistency_errors_m, summarize
+from stages.posegraph.metrics import (horizontal_errors_m, relative_errors_m, revisit_pairs, rms,
+                                      self_consistency_errors_m, summarize)
 from stages.posegraph.params import PosegraphParams
 from stages.posegraph.solve import LoopRecord, optimize_with_loops
 
-from tests.stages.posegraph.conftest import perturb
+from tests.stages.posegraph.conftest import circuit_truth, perturb
 
 
 def _true_loops(T_true, rng, lap_len, every=5, sigma_m=0.02, sigma_rad=0.0005):
@@ -212,3 +213,14 @@ def test_wheel_fusion_corrects_icp_edges_biased_along_track(two_lap_drive):
     assert errors[False] > 0.5, errors  # the bias survives the GNSS (0.85 m RMS) without the wheel
     # information-weighted: ICP 5 mm vs wheel 3 mm per edge leaves 27 % of the 0.8 m bias (0.21 m)
     assert errors[True] < 0.3 and errors[True] < 0.5 * errors[False], errors
+
+
+def test_relative_error_horizontal_part_ignores_a_height_ramp():
+    """A trajectory that climbs 1 cm per metre where truth is flat: 10 cm vertical error over 10 m, none
+    horizontal (to first order: the ramp also shortens the horizontal run by 0.005 %)."""
+    T_true = circuit_truth(n_laps=1, z_amp_m=0.0)
+    T_est = T_true.copy()
+    travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(T_true[:, :3, 3], axis=0), axis=1))])
+    T_est[:, 2, 3] += 0.01 * travel
+    assert rms(relative_errors_m(T_est, T_true, 10.0)) == pytest.approx(0.1, rel=0.02)
+    assert rms(relative_errors_m(T_est, T_true, 10.0, horizontal=True)) < 1e-3
