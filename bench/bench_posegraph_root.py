@@ -37,10 +37,9 @@ def main() -> None:
     from pipeline.store import dataset_dir
     from pipeline.workflow import load_workflow
     from stages.posegraph import metrics as M
-    from stages.posegraph.compute import scan_loader
+    from stages.posegraph.compute import read_drive_inputs, scan_loader
     from stages.posegraph.core import dead_reckoning
     from stages.posegraph.solve import LoopRecord, solve_map
-    from stages.posegraph.tables import drive_input
 
     wf = load_workflow(args.workflow, param_overrides={"posegraph": _overrides(args.set)})
     root = args.root or Path(wf.spec.root)
@@ -52,16 +51,12 @@ def main() -> None:
         raise SystemExit(f"{root}: no committed input for posegraph: {', '.join(missing)}; run the upstream stages")
     ctx = _context(_task_spec(plan, sp), PartitionKey(), Path(tempfile.mkdtemp(prefix="bench-pg-")), {})
     p = ctx.params
-    wheel = ctx.inputs.read("odometry", columns=["drive", "stamp_ns", "speed_mps", "yaw_rate_radps"]) \
-        if ctx.inputs.has("odometry") else None
-    gnss, edges, info = ctx.inputs.read("poses_gnss"), ctx.inputs.read("edges"), ctx.inputs.read("drive_info")
-    map_names = list(ctx.settings.get("map_drives") or sorted(set(gnss["drive"].to_pylist())))
-    drives = [drive_input(d, gnss, edges, info, wheel) for d in map_names]
+    drives, _ = read_drive_inputs(ctx)
     sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"
     truth = truth_poses(sim, drives[0].name, drives[0].stamps_ns)
     stamps_s = drives[0].stamps_ns * 1e-9
     load = scan_loader(ctx)
-    print(f"machine: {os.cpu_count()} cores; root {plan.root}; map drives {map_names}; "
+    print(f"machine: {os.cpu_count()} cores; root {plan.root}; map drives {[d.name for d in drives]}; "
           f"{sum(d.n for d in drives)} poses; survey anchoring off")
 
     rows = {"RTK/INS only": drives[0].gnss_T, "ICP + wheel only (dead reckoning)": dead_reckoning(drives[0])}

@@ -12,7 +12,7 @@ import pyarrow as pa
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError
 from stages.common.geometry import write_kitti, write_tum
-from stages.posegraph.core import dead_reckoning
+from stages.posegraph.core import DriveInput, dead_reckoning
 from stages.posegraph.graph import marginal_cov_xy_yaw
 from stages.posegraph.report import write_report
 from stages.posegraph.solve import solve_map, solve_reference
@@ -53,7 +53,9 @@ def _loop_rows(loops, names: list[tuple[str, int]]) -> list[dict]:
     return rows
 
 
-def compute(ctx: StageContext) -> dict[str, pa.Table]:
+def read_drive_inputs(ctx: StageContext) -> tuple[list[DriveInput], list[DriveInput]]:
+    """The workflow's map drives and reference (eval) drives, from the stage's inputs (wheel odometry only when
+    a wheel parameter uses it)."""
     p = ctx.params
     gnss = ctx.inputs.read("poses_gnss")
     edges = ctx.inputs.read("edges")
@@ -67,7 +69,13 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     if missing:
         raise ConfigError("posegraph settings", [f"drive {d!r} has no poses_gnss rows; have {all_drives}"
                                                  for d in missing])
-    drives = [drive_input(d, gnss, edges, info, wheel) for d in map_names]
+    return ([drive_input(d, gnss, edges, info, wheel) for d in map_names],
+            [drive_input(d, gnss, edges, info, wheel) for d in eval_names])
+
+
+def compute(ctx: StageContext) -> dict[str, pa.Table]:
+    p = ctx.params
+    drives, ref_drives = read_drive_inputs(ctx)
     load = scan_loader(ctx)
     survey_cb, survey_matches = None, []
     if ctx.inputs.has("survey"):
@@ -88,15 +96,14 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     odometry = [poses_table("poses_odometry", d, dead_reckoning(d)) for d in drives]
     loop_rows = _loop_rows(sol.loops, names)
     refs = {}
-    for name in eval_names:
-        d = drive_input(name, gnss, edges, info, wheel)
+    for d in ref_drives:
         ref = solve_reference(d, drives, sol.poses, load, p)
         rcov = marginal_cov_xy_yaw(ref.problem, np.concatenate(
             [ref.poses, ref.problem.initial[d.n:]]))[:d.n] if p.compute_marginals else np.zeros((d.n, 9))
         optimized.append(poses_table("poses_optimized", d, ref.poses, rcov))
         odometry.append(poses_table("poses_odometry", d, dead_reckoning(d)))
         loop_rows += _loop_rows(ref.loops, [(d.name, int(s)) for s in d.scan_ids] + names)
-        refs[name] = (d, ref)
+        refs[d.name] = (d, ref)
     out_dir = ctx.artifact_dir("report")
     for d, a, b in zip(drives, offsets[:-1], offsets[1:]):
         write_tum(out_dir / f"{d.name}_optimized_tum.txt", d.stamps_ns * 1e-9, sol.poses[a:b])

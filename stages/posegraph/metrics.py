@@ -66,17 +66,26 @@ def _pairs_at_travel(T_true: np.ndarray, distance_m: float) -> tuple[np.ndarray,
     return i, j[i]
 
 
-def relative_errors_m(T_est: np.ndarray, T_true: np.ndarray, distance_m: float = 10.0,
-                      horizontal: bool = False) -> np.ndarray:
-    """Translation error of the relative pose over ``distance_m`` of travel (KITTI style, body frame; 3-D, or
-    its x-y part with ``horizontal``)."""
+def _relative_poses(T: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """(n,4,4) T_i^-1 T_j."""
+    return np.einsum("nab,nbc->nac", np.array([se3_inverse(A) for A in T[i]]), T[j])
+
+
+def relative_error_vectors_m(T_est: np.ndarray, T_true: np.ndarray, distance_m: float = 10.0) -> np.ndarray:
+    """(n,3) translation error of the relative pose over ``distance_m`` of travel (KITTI style, body frame)."""
     i, j = _pairs_at_travel(T_true, distance_m)
     if len(i) == 0:
-        return np.zeros(0)
-    rel_true = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_true[i]]), T_true[j])
-    rel_est = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_est[i]]), T_est[j])
+        return np.zeros((0, 3))
+    rel_true, rel_est = _relative_poses(T_true, i, j), _relative_poses(T_est, i, j)
     err = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in rel_true]), rel_est)
-    return np.linalg.norm(err[:, :2 if horizontal else 3, 3], axis=1)
+    return err[:, :3, 3]
+
+
+def relative_errors_m(T_est: np.ndarray, T_true: np.ndarray, distance_m: float = 10.0,
+                      horizontal: bool = False) -> np.ndarray:
+    """Norm of ``relative_error_vectors_m``: 3-D, or its x-y part with ``horizontal``."""
+    e = relative_error_vectors_m(T_est, T_true, distance_m)
+    return np.linalg.norm(e[:, :2] if horizontal else e, axis=1)
 
 
 def drift_percent(T_est: np.ndarray, T_true: np.ndarray, segment_m: float = 100.0) -> float:
@@ -84,8 +93,7 @@ def drift_percent(T_est: np.ndarray, T_true: np.ndarray, segment_m: float = 100.
     i, j = _pairs_at_travel(T_true, segment_m)
     if len(i) == 0:
         return float("nan")
-    rel_true = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_true[i]]), T_true[j])
-    rel_est = np.einsum("nab,nbc->nac", np.array([se3_inverse(T) for T in T_est[i]]), T_est[j])
+    rel_true, rel_est = _relative_poses(T_true, i, j), _relative_poses(T_est, i, j)
     err = np.linalg.norm(rel_est[:, :2, 3] - rel_true[:, :2, 3], axis=1)
     return float(100.0 * np.mean(err) / segment_m)
 
@@ -95,11 +103,12 @@ def summarize(T_est: np.ndarray, T_true: np.ndarray, stamps_s: np.ndarray) -> di
     pairs = revisit_pairs(T_true, stamps_s)
     sc = self_consistency_errors_m(T_est, T_true, pairs)
     h = horizontal_errors_m(T_est, T_true)
+    rel = relative_error_vectors_m(T_est, T_true, 10.0)
     return {
         "abs_horizontal_rms_m": rms(h), "abs_horizontal_max_m": float(h.max()) if h.size else float("nan"),
         "self_consistency_rms_m": rms(sc), "n_revisit_pairs": int(len(pairs)),
-        "relative_10m_rms_m": rms(relative_errors_m(T_est, T_true, 10.0)),
-        "relative_10m_horizontal_rms_m": rms(relative_errors_m(T_est, T_true, 10.0, horizontal=True)),
+        "relative_10m_rms_m": rms(np.linalg.norm(rel, axis=1)),
+        "relative_10m_horizontal_rms_m": rms(np.linalg.norm(rel[:, :2], axis=1)),
         "heading_rms_deg": float(np.rad2deg(rms(heading_errors_rad(T_est, T_true)))),
         "vertical_rms_m": rms(vertical_errors_m(T_est, T_true)),
         "pitch_rms_deg": float(np.rad2deg(rms(pitch_errors_rad(T_est, T_true)))),

@@ -18,7 +18,7 @@ def _drive_of(offsets: np.ndarray, i: int) -> int:
 def summarize_solution(drives, sol, top_k: int = 10) -> dict:
     offsets = np.cumsum([0] + [d.n for d in drives])
     res_gnss = gnss_residuals_enu(sol.poses, sol.problem.positions)
-    odo = [b for b in sol.problem.betweens if b.kind in ("odometry", "wheel", "bridge", "wheel_fused")]
+    odo = [b for b in sol.problem.betweens if b.kind != "loop"]  # ICP edges, wheel factors, bridges
     res_odo = between_residuals(odo, sol.poses) if odo else np.zeros(0)
     worst = np.argsort(res_odo)[::-1][:top_k]
     edges = []
