@@ -5,7 +5,7 @@ from stages.posegraph.params import PosegraphParams
 STAGE = StageDecl(
     name="posegraph",
     summary="GTSAM pose graph: ICP odometry, verified robust loop closures, robust GNSS priors, survey anchors.",
-    code_version="10",
+    code_version="11",
     inputs={"edges": "odometry_edges", "poses_gnss": "poses_gnss", "scans": "scans_raw",
             "drive_info": "drive_info", "survey": "survey_enu", "odometry": "odometry_raw"},
     outputs={"poses_odometry": "poses_odometry", "poses_optimized": "poses_optimized",

@@ -220,9 +220,10 @@ def _insert_biases(values: gtsam.Values, n_biases: int) -> None:
 
 
 def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = False,
-             initial: np.ndarray | None = None) -> np.ndarray:
+             initial: np.ndarray | None = None, relative_error_tol: float = 1e-7) -> np.ndarray:
     """Levenberg-Marquardt (or GNC for the loop factors, all others known inliers) -> (N,4,4) poses, from
-    ``initial`` when given (else ``problem.initial``)."""
+    ``initial`` when given (else ``problem.initial``); LM stops when an iteration lowers the error by less
+    than ``relative_error_tol`` of it."""
     graph, values, tags = build_graph(problem, initial)
     if gnc_loops:
         params = gtsam.GncLMParams()
@@ -235,7 +236,7 @@ def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = F
     else:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
-        params.setRelativeErrorTol(1e-7)
+        params.setRelativeErrorTol(relative_error_tol)
         params.setAbsoluteErrorTol(1e-9)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     return poses_from_values(result, problem.n_poses)

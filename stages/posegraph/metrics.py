@@ -58,6 +58,13 @@ def self_consistency_errors_m(T_est: np.ndarray, T_true: np.ndarray, pairs: np.n
     return np.linalg.norm(d_est - d_true, axis=1)
 
 
+def self_consistency_heading_errors_rad(T_est: np.ndarray, T_true: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Relative heading of the pairs, estimated vs true: do passes agree in direction? (A heading error shared
+    by both passes, e.g. the map frame's own rotation, cancels.)"""
+    h = heading_errors_rad(T_est, T_true)
+    return wrap_angle_rad(h[pairs[:, 1]] - h[pairs[:, 0]])
+
+
 def _pairs_at_travel(T_true: np.ndarray, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
     step = np.linalg.norm(np.diff(T_true[:, :3, 3], axis=0), axis=1)
     travel = np.concatenate([[0.0], np.cumsum(step)])
@@ -107,6 +114,8 @@ def summarize(T_est: np.ndarray, T_true: np.ndarray, stamps_s: np.ndarray) -> di
     return {
         "abs_horizontal_rms_m": rms(h), "abs_horizontal_max_m": float(h.max()) if h.size else float("nan"),
         "self_consistency_rms_m": rms(sc), "n_revisit_pairs": int(len(pairs)),
+        "self_consistency_heading_rms_deg": float(np.rad2deg(rms(self_consistency_heading_errors_rad(T_est, T_true,
+                                                                                                    pairs)))),
         "relative_10m_rms_m": rms(np.linalg.norm(rel, axis=1)),
         "relative_10m_horizontal_rms_m": rms(np.linalg.norm(rel[:, :2], axis=1)),
         "heading_rms_deg": float(np.rad2deg(rms(heading_errors_rad(T_est, T_true)))),

@@ -94,5 +94,8 @@ class PosegraphParams(Params):
     survey_marking_min_sigma_m: float = Field(0.01, gt=0, description="floor of the anchor std")
     # optimisation / outputs
     max_iterations: int = Field(100, ge=1)
+    lm_relative_error_tol: float = Field(1e-5, gt=0, description="Levenberg-Marquardt stops when an iteration "
+                                         "lowers the error by less than this share (gangnam, 8448 poses: 1e-7 "
+                                         "-> 15 iterations, 1e-5 -> 9, error 4889.71 vs 4889.73, docs/posegraph.md)")
     fixed_prior_sigma_m: float = Field(1e-3, gt=0, description="map poses held fixed for reference drives")
     compute_marginals: bool = True

@@ -92,18 +92,25 @@ def loop_betweens(loops: list[LoopRecord], p) -> list[Between]:
     return [Between(r.i, r.j, r.T_i_j, r.information, "loop", robust, p.loop_kernel_k) for r in loops if r.accepted]
 
 
+def _lm(p) -> dict:
+    """Levenberg-Marquardt settings of the parameters, as keyword arguments of ``optimize``."""
+    return {"max_iterations": p.max_iterations, "relative_error_tol": p.lm_relative_error_tol}
+
+
 def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds: int = 8,
-                        solve_times_s: list[float] | None = None) -> np.ndarray:
+                        solve_times_s: list[float] | None = None, initial: np.ndarray | None = None) -> np.ndarray:
     """Pass 2 with the accepted loops under the robust kernel; pass 3 removes, worst first, the loops the
     result cannot explain (whitened residual above ``loop_max_whitened_residual``), re-optimising each round,
-    then re-admits removed loops that the final graph does explain. ``solve_times_s`` collects the wall time
-    of each complete solve (all poses, GNSS, loops)."""
+    then re-admits removed loops that the final graph does explain. The first solve starts from ``initial``
+    (the pass-1 estimate; default ``problem.initial``), each later one from the previous result.
+    ``solve_times_s`` collects the wall time of each complete solve (all poses, GNSS, loops)."""
     base = list(problem.betweens)
     gnc = p.loop_kernel == "gnc"
+    state = {"start": initial}
 
     def solve() -> np.ndarray:
         t0 = time.perf_counter()
-        out = _solve()
+        out = state["start"] = _solve()
         if solve_times_s is not None:
             solve_times_s.append(time.perf_counter() - t0)
         return out
@@ -111,7 +118,7 @@ def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds
     def _solve() -> np.ndarray:
         problem.betweens = base + loop_betweens(loops, p)
         if gnc:
-            return optimize(problem, max_iterations=p.max_iterations, gnc_loops=True)
+            return optimize(problem, **_lm(p), gnc_loops=True, initial=state["start"])
         # A redescending kernel (Cauchy) started where a true loop is 1-2 m (50-100 sigma) off gives it
         # almost no weight: the GNSS bias wins and pass 3 then drops every loop. A convex Huber pass first
         # (bounded influence, so one false loop cannot bend the map far) brings the true loops into the
@@ -120,9 +127,9 @@ def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds
                 if b.kind == "loop" else b for b in problem.betweens]
         full = problem.betweens
         problem.betweens = warm
-        start = optimize(problem, max_iterations=p.max_iterations)
+        start = optimize(problem, **_lm(p), initial=state["start"])
         problem.betweens = full
-        return optimize(problem, max_iterations=p.max_iterations, initial=start)
+        return optimize(problem, **_lm(p), initial=start)
 
     poses = solve()
     removed: list[LoopRecord] = []
@@ -163,7 +170,7 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, p, *, extra_loops: lis
 
     t0 = time.perf_counter()
     problem, offsets = base_problem(drives, p)
-    poses = optimize(problem, max_iterations=p.max_iterations)
+    poses = optimize(problem, **_lm(p))
     t1 = time.perf_counter()
     group = np.repeat(np.arange(len(drives)), [d.n for d in drives])
     stamps_s = np.concatenate([d.stamps_ns for d in drives]) * 1e-9
@@ -175,13 +182,13 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, p, *, extra_loops: lis
     loops = verify_candidates(cands, poses, clouds, p) + list(extra_loops)
     t2 = time.perf_counter()
     solve_times: list[float] = []
-    poses = optimize_with_loops(problem, loops, p, solve_times_s=solve_times)
+    poses = optimize_with_loops(problem, loops, p, solve_times_s=solve_times, initial=poses)
     t3 = time.perf_counter()
     if survey_priors is not None:
         anchors = survey_priors(poses, offsets)
         if anchors:
             problem.pose_priors += anchors
-            poses = optimize(problem, max_iterations=p.max_iterations, gnc_loops=p.loop_kernel == "gnc",
+            poses = optimize(problem, **_lm(p), gnc_loops=p.loop_kernel == "gnc",
                              initial=poses)
     t4 = time.perf_counter()
     log.info("posegraph: %d poses, %d candidates, %d loops accepted", len(poses), len(cands),
@@ -195,7 +202,7 @@ def solve_reference(drive: DriveInput, map_drives: list[DriveInput], map_poses: 
                     p) -> Solution:
     """One eval drive in the map's frame: its odometry + GNSS, plus loops onto map scans held fixed."""
     problem, _ = base_problem([drive], p)
-    poses = optimize(problem, max_iterations=p.max_iterations)
+    poses = optimize(problem, **_lm(p))
     n = drive.n
     stamps = np.concatenate([drive.stamps_ns] + [d.stamps_ns for d in map_drives]) * 1e-9
     positions = np.concatenate([poses[:, :3, 3], map_poses[:, :3, 3]])

@@ -224,3 +224,23 @@ def test_relative_error_horizontal_part_ignores_a_height_ramp():
     T_est[:, 2, 3] += 0.01 * travel
     assert rms(relative_errors_m(T_est, T_true, 10.0)) == pytest.approx(0.1, rel=0.02)
     assert rms(relative_errors_m(T_est, T_true, 10.0, horizontal=True)) < 1e-3
+
+
+def test_heading_consistency_ignores_a_shared_rotation_and_sees_a_lap_turned():
+    """The map turned rigidly by 0.2 deg: 0.2 deg absolute heading error, passes still agree (0). Lap 2's
+    poses turned by a further 0.1 deg in place: the revisit pairs (lap 1 vs lap 2) disagree by 0.1 deg."""
+    T_true = circuit_truth(n_laps=2, z_amp_m=0.0)
+    stamps_s = np.arange(len(T_true)) * 1.0
+    turn = se3_from_xyz_rpy(0.0, 0.0, 0.0, 0.0, 0.0, np.deg2rad(0.2))
+    T_est = np.einsum("ab,nbc->nac", turn, T_true)
+    s = summarize(T_est, T_true, stamps_s)
+    assert s["n_revisit_pairs"] > 100
+    assert s["heading_rms_deg"] == pytest.approx(0.2, abs=1e-6)
+    assert s["self_consistency_heading_rms_deg"] < 1e-6
+    lap2 = np.arange(len(T_true)) >= len(T_true) // 2
+    T_est[lap2] = T_est[lap2] @ se3_from_xyz_rpy(0.0, 0.0, 0.0, 0.0, 0.0, np.deg2rad(0.1))
+    pairs = revisit_pairs(T_true, stamps_s)
+    across = np.mean(lap2[pairs[:, 0]] != lap2[pairs[:, 1]])  # the rest: a lap's end next to its own start
+    assert across > 0.9
+    assert summarize(T_est, T_true, stamps_s)["self_consistency_heading_rms_deg"] == pytest.approx(
+        0.1 * np.sqrt(across), abs=1e-6)
