@@ -93,32 +93,21 @@ def main() -> None:
     print_information_bound(truth, drives[0].gnss_T, drives[0].gnss_valid, rows["ICP + wheel only (dead reckoning)"])
 
 
-def rigid_fit_2d(src_xy: np.ndarray, dst_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotation R (2,2) and translation t with R src + t ~ dst (Kabsch)."""
-    ms, md = src_xy.mean(0), dst_xy.mean(0)
-    U, _, Vt = np.linalg.svd((src_xy - ms).T @ (dst_xy - md))
-    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, md - R @ ms
-
-
 def print_information_bound(truth: np.ndarray, gnss_T: np.ndarray, valid: np.ndarray, dead_reckoning: np.ndarray):
     from stages.common.geometry import wrap_angle_rad
+    from stages.evaluate.metrics import fit_rigid_2d
     from stages.posegraph import metrics as M
 
     xy, g = truth[:, :2, 3], gnss_T[:, :2, 3]
-    R, t = rigid_fit_2d(xy[valid], g[valid])
+    R, t = fit_rigid_2d(xy[valid], g[valid])
     err = np.linalg.norm(xy @ R.T + t - xy, axis=1)
     print(f"GNSS fixes vs truth: horizontal RMS {M.rms(np.linalg.norm(g[valid] - xy[valid], axis=1)):.3f} m; "
           f"true shape rigidly fitted to them (a perfect odometry): abs RMS {M.rms(err):.3f} m, max {err.max():.3f} m, "
           f"heading {abs(np.rad2deg(np.arctan2(R[1, 0], R[0, 0]))):.3f} deg")
-    travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
     h_dr = M.heading_errors_rad(dead_reckoning, truth)
     parts = []
     for L in (50.0, 100.0, 200.0, 400.0, 800.0):
-        j = np.searchsorted(travel, travel + L)
-        i = np.flatnonzero(j < len(xy))
-        j = j[i]
+        i, j = M.pairs_at_travel(truth, L)
         ok = valid[i] & valid[j]
         chord = xy[j[ok]] - xy[i[ok]]
         normal = np.column_stack([-chord[:, 1], chord[:, 0]]) / np.linalg.norm(chord, axis=1)[:, None] ** 2

@@ -65,7 +65,8 @@ def self_consistency_heading_errors_rad(T_est: np.ndarray, T_true: np.ndarray, p
     return wrap_angle_rad(h[pairs[:, 1]] - h[pairs[:, 0]])
 
 
-def _pairs_at_travel(T_true: np.ndarray, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
+def pairs_at_travel(T_true: np.ndarray, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scan pairs (i, j): j is the first scan ``distance_m`` of (3-D) travel after i, for every i that has one."""
     step = np.linalg.norm(np.diff(T_true[:, :3, 3], axis=0), axis=1)
     travel = np.concatenate([[0.0], np.cumsum(step)])
     j = np.searchsorted(travel, travel + distance_m)
@@ -80,7 +81,7 @@ def _relative_poses(T: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
 
 def relative_error_vectors_m(T_est: np.ndarray, T_true: np.ndarray, distance_m: float = 10.0) -> np.ndarray:
     """(n,3) translation error of the relative pose over ``distance_m`` of travel (KITTI style, body frame)."""
-    i, j = _pairs_at_travel(T_true, distance_m)
+    i, j = pairs_at_travel(T_true, distance_m)
     if len(i) == 0:
         return np.zeros((0, 3))
     rel_true, rel_est = _relative_poses(T_true, i, j), _relative_poses(T_est, i, j)
@@ -97,7 +98,7 @@ def relative_errors_m(T_est: np.ndarray, T_true: np.ndarray, distance_m: float =
 
 def drift_percent(T_est: np.ndarray, T_true: np.ndarray, segment_m: float = 100.0) -> float:
     """Mean horizontal translation error of relative poses over ``segment_m`` segments, % of the length."""
-    i, j = _pairs_at_travel(T_true, segment_m)
+    i, j = pairs_at_travel(T_true, segment_m)
     if len(i) == 0:
         return float("nan")
     rel_true, rel_est = _relative_poses(T_true, i, j), _relative_poses(T_est, i, j)

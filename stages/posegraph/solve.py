@@ -106,11 +106,12 @@ def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds
     ``solve_times_s`` collects the wall time of each complete solve (all poses, GNSS, loops)."""
     base = list(problem.betweens)
     gnc = p.loop_kernel == "gnc"
-    state = {"start": initial}
+    last = initial  # where the next solve starts
 
     def solve() -> np.ndarray:
+        nonlocal last
         t0 = time.perf_counter()
-        out = state["start"] = _solve()
+        out = last = _solve()
         if solve_times_s is not None:
             solve_times_s.append(time.perf_counter() - t0)
         return out
@@ -118,7 +119,7 @@ def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds
     def _solve() -> np.ndarray:
         problem.betweens = base + loop_betweens(loops, p)
         if gnc:
-            return optimize(problem, **_lm(p), gnc_loops=True, initial=state["start"])
+            return optimize(problem, **_lm(p), gnc_loops=True, initial=last)
         # A redescending kernel (Cauchy) started where a true loop is 1-2 m (50-100 sigma) off gives it
         # almost no weight: the GNSS bias wins and pass 3 then drops every loop. A convex Huber pass first
         # (bounded influence, so one false loop cannot bend the map far) brings the true loops into the
@@ -127,7 +128,7 @@ def optimize_with_loops(problem: Problem, loops: list[LoopRecord], p, max_rounds
                 if b.kind == "loop" else b for b in problem.betweens]
         full = problem.betweens
         problem.betweens = warm
-        start = optimize(problem, **_lm(p), initial=state["start"])
+        start = optimize(problem, **_lm(p), initial=last)
         problem.betweens = full
         return optimize(problem, **_lm(p), initial=start)
 

@@ -25,6 +25,14 @@ def test_fit_rigid_2d_recovers_a_known_transform_and_agrees_with_scipy():
     assert rot.as_euler("ZYX")[0] == pytest.approx(np.arctan2(R_fit[1, 0], R_fit[0, 0]), abs=1e-9)
 
 
+
+def test_fit_rigid_2d_returns_a_rotation_for_mirrored_points():
+    """A mirror is not a rigid motion: the fit stays a proper rotation (det +1), as the pose-graph bench's
+    GNSS bound relies on."""
+    src = np.random.default_rng(4).uniform(-500, 500, (400, 2))
+    R_fit, _ = fit_rigid_2d(src, src * np.array([1.0, -1.0]))
+    assert np.linalg.det(R_fit) == pytest.approx(1.0)
+
 def test_align_truth_to_map_ignores_unmapped_true_corners_and_moves_poses():
     rng = np.random.default_rng(5)
     truth = rng.uniform(-100, 100, (30, 2))
