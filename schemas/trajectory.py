@@ -24,6 +24,22 @@ register(
 )
 
 register(
+    "odometry_span_edges", "ICP between scans N apart in a chunk (N in the odometry's span_scans), started from and "
+    "gated against the chain of consecutive edges: T_from_to of the vehicle frame, with quality.",
+    DRIVE, f("chunk", pa.int32()),
+    f("scan_id_from", pa.int64(), doc="the earlier scan of the pair"),
+    f("scan_id", pa.int64(), doc="the later scan of the pair"),
+    f("stamp_ns", pa.int64(), "ns"),
+    f("dx_m", pa.float64(), "m", "vehicle_from"), f("dy_m", pa.float64(), "m", "vehicle_from"),
+    f("dz_m", pa.float64(), "m", "vehicle_from"),
+    f("qx", pa.float64()), f("qy", pa.float64()), f("qz", pa.float64()), f("qw", pa.float64()),
+    f("fitness", pa.float64(), doc="share of source points with a correspondence"),
+    f("inlier_rmse_m", pa.float64(), "m"),
+    f("information", pa.list_(pa.float64(), 36), doc="6x6 row-major, gtsam order (rx ry rz tx ty tz)"),
+    f("converged", pa.bool_(), doc="registered and within the gates"),
+)
+
+register(
     "poses_odometry", "Dead-reckoned vehicle poses from chained ICP edges (T_odom_vehicle).",
     DRIVE, f("scan_id", pa.int64()), f("stamp_ns", pa.int64(), "ns"), *POSE,
 )

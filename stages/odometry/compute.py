@@ -93,7 +93,8 @@ def wheel_guides(scans: list[Scan], track: OdometryTrack | None) -> dict[int, np
     return wheel_increments(track, np.array([s.scan_id for s in scans]), np.array([s.stamp_ns for s in scans]))
 
 
-def edges_to_table(edges: list[Edge], drive: str, chunk: int) -> pa.Table:
+def edges_to_table(edges: list[Edge], drive: str, chunk: int, schema: str = "odometry_edges") -> pa.Table:
+    """Edges -> ``odometry_edges`` rows, or ``odometry_span_edges`` rows (which add ``scan_id_from``)."""
     from scipy.spatial.transform import Rotation
 
     n = len(edges)
@@ -102,6 +103,7 @@ def edges_to_table(edges: list[Edge], drive: str, chunk: int) -> pa.Table:
     info = np.array([e.information.reshape(36) for e in edges]).reshape(n, 36)
     cols = {
         "drive": pa.array([drive] * n, pa.string()), "chunk": pa.array([chunk] * n, pa.int32()),
+        "scan_id_from": pa.array([e.scan_id_from for e in edges], pa.int64()),
         "scan_id": pa.array([e.scan_id for e in edges], pa.int64()),
         "stamp_ns": pa.array([e.stamp_ns for e in edges], pa.int64()),
         "dx_m": T[:, 0, 3], "dy_m": T[:, 1, 3], "dz_m": T[:, 2, 3],
@@ -112,7 +114,8 @@ def edges_to_table(edges: list[Edge], drive: str, chunk: int) -> pa.Table:
         if n else pa.array([], pa.list_(pa.float64(), 36)),
         "converged": pa.array([e.converged for e in edges], pa.bool_()),
     }
-    return pa.table(cols, schema=schema_of("odometry_edges"))
+    sch = schema_of(schema)
+    return pa.table({name: cols[name] for name in sch.names}, schema=sch)
 
 
 def compute(ctx: StageContext) -> dict[str, pa.Table]:
@@ -148,8 +151,11 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
                            min_sigma_rad=p.min_sigma_rad, rot_sigma_per_rad=p.rot_sigma_per_rad,
                            ground_split=p.ground_split, ground_tolerance_m=p.ground_tolerance_m,
                            guide_increments=guides, max_deviation_guide_m=p.max_deviation_wheel_m,
-                           max_deviation_guide_rad=p.max_deviation_wheel_rad)
+                           max_deviation_guide_rad=p.max_deviation_wheel_rad, span_scans=p.span_scans)
+    spans = [e for e in edges if e.span > 1]
+    edges = [e for e in edges if e.span == 1]
     n_bad = sum(not e.converged for e in edges)
     if n_bad:
         log.warning("odometry %s: %d of %d edges did not converge", ctx.partition.label, n_bad, len(edges))
-    return {"edges": edges_to_table(edges, drive, chunk)}
+    return {"edges": edges_to_table(edges, drive, chunk),
+            "span_edges": edges_to_table(spans, drive, chunk, "odometry_span_edges")}

@@ -28,13 +28,18 @@ class Scan:
 
 @dataclass(frozen=True)
 class Edge:
-    scan_id: int  # the later scan; the earlier is scan_id - 1
+    scan_id: int  # the later scan; the earlier is scan_id - span
     stamp_ns: int
     T_prev_curr: np.ndarray  # vehicle frame
     fitness: float
     inlier_rmse_m: float
     information: np.ndarray  # 6x6 gtsam order
     converged: bool
+    span: int = 1  # 1: consecutive scans; N > 1: a span edge over N scans (``span_scans``)
+
+    @property
+    def scan_id_from(self) -> int:
+        return self.scan_id - self.span
 
 
 def lidar_to_vehicle_edge(T_lprev_lcurr: np.ndarray, information_lidar: np.ndarray,
@@ -130,7 +135,8 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
                    min_sigma_m: float, min_sigma_rad: float, rot_sigma_per_rad: float = 0.0,
                    ground_split: bool = True, ground_tolerance_m: float = 0.25,
                    guide_increments: dict[int, np.ndarray] | None = None,
-                   max_deviation_guide_m: float = 0.05, max_deviation_guide_rad: float = 0.0035) -> list[Edge]:
+                   max_deviation_guide_m: float = 0.05, max_deviation_guide_rad: float = 0.0035,
+                   span_scans: tuple[int, ...] | list[int] = ()) -> list[Edge]:
     """Register each scan onto its predecessor (``scans`` sorted by id; pairs need consecutive ids).
 
     ``gnss_poses`` maps scan_id -> T_map_vehicle for scans with a valid GNSS/INS solution (initial guesses and
@@ -146,6 +152,12 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
     GNSS/INS increments as initial guess and gate reference where given: a multipath jump makes a GNSS
     increment tens of centimetres wrong, which rejected correct ICP edges (measured on the simulator). Edges
     with a guide are gated at ``max_deviation_guide_m`` / ``_rad`` (the guide is far better than GNSS/INS).
+    ``span_scans`` (e.g. (10, 30, 90)): after the consecutive edges, each scan at a position i that is a multiple
+    of N in ``scans`` is also registered onto the scan N positions before it, starting from the chain of the N
+    accepted consecutive edges between them and gated against that chain (``max_deviation_m`` / ``_rad``). These
+    span edges (``Edge.span`` = N, after the consecutive ones in the returned list) carry the same information
+    model; each spans N scans with one registration error instead of N, which cuts the random walk and the
+    per-edge bias of chained scan-to-scan ICP (gangnam: docs/posegraph.md, tenth pass).
     """
     T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
     to_lidar = lambda T_v: T_lidar_vehicle @ T_v @ T_vehicle_lidar  # noqa: E731
@@ -223,4 +235,28 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
                              planar=k in guided)
         edges.append(Edge(scans[k].scan_id, scans[k].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
                           accepted))
+    by_position = dict(zip(pairs, edges))
+    for span in sorted(set(int(n) for n in span_scans if int(n) > 1)):
+        for i in range(span, len(scans), span):
+            chain = [by_position.get(k) for k in range(i - span + 1, i + 1)]
+            if any(e is None or not e.converged for e in chain):
+                continue  # a gap or a rejected edge inside: no reference to start from or gate against
+            T_chain_v = np.eye(4)
+            for e in chain:
+                T_chain_v = T_chain_v @ e.T_prev_curr
+            src, tgt = prepared[i], prepared[i - span]
+            res = register_clouds(src.structure, tgt.structure, to_lidar(T_chain_v), **reg)
+            T_l = res.T_target_source
+            H = point_to_plane_hessian(src.structure, tgt.structure, T_l, max_corr_m, point_sigma_m)
+            if res.converged and src.plane is not None and tgt.plane is not None:
+                T_l = align_ground_planes(res.T_target_source, src.plane, tgt.plane)
+                if src.ground is not None and tgt.ground is not None:
+                    H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, max_corr_m, point_sigma_m)
+            T_v, info_v = lidar_to_vehicle_edge(T_l, floor_information(H, min_sigma_m, min_sigma_rad), T_vehicle_lidar)
+            if rot_sigma_per_rad > 0:
+                info_v = floor_information(info_v, 1e-9, rot_sigma_per_rad * rotation_angle_rad(T_v) + 1e-12)
+            accepted = gate_edge(T_v, T_chain_v, res.fitness, res.converged, min_fitness=min_fitness,
+                                 max_deviation_m=max_deviation_m, max_deviation_rad=max_deviation_rad)
+            edges.append(Edge(scans[i].scan_id, scans[i].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
+                              accepted, span))
     return edges

@@ -5,11 +5,11 @@ from stages.odometry.params import OdometryParams
 STAGE = StageDecl(
     name="odometry",
     summary="Deskewed structure-only GICP between consecutive scans, road planes for height/roll/pitch: vehicle-frame "
-            "edges with fitness, RMSE, information.",
-    code_version="6",
+            "edges with fitness, RMSE, information; span edges over N scans.",
+    code_version="7",
     inputs={"scans": "scans_raw", "poses_gnss": "poses_gnss", "drive_info": "drive_info", "odometry": "odometry_raw"},
     optional_inputs=frozenset({"odometry"}),
-    outputs={"edges": "odometry_edges"},
+    outputs={"edges": "odometry_edges", "span_edges": "odometry_span_edges"},
     params=OdometryParams,
     partition=Partitioning.PER_SCAN_CHUNK,
     partition_source="scans",

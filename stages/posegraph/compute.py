@@ -69,8 +69,9 @@ def read_drive_inputs(ctx: StageContext) -> tuple[list[DriveInput], list[DriveIn
     if missing:
         raise ConfigError("posegraph settings", [f"drive {d!r} has no poses_gnss rows; have {all_drives}"
                                                  for d in missing])
-    return ([drive_input(d, gnss, edges, info, wheel) for d in map_names],
-            [drive_input(d, gnss, edges, info, wheel) for d in eval_names])
+    spans = ctx.inputs.read("span_edges") if p.span_edges and ctx.inputs.has("span_edges") else None
+    return ([drive_input(d, gnss, edges, info, wheel, spans) for d in map_names],
+            [drive_input(d, gnss, edges, info, wheel, spans) for d in eval_names])
 
 
 def compute(ctx: StageContext) -> dict[str, pa.Table]:

@@ -31,10 +31,31 @@ class DriveInput:
     wheel_T: np.ndarray | None = None  # (N,4,4) planar wheel-odometry increment into scan k (where wheel_ok)
     wheel_ok: np.ndarray | None = None  # (N,) bool
     wheel_calibration: "WheelCalibration | None" = None  # applied to wheel_T (report)
+    spans: "SpanEdges | None" = None  # odometry span edges (scans N apart), accepted ones only
 
     @property
     def n(self) -> int:
         return len(self.scan_ids)
+
+
+@dataclass(frozen=True)
+class SpanEdges:
+    """ICP edges between scans N apart (odometry ``span_scans``): positions in the drive, T_from_to, information."""
+
+    i: np.ndarray  # (M,) position of the earlier scan
+    j: np.ndarray  # (M,) position of the later scan
+    T_i_j: np.ndarray  # (M,4,4) vehicle frame
+    information: np.ndarray  # (M,6,6) gtsam order
+
+
+def span_betweens(drive: DriveInput, offset: int, robust: str, kernel_k: float) -> list[Between]:
+    """One factor per accepted span edge, under ``robust`` (a span over a street with few cross structures can be
+    decimetres off along-track; gangnam: 1-2 % of the 90-scan spans)."""
+    if drive.spans is None:
+        return []
+    sp = drive.spans
+    return [Between(offset + int(i), offset + int(j), T, I, "span", robust, kernel_k)
+            for i, j, T, I in zip(sp.i, sp.j, sp.T_i_j, sp.information)]
 
 
 def has_wheel(drive: DriveInput, k: int) -> bool:
@@ -210,6 +231,8 @@ def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
         idx = off + np.arange(d.n)
         problem.betweens += odometry_betweens(d, int(off), p.failed_edge_sigma_m, p.failed_edge_sigma_rad,
                                               wheel_noise_from_params(p), wheel_fusion_noise_from_params(p))
+        if p.span_edges:
+            problem.betweens += span_betweens(d, int(off), p.span_edge_kernel, p.span_edge_kernel_k)
         gnss = gnss_position_priors(
             idx, d.stamps_ns, d.gnss_T, d.gnss_std_enu_m, d.gnss_valid, every_s=p.gnss_every_s,
             inflation=p.gnss_std_inflation, min_std_m=p.gnss_min_std_m, robust=p.gnss_kernel,

@@ -4,14 +4,15 @@ from stages.posegraph.params import PosegraphParams
 
 STAGE = StageDecl(
     name="posegraph",
-    summary="GTSAM pose graph: ICP odometry, verified robust loop closures, robust GNSS priors, survey anchors.",
-    code_version="11",
-    inputs={"edges": "odometry_edges", "poses_gnss": "poses_gnss", "scans": "scans_raw",
-            "drive_info": "drive_info", "survey": "survey_enu", "odometry": "odometry_raw"},
+    summary="GTSAM pose graph: ICP odometry and span edges, verified robust loop closures, robust GNSS priors, "
+            "survey anchors.",
+    code_version="12",
+    inputs={"edges": "odometry_edges", "span_edges": "odometry_span_edges", "poses_gnss": "poses_gnss",
+            "scans": "scans_raw", "drive_info": "drive_info", "survey": "survey_enu", "odometry": "odometry_raw"},
     outputs={"poses_odometry": "poses_odometry", "poses_optimized": "poses_optimized",
              "loop_closures": "loop_closures", "report": "posegraph_report"},
     params=PosegraphParams,
     partition=Partitioning.SINGLE,
     compute="stages.posegraph.compute:compute",
-    optional_inputs=frozenset({"survey", "odometry"}),
+    optional_inputs=frozenset({"survey", "odometry", "span_edges"}),
 )

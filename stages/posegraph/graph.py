@@ -18,7 +18,7 @@ class Between:
     j: int
     T_i_j: np.ndarray
     information: np.ndarray
-    kind: str = "odometry"  # odometry | wheel | wheel_fused | bridge | loop
+    kind: str = "odometry"  # odometry | span | wheel | wheel_fused | bridge | loop
     robust: str = "none"  # none | huber | cauchy
     kernel_k: float = 1.0
 

@@ -33,6 +33,12 @@ class PosegraphParams(Params):
                                             "(residual of the per-drive scale calibration)")
     wheel_fusion_sigma_rad: float = Field(0.003, gt=0, description="fused: heading std, loose on purpose (the gyro "
                                           "bias drifts, and ICP's 0.005 deg per edge is better)")
+    span_edges: bool = Field(True, description="put the odometry's accepted span edges (scans N apart) into the "
+                             "graph beside the consecutive ones")
+    span_edge_kernel: Literal["huber", "cauchy", "none"] = Field("huber", description="robust kernel of the span "
+                                                                 "edges")
+    span_edge_kernel_k: float = Field(2.0, gt=0, description="span-edge kernel width in whitened units (gangnam "
+                                      "no survey, spans 10/30/90: k 2 abs 0.281 m, 1 0.289, none 0.304)")
     # GNSS / INS priors
     gnss_std_inflation: float = Field(3.0, ge=1, description="receivers understate their error in canyons")
     gnss_min_std_m: float = Field(0.05, gt=0)

@@ -33,6 +33,7 @@ def summarize_solution(drives, sol, top_k: int = 10) -> dict:
         "n_bridges": sum(b.kind == "bridge" for b in sol.problem.betweens),
         "n_wheel_bridges": sum(b.kind == "wheel" for b in sol.problem.betweens),
         "n_wheel_fused": sum(b.kind == "wheel_fused" for b in sol.problem.betweens),
+        "n_span_edges": sum(b.kind == "span" for b in sol.problem.betweens),
         "wheel_calibration": {d.name: vars(d.wheel_calibration) for d in drives if d.wheel_calibration is not None},
         "gnss_residual_horizontal_rms_m": float(np.sqrt(np.mean(h ** 2))) if h.size else None,
         "gnss_residual_horizontal_max_m": float(h.max()) if h.size else None,

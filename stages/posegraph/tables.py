@@ -10,7 +10,7 @@ from pipeline.errors import FormatError
 from schemas.registry import schema_of
 from stages.common.geometry import poses_from_xyz_quat
 from stages.common.wheel_deskew import track_from_table, wheel_increments
-from stages.posegraph.core import DriveInput, calibrate_wheel, calibrated_wheel_increments
+from stages.posegraph.core import DriveInput, SpanEdges, calibrate_wheel, calibrated_wheel_increments
 
 
 def _T_from_columns(table: pa.Table, x: str, y: str, z: str) -> np.ndarray:
@@ -19,9 +19,9 @@ def _T_from_columns(table: pa.Table, x: str, y: str, z: str) -> np.ndarray:
 
 
 def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Table,
-                odometry: pa.Table | None = None) -> DriveInput:
+                odometry: pa.Table | None = None, span_edges: pa.Table | None = None) -> DriveInput:
     """One drive's rows of poses_gnss (one per scan), odometry_edges, drive_info and (optional) odometry_raw
-    (wheel speed and yaw rate: increments where ICP failed)."""
+    (wheel speed and yaw rate: increments where ICP failed) and odometry_span_edges (accepted ones kept)."""
     g = gnss.filter(pc.equal(gnss["drive"], drive)).sort_by("scan_id")
     if g.num_rows == 0:
         raise FormatError(f"poses_gnss: no rows for drive {drive!r}; hint: is it in the workflow's drives?")
@@ -50,10 +50,27 @@ def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Tabl
     d = DriveInput(drive, ids, g["stamp_ns"].to_numpy(), _T_from_columns(g, "x_m", "y_m", "z_m"), std,
                    g["std_yaw_rad"].to_numpy(), g["valid"].to_numpy(zero_copy_only=False), edge_T, edge_info,
                    edge_ok, T_vl, *_wheel_arrays(drive, ids, g["stamp_ns"].to_numpy(), odometry))
+    d.spans = _span_edges(drive, ids, span_edges)
     if d.wheel_T is not None:
         d.wheel_calibration = calibrate_wheel(d)
         d.wheel_T = calibrated_wheel_increments(d, d.wheel_calibration)
     return d
+
+
+def _span_edges(drive: str, ids: np.ndarray, span_edges: pa.Table | None) -> SpanEdges | None:
+    """The drive's accepted span edges whose two scans both have a poses_gnss row (positions into ``ids``)."""
+    if span_edges is None:
+        return None
+    e = span_edges.filter(pc.and_(pc.equal(span_edges["drive"], drive), span_edges["converged"]))
+    a, b = e["scan_id_from"].to_numpy(), e["scan_id"].to_numpy()
+    pa_, pb = np.searchsorted(ids, a), np.searchsorted(ids, b)
+    ok = (pa_ < len(ids)) & (pb < len(ids))
+    ok[ok] &= (ids[pa_[ok]] == a[ok]) & (ids[pb[ok]] == b[ok])
+    if not ok.any():
+        return SpanEdges(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
+    T = _T_from_columns(e, "dx_m", "dy_m", "dz_m")
+    info = np.asarray(e["information"].combine_chunks().flatten().to_numpy(), float).reshape(-1, 6, 6)
+    return SpanEdges(pa_[ok], pb[ok], T[ok], info[ok])
 
 
 def _wheel_arrays(drive: str, ids: np.ndarray, stamps_ns: np.ndarray, odometry: pa.Table | None

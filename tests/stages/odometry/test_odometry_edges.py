@@ -170,3 +170,27 @@ def test_wheel_gate_compares_only_horizontal_motion_and_heading():
     assert not gate_edge(bump, T_w, 0.9, True, **{**kw, "planar": False})  # the full-pose gate rejects it
     assert not gate_edge(T_w @ se3_from_xyz_rpy(0.0, 0.1, 0.0, 0, 0, 0), T_w, 0.9, True, **kw)
     assert not gate_edge(T_w @ se3_from_xyz_rpy(0.0, 0.0, 0.0, 0, 0, np.deg2rad(0.5)), T_w, 0.9, True, **kw)
+
+
+def test_span_edges_register_scans_n_apart_from_the_chain(swept_sequence):
+    """Span edges over 2 and 5 scans of the rolling sequence recover step^N (within the consecutive edges'
+    tolerance), come after the unchanged consecutive edges, and name their earlier scan."""
+    scans, step = swept_sequence
+    plain = estimate_edges(scans, np.eye(4), {}, deskew=True, **EDGE_KW)
+    edges = estimate_edges(scans, np.eye(4), {}, deskew=True, span_scans=(5, 2), **EDGE_KW)
+    assert [e.span for e in edges] == [1] * 5 + [2, 2, 5]
+    for a, b in zip(plain, edges[:5]):
+        np.testing.assert_allclose(a.T_prev_curr, b.T_prev_curr, atol=1e-6)
+    for e in edges[5:]:
+        assert e.converged and e.scan_id_from == e.scan_id - e.span
+        t_err, r_err = _err(e.T_prev_curr, np.linalg.matrix_power(step, e.span))
+        assert t_err < 0.02 and r_err < 0.05, (e.span, t_err, r_err)
+        assert np.all(np.linalg.eigvalsh(e.information) > 0)
+
+
+def test_span_edge_rejected_when_a_consecutive_edge_inside_is_missing(swept_sequence):
+    scans, _ = swept_sequence
+    gap = scans[:2] + scans[3:]  # scan 2 quarantined: ids 0 1 3 4 5
+    edges = estimate_edges(gap, np.eye(4), {}, deskew=False, span_scans=(2,), **EDGE_KW)
+    spans = [(e.scan_id_from, e.scan_id) for e in edges if e.span > 1]
+    assert spans == [(3, 5)]  # position 2 (scan 3) would span the gap from scan 0: skipped; 4 (scan 5) from 3

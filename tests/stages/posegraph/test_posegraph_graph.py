@@ -244,3 +244,49 @@ def test_heading_consistency_ignores_a_shared_rotation_and_sees_a_lap_turned():
     assert across > 0.9
     assert summarize(T_est, T_true, stamps_s)["self_consistency_heading_rms_deg"] == pytest.approx(
         0.1 * np.sqrt(across), abs=1e-6)
+
+
+def _heading_change_errors_deg(poses, T_true, lag=100):
+    """Error of the heading change over ``lag`` scans (drift; the absolute heading is the GNSS's business)."""
+    yaw = lambda T: np.unwrap(np.arctan2(T[:, 1, 0], T[:, 0, 0]))  # noqa: E731
+    d_est, d_true = yaw(poses)[lag:] - yaw(poses)[:-lag], yaw(T_true)[lag:] - yaw(T_true)[:-lag]
+    return np.rad2deg(d_est - d_true)
+
+
+def test_span_edges_cut_a_per_edge_heading_bias_and_a_wrong_span_stays_local(two_lap_drive):
+    """Consecutive ICP edges all turn 0.01 deg too far (a per-registration bias, 1 deg per 100 scans, which the
+    information does not know); span edges over 10 scans carry one registration's error each. With them the
+    heading change over 100 scans is pulled back towards truth. One span edge planted 1 m wrong along-track
+    under the default Huber kernel moves its own stretch by far less than 1 m."""
+    from stages.posegraph.core import SpanEdges
+
+    T_true, drive = two_lap_drive
+    rng = np.random.default_rng(5)
+    bias = se3_from_xyz_rpy(0, 0, 0, 0, 0, np.deg2rad(0.01))
+    drive.edge_T[1:] = drive.edge_T[1:] @ bias
+    span = 10
+    i = np.arange(0, drive.n - span, span)
+    j = i + span
+    T_ij = np.array([perturb(se3_inverse(T_true[a]) @ T_true[b], 0.0003, 0.005, rng) for a, b in zip(i, j)])
+    info = np.tile(np.diag([0.0003 ** -2] * 3 + [0.005 ** -2] * 3), (len(i), 1, 1))
+    drive.spans = SpanEdges(i, j, T_ij, info)
+    out = {}
+    for use in (False, True):
+        problem, _ = base_problem([drive], PosegraphParams(span_edges=use))
+        assert sum(b.kind == "span" for b in problem.betweens) == (len(i) if use else 0)
+        assert all(b.robust == "huber" for b in problem.betweens if b.kind == "span")
+        poses = optimize(problem)
+        out[use] = (rms(_heading_change_errors_deg(poses, T_true)), rms(horizontal_errors_m(poses, T_true)))
+    assert out[False][0] > 0.5, out  # the bias survives the GNSS without span edges
+    assert out[True][0] < 0.25 * out[False][0], out
+    assert out[True][1] < out[False][1], out
+    # a wrong span edge: 1 m along-track in the middle of a straight side
+    k = int(np.searchsorted(i, 20))
+    bad = T_ij.copy()
+    bad[k, 0, 3] += 1.0
+    drive.spans = SpanEdges(i, j, bad, info)
+    poses = optimize(base_problem([drive], PosegraphParams())[0])
+    a, b = i[k], j[k]
+    d_est = np.linalg.norm(poses[b, :2, 3] - poses[a, :2, 3])
+    d_true = np.linalg.norm(T_true[b, :2, 3] - T_true[a, :2, 3])
+    assert abs(d_est - d_true) < 0.1, (d_est, d_true)
