@@ -42,7 +42,8 @@ class OdometryParams(Params):
     span_scans: list[int] = Field([10, 30, 90], description="also register every N-th scan of a chunk onto "
                                   "the scan N before it, for each N (span edges: one registration error over N "
                                   "scans instead of N chained ones; gangnam without survey: absolute 0.320 -> "
-                                  "0.28 m); [] = consecutive edges only")
+                                  "0.255 m, heading 0.096 -> 0.060 deg; ~6 % odometry time); [] = consecutive edges "
+                                  "only")
 
     @model_validator(mode="after")
     def _ranges(self) -> "OdometryParams":
