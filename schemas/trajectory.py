@@ -9,18 +9,24 @@ POSE = [
     f("qx", pa.float64()), f("qy", pa.float64()), f("qz", pa.float64()), f("qw", pa.float64()),
 ]
 
+def _edge_fields(frame: str) -> list:
+    """Increment of the vehicle frame expressed in ``frame`` (the pair's earlier scan), then its quality."""
+    return [
+        f("stamp_ns", pa.int64(), "ns"),
+        f("dx_m", pa.float64(), "m", frame), f("dy_m", pa.float64(), "m", frame), f("dz_m", pa.float64(), "m", frame),
+        f("qx", pa.float64()), f("qy", pa.float64()), f("qz", pa.float64()), f("qw", pa.float64()),
+        f("fitness", pa.float64(), doc="share of source points with a correspondence"),
+        f("inlier_rmse_m", pa.float64(), "m"),
+        f("information", pa.list_(pa.float64(), 36), doc="6x6 row-major, gtsam order (rx ry rz tx ty tz)"),
+        f("converged", pa.bool_()),
+    ]
+
+
 register(
     "odometry_edges", "ICP between consecutive scans: T_prev_curr of the vehicle frame, with quality.",
     DRIVE, f("chunk", pa.int32()),
     f("scan_id", pa.int64(), doc="the later scan of the pair; the earlier is scan_id - 1"),
-    f("stamp_ns", pa.int64(), "ns"),
-    f("dx_m", pa.float64(), "m", "vehicle_prev"), f("dy_m", pa.float64(), "m", "vehicle_prev"),
-    f("dz_m", pa.float64(), "m", "vehicle_prev"),
-    f("qx", pa.float64()), f("qy", pa.float64()), f("qz", pa.float64()), f("qw", pa.float64()),
-    f("fitness", pa.float64(), doc="share of source points with a correspondence"),
-    f("inlier_rmse_m", pa.float64(), "m"),
-    f("information", pa.list_(pa.float64(), 36), doc="6x6 row-major, gtsam order (rx ry rz tx ty tz)"),
-    f("converged", pa.bool_()),
+    *_edge_fields("vehicle_prev"),
 )
 
 register(
@@ -29,14 +35,7 @@ register(
     DRIVE, f("chunk", pa.int32()),
     f("scan_id_from", pa.int64(), doc="the earlier scan of the pair"),
     f("scan_id", pa.int64(), doc="the later scan of the pair"),
-    f("stamp_ns", pa.int64(), "ns"),
-    f("dx_m", pa.float64(), "m", "vehicle_from"), f("dy_m", pa.float64(), "m", "vehicle_from"),
-    f("dz_m", pa.float64(), "m", "vehicle_from"),
-    f("qx", pa.float64()), f("qy", pa.float64()), f("qz", pa.float64()), f("qw", pa.float64()),
-    f("fitness", pa.float64(), doc="share of source points with a correspondence"),
-    f("inlier_rmse_m", pa.float64(), "m"),
-    f("information", pa.list_(pa.float64(), 36), doc="6x6 row-major, gtsam order (rx ry rz tx ty tz)"),
-    f("converged", pa.bool_(), doc="registered and within the gates"),
+    *_edge_fields("vehicle_from"),
 )
 
 register(
