@@ -195,19 +195,30 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
                 last_v, last_dt = T_vehicle_lidar @ res.T_target_source @ T_lidar_vehicle, dt_s[k]
         return out
 
-    def with_road(k: int, res: RegistrationResult) -> np.ndarray:
+    def with_road(src: _Prepared, tgt: _Prepared, res: RegistrationResult) -> np.ndarray:
         """The registration with height, roll and pitch from the two scans' road planes."""
-        src, tgt = prepared[k], prepared[k - 1]
         if res.converged and src.plane is not None and tgt.plane is not None:
             return align_ground_planes(res.T_target_source, src.plane, tgt.plane)
         return res.T_target_source
+
+    def vehicle_edge(src: _Prepared, tgt: _Prepared, res: RegistrationResult) -> tuple[np.ndarray, np.ndarray]:
+        """Vehicle-frame increment (road planes applied) and its information: the structure's point-to-plane
+        Hessian, plus the ground's where the road planes were used; floored; a rotation term in turns."""
+        H = point_to_plane_hessian(src.structure, tgt.structure, res.T_target_source, max_corr_m, point_sigma_m)
+        T_l = with_road(src, tgt, res)
+        if T_l is not res.T_target_source and src.ground is not None and tgt.ground is not None:
+            H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, max_corr_m, point_sigma_m)
+        T_v, info_v = lidar_to_vehicle_edge(T_l, floor_information(H, min_sigma_m, min_sigma_rad), T_vehicle_lidar)
+        if rot_sigma_per_rad > 0:  # turns: residual rotation error grows with the edge's rotation
+            info_v = floor_information(info_v, 1e-9, rot_sigma_per_rad * rotation_angle_rad(T_v) + 1e-12)
+        return T_v, info_v
 
     results = register_all(None)
     timed = [p.time_offset_s is not None for p in prepared]
     if deskew and any(timed):
         # the sweep motion must include the road planes' height/roll/pitch: structure-only ICP leaves them
         # weak, and a wrong roll rate tilts the deskewed scan (measured: 0.09 deg roll error per edge)
-        motion = {k: with_road(k, r) for k, r in results.items()}
+        motion = {k: with_road(prepared[k], prepared[k - 1], r) for k, r in results.items()}
         for i, p in enumerate(prepared):
             if not timed[i]:
                 continue
@@ -220,15 +231,8 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
 
     edges: list[Edge] = []
     for k in pairs:
-        res, src, tgt = results[k], prepared[k], prepared[k - 1]
-        H = point_to_plane_hessian(src.structure, tgt.structure, res.T_target_source, max_corr_m, point_sigma_m)
-        T_l = with_road(k, res)
-        if T_l is not res.T_target_source and src.ground is not None and tgt.ground is not None:
-            H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, max_corr_m, point_sigma_m)
-        info_l = floor_information(H, min_sigma_m, min_sigma_rad)
-        T_v, info_v = lidar_to_vehicle_edge(T_l, info_l, T_vehicle_lidar)
-        if rot_sigma_per_rad > 0:  # turns: residual rotation error grows with the edge's rotation
-            info_v = floor_information(info_v, 1e-9, rot_sigma_per_rad * rotation_angle_rad(T_v) + 1e-12)
+        res = results[k]
+        T_v, info_v = vehicle_edge(prepared[k], prepared[k - 1], res)
         accepted = gate_edge(T_v, T_gnss_v.get(k), res.fitness, res.converged, min_fitness=min_fitness,
                              max_deviation_m=max_deviation_guide_m if k in guided else max_deviation_m,
                              max_deviation_rad=max_deviation_guide_rad if k in guided else max_deviation_rad,
@@ -246,15 +250,7 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
                 T_chain_v = T_chain_v @ e.T_prev_curr
             src, tgt = prepared[i], prepared[i - span]
             res = register_clouds(src.structure, tgt.structure, to_lidar(T_chain_v), **reg)
-            T_l = res.T_target_source
-            H = point_to_plane_hessian(src.structure, tgt.structure, T_l, max_corr_m, point_sigma_m)
-            if res.converged and src.plane is not None and tgt.plane is not None:
-                T_l = align_ground_planes(res.T_target_source, src.plane, tgt.plane)
-                if src.ground is not None and tgt.ground is not None:
-                    H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, max_corr_m, point_sigma_m)
-            T_v, info_v = lidar_to_vehicle_edge(T_l, floor_information(H, min_sigma_m, min_sigma_rad), T_vehicle_lidar)
-            if rot_sigma_per_rad > 0:
-                info_v = floor_information(info_v, 1e-9, rot_sigma_per_rad * rotation_angle_rad(T_v) + 1e-12)
+            T_v, info_v = vehicle_edge(src, tgt, res)
             accepted = gate_edge(T_v, T_chain_v, res.fitness, res.converged, min_fitness=min_fitness,
                                  max_deviation_m=max_deviation_m, max_deviation_rad=max_deviation_rad)
             edges.append(Edge(scans[i].scan_id, scans[i].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,

@@ -18,6 +18,11 @@ def _T_from_columns(table: pa.Table, x: str, y: str, z: str) -> np.ndarray:
                                np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")]))
 
 
+def _information(edges: pa.Table) -> np.ndarray:
+    """(N,6,6) information matrices of odometry_edges / odometry_span_edges rows."""
+    return np.asarray(edges["information"].combine_chunks().flatten().to_numpy(), float).reshape(-1, 6, 6)
+
+
 def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Table,
                 odometry: pa.Table | None = None, span_edges: pa.Table | None = None) -> DriveInput:
     """One drive's rows of poses_gnss (one per scan), odometry_edges, drive_info and (optional) odometry_raw
@@ -41,7 +46,7 @@ def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Tabl
     edge_ok = np.zeros(n, bool)
     if e.num_rows:
         Te = _T_from_columns(e, "dx_m", "dy_m", "dz_m")
-        info = np.asarray(e["information"].combine_chunks().flatten().to_numpy(), float).reshape(-1, 6, 6)
+        info = _information(e)
         conv = e["converged"].to_numpy(zero_copy_only=False)
         edge_T[pos[inside]] = Te[inside]
         edge_info[pos[inside]] = info[inside]
@@ -69,8 +74,7 @@ def _span_edges(drive: str, ids: np.ndarray, span_edges: pa.Table | None) -> Spa
     if not ok.any():
         return SpanEdges(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
     T = _T_from_columns(e, "dx_m", "dy_m", "dz_m")
-    info = np.asarray(e["information"].combine_chunks().flatten().to_numpy(), float).reshape(-1, 6, 6)
-    return SpanEdges(pa_[ok], pb[ok], T[ok], info[ok])
+    return SpanEdges(pa_[ok], pb[ok], T[ok], _information(e)[ok])
 
 
 def _wheel_arrays(drive: str, ids: np.ndarray, stamps_ns: np.ndarray, odometry: pa.Table | None
