@@ -5,6 +5,7 @@ threaded or multiprocessing scheduler, or on a dask.distributed cluster (``tcp:/
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import logging
 import os
@@ -189,6 +190,28 @@ def run_stage(plan: Plan, sp: StagePlan, scheduler: "Scheduler", progress: Progr
     return result
 
 
+# Native thread pools of the libraries a task may call (OpenMP: open3d; BLAS). A pool of one process per core
+# with each process also starting a thread per core oversubscribes the machine; dask.distributed's nanny sets the
+# same variables for its workers (``distributed.nanny.pre-spawn-environ``).
+THREAD_POOL_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def one_thread_per_process():
+    """Within the block, newly spawned processes start their native thread pools with one thread, unless the
+    user set the variable; the parent's environment is restored afterwards."""
+    saved = {v: os.environ.get(v) for v in THREAD_POOL_VARIABLES}
+    for v, value in saved.items():
+        if value is None:
+            os.environ[v] = "1"
+    try:
+        yield
+    finally:
+        for v, value in saved.items():
+            if value is None:
+                os.environ.pop(v, None)
+
+
 class Scheduler:
     """Local dask schedulers (sync, threads, processes) or a dask.distributed cluster at ``tcp://...``."""
 
@@ -240,7 +263,8 @@ class Scheduler:
 
         with Callback(posttask=posttask):
             if kind == "processes":
-                return list(dask.compute(*tasks, scheduler="processes", num_workers=self.workers))
+                with one_thread_per_process():
+                    return list(dask.compute(*tasks, scheduler="processes", num_workers=self.workers))
             if kind == "threads":
                 return list(dask.compute(*tasks, scheduler="threads", num_workers=self.workers))
             return list(dask.compute(*tasks, scheduler="sync"))

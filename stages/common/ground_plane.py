@@ -43,10 +43,12 @@ def fit_ground_plane(points_lidar_m: np.ndarray, T_vehicle_lidar: np.ndarray, *,
     carry weight (a scan without visible ground)."""
     p = np.asarray(points_lidar_m, np.float64)[:, :3]
     R, t = T_vehicle_lidar[:3, :3], T_vehicle_lidar[:3, 3]
-    pv = p @ R.T + t
-    near = (np.abs(pv[:, 2]) < band_m) & (np.hypot(pv[:, 0], pv[:, 1]) < radius_m)
-    cand = p[near]
-    lane = cand[np.abs(pv[near, 1]) < lane_half_width_m]
+    z_v = p @ R[2] + t[2]  # vehicle-frame height; x, y only for the points in the band
+    band = np.flatnonzero(np.abs(z_v) < band_m)
+    xy_v = p[band] @ R[:2].T + t[:2]
+    keep = np.hypot(xy_v[:, 0], xy_v[:, 1]) < radius_m
+    cand = p[band[keep]]
+    lane = cand[np.abs(xy_v[keep, 1]) < lane_half_width_m]
     if len(lane) < min_points:
         lane = cand
     up = R[2, :]  # vehicle z axis in the lidar frame (R^T e_z)
@@ -54,12 +56,14 @@ def fit_ground_plane(points_lidar_m: np.ndarray, T_vehicle_lidar: np.ndarray, *,
     for it, width in enumerate(widths_m):
         use = lane if it < lane_iterations else cand
         d = use @ normal + offset
-        w = np.where(np.abs(d) < width, (1.0 - (d / width) ** 2) ** 2, 0.0)
-        if np.count_nonzero(w) < min_points:
+        inside = np.flatnonzero(np.abs(d) < width)
+        if len(inside) < min_points:
             return None
-        centroid = (w[:, None] * use).sum(axis=0) / w.sum()
-        _, _, Vt = np.linalg.svd((use - centroid) * np.sqrt(w)[:, None], full_matrices=False)
-        normal = Vt[2] if Vt[2] @ up > 0 else -Vt[2]
+        u, w = use[inside], (1.0 - (d[inside] / width) ** 2) ** 2
+        centroid = w @ u / w.sum()
+        du = u - centroid
+        _, V = np.linalg.eigh((du * w[:, None]).T @ du)  # weighted scatter; smallest eigenvector = normal
+        normal = V[:, 0] if V[:, 0] @ up > 0 else -V[:, 0]
         offset = float(-normal @ centroid)
     d = cand @ normal + offset
     inl = np.abs(d) < widths_m[-1]

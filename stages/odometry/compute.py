@@ -21,24 +21,29 @@ SCAN_COLUMNS = ["scan_id", "stamp_ns", "x_m", "y_m", "z_m", "time_offset_s"]
 
 
 def scans_from_table(table: pa.Table) -> list[Scan]:
-    """Split a scans_raw table into per-scan arrays (sorted by scan_id), vectorised."""
+    """Split a scans_raw table into per-scan arrays (sorted by scan_id), vectorised. Ingest writes each chunk
+    sorted by scan_id, so the sort is skipped when the ids already are (the stable sort and the gather it
+    implies were a fifth of an odometry task's time)."""
     if table.num_rows == 0:
         return []
     ids = table["scan_id"].to_numpy()
-    order = np.argsort(ids, kind="stable")
-    ids = ids[order]
-    xyz = np.column_stack([table[c].to_numpy()[order].astype(np.float64) for c in ("x_m", "y_m", "z_m")])
-    stamps = table["stamp_ns"].to_numpy()[order]
-    toff = table["time_offset_s"].to_numpy()[order].astype(np.float64) if "time_offset_s" in table.column_names \
+    order = None if np.all(ids[1:] >= ids[:-1]) else np.argsort(ids, kind="stable")
+    take = (lambda a: a) if order is None else (lambda a: a[order])  # noqa: E731
+    ids = take(ids)
+    xyz = np.empty((len(ids), 3), np.float64)
+    for j, c in enumerate(("x_m", "y_m", "z_m")):
+        xyz[:, j] = take(table[c].to_numpy())
+    stamps = take(table["stamp_ns"].to_numpy())
+    toff = take(table["time_offset_s"].to_numpy()).astype(np.float64) if "time_offset_s" in table.column_names \
         else None
-    uniq, starts = np.unique(ids, return_index=True)
+    starts = np.r_[0, np.flatnonzero(ids[1:] != ids[:-1]) + 1]
     ends = np.append(starts[1:], len(ids))
     scans = []
-    for sid, a, b in zip(uniq, starts, ends):
+    for a, b in zip(starts, ends):
         t = None if toff is None else toff[a:b]
         if t is not None and not np.any(t != 0):
             t = None  # the scan carries no per-point time
-        scans.append(Scan(int(sid), int(stamps[a]), xyz[a:b], t))
+        scans.append(Scan(int(ids[a]), int(stamps[a]), xyz[a:b], t))
     return scans
 
 

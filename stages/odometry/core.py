@@ -204,7 +204,7 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
     def vehicle_edge(src: _Prepared, tgt: _Prepared, res: RegistrationResult) -> tuple[np.ndarray, np.ndarray]:
         """Vehicle-frame increment (road planes applied) and its information: the structure's point-to-plane
         Hessian, plus the ground's where the road planes were used; floored; a rotation term in turns."""
-        H = point_to_plane_hessian(src.structure, tgt.structure, res.T_target_source, max_corr_m, point_sigma_m)
+        H = res.hessian  # the structure's, computed by register_clouds with the same max_corr_m / point_sigma_m
         T_l = with_road(src, tgt, res)
         if T_l is not res.T_target_source and src.ground is not None and tgt.ground is not None:
             H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, max_corr_m, point_sigma_m)

@@ -113,6 +113,25 @@ def test_processes_scheduler_equals_sync(tmp_path):
     assert read_output(tmp_path / "sync", "toy_squares").equals(read_output(tmp_path / "proc", "toy_squares"))
 
 
+def _thread_pool_env(_):
+    return {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+
+
+def test_processes_pool_starts_one_native_thread_per_process(monkeypatch):
+    """A process per core must not also start an OpenMP/BLAS thread per core; a user's setting is kept and the
+    parent's environment is left as it was."""
+    from dask import delayed
+
+    from pipeline.execute import Scheduler
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "3")
+    out = Scheduler("processes", workers=2).compute([delayed(_thread_pool_env)(i) for i in range(2)], label="t",
+                                                    progress=None)
+    assert out == [{"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "3"}] * 2
+    assert "OMP_NUM_THREADS" not in os.environ and os.environ["OPENBLAS_NUM_THREADS"] == "3"
+
+
 def test_sigkill_mid_stage_then_rerun_equals_uninterrupted(tmp_path):
     path = write_toy(tmp_path, params={"squares": {"sleep_s": 0.4}})
     ref = write_toy(tmp_path / "ref" if (tmp_path / "ref").mkdir() is None else tmp_path,

@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
-from stages.common.registration import (adjoint_se3, deskew_points, floor_information, prepare_cloud,
-                                        register_clouds, regularize_covariances)
+from stages.common.registration import (adjoint_se3, deskew_points, floor_information, point_to_plane_hessian,
+                                        prepare_cloud, register_clouds, regularize_covariances)
 from stages.odometry.core import scale_motion
 
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
@@ -40,6 +40,10 @@ def test_register_recovers_known_motion_within_mm(street_scene, method, tol_m, t
     assert res.converged and res.fitness > 0.8
     assert dt_m < tol_m and dr_deg < tol_deg, (dt_m, dr_deg)
     assert np.all(np.linalg.eigvalsh(res.information) > 0)
+    # the Hessian from open3d's correspondence set equals a fresh nearest-neighbour search (scipy) at that pose
+    H_search = point_to_plane_hessian(curr, prev, res.T_target_source, 1.5, 0.05)
+    np.testing.assert_allclose(res.hessian, H_search, rtol=1e-9, atol=1e-9 * np.abs(H_search).max())
+    np.testing.assert_allclose(res.information, floor_information(H_search, 0.005, 0.0002), rtol=1e-9)
 
 
 def test_information_body_frame_matches_gtsam_adjoint():
@@ -89,6 +93,9 @@ def test_gicp_on_exactly_planar_neighbourhoods_needs_regularised_covariances():
     raw = register_clouds(prepare_cloud(src, 0.5, 20, min_cov_eigenvalue_m2=0.0),
                           prepare_cloud(pts, 0.5, 20, min_cov_eigenvalue_m2=0.0), np.eye(4), max_corr_m=1.0)
     assert not raw.converged
+    raw_cov = np.asarray(prepare_cloud(pts, 0.5, 20, min_cov_eigenvalue_m2=0.0).covariances)
+    floored_cov = np.asarray(prepare_cloud(pts, 0.5, 20).covariances)  # written into open3d's buffer in place
+    np.testing.assert_allclose(floored_cov - raw_cov, np.broadcast_to(1e-6 * np.eye(3), raw_cov.shape), atol=1e-12)
     fixed = register_clouds(prepare_cloud(src, 0.5, 20), prepare_cloud(pts, 0.5, 20), np.eye(4), max_corr_m=1.0)
     dt_m, dr_deg = _pose_error(fixed.T_target_source, T)
     assert fixed.converged and dt_m < 1e-3 and dr_deg < 0.01, (dt_m, dr_deg)

@@ -102,3 +102,34 @@ def test_params_reject_unknown_and_inconsistent_keys():
         OdometryParams(voxel=0.5)
     with pytest.raises(ValueError, match="min_range_m"):
         OdometryParams(min_range_m=90.0, max_range_m=80.0)
+
+
+def test_scans_from_table_same_scans_whatever_the_row_order():
+    """Sorted input takes the fast path (no sort); shuffled rows give the same scans, points in file order."""
+    from stages.odometry.compute import scans_from_table
+
+    rng = np.random.default_rng(3)
+    sizes = {7: 5, 3: 4, 9: 6}
+    rows = []
+    for sid, n in sizes.items():
+        for j in range(n):
+            rows.append((sid, sid * 1000, float(sid), float(j), 0.5 * j, 0.0 if sid == 3 else 0.01 * j))
+    rows.sort(key=lambda r: r[0])
+    table = pa.table({"scan_id": [r[0] for r in rows], "stamp_ns": [r[1] for r in rows],
+                      "x_m": pa.array([r[2] for r in rows], pa.float32()),
+                      "y_m": pa.array([r[3] for r in rows], pa.float32()),
+                      "z_m": pa.array([r[4] for r in rows], pa.float32()),
+                      "time_offset_s": pa.array([r[5] for r in rows], pa.float32())})
+    shuffled = table.take(rng.permutation(table.num_rows))
+    for tab in (table, shuffled):
+        scans = scans_from_table(tab)
+        assert [s.scan_id for s in scans] == [3, 7, 9]
+        assert [len(s.points_lidar_m) for s in scans] == [4, 5, 6]
+        assert [s.stamp_ns for s in scans] == [3000, 7000, 9000]
+        assert scans[0].time_offset_s is None  # all-zero times: no per-point time
+        assert scans[1].points_lidar_m.dtype == np.float64
+        assert np.all(scans[0].points_lidar_m[:, 0] == 3.0)
+        if tab is table:
+            np.testing.assert_allclose(scans[2].points_lidar_m[:, 1], np.arange(6))
+        else:
+            assert sorted(scans[2].points_lidar_m[:, 1]) == list(range(6))
