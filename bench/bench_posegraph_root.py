@@ -91,6 +91,7 @@ def main() -> None:
         s = M.summarize(T, truth, stamps_s)
         print(f"| {name} | " + " | ".join(f"{s[k]:.3f}" for k in keys) + " |")
     print_information_bound(truth, drives[0].gnss_T, drives[0].gnss_valid, rows["ICP + wheel only (dead reckoning)"])
+    print_edge_heading_calibration(drives[0], truth)
 
 
 def print_information_bound(truth: np.ndarray, gnss_T: np.ndarray, valid: np.ndarray, dead_reckoning: np.ndarray):
@@ -115,6 +116,24 @@ def print_information_bound(truth: np.ndarray, gnss_T: np.ndarray, valid: np.nda
         dr_deg = np.rad2deg(M.rms(wrap_angle_rad(h_dr[j] - h_dr[i])))
         parts.append(f"{L:.0f} m: GNSS chord {gnss_deg:.3f} / dead reckoning {dr_deg:.3f}")
     print("heading error over a travel of " + "; ".join(parts) + " deg (RMS)")
+
+
+def print_edge_heading_calibration(drive, truth: np.ndarray) -> None:
+    """Heading error of the accepted ICP edges vs truth by the edge's turn, beside the std their information
+    claims (odometry's floors and ``rot_sigma_per_rad``): the check behind that parameter's default."""
+    from stages.posegraph.metrics import edge_yaw_calibration
+
+    k = np.flatnonzero(drive.edge_ok[1:]) + 1
+    sets = [("consecutive", k - 1, k, drive.edge_T[k], drive.edge_info[k])]
+    if drive.spans is not None:
+        span = drive.spans.j - drive.spans.i
+        sets += [(f"span {n}", drive.spans.i[span == n], drive.spans.j[span == n], drive.spans.T_i_j[span == n],
+                  drive.spans.information[span == n]) for n in np.unique(span)]
+    print("edge heading vs truth by turn (deg): bin n error-RMS / model-std-median NEES")
+    for name, i, j, T, info in sets:
+        rows = edge_yaw_calibration(T, info, truth[i], truth[j], (0.0, 1.0, 5.0, 20.0, 45.0, 180.0))
+        print(f"  {name}: " + "; ".join(f"[{r['lo_deg']:.0f},{r['hi_deg']:.0f}) {r['n']} {r['error_rms_deg']:.4f} / "
+                                        f"{r['model_sigma_median_deg']:.4f} {r['nees']:.2f}" for r in rows))
 
 
 if __name__ == "__main__":

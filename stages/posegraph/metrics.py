@@ -124,3 +124,27 @@ def summarize(T_est: np.ndarray, T_true: np.ndarray, stamps_s: np.ndarray) -> di
         "pitch_rms_deg": float(np.rad2deg(rms(pitch_errors_rad(T_est, T_true)))),
         "drift_100m_percent": drift_percent(T_est, T_true, 100.0),
     }
+
+
+def edge_yaw_calibration(T_edges: np.ndarray, information: np.ndarray, T_true_from: np.ndarray,
+                         T_true_to: np.ndarray, bins_deg: tuple[float, ...]) -> list[dict[str, float]]:
+    """Heading error of relative-pose edges against truth, by the edge's true |rotation| (``bins_deg`` edges):
+    per bin n, error RMS, the median std the edge's information claims (gtsam order: yaw is tangent index 2 for
+    a level vehicle), and the mean NEES of the heading (1 when the model fits). Checks a rotation noise model
+    such as odometry's ``rot_sigma_per_rad`` (turns)."""
+    rel_true = np.einsum("nab,nbc->nac", np.array([se3_inverse(A) for A in T_true_from]).reshape(-1, 4, 4),
+                         T_true_to)
+    err = np.einsum("nab,nbc->nac", np.array([se3_inverse(A) for A in rel_true]).reshape(-1, 4, 4), T_edges)
+    e_rad = np.arctan2(err[:, 1, 0], err[:, 0, 0])
+    turn_deg = np.abs(np.rad2deg(np.arctan2(rel_true[:, 1, 0], rel_true[:, 0, 0])))
+    sigma_rad = np.sqrt(np.linalg.inv(information)[:, 2, 2]) if len(information) else np.zeros(0)
+    out = []
+    for lo, hi in zip(bins_deg[:-1], bins_deg[1:]):
+        m = (turn_deg >= lo) & (turn_deg < hi)
+        if not m.any():
+            continue
+        out.append({"lo_deg": float(lo), "hi_deg": float(hi), "n": int(m.sum()),
+                    "error_rms_deg": float(np.rad2deg(rms(e_rad[m]))),
+                    "model_sigma_median_deg": float(np.rad2deg(np.median(sigma_rad[m]))),
+                    "nees": float(np.mean((e_rad[m] / sigma_rad[m]) ** 2))})
+    return out

@@ -290,3 +290,28 @@ def test_span_edges_cut_a_per_edge_heading_bias_and_a_wrong_span_stays_local(two
     d_est = np.linalg.norm(poses[b, :2, 3] - poses[a, :2, 3])
     d_true = np.linalg.norm(T_true[b, :2, 3] - T_true[a, :2, 3])
     assert abs(d_est - d_true) < 0.1, (d_est, d_true)
+
+
+def test_edge_yaw_calibration_nees_is_one_for_a_true_model_and_exposes_a_pessimistic_one():
+    """Edges whose heading error is drawn from the std their information claims give NEES ~1 in every bin; a
+    model claiming 10x the std gives ~0.01; bins split by the true rotation of the edge."""
+    from stages.common.geometry import se3_from_xyz_rpy
+    from stages.posegraph.metrics import edge_yaw_calibration
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    turn = np.where(np.arange(n) % 2 == 0, 0.001, 0.5)  # straight / turning edges (rad)
+    sigma = np.where(turn > 0.1, 0.002, 0.0005)
+    T_from = np.array([se3_from_xyz_rpy(i, 0, 0, 0, 0, 0.3) for i in range(n)])
+    rel = np.array([se3_from_xyz_rpy(1.0, 0.1, 0, 0, 0, a) for a in turn])
+    T_to = np.einsum("nab,nbc->nac", T_from, rel)
+    noisy = np.einsum("nab,nbc->nac", rel, np.array([se3_from_xyz_rpy(0, 0, 0, 0, 0, e)
+                                                     for e in rng.normal(0, sigma)]))
+    info = np.array([np.diag([1e8, 1e8, s ** -2, 1e4, 1e4, 1e4]) for s in sigma])
+    rows = edge_yaw_calibration(noisy, info, T_from, T_to, (0.0, 1.0, 45.0))
+    assert [r["n"] for r in rows] == [n // 2, n // 2]
+    for r, s in zip(rows, (0.0005, 0.002)):
+        assert abs(r["nees"] - 1.0) < 0.1 and np.isclose(r["model_sigma_median_deg"], np.rad2deg(s))
+        assert abs(r["error_rms_deg"] / np.rad2deg(s) - 1.0) < 0.06
+    pessimistic = edge_yaw_calibration(noisy, info / 100.0, T_from, T_to, (0.0, 1.0, 45.0))
+    assert all(0.008 < r["nees"] < 0.012 for r in pessimistic)
