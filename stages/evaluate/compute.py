@@ -20,6 +20,7 @@ from stages.evaluate import mcl
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
 from stages.evaluate.localize_mcl import odometry_increments
 from stages.evaluate.params import EvaluateParams
+from stages.common.geometry import wrap_angle_rad
 from stages.common.road_features import extract_road_features
 from stages.common.wheel_deskew import OdometryTrack, track_from_table
 from stages.evaluate.run import DriveArrays, evaluate_drive
@@ -55,6 +56,21 @@ def read_icp_increments(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndarr
     yaw = yaw_of_quaternions(edges)
     inc[k[ok]] = np.column_stack([edges["dx_m"].to_numpy(), edges["dy_m"].to_numpy(), yaw])[ok]
     return inc
+
+
+def fall_back_on_wheel(icp: np.ndarray, wheel: np.ndarray, gate_yaw_rad: float) -> np.ndarray:
+    """(E,3) ICP increments with the failed ones (NaN) and, when ``gate_yaw_rad`` > 0, those whose heading change
+    differs from the wheel/gyro increment's by more than it replaced by the wheel/gyro increment. Why: after a
+    turn in a degenerate street (gangnam drive 1, scans 3670-3690) accepted ICP edges next to rejected ones were
+    0.08-0.11 deg off each, +0.5 deg in 2 s, while the gyro's error is its bias (~0.01 deg per scan); with
+    ICP-grade heading noise the EKF then held a 0.5 deg error through the corner-poor stretch."""
+    out = np.array(icp, dtype=float, copy=True)
+    use_wheel = ~np.all(np.isfinite(out), axis=1)
+    if gate_yaw_rad > 0:
+        with np.errstate(invalid="ignore"):
+            use_wheel |= np.abs(wrap_angle_rad(out[:, 2] - wheel[:, 2])) > gate_yaw_rad
+    out[use_wheel] = wheel[use_wheel]
+    return out
 
 
 def read_corners(corners: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar: np.ndarray) -> CornerObservations:
@@ -163,8 +179,7 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     odo_inc = odometry_increments(odo["stamp_ns"].to_numpy(), odo["speed_mps"].to_numpy(),
                                   odo["yaw_rate_radps"].to_numpy(), stamps)
     icp = read_icp_increments(_rows_of(ctx, "edges", drive), scan_ids)
-    missing = ~np.all(np.isfinite(icp), axis=1)
-    icp[missing] = odo_inc[missing]  # a failed ICP edge falls back on wheel odometry
+    icp = fall_back_on_wheel(icp, odo_inc, np.deg2rad(p.icp_wheel_gate_deg))
     corners = read_corners(_rows_of(ctx, "corners", drive), scan_ids, T_vl)
     if "mcl" in p.methods:
         track = track_from_table(odo) if p.feature_deskew else None

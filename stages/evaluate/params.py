@@ -17,14 +17,23 @@ class EvaluateParams(Params):
     # EKF motion noise (ICP increments, eq. 2)
     icp_sigma_frac: float = Field(0.03, ge=0, description="ICP translation std per metre travelled")
     icp_sigma_xy_m: float = Field(0.01, ge=0, description="ICP translation std floor per scan")
-    icp_sigma_yaw_deg: float = Field(0.1, ge=0, description="ICP heading std floor per scan (tiny: 0.105 measured)")
-    icp_sigma_yaw_frac: float = Field(0.02, ge=0, description="ICP heading std per radian turned")
+    icp_sigma_yaw_deg: float = Field(0.004, ge=0, description="ICP heading std per scan. gangnam: the ICP edges' "
+                                     "heading error is 0.005 deg RMS, in turns as on straights (bench_posegraph_root's "
+                                     "edge table); 0.004 puts drive 1's heading NEES at 0.9 (the first tiny maps "
+                                     "needed 0.1, before wheel deskew and the gate below)")
+    icp_sigma_yaw_frac: float = Field(0.0, ge=0, description="ICP heading std per radian turned (0: turns are no "
+                                      "worse, measured)")
+    icp_wheel_gate_deg: float = Field(0.05, ge=0, description="an ICP increment whose heading change differs from "
+                                      "the wheel/gyro increment's by more than this is replaced by the wheel/gyro "
+                                      "increment, as a failed one is (0 = failed edges only)")
     # EKF association and measurement (s.3.3, eqs. 3-5)
     sensor_range_m: float = Field(60.0, gt=0, description="map corners farther than this are not predicted")
     gate_probability: float = Field(0.99, gt=0, lt=1, description="Mahalanobis gate, chi-square 2 dof")
     angle_gate_deg: float = Field(15.0, gt=0, le=180, description="max wall direction difference")
     association: Literal["gnn", "nn"] = "gnn"
-    range_sigma_floor_m: float = Field(0.03, ge=0, description="added to extracted corners' range std")
+    range_sigma_floor_m: float = Field(0.05, ge=0, description="added to extracted corners' range std (gangnam "
+                                       "drive 1: position NEES 2.2 for 2 dof; 0.03 gave 2.7, map corner errors are "
+                                       "shared by consecutive epochs)")
     bearing_sigma_floor_deg: float = Field(0.15, ge=0, description="added to extracted corners' bearing std")
     wall_heading_sigma_deg: float = Field(1.5, ge=0, description="heading from wall directions; 0 = off")
     # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and

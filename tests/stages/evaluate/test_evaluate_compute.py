@@ -128,3 +128,21 @@ def test_compute_writes_epochs_and_report(stage_context):
     for name in ("report.html", "epochs.parquet", "ekf_tum.txt", "mcl_tum.txt", "rtk_ins_tum.txt", "icp_dr_tum.txt"):
         assert (report_dir / name).is_file(), name
     assert max(table.filter(pa.compute.equal(table["method"], "ekf"))["n_associated"].to_pylist()) >= 1
+
+
+def test_icp_increments_fall_back_on_wheel_when_failed_or_off_in_heading():
+    """Failed edges (NaN) always take the wheel/gyro increment; an edge whose heading change is off the gyro's by
+    more than the gate does too (also across the +-pi wrap); the rest keep ICP's."""
+    from stages.evaluate.compute import fall_back_on_wheel
+
+    wheel = np.array([[0.6, 0.0, 0.0], [0.6, 0.01, 0.001], [0.6, 0.0, np.pi - 1e-4], [0.6, 0.0, 0.0],
+                      [0.6, 0.0, 0.0]])
+    icp = np.array([[0.61, 0.0, 0.0005], [0.59, 0.0, 0.001 + np.deg2rad(0.2)], [0.6, 0.0, -np.pi + 1e-4],
+                    [np.nan] * 3, [0.62, 0.0, np.deg2rad(-0.04)]])
+    out = fall_back_on_wheel(icp, wheel, np.deg2rad(0.05))
+    np.testing.assert_array_equal(out[[0, 2, 4]], icp[[0, 2, 4]])  # within the gate (row 2: 2e-4 rad over the wrap)
+    np.testing.assert_array_equal(out[[1, 3]], wheel[[1, 3]])
+    only_failed = fall_back_on_wheel(icp, wheel, 0.0)
+    np.testing.assert_array_equal(only_failed[[0, 1, 2, 4]], icp[[0, 1, 2, 4]])
+    np.testing.assert_array_equal(only_failed[3], wheel[3])
+    assert np.isnan(icp[3]).all()  # the input is not modified
