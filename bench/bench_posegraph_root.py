@@ -131,7 +131,7 @@ def print_edge_heading_calibration(drive, truth: np.ndarray) -> None:
                   drive.spans.information[span == n]) for n in np.unique(span)]
     print("edge heading vs truth by turn (deg): bin n error-RMS / model-std-median NEES")
     for name, i, j, T, info in sets:
-        rows = edge_yaw_calibration(T, info, truth[i], truth[j], (0.0, 1.0, 5.0, 20.0, 45.0, 180.0))
+        rows = edge_yaw_calibration(T, info, truth, i, j, (0.0, 1.0, 5.0, 20.0, 45.0, 180.0))
         print(f"  {name}: " + "; ".join(f"[{r['lo_deg']:.0f},{r['hi_deg']:.0f}) {r['n']} {r['error_rms_deg']:.4f} / "
                                         f"{r['model_sigma_median_deg']:.4f} {r['nees']:.2f}" for r in rows))
 

@@ -25,7 +25,7 @@ class RegistrationResult:
     inlier_rmse_m: float
     information: np.ndarray  # 6x6, gtsam order, body frame of T_target_source
     converged: bool
-    hessian: np.ndarray | None = None  # the unfloored point-to-plane Hessian behind ``information`` (6x6)
+    hessian: np.ndarray  # the unfloored point-to-plane Hessian behind ``information`` (6x6)
 
 
 def crop_range(points_m: np.ndarray, min_range_m: float, max_range_m: float) -> np.ndarray:

@@ -27,14 +27,13 @@ def scans_from_table(table: pa.Table) -> list[Scan]:
     if table.num_rows == 0:
         return []
     ids = table["scan_id"].to_numpy()
-    order = None if np.all(ids[1:] >= ids[:-1]) else np.argsort(ids, kind="stable")
-    take = (lambda a: a) if order is None else (lambda a: a[order])  # noqa: E731
-    ids = take(ids)
+    order = slice(None) if np.all(ids[1:] >= ids[:-1]) else np.argsort(ids, kind="stable")  # a view when sorted
+    ids = ids[order]
     xyz = np.empty((len(ids), 3), np.float64)
     for j, c in enumerate(("x_m", "y_m", "z_m")):
-        xyz[:, j] = take(table[c].to_numpy())
-    stamps = take(table["stamp_ns"].to_numpy())
-    toff = take(table["time_offset_s"].to_numpy()).astype(np.float64) if "time_offset_s" in table.column_names \
+        xyz[:, j] = table[c].to_numpy()[order]
+    stamps = table["stamp_ns"].to_numpy()[order]
+    toff = table["time_offset_s"].to_numpy()[order].astype(np.float64) if "time_offset_s" in table.column_names \
         else None
     starts = np.r_[0, np.flatnonzero(ids[1:] != ids[:-1]) + 1]
     ends = np.append(starts[1:], len(ids))

@@ -126,14 +126,14 @@ def summarize(T_est: np.ndarray, T_true: np.ndarray, stamps_s: np.ndarray) -> di
     }
 
 
-def edge_yaw_calibration(T_edges: np.ndarray, information: np.ndarray, T_true_from: np.ndarray,
-                         T_true_to: np.ndarray, bins_deg: tuple[float, ...]) -> list[dict[str, float]]:
-    """Heading error of relative-pose edges against truth, by the edge's true |rotation| (``bins_deg`` edges):
+def edge_yaw_calibration(T_edges: np.ndarray, information: np.ndarray, T_true: np.ndarray, i: np.ndarray,
+                         j: np.ndarray, bins_deg: tuple[float, ...]) -> list[dict[str, float]]:
+    """Heading error of relative-pose edges (scan i -> scan j of the true trajectory ``T_true``) against truth,
+    by the edge's true |rotation| (``bins_deg`` edges):
     per bin n, error RMS, the median std the edge's information claims (gtsam order: yaw is tangent index 2 for
     a level vehicle), and the mean NEES of the heading (1 when the model fits). Checks a rotation noise model
     such as odometry's ``rot_sigma_per_rad`` (turns)."""
-    rel_true = np.einsum("nab,nbc->nac", np.array([se3_inverse(A) for A in T_true_from]).reshape(-1, 4, 4),
-                         T_true_to)
+    rel_true = _relative_poses(T_true, np.asarray(i), np.asarray(j))
     err = np.einsum("nab,nbc->nac", np.array([se3_inverse(A) for A in rel_true]).reshape(-1, 4, 4), T_edges)
     e_rad = np.arctan2(err[:, 1, 0], err[:, 0, 0])
     turn_deg = np.abs(np.rad2deg(np.arctan2(rel_true[:, 1, 0], rel_true[:, 0, 0])))

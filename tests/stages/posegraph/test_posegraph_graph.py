@@ -308,10 +308,11 @@ def test_edge_yaw_calibration_nees_is_one_for_a_true_model_and_exposes_a_pessimi
     noisy = np.einsum("nab,nbc->nac", rel, np.array([se3_from_xyz_rpy(0, 0, 0, 0, 0, e)
                                                      for e in rng.normal(0, sigma)]))
     info = np.array([np.diag([1e8, 1e8, s ** -2, 1e4, 1e4, 1e4]) for s in sigma])
-    rows = edge_yaw_calibration(noisy, info, T_from, T_to, (0.0, 1.0, 45.0))
+    truth, i, j = np.concatenate([T_from, T_to]), np.arange(n), n + np.arange(n)
+    rows = edge_yaw_calibration(noisy, info, truth, i, j, (0.0, 1.0, 45.0))
     assert [r["n"] for r in rows] == [n // 2, n // 2]
     for r, s in zip(rows, (0.0005, 0.002)):
         assert abs(r["nees"] - 1.0) < 0.1 and np.isclose(r["model_sigma_median_deg"], np.rad2deg(s))
         assert abs(r["error_rms_deg"] / np.rad2deg(s) - 1.0) < 0.06
-    pessimistic = edge_yaw_calibration(noisy, info / 100.0, T_from, T_to, (0.0, 1.0, 45.0))
+    pessimistic = edge_yaw_calibration(noisy, info / 100.0, truth, i, j, (0.0, 1.0, 45.0))
     assert all(0.008 < r["nees"] < 0.012 for r in pessimistic)
