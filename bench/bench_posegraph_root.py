@@ -47,7 +47,7 @@ def main() -> None:
     from stages.posegraph.solve import LoopRecord, solve_map
 
     wf = load_workflow(args.workflow, param_overrides={"posegraph": _overrides(args.set)})
-    root = args.root or Path(wf.spec.root)
+    root = wf.root_dir(args.root)
     plan = make_plan(wf, root)
     sp = plan.stages["posegraph"]
     missing = [f"{arg} ({ds})" for arg, (ds, fp) in sp.inputs.items()

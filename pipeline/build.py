@@ -9,20 +9,53 @@ import yaml
 from pipeline.errors import ConfigError
 
 
-def write_build_workflow(template: Path, *, drives: list[Path], map_name: str, root: Path) -> Path:
+def parse_origin(text: str) -> dict[str, float]:
+    """``LAT,LON,H`` (degrees, degrees, metres above the WGS84 ellipsoid) -> an ``enu_origin`` mapping."""
+    parts = [p.strip() for p in text.split(",")]
     try:
-        doc = yaml.safe_load(Path(template).read_text())
-    except OSError as exc:
-        raise ConfigError(str(template), [f"cannot read the standard workflow: {exc}"]) from exc
+        lat, lon, h = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError("--origin", [f"expected LAT,LON,H (three numbers: degrees, degrees, metres), got "
+                                       f"{text!r}"]) from None
+    problems = []
+    if not -90.0 <= lat <= 90.0:
+        problems.append(f"latitude {lat} is outside -90..90 degrees")
+    if not -180.0 <= lon <= 180.0:
+        problems.append(f"longitude {lon} is outside -180..180 degrees")
+    if not -1000.0 <= h <= 10000.0:
+        problems.append(f"height {h} m is outside -1000..10000 m")
+    if problems:
+        raise ConfigError("--origin", problems)
+    return {"lat_deg": lat, "lon_deg": lon, "h_m": h}
+
+
+def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: str, root: Path,
+                         origin: dict[str, float] | None = None) -> Path:
+    """The map workflow (a file or a packaged name) with these drives, map name, root and origin, written under
+    ``ROOT/workflows/`` (absolute paths: the build's record of what it ran)."""
+    from pipeline.resources import resolve_workflow
+
+    path = resolve_workflow(template)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(str(path), [f"cannot read the map workflow: {exc}"]) from exc
     missing = [str(d) for d in drives if not Path(d).is_file()]
     if missing:
         raise ConfigError("cornermap build", [f"drive file not found: {m}" for m in missing])
+    catalog = doc.get("catalog")
+    if catalog:  # keep a template's own catalog where it is once the workflow is written elsewhere
+        doc["catalog"] = [str((path.parent / c).resolve()) for c in catalog]
     doc["map_name"] = map_name
     doc["root"] = str(Path(root).resolve())
+    if origin is not None:
+        doc["enu_origin"] = dict(origin)
     doc["drives"] = [{"name": Path(d).resolve().parent.name, "path": str(Path(d).resolve()), "role": "map"}
                      for d in drives]
     text = yaml.safe_dump(doc, sort_keys=False)
     out = Path(root) / "workflows" / f"build-{map_name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}.yaml"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
+    tmp = out.with_suffix(".yaml.tmp")
+    tmp.write_text(text)
+    tmp.replace(out)
     return out

@@ -14,9 +14,9 @@ app = typer.Typer(
     name="cornermap", no_args_is_help=True, add_completion=False, rich_markup_mode="rich",
     help="Batch production of LiDAR localization maps (vertical-corner landmarks + road-marking rasters).\n\n"
          "Examples:\n\n"
-         "  cornermap run workflows/demo.yaml --root runs/demo\n\n"
-         "  cornermap run workflows/map_rebuild.yaml --dry-run\n\n"
-         "  cornermap build --drive drives/d1/drive.yaml --map gangnam --root /data/maps\n\n"
+         "  cornermap run demo --root runs/demo\n\n"
+         "  cornermap run tiny --root runs/tiny --dry-run\n\n"
+         "  cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps\n\n"
          "  cornermap corners params",
 )
 catalog_app = typer.Typer(no_args_is_help=True, help="Inspect and validate the data catalog.")
@@ -81,7 +81,7 @@ def execute_workflow(workflow_path: Path, *, root: Optional[Path], scheduler: Op
         for name in only:
             if name not in wf.stages:
                 raise UnknownNameError(f"--only {name!r}: not a stage of {workflow_path}{suggest(name, wf.stages)}")
-    plan = make_plan(wf, Path(root or wf.spec.root), only=only)
+    plan = make_plan(wf, wf.root_dir(root), only=only)
     if dry_run:
         print_plan(describe_plan(plan), plan.root)
         return {"dry_run": True}
@@ -97,14 +97,18 @@ def execute_workflow(workflow_path: Path, *, root: Optional[Path], scheduler: Op
 
 
 @app.command("run")
-def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML, e.g. workflows/demo.yaml"),
+def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a packaged workflow's name "
+                                                     "(demo, tiny, gangnam, map_rebuild)"),
             root: Optional[Path] = ROOT_OPT, scheduler: Optional[str] = SCHED_OPT,
             only: Optional[list[str]] = typer.Option(None, "--only", help="Run only these stages (repeatable)."),
             dry_run: bool = typer.Option(False, "--dry-run", help="Print order, partitions, fingerprints, decisions."),
             quiet: bool = QUIET_OPT, params: Optional[Path] = PARAMS_OPT) -> None:
     """Run a workflow: stages in dependency order; unchanged stages are skipped.
 
-    Examples: [b]cornermap run workflows/demo.yaml[/b]; [b]cornermap run workflows/map_rebuild.yaml --only corners[/b];
+    Relative paths inside a workflow file resolve against the file's folder; the output root is --root, else the
+    workflow's root, else runs/NAME in the current directory.
+
+    Examples: [b]cornermap run tiny --root runs/tiny[/b]; [b]cornermap run tiny --root runs/tiny --only corners[/b];
     [b]cornermap run W.yaml --scheduler tcp://10.0.0.5:8786[/b]
     """
     result = execute_workflow(workflow, root=root, scheduler=scheduler, only=only, dry_run=dry_run, quiet=quiet,
@@ -119,16 +123,20 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML, e.g. workf
 def build_cmd(drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml of a map drive (repeatable)."),
               map_name: str = typer.Option(..., "--map", help="Map name: publishes ROOT/maps/NAME/vNNNN."),
               root: Path = typer.Option(..., "--root", help="Output root."),
+              origin: Optional[str] = typer.Option(None, "--origin", help="The map's ENU origin LAT,LON,H (degrees, "
+                                                   "degrees, metres WGS84); default: the first GNSS fix of the first drive."),
               scheduler: Optional[str] = SCHED_OPT, quiet: bool = QUIET_OPT,
-              workflow: Path = typer.Option(Path("workflows/map_rebuild.yaml"), "--workflow",
-                                            help="The standard map workflow to run on these drives.")) -> None:
+              workflow: str = typer.Option("map_rebuild", "--workflow",
+                                           help="The map workflow to run on these drives (a file or a packaged name).")
+              ) -> None:
     """Build and publish the next version of map NAME from drives (the standard map workflow).
 
-    Example: [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps[/b]
+    Example: [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
     """
-    from pipeline.build import write_build_workflow
+    from pipeline.build import parse_origin, write_build_workflow
 
-    path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root)
+    path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root,
+                                origin=parse_origin(origin) if origin else None)
     result = execute_workflow(path, root=root, scheduler=scheduler, only=None, dry_run=False, quiet=quiet)
     from pipeline.progress import print_outcomes
 
@@ -136,24 +144,33 @@ def build_cmd(drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml 
 
 
 @catalog_app.command("ls")
-def catalog_ls(catalog: Path = typer.Argument(Path("data_catalog"), help="Catalog folder or file.")) -> None:
-    """List every dataset with kind, schema, partitioning and versioning."""
-    from pipeline.catalog import load_catalog
+def catalog_ls(catalog: Optional[Path] = typer.Argument(None, help="Catalog folder or file (default: the packaged "
+                                                                  "catalog).")) -> None:
+    """List every dataset with kind, schema, partitioning and versioning.
 
-    cat = load_catalog([catalog])
+    Example: [b]cornermap catalog ls[/b]
+    """
+    from pipeline.catalog import load_catalog
+    from pipeline.resources import packaged_catalog_dir
+
+    cat = load_catalog([catalog or packaged_catalog_dir()])
     for name, spec in cat.datasets.items():
         typer.echo(f"{name:22s} {spec.kind:9s} schema={spec.schema_ref or '-':22s} "
                    f"partitioning={','.join(spec.partitioning) or '-':14s} {spec.versioning}")
 
 
 @catalog_app.command("validate")
-def catalog_validate(catalog: Path = typer.Argument(Path("data_catalog")),
+def catalog_validate(catalog: Optional[Path] = typer.Argument(None, help="default: the packaged catalog"),
                      workflows: list[Path] = typer.Option([], "--workflow", help="Also validate these workflows.")) -> None:
-    """Validate the catalog (and workflows): every problem is listed at once."""
+    """Validate the catalog (and workflows): every problem is listed at once.
+
+    Example: [b]cornermap catalog validate --workflow tiny[/b]
+    """
     from pipeline.catalog import load_catalog
+    from pipeline.resources import packaged_catalog_dir
     from pipeline.workflow import load_workflow
 
-    cat = load_catalog([catalog])
+    cat = load_catalog([catalog or packaged_catalog_dir()])
     for wf in workflows:
         load_workflow(wf)
     typer.echo(f"ok: {len(cat.datasets)} datasets" + (f", {len(workflows)} workflow(s)" if workflows else ""))

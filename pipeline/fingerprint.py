@@ -23,18 +23,71 @@ def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def drive_fingerprint(drive_yaml: Path) -> str:
-    """A raw drive on disk: its drive.yaml bytes plus the (relative path, size) of every file beside it.
+HASH_MAX_BYTES = 64 << 20  # files up to this size are fingerprinted by content, larger ones by size + mtime
 
-    File sizes rather than contents keep this cheap for 8000-scan drives; a rewritten file of equal size is
-    not detected (documented limit; ingest writes the sha256 of what it read into its report).
+
+def file_key(path: Path) -> dict:
+    """A file's identity without its location: sha256 when small, else size + modification time (ns)."""
+    st = path.stat()
+    if st.st_size <= HASH_MAX_BYTES:
+        return {"size": st.st_size, "sha256": file_sha256(path)}
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def folder_key(folder: Path) -> list:
+    """A folder's files by relative name, size and modification time (cheap for 8000-scan folders)."""
+    out = []
+    for p in sorted(folder.rglob("*")):
+        if p.is_file():
+            st = p.stat()
+            out.append((str(p.relative_to(folder)), st.st_size, st.st_mtime_ns))
+    return out
+
+
+def _referenced_paths(doc: Any, folder: Path) -> dict[str, Path]:
+    """Every string value of a YAML document that names an existing file or folder relative to ``folder``."""
+    found: dict[str, Path] = {}
+
+    def walk(node: Any) -> None:
+        if isinstance(node, dict):
+            for v in node.values():
+                walk(v)
+        elif isinstance(node, (list, tuple)):
+            for v in node:
+                walk(v)
+        elif isinstance(node, str) and node and len(node) < 4096 and not Path(node).is_absolute():
+            candidate = folder / node
+            try:
+                if candidate.exists():
+                    found[node] = candidate
+            except OSError:  # a string that is not a usable path (too long, bad characters)
+                pass
+
+    walk(doc)
+    return found
+
+
+def drive_fingerprint(drive_yaml: Path) -> str:
+    """A raw drive by content, never by location: the drive file's text, and every file or folder it names
+    (relative paths, e.g. the scan folder, the GNSS CSV, a survey cloud in ``../survey/``): small files by sha256,
+    large files by size + mtime, folders by each file's relative name, size and mtime. Moving or copying the
+    drive keeps its fingerprint (a copy that does not keep modification times re-fingerprints its large files);
+    a replaced input changes it.
     """
+    import yaml
+
     drive_yaml = Path(drive_yaml)
-    folder = drive_yaml.parent
     if not drive_yaml.is_file():
-        return stable_hash({"missing": str(drive_yaml)})
-    listing = sorted((str(p.relative_to(folder)), p.stat().st_size) for p in folder.rglob("*") if p.is_file())
-    return stable_hash({"drive_yaml": drive_yaml.read_bytes().hex(), "files": listing})
+        return stable_hash({"missing": drive_yaml.name})
+    text = drive_yaml.read_bytes()
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError:  # ingest reports the problem; the fingerprint still changes with the text
+        doc = None
+    refs = {}
+    for name, path in sorted(_referenced_paths(doc, drive_yaml.parent).items()):
+        refs[name] = folder_key(path) if path.is_dir() else file_key(path)
+    return stable_hash({"drive_yaml": hashlib.sha256(text).hexdigest(), "referenced": refs})
 
 
 def stage_fingerprint(*, stage: str, code_version: str, params: dict, inputs: dict[str, str],

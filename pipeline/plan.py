@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.declare import PartitionKey, Partitioning, StageDecl
-from pipeline.fingerprint import drive_fingerprint, stable_hash, stage_fingerprint
+from pipeline.fingerprint import drive_fingerprint, file_key, stable_hash, stage_fingerprint
 from pipeline.store import dataset_dir, read_manifest
 from pipeline.workflow import TEMPLATE, Workflow
 
@@ -43,8 +43,10 @@ class Plan:
     stages: dict[str, StagePlan] = field(default_factory=dict)
 
 
-def _resolve_template(text: str, root: Path, producer_fp: dict[str, str]) -> tuple[Path, str | None]:
-    """Expand ${dataset} to that dataset's committed artifact directory; returns (path, fingerprint basis)."""
+def _resolve_template(text: str, root: Path, producer_fp: dict[str, str], base_dir: Path
+                      ) -> tuple[Path, str | None]:
+    """Expand ${dataset} to that dataset's committed artifact directory; returns (path, fingerprint basis).
+    A path without a template that is relative resolves against ``base_dir`` (the workflow file's folder)."""
     basis = None
     for ds in TEMPLATE.findall(text):
         if ds not in producer_fp:  # a stage upstream of the producer: the path is not available to it
@@ -52,14 +54,28 @@ def _resolve_template(text: str, root: Path, producer_fp: dict[str, str]) -> tup
         fp = producer_fp[ds]
         text = text.replace("${" + ds + "}", str(dataset_dir(root, ds, fp) / "artifacts" / PartitionKey().label))
         basis = f"{ds}:{fp}"
-    return Path(text), basis
+    path = Path(text).expanduser()
+    return (path if path.is_absolute() else base_dir / path), basis
+
+
+def _reference_key(text: str | None, path: Path | None, basis: str | None) -> Any:
+    """A reference trajectory in a fingerprint, without its location: the template and the fingerprint of the
+    dataset it points into, else the file's content."""
+    if text is None:
+        return None
+    if basis is not None:
+        return {"template": text, "basis": basis}
+    return file_key(path) if path is not None and path.is_file() else {"missing": Path(text).name}
 
 
 def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> Plan:
+    """Fingerprints and decisions. Nothing that names a location enters a fingerprint (the root, absolute drive
+    or reference paths): a moved root or drive folder keeps its committed work."""
     root = Path(root).resolve()
     plan = Plan(workflow, root)
     dataset_fp: dict[str, str] = {}
     base_settings = workflow.settings(root)
+    drive_fp_cache: dict[Path, str] = {}
     for name, decl in workflow.stages.items():
         # Resolve drives and references with the fingerprints of upstream producers known so far.
         drives: dict[str, Path] = {}
@@ -68,19 +84,23 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
             if decl.drive_role and d.role != decl.drive_role:
                 continue
             if TEMPLATE.search(d.path):
-                path, basis = _resolve_template(d.path, root, dataset_fp)
+                path, basis = _resolve_template(d.path, root, dataset_fp, workflow.base_dir)
                 drive_fps[d.name] = stable_hash({"template": d.path, "basis": basis})
             else:
-                path = Path(d.path) if Path(d.path).is_absolute() else (workflow.base_dir / d.path)
-                drive_fps[d.name] = drive_fingerprint(path)
+                path = workflow.resolve(d.path)
+                if path not in drive_fp_cache:
+                    drive_fp_cache[path] = drive_fingerprint(path)
+                drive_fps[d.name] = drive_fp_cache[path]
             drives[d.name] = path.resolve()
         settings = dict(base_settings)
-        settings["references"] = {
-            d.name: (str(_resolve_template(d.reference, root, dataset_fp)[0]) if d.reference else None)
-            for d in workflow.spec.drives
-        }
+        refs = {d.name: _resolve_template(d.reference, root, dataset_fp, workflow.base_dir) if d.reference else
+                (None, None) for d in workflow.spec.drives}
+        settings["references"] = {n: (str(p) if p is not None else None) for n, (p, _) in refs.items()}
         keys = decl.settings_keys if decl.settings_keys is not None else set(settings) - {"root"}
         fp_settings = {k: settings[k] for k in sorted(keys) if k in settings}
+        if "references" in fp_settings:
+            fp_settings["references"] = {d.name: _reference_key(d.reference, *refs[d.name])
+                                         for d in workflow.spec.drives}
         inputs = {arg: (ds, dataset_fp.get(ds, "")) for arg, ds in decl.inputs.items()}
         params = workflow.params[name].model_dump(mode="json")
         fp = stage_fingerprint(stage=name, code_version=decl.code_version, params=params,

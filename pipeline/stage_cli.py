@@ -31,8 +31,8 @@ def stage_app(decl: StageDecl) -> typer.Typer:
     sub = typer.Typer(no_args_is_help=True, help=decl.summary)
 
     @sub.command("run")
-    def run(workflow: Path = typer.Option(Path("workflows/map_rebuild.yaml"), "--workflow", "-w",
-                                          help="Workflow whose inputs this stage reads."),
+    def run(workflow: str = typer.Option("map_rebuild", "--workflow", "-w",
+                                         help="Workflow whose inputs this stage reads (a file or a packaged name)."),
             root: Optional[Path] = typer.Option(None, "--root", help="Output root; default: the workflow's."),
             scheduler: Optional[str] = typer.Option(None, "--scheduler"),
             params: Optional[Path] = typer.Option(None, "--params", help="YAML {stage: {param: value}}."),
@@ -57,5 +57,5 @@ def stage_app(decl: StageDecl) -> typer.Typer:
         typer.echo(format_params(decl))
 
     run.__doc__ = f"Run the {decl.name} stage alone on committed inputs.\n\nExample: cornermap {decl.name} run " \
-                  f"--workflow workflows/map_rebuild.yaml --root runs/city"
+                  f"--workflow tiny --root runs/tiny"
     return sub

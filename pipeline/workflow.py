@@ -42,8 +42,8 @@ class WorkflowSpec(BaseModel):
 
     name: str
     description: str = ""
-    catalog: list[str] = ["data_catalog"]
-    root: str = "runs/default"
+    catalog: list[str] | None = None  # default: the catalog shipped with the package
+    root: str | None = None  # default: runs/<name> under the current directory
     map_name: str = "map"
     scheduler: str = "local"
     enu_origin: EnuOriginSpec | None = None
@@ -57,7 +57,7 @@ class WorkflowSpec(BaseModel):
 class Workflow:
     spec: WorkflowSpec
     path: Path
-    base_dir: Path  # relative paths in the workflow resolve against the repository (cwd) or this
+    base_dir: Path  # the workflow file's folder: relative paths in the workflow resolve against it
     catalog: Catalog
     stages: dict[str, StageDecl]  # in execution order
     params: dict[str, Params]
@@ -67,6 +67,20 @@ class Workflow:
     @property
     def name(self) -> str:
         return self.spec.name
+
+    def resolve(self, relative: str | Path) -> Path:
+        """A path written in the workflow: absolute as is, relative against the workflow file's folder."""
+        p = Path(relative).expanduser()
+        return p if p.is_absolute() else self.base_dir / p
+
+    def root_dir(self, override: str | Path | None = None) -> Path:
+        """The output root: ``override`` (a command-line path, relative to the current directory), else the
+        workflow's ``root`` (relative to the workflow file), else ``runs/<workflow name>`` in the current directory."""
+        if override is not None:
+            return Path(override).expanduser().resolve()
+        if self.spec.root:
+            return self.resolve(self.spec.root).resolve()
+        return (Path.cwd() / "runs" / self.spec.name).resolve()
 
     def settings(self, root: Path) -> dict[str, Any]:
         s = self.spec
@@ -108,7 +122,10 @@ def validate_params(stage: StageDecl, overrides: dict[str, Any], where: str) -> 
 
 
 def load_workflow(path: Path | str, *, param_overrides: dict[str, dict[str, Any]] | None = None) -> Workflow:
-    path = Path(path)
+    """Load a workflow file, or a packaged workflow by name (``demo``, ``map_rebuild``, ...), and validate it."""
+    from pipeline.resources import packaged_catalog_dir, resolve_workflow
+
+    path = resolve_workflow(path)
     where = str(path)
     try:
         raw = yaml.safe_load(path.read_text())
@@ -120,10 +137,11 @@ def load_workflow(path: Path | str, *, param_overrides: dict[str, dict[str, Any]
         spec = WorkflowSpec.model_validate(raw or {})
     except ValidationError as exc:
         raise ConfigError(where, _pydantic_problems(where, exc)) from exc
-    base_dir = Path.cwd()
+    base_dir = path.resolve().parent
     problems: list[str] = []
 
-    catalog_paths = [(base_dir / c) if not Path(c).is_absolute() else Path(c) for c in spec.catalog]
+    catalog_paths = [packaged_catalog_dir()] if spec.catalog is None else \
+        [(base_dir / c) if not Path(c).is_absolute() else Path(c) for c in spec.catalog]
     try:
         catalog = load_catalog(catalog_paths)
     except ConfigError as exc:

@@ -34,7 +34,8 @@ register(
     DRIVE,
     f("stamp_ns", pa.int64(), "ns"),
     f("east_m", pa.float64(), "m", "enu"), f("north_m", pa.float64(), "m", "enu"), f("up_m", pa.float64(), "m", "enu"),
-    f("roll_rad", pa.float64(), "rad"), f("pitch_rad", pa.float64(), "rad"),
+    f("roll_rad", pa.float64(), "rad", doc="NaN when the file has no roll/pitch"),
+    f("pitch_rad", pa.float64(), "rad", doc="NaN when the file has no roll/pitch"),
     f("yaw_enu_rad", pa.float64(), "rad", "enu", doc="counter-clockwise from east"),
     f("std_east_m", pa.float64(), "m"), f("std_north_m", pa.float64(), "m"), f("std_up_m", pa.float64(), "m"),
     f("std_yaw_rad", pa.float64(), "rad"),
@@ -56,6 +57,8 @@ register(
     f("std_east_m", pa.float64(), "m"), f("std_north_m", pa.float64(), "m"), f("std_up_m", pa.float64(), "m"),
     f("std_yaw_rad", pa.float64(), "rad"),
     f("valid", pa.bool_(), doc="false inside a GNSS outage (no fix within the gap threshold)"),
+    f("roll_pitch_known", pa.bool_(), doc="false: the GNSS/INS gives no roll/pitch (the attitude holds yaw only "
+                                          "and must not be used as a roll/pitch prior)"),
 )
 
 register(

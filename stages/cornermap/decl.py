@@ -11,4 +11,5 @@ STAGE = StageDecl(
     params=CornerMapParams,
     partition=Partitioning.SINGLE,
     compute="stages.cornermap.compute:compute",
+    settings_keys=frozenset({"map_drives"}),
 )

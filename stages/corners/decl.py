@@ -13,4 +13,5 @@ STAGE = StageDecl(
     partition=Partitioning.PER_SCAN_CHUNK,
     partition_source="scans",
     compute="stages.corners.compute:compute",
+    settings_keys=frozenset(),
 )

@@ -16,4 +16,5 @@ STAGE = StageDecl(
     drive_role="eval",
     compute="stages.evaluate.compute:compute",
     cli="stages.evaluate.cli",
+    settings_keys=frozenset({"references"}),
 )

@@ -10,13 +10,14 @@ from pipeline.declare import StageContext
 from pipeline.errors import ConfigError
 from stages.common.geodesy import EnuOrigin, geodetic_to_enu
 from stages.ingest.drive_file import DriveSpec, load_drive_file
-from stages.ingest.gnss_csv import NS_PER_WEEK, find_gaps, read_gnss, read_odometry, read_scan_stamps, stamps_ns
+from stages.ingest.gnss_csv import (NS_PER_WEEK, GnssLimits, find_gaps, read_gnss, read_odometry, read_scan_stamps,
+                                    stamps_ns)
 from stages.ingest.origin import resolve_enu_origin
 from stages.ingest.params import IngestParams
 from stages.ingest.pose_interpolation import attitude_from_rpy, interpolate_poses, vehicle_origin_from_reference
 from stages.ingest.report import IngestReport
-from stages.ingest.scan_pass import (PIECE_ROWS, ScanFile, ScanResult, iter_scan_results, list_scan_files,
-                                     points_table, stamp_from_filename_us)
+from stages.ingest.scan_pass import (MAX_SCAN_ID, PIECE_ROWS, ScanFile, ScanResult, iter_scan_results,
+                                     list_scan_files, points_table, scan_numbers, stamp_from_filename_us)
 from stages.ingest.survey import iter_survey_enu
 
 log = logging.getLogger(__name__)
@@ -40,6 +41,12 @@ def _table(name: str, columns: dict):
     return pa.table(columns, schema=SCHEMAS[name])
 
 
+def gnss_limits(params: IngestParams) -> GnssLimits:
+    return GnssLimits((params.gnss_default_std_east_m, params.gnss_default_std_north_m, params.gnss_default_std_up_m),
+                      float(np.radians(params.gnss_default_std_heading_deg)),
+                      (params.gnss_height_min_m, params.gnss_height_max_m), params.gnss_max_speed_mps)
+
+
 class DriveIngest:
     def __init__(self, drive: str, spec: DriveSpec, params: IngestParams, origin: EnuOrigin | None,
                  drive_file: str = ""):
@@ -48,35 +55,65 @@ class DriveIngest:
         self.report = IngestReport()
         self.gnss = None
         if spec.gnss:
-            self.gnss, issues = read_gnss(spec.path(spec.gnss.file), spec.gnss)
+            self.gnss, issues = read_gnss(spec.path(spec.gnss.file), spec.gnss, gnss_limits(params))
             for issue in issues:
-                self.report.add("timestamp", spec.gnss.file, issue.record, 1, issue.reason)
+                kind = "timestamp" if "time" in issue.reason else "gnss_row"
+                self.report.add(kind, spec.gnss.file, issue.record, 1, issue.reason)
+            for key in self.gnss.defaults_used:
+                param = "gnss_default_std_heading_deg" if key == "std_heading" else f"gnss_default_{key}_m"
+                value = getattr(params, param)
+                log.warning("%s: the GNSS file has no %s; using the ingest param %s = %s", spec.gnss.file, key,
+                            param, value)
+                self.report.add("gnss_default", spec.gnss.file, None, len(self.gnss.stamp_ns),
+                                f"no {key} column: ingest param {param} = {value} used for every fix")
+            if not self.gnss.roll_pitch_known:
+                self.report.add("gnss_default", spec.gnss.file, None, len(self.gnss.stamp_ns),
+                                "no roll/pitch columns: attitude is yaw only; no roll/pitch prior downstream")
             for i, gap_s in find_gaps(self.gnss.stamp_ns, params.gnss_gap_s):
                 self.report.add("gnss_gap", spec.gnss.file, int(self.gnss.records[i]), 1,
                                 f"{gap_s:.3f} s without a fix after this record (threshold {params.gnss_gap_s} s)")
         self.scans = self._scan_files()
+        self.report_coverage()
         self._index_rows: list[dict] | None = None
+        self._untimed = 0
 
     # ---- scan list and stamps --------------------------------------------------------------------------
     def _scan_files(self) -> list[ScanFile]:
+        """Scan files with their ids and stamps. Ids are the numbers in the file names (KITTI ``0000000042.pcd``
+        is scan 42; a missing file leaves a gap in the ids and no other scan's stamp moves); names without a
+        unique number fall back to the sorted listing (reported). Stamps: rate (t0 + (id - first id) / rate),
+        the file name (microseconds), or a stamps file joined on scan_id."""
         spec = self.spec
         files = list_scan_files(spec.path(spec.scans.folder), spec.scans.format)
         source = spec.scan_times.source
+        numbers = scan_numbers(files)
+        if numbers is None and source in ("rate", "stamps_csv", "pcd_field") and files:
+            self.report.add("scan_gap", spec.scans.folder, None, len(files),
+                            "file names carry no unique scan number: ids follow the sorted listing, so a missing "
+                            "file cannot be told from a gap")
+        ids = numbers if numbers is not None and source != "filename_us" else list(range(len(files)))
+        by_id = dict(zip(ids, files))
         if source == "rate":
             t0 = stamps_ns(spec.scan_times.t0_s) if spec.scan_times.t0_s is not None else \
                 (int(self.gnss.stamp_ns[0]) if self.gnss is not None and len(self.gnss.stamp_ns) else 0)
-            scans = [ScanFile(i, p, t0 + round(i * 1e9 / spec.scan_rate_hz)) for i, p in enumerate(files)]
+            first = min(ids, default=0)
+            scans = [ScanFile(i, by_id[i], t0 + round((i - first) * 1e9 / spec.scan_rate_hz)) for i in sorted(by_id)]
         elif source == "filename_us":
-            scans = [ScanFile(i, p, stamp_from_filename_us(p)) for i, p in enumerate(files)]
+            scans = [ScanFile(i, p, stamp_from_filename_us(p)) for i, p in by_id.items()]
         else:
             week = None
             if spec.gnss and spec.gnss.time.week_column and self.gnss is not None and len(self.gnss.stamp_ns):
                 week = int(self.gnss.stamp_ns[0] // NS_PER_WEEK)
-            stamps = read_scan_stamps(spec.stamps_file, week)
-            n = max(len(files), max(stamps, default=-1) + 1)
-            scans = [ScanFile(i, files[i] if i < len(files) else None, stamps.get(i)) for i in range(n)]
+            stamps, issues = read_scan_stamps(spec.stamps_file, week, MAX_SCAN_ID)
+            for issue in issues:
+                self.report.add("timestamp", spec.scan_times.file or "scan stamps", issue.record, 1, issue.reason)
+            scans = [ScanFile(i, by_id.get(i), stamps.get(i)) for i in sorted(set(by_id) | set(stamps))]
         if self.params.max_scans is not None:
             scans = scans[:self.params.max_scans]
+        missing = [(a.scan_id, b.scan_id) for a, b in zip(scans, scans[1:]) if b.scan_id - a.scan_id > 1]
+        for before, after in missing:
+            self.report.add("scan_gap", spec.scans.folder, before, after - before - 1,
+                            f"no scan between {before} and {after}: a gap in the drive (kept as a gap)")
         known = [s for s in scans if s.stamp_ns is not None]
         stamp_file = spec.scan_times.file or "scan stamps"
         for prev, cur in zip(known, known[1:]):
@@ -98,6 +135,8 @@ class DriveIngest:
         if row["status"] != "ok":
             self.report.add("quarantined_file", file, row["scan_id"], 1, row["reason"])
             return
+        if result.points.time_offset_s is None:
+            self._untimed += 1
         reasons = {"nonfinite": "non-finite coordinate", "zero": "zero point (0, 0, 0)",
                    "near": f"closer than min_range_m {self.params.min_range_m} m"}
         for key, count in result.drops.items():
@@ -126,6 +165,7 @@ class DriveIngest:
             yield points_table(self.drive, pending[0].index_row["chunk"], pending)
         if not already_counted:
             self._index_rows = rows
+            self._report_untimed()
 
     def index_rows(self) -> list[dict]:
         if self._index_rows is None:  # scans not streamed (yet): a counting pass without tables
@@ -133,7 +173,14 @@ class DriveIngest:
             for result in self._results():
                 self._record(rows, result)
             self._index_rows = rows
+            self._report_untimed()
         return self._index_rows
+
+    def _report_untimed(self) -> None:
+        if self._untimed:
+            self.report.add("deskew", self.spec.scans.folder, None, self._untimed,
+                            "no per-point time in these scans: time_offset_s is 0, so they are not deskewed (the "
+                            "motion during one sweep stays in the cloud)")
 
     # ---- tables -----------------------------------------------------------------------------------------
     def scan_index_table(self):
@@ -141,6 +188,24 @@ class DriveIngest:
         cols = ["chunk", "scan_id", "stamp_ns", "source_file", "n_points", "n_dropped_nonfinite",
                 "n_dropped_zero", "rings_present", "ring_source", "status", "reason"]
         return _table("scan_index", {"drive": [self.drive] * len(rows), **{c: [r[c] for r in rows] for c in cols}})
+
+    def report_coverage(self) -> None:
+        """How much of the scans' time the GNSS covers (drive-level; reported, never silent)."""
+        g = self.gnss
+        stamps = np.array([s.stamp_ns for s in self.scans if s.stamp_ns is not None], np.int64)
+        if g is None or not len(stamps):
+            return
+        if not len(g.stamp_ns):
+            self.report.add("gnss_coverage", self.spec.gnss.file, None, len(stamps),
+                            "no usable GNSS fix: no scan has a GNSS pose")
+            return
+        inside = (stamps >= g.stamp_ns[0]) & (stamps <= g.stamp_ns[-1])
+        if not inside.all():
+            span = lambda a, b: f"{a / 1e9:.3f}..{b / 1e9:.3f} s"  # noqa: E731
+            self.report.add("gnss_coverage", self.spec.gnss.file, None, int((~inside).sum()),
+                            f"{int(inside.sum())} of {len(stamps)} scan stamps inside the GNSS time span "
+                            f"(scans {span(stamps.min(), stamps.max())}, GNSS {span(g.stamp_ns[0], g.stamp_ns[-1])}); "
+                            f"the others have no valid GNSS pose. Hint: check gnss.time.base and scan_times")
 
     def _vehicle_fixes(self):
         g = self.gnss
@@ -153,9 +218,12 @@ class DriveIngest:
         if g is None or self.origin is None or not len(g.stamp_ns):
             return _table("gnss_enu", {n: [] for n in _names("gnss_enu")})
         position, _ = self._vehicle_fixes()
+        unknown = np.full(len(g.stamp_ns), np.nan)
         return _table("gnss_enu", {
             "drive": [self.drive] * len(g.stamp_ns), "stamp_ns": g.stamp_ns, "east_m": position[:, 0],
-            "north_m": position[:, 1], "up_m": position[:, 2], "roll_rad": g.roll_rad, "pitch_rad": g.pitch_rad,
+            "north_m": position[:, 1], "up_m": position[:, 2],
+            "roll_rad": g.roll_rad if g.roll_pitch_known else unknown,
+            "pitch_rad": g.pitch_rad if g.roll_pitch_known else unknown,
             "yaw_enu_rad": g.yaw_enu_rad, "std_east_m": g.std_enu_m[:, 0], "std_north_m": g.std_enu_m[:, 1],
             "std_up_m": g.std_enu_m[:, 2], "std_yaw_rad": g.std_yaw_rad})
 
@@ -174,7 +242,7 @@ class DriveIngest:
             "x_m": poses.position_enu_m[:, 0], "y_m": poses.position_enu_m[:, 1], "z_m": poses.position_enu_m[:, 2],
             "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3], "std_east_m": poses.std[:, 0],
             "std_north_m": poses.std[:, 1], "std_up_m": poses.std[:, 2], "std_yaw_rad": poses.std[:, 3],
-            "valid": poses.valid})
+            "valid": poses.valid, "roll_pitch_known": np.full(len(query), g.roll_pitch_known)})
 
     def odometry_table(self):
         if self.spec.odometry is None:

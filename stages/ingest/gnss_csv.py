@@ -33,9 +33,21 @@ class GnssFixes:
     roll_rad: np.ndarray
     pitch_rad: np.ndarray
     yaw_enu_rad: np.ndarray  # counter-clockwise from east
-    std_enu_m: np.ndarray  # (N, 3), NaN where the file has none
+    std_enu_m: np.ndarray  # (N, 3): the file's, or the documented default where it has none (never NaN)
     std_yaw_rad: np.ndarray
     records: np.ndarray  # 0-based data row of each kept fix
+    roll_pitch_known: bool = True  # false: the file has no roll/pitch (stored as 0, never used as a prior)
+    defaults_used: tuple[str, ...] = ()  # names of the std columns that came from defaults
+
+
+@dataclass(frozen=True)
+class GnssLimits:
+    """Sanity limits and defaults for GNSS/INS rows (from the ingest params)."""
+
+    default_std_enu_m: tuple[float, float, float] = (1.0, 1.0, 2.0)
+    default_std_heading_rad: float = 0.0175
+    height_range_m: tuple[float, float] = (-1000.0, 10000.0)
+    max_speed_mps: float = 100.0
 
 
 def read_header(path: Path, delimiter: str = ",") -> list[str]:
@@ -46,9 +58,11 @@ def read_header(path: Path, delimiter: str = ",") -> list[str]:
         raise DatasetIOError(f"{path}: cannot read CSV: {exc.strerror or exc}") from exc
 
 
-def read_csv_columns(path: Path, names: list[str], delimiter: str = ",") -> dict[str, np.ndarray]:
-    """Named columns as float64. Rows with the wrong number of values or non-numeric cells raise FormatError
-    listing them (up to 10) with their record numbers."""
+def read_csv_columns(path: Path, names: list[str], delimiter: str = ",", *, bad_cells: list[TimestampIssue] | None = None
+                     ) -> dict[str, np.ndarray]:
+    """Named columns as float64. Rows with the wrong number of values raise FormatError listing them (up to 10)
+    with their record numbers. A non-numeric cell raises too, unless ``bad_cells`` is given: then the cell
+    becomes NaN and a (record, reason) is appended, so that the caller rejects that row only."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
@@ -64,17 +78,42 @@ def read_csv_columns(path: Path, names: list[str], delimiter: str = ",") -> dict
         bad.append(f"{line}: {row.actual_columns} values, expected {row.expected_columns}")
         return "skip"
 
+    wanted = list(dict.fromkeys(names))
     try:
         table = pacsv.read_csv(
             path, read_options=pacsv.ReadOptions(use_threads=False),
             parse_options=pacsv.ParseOptions(delimiter=delimiter, invalid_row_handler=on_invalid),
-            convert_options=pacsv.ConvertOptions(include_columns=list(dict.fromkeys(names)),
-                                                 column_types={n: pa.float64() for n in names}))
+            convert_options=pacsv.ConvertOptions(include_columns=wanted, column_types={n: pa.string() for n in wanted},
+                                                 strings_can_be_null=True))
     except pa.ArrowInvalid as exc:
-        raise FormatError(f"{path}: unreadable CSV: {exc}. Hint: a cell is not a number") from exc
+        raise FormatError(f"{path}: unreadable CSV: {exc}") from exc
     if bad:
         raise FormatError(f"{path}: {len(bad)} row(s) with the wrong number of columns: " + "; ".join(bad[:10]))
-    return {n: table[n].to_numpy(zero_copy_only=False).astype(np.float64) for n in names}
+    return {n: _floats(table[n], path, n, bad_cells) for n in wanted}
+
+
+def _floats(column, path: Path, name: str, bad_cells: list[TimestampIssue] | None) -> np.ndarray:
+    """A string column -> float64; empty cells are NaN; non-numeric cells raise or are reported (see above)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    try:
+        return pc.cast(column, pa.float64()).to_numpy(zero_copy_only=False).astype(np.float64)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        pass
+    values = column.to_pylist()
+    out = np.full(len(values), np.nan)
+    for i, v in enumerate(values):
+        if v is None or not v.strip():
+            continue
+        try:
+            out[i] = float(v)
+        except ValueError:
+            if bad_cells is None:
+                raise FormatError(f"{path}: record {i} (line {i + 2}), column {name!r}: {v[:40]!r} is not a "
+                                  f"number") from None
+            bad_cells.append(TimestampIssue(i, f"column {name!r}: {v[:40]!r} is not a number"))
+    return out
 
 
 def stamps_ns(seconds: np.ndarray, week: np.ndarray | None = None) -> np.ndarray:
@@ -110,25 +149,43 @@ def _time_columns(spec_time_column: str, week_column: str | None) -> list[str]:
     return [spec_time_column] + ([week_column] if week_column else [])
 
 
-def read_gnss(path: Path, spec: GnssSpec) -> tuple[GnssFixes, list[TimestampIssue]]:
+def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
+              ) -> tuple[GnssFixes, list[TimestampIssue]]:
+    """GNSS/INS rows -> fixes. Rows are rejected one by one with a reason (non-numeric cell, missing or
+    non-monotonic time, latitude/longitude/height out of range after unit conversion, a jump faster than
+    ``limits.max_speed_mps`` from the previous kept fix); the drive fails only if the file cannot be read."""
     c = spec.columns
     optional = {k: getattr(c, k) for k in ("roll", "pitch", "std_east", "std_north", "std_up", "std_heading")}
     names = _time_columns(spec.time.column, spec.time.week_column) + [c.lat, c.lon, c.height, c.heading] + \
         [v for v in optional.values() if v]
-    cols = read_csv_columns(path, names)
+    bad_cells: list[TimestampIssue] = []
+    cols = read_csv_columns(path, names, bad_cells=bad_cells)
     n = len(cols[c.lat])
     week = cols[spec.time.week_column] if spec.time.week_column else None
     seconds = cols[spec.time.column]
     finite = np.isfinite(seconds) & (np.isfinite(week) if week is not None else True)
     stamp = stamps_ns(np.where(finite, seconds, 0.0), None if week is None else np.where(finite, week, 0.0))
     keep, issues = monotonic_mask(stamp, finite)
+    issues += bad_cells
     values_ok = np.isfinite(cols[c.lat]) & np.isfinite(cols[c.lon]) & np.isfinite(cols[c.height]) & \
         np.isfinite(cols[c.heading])
-    issues = sorted(issues + [TimestampIssue(int(i), "non-finite lat/lon/height/heading")
-                              for i in np.flatnonzero(keep & ~values_ok)], key=lambda t: t.record)
+    issues += [TimestampIssue(int(i), "non-finite lat/lon/height/heading") for i in np.flatnonzero(keep & ~values_ok)]
     keep &= values_ok
     angle = np.pi / 180.0 if spec.angle_unit == "deg" else 1.0
     latlon = 1.0 if spec.latlon_unit == "deg" else 180.0 / np.pi
+    lat, lon, h = cols[c.lat] * latlon, cols[c.lon] * latlon, cols[c.height]
+    unit = f"latlon_unit {spec.latlon_unit}"
+    for bad, why in ((keep & (np.abs(lat) > 90.0), f"latitude outside -90..90 deg ({unit})"),
+                     (keep & (np.abs(lon) > 180.0), f"longitude outside -180..180 deg ({unit})"),
+                     (keep & ((h < limits.height_range_m[0]) | (h > limits.height_range_m[1])),
+                      f"height outside {limits.height_range_m[0]:g}..{limits.height_range_m[1]:g} m")):
+        issues += [TimestampIssue(int(i), f"{why}: {lat[i]:.6g}, {lon[i]:.6g}, {h[i]:.6g}")
+                   for i in np.flatnonzero(bad)]
+        keep &= ~bad
+    jumps = _speed_outliers(stamp, lat, lon, keep, limits.max_speed_mps)
+    issues += [TimestampIssue(int(i), f"position jumps {v:.0f} m/s from the previous fix (limit "
+                                      f"{limits.max_speed_mps:g} m/s)") for i, v in jumps]
+    keep[[i for i, _ in jumps]] = False
 
     def opt(key: str, scale: float = 1.0) -> np.ndarray:
         return cols[optional[key]] * scale if optional[key] else np.full(n, np.nan)
@@ -136,12 +193,49 @@ def read_gnss(path: Path, spec: GnssSpec) -> tuple[GnssFixes, list[TimestampIssu
     heading = cols[c.heading] * angle
     yaw = heading if spec.heading_convention == "enu_yaw_ccw_from_east" else np.pi / 2 - heading
     yaw = (yaw + np.pi) % (2 * np.pi) - np.pi
+    defaults = []
+    std = np.column_stack([opt("std_east"), opt("std_north"), opt("std_up")])
+    for axis, key in enumerate(("std_east", "std_north", "std_up")):
+        missing = ~np.isfinite(std[:, axis]) | (std[:, axis] <= 0)
+        if np.any(missing & keep):
+            defaults.append(key)
+            std[missing, axis] = limits.default_std_enu_m[axis]
+    std_yaw = opt("std_heading", angle)
+    missing = ~np.isfinite(std_yaw) | (std_yaw <= 0)
+    if np.any(missing & keep):
+        defaults.append("std_heading")
+        std_yaw[missing] = limits.default_std_heading_rad
+    roll_pitch_known = bool(optional["roll"] and optional["pitch"])
     fixes = GnssFixes(
-        stamp[keep], cols[c.lat][keep] * latlon, cols[c.lon][keep] * latlon, cols[c.height][keep],
+        stamp[keep], lat[keep], lon[keep], h[keep],
         np.nan_to_num(opt("roll", angle))[keep], np.nan_to_num(opt("pitch", angle))[keep], yaw[keep],
-        np.column_stack([opt("std_east"), opt("std_north"), opt("std_up")])[keep], opt("std_heading", angle)[keep],
-        np.flatnonzero(keep))
-    return fixes, issues
+        std[keep], std_yaw[keep], np.flatnonzero(keep), roll_pitch_known, tuple(defaults))
+    return fixes, sorted(issues, key=lambda t: t.record)
+
+
+def _speed_outliers(stamp_ns: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray, keep: np.ndarray,
+                    max_speed_mps: float) -> list[tuple[int, float]]:
+    """Rows further from the previous accepted row than ``max_speed_mps`` allows. The walk starts at the row
+    nearest the median position (so a bad first row cannot reject the rest) and goes forward and backward; a
+    rejected row is never the reference for the next one. Local equirectangular distances: exact enough to
+    find jumps of kilometres."""
+    idx = np.flatnonzero(keep)
+    if len(idx) < 2:
+        return []
+    east = np.radians(lon_deg[idx]) * 6_371_000.0 * np.cos(np.radians(np.median(lat_deg[idx])))
+    north = np.radians(lat_deg[idx]) * 6_371_000.0
+    start = int(np.argmin(np.hypot(east - np.median(east), north - np.median(north))))
+    out: list[tuple[int, float]] = []
+    for order in (range(start + 1, len(idx)), range(start - 1, -1, -1)):
+        last = start
+        for k in order:  # per fix, sequential by construction
+            dt_s = max(abs(stamp_ns[idx[k]] - stamp_ns[idx[last]]) / 1e9, 1e-3)
+            speed = float(np.hypot(east[k] - east[last], north[k] - north[last]) / dt_s)
+            if speed > max_speed_mps:
+                out.append((int(idx[k]), speed))
+            else:
+                last = k
+    return sorted(out)
 
 
 def read_first_fix(path: Path, spec: GnssSpec) -> tuple[float, float, float] | None:
@@ -178,23 +272,37 @@ def read_odometry(path: Path, spec: OdometrySpec) -> tuple[dict[str, np.ndarray]
             "yaw_rate_radps": cols[spec.yaw_rate][keep]}, issues
 
 
-def read_scan_stamps(path: Path, default_week: int | None) -> dict[int, int]:
-    """``scan_id, gps_seconds[, gps_week]`` (or ``scan_id, stamp_ns``) -> {scan_id: stamp_ns}."""
+def read_scan_stamps(path: Path, default_week: int | None, max_scan_id: int = 100_000_000
+                     ) -> tuple[dict[int, int], list[TimestampIssue]]:
+    """``scan_id, gps_seconds[, gps_week]`` (or ``scan_id, stamp_ns``) -> ({scan_id: stamp_ns}, rejected rows).
+    A row with a non-integer, negative or too large scan id (>= ``max_scan_id``), a repeated id or a
+    non-finite time is rejected with its reason; the others are kept."""
     header = read_header(path)
     if "scan_id" not in header or not ({"gps_seconds", "stamp_ns"} & set(header)):
         raise FormatError(f"{path}: scan stamps need columns scan_id and gps_seconds (or stamp_ns); header has "
                           f"{', '.join(header)}")
+    issues: list[TimestampIssue] = []
     if "stamp_ns" in header:
-        import pyarrow as pa
-        import pyarrow.csv as pacsv
-
-        t = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(
-            include_columns=["scan_id", "stamp_ns"], column_types={"scan_id": pa.int64(), "stamp_ns": pa.int64()}))
-        return dict(zip(t["scan_id"].to_pylist(), t["stamp_ns"].to_pylist()))
-    names = ["scan_id", "gps_seconds"] + (["gps_week"] if "gps_week" in header else [])
-    cols = read_csv_columns(path, names)
-    week = cols.get("gps_week")
-    if week is None and default_week is not None:
-        week = np.full(len(cols["scan_id"]), float(default_week))
-    ns = stamps_ns(cols["gps_seconds"], week)
-    return {int(i): int(t) for i, t in zip(cols["scan_id"], ns)}
+        cols = read_csv_columns(path, ["scan_id", "stamp_ns"], bad_cells=issues)
+        ns = np.where(np.isfinite(cols["stamp_ns"]), cols["stamp_ns"], 0).astype(np.int64)
+        ok_time = np.isfinite(cols["stamp_ns"])
+    else:
+        names = ["scan_id", "gps_seconds"] + (["gps_week"] if "gps_week" in header else [])
+        cols = read_csv_columns(path, names, bad_cells=issues)
+        week = cols.get("gps_week")
+        if week is None and default_week is not None:
+            week = np.full(len(cols["scan_id"]), float(default_week))
+        ok_time = np.isfinite(cols["gps_seconds"]) & (np.isfinite(week) if week is not None else True)
+        ns = stamps_ns(np.where(ok_time, cols["gps_seconds"], 0.0),
+                       None if week is None else np.where(np.isfinite(week), week, 0.0))
+    out: dict[int, int] = {}
+    for record, (sid, t, ok) in enumerate(zip(cols["scan_id"], ns, ok_time)):
+        if not np.isfinite(sid) or sid != np.floor(sid) or not 0 <= sid < max_scan_id:
+            issues.append(TimestampIssue(record, f"scan_id {sid!r} is not an integer in 0..{max_scan_id - 1}"))
+        elif not ok:
+            issues.append(TimestampIssue(record, f"scan {int(sid)}: missing or non-finite time"))
+        elif int(sid) in out:
+            issues.append(TimestampIssue(record, f"scan {int(sid)} is listed twice (first row kept)"))
+        else:
+            out[int(sid)] = int(t)
+    return out, sorted(issues, key=lambda t: t.record)

@@ -15,3 +15,12 @@ class IngestParams(Params):
     survey_chunk_points: int = Field(1_000_000, ge=1000, description="survey points per streamed table")
     ring_vote_min_share: float = Field(0.5, gt=0, le=1, description="majority a firing slot needs before "
                                                                      "elevation-table rings are voted per slot")
+    gnss_default_std_east_m: float = Field(1.0, gt=0, description="GNSS std east used when the file has no std "
+                                                                  "column (a warning names it)")
+    gnss_default_std_north_m: float = Field(1.0, gt=0, description="GNSS std north when the file has none")
+    gnss_default_std_up_m: float = Field(2.0, gt=0, description="GNSS std up when the file has none")
+    gnss_default_std_heading_deg: float = Field(1.0, gt=0, description="heading std when the file has none")
+    gnss_max_speed_mps: float = Field(100.0, gt=0, description="a fix further from the previous one than this "
+                                                                "speed allows is rejected (per row, with a reason)")
+    gnss_height_min_m: float = Field(-1000.0, description="fixes below this ellipsoidal height are rejected")
+    gnss_height_max_m: float = Field(10000.0, description="fixes above this ellipsoidal height are rejected")

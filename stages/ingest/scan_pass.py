@@ -42,6 +42,25 @@ def list_scan_files(folder: Path, fmt: str) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.name.lower().endswith(suffixes))
 
 
+MAX_SCAN_ID = 100_000_000  # ten days at 100 Hz: anything larger is a broken file name or stamps row
+_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+
+
+def scan_numbers(files: list[Path]) -> list[int] | None:
+    """The number in each file name (the last run of digits, e.g. ``0000000042.pcd`` -> 42), or None when a
+    name carries no number, two files share one, or a number is out of range: ids then follow the listing."""
+    numbers = []
+    for p in files:
+        stem = p.name.split(".")[0]
+        match = _NUMBER.search(stem)
+        if not match or len(match.group(1)) > 12:
+            return None
+        numbers.append(int(match.group(1)))
+    if len(set(numbers)) != len(numbers) or any(n >= MAX_SCAN_ID for n in numbers):
+        return None
+    return numbers
+
+
 def stamp_from_filename_us(path: Path) -> int:
     match = re.search(r"(\d{10,})(?:\.[A-Za-z]+)*$", path.name)
     if not match:

@@ -20,10 +20,10 @@ from schemas import SCHEMAS
 from stages.common.drive_tables import select_drives
 from stages.common.tiling import tile_bounds, tile_key_of, tile_shape_px, tiles_touching
 from stages.markings.accumulate import pose_matrices, scans_to_enu
-from stages.markings.elevation_grid import GridAccumulator
+from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.markings.params import MarkingParams
 from stages.markings.raster_io import TileRasters, write_tile_rasters
-from stages.markings.rasterize import halo_px_for, rasterize_grid
+from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 
 log = logging.getLogger(__name__)
 DEFAULT_TILE_SIZE_M = 100.0

@@ -14,4 +14,5 @@ STAGE = StageDecl(
     partition=Partitioning.PER_SCAN_CHUNK,
     partition_source="scans",
     compute="stages.odometry.compute:compute",
+    settings_keys=frozenset(),
 )

@@ -32,6 +32,7 @@ class DriveInput:
     wheel_ok: np.ndarray | None = None  # (N,) bool
     wheel_calibration: "WheelCalibration | None" = None  # applied to wheel_T (report)
     spans: "SpanEdges | None" = None  # odometry span edges (scans N apart), accepted ones only
+    gnss_roll_pitch_known: np.ndarray | None = None  # (N,) bool; None: all known
 
     @property
     def n(self) -> int:
@@ -245,7 +246,8 @@ def base_problem(drives: list[DriveInput], p) -> tuple[Problem, np.ndarray]:
         problem.attitudes += attitude_priors(
             idx, d.stamps_ns, d.gnss_T, d.gnss_std_yaw_rad, d.gnss_valid, every_s=p.gnss_every_s,
             roll_pitch_sigma_rad=p.attitude_sigma_rad, yaw_inflation=p.heading_std_inflation,
-            with_yaw=p.heading_prior)
+            with_yaw=p.heading_prior, roll_pitch_known=d.gnss_roll_pitch_known,
+            unknown_roll_pitch_sigma_rad=p.unknown_roll_pitch_sigma_rad)
         if not d.gnss_valid.any():  # no GNSS at all: hold the drive's first pose (loops may still move it)
             problem.pose_priors.append(PosePrior(int(off), initial[off], np.eye(6) * 1e-2, "fixed"))
     return problem, offsets

@@ -1,12 +1,12 @@
 """Declaration of the posegraph stage (imports nothing heavy)."""
-from pipeline.declare import Partitioning, StageDecl
+from pipeline.declare import Partitioning, StageDecl, source_digest
 from stages.posegraph.params import PosegraphParams
 
 STAGE = StageDecl(
     name="posegraph",
     summary="GTSAM pose graph: ICP odometry and span edges, verified robust loop closures, robust GNSS priors, "
             "survey anchors.",
-    code_version="12",
+    code_version="14+" + source_digest("stages.common.marking_raster"),
     inputs={"edges": "odometry_edges", "span_edges": "odometry_span_edges", "poses_gnss": "poses_gnss",
             "scans": "scans_raw", "drive_info": "drive_info", "survey": "survey_enu", "odometry": "odometry_raw"},
     outputs={"poses_odometry": "poses_odometry", "poses_optimized": "poses_optimized",
@@ -15,4 +15,5 @@ STAGE = StageDecl(
     partition=Partitioning.SINGLE,
     compute="stages.posegraph.compute:compute",
     optional_inputs=frozenset({"survey", "odometry", "span_edges"}),
+    settings_keys=frozenset({"map_drives", "eval_drives"}),
 )

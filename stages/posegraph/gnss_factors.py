@@ -55,6 +55,9 @@ def gnss_position_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_ve
     for n, k in enumerate(epochs):
         T = T_map_vehicle[k]
         antenna = T[:3, 3] + T[:3, :3] @ lever
+        if not np.all(np.isfinite(std_enu_m[k])) or not np.all(np.isfinite(antenna)):
+            raise ValueError(f"pose {int(pose_index[k])}: GNSS position or std is not finite (std {std_enu_m[k]}); "
+                             f"a NaN must never reach a factor: re-run ingest, which applies its std defaults")
         sigma = np.maximum(np.asarray(std_enu_m[k], float) * inflation, min_std_m)
         if bias_tau_s <= 0:
             out.positions.append(PositionPrior(int(pose_index[k]), antenna, sigma, robust, kernel_k, lever))
@@ -74,15 +77,25 @@ def gnss_position_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_ve
 
 def attitude_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_vehicle: np.ndarray,
                     std_yaw_rad: np.ndarray, valid: np.ndarray, *, every_s: float, roll_pitch_sigma_rad: float,
-                    yaw_inflation: float, with_yaw: bool = True) -> list[AttitudePrior]:
+                    yaw_inflation: float, with_yaw: bool = True, roll_pitch_known: np.ndarray | None = None,
+                    unknown_roll_pitch_sigma_rad: float = 0.05) -> list[AttitudePrior]:
     """INS roll/pitch (gravity) as a firm prior and, if ``with_yaw``, INS yaw as a weak one; same epochs as
     the GNSS factors. An INS heading error is a slowly varying bias like the GNSS one: epoch after epoch of
-    independent yaw priors average it into the map (docs/posegraph.md, fifth pass), hence optional."""
+    independent yaw priors average it into the map (docs/posegraph.md, fifth pass), hence optional.
+
+    Where ``roll_pitch_known`` is false (a GNSS without roll/pitch, whose attitude holds yaw only) the stored
+    roll/pitch of 0 is not a measurement: the prior on them is ``unknown_roll_pitch_sigma_rad`` (weak: it only
+    keeps the graph determined), never the firm INS sigma."""
     out = []
     for k in select_epochs(stamps_ns, valid, every_s):
+        known = roll_pitch_known is None or bool(roll_pitch_known[k])
+        sigma_rp = roll_pitch_sigma_rad if known else unknown_roll_pitch_sigma_rad
         sigma_yaw = max(float(std_yaw_rad[k]) * yaw_inflation, roll_pitch_sigma_rad)
+        if not np.isfinite(sigma_yaw):
+            raise ValueError(f"pose {int(pose_index[k])}: heading std is not finite ({std_yaw_rad[k]!r}); "
+                             f"ingest should have applied its default")
         out.append(AttitudePrior(int(pose_index[k]), T_map_vehicle[k][:3, :3].copy(),
-                                 np.array([roll_pitch_sigma_rad, roll_pitch_sigma_rad, sigma_yaw]), with_yaw))
+                                 np.array([sigma_rp, sigma_rp, sigma_yaw]), with_yaw))
     return out
 
 

@@ -6,6 +6,7 @@ from typing import Literal
 from pydantic import Field
 
 from pipeline.declare import Params
+from stages.common.marking_raster.settings import MarkingRasterSettings
 
 
 class PosegraphParams(Params):
@@ -51,6 +52,10 @@ class PosegraphParams(Params):
     gnss_lever_arm_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0),
                                                           description="antenna in the vehicle frame")
     attitude_sigma_rad: float = Field(0.005, gt=0, description="INS roll/pitch prior (gravity anchor)")
+    unknown_roll_pitch_sigma_rad: float = Field(
+        0.05, gt=0, description="GNSS without roll/pitch: a weak 'vehicle roughly level' gravity prior (road grades "
+                                "of a few degrees) that only keeps the graph determined; ICP road planes and GNSS "
+                                "heights carry the real roll/pitch")
     heading_prior: bool = Field(False, description="INS yaw as a prior per GNSS epoch; off: heading from ICP, "
                                 "loops and the GNSS track (the INS heading error is a minute-scale bias; with the "
                                 "prior demo heading RMS 0.335 deg, without 0.099, docs/posegraph.md)")
@@ -98,6 +103,9 @@ class PosegraphParams(Params):
                                               "x this (demo, 112 fixed directions vs truth: errors 0.010 m RMS "
                                               "where the width is ~0.11 m, i.e. 0.06; 0.2 keeps a margin)")
     survey_marking_min_sigma_m: float = Field(0.01, gt=0, description="floor of the anchor std")
+    survey_marking_raster: MarkingRasterSettings = Field(
+        default_factory=MarkingRasterSettings, description="how the survey's marking mask is rasterized (the "
+        "pose graph's own settings: a markings-stage override does not reach them)")
     # optimisation / outputs
     max_iterations: int = Field(100, ge=1)
     lm_relative_error_tol: float = Field(1e-5, gt=0, description="Levenberg-Marquardt stops when an iteration "

@@ -133,7 +133,8 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
         a, b = int(offsets[o]), int(offsets[o + 1])
         return marking_anchor(k - a, drives[o], poses[a:b], incs[o], feature_load, markings,
                               half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
-                              search_m=p.survey_marking_search_m, sigma_scale=p.survey_marking_sigma_scale,
+                              search_m=p.survey_marking_search_m, raster=p.survey_marking_raster,
+                              sigma_scale=p.survey_marking_sigma_scale,
                               min_sigma_m=p.survey_marking_min_sigma_m,
                               feature_cache=feature_caches.setdefault(o, {}))
 

@@ -4,7 +4,8 @@ The survey cloud holds road and sidewalk tops only, so a 3-D registration agains
 pitch but slides horizontally (``survey_anchor.vertical_part``). Its painted markings do fix the horizontal
 position: around a keyframe, the road-marking points of a few consecutive scans (per-ring adaptive threshold,
 Kim et al. s.2.2, deskewed, placed with the current pose estimate) are matched against the survey's marking
-mask (the markings stage's own adaptive threshold, Kim et al. s.2.1) by ``marking_match.match_markings``,
+mask (the shared adaptive threshold of ``stages.common.marking_raster``, Kim et al. s.2.1, with the pose graph's
+own ``survey_marking_raster`` settings) by ``marking_match.match_markings``,
 whose peak shape says which directions the markings fix (lane lines: across only).
 Pure functions on arrays; the scans come through the caller's loader.
 """
@@ -17,9 +18,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.common.road_features import extract_road_features
-from stages.markings.elevation_grid import GridAccumulator
-from stages.markings.params import MarkingParams
-from stages.markings.rasterize import halo_px_for, rasterize_grid
+from stages.common.marking_raster.elevation_grid import GridAccumulator
+from stages.common.marking_raster.settings import MarkingRasterSettings
+from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.posegraph.core import deskew_scan_lidar
 from stages.posegraph.marking_match import MarkingMatch, match_markings
 
@@ -40,9 +41,10 @@ def build_survey_marking_index(points_enu_m: np.ndarray, intensity: np.ndarray) 
 
 
 def survey_marking_window(index: SurveyMarkingIndex, centre_en_m: np.ndarray, half_size_m: float,
-                          params: MarkingParams = MarkingParams()) -> tuple[np.ndarray, tuple[float, float]]:
+                          params: MarkingRasterSettings) -> tuple[np.ndarray, tuple[float, float]]:
     """The survey's marking mask (rows north-first) over a square window around ``centre_en_m``, computed
-    with the markings stage's elevation grid + adaptive threshold; returns (mask, south-west origin)."""
+    with the shared marking rasterizer (elevation grid + adaptive threshold) and the pose graph's own raster
+    settings (``survey_marking_raster``); returns (mask, south-west origin)."""
     cell = params.cell_m
     halo_px = halo_px_for(cell, params.threshold_block_m, params.ground_window_m)
     n_px = int(round(2 * half_size_m / cell))
@@ -69,8 +71,9 @@ def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, m
 
 def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_drive: np.ndarray,
                    load: FeatureLoader, index: SurveyMarkingIndex, *, half_travel_m: float, max_scans: int,
-                   search_m: float, window_margin_m: float = 6.0, sigma_scale: float = 1.0,
-                   min_sigma_m: float = 0.03, feature_cache: dict | None = None) -> MarkingMatch:
+                   search_m: float, raster: MarkingRasterSettings, window_margin_m: float = 6.0,
+                   sigma_scale: float = 1.0, min_sigma_m: float = 0.03, feature_cache: dict | None = None
+                   ) -> MarkingMatch:
     """Match the marking submap around scan ``k_local`` of ``drive`` (poses = current estimate) to the survey.
     ``feature_cache`` ({scan index: vehicle-frame features}) carries the scans shared with the previous
     keyframe's submap (consecutive submaps overlap); it is left holding this submap's scans only."""
@@ -88,8 +91,8 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
     feats = _place([cache[j] for j in ks.tolist()], poses_drive[ks])
     centre = poses_drive[k_local, :2, 3]
     half = half_travel_m + 30.0 + window_margin_m  # features reach ~30 m from their scan
-    mask, origin = survey_marking_window(index, centre, half)
-    return match_markings(feats, mask, origin, MarkingParams().cell_m, search_m=search_m, sigma_scale=sigma_scale,
+    mask, origin = survey_marking_window(index, centre, half, raster)
+    return match_markings(feats, mask, origin, raster.cell_m, search_m=search_m, sigma_scale=sigma_scale,
                           min_sigma_m=min_sigma_m)
 
 

@@ -56,6 +56,8 @@ def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Tabl
                    g["std_yaw_rad"].to_numpy(), g["valid"].to_numpy(zero_copy_only=False), edge_T, edge_info,
                    edge_ok, T_vl, *_wheel_arrays(drive, ids, g["stamp_ns"].to_numpy(), odometry))
     d.spans = _span_edges(drive, ids, span_edges)
+    if "roll_pitch_known" in g.column_names:
+        d.gnss_roll_pitch_known = g["roll_pitch_known"].to_numpy(zero_copy_only=False).astype(bool)
     if d.wheel_T is not None:
         d.wheel_calibration = calibrate_wheel(d)
         d.wheel_T = calibrated_wheel_increments(d, d.wheel_calibration)

@@ -23,4 +23,5 @@ STAGE = StageDecl(
     partition=Partitioning.SINGLE,
     compute="stages.simulate.compute:compute",
     cli="stages.simulate.cli",
+    settings_keys=frozenset(),
 )

@@ -14,4 +14,5 @@ STAGE = StageDecl(
     partition=Partitioning.SINGLE,
     compute="stages.tiles.compute:compute",
     cli="stages.tiles.cli",
+    settings_keys=frozenset({"tile_size_m", "map_name", "enu_origin", "map_drives"}),
 )

@@ -49,7 +49,8 @@ def _tables(scene, T_map_vehicle, chunk_of, drive="d0", seed=0):
         "x_m": noisy[:, 0, 3], "y_m": noisy[:, 1, 3], "z_m": noisy[:, 2, 3],
         "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3],
         "std_east_m": np.full(n, 0.3), "std_north_m": np.full(n, 0.3), "std_up_m": np.full(n, 0.5),
-        "std_yaw_rad": np.full(n, 0.01), "valid": [i != 4 for i in range(n)]}, schema=schema_of("poses_gnss"))
+        "std_yaw_rad": np.full(n, 0.01), "valid": [i != 4 for i in range(n)],
+        "roll_pitch_known": np.ones(n, bool)}, schema=schema_of("poses_gnss"))
     info = pa.table({
         "drive": [drive], "sensor": ["HDL-32E"], "T_vehicle_lidar": [T_VEHICLE_LIDAR.reshape(-1).tolist()],
         "origin_lat_deg": [37.5], "origin_lon_deg": [127.0], "origin_h_m": [50.0], "n_scans": [n],

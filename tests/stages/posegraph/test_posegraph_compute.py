@@ -44,7 +44,8 @@ def _drive_tables(name, T_true, scene, rng, t0_s, gnss_offset_m):
     gnss = pa.table({"drive": [name] * n, "scan_id": pa.array(range(n), pa.int64()), "stamp_ns": stamps,
                      "x_m": G[:, 0, 3], "y_m": G[:, 1, 3], "z_m": G[:, 2, 3], "qx": q[:, 0], "qy": q[:, 1],
                      "qz": q[:, 2], "qw": q[:, 3], "std_east_m": np.full(n, 0.3), "std_north_m": np.full(n, 0.3),
-                     "std_up_m": np.full(n, 0.5), "std_yaw_rad": np.full(n, 0.01), "valid": np.ones(n, bool)},
+                     "std_up_m": np.full(n, 0.5), "std_yaw_rad": np.full(n, 0.01), "valid": np.ones(n, bool),
+                     "roll_pitch_known": np.ones(n, bool)},
                     schema=schema_of("poses_gnss"))
     info = pa.table({"drive": [name], "sensor": ["HDL-32E"], "T_vehicle_lidar": [T_VL.reshape(-1).tolist()],
                      "origin_lat_deg": [37.5], "origin_lon_deg": [127.0], "origin_h_m": [50.0], "n_scans": [n],

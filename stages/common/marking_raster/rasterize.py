@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.markings.elevation_grid import ElevationGrid
-from stages.markings.threshold import extract_markings, metres_to_odd_px, metres_to_px, normalise_intensity
-from stages.markings.traversable import find_traversable
+from stages.common.marking_raster.elevation_grid import ElevationGrid
+from stages.common.marking_raster.threshold import extract_markings, metres_to_odd_px, metres_to_px, normalise_intensity
+from stages.common.marking_raster.traversable import find_traversable
 
 
 @dataclass(frozen=True)
