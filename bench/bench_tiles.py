@@ -126,7 +126,7 @@ def main() -> None:
           f"{row['n_tiles']} tiles; writing rasters {t_rasters:.1f} s; publish (gates, copy, sha256, fsync) "
           f"{t_publish:.2f} s")
 
-    vdir = Path(row["path"])
+    vdir = root / row["path"]
     sizes: dict[str, int] = {}
     for p in vdir.rglob("*"):
         if p.is_file():

@@ -14,9 +14,9 @@ app = typer.Typer(
     name="cornermap", no_args_is_help=True, add_completion=False, rich_markup_mode="rich",
     help="Batch production of LiDAR localization maps (vertical-corner landmarks + road-marking rasters).\n\n"
          "Examples:\n\n"
-         "  cornermap run demo --root runs/demo\n\n"
+         "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
+         "  cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57\n\n"
          "  cornermap run tiny --root runs/tiny --dry-run\n\n"
-         "  cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps\n\n"
          "  cornermap corners params",
 )
 catalog_app = typer.Typer(no_args_is_help=True, help="Inspect and validate the data catalog.")
@@ -109,7 +109,7 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a 
     workflow's root, else runs/NAME in the current directory.
 
     Examples: [b]cornermap run tiny --root runs/tiny[/b]; [b]cornermap run tiny --root runs/tiny --only corners[/b];
-    [b]cornermap run W.yaml --scheduler tcp://10.0.0.5:8786[/b]
+    [b]cornermap run tiny --root runs/tiny --scheduler tcp://127.0.0.1:8786[/b] (a dask.distributed scheduler)
     """
     result = execute_workflow(workflow, root=root, scheduler=scheduler, only=only, dry_run=dry_run, quiet=quiet,
                               params_file=params)

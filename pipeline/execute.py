@@ -187,6 +187,7 @@ def run_stage(plan: Plan, sp: StagePlan, scheduler: "Scheduler", progress: Progr
                                                                   dask_key_name=f"commit-{sp.name}-{sp.fp8}")],
                                label=f"commit {sp.name}", progress=None)[0]
     sp.committed = True
+    sp.ran = True
     return result
 
 

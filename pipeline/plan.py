@@ -24,6 +24,7 @@ class StagePlan:
     committed: bool = False
     partitions: list[PartitionKey] | None = None  # None until known (dynamic partitioning)
     selected: bool = True
+    ran: bool = False  # set when this run computed the stage (false: skipped as committed, or not selected)
 
     @property
     def fp8(self) -> str:

@@ -48,7 +48,9 @@ def print_plan(rows: list[dict[str, Any]], root: Path, summary: dict | None = No
 
 
 def print_outcomes(plan) -> None:
-    """Print what stages said about their products (a published map version, a report path), once per stage."""
+    """Print what stages said about their products (a published map version, a report path), once per stage.
+    ``{root}`` in a stage's line is the plan's root (stages store root-relative paths: a moved root still prints
+    true paths); a stage skipped as committed says its line is from an earlier run."""
     from pipeline.store import dataset_dir, read_manifest
 
     for sp in plan.stages.values():
@@ -61,5 +63,6 @@ def print_outcomes(plan) -> None:
             parts = (m.get("extra") or {}).get("partitions") or {}
             for label in sorted(parts):
                 for line in parts[label].get("outcome", []):
-                    print(line)
+                    line = line.replace("{root}", str(plan.root))
+                    print(line if sp.ran else f"unchanged (committed by an earlier run): {line}")
             break

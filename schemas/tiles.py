@@ -7,7 +7,7 @@ register(
     "map_tiles", "The map version the tiles stage published (or reused) under ROOT/maps/NAME (docs/map-format.md).",
     f("map_name", pa.string()),
     f("version", pa.int32(), doc="N of the vNNNN directory"),
-    f("path", pa.string(), doc="absolute path of the version directory"),
+    f("path", pa.string(), doc="the version directory, relative to the output root (maps/NAME/vNNNN)"),
     f("n_tiles", pa.int32()), f("n_corners", pa.int64()),
     f("manifest_sha256", pa.string(), doc="sha256 of the version's manifest.json"),
 )

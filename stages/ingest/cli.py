@@ -1,4 +1,5 @@
-"""Stage-specific commands: ``cornermap ingest inspect FILE`` (heavy imports inside the command)."""
+"""Stage-specific commands: ``cornermap inspect FILE`` and ``cornermap drive init|check`` (heavy imports inside
+the commands)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -15,8 +16,8 @@ def register(app: typer.Typer) -> None:
         """Print a scan file's header, point count, drops and ring coverage.
 
         Examples:
-          cornermap ingest inspect ../shared/data/kitti_raw_0048_city/0000000000.pcd
-          cornermap ingest inspect sweep.pcd.bin --format nuscenes_bin --sensor hdl32e
+          cornermap inspect ../shared/data/kitti_raw_0048_city/0000000000.pcd
+          cornermap inspect ../shared/data/nuscenes_hdl32e_sweep/n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin --format nuscenes_bin --sensor hdl32e
         """
         import numpy as np
 
@@ -37,7 +38,8 @@ def register(app: typer.Typer) -> None:
         if points.ring is not None:
             ring, source = points.ring, "file"
         elif model.ring_from_order or not model.elevations_deg:
-            ring, source = rings_from_point_order(points.x_m, points.y_m, points.z_m), "point_order"
+            ring, source = rings_from_point_order(points.x_m, points.y_m, points.z_m,
+                                                  elevations_deg=model.elevations_deg or None), "point_order"
         else:
             ring, source = rings_from_elevation_voted(points.x_m, points.y_m, points.z_m, model.elevations_deg)[0], \
                 "elevation_table"
@@ -45,3 +47,51 @@ def register(app: typer.Typer) -> None:
         counts = np.bincount(ring[ring >= 0])
         typer.echo(f"rings ({source}): {present} present, missing {missing}; points per ring "
                    f"min {counts.min() if counts.size else 0} max {counts.max() if counts.size else 0}")
+
+    drive_app = typer.Typer(no_args_is_help=True, help="Draft and check drive files (drive.yaml), the contract "
+                                                       "between a recorded drive and cornermap (docs/drive-file.md).")
+    app.add_typer(drive_app, name="drive")
+
+    @drive_app.command("init")
+    def drive_init(folder: Path = typer.Argument(..., help="the recorded drive's folder"),
+                   out: Path = typer.Option(None, "--out", help="where to write the draft (default FOLDER/drive.yaml)"),
+                   force: bool = typer.Option(False, "--force", help="overwrite an existing file")) -> None:
+        """Draft a drive.yaml by inspecting the files: scan format and fields, point counts, a sensor guess from
+        the elevation histogram, the CSV column mapping. What could not be inferred is marked TODO or CHECK.
+
+        Example: cornermap drive init runs/sim/drive_0 --out runs/draft.yaml
+        """
+        from pipeline.errors import ConfigError
+        from stages.ingest.drive_init import draft_drive_file
+
+        if not folder.is_dir():
+            raise ConfigError("cornermap drive init", [f"{folder}: not a folder"])
+        target = out or folder / "drive.yaml"
+        if target.exists() and not force:
+            raise ConfigError("cornermap drive init", [f"{target} exists; refusing to overwrite (use --force or "
+                                                       f"--out)"])
+        draft = draft_drive_file(folder)
+        tmp = target.with_name(target.name + ".tmp")
+        tmp.write_text("\n".join(draft.lines) + "\n")
+        tmp.replace(target)
+        typer.echo(f"wrote {target}" + (f"; {len(draft.todo)} TODO: " + "; ".join(draft.todo) if draft.todo else ""))
+        typer.echo(f"next: complete the TODO/CHECK lines, then `cornermap drive check {target}`")
+
+    @drive_app.command("check")
+    def drive_check(drive_file: Path = typer.Argument(..., help="drive.yaml")) -> None:
+        """Validate a drive file against its files and print a summary (scans, time span, GNSS rate and coverage
+        of the scan times, rings per scan, odometry, survey CRS). Exit 1 with every problem listed.
+
+        Example: cornermap drive check runs/sim/drive_0/drive.yaml
+        """
+        from pipeline.errors import ConfigError
+        from stages.ingest.drive_check import check_drive
+
+        result = check_drive(drive_file)
+        for line in result.summary:
+            typer.echo(line)
+        for line in result.warnings:
+            typer.echo(f"warning: {line}")
+        if result.problems:
+            raise ConfigError(str(drive_file), result.problems)
+        typer.echo(f"ok: {drive_file}")

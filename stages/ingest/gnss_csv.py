@@ -166,7 +166,9 @@ def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
     finite = np.isfinite(seconds) & (np.isfinite(week) if week is not None else True)
     stamp = stamps_ns(np.where(finite, seconds, 0.0), None if week is None else np.where(finite, week, 0.0))
     keep, issues = monotonic_mask(stamp, finite)
-    issues += bad_cells
+    bad_rows = {i.record for i in bad_cells}  # reported once, with the cell that was not a number
+    issues = [i for i in issues if i.record not in bad_rows] + bad_cells
+    keep[sorted(bad_rows)] = False
     values_ok = np.isfinite(cols[c.lat]) & np.isfinite(cols[c.lon]) & np.isfinite(cols[c.height]) & \
         np.isfinite(cols[c.heading])
     issues += [TimestampIssue(int(i), "non-finite lat/lon/height/heading") for i in np.flatnonzero(keep & ~values_ok)]
@@ -175,10 +177,12 @@ def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
     latlon = 1.0 if spec.latlon_unit == "deg" else 180.0 / np.pi
     lat, lon, h = cols[c.lat] * latlon, cols[c.lon] * latlon, cols[c.height]
     unit = f"latlon_unit {spec.latlon_unit}"
-    for bad, why in ((keep & (np.abs(lat) > 90.0), f"latitude outside -90..90 deg ({unit})"),
-                     (keep & (np.abs(lon) > 180.0), f"longitude outside -180..180 deg ({unit})"),
-                     (keep & ((h < limits.height_range_m[0]) | (h > limits.height_range_m[1])),
-                      f"height outside {limits.height_range_m[0]:g}..{limits.height_range_m[1]:g} m")):
+    checks = ((np.abs(lat) > 90.0, f"latitude outside -90..90 deg ({unit})"),
+              (np.abs(lon) > 180.0, f"longitude outside -180..180 deg ({unit})"),
+              ((h < limits.height_range_m[0]) | (h > limits.height_range_m[1]),
+               f"height outside {limits.height_range_m[0]:g}..{limits.height_range_m[1]:g} m"))
+    for out_of_range, why in checks:  # one reason per row: the first check it fails
+        bad = keep & out_of_range
         issues += [TimestampIssue(int(i), f"{why}: {lat[i]:.6g}, {lon[i]:.6g}, {h[i]:.6g}")
                    for i in np.flatnonzero(bad)]
         keep &= ~bad

@@ -96,7 +96,9 @@ def assign_rings(points: ScanPoints, spec: DriveSpec, vote_min_share: float) -> 
                                              vote_min_share)
         return ring, "elevation_table"
     if method == "point_order":
-        return rings_from_point_order(points.x_m, points.y_m, points.z_m), "point_order"
+        table = elevation_table(spec)
+        return rings_from_point_order(points.x_m, points.y_m, points.z_m,
+                                      elevations_deg=table or None), "point_order"
     return np.full(len(points), -1, np.int16), "none"
 
 

@@ -61,11 +61,15 @@ def rings_from_elevation(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     return (idx - lower_closer).astype(np.int16)
 
 
-def rings_from_point_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, min_points_per_ring: int = 20
-                           ) -> np.ndarray:
+def rings_from_point_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, min_points_per_ring: int = 20,
+                           elevations_deg: tuple[float, ...] | np.ndarray | None = None) -> np.ndarray:
     """Rings of a laser-by-laser export: split where azimuth steps from < 0 to >= 0, then rank the lines by
     median elevation so that ring 0 is the lowest. Lines shorter than ``min_points_per_ring`` (spurious
-    splits from azimuth jitter at the seam) are merged into the previous line."""
+    splits from azimuth jitter at the seam) are merged into the previous line.
+
+    The rank is the ring only when every beam is present. With the sensor's ``elevations_deg`` table and a
+    line count that differs from it (a truncated scan holding only the top 53 of 64 beams), the ranked lines
+    are placed on the table at the offset that best matches their median elevations (``align_lines_to_table``)."""
     n = len(x)
     if n == 0:
         return np.zeros(0, np.int16)
@@ -82,7 +86,31 @@ def rings_from_point_order(x: np.ndarray, y: np.ndarray, z: np.ndarray, min_poin
     medians = np.array([np.median(part) for part in np.split(elev[order], split_at)])
     rank = np.empty(len(medians), np.int64)
     rank[np.argsort(medians, kind="stable")] = np.arange(len(medians))
+    if elevations_deg is not None and 0 < len(medians) != len(elevations_deg):
+        rank = align_lines_to_table(np.sort(medians), elevations_deg)[rank]
     return rank[line_of_point].astype(np.int16)
+
+
+def align_lines_to_table(sorted_medians_deg: np.ndarray, elevations_deg: tuple[float, ...] | np.ndarray
+                         ) -> np.ndarray:
+    """Ring of each line (lines sorted by median elevation, lowest first) when fewer or more lines than beams
+    were found. Fewer: the contiguous run of table beams (offset k) whose spacing best matches the lines'
+    spacing (least summed |diff(medians) - diff(beams)|), then the least summed |median - beam| among ties.
+    Spacing, not absolute elevation, because a unit's calibration differs from the nominal table by a few
+    0.1 degree (KITTI: +2.5..-24.9 against +2.0..-24.3), while the 1/3 vs 1/2 degree spacing of the HDL-64E's
+    two blocks pins the offset of a scan cut at the top or the bottom. More (spurious splits): each line takes
+    its nearest beam."""
+    table = np.asarray(elevations_deg, np.float64)
+    m = np.asarray(sorted_medians_deg, np.float64)
+    if len(m) > len(table):
+        return rings_from_elevation(np.ones_like(m), np.zeros_like(m), np.tan(np.radians(m)), table).astype(np.int64)
+    offsets = np.arange(len(table) - len(m) + 1)
+    spacing = np.array([np.abs(np.diff(m) - np.diff(table[k:k + len(m)])).sum() for k in offsets])
+    absolute = np.array([np.abs(m - table[k:k + len(m)]).sum() for k in offsets])
+    # Offsets whose spacing fits within 0.1 deg of the best (all of them for an evenly spaced table) are told
+    # apart by absolute elevation; one misplaced HDL-64E block boundary costs 1/2 - 1/3 = 0.17 deg.
+    near = spacing <= spacing.min() + 0.1
+    return np.arange(len(m)) + int(offsets[near][np.argmin(absolute[near])])
 
 
 def ring_coverage(rings: np.ndarray, n_rings: int) -> tuple[int, list[int]]:

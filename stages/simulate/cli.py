@@ -11,9 +11,9 @@ def register(app: typer.Typer) -> None:
         "Generate a synthetic city and K drives (HDL-32E PCD scans, INSPVA GNSS/INS CSV, wheel/gyro CSV, "
         "survey LAS, ground truth), deterministic from (preset, seed).\n\n"
         "Examples:\n\n"
-        "  cornermap simulate --preset tiny --seed 0 --out runs/sim_tiny\n\n"
-        "  cornermap simulate --preset gangnam --seed 3 --out runs/gangnam --drives 3\n\n"
-        "  cornermap simulate --preset demo --out runs/demo --no-motion-distortion --max-scans 50"))(simulate_command)
+        "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
+        "  cornermap simulate --preset gangnam --seed 3 --out runs/gangnam_sim --drives 3 --max-scans 20\n\n"
+        "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50"))(simulate_command)
 
 
 def simulate_command(

@@ -80,11 +80,11 @@ def compute(ctx: StageContext) -> dict[str, Any]:
     pub = publish_version(map_dir, write, keep_last=params.keep_last, reuse=unchanged)
     table = pa.table({
         "map_name": pa.array([name], pa.string()), "version": pa.array([pub.version], pa.int32()),
-        "path": pa.array([str(pub.path.resolve())], pa.string()),
+        "path": pa.array([f"maps/{name}/{pub.name}"], pa.string()),  # relative to the root: a moved root still works
         "n_tiles": pa.array([int(pub.manifest["n_tiles"])], pa.int32()),
         "n_corners": pa.array([int(pub.manifest["n_corners"])], pa.int64()),
         "manifest_sha256": pa.array([pub.manifest_sha256], pa.string())}, schema=schema_of("map_tiles"))
-    outcome = [f"published map {name!r} version {pub.name}: {pub.path.resolve()} "
+    outcome = [f"published map {name!r} version {pub.name}: {{root}}/maps/{name}/{pub.name} "
                f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles)"]
     return {"published": table, "_extra": {"outcome": outcome}}
 
