@@ -316,3 +316,28 @@ def test_edge_yaw_calibration_nees_is_one_for_a_true_model_and_exposes_a_pessimi
         assert abs(r["error_rms_deg"] / np.rad2deg(s) - 1.0) < 0.06
     pessimistic = edge_yaw_calibration(noisy, info / 100.0, truth, i, j, (0.0, 1.0, 45.0))
     assert all(0.008 < r["nees"] < 0.012 for r in pessimistic)
+
+
+def test_unknown_roll_pitch_is_not_a_firm_level_prior():
+    """A GNSS without roll/pitch (KITTI OXTS) stores a level attitude. Flagged unknown, the graph takes pitch from
+    the ICP edges and the GNSS heights (a 2 % climb: 1.15 deg); taken as a firm INS prior it bends to level."""
+    from stages.common.geometry import se3_from_xyz_rpy
+    from tests.stages.posegraph.conftest import make_drive
+
+    pitch = -np.arctan(0.02)  # climbing along x (the convention's pitch is nose-down positive)
+    T_true = np.array([se3_from_xyz_rpy(1.0 * k, 0.0, 0.02 * k, 0.0, pitch, 0.0) for k in range(120)])
+    errors = {}
+    for known in (True, False):
+        drive = make_drive(T_true, np.random.default_rng(5), gnss_sigma_m=0.05, reported_std_m=0.1)
+        drive.stamps_ns = drive.stamps_ns.astype(np.int64)
+        level = drive.gnss_T.copy()
+        for k in range(len(level)):  # the file has no roll/pitch: yaw only
+            level[k][:3, :3] = se3_from_xyz_rpy(0, 0, 0, 0.0, 0.0, 0.0)[:3, :3]
+        drive.gnss_T = level
+        drive.gnss_roll_pitch_known = np.full(len(level), known)
+        problem, _ = base_problem([drive], PosegraphParams(gnss_every_s=0.5))
+        poses = optimize(problem)
+        est_pitch = np.arctan2(-poses[:, 2, 0], np.hypot(poses[:, 0, 0], poses[:, 1, 0]))
+        errors[known] = float(np.degrees(np.abs(est_pitch - pitch).mean()))
+    assert errors[False] < 0.1, errors  # pitch from edges and heights (the weak level prior costs ~0.05 deg)
+    assert errors[True] > 0.5, errors  # the old behaviour: a 0-degree pitch treated as measured
