@@ -239,6 +239,8 @@ class Scheduler:
         import dask
 
         total = len(tasks)
+        if progress:  # the bar (and its elapsed-time clock) starts when the stage starts, not at its first result
+            progress(label, 0, total)
         if self._client is not None:
             from distributed import as_completed
 

@@ -106,7 +106,7 @@ def find_scan_folder(folder: Path) -> tuple[Path, str, list[Path]] | None:
     for d in [folder] + sorted(p for p in folder.rglob("*") if p.is_dir()):
         for fmt, suffixes in (("pcd", (".pcd",)), ("bin", (".bin",)), ("las", (".las", ".laz"))):
             files = sorted(p for p in d.iterdir() if p.is_file() and p.name.lower().endswith(suffixes))
-            if len(files) >= 2 and (best is None or len(files) > len(best[2])):
+            if files and (best is None or len(files) > len(best[2])):
                 best = (d, fmt, files)
     return best
 
@@ -136,10 +136,13 @@ def guess_sensor(elev_deg: np.ndarray, n_beams: int | None) -> tuple[str, str]:
         mismatch = 0.0 if n_beams is None or n_beams == len(t) else 100.0
         scores.append((mismatch + abs(t[-1] - hi) + 0.5 * abs(t[0] - lo), name))
     err, name = min(scores)
-    why = f"{n_beams or 'unknown'} beams, elevations {lo:.1f}..{hi:.1f} deg; {name} has " \
-          f"{len(SENSORS[name].elevations_deg)} beams over {SENSORS[name].elevations_deg[0]:.1f}.." \
-          f"{SENSORS[name].elevations_deg[-1]:.1f}"
-    return (name if err < 6.0 else "generic"), why
+    table = SENSORS[name].elevations_deg
+    why = f"{n_beams or 'unknown'} beams, elevations {lo:.1f}..{hi:.1f} deg; {name} has {len(table)} beams over " \
+          f"{table[0]:.1f}..{table[-1]:.1f}"
+    # The top beam is reliable (it hits facades); the lowest often see the car itself or nothing.
+    same_count = n_beams is not None and n_beams == len(table)
+    ok = abs(table[-1] - hi) < 3.0 if same_count else err < 6.0
+    return (name if ok else "generic"), why
 
 
 def count_beams(points) -> int | None:
@@ -170,6 +173,17 @@ def draft_drive_file(folder: Path) -> Draft:
     else:
         scan_dir, kind, files = found
         fmt = {"pcd": "pcd", "las": "las", "bin": bin_format(files[0])}[kind]
+        if fmt == "las" and _georeferenced(files[0]):
+            d.unknown("scans: {folder: scans, format: pcd}", f"{len(files)} LAS/LAZ files in "
+                      f"{scan_dir.relative_to(folder).as_posix() or '.'} are georeferenced clouds (a survey), not "
+                      f"sensor-frame scans; no scan folder found")
+            d.unknown("sensor: generic", "sensor model")
+            d.add("scan_rate_hz: 10.0", "CHECK: the sensor's rotation rate")
+            d.unknown("T_vehicle_lidar: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1.7], [0, 0, 0, 1]]",
+                      "the lidar's pose in the vehicle frame")
+            _draft_csvs(folder, d)
+            _draft_survey(folder, d, None)
+            return d
         sample = [files[0], files[len(files) // 2], files[-1]]
         elev, beams = [], []
         has_ring = has_time = False
@@ -219,6 +233,18 @@ def draft_drive_file(folder: Path) -> Draft:
     _draft_csvs(folder, d)
     _draft_survey(folder, d, fmt)
     return d
+
+
+def _georeferenced(path: Path) -> bool:
+    """A LAS/LAZ whose coordinates are far from its sensor (projected or geographic CRS, not a sensor frame)."""
+    try:
+        import laspy
+
+        with laspy.open(path) as reader:
+            h = reader.header
+            return bool(max(abs(h.mins[0]), abs(h.mins[1])) > 1000.0 or h.parse_crs() is not None)
+    except Exception:  # noqa: BLE001 - treated as sensor-frame scans; check reports unreadable files
+        return False
 
 
 def _draft_csvs(folder: Path, d: Draft) -> None:
