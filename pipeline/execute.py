@@ -43,6 +43,9 @@ def _task_spec(plan: Plan, sp: StagePlan) -> dict[str, Any]:
     }
 
 
+_STEP_PROGRESS: dict[str, Callable[[str, int, int], None]] = {}  # stage -> display (this process only)
+
+
 def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
              artifact_dirs: dict[str, Path]) -> StageContext:
     decl = get_stage(spec["stage"])
@@ -50,7 +53,8 @@ def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
                               {a: resolve_schema(r) for a, r in spec["input_schemas"].items()})
     return StageContext(stage=spec["stage"], partition=partition, params=decl.params.model_validate(spec["params"]),
                         inputs=reader, drives={k: Path(v) for k, v in spec["drives"].items()},
-                        settings=spec["settings"], scratch_dir=scratch, artifact_dirs=artifact_dirs)
+                        settings=spec["settings"], scratch_dir=scratch, artifact_dirs=artifact_dirs,
+                        step_progress=_STEP_PROGRESS.get(spec["stage"]))
 
 
 def _ensure_extra_stages(spec: dict[str, Any]) -> None:
@@ -181,8 +185,13 @@ def run_stage(plan: Plan, sp: StagePlan, scheduler: "Scheduler", progress: Progr
 
     keys = enumerate_partitions(plan, sp)
     spec = _task_spec(plan, sp)
+    if progress is not None:  # inner steps of partitions that run in this process (single-partition stages)
+        _STEP_PROGRESS[sp.name] = lambda step, done, total: progress(f"{sp.name}: {step}", done, total)
     tasks = [delayed(run_partition, pure=False)(spec, pk.as_dict(), dask_key_name=task_key(sp, pk)) for pk in keys]
-    parts = scheduler.compute(tasks, label=sp.name, progress=progress)
+    try:
+        parts = scheduler.compute(tasks, label=sp.name, progress=progress)
+    finally:
+        _STEP_PROGRESS.pop(sp.name, None)
     result = scheduler.compute([delayed(commit_stage, pure=False)(spec, parts,
                                                                   dask_key_name=f"commit-{sp.name}-{sp.fp8}")],
                                label=f"commit {sp.name}", progress=None)[0]

@@ -87,8 +87,9 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
             pts = np.column_stack([survey[c].to_numpy() for c in ("east_m", "north_m", "up_m")])
             survey_cb = survey_anchor_callback(drives, load, pts, p, survey_matches,
                                                survey_intensity=survey["intensity"].to_numpy(),
-                                               feature_load=scan_loader(ctx, ("intensity", "ring")))
-    sol = solve_map(drives, load, p, survey_priors=survey_cb)
+                                               feature_load=scan_loader(ctx, ("intensity", "ring")),
+                                               report_step=ctx.report_step)
+    sol = solve_map(drives, load, p, survey_priors=survey_cb, report_step=ctx.report_step)
     names = [(d.name, int(s)) for d in drives for s in d.scan_ids]
     cov = marginal_cov_xy_yaw(sol.problem, sol.poses) if p.compute_marginals else np.zeros((len(names), 9))
     offsets = np.cumsum([0] + [d.n for d in drives])

@@ -103,6 +103,9 @@ class PosegraphParams(Params):
                                               "x this (demo, 112 fixed directions vs truth: errors 0.010 m RMS "
                                               "where the width is ~0.11 m, i.e. 0.06; 0.2 keeps a margin)")
     survey_marking_min_sigma_m: float = Field(0.01, gt=0, description="floor of the anchor std")
+    parallel_min_items: int = Field(32, ge=1, description="independent registrations (loop candidates, survey "
+                                    "anchors) run in parallel processes (or cluster tasks) from this many on; "
+                                    "fewer run in the stage's own process. Results do not depend on it")
     survey_marking_raster: MarkingRasterSettings = Field(
         default_factory=MarkingRasterSettings, description="how the survey's marking mask is rasterized (the "
         "pose graph's own settings: a markings-stage override does not reach them)")

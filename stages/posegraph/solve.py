@@ -67,24 +67,39 @@ def vehicle_clouds(drives: list[DriveInput], offsets: np.ndarray, wanted: np.nda
     return out
 
 
+def _verify_kwargs(p) -> dict:
+    return dict(voxel_m=p.loop_voxel_m, max_corr_m=p.loop_max_corr_m, min_fitness=p.loop_min_fitness,
+                max_rmse_m=p.loop_max_rmse_m, max_correction_m=p.loop_max_correction_m,
+                max_correction_rad=p.loop_max_correction_rad, consistency_m=p.loop_consistency_m,
+                min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad,
+                coarse_voxel_m=p.loop_coarse_voxel_m, coarse_corr_m=p.loop_coarse_corr_m,
+                inlier_m=p.loop_inlier_m, plane_tol_m=p.loop_plane_tol_m)
+
+
+def _verify_item(item) -> object:
+    """One candidate's ICP verification (module level: runs in a pool process or on a cluster worker)."""
+    cloud_i, cloud_j, prior, kwargs = item
+    return verify_loop(cloud_i, cloud_j, prior, **kwargs)
+
+
 def verify_candidates(candidates, poses: np.ndarray, clouds: dict[int, np.ndarray], p,
-                      fixed: dict[int, np.ndarray] | None = None) -> list[LoopRecord]:
-    """ICP-verify each candidate from the current estimate's relative pose (``fixed`` poses override)."""
+                      fixed: dict[int, np.ndarray] | None = None, progress=None) -> list[LoopRecord]:
+    """ICP-verify each candidate from the current estimate's relative pose (``fixed`` poses override). The
+    candidates are independent: they run through ``pipeline.parallel.parallel_map`` (processes here, tasks on
+    a cluster) when there are at least ``p.parallel_min_items`` of them; the verdicts do not depend on it."""
+    from pipeline.parallel import parallel_map
+
     fixed = fixed or {}
-    out = []
+    kwargs = _verify_kwargs(p)
+    items = []
     for c in candidates:
         Ti = fixed.get(c.i, poses[c.i] if c.i < len(poses) else None)
         Tj = fixed.get(c.j, poses[c.j] if c.j < len(poses) else None)
-        v = verify_loop(clouds[c.i], clouds[c.j], se3_inverse(Ti) @ Tj, voxel_m=p.loop_voxel_m,
-                        max_corr_m=p.loop_max_corr_m, min_fitness=p.loop_min_fitness,
-                        max_rmse_m=p.loop_max_rmse_m, max_correction_m=p.loop_max_correction_m,
-                        max_correction_rad=p.loop_max_correction_rad, consistency_m=p.loop_consistency_m,
-                        min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad,
-                        coarse_voxel_m=p.loop_coarse_voxel_m, coarse_corr_m=p.loop_coarse_corr_m,
-                        inlier_m=p.loop_inlier_m, plane_tol_m=p.loop_plane_tol_m)
-        out.append(LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted,
-                              v.reason, v.information))
-    return out
+        items.append((clouds[c.i], clouds[c.j], se3_inverse(Ti) @ Tj, kwargs))
+    workers = None if len(items) >= p.parallel_min_items else 1
+    verdicts = parallel_map(_verify_item, items, workers=workers, progress=progress)
+    return [LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted, v.reason,
+                       v.information) for c, v in zip(candidates, verdicts)]
 
 
 def loop_betweens(loops: list[LoopRecord], p) -> list[Between]:
@@ -164,7 +179,8 @@ def _as_accepted(r: LoopRecord) -> LoopRecord:
 
 
 def solve_map(drives: list[DriveInput], load: ScanLoader, p, *, extra_loops: list[LoopRecord] = (),
-              survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None = None) -> Solution:
+              survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None = None,
+              report_step: Callable[[str, int, int], None] | None = None) -> Solution:
     """All map drives in one graph. ``extra_loops`` enter as accepted (tests/bench plant false loops here);
     ``survey_priors(poses, offsets)`` returns absolute anchors computed on the pass-2 estimate."""
     import time
@@ -180,7 +196,8 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, p, *, extra_loops: lis
                             min_separation_s=p.loop_min_separation_s, max_per_scan=p.loop_max_per_scan)
     wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
     clouds = vehicle_clouds(drives, offsets, wanted, load, p.loop_voxel_m)
-    loops = verify_candidates(cands, poses, clouds, p) + list(extra_loops)
+    step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
+    loops = verify_candidates(cands, poses, clouds, p, progress=step) + list(extra_loops)
     t2 = time.perf_counter()
     solve_times: list[float] = []
     poses = optimize_with_loops(problem, loops, p, solve_times_s=solve_times, initial=poses)

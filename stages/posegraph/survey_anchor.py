@@ -107,12 +107,29 @@ def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345) -> list[P
     return out
 
 
+def _use_survey(survey_pts: np.ndarray) -> None:
+    """Pool/cluster worker initializer: the downsampled survey and its 2-D index, once per process."""
+    from pipeline.parallel import set_worker_state
+
+    set_worker_state(survey_pts=survey_pts, survey_tree=cKDTree(survey_pts[:, :2]))
+
+
+def _anchor_item(item) -> SurveyMatch:
+    """One keyframe's ground registration against the survey held by ``_use_survey`` (module level)."""
+    from pipeline.parallel import worker_state
+
+    k, cloud, pose, kwargs = item
+    state = worker_state()
+    return anchor_scan(k, cloud, pose, state["survey_pts"], state["survey_tree"], **kwargs)
+
+
 def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_out: list | None = None,
-                           survey_intensity: np.ndarray | None = None, feature_load=None):
+                           survey_intensity: np.ndarray | None = None, feature_load=None, report_step=None):
     """A ``survey_priors(poses, offsets)`` callback for ``solve_map``: anchors keyframes every
     ``p.survey_stride_m`` that the survey covers; every match (accepted or not) is appended to ``matches_out``.
     With the survey's intensities and a ``feature_load``er (scans with intensity and ring), each keyframe is
     also matched horizontally on the painted markings (``survey_markings``)."""
+    from pipeline.parallel import parallel_map
     from stages.posegraph.core import increments
     from stages.posegraph.loops import keyframes_by_travel
     from stages.posegraph.solve import vehicle_clouds
@@ -144,14 +161,21 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
         covered = np.array([len(tree.query_ball_point(poses[k, :2, 3], 5.0)) > 0 for k in keys], bool)
         keys = keys[covered] if len(keys) else keys
         clouds = vehicle_clouds(drives, offsets, keys, load, p.loop_voxel_m / 2)
-        matches = [anchor_scan(int(k), clouds[int(k)], poses[k], survey_pts, tree, crop_m=p.survey_crop_m,
-                               max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,
-                               min_fitness=p.survey_min_fitness, max_rmse_m=p.survey_max_rmse_m,
-                               min_sigma_m=p.survey_min_sigma_m, min_sigma_rad=p.survey_min_sigma_rad,
-                               vertical_only=p.survey_vertical_only)
-                   for k in keys]
+        kwargs = dict(crop_m=p.survey_crop_m, max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,
+                      min_fitness=p.survey_min_fitness, max_rmse_m=p.survey_max_rmse_m,
+                      min_sigma_m=p.survey_min_sigma_m, min_sigma_rad=p.survey_min_sigma_rad,
+                      vertical_only=p.survey_vertical_only)
+        items = [(int(k), clouds[int(k)], poses[k], kwargs) for k in keys]
+        step = (lambda done, total: report_step("survey anchors", done, total)) if report_step else None
+        matches = parallel_map(_anchor_item, items, workers=None if len(items) >= p.parallel_min_items else 1,
+                               initializer=_use_survey, initargs=(survey_pts,), progress=step)
         if markings is not None:
-            matches = [replace(m, horizontal=horizontal(m.i, poses, offsets)) for m in matches]
+            out = []
+            for n, m in enumerate(matches, 1):
+                out.append(replace(m, horizontal=horizontal(m.i, poses, offsets)))
+                if report_step:
+                    report_step("survey marking anchors", n, len(matches))
+            matches = out
         if matches_out is not None:
             matches_out.extend(matches)
         return survey_priors(matches)

@@ -46,3 +46,25 @@ def test_verify_loop_accepts_true_pair_and_rejects_a_place_20_m_away(lane_pair):
     assert np.linalg.norm((se3_inverse(T_a_b) @ ok.T_i_j)[:3, 3]) < 0.05
     bad = verify_loop(pts_a, far, prior, **kw)
     assert not bad.accepted, bad.reason
+
+
+def test_candidates_verified_in_parallel_processes_give_the_serial_verdicts(lane_pair):
+    """The loop candidates are independent registrations: verified in a process pool (parallel_min_items
+    reached) they give the verdicts of the stage's own process (transforms equal to open3d's own run-to-run
+    noise: its OpenMP thread count differs between the two)."""
+    from stages.posegraph.loops import Candidate
+    from stages.posegraph.params import PosegraphParams
+    from stages.posegraph.solve import verify_candidates
+
+    pts_a, pts_b, far, T_a_b = lane_pair
+    clouds = {0: pts_a, 1: pts_b, 2: far}
+    poses = np.stack([np.eye(4), T_a_b @ se3_from_xyz_rpy(1.0, 0.6, 0.2, 0.0, 0.0, 0.01),
+                      T_a_b @ se3_from_xyz_rpy(1.0, 0.6, 0.2, 0.0, 0.0, 0.01)])
+    cands = [Candidate(0, 1, 1.2), Candidate(0, 2, 1.2), Candidate(1, 0, 1.2)] * 2
+    serial = verify_candidates(cands, poses, clouds, PosegraphParams(parallel_min_items=100))
+    parallel = verify_candidates(cands, poses, clouds, PosegraphParams(parallel_min_items=2))
+    assert [r.accepted for r in serial] == [True, False, True] * 2
+    for a, b in zip(serial, parallel):
+        assert (a.accepted, a.reason) == (b.accepted, b.reason)
+        assert a.fitness == pytest.approx(b.fitness, abs=1e-9)
+        np.testing.assert_allclose(a.T_i_j, b.T_i_j, atol=1e-9)

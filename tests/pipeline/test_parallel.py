@@ -1,0 +1,41 @@
+"""parallel_map: the same results in order whichever way it runs (in process, process pool, cluster tasks),
+with the initializer's state in every worker and progress reported to the end."""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from pipeline.parallel import parallel_map
+from tests.pipeline.toy_parallel import remember, shifted_square
+
+ITEMS = [float(i) for i in range(12)]
+EXPECTED = [x * x + 0.5 for x in ITEMS]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_results_in_order_with_initializer_state(workers):
+    seen = []
+    out = parallel_map(shifted_square, ITEMS, workers=workers, initializer=remember, initargs=(0.5,),
+                       progress=lambda done, total: seen.append((done, total)))
+    assert [v for v, _ in out] == EXPECTED
+    pids = {pid for _, pid in out}
+    assert (pids == {os.getpid()}) if workers == 1 else (os.getpid() not in pids)
+    assert seen[-1] == (12, 12) and len(seen) == 12
+
+
+def test_inside_a_cluster_task_the_items_run_as_cluster_tasks():
+    distributed = pytest.importorskip("distributed")
+
+    def outer(_):
+        return parallel_map(shifted_square, ITEMS, initializer=remember, initargs=(0.5,))
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        out = client.submit(outer, 0).result()
+    assert [v for v, _ in out] == EXPECTED
+
+
+def test_empty_and_single_item_run_in_process():
+    assert parallel_map(shifted_square, [], workers=4) == []
+    assert parallel_map(shifted_square, [2.0], workers=4, initializer=remember, initargs=(1.0,))[0][0] == 5.0
