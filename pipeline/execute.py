@@ -10,6 +10,7 @@ import datetime as dt
 import logging
 import os
 import shutil
+import time
 import uuid
 from pathlib import Path
 from typing import Any, Callable
@@ -300,6 +301,16 @@ def run_plan(plan: Plan, scheduler: Scheduler, progress: Progress | None = None)
                 raise StageError(f"stage {name!r} input {arg!r}: dataset {ds!r} (fingerprint {fp[:8]}) is not "
                                  f"committed under {plan.root}; hint: run its producer (drop --only)")
         log.info("stage %s: running (fingerprint %s)", name, sp.fp8)
-        summary[name] = {"decision": "ran", "fingerprint": sp.fingerprint[:16],
-                         "outputs": run_stage(plan, sp, scheduler, progress)}
+        wall0, cpu0 = time.perf_counter(), _cpu_s()
+        outputs = run_stage(plan, sp, scheduler, progress)
+        summary[name] = {"decision": "ran", "fingerprint": sp.fingerprint[:16], "outputs": outputs,
+                         "wall_s": round(time.perf_counter() - wall0, 3), "cpu_s": round(_cpu_s() - cpu0, 3)}
     return summary
+
+
+def _cpu_s() -> float:
+    """CPU seconds of this process and of its finished child processes (local pools; not a remote cluster)."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime

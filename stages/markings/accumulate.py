@@ -37,7 +37,11 @@ def scans_to_enu(points_lidar_m: np.ndarray, point_scan_ids: np.ndarray, pose_sc
     keep = has_pose & (range_m >= min_range_m) & (range_m <= max_range_m) & np.isfinite(pts).all(axis=1)
     T_map_lidar = np.asarray(T_map_vehicle, float)[order] @ np.asarray(T_vehicle_lidar, float)
     which = pos[keep]
-    R = T_map_lidar[:, :3, :3]
-    t = T_map_lidar[:, :3, 3]
-    enu = np.einsum("nij,nj->ni", R[which], pts[keep]) + t[which]
+    kept = pts[keep]
+    enu = np.empty((len(kept), 3))
+    # One rotation per scan, not per point: an (N,3,3) gather of 12 M points is 0.9 GB (measured on KITTI).
+    boundaries = np.flatnonzero(np.diff(which)) + 1
+    for start, stop in zip(np.r_[0, boundaries], np.r_[boundaries, len(which)]):
+        T = T_map_lidar[which[start]]
+        enu[start:stop] = kept[start:stop] @ T[:3, :3].T + T[:3, 3]
     return enu, keep

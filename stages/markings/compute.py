@@ -27,6 +27,7 @@ from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 
 log = logging.getLogger(__name__)
 DEFAULT_TILE_SIZE_M = 100.0
+SCANS_PER_PIECE = 16  # scans read and placed at once (a 120k-point HDL-64E scan: ~16 MB per piece member)
 _POSE_COLUMNS = ["drive", "scan_id", "x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 
 
@@ -116,16 +117,19 @@ def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[t
         T_vehicle_lidar = extrinsics.get(drive, np.eye(4))
         if drive not in extrinsics:
             log.warning("no drive_info for drive %s: using identity T_vehicle_lidar", drive)
-        for part in (p for p in scan_parts if p.drive in (None, drive)):
-            table = ctx.inputs.read_in("scans", "scan_id", ids.tolist(), partition=part,
-                                       columns=["drive", "scan_id", "x_m", "y_m", "z_m", "intensity"])
-            table = table.filter(pc.equal(table["drive"], drive))
-            if table.num_rows == 0:
-                continue
-            pts = np.column_stack([table[c].to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
-            enu, keep = scans_to_enu(pts, table["scan_id"].to_numpy(), ids, T_map_vehicle, T_vehicle_lidar,
-                                     min_range_m=params.min_range_m, max_range_m=params.max_range_m)
-            yield enu, table["intensity"].to_numpy().astype(float)[keep]
+        parts = [p for p in scan_parts if p.drive in (None, drive)]
+        for start in range(0, len(ids), SCANS_PER_PIECE):  # a few scans at a time: memory bounded by the piece
+            batch = ids[start:start + SCANS_PER_PIECE].tolist()
+            for part in parts:
+                table = ctx.inputs.read_in("scans", "scan_id", batch, partition=part,
+                                           columns=["drive", "scan_id", "x_m", "y_m", "z_m", "intensity"])
+                table = table.filter(pc.equal(table["drive"], drive))
+                if table.num_rows == 0:
+                    continue
+                pts = np.column_stack([table[c].to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
+                enu, keep = scans_to_enu(pts, table["scan_id"].to_numpy(), ids, T_map_vehicle, T_vehicle_lidar,
+                                         min_range_m=params.min_range_m, max_range_m=params.max_range_m)
+                yield enu, table["intensity"].to_numpy().astype(float)[keep]
 
 
 def _map_drive_poses(ctx, columns: list[str]) -> pa.Table:

@@ -1,0 +1,132 @@
+"""Whole-map build benchmark: raw simulated drives -> published map tiles, per stage wall / CPU, peak RSS of
+every process (pool workers and spawned processes included), scans per second end to end.
+
+    .venv/bin/python -m bench.bench_build --preset demo [--seed 1] [--scheduler local] [--json out.json]
+    .venv/bin/python -m bench.bench_build --preset gangnam --drives drive_0
+
+The simulation is made once per preset and seed and cached (``--cache``, default ``~/.cache/cornermap-bench``);
+simulate and evaluation are not timed. Every run builds into a fresh root (deleted afterwards unless ``--keep``).
+Stage wall and CPU come from the run summary (CPU: this process and its finished child processes; on a remote
+cluster only the client's). RSS is sampled every 0.2 s over the process tree.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import yaml
+
+ORIGIN = {"lat_deg": 37.4979, "lon_deg": 127.0276, "h_m": 57.0}  # the simulator's origin (workflows/demo.yaml)
+BUILD_STAGES = ["ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "tiles"]
+
+
+class RssSampler(threading.Thread):
+    """Peak resident memory per process of this process tree (pid -> (name, peak bytes))."""
+
+    def __init__(self, period_s: float = 0.2):
+        super().__init__(daemon=True)
+        import psutil
+
+        self._root = psutil.Process()
+        self.period_s = period_s
+        self.peaks: dict[int, tuple[str, int]] = {}
+        self._halt = threading.Event()
+
+    def run(self) -> None:
+        import psutil
+
+        while not self._halt.is_set():
+            for proc in [self._root] + self._root.children(recursive=True):
+                try:
+                    rss = proc.memory_info().rss
+                    name = " ".join(proc.cmdline()[:3])[-60:]
+                except (psutil.NoSuchProcess, psutil.AccessDenied):
+                    continue
+                if rss > self.peaks.get(proc.pid, ("", 0))[1]:
+                    self.peaks[proc.pid] = (name, rss)
+            self._halt.wait(self.period_s)
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join()
+
+
+def simulated(cache: Path, preset: str, seed: int) -> Path:
+    out = cache / f"sim-{preset}-seed{seed}"
+    if not (out / "simulation.json").is_file():
+        tmp = out.with_name(out.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--preset", preset, "--seed", str(seed),
+                        "--out", str(tmp), "--quiet"], check=True)
+        tmp.replace(out)
+    return out
+
+
+def write_workflow(folder: Path, sim: Path, drives: list[str], root: Path, scheduler: str) -> Path:
+    entries = [{"name": d, "path": str(sim / d / "drive.yaml"), "role": "map" if n == 0 else "eval"}
+               for n, d in enumerate(drives)]
+    doc = {"name": "bench_build", "root": str(root), "map_name": "bench", "scheduler": scheduler,
+           "enu_origin": ORIGIN, "drives": entries, "stages": BUILD_STAGES}
+    path = folder / "bench_build.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def count_scans(sim: Path, drives: list[str]) -> int:
+    return sum(sum(1 for _ in (sim / d / "scans").glob("*.pcd")) for d in drives)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", default="demo", choices=["tiny", "demo", "gangnam"])
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--drives", nargs="+", default=None, help="drives to build (default: drive_0 drive_1)")
+    ap.add_argument("--scheduler", default="local", help="local | sync | tcp://HOST:PORT")
+    ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cornermap-bench")
+    ap.add_argument("--json", type=Path, default=None, help="write the figures here")
+    ap.add_argument("--keep", action="store_true", help="keep the build root")
+    args = ap.parse_args(argv)
+
+    from pipeline.cli import execute_workflow
+
+    sim = simulated(args.cache, args.preset, args.seed)
+    drives = args.drives or ["drive_0", "drive_1"]
+    work = Path(tempfile.mkdtemp(prefix="bench-build-"))
+    wf = write_workflow(work, sim, drives, work / "root", args.scheduler)
+    sampler = RssSampler()
+    sampler.start()
+    t0 = time.perf_counter()
+    try:
+        result = execute_workflow(wf, root=None, scheduler=args.scheduler, only=None, dry_run=False, quiet=True)
+    finally:
+        wall = time.perf_counter() - t0
+        sampler.stop()
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    n_scans = count_scans(sim, drives)
+    stages = {k: {"wall_s": v.get("wall_s"), "cpu_s": v.get("cpu_s")} for k, v in result["summary"].items()}
+    peaks = sorted(sampler.peaks.values(), key=lambda x: -x[1])
+    doc = {"preset": args.preset, "seed": args.seed, "drives": drives, "scans": n_scans, "scheduler": args.scheduler,
+           "wall_s": round(wall, 1), "scans_per_s": round(n_scans / wall, 1), "stages": stages,
+           "peak_rss_mb_max": round(peaks[0][1] / 2**20) if peaks else None,
+           "peak_rss_mb_by_process": [(name, round(rss / 2**20)) for name, rss in peaks[:8]]}
+    print(f"{args.preset} seed {args.seed}, {', '.join(drives)}: {n_scans} scans, {wall:.1f} s wall, "
+          f"{n_scans / wall:.1f} scans/s end to end, peak RSS {doc['peak_rss_mb_max']} MB (largest process)")
+    print(f"| stage | wall s | CPU s |\n|---|---|---|")
+    for k, v in stages.items():
+        print(f"| {k} | {v['wall_s']} | {v['cpu_s']} |")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
