@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
            "peak_rss_mb_by_process": [(name, round(rss / 2**20)) for name, rss in peaks[:8]]}
     print(f"{args.preset} seed {args.seed}, {', '.join(drives)}: {n_scans} scans, {wall:.1f} s wall, "
           f"{n_scans / wall:.1f} scans/s end to end, peak RSS {doc['peak_rss_mb_max']} MB (largest process)")
-    print(f"| stage | wall s | CPU s |\n|---|---|---|")
+    print("| stage | wall s | CPU s |\n|---|---|---|")
     for k, v in stages.items():
         print(f"| {k} | {v['wall_s']} | {v['cpu_s']} |")
     if args.json:

@@ -164,6 +164,11 @@ class StoreInputReader(InputReader):
         self._manifests: dict[str, dict | None] = {}
         self._row_groups: dict[tuple[str, str], list[tuple[str, int, Any, Any]]] = {}
 
+    def __getstate__(self) -> dict:
+        """Picklable (a stage may hand its reader to worker processes): caches are rebuilt where it lands."""
+        return {"root": self.root, "_inputs": self._inputs, "_schemas": self._schemas, "_manifests": {},
+                "_row_groups": {}}
+
     def _manifest(self, arg: str) -> dict | None:
         if arg not in self._manifests:
             dataset, fp = self._inputs.get(arg, ("", ""))

@@ -61,3 +61,43 @@ def test_distributed_local_cluster_gives_equal_tables(tiny_sync, tmp_path):
     for ds in ("scans_raw", "gnss_enu", "corners_per_scan", "marking_raster"):
         assert committed_table(root, ds).equals(committed_table(tmp_path, ds)), ds
     assert (tmp_path / "maps" / "tiny" / "LATEST").is_file()
+
+
+def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
+    """The pose graph's survey anchors (ground GICP and marking matches) of the tiny map drive, computed in the
+    stage's process and in a process pool in blocks of 3 keyframes: the same matches."""
+    import numpy as np
+
+    from pipeline.declare import PartitionKey
+    from pipeline.execute import _context, _task_spec
+    from pipeline.plan import make_plan
+    from pipeline.workflow import load_workflow
+    from stages.posegraph.compute import read_drive_inputs, scan_loader
+    from stages.posegraph.core import base_problem
+    from stages.posegraph.graph import optimize
+    from stages.posegraph.survey_anchor import survey_anchor_callback
+
+    root, _ = tiny_sync
+    plan = make_plan(load_workflow(REPO / "workflows" / "tiny.yaml"), root)
+    sp = plan.stages["posegraph"]
+    ctx = _context(_task_spec(plan, sp), PartitionKey(), root / "tmp" / "test-anchors", {})
+    drives, _ = read_drive_inputs(ctx)
+    survey = ctx.inputs.read("survey", columns=["east_m", "north_m", "up_m", "intensity"])
+    pts = np.column_stack([survey[c].to_numpy() for c in ("east_m", "north_m", "up_m")])
+    problem, offsets = base_problem(drives, ctx.params)
+    poses = optimize(problem)
+    results = []
+    for params in (ctx.params.model_copy(update={"parallel_min_items": 10_000}),
+                   ctx.params.model_copy(update={"parallel_min_items": 2, "survey_marking_block": 3})):
+        matches: list = []
+        survey_anchor_callback(drives, scan_loader(ctx), pts, params, matches,
+                               survey_intensity=survey["intensity"].to_numpy(),
+                               feature_load=scan_loader(ctx, ("intensity", "ring")))(poses, offsets)
+        results.append(matches)
+    serial, parallel = results
+    assert len(serial) == len(parallel) > 3
+    assert sum(m.horizontal is not None and m.horizontal.accepted for m in serial) > 0
+    for a, b in zip(serial, parallel):
+        assert (a.i, a.accepted, a.horizontal.accepted) == (b.i, b.accepted, b.horizontal.accepted)
+        np.testing.assert_allclose(a.T_map_vehicle, b.T_map_vehicle, atol=1e-6)
+        np.testing.assert_allclose(a.horizontal.shift_en_m, b.horizontal.shift_en_m, atol=1e-6)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.ingest.scan_formats import SCAN_SUFFIXES, read_scan
+from stages.ingest.scan_formats import read_scan
 from stages.ingest.sensors import SENSORS, elevation_deg
 
 _SYNONYMS = {
@@ -162,7 +162,7 @@ def draft_drive_file(folder: Path) -> Draft:
     d = Draft()
     d.add(f"# Drive file drafted by `cornermap drive init {folder.name}`: read every CHECK and TODO, then run "
           f"`cornermap drive check`.")
-    d.add(f"# Keys, units and conventions: docs/drive-file.md")
+    d.add("# Keys, units and conventions: docs/drive-file.md")
     d.add(f"name: {folder.name}")
     found = find_scan_folder(folder)
     n_points = []

@@ -21,25 +21,32 @@ from stages.posegraph.tables import drive_input, loops_table, poses_table
 log = logging.getLogger(__name__)
 
 
-def scan_loader(ctx: StageContext, extra_columns: tuple[str, ...] = ()):
+class ScanLoader:
     """Reads only the requested scans (the row groups that hold them): (xyz, time offsets or None,
-    *extra columns) per scan."""
-    def load(requests: list[tuple[str, int]]):
+    *extra columns) per scan. Picklable: worker processes of the stage read the store themselves."""
+
+    def __init__(self, inputs, extra_columns: tuple[str, ...] = ()):
+        self.inputs, self.extra_columns = inputs, tuple(extra_columns)
+
+    def __call__(self, requests: list[tuple[str, int]]):
         out = {}
+        extra = self.extra_columns
         for drive in sorted({d for d, _ in requests}):
             ids = sorted({s for d, s in requests if d == drive})
-            tab = ctx.inputs.read_in("scans", "scan_id", ids, partition=PartitionKey(drive=drive),
-                                     columns=["scan_id", "x_m", "y_m", "z_m", "time_offset_s", *extra_columns])
+            tab = self.inputs.read_in("scans", "scan_id", ids, partition=PartitionKey(drive=drive),
+                                      columns=["scan_id", "x_m", "y_m", "z_m", "time_offset_s", *extra])
             sid = tab["scan_id"].to_numpy()
             xyz = np.column_stack([tab[c].to_numpy().astype(np.float64) for c in ("x_m", "y_m", "z_m")])
             toff = tab["time_offset_s"].to_numpy().astype(np.float64)
             for s in ids:
                 m = sid == s
                 t = toff[m]
-                out[(drive, s)] = (xyz[m], t if np.any(t != 0) else None,
-                                   *(tab[c].to_numpy()[m] for c in extra_columns))
+                out[(drive, s)] = (xyz[m], t if np.any(t != 0) else None, *(tab[c].to_numpy()[m] for c in extra))
         return out
-    return load
+
+
+def scan_loader(ctx: StageContext, extra_columns: tuple[str, ...] = ()) -> ScanLoader:
+    return ScanLoader(ctx.inputs, extra_columns)
 
 
 def _loop_rows(loops, names: list[tuple[str, int]]) -> list[dict]:

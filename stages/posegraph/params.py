@@ -106,6 +106,8 @@ class PosegraphParams(Params):
     parallel_min_items: int = Field(32, ge=1, description="independent registrations (loop candidates, survey "
                                     "anchors) run in parallel processes (or cluster tasks) from this many on; "
                                     "fewer run in the stage's own process. Results do not depend on it")
+    survey_marking_block: int = Field(8, ge=1, description="consecutive keyframes matched on the markings by one "
+                                      "worker (they share submap scans); speed only, results do not depend on it")
     survey_marking_raster: MarkingRasterSettings = Field(
         default_factory=MarkingRasterSettings, description="how the survey's marking mask is rasterized (the "
         "pose graph's own settings: a markings-stage override does not reach them)")

@@ -43,28 +43,58 @@ class Solution:
 
 
 def vehicle_clouds(drives: list[DriveInput], offsets: np.ndarray, wanted: np.ndarray, load: ScanLoader,
-                   voxel_m: float, batch: int = 64) -> dict[int, np.ndarray]:
-    """Deskewed, voxel-downsampled vehicle-frame points of the wanted pose indices, loaded in batches."""
-    import open3d as o3d
+                   voxel_m: float, batch: int = 64, workers: int | None = 1) -> dict[int, np.ndarray]:
+    """Deskewed, voxel-downsampled vehicle-frame points of the wanted pose indices, loaded in batches; the
+    batches run through ``parallel_map`` (each worker reads its scans from the store) when ``workers`` != 1."""
+    from pipeline.parallel import parallel_map
 
     owner = np.searchsorted(offsets, wanted, side="right") - 1
-    incs = {}
-    out: dict[int, np.ndarray] = {}
+    items = []
     for start in range(0, len(wanted), batch):
-        chunk = [(int(g), int(o)) for g, o in zip(wanted[start:start + batch], owner[start:start + batch])]
-        got = load([(drives[o].name, int(drives[o].scan_ids[g - offsets[o]])) for g, o in chunk])
-        for g, o in chunk:
-            d, k = drives[o], g - offsets[o]
-            pts, toff = got[(d.name, int(d.scan_ids[k]))][:2]
-            keep = crop_range(pts, 2.0, 80.0)
-            pts = np.asarray(pts, float)[keep]
-            if toff is not None and o not in incs:
-                incs[o] = increments(d)
-            pts = deskew_scan_lidar(d, incs.get(o), k, pts, None if toff is None else np.asarray(toff, float)[keep])
-            pts = pts @ d.T_vehicle_lidar[:3, :3].T + d.T_vehicle_lidar[:3, 3]
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel_m)
-            out[g] = np.asarray(cloud.points)
+        chunk = [(int(g), int(o), int(g - offsets[o])) for g, o in zip(wanted[start:start + batch],
+                                                                         owner[start:start + batch])]
+        items.append((chunk, voxel_m))
+    out: dict[int, np.ndarray] = {}
+    for part in parallel_map(_clouds_item, items, workers=workers if len(items) > 1 else 1,
+                             initializer=_use_drives, initargs=(drives, load)):
+        out.update(part)
     return out
+
+
+def _use_drives(drives: list[DriveInput], load: ScanLoader) -> None:
+    from pipeline.parallel import set_worker_state
+
+    set_worker_state(drives=drives, load=load, increments={})
+
+
+def _clouds_item(item) -> dict[int, np.ndarray]:
+    """One batch of ``vehicle_clouds`` (module level: a pool process or a cluster worker runs it)."""
+    import open3d as o3d
+
+    from pipeline.parallel import worker_state
+
+    chunk, voxel_m = item
+    state = worker_state()
+    drives, incs = state["drives"], state["increments"]
+    got = state["load"]([(drives[o].name, int(drives[o].scan_ids[k])) for _, o, k in chunk])
+    out = {}
+    for g, o, k in chunk:
+        d = drives[o]
+        pts, toff = got[(d.name, int(d.scan_ids[k]))][:2]
+        keep = crop_range(pts, 2.0, 80.0)
+        pts = np.asarray(pts, float)[keep]
+        if toff is not None and o not in incs:
+            incs[o] = increments(d)
+        pts = deskew_scan_lidar(d, incs.get(o), k, pts, None if toff is None else np.asarray(toff, float)[keep])
+        pts = pts @ d.T_vehicle_lidar[:3, :3].T + d.T_vehicle_lidar[:3, 3]
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel_m)
+        out[g] = np.asarray(cloud.points)
+    return out
+
+
+def _workers(n_items: int, p) -> int | None:
+    """All the machine's processes (None) from ``p.parallel_min_items`` independent items on, else this one."""
+    return None if n_items >= p.parallel_min_items else 1
 
 
 def _verify_kwargs(p) -> dict:
@@ -96,8 +126,7 @@ def verify_candidates(candidates, poses: np.ndarray, clouds: dict[int, np.ndarra
         Ti = fixed.get(c.i, poses[c.i] if c.i < len(poses) else None)
         Tj = fixed.get(c.j, poses[c.j] if c.j < len(poses) else None)
         items.append((clouds[c.i], clouds[c.j], se3_inverse(Ti) @ Tj, kwargs))
-    workers = None if len(items) >= p.parallel_min_items else 1
-    verdicts = parallel_map(_verify_item, items, workers=workers, progress=progress)
+    verdicts = parallel_map(_verify_item, items, workers=_workers(len(items), p), progress=progress)
     return [LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted, v.reason,
                        v.information) for c, v in zip(candidates, verdicts)]
 
@@ -195,7 +224,7 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, p, *, extra_loops: lis
     cands = find_candidates(poses[:, :3, 3], stamps_s, group, query, radius_m=p.loop_radius_m,
                             min_separation_s=p.loop_min_separation_s, max_per_scan=p.loop_max_per_scan)
     wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
-    clouds = vehicle_clouds(drives, offsets, wanted, load, p.loop_voxel_m)
+    clouds = vehicle_clouds(drives, offsets, wanted, load, p.loop_voxel_m, workers=_workers(len(wanted), p))
     step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
     loops = verify_candidates(cands, poses, clouds, p, progress=step) + list(extra_loops)
     t2 = time.perf_counter()
@@ -232,7 +261,7 @@ def solve_reference(drive: DriveInput, map_drives: list[DriveInput], map_poses: 
     all_drives = [drive] + list(map_drives)
     offsets = np.cumsum([0] + [d.n for d in all_drives])
     wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
-    clouds = vehicle_clouds(all_drives, offsets, wanted, load, p.loop_voxel_m)
+    clouds = vehicle_clouds(all_drives, offsets, wanted, load, p.loop_voxel_m, workers=_workers(len(wanted), p))
     fixed = {g: map_poses[g - n] for g in wanted if g >= n}
     loops = verify_candidates(cands, poses, clouds, p, fixed=fixed)
     # map poses in loops become extra variables held by tight priors

@@ -123,6 +123,38 @@ def _anchor_item(item) -> SurveyMatch:
     return anchor_scan(k, cloud, pose, state["survey_pts"], state["survey_tree"], **kwargs)
 
 
+def _use_survey_markings(survey_enu_m: np.ndarray, survey_intensity: np.ndarray, feature_load) -> None:
+    """Pool/cluster worker initializer for the marking anchors: the survey's marking index and a scan loader."""
+    from pipeline.parallel import set_worker_state
+    from stages.posegraph.survey_markings import build_survey_marking_index
+
+    set_worker_state(marking_index=build_survey_marking_index(survey_enu_m, survey_intensity),
+                     feature_load=feature_load)
+
+
+def _marking_block(item) -> list:
+    """Marking anchors of consecutive keyframes of one drive (module level). Consecutive submaps share scans,
+    so a block keeps one feature cache; blocks are independent (a cache changes speed, never a result)."""
+    from pipeline.parallel import worker_state
+    from stages.posegraph.survey_markings import marking_anchor
+
+    drive, poses_drive, incs_drive, keys_local, kwargs = item
+    state = worker_state()
+    cache: dict = {}
+    return [marking_anchor(k, drive, poses_drive, incs_drive, state["feature_load"], state["marking_index"],
+                           feature_cache=cache, **kwargs) for k in keys_local]
+
+
+def marking_blocks(keys: np.ndarray, offsets: np.ndarray, block: int) -> list[tuple[int, list[int]]]:
+    """Keyframes (global indices, sorted) -> (drive index, local keyframe indices) blocks of at most ``block``."""
+    out = []
+    owner = np.searchsorted(offsets, keys, side="right") - 1
+    for o in np.unique(owner):
+        local = (keys[owner == o] - offsets[o]).astype(int).tolist()
+        out += [(int(o), local[i:i + block]) for i in range(0, len(local), block)]
+    return out
+
+
 def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_out: list | None = None,
                            survey_intensity: np.ndarray | None = None, feature_load=None, report_step=None):
     """A ``survey_priors(poses, offsets)`` callback for ``solve_map``: anchors keyframes every
@@ -135,32 +167,29 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
     from stages.posegraph.solve import vehicle_clouds
 
     survey_pts, tree = build_survey_index(survey_enu_m, p.loop_voxel_m / 2)
-    markings = None
-    if p.survey_markings and survey_intensity is not None and feature_load is not None:
-        from stages.posegraph.survey_markings import build_survey_marking_index, marking_anchor
+    with_markings = p.survey_markings and survey_intensity is not None and feature_load is not None
+    marking_kwargs = dict(half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
+                          search_m=p.survey_marking_search_m, raster=p.survey_marking_raster,
+                          sigma_scale=p.survey_marking_sigma_scale, min_sigma_m=p.survey_marking_min_sigma_m)
 
-        markings = build_survey_marking_index(survey_enu_m, survey_intensity)
-    incs: dict[int, np.ndarray] = {}
-    feature_caches: dict[int, dict] = {}  # per drive: the previous submap's features (submaps overlap)
-
-    def horizontal(k: int, poses: np.ndarray, offsets: np.ndarray):
-        o = int(np.searchsorted(offsets, k, side="right") - 1)
-        if o not in incs:
-            incs[o] = increments(drives[o])
-        a, b = int(offsets[o]), int(offsets[o + 1])
-        return marking_anchor(k - a, drives[o], poses[a:b], incs[o], feature_load, markings,
-                              half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
-                              search_m=p.survey_marking_search_m, raster=p.survey_marking_raster,
-                              sigma_scale=p.survey_marking_sigma_scale,
-                              min_sigma_m=p.survey_marking_min_sigma_m,
-                              feature_cache=feature_caches.setdefault(o, {}))
+    def horizontal(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray) -> list:
+        """The marking anchor of every keyframe, in blocks of consecutive keyframes run in parallel."""
+        blocks = marking_blocks(keys, offsets, p.survey_marking_block)
+        items = [(drives[o], poses[offsets[o]:offsets[o + 1]], increments(drives[o]), local, marking_kwargs)
+                 for o, local in blocks]
+        step = (lambda done, total: report_step("survey marking anchors", done, total)) if report_step else None
+        parallel = len(keys) >= p.parallel_min_items
+        done = parallel_map(_marking_block, items, workers=None if parallel else 1, initializer=_use_survey_markings,
+                            initargs=(survey_enu_m, survey_intensity, feature_load), progress=step)
+        return [m for block in done for m in block]
 
     def callback(poses: np.ndarray, offsets: np.ndarray) -> list[PosePrior]:
         group = np.repeat(np.arange(len(drives)), np.diff(offsets))
         keys = keyframes_by_travel(poses[:, :3, 3], group, p.survey_stride_m)
         covered = np.array([len(tree.query_ball_point(poses[k, :2, 3], 5.0)) > 0 for k in keys], bool)
         keys = keys[covered] if len(keys) else keys
-        clouds = vehicle_clouds(drives, offsets, keys, load, p.loop_voxel_m / 2)
+        clouds = vehicle_clouds(drives, offsets, keys, load, p.loop_voxel_m / 2,
+                                workers=None if len(keys) >= p.parallel_min_items else 1)
         kwargs = dict(crop_m=p.survey_crop_m, max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,
                       min_fitness=p.survey_min_fitness, max_rmse_m=p.survey_max_rmse_m,
                       min_sigma_m=p.survey_min_sigma_m, min_sigma_rad=p.survey_min_sigma_rad,
@@ -169,13 +198,9 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
         step = (lambda done, total: report_step("survey anchors", done, total)) if report_step else None
         matches = parallel_map(_anchor_item, items, workers=None if len(items) >= p.parallel_min_items else 1,
                                initializer=_use_survey, initargs=(survey_pts,), progress=step)
-        if markings is not None:
-            out = []
-            for n, m in enumerate(matches, 1):
-                out.append(replace(m, horizontal=horizontal(m.i, poses, offsets)))
-                if report_step:
-                    report_step("survey marking anchors", n, len(matches))
-            matches = out
+        if with_markings:
+            found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
+            matches = [replace(m, horizontal=h) for m, h in zip(matches, found)]
         if matches_out is not None:
             matches_out.extend(matches)
         return survey_priors(matches)
