@@ -10,14 +10,13 @@ from pipeline.declare import StageContext
 from pipeline.errors import ConfigError
 from stages.common.geodesy import EnuOrigin, geodetic_to_enu
 from stages.ingest.drive_file import DriveSpec, load_drive_file
-from stages.ingest.gnss_csv import (NS_PER_WEEK, GnssLimits, find_gaps, read_gnss, read_odometry, read_scan_stamps,
-                                    stamps_ns)
+from stages.ingest.gnss_csv import GnssLimits, find_gaps, read_gnss, read_odometry
 from stages.ingest.origin import resolve_enu_origin
 from stages.ingest.params import IngestParams
 from stages.ingest.pose_interpolation import attitude_from_rpy, interpolate_poses, vehicle_origin_from_reference
 from stages.ingest.report import IngestReport
-from stages.ingest.scan_pass import (MAX_SCAN_ID, PIECE_ROWS, ScanFile, ScanResult, iter_scan_results,
-                                     list_scan_files, points_table, scan_numbers, stamp_from_filename_us)
+from stages.ingest.scan_list import list_scans
+from stages.ingest.scan_pass import PIECE_ROWS, ScanResult, iter_scan_results, points_table
 from stages.ingest.survey import iter_survey_enu
 
 log = logging.getLogger(__name__)
@@ -72,57 +71,12 @@ class DriveIngest:
             for i, gap_s in find_gaps(self.gnss.stamp_ns, params.gnss_gap_s):
                 self.report.add("gnss_gap", spec.gnss.file, int(self.gnss.records[i]), 1,
                                 f"{gap_s:.3f} s without a fix after this record (threshold {params.gnss_gap_s} s)")
-        self.scans = self._scan_files()
+        self.scans = list_scans(spec, self.gnss, params.max_scans, self.report)
         self.report_coverage()
         self._index_rows: list[dict] | None = None
         self._untimed = 0
 
     # ---- scan list and stamps --------------------------------------------------------------------------
-    def _scan_files(self) -> list[ScanFile]:
-        """Scan files with their ids and stamps. Ids are the numbers in the file names (KITTI ``0000000042.pcd``
-        is scan 42; a missing file leaves a gap in the ids and no other scan's stamp moves); names without a
-        unique number fall back to the sorted listing (reported). Stamps: rate (t0 + (id - first id) / rate),
-        the file name (microseconds), or a stamps file joined on scan_id."""
-        spec = self.spec
-        files = list_scan_files(spec.path(spec.scans.folder), spec.scans.format)
-        source = spec.scan_times.source
-        numbers = scan_numbers(files)
-        if numbers is None and source in ("rate", "stamps_csv", "pcd_field") and files:
-            self.report.add("scan_gap", spec.scans.folder, None, len(files),
-                            "file names carry no unique scan number: ids follow the sorted listing, so a missing "
-                            "file cannot be told from a gap")
-        ids = numbers if numbers is not None and source != "filename_us" else list(range(len(files)))
-        by_id = dict(zip(ids, files))
-        if source == "rate":
-            t0 = stamps_ns(spec.scan_times.t0_s) if spec.scan_times.t0_s is not None else \
-                (int(self.gnss.stamp_ns[0]) if self.gnss is not None and len(self.gnss.stamp_ns) else 0)
-            first = min(ids, default=0)
-            scans = [ScanFile(i, by_id[i], t0 + round((i - first) * 1e9 / spec.scan_rate_hz)) for i in sorted(by_id)]
-        elif source == "filename_us":
-            scans = [ScanFile(i, p, stamp_from_filename_us(p)) for i, p in by_id.items()]
-        else:
-            week = None
-            if spec.gnss and spec.gnss.time.week_column and self.gnss is not None and len(self.gnss.stamp_ns):
-                week = int(self.gnss.stamp_ns[0] // NS_PER_WEEK)
-            stamps, issues = read_scan_stamps(spec.stamps_file, week, MAX_SCAN_ID)
-            for issue in issues:
-                self.report.add("timestamp", spec.scan_times.file or "scan stamps", issue.record, 1, issue.reason)
-            scans = [ScanFile(i, by_id.get(i), stamps.get(i)) for i in sorted(set(by_id) | set(stamps))]
-        if self.params.max_scans is not None:
-            scans = scans[:self.params.max_scans]
-        missing = [(a.scan_id, b.scan_id) for a, b in zip(scans, scans[1:]) if b.scan_id - a.scan_id > 1]
-        for before, after in missing:
-            self.report.add("scan_gap", spec.scans.folder, before, after - before - 1,
-                            f"no scan between {before} and {after}: a gap in the drive (kept as a gap)")
-        known = [s for s in scans if s.stamp_ns is not None]
-        stamp_file = spec.scan_times.file or "scan stamps"
-        for prev, cur in zip(known, known[1:]):
-            if cur.stamp_ns <= prev.stamp_ns:
-                self.report.add("timestamp", stamp_file, cur.scan_id, 1,
-                                f"scan stamp {'repeats' if cur.stamp_ns == prev.stamp_ns else 'goes back'} "
-                                f"after scan {prev.scan_id}")
-        return scans
-
     # ---- the scan pass -----------------------------------------------------------------------------------
     def _results(self) -> Iterator[ScanResult]:
         p = self.params

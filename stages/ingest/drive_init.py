@@ -8,32 +8,14 @@ missing altogether with ``# TODO:``. The draft is meant to be read, completed an
 """
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from stages.ingest.drive_init_csv import draft_csvs
 from stages.ingest.scan_formats import read_scan
 from stages.ingest.sensors import SENSORS, elevation_deg
-
-_SYNONYMS = {
-    "time": ("gps_seconds", "gps_time", "seconds", "time_s", "time", "timestamp", "stamp", "t", "utc_time"),
-    "week": ("gps_week", "week"),
-    "lat": ("lat", "latitude", "lat_deg", "latitude_deg"),
-    "lon": ("lon", "lng", "long", "longitude", "lon_deg", "longitude_deg"),
-    "height": ("height", "alt", "altitude", "h", "height_m", "alt_m", "ellipsoidal_height"),
-    "heading": ("azimuth", "heading", "yaw", "heading_deg", "yaw_rad"),
-    "roll": ("roll", "roll_deg", "roll_rad"),
-    "pitch": ("pitch", "pitch_deg", "pitch_rad"),
-    "std_east": ("std_east", "east_std", "std_e", "sigma_east", "longitude_std"),
-    "std_north": ("std_north", "north_std", "std_n", "sigma_north", "latitude_std"),
-    "std_up": ("std_up", "up_std", "std_u", "sigma_up", "height_std"),
-    "std_heading": ("std_heading", "azimuth_std", "heading_std", "std_yaw", "yaw_std"),
-    "speed": ("speed", "speed_mps", "v", "vf", "velocity", "wheel_speed"),
-    "yaw_rate": ("yaw_rate", "yaw_rate_radps", "gyro_z", "wz", "wu"),
-}
-
 
 @dataclass
 class Draft:
@@ -48,56 +30,6 @@ class Draft:
     def unknown(self, text: str, what: str) -> None:
         self.todo.append(what)
         self.lines.append(f"{text}  # TODO: {what}")
-
-
-_UNIT_SUFFIXES = ("_deg", "_rad", "_m", "_mps", "_radps", "_s", "_ns")
-_STD_ALIASES = {"std_lat": "std_north", "std_lon": "std_east", "std_height": "std_up", "std_alt": "std_up",
-                "std_azimuth": "std_heading", "lat_std": "std_north", "lon_std": "std_east"}
-
-
-def _bare(name: str) -> str:
-    """A column name without its unit suffix, std aliases resolved: ``std_lat_m`` -> ``std_north``."""
-    low = name.strip().lower()
-    for suffix in _UNIT_SUFFIXES:
-        if low.endswith(suffix) and len(low) > len(suffix):
-            low = low[: -len(suffix)]
-            break
-    return _STD_ALIASES.get(low, low)
-
-
-def _pick(header: list[str], role: str) -> str | None:
-    """The header column that plays ``role``: exact synonyms first, then synonyms after unit suffixes."""
-    lower = {h.lower(): h for h in header}
-    for name in _SYNONYMS[role]:
-        if name in lower:
-            return lower[name]
-    bare = {_bare(h): h for h in header}
-    for name in (role,) + _SYNONYMS[role]:
-        if _bare(name) in bare:
-            return bare[_bare(name)]
-    return None
-
-
-def _header(path: Path) -> list[str]:
-    try:
-        with open(path, newline="", errors="replace") as fh:
-            return [c.strip() for c in next(csv.reader(fh), [])]
-    except OSError:
-        return []
-
-
-def _column_values(path: Path, column: str, limit: int = 2000) -> np.ndarray:
-    with open(path, newline="", errors="replace") as fh:
-        reader = csv.DictReader(fh)
-        out = []
-        for n, row in enumerate(reader):
-            if n >= limit:
-                break
-            try:
-                out.append(float(row[column]))
-            except (TypeError, ValueError, KeyError):
-                continue
-    return np.asarray(out, float)
 
 
 def find_scan_folder(folder: Path) -> tuple[Path, str, list[Path]] | None:
@@ -164,75 +96,71 @@ def draft_drive_file(folder: Path) -> Draft:
           f"`cornermap drive check`.")
     d.add("# Keys, units and conventions: docs/drive-file.md")
     d.add(f"name: {folder.name}")
-    found = find_scan_folder(folder)
-    n_points = []
-    if found is None:
-        d.unknown("scans: {folder: scans, format: pcd}", "no folder with .pcd/.bin/.las scan files found")
-        d.unknown("sensor: generic", "sensor model")
-        fmt = None
-    else:
-        scan_dir, kind, files = found
-        fmt = {"pcd": "pcd", "las": "las", "bin": bin_format(files[0])}[kind]
-        if fmt == "las" and _georeferenced(files[0]):
-            d.unknown("scans: {folder: scans, format: pcd}", f"{len(files)} LAS/LAZ files in "
-                      f"{scan_dir.relative_to(folder).as_posix() or '.'} are georeferenced clouds (a survey), not "
-                      f"sensor-frame scans; no scan folder found")
-            d.unknown("sensor: generic", "sensor model")
-            d.add("scan_rate_hz: 10.0", "CHECK: the sensor's rotation rate")
-            d.unknown("T_vehicle_lidar: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1.7], [0, 0, 0, 1]]",
-                      "the lidar's pose in the vehicle frame")
-            _draft_csvs(folder, d)
-            _draft_survey(folder, d, None)
-            return d
-        sample = [files[0], files[len(files) // 2], files[-1]]
-        elev, beams = [], []
-        has_ring = has_time = False
-        for f in sample:
-            try:
-                pts = read_scan(f, fmt)
-            except Exception:  # noqa: BLE001 - a draft notes unreadable samples, check reports them
-                continue
-            ok = np.isfinite(pts.x_m) & (np.abs(pts.x_m) + np.abs(pts.y_m) + np.abs(pts.z_m) > 0)
-            n_points.append(int(ok.sum()))
-            elev.append(elevation_deg(pts.x_m[ok], pts.y_m[ok], pts.z_m[ok]))
-            beams.append(count_beams(pts.select(ok)))
-            has_ring |= pts.ring is not None
-            has_time |= pts.time_offset_s is not None
-        rel = scan_dir.relative_to(folder).as_posix() or "."
-        note = f"{len(files)} files; {min(n_points, default=0)}-{max(n_points, default=0)} points in 3 sampled"
-        if has_ring:
-            note += "; ring field present"
-        if not has_time:
-            note += "; no per-point time (scans are not deskewed)"
-        d.add("scans:")
-        d.add(f"  folder: {rel}", note)
-        d.add(f"  format: {fmt}")
-        if elev:
-            known = [b for b in beams if b]
-            sensor, why = guess_sensor(np.concatenate(elev), max(known) if known else None)
-            d.add(f"sensor: {sensor}", f"CHECK: guessed from the elevation histogram ({why})")
-            if sensor == "generic":
-                d.unknown("# elevations_deg: [...]", "the beam elevation table (ascending) if rings are to be "
-                                                     "recovered from elevation")
-        else:
-            d.unknown("sensor: generic", "no sampled scan was readable")
-        stamps = scan_dir / "stamps.csv"
-        numbered_us = all(len("".join(ch for ch in f.name.split(".")[0] if ch.isdigit())) >= 13 for f in sample)
-        if stamps.is_file():
-            d.add("scan_times:", "scan stamps from the stamps file")
-            d.add(f"  source: {'pcd_field' if has_time else 'stamps_csv'}")
-            d.add(f"  file: {stamps.relative_to(folder).as_posix()}")
-        elif numbered_us:
-            d.add("scan_times: {source: filename_us}", "file names end in microsecond stamps")
-        else:
-            d.add("scan_times: {source: rate}", "CHECK: scan i at t0 + (i - first) / scan_rate_hz; t0 = first "
-                                                "GNSS fix unless t0_s is given")
+    fmt = _draft_scans(folder, d)
     d.add("scan_rate_hz: 10.0", "CHECK: the sensor's rotation rate")
     d.unknown("T_vehicle_lidar: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1.7], [0, 0, 0, 1]]",
               "the lidar's pose in the vehicle frame (x forward, y left, z up; here: identity, 1.7 m up)")
-    _draft_csvs(folder, d)
+    draft_csvs(folder, d)
     _draft_survey(folder, d, fmt)
     return d
+
+
+def _draft_scans(folder: Path, d: Draft) -> str | None:
+    """The scans, sensor and scan_times sections; returns the scan format (None: no sensor-frame scans)."""
+    found = find_scan_folder(folder)
+    if found is not None and found[1] == "las" and _georeferenced(found[2][0]):
+        d.unknown("scans: {folder: scans, format: pcd}", f"{len(found[2])} LAS/LAZ files in "
+                  f"{found[0].relative_to(folder).as_posix() or '.'} are georeferenced clouds (a survey), not "
+                  f"sensor-frame scans; no scan folder found")
+        found = None
+    elif found is None:
+        d.unknown("scans: {folder: scans, format: pcd}", "no folder with .pcd/.bin/.las scan files found")
+    if found is None:
+        d.unknown("sensor: generic", "sensor model")
+        return None
+    scan_dir, kind, files = found
+    fmt = {"pcd": "pcd", "las": "las", "bin": bin_format(files[0])}[kind]
+    sample = [files[0], files[len(files) // 2], files[-1]]
+    elev, beams, n_points = [], [], []
+    has_ring = has_time = False
+    for f in sample:
+        try:
+            pts = read_scan(f, fmt)
+        except Exception:  # noqa: BLE001 - a draft notes unreadable samples, check reports them
+            continue
+        ok = np.isfinite(pts.x_m) & (np.abs(pts.x_m) + np.abs(pts.y_m) + np.abs(pts.z_m) > 0)
+        n_points.append(int(ok.sum()))
+        elev.append(elevation_deg(pts.x_m[ok], pts.y_m[ok], pts.z_m[ok]))
+        beams.append(count_beams(pts.select(ok)))
+        has_ring |= pts.ring is not None
+        has_time |= pts.time_offset_s is not None
+    note = f"{len(files)} files; {min(n_points, default=0)}-{max(n_points, default=0)} points in 3 sampled"
+    note += "; ring field present" if has_ring else ""
+    note += "" if has_time else "; no per-point time (scans are not deskewed)"
+    d.add("scans:")
+    d.add(f"  folder: {scan_dir.relative_to(folder).as_posix() or '.'}", note)
+    d.add(f"  format: {fmt}")
+    if elev:
+        known = [b for b in beams if b]
+        sensor, why = guess_sensor(np.concatenate(elev), max(known) if known else None)
+        d.add(f"sensor: {sensor}", f"CHECK: guessed from the elevation histogram ({why})")
+        if sensor == "generic":
+            d.unknown("# elevations_deg: [...]", "the beam elevation table (ascending) if rings are to be "
+                                                 "recovered from elevation")
+    else:
+        d.unknown("sensor: generic", "no sampled scan was readable")
+    stamps = scan_dir / "stamps.csv"
+    numbered_us = all(len("".join(ch for ch in f.name.split(".")[0] if ch.isdigit())) >= 13 for f in sample)
+    if stamps.is_file():
+        d.add("scan_times:", "scan stamps from the stamps file")
+        d.add(f"  source: {'pcd_field' if has_time else 'stamps_csv'}")
+        d.add(f"  file: {stamps.relative_to(folder).as_posix()}")
+    elif numbered_us:
+        d.add("scan_times: {source: filename_us}", "file names end in microsecond stamps")
+    else:
+        d.add("scan_times: {source: rate}", "CHECK: scan i at t0 + (i - first) / scan_rate_hz; t0 = first "
+                                            "GNSS fix unless t0_s is given")
+    return fmt
 
 
 def _georeferenced(path: Path) -> bool:
@@ -245,74 +173,6 @@ def _georeferenced(path: Path) -> bool:
             return bool(max(abs(h.mins[0]), abs(h.mins[1])) > 1000.0 or h.parse_crs() is not None)
     except Exception:  # noqa: BLE001 - treated as sensor-frame scans; check reports unreadable files
         return False
-
-
-def _draft_csvs(folder: Path, d: Draft) -> None:
-    csvs = sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".csv", ".txt") and p.name != "stamps.csv")
-    gnss = odom = None
-    for path in csvs:
-        header = _header(path)
-        if gnss is None and _pick(header, "lat") and _pick(header, "lon"):
-            gnss = (path, header)
-        elif odom is None and _pick(header, "speed") and _pick(header, "yaw_rate"):
-            odom = (path, header)
-    if gnss is None:
-        d.add("# gnss: none found (a CSV with latitude/longitude columns); the map then has no geodetic frame")
-    else:
-        path, header = gnss
-        rel = path.relative_to(folder).as_posix()
-        pick = {role: _pick(header, role) for role in _SYNONYMS}
-        d.add("gnss:")
-        d.add(f"  file: {rel}", f"columns: {', '.join(header)}")
-        if pick["time"]:
-            t = _column_values(path, pick["time"])
-            base = "unix" if t.size and np.nanmin(t) > 1e8 else "gps"
-            week = f", week_column: {pick['week']}" if pick["week"] else ""
-            note = "CHECK: unix seconds" if base == "unix" else \
-                ("GPS week + seconds" if pick["week"] else "CHECK: GPS seconds without a week column")
-            d.add(f"  time: {{column: {pick['time']}{week}, base: {base}}}", note)
-        else:
-            d.unknown("  time: {column: TIME, base: gps}", "no time column recognised")
-        cols = {k: pick[k] for k in ("lat", "lon", "height", "heading", "roll", "pitch", "std_east", "std_north",
-                                     "std_up", "std_heading") if pick[k]}
-        d.add("  columns:")
-        for key in ("lat", "lon", "height", "heading"):
-            if key in cols:
-                d.add(f"    {key}: {cols[key]}")
-            else:
-                d.unknown(f"    {key}: {key.upper()}", f"no {key} column recognised")
-        for key in ("roll", "pitch", "std_east", "std_north", "std_up", "std_heading"):
-            if key in cols:
-                d.add(f"    {key}: {cols[key]}")
-            else:
-                d.add(f"    # {key}: none", "missing: " + ("no roll/pitch prior is used" if key in ("roll", "pitch")
-                                                            else "the ingest param default is used (warned)"))
-        heading = (cols.get("heading") or "").lower()
-        unit_from_name = {_n.lower()[-4:] for _n in (cols.get(k) or "" for k in ("heading", "roll", "pitch"))}
-        angles = [_column_values(path, cols[k]) for k in ("heading", "roll", "pitch") if k in cols]
-        rad = bool(angles) and all(a.size == 0 or np.nanmax(np.abs(a)) <= 2 * np.pi + 0.01 for a in angles)
-        if "_deg" in unit_from_name or "_rad" in unit_from_name:
-            d.add(f"  angle_unit: {'rad' if '_rad' in unit_from_name else 'deg'}", "from the column names")
-        else:
-            d.add(f"  angle_unit: {'rad' if rad else 'deg'}", "CHECK: guessed from the values' range")
-        d.add("  latlon_unit: deg", "CHECK")
-        conv = "enu_yaw_ccw_from_east" if "yaw" in heading else "azimuth_cw_from_north"
-        d.add(f"  heading_convention: {conv}", f"CHECK: guessed from the column name {cols.get('heading')!r} "
-                                                "(azimuth/heading: clockwise from north; KITTI OXTS yaw: 0 = east, "
-                                                "counter-clockwise)")
-        d.add("  lever_arm_m: [0.0, 0.0, 0.0]", "CHECK: the GNSS/INS reference point in the vehicle frame")
-    if odom is None:
-        d.add("# odometry: none found (wheel speed + yaw rate CSV); evaluation then runs on ICP increments")
-    else:
-        path, header = odom
-        pick = {role: _pick(header, role) for role in ("time", "week", "speed", "yaw_rate")}
-        d.add("odometry:")
-        d.add(f"  file: {path.relative_to(folder).as_posix()}")
-        d.add(f"  time_column: {pick['time'] or 'TIME'}", "" if pick["time"] else "TODO: no time column recognised")
-        if pick["week"]:
-            d.add(f"  week_column: {pick['week']}")
-        d.add(f"  speed: {pick['speed']}", "m/s")
-        d.add(f"  yaw_rate: {pick['yaw_rate']}", "CHECK: rad/s, counter-clockwise positive")
 
 
 def _draft_survey(folder: Path, d: Draft, scan_format: str | None) -> None:

@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 from pipeline.errors import FormatError
 from stages.common.geodesy import EnuOrigin, geodetic_to_enu
 from stages.ingest.drive_file import GnssSpec
-from stages.ingest.gnss_csv import monotonic_mask, read_csv_columns, read_gnss, stamps_ns
+from stages.ingest.csv_columns import read_csv_columns
+from stages.ingest.gnss_csv import monotonic_mask, read_gnss, stamps_ns
 from stages.ingest.pose_interpolation import attitude_from_rpy, interpolate_poses, vehicle_origin_from_reference
 from stages.ingest.survey import crs_to_enu
 
