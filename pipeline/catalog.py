@@ -4,14 +4,15 @@
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pipeline.errors import ConfigError
+from pipeline.safe_yaml import load_yaml_file
 
 PARTITION_COLUMNS = ("drive", "chunk", "tile_i", "tile_j")
 
@@ -44,6 +45,9 @@ def resolve_schema(ref: str | None):
 
     if ref is None:
         return None
+    if ":" in ref and not re.match(r"^schemas(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$", ref):
+        raise ValueError(f"schema reference {ref!r}: 'module:ATTR' may only name a module of the schemas "
+                         "package (e.g. schemas.corners:CORNER_MAP); use a registry name otherwise")
     obj = resolve(ref) if ":" in ref else schema_of(ref)
     if not isinstance(obj, pa.Schema):
         raise TypeError(f"schema reference {ref!r} is a {type(obj).__name__}, expected a pyarrow.Schema")
@@ -64,9 +68,12 @@ def load_catalog(paths: list[Path]) -> Catalog:
     files = _yaml_files(paths)
     for file in files:
         try:
-            doc = yaml.safe_load(file.read_text()) or {}
-        except (OSError, yaml.YAMLError) as exc:
-            problems.append(f"{file}: cannot read YAML: {exc}")
+            doc = load_yaml_file(file) or {}
+        except ConfigError as exc:
+            problems += [f"{file}: {p}" for p in exc.problems]
+            continue
+        if not isinstance(doc, dict):
+            problems.append(f"{file}: expected a mapping with a 'datasets' key; got {type(doc).__name__}")
             continue
         unknown = set(doc) - {"datasets"}
         if unknown:

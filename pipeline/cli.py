@@ -53,14 +53,10 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version_cal
 def _load_param_file(path: Optional[Path]) -> dict:
     if path is None:
         return {}
-    import yaml
-
     from pipeline.errors import ConfigError
+    from pipeline.safe_yaml import load_yaml_file
 
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(str(path), [f"cannot read params file: {exc}"]) from exc
+    data = load_yaml_file(path) or {}
     if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
         raise ConfigError(str(path), ["expected a mapping {stage: {param: value}}"])
     return data

@@ -121,16 +121,21 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
 
     Example: [b]cornermap tiles verify --all --root runs/demo[/b]
     """
-    from pipeline.errors import ChecksumError
-    from pipeline.versioned import list_versions, resolve_version, version_name
+    from pipeline.errors import ChecksumError, UnknownNameError
+    from pipeline.versioned import list_versions, resolve_version, trusted_manifest_digests, version_name
     from stages.tiles.verify import verify_map
 
     d = map_dir_of(root, map_name)
     dirs = [d / version_name(v) for v in list_versions(d)] if all_versions else [resolve_version(d, version)]
+    if not dirs:
+        raise UnknownNameError(f"{d}: no published versions to verify")
+    trusted = trusted_manifest_digests(d)
     bad = []
     for vdir in dirs:
-        problems = verify_map(vdir)
-        typer.echo(f"{vdir.name}: {'ok' if not problems else f'{len(problems)} problem(s)'}")
+        expected = trusted.get(int(vdir.name[1:]))
+        problems = verify_map(vdir, expected)
+        note = "" if expected else " (no digest recorded outside the manifest: only its files were checked)"
+        typer.echo(f"{vdir.name}: {'ok' if not problems else f'{len(problems)} problem(s)'}{note}")
         for p in problems:
             typer.echo(f"  - {p}")
         bad += problems
