@@ -4,7 +4,6 @@
 """
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -45,13 +44,30 @@ def resolve_schema(ref: str | None):
 
     if ref is None:
         return None
-    if ":" in ref and not re.match(r"^schemas(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*$", ref):
-        raise ValueError(f"schema reference {ref!r}: 'module:ATTR' may only name a module of the schemas "
-                         "package (e.g. schemas.corners:CORNER_MAP); use a registry name otherwise")
+    if ":" in ref and ref.partition(":")[0] not in _trusted_schema_modules():
+        raise ValueError(f"schema reference {ref!r}: 'module:ATTR' may only name a module of the schemas package "
+                         "(e.g. schemas.registry:SCANS_RAW) or of a registered stage; use a registry name otherwise")
     obj = resolve(ref) if ":" in ref else schema_of(ref)
     if not isinstance(obj, pa.Schema):
         raise TypeError(f"schema reference {ref!r} is a {type(obj).__name__}, expected a pyarrow.Schema")
     return obj
+
+
+def _trusted_schema_modules() -> set[str]:
+    """Modules a catalog may import a schema from: ``schemas`` and its submodules, and the modules that
+    declare registered stages (already trusted code). Any other ``module:ATTR`` would let a YAML file
+    import arbitrary code."""
+    import pkgutil
+
+    import schemas
+    from pipeline.registry import load_stages
+
+    mods = {"schemas"} | {f"schemas.{m.name}" for m in pkgutil.iter_modules(schemas.__path__)}
+    for decl in load_stages().values():
+        for ref in (decl.compute, getattr(decl, "cli", None)):
+            if isinstance(ref, str) and ref:
+                mods.add(ref.partition(":")[0])
+    return mods
 
 
 def _yaml_files(paths: list[Path]) -> list[Path]:
