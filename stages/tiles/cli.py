@@ -27,6 +27,10 @@ def map_dir_of(root: Path, name: Optional[str]) -> Path:
     """ROOT/maps/NAME; with no name, the only map under ROOT/maps."""
     from pipeline.errors import UnknownNameError
 
+    from pipeline.names import check_name
+
+    if name is not None:
+        check_name(name, "map", "--map")
     maps = Path(root) / "maps"
     have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
     if name is None:
