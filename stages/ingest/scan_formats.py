@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import DatasetIOError, FormatError
-from stages.ingest.pcd import PcdCloud, read_pcd
+from stages.ingest.pcd import MAX_POINTS, PcdCloud, read_pcd
 
 SCAN_SUFFIXES = {"pcd": (".pcd",), "kitti_bin": (".bin",), "nuscenes_bin": (".bin",), "las": (".las", ".laz")}
 _INTENSITY = ("intensity", "reflectance", "i")
@@ -69,6 +69,9 @@ def points_from_pcd(cloud: PcdCloud, source: str = "<pcd>") -> ScanPoints:
     missing = [c for c in ("x", "y", "z") if c not in cols]
     if missing:
         raise FormatError(f"{source}: PCD fields {' '.join(cloud.header.fields)} lack {', '.join(missing)}")
+    multi = [c for c in ("x", "y", "z") if cols[c].ndim > 1]
+    if multi:
+        raise FormatError(f"{source}: PCD field(s) {', '.join(multi)} have COUNT > 1; expected one value per point")
     n = cloud.header.points
     _, intensity = _first(cols, _INTENSITY)
     ring_name, ring = _first(cols, _RING)
@@ -80,11 +83,14 @@ def points_from_pcd(cloud: PcdCloud, source: str = "<pcd>") -> ScanPoints:
 
 
 def _read_float32_records(path: Path, width: int, what: str) -> np.ndarray:
+    record = 4 * width
     try:
+        size = path.stat().st_size
+        if size > MAX_POINTS * record:
+            raise FormatError(f"{path}: {size} bytes = more than the limit of {MAX_POINTS} {what} points per scan")
         raw = path.read_bytes()
     except OSError as exc:
         raise DatasetIOError(f"{path}: cannot read {what} scan: {exc.strerror or exc}") from exc
-    record = 4 * width
     if len(raw) % record:
         raise FormatError(f"{path}: {len(raw)} bytes is not a whole number of {record}-byte {what} records "
                           f"(record {len(raw) // record} is incomplete). Hint: truncated file, or the wrong "
