@@ -157,7 +157,13 @@ def catalog_validate(catalog: Path = typer.Argument(Path("data_catalog")),
     typer.echo(f"ok: {len(cat.datasets)} datasets" + (f", {len(workflows)} workflow(s)" if workflows else ""))
 
 
+_REGISTERED: list[bool] = []
+
+
 def _register_stages() -> None:
+    if _REGISTERED:  # main() may run more than once in one process (tests)
+        return
+    _REGISTERED.append(True)
     from pipeline.registry import load_stages
     from pipeline.stage_cli import stage_app
 
