@@ -93,8 +93,8 @@ def load_yaml_file(path: Path | str, *, max_bytes: int = MAX_YAML_BYTES) -> Any:
         size = path.stat().st_size
         if size > max_bytes:
             raise ConfigError(str(path), [f"{size} bytes, more than the {max_bytes}-byte limit for a YAML file"])
-        with open(path, "rb") as fh:
-            raw = fh.read(max_bytes + 1)
+        with open(path, "rb") as fh:  # the size was checked; read(n) would preallocate n bytes
+            raw = fh.read()
     except OSError as exc:
         raise ConfigError(str(path), [f"cannot read: {exc.strerror or exc}"]) from exc
     return load_yaml(raw, str(path), max_bytes=max_bytes)

@@ -158,8 +158,10 @@ def read_manifest(version_dir: Path) -> tuple[dict[str, Any], str]:
     """(manifest dict, sha256 of manifest.json)."""
     path = Path(version_dir) / MANIFEST_NAME
     try:
-        with open(path, "rb") as fh:
-            raw = fh.read(MAX_MANIFEST_BYTES + 1)
+        with open(path, "rb") as fh:  # read(n) would preallocate n bytes: check the size first
+            if os.fstat(fh.fileno()).st_size > MAX_MANIFEST_BYTES:
+                raise MapFormatError(f"{path}: larger than the {MAX_MANIFEST_BYTES}-byte limit for a manifest")
+            raw = fh.read()
     except FileNotFoundError as exc:
         raise MapFormatError(f"{path}: missing; a complete version always has one") from exc
     except OSError as exc:

@@ -5,6 +5,7 @@ Formats: PCD v0.7 (see ``pcd.py``), KITTI ``.bin`` (float32 x y z reflectance), 
 """
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -109,11 +110,35 @@ def read_nuscenes_bin(path: Path) -> ScanPoints:
                       _rings_checked(a[:, 4], str(path), "column 5 (ring)"), None)
 
 
+def _check_las_sizes(path: Path, size: int, reader) -> None:  # noqa: ANN001 - a laspy.LasReader
+    """Declared point count and record size against the file size, before laspy allocates the points."""
+    with reader as fh:
+        h = fh.header
+        count, record, offset = int(h.point_count), int(h.point_format.size), int(h.offset_to_point_data)
+        compressed = bool(getattr(h, "are_points_compressed", False))
+    if count > MAX_POINTS:
+        raise FormatError(f"{path}: header announces {count} points, more than the limit of {MAX_POINTS} per file")
+    if not compressed and offset + count * record > size:
+        raise FormatError(f"{path}: header announces {count} points x {record} bytes from byte {offset}, but the "
+                          f"file has {size} bytes. Hint: truncated file or a corrupt header")
+    if compressed and count * record > 64 * max(size, 1):
+        raise FormatError(f"{path}: LAZ header announces {count * record} bytes of points from a {size}-byte file "
+                          "(ratio over 64)")
+
+
 def read_las_points(path: Path) -> ScanPoints:
     import laspy
 
     try:
-        las = laspy.read(path)
+        # From memory: laspy reads header fields with stream.read(n), and a file object preallocates n bytes
+        # (a corrupt 4-byte size took 1.2 GB); an in-memory stream never returns more than it holds.
+        if path.stat().st_size > MAX_POINTS * 64:
+            raise FormatError(f"{path}: {path.stat().st_size} bytes, more than a scan file may hold")
+        raw = path.read_bytes()
+        _check_las_sizes(path, len(raw), laspy.open(io.BytesIO(raw)))
+        las = laspy.read(io.BytesIO(raw))
+    except FormatError:
+        raise
     except FileNotFoundError as exc:
         raise DatasetIOError(f"{path}: LAS file not found") from exc
     except Exception as exc:  # laspy/lazrs raise many types for corrupt files  # noqa: BLE001

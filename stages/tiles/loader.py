@@ -94,7 +94,7 @@ class _Lru:
 
 def check_manifest_format(manifest: dict[str, Any], where: Path) -> None:
     fmt, ver = manifest.get("format"), manifest.get("format_version")
-    if fmt != layout.FORMAT_NAME or ver not in layout.SUPPORTED_FORMAT_VERSIONS:
+    if fmt != layout.FORMAT_NAME or not isinstance(ver, int) or ver not in layout.SUPPORTED_FORMAT_VERSIONS:
         raise MapFormatError(
             f"{where}: map format {fmt!r} version {ver!r} is not readable by this code (reads {layout.FORMAT_NAME!r} "
             f"versions {sorted(layout.SUPPORTED_FORMAT_VERSIONS)}); hint: upgrade cornermap or open an older version")
