@@ -56,7 +56,7 @@ def _cases(r: Path) -> list[tuple[str, ...]]:
         ("evaluate", "--map", m, "--drive", f"{R}/a_file", "--out", f"{R}/a_file"),
         # tiles: wrong names, hostile paths and options, broken maps
         ("tiles", "ls", "--root", f"{R}/nope"), ("tiles", "ls", "--root", R, "--map", "../.."),
-        ("tiles", "diff", "v1", "v7", "--root", R), ("tiles", "diff", "v1", "banana", "--root", R),
+        ("tiles", "diff", "v1", "v7", "--root", R), ("tiles", "diff", "v1", "v1", "--match-radius-m", "nan", "--root", R), ("tiles", "diff", "v1", "banana", "--root", R),
         ("tiles", "export", "--root", R), ("tiles", "export", "-f", "shp", "-o", f"{R}/x", "--root", R),
         ("tiles", "export", "-f", "geojson", "-o", f"{m}/LATEST", "--root", R),
         ("tiles", "export", "-f", "geojson", "-o", f"{m}/v0001/manifest.json", "--root", R),

@@ -81,9 +81,15 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
 
     Example: [b]cornermap tiles diff v0001 LATEST --root runs/demo --map demo[/b]
     """
+    import math
+
+    from pipeline.errors import LimitError
     from stages.tiles.diff import diff_maps
     from stages.tiles.loader import open_map
 
+    for opt, value in (("--move-threshold-m", move_threshold_m), ("--match-radius-m", match_radius_m)):
+        if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
+            raise LimitError(f"{opt} {value}: expected 0 to 1000 m")
     d = map_dir_of(root, map_name)
     a, b = open_map(d, version_a), open_map(d, version_b)
     diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m)
