@@ -17,8 +17,8 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from pipeline.errors import CornermapError
 
-FUZZ = settings(max_examples=int(os.environ.get("CORNERMAP_FUZZ_EXAMPLES", 40)), deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture,
-                                                                       HealthCheck.too_slow])
+FUZZ = settings(max_examples=int(os.environ.get("CORNERMAP_FUZZ_EXAMPLES", 40)), deadline=10_000,
+                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 PEAK_BYTES = 64 << 20
 
 

@@ -50,7 +50,7 @@ def verify_map(version_dir: Path, manifest_sha256: str | None = None) -> list[st
                 continue
             if rel not in files:
                 problems.append(f"{version_dir / rel}: {where} names a file the file table does not list")
-            elif sha is not None and files[rel].get("sha256") != sha:
+            elif sha is not None and (files[rel].get("sha256") if isinstance(files[rel], dict) else None) != sha:
                 problems.append(f"{version_dir / rel}: {where} records a sha256 the file table does not")
         if f"{tdir}/{layout.CORNERS_FILE}" not in files:
             problems.append(f"{version_dir / tdir}: {where} has no {layout.CORNERS_FILE}")
