@@ -156,6 +156,21 @@ def main() -> None:
         cold_both.append(t2 - t0)
     print(f"load one tile (cold cache, OS page cache warm): corners {_ms(cold_corners)}; corners + marking "
           f"{_ms(cold_both)}")
+    from stages.tiles import loader as loader_module
+
+    first, trusted = [], []
+    for _ in range(args.repeats):
+        i, j = keys[rng.integers(len(keys))]
+        for out, trust in ((first, False), (trusted, True)):
+            reader.clear_cache()
+            loader_module._VERIFIED.clear()
+            reader.trust_files = trust
+            t0 = time.perf_counter()
+            reader.tile_corners(i, j)
+            reader.tile_marking(i, j)
+            out.append(time.perf_counter() - t0)
+    reader.trust_files = False
+    print(f"load one tile, first read by the process: sha256-verified {_ms(first)}; trust_files=True {_ms(trusted)}")
     centres = path[rng.integers(len(path), size=args.repeats)]
     reader.clear_cache()
     cold_q = []

@@ -35,11 +35,12 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
     ``ROOT/workflows/`` (absolute paths: the build's record of what it ran)."""
     from pipeline.resources import resolve_workflow
 
+    from pipeline.safe_yaml import load_yaml_file
+
     path = resolve_workflow(template)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(str(path), [f"cannot read the map workflow: {exc}"]) from exc
+    doc = load_yaml_file(path)
+    if not isinstance(doc, dict):
+        raise ConfigError(str(path), ["the map workflow is not a mapping"])
     missing = [str(d) for d in drives if not Path(d).is_file()]
     if missing:
         raise ConfigError("cornermap build", [f"drive file not found: {m}" for m in missing])

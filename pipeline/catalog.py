@@ -8,10 +8,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pipeline.errors import ConfigError
+from pipeline.safe_yaml import load_yaml_file
 
 PARTITION_COLUMNS = ("drive", "chunk", "tile_i", "tile_j")
 
@@ -44,10 +44,30 @@ def resolve_schema(ref: str | None):
 
     if ref is None:
         return None
+    if ":" in ref and ref.partition(":")[0] not in _trusted_schema_modules():
+        raise ValueError(f"schema reference {ref!r}: 'module:ATTR' may only name a module of the schemas package "
+                         "(e.g. schemas.registry:SCANS_RAW) or of a registered stage; use a registry name otherwise")
     obj = resolve(ref) if ":" in ref else schema_of(ref)
     if not isinstance(obj, pa.Schema):
         raise TypeError(f"schema reference {ref!r} is a {type(obj).__name__}, expected a pyarrow.Schema")
     return obj
+
+
+def _trusted_schema_modules() -> set[str]:
+    """Modules a catalog may import a schema from: ``schemas`` and its submodules, and the modules that
+    declare registered stages (already trusted code). Any other ``module:ATTR`` would let a YAML file
+    import arbitrary code."""
+    import pkgutil
+
+    import schemas
+    from pipeline.registry import load_stages
+
+    mods = {"schemas"} | {f"schemas.{m.name}" for m in pkgutil.iter_modules(schemas.__path__)}
+    for decl in load_stages().values():
+        for ref in (decl.compute, getattr(decl, "cli", None)):
+            if isinstance(ref, str) and ref:
+                mods.add(ref.partition(":")[0])
+    return mods
 
 
 def _yaml_files(paths: list[Path]) -> list[Path]:
@@ -64,9 +84,12 @@ def load_catalog(paths: list[Path]) -> Catalog:
     files = _yaml_files(paths)
     for file in files:
         try:
-            doc = yaml.safe_load(file.read_text()) or {}
-        except (OSError, yaml.YAMLError) as exc:
-            problems.append(f"{file}: cannot read YAML: {exc}")
+            doc = load_yaml_file(file) or {}
+        except ConfigError as exc:
+            problems += [f"{file}: {p}" for p in exc.problems]
+            continue
+        if not isinstance(doc, dict):
+            problems.append(f"{file}: expected a mapping with a 'datasets' key; got {type(doc).__name__}")
             continue
         unknown = set(doc) - {"datasets"}
         if unknown:

@@ -53,14 +53,10 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version_cal
 def _load_param_file(path: Optional[Path]) -> dict:
     if path is None:
         return {}
-    import yaml
-
     from pipeline.errors import ConfigError
+    from pipeline.safe_yaml import load_yaml_file
 
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(str(path), [f"cannot read params file: {exc}"]) from exc
+    data = load_yaml_file(path) or {}
     if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
         raise ConfigError(str(path), ["expected a mapping {stage: {param: value}}"])
     return data
@@ -134,7 +130,9 @@ def build_cmd(drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml 
     Example: [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
     """
     from pipeline.build import parse_origin, write_build_workflow
+    from pipeline.names import check_name
 
+    check_name(map_name, "map", "--map")
     path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root,
                                 origin=parse_origin(origin) if origin else None)
     result = execute_workflow(path, root=root, scheduler=scheduler, only=None, dry_run=False, quiet=quiet)
@@ -176,7 +174,13 @@ def catalog_validate(catalog: Optional[Path] = typer.Argument(None, help="defaul
     typer.echo(f"ok: {len(cat.datasets)} datasets" + (f", {len(workflows)} workflow(s)" if workflows else ""))
 
 
+_REGISTERED: list[bool] = []
+
+
 def _register_stages() -> None:
+    if _REGISTERED:  # main() may run more than once in one process (tests)
+        return
+    _REGISTERED.append(True)
     from pipeline.registry import load_stages
     from pipeline.stage_cli import stage_app
 
@@ -195,24 +199,43 @@ def _register_stages() -> None:
             app.add_typer(sub, name=name, help=decl.summary)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: every error a user can cause ends as one ``error: ...`` line on stderr and exit 1 (3 for
+    data-quality failures); an unexpected exception is reported the same way (traceback with -v)."""
     try:  # typer >= 0.20 vendors click
-        from typer._click.exceptions import ClickException
+        from typer._click.exceptions import ClickException, UsageError
     except ImportError:  # pragma: no cover - older typer
-        from click.exceptions import ClickException
+        from click.exceptions import ClickException, UsageError
 
     try:
         _register_stages()
         command = typer.main.get_command(app)
-        command.main(prog_name="cornermap", standalone_mode=False)
+        command.main(args=argv, prog_name="cornermap", standalone_mode=False)
     except typer.Exit as exc:
         sys.exit(getattr(exc, "exit_code", 0))
+    except UsageError as exc:
+        path = exc.ctx.command_path if exc.ctx is not None else "cornermap"
+        typer.echo(f"error: {exc.format_message()} (see '{path} --help')", err=True)
+        sys.exit(1)
     except ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
+        typer.echo(f"error: {exc.format_message()}", err=True)
+        sys.exit(1)
     except typer.Abort:
         typer.echo("aborted", err=True)
         sys.exit(130)
     except CornermapError as exc:
-        typer.echo(f"error: {exc}", err=True)
+        from pipeline.errors import ConfigError
+
+        one = isinstance(exc, ConfigError) and len(exc.problems) == 1
+        typer.echo(f"error: {exc.where}: {exc.problems[0]}" if one else f"error: {exc}", err=True)
         sys.exit(exc.exit_code)
+    except OSError as exc:  # the file system refused (permissions, full disk, a directory where a file goes)
+        where = f"{exc.filename}: " if exc.filename else ""
+        typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
+        sys.exit(1)
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: a bug, reported without a traceback
+        if logging.getLogger().isEnabledFor(logging.INFO):
+            logging.getLogger("cornermap").exception("unexpected error")
+        typer.echo(f"error: internal error {type(exc).__name__}: {exc} (a bug; rerun with -v for the traceback)",
+                   err=True)
+        sys.exit(1)

@@ -64,3 +64,15 @@ class MapFormatError(CornermapError, ValueError):
 
 class ChecksumError(CornermapError, ValueError):
     """A file's sha256 differs from the one its manifest records."""
+
+
+class IntegrityError(ChecksumError):
+    """A file read for use does not match the digest recorded for it (tampered or corrupted)."""
+
+
+class PathEscapeError(CornermapError, ValueError):
+    """A path derived from input (a name, a manifest entry) resolves outside the directory it must stay in."""
+
+
+class LimitError(CornermapError, ValueError):
+    """An input or option asks for more work or memory than the stated limit allows."""

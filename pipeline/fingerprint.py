@@ -74,15 +74,18 @@ def drive_fingerprint(drive_yaml: Path) -> str:
     drive keeps its fingerprint (a copy that does not keep modification times re-fingerprints its large files);
     a replaced input changes it.
     """
-    import yaml
+    from pipeline.errors import ConfigError
+    from pipeline.safe_yaml import MAX_YAML_BYTES, load_yaml
 
     drive_yaml = Path(drive_yaml)
     if not drive_yaml.is_file():
         return stable_hash({"missing": drive_yaml.name})
+    if drive_yaml.stat().st_size > MAX_YAML_BYTES:  # ingest refuses it by name; never read a huge file here
+        return stable_hash({"oversized": drive_yaml.stat().st_size})
     text = drive_yaml.read_bytes()
     try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError:  # ingest reports the problem; the fingerprint still changes with the text
+        doc = load_yaml(text, str(drive_yaml))
+    except ConfigError:  # ingest reports the problem; the fingerprint still changes with the text
         doc = None
     refs = {}
     for name, path in sorted(_referenced_paths(doc, drive_yaml.parent).items()):

@@ -13,6 +13,7 @@ from importlib.metadata import entry_points
 
 from pipeline.declare import StageDecl, resolve
 from pipeline.errors import ConfigError, UnknownNameError
+from pipeline.names import name_problem
 
 log = logging.getLogger(__name__)
 STAGE_ORDER = ("simulate", "ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "tiles", "evaluate")
@@ -36,6 +37,9 @@ def load_stages() -> dict[str, StageDecl]:
             continue
         if decl.name in stages:
             problems.append(f"two stages are named {decl.name!r}")
+        bad_name = name_problem(decl.name, "stage")
+        if bad_name:
+            problems.append(f"entry point {ref}: {bad_name}")
         stages[decl.name] = decl
     if problems:
         raise ConfigError("stage declarations", problems)

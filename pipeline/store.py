@@ -6,6 +6,12 @@ Layout under the output root::
     datasets/<dataset>/<fp16>/_parts/<label>.json      per-partition commit markers (resume after a kill)
     datasets/<dataset>/<fp16>/data/drive=../chunk=../part-<label>-<seq>.parquet
     datasets/<dataset>/<fp16>/artifacts/<label>/...   non-tabular files of a partition
+
+Verified reads: a stage reading a dataset first checks each Parquet file's sha256 against the dataset
+manifest (and each artifact file's, for manifests that record it); a mismatch is an ``IntegrityError``.
+A file verified once is not hashed again by the same process while its size, mtime and inode are unchanged
+(~0.7 GB/s of sha256 on the 2-core machine). Every path from a manifest or a partition value is resolved
+inside the dataset directory (``PathEscapeError`` otherwise).
 """
 from __future__ import annotations
 
@@ -13,6 +19,7 @@ import bisect
 import json
 import os
 import shutil
+import threading
 import uuid
 from pathlib import Path
 from typing import Any, Iterable
@@ -23,10 +30,34 @@ import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
 from pipeline.declare import InputReader, PartitionKey
-from pipeline.errors import DatasetIOError, SchemaMismatchError
+from pipeline.errors import DatasetIOError, IntegrityError, SchemaMismatchError
 from pipeline.fingerprint import file_sha256
+from pipeline.names import inside
 
 FP_LEN = 16
+_VERIFIED: dict[tuple[str, int, int, int], str] = {}  # (path, size, mtime_ns, inode) -> sha256, this process
+_VERIFIED_LOCK = threading.Lock()
+
+
+def verify_file(path: Path, sha256: str | None, dataset: str) -> None:
+    """Raise IntegrityError unless ``path``'s sha256 is ``sha256`` (None: nothing recorded, not checked)."""
+    if sha256 is None:
+        return
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise DatasetIOError(f"{path} (dataset {dataset!r}): listed in its manifest but unreadable "
+                             f"({exc.strerror or exc}); hint: delete the dataset directory to rebuild it") from exc
+    key = (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
+    if _VERIFIED.get(key) == sha256:
+        return
+    got = file_sha256(path)
+    if got != sha256:
+        raise IntegrityError(f"{path} (dataset {dataset!r}): sha256 {got[:16]}... differs from its manifest's "
+                             f"{sha256[:16]}...; the file is corrupt or was altered. hint: delete the dataset "
+                             "directory (its fingerprint folder) to rebuild it")
+    with _VERIFIED_LOCK:
+        _VERIFIED[key] = got
 
 
 def dataset_dir(root: Path, dataset: str, fingerprint: str) -> Path:
@@ -130,10 +161,10 @@ def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path,
         if table.num_rows == 0:
             continue
         for sub, parts, piece in _split_by_partition(table, partitioning):
-            path = out_dir / "data" / sub / f"part-{label}-{seq:05d}.parquet"
+            path = inside(out_dir, "data", sub, f"part-{label}-{seq:05d}.parquet")
             seq += 1
             rec = write_parquet_atomic(piece, path)
-            rec.update(path=str(path.relative_to(out_dir)), partition=parts)
+            rec.update(path=str(path.relative_to(Path(out_dir).resolve())), partition=parts)
             records.append(rec)
     return records
 
@@ -186,11 +217,23 @@ class StoreInputReader(InputReader):
                                  f"hint: run the stage that produces it first")
         return m
 
-    def read(self, arg, *, partition=None, columns=None, filters=None) -> pa.Table:
+    def _files(self, arg: str, partition: PartitionKey | None = None) -> list[str]:
+        """Paths of the dataset's files (of ``partition``), each confined to the dataset and sha256-verified."""
         m = self._require(arg)
         dataset, fp = self._inputs[arg]
         base = dataset_dir(self.root, dataset, fp)
-        files = [str(base / r["path"]) for r in m["files"] if _matches(r.get("partition", {}), partition)]
+        out = []
+        for r in m["files"]:
+            if _matches(r.get("partition", {}), partition):
+                path = inside(base, r["path"])
+                verify_file(path, r.get("sha256"), dataset)
+                out.append(str(path))
+        return out
+
+    def read(self, arg, *, partition=None, columns=None, filters=None) -> pa.Table:
+        dataset, fp = self._inputs.get(arg, ("?", ""))
+        base = dataset_dir(self.root, dataset, fp)
+        files = self._files(arg, partition)
         schema = self._schemas[arg]
         if not files:
             empty = schema.empty_table()
@@ -205,12 +248,9 @@ class StoreInputReader(InputReader):
         """(file, row group, min, max of ``column``) of every file of the dataset, from the Parquet footers."""
         key = (arg, column)
         if key not in self._row_groups:
-            m = self._require(arg)
-            dataset, fp = self._inputs[arg]
-            base = dataset_dir(self.root, dataset, fp)
+            dataset = self._inputs[arg][0]
             index = []
-            for r in m["files"]:
-                path = str(base / r["path"])
+            for path in self._files(arg):
                 try:
                     meta = pq.ParquetFile(path).metadata
                 except (OSError, pa.ArrowInvalid) as exc:
@@ -234,10 +274,7 @@ class StoreInputReader(InputReader):
         keys = sorted(set(values))
         wanted_files = None
         if partition is not None:
-            m = self._require(arg)
-            dataset, fp = self._inputs[arg]
-            base = dataset_dir(self.root, dataset, fp)
-            wanted_files = {str(base / r["path"]) for r in m["files"] if _matches(r.get("partition", {}), partition)}
+            wanted_files = set(self._files(arg, partition))
         read_cols = names if names is None or column in names else names + [column]
         parts = []
         for path, g, lo, hi in self._row_group_index(arg, column):
@@ -272,10 +309,12 @@ class StoreInputReader(InputReader):
         m = self._require(arg)
         dataset, fp = self._inputs[arg]
         label = (partition or PartitionKey()).label
-        path = dataset_dir(self.root, dataset, fp) / "artifacts" / label
+        path = inside(dataset_dir(self.root, dataset, fp), "artifacts", label)
         if label not in m.get("artifacts", {}):
             raise DatasetIOError(f"dataset {dataset!r} has no committed artifacts for partition {label!r}; "
                                  f"has {sorted(m.get('artifacts', {}))}")
+        for rec in m["artifacts"][label] or []:
+            verify_file(inside(path, rec["path"]), rec.get("sha256"), dataset)
         return path
 
 
@@ -287,5 +326,5 @@ def commit_artifacts(staging: Path, final: Path) -> list[dict[str, Any]]:
         shutil.rmtree(final)  # a killed attempt's leftovers; never listed in a manifest
     final.parent.mkdir(parents=True, exist_ok=True)
     os.replace(staging, final)
-    return [{"path": str(p.relative_to(final)), "bytes": p.stat().st_size}
+    return [{"path": str(p.relative_to(final)), "bytes": p.stat().st_size, "sha256": file_sha256(p)}
             for p in sorted(final.rglob("*")) if p.is_file()]

@@ -3,7 +3,8 @@
 Layout of one collection (e.g. ``ROOT/maps/NAME``)::
 
     NAME/
-      LATEST            one line "vNNNN\\n", replaced atomically (temp file + fsync + os.replace)
+      LATEST            one line "vNNNN <sha256 of its manifest.json>\\n", replaced atomically (temp file +
+                        fsync + os.replace); a file holding only "vNNNN" (before the digest) is still read
       .publish.lock     empty; an exclusive fcntl.flock held by the one publisher at work
       v0001/            immutable; manifest.json lists every other file with its sha256 and size
       v0002/ ...
@@ -15,6 +16,8 @@ Publishing (``publish_version``):
   3. every file is hashed, ``manifest.json`` is written last, then every checksum is re-read and verified;
   4. files and directories are fsynced, the staging directory is renamed to ``vNNNN`` (never onto an
      existing one), then ``LATEST`` is replaced;
+     Each manifest records ``parent_manifest_sha256``, so LATEST's digest vouches for the newest manifest
+     and each manifest for its parent's: an edited manifest anywhere in the chain is detected.
   5. retention removes the oldest versions beyond ``keep_last``, never the one ``LATEST`` names.
 A process killed at any point leaves ``LATEST`` naming the previous complete version (or absent).
 The flock is released by the kernel when its holder dies, so a killed publisher never wedges the next one.
@@ -36,7 +39,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
 
-from pipeline.errors import ChecksumError, DatasetIOError, MapFormatError, PublishConflictError, UnknownNameError
+from pipeline.errors import (ChecksumError, DatasetIOError, MapFormatError, PathEscapeError, PublishConflictError,
+                             UnknownNameError)
+from pipeline.names import inside
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +51,8 @@ LOCK_NAME = ".publish.lock"
 _STAGING_PREFIX = ".staging-"
 _TRASH_PREFIX = ".trash-"
 _VERSION_RE = re.compile(r"^v(\d{4,})$")
+_SHA_RE = re.compile(r"^[0-9a-f]{64}$")
+MAX_MANIFEST_BYTES = 64 << 20
 _CHUNK = 1 << 20
 
 
@@ -100,18 +107,35 @@ def list_versions(collection_dir: Path) -> list[int]:
     return sorted(out)
 
 
-def read_latest(collection_dir: Path) -> int | None:
-    """The version ``LATEST`` names, or None before the first publish."""
+def read_latest_entry(collection_dir: Path) -> tuple[int, str | None] | None:
+    """(version, manifest sha256 or None for an old one-field LATEST) that ``LATEST`` names; None before the
+    first publish."""
     path = Path(collection_dir) / LATEST_NAME
     try:
-        text = path.read_text(encoding="utf-8")
+        with open(path, "rb") as fh:
+            raw = fh.read(256)
+        text = raw.decode("utf-8")
     except FileNotFoundError:
         return None
-    first = text.strip().split()[0] if text.strip() else ""
-    if not _VERSION_RE.match(first):
-        raise MapFormatError(f"{path}: expected one line 'vNNNN'; got {text[:40]!r}. "
+    except (IsADirectoryError, UnicodeDecodeError) as exc:
+        raise MapFormatError(f"{path}: not a one-line text file ({exc}); hint: rewrite it as 'vNNNN SHA256'") from exc
+    except OSError as exc:
+        raise DatasetIOError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    fields = text.split()
+    ok = len(fields) in (1, 2) and _VERSION_RE.match(fields[0]) and (len(fields) == 1 or _SHA_RE.match(fields[1]))
+    if not ok:
+        raise MapFormatError(f"{path}: expected one line 'vNNNN SHA256'; got {text[:40]!r}. "
                              "hint: rewrite it with the name of a complete version directory")
-    return int(first[1:])
+    if len(fields) == 1:
+        log.warning("%s names %s without its manifest digest (written by an older cornermap); the manifest of "
+                    "that version cannot be checked against it", path, fields[0])
+    return int(fields[0][1:]), (fields[1] if len(fields) == 2 else None)
+
+
+def read_latest(collection_dir: Path) -> int | None:
+    """The version ``LATEST`` names, or None before the first publish."""
+    entry = read_latest_entry(collection_dir)
+    return None if entry is None else entry[0]
 
 
 def resolve_version(collection_dir: Path, version: str | int = "LATEST") -> Path:
@@ -134,25 +158,71 @@ def read_manifest(version_dir: Path) -> tuple[dict[str, Any], str]:
     """(manifest dict, sha256 of manifest.json)."""
     path = Path(version_dir) / MANIFEST_NAME
     try:
-        raw = path.read_bytes()
+        with open(path, "rb") as fh:  # read(n) would preallocate n bytes: check the size first
+            if os.fstat(fh.fileno()).st_size > MAX_MANIFEST_BYTES:
+                raise MapFormatError(f"{path}: larger than the {MAX_MANIFEST_BYTES}-byte limit for a manifest")
+            raw = fh.read()
     except FileNotFoundError as exc:
         raise MapFormatError(f"{path}: missing; a complete version always has one") from exc
+    except OSError as exc:
+        raise MapFormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    if len(raw) > MAX_MANIFEST_BYTES:
+        raise MapFormatError(f"{path}: larger than the {MAX_MANIFEST_BYTES}-byte limit for a manifest")
     try:
-        return json.loads(raw), hashlib.sha256(raw).hexdigest()
-    except json.JSONDecodeError as exc:
+        manifest = json.loads(raw)
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise MapFormatError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(manifest, dict):
+        raise MapFormatError(f"{path}: expected a JSON object; got {type(manifest).__name__}")
+    return manifest, hashlib.sha256(raw).hexdigest()
 
 
-def verify_version(version_dir: Path) -> list[str]:
-    """Every problem of a version directory (missing, extra or corrupted files); empty when intact."""
+def trusted_manifest_digests(collection_dir: Path) -> dict[int, str]:
+    """Manifest sha256 of each version vouched for from outside its own manifest: LATEST's digest for the
+    version it names, then each manifest's ``parent_manifest_sha256`` for its parent, down the chain.
+
+    The chain stops at a version whose manifest does not match the digest vouching for it (that version's
+    verification then fails) or that records no parent digest (older maps)."""
+    collection_dir = Path(collection_dir)
+    entry = read_latest_entry(collection_dir)
+    out: dict[int, str] = {}
+    if entry is None or entry[1] is None:
+        return out
+    version, sha = entry
+    while version is not None and sha is not None and version not in out:
+        out[version] = sha
+        try:
+            manifest, got = read_manifest(collection_dir / version_name(version))
+        except MapFormatError:
+            break
+        if got != sha:
+            break
+        parent, sha = manifest.get("parent_version"), manifest.get("parent_manifest_sha256")
+        version = parent if isinstance(parent, int) else None
+    return out
+
+
+def verify_version(version_dir: Path, manifest_sha256: str | None = None) -> list[str]:
+    """Every problem of a version directory (manifest digest when ``manifest_sha256`` is given, paths leaving
+    the directory, missing, extra or corrupted files); empty when intact."""
     version_dir = Path(version_dir)
-    manifest, _ = read_manifest(version_dir)
+    manifest, got_sha = read_manifest(version_dir)
+    problems = []
+    if manifest_sha256 is not None and got_sha != manifest_sha256:
+        problems.append(f"{version_dir / MANIFEST_NAME}: sha256 {got_sha[:16]}... differs from the digest recorded "
+                        f"outside it ({manifest_sha256[:16]}...); the manifest was edited or replaced")
     listed = manifest.get("files")
     if not isinstance(listed, dict):
-        return [f"{version_dir / MANIFEST_NAME}: no 'files' table"]
-    problems = []
+        return problems + [f"{version_dir / MANIFEST_NAME}: no 'files' table"]
     for rel, entry in sorted(listed.items()):
-        path = version_dir / rel
+        try:
+            path = inside(version_dir, rel)
+        except PathEscapeError as exc:
+            problems.append(f"{version_dir / MANIFEST_NAME}: file entry {rel!r} leaves the version directory ({exc})")
+            continue
+        if not isinstance(entry, dict):
+            problems.append(f"{version_dir / MANIFEST_NAME}: file entry {rel!r} is not an object")
+            continue
         if not path.is_file():
             problems.append(f"{path}: missing (manifest lists it)")
             continue
@@ -210,10 +280,14 @@ def _remove_leftovers(collection_dir: Path) -> None:
             os.unlink(entry.path)
 
 
-def write_latest(collection_dir: Path, version: int, durable: bool = True) -> None:
+def write_latest(collection_dir: Path, version: int, durable: bool = True, manifest_sha256: str | None = None) -> None:
+    """Point LATEST at ``version`` with its manifest's digest (read from disk when not given)."""
+    collection_dir = Path(collection_dir)
+    if manifest_sha256 is None:
+        manifest_sha256 = read_manifest(collection_dir / version_name(version))[1]
     tmp = collection_dir / f".{LATEST_NAME}.tmp-{os.getpid()}"
     with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(version_name(version) + "\n")
+        fh.write(f"{version_name(version)} {manifest_sha256}\n")
         fh.flush()
         if durable:
             os.fsync(fh.fileno())
@@ -262,6 +336,7 @@ def publish_version(collection_dir: Path, write: Callable[[Path], Mapping[str, A
     with publish_lock(collection_dir):
         _remove_leftovers(collection_dir)
         parent = read_latest(collection_dir)
+        parent_sha = read_manifest(collection_dir / version_name(parent))[1] if parent is not None else None
         if parent is not None and reuse is not None:
             parent_dir = collection_dir / version_name(parent)
             manifest, sha = read_manifest(parent_dir)
@@ -275,11 +350,11 @@ def publish_version(collection_dir: Path, write: Callable[[Path], Mapping[str, A
         staging.mkdir()
         try:
             fields = dict(write(staging))
-            reserved = {"version", "parent_version", "created_utc", "files"} & set(fields)
+            reserved = {"version", "parent_version", "parent_manifest_sha256", "created_utc", "files"} & set(fields)
             if reserved:
                 raise ValueError(f"writer returned reserved manifest keys {sorted(reserved)}")
             files = _hash_tree(staging, durable)
-            manifest = {**fields, "version": number, "parent_version": parent,
+            manifest = {**fields, "version": number, "parent_version": parent, "parent_manifest_sha256": parent_sha,
                         "created_utc": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
                         "files": files}
             raw = json.dumps(manifest, indent=1, sort_keys=False).encode("utf-8")
@@ -300,7 +375,7 @@ def publish_version(collection_dir: Path, write: Callable[[Path], Mapping[str, A
             raise
         if durable:
             _fsync_path(collection_dir, directory=True)
-        write_latest(collection_dir, number, durable)
+        write_latest(collection_dir, number, durable, hashlib.sha256(raw).hexdigest())
         if keep_last is not None:
             apply_retention(collection_dir, keep_last)
         log.info("published %s (%d files)", final, len(files))

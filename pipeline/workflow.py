@@ -9,13 +9,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from pipeline.catalog import Catalog, load_catalog
 from pipeline.declare import Params, StageDecl
 from pipeline.errors import ConfigError
+from pipeline.names import name_problem
 from pipeline.registry import load_stages, suggest
+from pipeline.safe_yaml import load_yaml_file
 
 TEMPLATE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
@@ -127,12 +128,7 @@ def load_workflow(path: Path | str, *, param_overrides: dict[str, dict[str, Any]
 
     path = resolve_workflow(path)
     where = str(path)
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ConfigError(where, [f"cannot read the workflow file: {exc.strerror or exc}"]) from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(where, [f"not valid YAML: {exc}"]) from exc
+    raw = load_yaml_file(path)
     try:
         spec = WorkflowSpec.model_validate(raw or {})
     except ValidationError as exc:
@@ -204,6 +200,7 @@ def load_workflow(path: Path | str, *, param_overrides: dict[str, dict[str, Any]
                     if name != producers[ds]:
                         deps[name].add(producers[ds])
     names = [d.name for d in spec.drives]
+    problems += [p for p in [name_problem(n, "drive") for n in names] + [name_problem(spec.map_name, "map")] if p]
     if len(set(names)) != len(names):
         problems.append(f"drive names must be unique; got {names}")
     if problems:

@@ -37,7 +37,7 @@ def test_whole_workflow_publishes_a_map_and_evaluates_it(tiny_sync):
     root, result = tiny_sync
     assert all(v["decision"] == "ran" for v in result["summary"].values()), result["summary"]
     map_dir = root / "maps" / "tiny"
-    latest = (map_dir / "LATEST").read_text().strip()
+    latest = (map_dir / "LATEST").read_text().split()[0]
     manifest = json.loads((map_dir / latest / "manifest.json").read_text())
     assert manifest["n_corners"] > 0 and manifest["n_tiles"] > 0
     assert set(manifest["enu_origin"]) >= {"lat_deg", "lon_deg", "h_m"}

@@ -22,10 +22,13 @@ def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: di
     import yaml
 
     stages = ["ingest", "odometry", "corners"] + (["posegraph"] if reference in (None, "map") else [])
-    entry = {"name": drive.resolve().parent.name, "path": str(drive.resolve()), "role": "eval"}
+    import re
+
+    entry = {"name": re.sub(r"[^A-Za-z0-9_.-]", "_", drive.resolve().parent.name).lstrip("._-")[:64] or "drive", "path": str(drive.resolve()), "role": "eval"}
     if reference not in (None, "map"):
         entry["reference"] = str(Path(reference).resolve())
-    doc = {"name": f"evaluate-{entry['name']}", "root": str((out / "work").resolve()), "map_name": map_name,
+    doc = {"name": f"evaluate-{entry['name']}", "root": str((out / "work").resolve()),
+           "map_name": re.sub(r"[^A-Za-z0-9_.-]", "_", map_name).lstrip("._-")[:64] or "map",
            "enu_origin": {"lat_deg": origin["lat_deg"], "lon_deg": origin["lon_deg"], "h_m": origin["h_m"]},
            "drives": [entry], "stages": stages}
     path = out / "work" / "evaluate_workflow.yaml"
@@ -54,6 +57,8 @@ def evaluate_cmd(map_dir: Path = typer.Option(..., "--map", help="ROOT/maps/NAME
         problems.append(f"--drive: no such file {drive}")
     if reference not in (None, "map") and not Path(reference).is_file():
         problems.append(f"--reference: expected a TUM file or 'map'; no such file {reference}")
+    if out.exists() and not out.is_dir():
+        problems.append(f"--out: {out} exists and is not a directory")
     if problems:
         raise ConfigError("cornermap evaluate", problems)
     reader = open_map(map_dir, version)

@@ -25,8 +25,17 @@ def register(app: typer.Typer) -> None:
         from stages.ingest.scan_formats import drop_invalid_points, read_scan
         from stages.ingest.sensors import SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order
 
+        from pipeline.errors import UnknownNameError
+        from pipeline.registry import suggest
+
         name = path.name.lower()
         kind = fmt or ("pcd" if name.endswith(".pcd") else "las" if name.endswith((".las", ".laz")) else "kitti_bin")
+        kinds = ("pcd", "kitti_bin", "nuscenes_bin", "las")
+        if kind not in kinds:
+            raise UnknownNameError(f"--format {kind!r}: expected one of {', '.join(kinds)}{suggest(kind, kinds)}")
+        if sensor not in SENSORS:
+            raise UnknownNameError(f"--sensor {sensor!r}: expected one of {', '.join(sorted(SENSORS))}"
+                                   f"{suggest(sensor, SENSORS)}")
         if kind == "pcd":
             cloud = read_pcd(path)
             h = cloud.header

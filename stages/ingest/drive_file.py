@@ -11,10 +11,11 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from pipeline.errors import ConfigError, DatasetIOError
+
+MAX_DRIVE_FILE_BYTES = 1 << 20  # a drive file is a few kB
 
 
 class _Strict(BaseModel):
@@ -190,14 +191,18 @@ def parse_drive_file(raw: object, drive_dir: Path, where: str) -> DriveSpec:
 
 
 def load_drive_file(path: str | Path) -> DriveSpec:
+    """Read and validate a drive file. Parsed with bounded work (size cap, no aliases, duplicate keys refused:
+    ``pipeline.safe_yaml``), so an untrusted drive folder cannot exhaust memory or hide a key."""
+    from pipeline.safe_yaml import load_yaml
+
     path = Path(path)
     try:
-        text = path.read_text()
+        raw_bytes = path.read_bytes() if path.stat().st_size <= MAX_DRIVE_FILE_BYTES else None
     except OSError as exc:
-        raise DatasetIOError(f"{path}: cannot read drive file: {exc.strerror or exc}. Hint: check the catalog's "
-                             f"drive path") from exc
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(str(path), [f"not valid YAML: {exc}"]) from None
-    return parse_drive_file(raw, path.parent, str(path))
+        raise DatasetIOError(f"{path}: cannot read drive file: {exc.strerror or exc}. Hint: check the "
+                             f"workflow's drive path") from exc
+    if raw_bytes is None:
+        raise ConfigError(str(path), [f"{path.stat().st_size} bytes, more than the {MAX_DRIVE_FILE_BYTES}-byte "
+                                      f"limit of a drive file"])
+    return parse_drive_file(load_yaml(raw_bytes, str(path), max_bytes=MAX_DRIVE_FILE_BYTES), path.parent,
+                            str(path))

@@ -17,6 +17,10 @@ from pipeline.errors import DatasetIOError, FormatError
 from stages.ingest.lzf import LzfError, compress_literal_lzf, decompress_lzf
 
 MAX_HEADER_BYTES = 65536
+MAX_RECORD_BYTES = 4096  # one point's record; real scans use 16-48 bytes
+MAX_POINTS = 20_000_000  # per scan; a 128-beam sensor gives ~2.6 M points per sweep
+MAX_DECOMPRESSED_BYTES = 512 << 20  # binary_compressed output cap ...
+MAX_COMPRESSION_RATIO = 64  # ... and ratio cap (real scans compress 1.2-4x; LZF's own maximum is ~88x)
 _TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
           ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
 _ENCODINGS = ("ascii", "binary", "binary_compressed")
@@ -41,10 +45,15 @@ class PcdHeader:
 
     def dtype(self) -> np.dtype:
         """Packed little-endian record dtype; PCL's '_' padding fields get unique names."""
-        names = [f"_pad{i}" if name == "_" else name for i, name in enumerate(self.fields)]
+        names = [_pad_name(i) if name == "_" else name for i, name in enumerate(self.fields)]
         formats = [(("<" + _TYPES[(t, s)]), (c,)) if c > 1 else "<" + _TYPES[(t, s)]
                    for t, s, c in zip(self.types, self.sizes, self.counts)]
         return np.dtype({"names": names, "formats": formats})
+
+
+def _pad_name(i: int) -> str:
+    """A name for PCL's i-th '_' padding field that no FIELDS entry can take (FIELDS are split on spaces)."""
+    return f"pad {i}"
 
 
 @dataclass(frozen=True)
@@ -117,6 +126,10 @@ def _build_header(entries: dict[str, list[str]], data_offset: int, source: str) 
     named = [f for f in fields if f != "_"]
     if len(set(named)) != len(named):
         raise _fail(source, f"duplicate field names in FIELDS {' '.join(fields)}")
+    record = sum(s * c for s, c in zip(sizes, counts))
+    if record > MAX_RECORD_BYTES:
+        raise _fail(source, f"a record of {record} bytes (SIZE x COUNT summed), more than the {MAX_RECORD_BYTES}-byte "
+                            "limit", "COUNT is corrupt")
     (width,), (height,) = _ints(source, "WIDTH", entries["WIDTH"][:1] or ["x"], 0), \
         _ints(source, "HEIGHT", entries["HEIGHT"][:1] or ["x"], 0)
     points = width * height
@@ -125,6 +138,8 @@ def _build_header(entries: dict[str, list[str]], data_offset: int, source: str) 
         if points != width * height:
             raise _fail(source, f"header POINTS {points} != WIDTH {width} x HEIGHT {height}",
                         "the header counts lie; the file was edited or cut")
+    if points > MAX_POINTS:
+        raise _fail(source, f"POINTS {points}, more than the limit of {MAX_POINTS} per scan", "the header counts lie")
     encoding = entries["DATA"][0].lower() if entries["DATA"] else ""
     if encoding not in _ENCODINGS:
         raise _fail(source, f"DATA {' '.join(entries['DATA'])!r}, expected one of {', '.join(_ENCODINGS)}")
@@ -143,7 +158,16 @@ def _records_binary(buf: bytes, h: PcdHeader, source: str) -> tuple[np.ndarray, 
                             f"bytes from byte offset {h.data_offset}, file has {have} (record "
                             f"{have // h.record_size} is the first incomplete one)",
                     "the file was cut short; re-export it")
+    _check_trailing(buf, h.data_offset + need, h, source)
     return np.frombuffer(buf, dtype=h.dtype(), count=h.points, offset=h.data_offset), have - need
+
+
+def _check_trailing(buf: bytes, end: int, h: PcdHeader, source: str) -> None:
+    """Zero padding after the last record is tolerated; a whole non-zero record more means POINTS lies."""
+    extra = len(buf) - end
+    if h.record_size and extra >= h.record_size and any(buf[end:]):
+        raise _fail(source, f"{extra} bytes of non-zero data after the {h.points} records POINTS announces (at least "
+                            f"{extra // h.record_size} more records)", "POINTS is smaller than the data")
 
 
 def _records_compressed(buf: bytes, h: PcdHeader, source: str) -> tuple[np.ndarray, int]:
@@ -152,6 +176,10 @@ def _records_compressed(buf: bytes, h: PcdHeader, source: str) -> tuple[np.ndarr
         raise _fail(source, f"binary_compressed data cut before its 8-byte size prefix at byte offset {at}")
     csize, usize = (int(v) for v in np.frombuffer(buf, "<u4", 2, at))
     need = h.points * h.record_size
+    if usize > MAX_DECOMPRESSED_BYTES or usize > MAX_COMPRESSION_RATIO * max(csize, 1) + 64:
+        raise _fail(source, f"binary_compressed announces {usize} bytes from {csize} compressed bytes; limits are "
+                            f"{MAX_DECOMPRESSED_BYTES} bytes and a ratio of {MAX_COMPRESSION_RATIO}",
+                    "a decompression bomb or a corrupt size prefix")
     if usize != need:
         raise _fail(source, f"binary_compressed announces {usize} uncompressed bytes, expected POINTS {h.points} "
                             f"x {h.record_size} bytes/record = {need}", "the header counts lie")
@@ -170,6 +198,7 @@ def _records_compressed(buf: bytes, h: PcdHeader, source: str) -> tuple[np.ndarr
         records[name] = np.frombuffer(raw, sub.base, h.points * max(1, sub.itemsize // sub.base.itemsize),
                                       start).reshape(records[name].shape)
         start += nbytes
+    _check_trailing(buf, at + 8 + csize, h, source)
     return records, len(buf) - at - 8 - csize
 
 
@@ -182,6 +211,9 @@ def _records_ascii(buf: bytes, h: PcdHeader, source: str) -> tuple[np.ndarray, i
     width = sum(h.counts)
     if len(lines) < h.points:
         raise _fail(source, f"truncated ascii data: header says POINTS {h.points}, file has {len(lines)} records")
+    if len(lines) > h.points:
+        raise _fail(source, f"ascii data has {len(lines)} records, header says POINTS {h.points}",
+                    "POINTS is smaller than the data")
     body = lines[:h.points]
     n_tokens = np.fromiter((len(ln.split()) for ln in body), dtype=np.int64, count=h.points)
     bad = np.flatnonzero(n_tokens != width)
@@ -211,13 +243,18 @@ def decode_pcd(buf: bytes, source: str = "<pcd>") -> PcdCloud:
     header = parse_pcd_header(buf, source)
     reader = {"ascii": _records_ascii, "binary": _records_binary, "binary_compressed": _records_compressed}
     records, trailing = reader[header.encoding](buf, header, source)
-    columns = {name: np.array(records[name]) for name in records.dtype.names if not name.startswith("_pad")}
+    pads = {_pad_name(i) for i, name in enumerate(header.fields) if name == "_"}
+    columns = {name: np.array(records[name]) for name in records.dtype.names if name not in pads}
     return PcdCloud(header, columns, trailing)
 
 
 def read_pcd(path: str | Path) -> PcdCloud:
     path = Path(path)
     try:
+        size = path.stat().st_size
+        if size > MAX_DECOMPRESSED_BYTES + MAX_HEADER_BYTES:
+            raise _fail(str(path), f"{size} bytes, more than a scan file may hold "
+                                   f"({MAX_DECOMPRESSED_BYTES + MAX_HEADER_BYTES})")
         buf = path.read_bytes()
     except OSError as exc:
         raise DatasetIOError(f"{path}: cannot read PCD file: {exc.strerror or exc}") from exc

@@ -5,13 +5,14 @@ Formats: PCD v0.7 (see ``pcd.py``), KITTI ``.bin`` (float32 x y z reflectance), 
 """
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import DatasetIOError, FormatError
-from stages.ingest.pcd import PcdCloud, read_pcd
+from stages.ingest.pcd import MAX_POINTS, PcdCloud, read_pcd
 
 SCAN_SUFFIXES = {"pcd": (".pcd",), "kitti_bin": (".bin",), "nuscenes_bin": (".bin",), "las": (".las", ".laz")}
 _INTENSITY = ("intensity", "reflectance", "i")
@@ -69,6 +70,9 @@ def points_from_pcd(cloud: PcdCloud, source: str = "<pcd>") -> ScanPoints:
     missing = [c for c in ("x", "y", "z") if c not in cols]
     if missing:
         raise FormatError(f"{source}: PCD fields {' '.join(cloud.header.fields)} lack {', '.join(missing)}")
+    multi = [c for c in ("x", "y", "z") if cols[c].ndim > 1]
+    if multi:
+        raise FormatError(f"{source}: PCD field(s) {', '.join(multi)} have COUNT > 1; expected one value per point")
     n = cloud.header.points
     _, intensity = _first(cols, _INTENSITY)
     ring_name, ring = _first(cols, _RING)
@@ -80,11 +84,14 @@ def points_from_pcd(cloud: PcdCloud, source: str = "<pcd>") -> ScanPoints:
 
 
 def _read_float32_records(path: Path, width: int, what: str) -> np.ndarray:
+    record = 4 * width
     try:
+        size = path.stat().st_size
+        if size > MAX_POINTS * record:
+            raise FormatError(f"{path}: {size} bytes = more than the limit of {MAX_POINTS} {what} points per scan")
         raw = path.read_bytes()
     except OSError as exc:
         raise DatasetIOError(f"{path}: cannot read {what} scan: {exc.strerror or exc}") from exc
-    record = 4 * width
     if len(raw) % record:
         raise FormatError(f"{path}: {len(raw)} bytes is not a whole number of {record}-byte {what} records "
                           f"(record {len(raw) // record} is incomplete). Hint: truncated file, or the wrong "
@@ -103,11 +110,35 @@ def read_nuscenes_bin(path: Path) -> ScanPoints:
                       _rings_checked(a[:, 4], str(path), "column 5 (ring)"), None)
 
 
+def _check_las_sizes(path: Path, size: int, reader) -> None:  # noqa: ANN001 - a laspy.LasReader
+    """Declared point count and record size against the file size, before laspy allocates the points."""
+    with reader as fh:
+        h = fh.header
+        count, record, offset = int(h.point_count), int(h.point_format.size), int(h.offset_to_point_data)
+        compressed = bool(getattr(h, "are_points_compressed", False))
+    if count > MAX_POINTS:
+        raise FormatError(f"{path}: header announces {count} points, more than the limit of {MAX_POINTS} per file")
+    if not compressed and offset + count * record > size:
+        raise FormatError(f"{path}: header announces {count} points x {record} bytes from byte {offset}, but the "
+                          f"file has {size} bytes. Hint: truncated file or a corrupt header")
+    if compressed and count * record > 64 * max(size, 1):
+        raise FormatError(f"{path}: LAZ header announces {count * record} bytes of points from a {size}-byte file "
+                          "(ratio over 64)")
+
+
 def read_las_points(path: Path) -> ScanPoints:
     import laspy
 
     try:
-        las = laspy.read(path)
+        # From memory: laspy reads header fields with stream.read(n), and a file object preallocates n bytes
+        # (a corrupt 4-byte size took 1.2 GB); an in-memory stream never returns more than it holds.
+        if path.stat().st_size > MAX_POINTS * 64:
+            raise FormatError(f"{path}: {path.stat().st_size} bytes, more than a scan file may hold")
+        raw = path.read_bytes()
+        _check_las_sizes(path, len(raw), laspy.open(io.BytesIO(raw)))
+        las = laspy.read(io.BytesIO(raw))
+    except FormatError:
+        raise
     except FileNotFoundError as exc:
         raise DatasetIOError(f"{path}: LAS file not found") from exc
     except Exception as exc:  # laspy/lazrs raise many types for corrupt files  # noqa: BLE001

@@ -12,7 +12,7 @@ from typing import Iterator
 
 import numpy as np
 
-from pipeline.errors import DatasetIOError, FormatError
+from pipeline.errors import CornermapError, FormatError
 from stages.ingest.drive_file import DriveSpec
 from stages.ingest.scan_formats import SCAN_SUFFIXES, ScanPoints, drop_invalid_points, read_scan
 from stages.ingest.sensors import (SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order)
@@ -116,10 +116,14 @@ def process_scan(scan: ScanFile, spec: DriveSpec, chunk: int, min_range_m: float
     try:
         raw = read_scan(scan.path, spec.scans.format)
         points, drops = drop_invalid_points(raw, min_range_m)
+        if len(points) == 0:
+            raise FormatError(f"{scan.path}: no valid points ({len(raw)} in the file: {drops['nonfinite']} non-finite, "
+                              f"{drops['zero']} at (0,0,0), {drops['near']} nearer than {min_range_m} m)")
         ring, source = assign_rings(points, spec, vote_min_share)
-    except (FormatError, DatasetIOError) as exc:
-        log.warning("quarantined %s: %s", scan.path, exc)
-        return ScanResult({**row, "reason": str(exc)}, None, None, [], {})
+    except (CornermapError, OSError, ValueError, MemoryError) as exc:  # a per-file problem: quarantine this file
+        reason = str(exc) if isinstance(exc, CornermapError) else f"{scan.path}: unreadable ({type(exc).__name__}: {exc})"
+        log.warning("quarantined %s: %s", scan.path, reason)
+        return ScanResult({**row, "reason": reason}, None, None, [], {})
     n_rings = len(elevation_table(spec)) or (int(ring.max()) + 1 if len(ring) and source != "none" else 0)
     present, missing = ring_coverage(ring, n_rings)
     row.update(n_points=len(points), n_dropped_nonfinite=drops["nonfinite"], n_dropped_zero=drops["zero"],

@@ -25,8 +25,11 @@ def simulate_command(
     max_scans: int = typer.Option(None, help="cap the scans written per drive (quick looks, tests)"),
     quiet: bool = typer.Option(False, help="no progress bar"),
 ) -> None:
+    from pipeline.errors import DatasetIOError
     from stages.simulate.core import simulate
 
+    if out.exists() and not out.is_dir():
+        raise DatasetIOError(f"--out {out}: exists and is not a directory; simulate writes a directory")
     if quiet:
         summary = simulate(preset, seed, out, drives, motion_distortion, max_scans)
     else:

@@ -27,6 +27,10 @@ def map_dir_of(root: Path, name: Optional[str]) -> Path:
     """ROOT/maps/NAME; with no name, the only map under ROOT/maps."""
     from pipeline.errors import UnknownNameError
 
+    from pipeline.names import check_name
+
+    if name is not None:
+        check_name(name, "map", "--map")
     maps = Path(root) / "maps"
     have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
     if name is None:
@@ -77,9 +81,15 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
 
     Example: [b]cornermap tiles diff v0001 LATEST --root runs/demo --map demo[/b]
     """
+    import math
+
+    from pipeline.errors import LimitError
     from stages.tiles.diff import diff_maps
     from stages.tiles.loader import open_map
 
+    for opt, value in (("--move-threshold-m", move_threshold_m), ("--match-radius-m", match_radius_m)):
+        if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
+            raise LimitError(f"{opt} {value}: expected 0 to 1000 m")
     d = map_dir_of(root, map_name)
     a, b = open_map(d, version_a), open_map(d, version_b)
     diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m)
@@ -121,16 +131,21 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
 
     Example: [b]cornermap tiles verify --all --root runs/demo[/b]
     """
-    from pipeline.errors import ChecksumError
-    from pipeline.versioned import list_versions, resolve_version, version_name
+    from pipeline.errors import ChecksumError, UnknownNameError
+    from pipeline.versioned import list_versions, resolve_version, trusted_manifest_digests, version_name
     from stages.tiles.verify import verify_map
 
     d = map_dir_of(root, map_name)
     dirs = [d / version_name(v) for v in list_versions(d)] if all_versions else [resolve_version(d, version)]
+    if not dirs:
+        raise UnknownNameError(f"{d}: no published versions to verify")
+    trusted = trusted_manifest_digests(d)
     bad = []
     for vdir in dirs:
-        problems = verify_map(vdir)
-        typer.echo(f"{vdir.name}: {'ok' if not problems else f'{len(problems)} problem(s)'}")
+        expected = trusted.get(int(vdir.name[1:]))
+        problems = verify_map(vdir, expected)
+        note = "" if expected else " (no digest recorded outside the manifest: only its files were checked)"
+        typer.echo(f"{vdir.name}: {'ok' if not problems else f'{len(problems)} problem(s)'}{note}")
         for p in problems:
             typer.echo(f"  - {p}")
         bad += problems

@@ -12,6 +12,7 @@ import pyarrow as pa
 
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
+from pipeline.names import check_name, inside
 from pipeline.versioned import publish_version
 from stages.common.geodesy import EnuOrigin
 from stages.tiles import core, layout
@@ -76,7 +77,7 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         return (all(fps) and latest.get("inputs") == inputs and latest.get("params") == resolved
                 and latest.get("code_version") == STAGE.code_version)
 
-    map_dir = Path(ctx.settings["root"]) / "maps" / name
+    map_dir = inside(Path(ctx.settings["root"]) / "maps", check_name(name, "map", "tiles: settings.map_name"))
     pub = publish_version(map_dir, write, keep_last=params.keep_last, reuse=unchanged)
     table = pa.table({
         "map_name": pa.array([name], pa.string()), "version": pa.array([pub.version], pa.int32()),

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -12,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pyarrow as pa
 
+from pipeline.errors import DatasetIOError, LimitError, PublishConflictError
 from stages.common.geodesy import EnuOrigin, enu_to_geodetic
 from stages.common.im2016_text import format_im2016_text
 
@@ -19,6 +21,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from stages.tiles.loader import MapReader
 
 FORMATS = ("im2016-text", "geojson", "autoware")
+MAX_COLUMN_HEIGHT_M = 1000.0  # autoware columns: a corner is a building edge, not a space elevator
+MAX_EXPORT_POINTS = 200_000_000  # 3.2 GB of float32 x y z intensity
 
 
 def corners_geojson(corners: pa.Table, origin: EnuOrigin, properties: dict[str, Any] | None = None) -> dict:
@@ -77,10 +81,39 @@ def pcd_bytes(xyz_m: np.ndarray, intensity: np.ndarray) -> bytes:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write ``data`` to a temporary sibling and rename it over ``path``; nothing is left behind on failure."""
+    if path.is_dir():
+        raise DatasetIOError(f"{path}: is a directory; expected a file name for this export format")
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    except OSError as exc:
+        if tmp.parent.is_dir():
+            tmp.unlink(missing_ok=True)
+        raise DatasetIOError(f"{path}: cannot write the export ({exc.strerror or exc})") from exc
+
+
+def check_export_target(out: Path, map_dir: Path) -> None:
+    """Refuse an ``--out`` inside a published map collection (it could overwrite LATEST or a published file)."""
+    target, collection = Path(out).resolve(), Path(map_dir).resolve()
+    if target == collection or collection in target.parents:
+        raise PublishConflictError(f"{out}: inside the published map {collection}; an export never writes there "
+                                   "(it could replace LATEST or a published file). hint: choose another --out")
+
+
+def check_column_limits(n_corners: int, height_m: float, step_m: float) -> None:
+    """Named LimitError before allocating: height in [0, MAX_COLUMN_HEIGHT_M], step > 0, bounded points."""
+    if not (math.isfinite(height_m) and 0.0 <= height_m <= MAX_COLUMN_HEIGHT_M):
+        raise LimitError(f"--column-height-m {height_m}: expected 0 to {MAX_COLUMN_HEIGHT_M} m")
+    if not (math.isfinite(step_m) and step_m > 0.0):
+        raise LimitError(f"column step {step_m} m: expected a positive number")
+    points = n_corners * (int(height_m / step_m) + 1)
+    if points > MAX_EXPORT_POINTS:
+        raise LimitError(f"autoware export of {n_corners} corners as {height_m} m columns every {step_m} m = "
+                         f"{points} points, more than the limit of {MAX_EXPORT_POINTS}; hint: lower "
+                         "--column-height-m")
 
 
 def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float = 10.0,
@@ -88,8 +121,13 @@ def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float 
     """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for autoware)."""
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
-    corners = reader.all_corners()
     out = Path(out)
+    check_export_target(out, reader.path.parent)
+    if fmt == "autoware":
+        check_column_limits(0, column_height_m, column_step_m)
+        if out.exists() and not out.is_dir():
+            raise DatasetIOError(f"{out}: not a directory; the autoware export writes a directory")
+    corners = reader.all_corners()
     if fmt == "im2016-text":
         text = format_im2016_text(*(corners[c].to_numpy() for c in (
             "corner_id", "east_m", "north_m", "theta1_rad", "theta2_rad", "cov_ee_m2", "cov_en_m2", "cov_nn_m2")))
@@ -102,6 +140,7 @@ def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float 
         _atomic_write(out, json.dumps(doc, separators=(",", ":")).encode("utf-8"))
         return [out]
     east, north = corners["east_m"].to_numpy(), corners["north_m"].to_numpy()
+    check_column_limits(len(east), column_height_m, column_step_m)
     xyz = corner_columns_xyz(east, north, column_height_m, column_step_m)
     per = len(xyz) // max(1, len(east))
     intensity = np.repeat(corners["n_obs"].to_numpy().astype(float), per)

@@ -7,9 +7,19 @@
 The version is pinned when the reader opens (LATEST is read once), so a publish running meanwhile never
 mixes two versions under one reader. Tiles load lazily and stay in an LRU cache (``cache_tiles`` each for
 corners and for marking rasters). Query boxes are half-open like tiles: [e0, e1) x [n0, n1).
+
+Verified reads: every file is read once into memory, its sha256 compared with the manifest's file table
+(``IntegrityError`` otherwise) and only then decoded; a file verified once is not hashed again by this
+process while its size, mtime and inode are unchanged. Every path in the manifest is resolved inside the
+version directory (``PathEscapeError`` otherwise). Opening ``ROOT/maps/NAME`` also checks the manifest
+against the digest recorded outside it (LATEST, then each child's ``parent_manifest_sha256``).
+``trust_files=True`` skips the file hashing for trusted local use (paths are still confined).
+``marking_window`` refuses windows over MAX_WINDOW_CELLS cells (``LimitError``).
 """
 from __future__ import annotations
 
+import hashlib
+import os
 import threading
 from collections import OrderedDict
 from pathlib import Path
@@ -19,11 +29,44 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.errors import MapFormatError, UnknownNameError
-from pipeline.versioned import MANIFEST_NAME, read_manifest, resolve_version
+from pipeline.errors import IntegrityError, LimitError, MapFormatError, PathEscapeError, UnknownNameError
+from pipeline.names import inside
+from pipeline.versioned import MANIFEST_NAME, read_manifest, resolve_version, trusted_manifest_digests
 from stages.common.geodesy import EnuOrigin
 from stages.common.tiling import tile_key_of
 from stages.tiles import layout
+
+
+MAX_WINDOW_CELLS = 1 << 28  # 256 Mi cells = 256 MiB of uint8: e.g. 16 km x 16 km at 1 m cells
+_VERIFIED: dict[tuple[str, int, int, int], str] = {}  # (path, size, mtime_ns, inode) -> sha256, this process
+_VERIFIED_LOCK = threading.Lock()
+
+
+def read_verified(version_dir: Path, rel: str, files: dict[str, Any], trust: bool = False) -> bytes:
+    """Bytes of ``version_dir/rel`` after checking its sha256 against the manifest's file table ``files``."""
+    path = inside(version_dir, rel)
+    entry = files.get(rel) if isinstance(files, dict) else None
+    if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
+        raise IntegrityError(f"{path}: not in the manifest's file table; refusing to read an unverified file")
+    try:
+        with open(path, "rb") as fh:
+            st = os.fstat(fh.fileno())
+            if isinstance(entry.get("bytes"), int) and st.st_size != entry["bytes"]:
+                raise IntegrityError(f"{path}: {st.st_size} bytes, the manifest records {entry['bytes']}; "
+                                     "hint: run `cornermap tiles verify`")
+            data = fh.read()
+    except OSError as exc:
+        raise MapFormatError(f"{path}: cannot read ({exc.strerror or exc}); hint: run `cornermap tiles verify`") from exc
+    key = (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
+    if trust or _VERIFIED.get(key) == entry["sha256"]:
+        return data
+    got = hashlib.sha256(data).hexdigest()
+    if got != entry["sha256"]:
+        raise IntegrityError(f"{path}: sha256 {got[:16]}... differs from the manifest's {entry['sha256'][:16]}...; "
+                             "the file is corrupt or was altered. hint: run `cornermap tiles verify`")
+    with _VERIFIED_LOCK:
+        _VERIFIED[key] = got
+    return data
 
 
 class _Lru:
@@ -51,7 +94,7 @@ class _Lru:
 
 def check_manifest_format(manifest: dict[str, Any], where: Path) -> None:
     fmt, ver = manifest.get("format"), manifest.get("format_version")
-    if fmt != layout.FORMAT_NAME or ver not in layout.SUPPORTED_FORMAT_VERSIONS:
+    if fmt != layout.FORMAT_NAME or not isinstance(ver, int) or ver not in layout.SUPPORTED_FORMAT_VERSIONS:
         raise MapFormatError(
             f"{where}: map format {fmt!r} version {ver!r} is not readable by this code (reads {layout.FORMAT_NAME!r} "
             f"versions {sorted(layout.SUPPORTED_FORMAT_VERSIONS)}); hint: upgrade cornermap or open an older version")
@@ -60,15 +103,31 @@ def check_manifest_format(manifest: dict[str, Any], where: Path) -> None:
 class MapReader:
     """A pinned, read-only view of one map version."""
 
-    def __init__(self, version_dir: Path, cache_tiles: int = 64):
+    def __init__(self, version_dir: Path, cache_tiles: int = 64, *, manifest_sha256: str | None = None,
+                 trust_files: bool = False):
         self.path = Path(version_dir)
+        self.trust_files = trust_files
         self.manifest, self.manifest_sha256 = read_manifest(self.path)
+        if manifest_sha256 is not None and manifest_sha256 != self.manifest_sha256:
+            raise IntegrityError(f"{self.path / MANIFEST_NAME}: sha256 {self.manifest_sha256[:16]}... differs from "
+                                 f"the digest recorded outside it ({manifest_sha256[:16]}...); the manifest was edited "
+                                 "or replaced. hint: run `cornermap tiles verify`")
         check_manifest_format(self.manifest, self.path / MANIFEST_NAME)
-        self.version: int = int(self.manifest["version"])
-        self.tile_size_m: float = float(self.manifest["tile_size_m"])
-        self.origin = EnuOrigin.from_dict(self.manifest["enu_origin"])
-        self._tiles = {(int(t["i"]), int(t["j"])): t for t in self.manifest["tiles"]}
-        cells = {float(t["marking"]["cell_m"]) for t in self._tiles.values() if t.get("marking")}
+        try:
+            self.version: int = int(self.manifest["version"])
+            self.tile_size_m: float = float(self.manifest["tile_size_m"])
+            self.origin = EnuOrigin.from_dict(self.manifest["enu_origin"])
+            self._tiles = {(int(t["i"]), int(t["j"])): t for t in self.manifest["tiles"]}
+            for t in self._tiles.values():
+                inside(self.path, t["dir"])
+            cells = {float(t["marking"]["cell_m"]) for t in self._tiles.values() if t.get("marking")}
+        except PathEscapeError:
+            raise
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise MapFormatError(f"{self.path / MANIFEST_NAME}: malformed manifest ({type(exc).__name__}: {exc}); "
+                                 "hint: run `cornermap tiles verify`") from exc
+        if not (self.tile_size_m > 0 and np.isfinite(self.tile_size_m)):
+            raise MapFormatError(f"{self.path / MANIFEST_NAME}: tile_size_m {self.tile_size_m} is not a positive number")
         if len(cells) > 1:
             raise MapFormatError(f"{self.path}: marking rasters use several cell sizes {sorted(cells)} m")
         self.cell_m: float | None = cells.pop() if cells else None
@@ -99,10 +158,14 @@ class MapReader:
             return None
         return self._markings.get((int(i), int(j)))
 
+    def _read(self, key: tuple[int, int], name: str) -> tuple[Path, bytes]:
+        rel = f"{self._tiles[key]['dir']}/{name}"
+        return self.path / rel, read_verified(self.path, rel, self.manifest.get("files", {}), self.trust_files)
+
     def _load_corners(self, key: tuple[int, int]) -> tuple[pa.Table, np.ndarray, np.ndarray]:
-        path = self.path / self._tiles[key]["dir"] / layout.CORNERS_FILE
+        path, data = self._read(key, layout.CORNERS_FILE)
         try:
-            table = pq.ParquetFile(path).read(use_threads=False).cast(self._schema)
+            table = pq.ParquetFile(pa.BufferReader(data)).read(use_threads=False).cast(self._schema)
         except (OSError, pa.ArrowInvalid, ValueError) as exc:
             raise MapFormatError(f"{path}: cannot read tile corners ({exc}); hint: run `cornermap tiles verify`") from exc
         return table, table["east_m"].to_numpy(), table["north_m"].to_numpy()
@@ -110,8 +173,8 @@ class MapReader:
     def _load_marking(self, key: tuple[int, int]) -> np.ndarray:
         import cv2
 
-        path = self.path / self._tiles[key]["dir"] / self._tiles[key]["marking"]["mask_file"]
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        path, data = self._read(key, str(self._tiles[key]["marking"]["mask_file"]))
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise MapFormatError(f"{path}: missing or not a PNG; hint: run `cornermap tiles verify`")
         return img
@@ -161,8 +224,14 @@ class MapReader:
         if self.cell_m is None:
             raise UnknownNameError(f"{self.path}: this map has no marking rasters")
         cell = self.cell_m
+        if not all(np.isfinite(v) for v in (e0, n0, e1, n1)):
+            raise LimitError(f"marking_window: box ({e0}, {n0}, {e1}, {n1}) m is not finite")
         c0, c1 = int(np.floor(e0 / cell + 1e-9)), int(np.ceil(e1 / cell - 1e-9))
         s0, s1 = int(np.floor(n0 / cell + 1e-9)), int(np.ceil(n1 / cell - 1e-9))
+        cells = max(0, s1 - s0) * max(0, c1 - c0)
+        if cells > MAX_WINDOW_CELLS:
+            raise LimitError(f"marking_window: {c1 - c0} x {s1 - s0} cells of {cell} m = {cells} cells, more than the "
+                             f"limit of {MAX_WINDOW_CELLS}; hint: query smaller windows")
         out = np.zeros((max(0, s1 - s0), max(0, c1 - c0)), np.uint8)
         for key in self._keys_in_box(e0, n0, e1, n1):
             meta = self._tiles[key].get("marking")
@@ -202,11 +271,17 @@ def _corner_schema() -> pa.Schema:
     return pa.schema([schema.field(name) for name in layout.CORNER_COLUMNS], metadata=schema.metadata)
 
 
-def open_map(path: str | Path, version: str | int = "LATEST", cache_tiles: int = 64) -> MapReader:
-    """Open ``ROOT/maps/NAME`` at ``version`` ("LATEST", "v0003", 3), or a version directory itself."""
+def open_map(path: str | Path, version: str | int = "LATEST", cache_tiles: int = 64, *,
+             trust_files: bool = False) -> MapReader:
+    """Open ``ROOT/maps/NAME`` at ``version`` ("LATEST", "v0003", 3), or a version directory itself.
+
+    Through ``ROOT/maps/NAME`` the manifest is checked against the digest chain that starts at LATEST (a
+    version directory opened directly has no digest outside itself: only its files are verified)."""
     path = Path(path)
     if (path / MANIFEST_NAME).is_file():
-        return MapReader(path, cache_tiles)
+        return MapReader(path, cache_tiles, trust_files=trust_files)
     if not path.is_dir():
         raise UnknownNameError(f"{path}: no such map directory; expected ROOT/maps/NAME or a vNNNN directory")
-    return MapReader(resolve_version(path, version), cache_tiles)
+    vdir = resolve_version(path, version)
+    expected = trusted_manifest_digests(path).get(int(vdir.name[1:]))
+    return MapReader(vdir, cache_tiles, manifest_sha256=expected, trust_files=trust_files)

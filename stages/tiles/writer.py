@@ -16,6 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.errors import DatasetIOError
+from pipeline.names import inside
 from pipeline.versioned import sha256_file
 from stages.common.tiling import tile_bounds
 from stages.tiles import layout
@@ -110,8 +111,9 @@ def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, raster
     drives = []
     for traj in sorted(trajectories, key=lambda t: t.drive):
         rel = layout.trajectory_file_name(traj.drive)
-        (staging / rel).parent.mkdir(parents=True, exist_ok=True)
-        (staging / rel).write_text("# t x y z qx qy qz qw  (T_map_vehicle, map ENU frame, t in s)\n"
+        path = inside(staging, rel)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("# t x y z qx qy qz qw  (T_map_vehicle, map ENU frame, t in s)\n"
                                    + format_tum_lines(traj.stamp_ns, traj.pose_xyz_qxyzw), encoding="utf-8")
         xy = traj.pose_xyz_qxyzw[:, :2]
         length = float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) if len(xy) > 1 else 0.0

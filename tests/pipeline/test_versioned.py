@@ -39,7 +39,7 @@ def test_publish_read_republish(tmp_path):
     v1 = publish_version(d, _writer({"a.txt": b"one", "sub/b.bin": b"\x00\x01"}, {"kind": "test", "n": 1}),
                          durable=False)
     assert (v1.version, v1.created, v1.path.name) == (1, True, "v0001")
-    assert read_latest(d) == 1 and (d / LATEST_NAME).read_text() == "v0001\n"
+    assert read_latest(d) == 1 and (d / LATEST_NAME).read_text() == f"v0001 {v1.manifest_sha256}\n"
     manifest, sha = read_manifest(v1.path)
     assert sha == v1.manifest_sha256 and manifest["n"] == 1 and manifest["parent_version"] is None
     assert set(manifest["files"]) == {"a.txt", "sub/b.bin"}

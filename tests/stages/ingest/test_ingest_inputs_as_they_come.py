@@ -109,3 +109,29 @@ def test_truncated_kitti_scan_gets_its_rings_from_the_elevation_table(shared_dat
     # Without the table the rank is all a truncated scan has: shifted by the missing beams.
     keep = full >= 11
     assert np.array_equal(rings_from_point_order(p.x_m[keep], p.y_m[keep], p.z_m[keep]), full[keep] - 11)
+
+
+def test_a_yaml_alias_bomb_in_a_drive_file_is_refused_at_once(tmp_path):
+    """Issue 22 finding 5: a 1 kB 'billion laughs' drive file took 30 s and ~3 GB before a MemoryError."""
+    from pipeline.errors import ConfigError
+    from pipeline.fingerprint import drive_fingerprint
+    from stages.ingest.drive_file import load_drive_file
+
+    lines = ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    for n in range(1, 9):
+        lines.append(f"{chr(97 + n)}: &{chr(97 + n)} [" + ",".join([f"*{chr(96 + n)}"] * 9) + "]")
+    bomb = tmp_path / "drive.yaml"
+    bomb.write_text("\n".join(lines) + "\nname: x\n")
+    with pytest.raises(ConfigError, match="alias"):  # refused at the first alias: nothing is expanded
+        load_drive_file(bomb)
+    assert drive_fingerprint(bomb)  # the fingerprint of such a folder is computed without expanding it
+
+
+def test_a_duplicate_key_in_a_drive_file_is_named(tmp_path):
+    from pipeline.errors import ConfigError
+    from stages.ingest.drive_file import load_drive_file
+
+    path = tmp_path / "drive.yaml"
+    path.write_text("name: a\nsensor: hdl32e\nname: b\n")
+    with pytest.raises(ConfigError, match="name"):
+        load_drive_file(path)

