@@ -70,6 +70,12 @@ def _cases(r: Path) -> list[tuple[str, ...]]:
         ("tiles", "diff", "v1", "v1", "--root", f"{R}/bad_manifest"),
         ("tiles", "ls", "--root", f"{R}/latest_dir"), ("tiles", "verify", "--root", f"{R}/latest_dir"),
         ("tiles", "export", "-f", "geojson", "-o", f"{R}/g.json", "--root", f"{R}/latest_dir"),
+        ("drive", "init", f"{R}/nope"), ("drive", "init", f"{R}/a_file"), ("drive", "check"),
+        ("drive", "check", f"{R}/nope.yaml"), ("drive", "check", f"{R}/bomb.yaml"), ("drive", "check", f"{R}/a_file"),
+        ("drive", "check", f"{R}/dup.yaml"),
+        ("build", "--drive", f"{R}/a_file", "--map", "city", "--root", R, "--origin", "north,1,2"),
+        ("build", "--drive", f"{R}/a_file", "--map", "city", "--root", R, "--origin", "137.5,1,2"),
+        ("run", "tinny", "--dry-run"), ("catalog", "validate", "--workflow", "nope"),
         ("bogus",), ("--bogus",),
     ]
 
