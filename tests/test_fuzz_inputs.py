@@ -9,7 +9,6 @@ import json
 import os
 import tracemalloc
 from contextlib import contextmanager
-from pathlib import Path
 
 import numpy as np
 import pytest
