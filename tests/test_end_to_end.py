@@ -95,7 +95,7 @@ def _evaluate(root: Path, *args: str):
     import sys
 
     return subprocess.run([sys.executable, "-m", "pipeline", "evaluate", "--root", str(root), "--map", "tiny", "-q",
-                           *args], capture_output=True, text=True, cwd=root)
+                           *args], capture_output=True, text=True, cwd=REPO)
 
 
 def test_evaluate_a_drive_60_km_off_the_map_is_no_coverage(tiny_sync, tmp_path):

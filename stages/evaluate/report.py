@@ -140,7 +140,8 @@ def _metrics_html(doc: dict) -> str:
             "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean", "epochs")
     rows = []
     for m, entry in doc["methods"].items():
-        for ref_name, s in (("map-relative", entry.get("map_relative")), ("absolute (truth)", entry.get("absolute"))):
+        for ref_name, s in (("map-relative", entry.get("map_relative")), ("absolute (truth)", entry.get("absolute")),
+                            ("truth fitted on the map's corners", entry.get("truth_in_map"))):
             if not s:
                 continue
             cells = "".join(f"<td>{'' if s.get(k) is None else (s[k] if isinstance(s[k], int) else f'{s[k]:.4f}')}</td>"
@@ -183,7 +184,7 @@ def _verdict_html(doc: dict) -> str:
             ok = "yes" if t["ok"] else "<b style='color:#cf222e'>NO</b>"
             rows.append(f"<tr><th>{html.escape(m)}</th><td>{html.escape(key)}</td><td>{value}</td><td>{target}</td>"
                         f"<td>{ok}</td><td>{html.escape(ref)}</td></tr>")
-    return (f"<h2>Verdict: <span style='color:{color}'>{status}</span></h2><table><tr><th>method</th><th>target"
+    return (f"<h2>Verdict: <span style='color:{color}'>{status}</span></h2><table><tr><th>method</th><th>metric"
             "</th><th>value</th><th>target</th><th>met</th><th>reference</th></tr>" + "".join(rows) + "</table>")
 
 
@@ -260,7 +261,9 @@ def render_report(ev, doc: dict, cmap, previous=None) -> str:
         body = _comparison_html(comp) + "".join(f"<h3>{t}</h3><img alt='{t}' src='data:image/png;base64,{b}'/>"
                                                 for t, b in cfigs if b) + body
     title = f"cornermap evaluation: drive {html.escape(str(doc.get('drive')))}"
-    meta = html.escape(str(doc.get("map")))
+    m = doc.get("map") or {}
+    meta = html.escape(f"{m.get('name', '')} v{int(m['version']):04d} ({m.get('path', '')})" if m.get("version")
+                       else str(m))
     return (f"<!doctype html><html><head><meta charset='utf-8'><title>{title}</title><style>"
             "body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:12px}"
             "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}img{max-width:100%}</style></head>"
