@@ -196,4 +196,6 @@ class _WithMap:
 
 
 def register(app: typer.Typer) -> None:
-    app.command("evaluate", help=(evaluate_cmd.__doc__ or "") + "\n\n" + EXAMPLES)(evaluate_cmd)
+    import inspect
+
+    app.command("evaluate", help=inspect.cleandoc(evaluate_cmd.__doc__ or "") + "\n\n" + EXAMPLES)(evaluate_cmd)
