@@ -149,6 +149,7 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
 
     import pyarrow as pa
 
+    from pipeline.catalog import resolve_schema
     from pipeline.cli import execute_workflow
     from pipeline.declare import PartitionKey, StageContext
     from pipeline.store import StoreInputReader
@@ -161,8 +162,6 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
     plan = result["plan"]
     produced = {ds: sp.fingerprint for sp in plan.stages.values() for ds in sp.outputs.values()}
     inputs = {arg: (ds, produced.get(ds, "")) for arg, ds in STAGE.inputs.items() if arg != "map"}
-    from pipeline.catalog import resolve_schema
-
     catalog = plan.workflow.catalog
     schemas = {arg: resolve_schema(catalog.datasets[ds].schema_ref) if ds in catalog.datasets else None
                for arg, (ds, _) in inputs.items()}
