@@ -54,6 +54,10 @@ class DataQualityError(CornermapError, ValueError):
     exit_code = 3
 
 
+class ReferenceFrameError(CornermapError, ValueError):
+    """A trajectory or dataset whose coordinate frame is not stated and cannot be inferred."""
+
+
 class PublishConflictError(CornermapError, FileExistsError):
     """Another publisher won the race, or a published version would be overwritten."""
 

@@ -101,3 +101,73 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
         assert (a.i, a.accepted, a.horizontal.accepted) == (b.i, b.accepted, b.horizontal.accepted)
         np.testing.assert_allclose(a.T_map_vehicle, b.T_map_vehicle, atol=1e-6)
         np.testing.assert_allclose(a.horizontal.shift_en_m, b.horizontal.shift_en_m, atol=1e-6)
+
+
+def _short_drive(sim: Path, dest: Path, n_scans: int, *, lat_shift_deg: float = 0.0, odometry: bool = True) -> Path:
+    """The first ``n_scans`` of the simulated drive_1 as a drive of its own, its GNSS moved north by
+    ``lat_shift_deg`` (0.54 deg = 60 km) and, with ``odometry=False``, no wheel odometry in its drive file."""
+    import yaml
+
+    src = sim / "drive_1"
+    (dest / "scans").mkdir(parents=True)
+    for k in range(n_scans):
+        (dest / "scans" / f"{k:06d}.pcd").symlink_to(src / "scans" / f"{k:06d}.pcd")
+    stamps = (src / "scans" / "stamps.csv").read_text().splitlines()
+    (dest / "scans" / "stamps.csv").write_text("\n".join(stamps[:n_scans + 1]) + "\n")
+    lines = (src / "gnss_inspva.csv").read_text().splitlines()
+    col = lines[0].split(",").index("latitude_deg")
+    rows = [r.split(",") for r in lines[1:]]
+    for r in rows:
+        r[col] = f"{float(r[col]) + lat_shift_deg:.10f}"
+    (dest / "gnss_inspva.csv").write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+    doc = yaml.safe_load((src / "drive.yaml").read_text())
+    if odometry:
+        (dest / "wheel_gyro.csv").symlink_to(src / "wheel_gyro.csv")
+    else:
+        doc.pop("odometry")
+    doc.pop("survey", None)
+    (dest / "drive.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return dest / "drive.yaml"
+
+
+def _evaluate(root: Path, *args: str):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pipeline", "evaluate", "--root", str(root), "--map", "tiny", "-q",
+                           *args], capture_output=True, text=True, cwd=REPO)
+
+
+def test_evaluate_a_drive_60_km_off_the_map_is_no_coverage(tiny_sync, tmp_path):
+    """`cornermap evaluate` on a drive 60 km from the map: exit 3 with a one-line "no coverage" verdict, the
+    report written; the truth (simulator frame, stated in its header) is moved into the map's frame."""
+    root, _ = tiny_sync
+    [sim] = root.glob("datasets/raw_drives/*/artifacts/all")
+    drive = _short_drive(sim, tmp_path / "far", 60, lat_shift_deg=0.54)
+    res = _evaluate(root, "--drive", str(drive), "--method", "ekf", "--out", str(tmp_path / "eval"),
+                    "--reference", str(sim / "truth" / "drive_1_poses_tum.txt"))
+    assert res.returncode == 3, res.stderr
+    assert "Traceback" not in res.stderr
+    assert "verdict: no coverage: 0% of 60 epochs with a map corner within 60 m" in res.stderr
+    doc = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert doc["verdict"]["status"] == "no coverage" and doc["verdict"]["coverage"]["share_associated"] == 0.0
+
+
+def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):
+    """No odometry in the drive file: the EKF runs on ICP increments, the MCL on ICP (GNSS/INS where ICP failed),
+    one warning line, no traceback; a path to the map folder is still accepted alone, not beside --root."""
+    root, _ = tiny_sync
+    [sim] = root.glob("datasets/raw_drives/*/artifacts/all")
+    drive = _short_drive(sim, tmp_path / "noodo", 60, odometry=False)
+    res = _evaluate(root, "--drive", str(drive), "--out", str(tmp_path / "eval"),
+                    "--reference", str(sim / "truth" / "drive_1_poses_tum.txt"))
+    assert res.returncode == 0, res.stderr
+    assert "Traceback" not in res.stderr
+    assert "no wheel odometry; the EKF runs on ICP increments alone" in res.stderr
+    doc = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert doc["methods"]["ekf"]["absolute"]["epochs"] == 60 and doc["methods"]["mcl"]["absolute"]["epochs"] == 60
+    assert doc["methods"]["ekf"]["absolute"]["rms_2d_m"] < 1.0
+    assert doc["verdict"]["coverage"]["ok"]
+    ambiguous = _evaluate(root, "--map", str(root / "maps" / "tiny"), "--drive", str(drive), "--out",
+                          str(tmp_path / "e2"))
+    assert ambiguous.returncode == 1 and "is a path and --root" in ambiguous.stderr

@@ -81,14 +81,14 @@ def tum_rows_to_poses(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows[:, 0], poses_from_xyz_quat(rows[:, 1:4], rows[:, 4:8])
 
 
-def write_tum(path, stamps_s: np.ndarray, T_world_body: np.ndarray) -> None:
-    """Write a TUM trajectory (t x y z qx qy qz qw), atomically."""
+def write_tum(path, stamps_s: np.ndarray, T_world_body: np.ndarray, header: str = "") -> None:
+    """Write a TUM trajectory (t x y z qx qy qz qw), atomically; ``header`` lines become '# ' comments."""
     from pathlib import Path
     import os
 
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    np.savetxt(tmp, poses_to_tum_rows(stamps_s, T_world_body), fmt="%.9f")
+    np.savetxt(tmp, poses_to_tum_rows(stamps_s, T_world_body), fmt="%.9f", header=header, comments="# ")
     os.replace(tmp, path)
 
 

@@ -12,43 +12,120 @@ from typing import Optional
 import typer
 
 EXAMPLES = ("Examples:\n\n"
-            "  cornermap evaluate --map runs/demo/maps/demo --drive runs/sim/drive_1/drive.yaml "
+            "  cornermap evaluate --root runs/demo --map demo --drive runs/sim/drive_1/drive.yaml "
             "--reference runs/sim/truth/drive_1_poses_tum.txt --out runs/eval1\n\n"
-            "  cornermap evaluate --map runs/demo/maps/demo --version v0002 --drive D.yaml --method ekf "
-            "--reference map --out runs/eval2")
+            "  cornermap evaluate --root runs/demo --map demo --version v0002 --drive D.yaml --method ekf "
+            "--reference map --out runs/eval2\n\n"
+            "  cornermap evaluate --root runs/demo --map demo --drive D.yaml --reference TRAJ.tum "
+            "--reference-frame 37.4979,127.0276,57.0 --fail-on-targets --out runs/eval3")
 
 
-def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: dict, map_name: str) -> Path:
-    import yaml
-
-    stages = ["ingest", "odometry", "corners"] + (["posegraph"] if reference in (None, "map") else [])
+def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: dict, map_name: str,
+                    stage_params: dict) -> Path:
     import re
 
-    entry = {"name": re.sub(r"[^A-Za-z0-9_.-]", "_", drive.resolve().parent.name).lstrip("._-")[:64] or "drive", "path": str(drive.resolve()), "role": "eval"}
+    import yaml
+
+    def safe(name: str, default: str) -> str:  # a generated drive/map name must pass pipeline.names
+        return re.sub(r"[^A-Za-z0-9_.-]", "_", name).lstrip("._-")[:64] or default
+
+    stages = ["ingest", "odometry", "corners"] + (["posegraph"] if reference in (None, "map") else [])
+    entry = {"name": safe(drive.resolve().parent.name, "drive"), "path": str(drive.resolve()), "role": "eval"}
     if reference not in (None, "map"):
         entry["reference"] = str(Path(reference).resolve())
     doc = {"name": f"evaluate-{entry['name']}", "root": str((out / "work").resolve()),
-           "map_name": re.sub(r"[^A-Za-z0-9_.-]", "_", map_name).lstrip("._-")[:64] or "map",
+           "map_name": safe(map_name, "map"),
            "enu_origin": {"lat_deg": origin["lat_deg"], "lon_deg": origin["lon_deg"], "h_m": origin["h_m"]},
-           "drives": [entry], "stages": stages}
+           "drives": [entry], "stages": stages,
+           "params": {k: v for k, v in stage_params.items() if k in stages}}
     path = out / "work" / "evaluate_workflow.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 
 
-def evaluate_cmd(map_dir: Path = typer.Option(..., "--map", help="ROOT/maps/NAME of a published map."),
+def open_named_map(root: Optional[Path], map_arg: Optional[str], version: str):
+    """The map named as on every command: ``--root ROOT --map NAME [--version vNNNN]``. A ``--map`` holding a path
+    separator is a path (ROOT/maps/NAME or a vNNNN folder) and is accepted alone, when it is unambiguous."""
+    from pipeline.errors import ConfigError, UnknownNameError
+    from pipeline.registry import suggest
+    from stages.tiles.loader import open_map
+
+    if map_arg is not None and ("/" in map_arg or "\\" in map_arg):
+        path = Path(map_arg)
+        problems = []
+        if root is not None:
+            problems.append(f"--map {map_arg!r} is a path and --root {root} was given: pass --root ROOT --map NAME, "
+                            "or the path alone")
+        is_version, is_map = (path / "manifest.json").is_file(), (path / "LATEST").is_file()
+        if not (is_version or is_map):
+            problems.append(f"--map {map_arg!r}: not a published map folder (no LATEST) nor a version folder "
+                            "(no manifest.json)")
+        if is_version and version != "LATEST":
+            problems.append(f"--map {map_arg!r} is the version folder {path.name} and --version {version} was given")
+        if problems:
+            raise ConfigError("cornermap evaluate", problems)
+        return open_map(path, version)
+    maps = Path(root if root is not None else ".") / "maps"
+    have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
+    name = map_arg
+    if name is None:
+        if len(have) != 1:
+            raise UnknownNameError(f"{maps}: {'no maps' if not have else 'several maps: ' + ', '.join(have)}; "
+                                   "hint: pass --root ROOT --map NAME")
+        name = have[0]
+    if name not in have:
+        raise UnknownNameError(f"{maps}: no map {name!r}; have {', '.join(have) or 'none'}{suggest(name, have)}; "
+                               "hint: --root is the folder holding maps/NAME")
+    return open_map(maps / name, version)
+
+
+def _evaluate_params(params_file: Optional[Path], methods: list[str], reference_frame: Optional[str],
+                     fail_on_targets: bool) -> tuple[object, dict]:
+    from pydantic import ValidationError
+
+    from pipeline.cli import _load_param_file
+    from pipeline.errors import ConfigError
+    from stages.evaluate.params import EvaluateParams
+
+    overrides = _load_param_file(params_file) if params_file else {}
+    mine = dict(overrides.get("evaluate", {}))
+    mine["methods"] = methods
+    if reference_frame is not None:
+        mine["reference_frame"] = reference_frame
+    if fail_on_targets:
+        mine["fail_on_targets"] = True
+    try:
+        return EvaluateParams(**mine), {k: v for k, v in overrides.items() if k != "evaluate"}
+    except ValidationError as exc:
+        raise ConfigError("cornermap evaluate", [f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
+                                                 for e in exc.errors()]) from None
+
+
+def evaluate_cmd(drive: Path = typer.Option(..., "--drive", help="drive.yaml of the evaluation drive."),
+                 root: Optional[Path] = typer.Option(None, "--root", envvar="CORNERMAP_ROOT",
+                                                     help="Output root holding maps/NAME/ (default: .)."),
+                 map_arg: Optional[str] = typer.Option(None, "--map", "-m", help="Map name under ROOT/maps "
+                                                       "(default: the only map there); a path to ROOT/maps/NAME "
+                                                       "or to a vNNNN folder is accepted alone."),
                  version: str = typer.Option("LATEST", "--version", help="LATEST, vNNNN or N."),
-                 drive: Path = typer.Option(..., "--drive", help="drive.yaml of the evaluation drive."),
                  method: str = typer.Option("both", "--method", help="ekf | mcl | both"),
                  reference: Optional[str] = typer.Option(None, "--reference",
                                                          help="TRAJ.tum (truth) or 'map' (pose-graph co-registration)."),
+                 reference_frame: Optional[str] = typer.Option(
+                     None, "--reference-frame", help="Frame of --reference TRAJ.tum: auto (the ENU origin its header "
+                     "line or TRAJ.frame.json states; refused if none), map, or LAT,LON,H."),
+                 fail_on_targets: bool = typer.Option(False, "--fail-on-targets",
+                                                      help="Exit 3 when a target is missed (no coverage always does)."),
+                 params: Optional[Path] = typer.Option(None, "--params", help="YAML {stage: {param: value}}; the "
+                                                       "'evaluate' entry sets targets and thresholds."),
                  out: Path = typer.Option(..., "--out", help="Output directory (metrics.json, report.html, ...)."),
                  quiet: bool = typer.Option(False, "--quiet", "-q")) -> None:
-    """Localize a drive on a published map (corner EKF, marking MCL, RTK/INS and ICP baselines) and score it."""
+    """Localize a drive on a published map (corner EKF, marking MCL, RTK/INS and ICP baselines), score it and give a
+    verdict: exit 3 when the drive has no map coverage or, with --fail-on-targets, when a target is missed."""
     from pipeline.errors import ConfigError
     from stages.evaluate.outputs import metrics_table_text
-    from stages.tiles.loader import open_map
+    from stages.evaluate.verdict import verdict_line
 
     problems = []
     if method not in ("ekf", "mcl", "both"):
@@ -59,41 +136,51 @@ def evaluate_cmd(map_dir: Path = typer.Option(..., "--map", help="ROOT/maps/NAME
         problems.append(f"--reference: expected a TUM file or 'map'; no such file {reference}")
     if out.exists() and not out.is_dir():
         problems.append(f"--out: {out} exists and is not a directory")
+    if reference_frame is not None and reference in (None, "map"):
+        problems.append("--reference-frame: applies to a --reference TRAJ.tum file only")
     if problems:
         raise ConfigError("cornermap evaluate", problems)
-    reader = open_map(map_dir, version)
+    p, stage_params = _evaluate_params(params, ["ekf", "mcl"] if method == "both" else [method], reference_frame,
+                                       fail_on_targets)
+    reader = open_named_map(root, map_arg, version)
     out.mkdir(parents=True, exist_ok=True)
-    doc = run_evaluation(reader, drive, reference, ["ekf", "mcl"] if method == "both" else [method], out, quiet)
+    doc = run_evaluation(reader, drive, reference, p, out, quiet, stage_params)
     typer.echo(metrics_table_text(doc))
+    typer.echo(verdict_line(doc["verdict"]))
     typer.echo(f"report: {(out / 'report.html').resolve()}")
 
 
-def run_evaluation(reader, drive: Path, reference: Optional[str], methods: list[str], out: Path, quiet: bool) -> dict:
+def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, quiet: bool,
+                   stage_params: Optional[dict] = None) -> dict:
     """Ingest the drive in a generated workflow, then run the evaluate compute on the committed datasets."""
     import json
 
     import pyarrow as pa
 
+    from pipeline.catalog import resolve_schema
     from pipeline.cli import execute_workflow
     from pipeline.declare import PartitionKey, StageContext
     from pipeline.store import StoreInputReader
     from stages.evaluate.compute import compute
     from stages.evaluate.decl import STAGE
-    from stages.evaluate.params import EvaluateParams
 
-    wf_path = _write_workflow(out, drive, reference, reader.origin.as_dict(), reader.path.parent.name)
+    wf_path = _write_workflow(out, drive, reference, reader.origin.as_dict(), reader.path.parent.name,
+                              stage_params or {})
     result = execute_workflow(wf_path, root=None, scheduler=None, only=None, dry_run=False, quiet=quiet)
     plan = result["plan"]
     produced = {ds: sp.fingerprint for sp in plan.stages.values() for ds in sp.outputs.values()}
     inputs = {arg: (ds, produced.get(ds, "")) for arg, ds in STAGE.inputs.items() if arg != "map"}
-    store = StoreInputReader(plan.root, inputs, {arg: None for arg in inputs})
+    catalog = plan.workflow.catalog
+    schemas = {arg: resolve_schema(catalog.datasets[ds].schema_ref) if ds in catalog.datasets else None
+               for arg, (ds, _) in inputs.items()}
+    store = StoreInputReader(plan.root, inputs, schemas)
     map_row = pa.table({"map_name": [reader.path.parent.name], "version": [reader.version],
                         "path": [str(reader.path)]})
     drive_name = next(iter(plan.workflow.spec.drives)).name
     settings = plan.workflow.settings(plan.root)
     settings["references"] = {drive_name: str(Path(reference).resolve()) if reference not in (None, "map") else None}
     ctx = StageContext(stage="evaluate", partition=PartitionKey(drive=drive_name),
-                       params=EvaluateParams(methods=methods), inputs=_WithMap(store, map_row), drives={},
+                       params=p, inputs=_WithMap(store, map_row), drives={},
                        settings=settings, scratch_dir=out / "work" / "scratch", artifact_dirs={"report": out})
     compute(ctx)  # writes metrics.json, report.html, <method>_tum.txt and epochs.parquet into out
     return json.loads((out / "metrics.json").read_text())
@@ -116,4 +203,6 @@ class _WithMap:
 
 
 def register(app: typer.Typer) -> None:
-    app.command("evaluate", help=(evaluate_cmd.__doc__ or "") + "\n\n" + EXAMPLES)(evaluate_cmd)
+    import inspect
+
+    app.command("evaluate", help=inspect.cleandoc(evaluate_cmd.__doc__ or "") + "\n\n" + EXAMPLES)(evaluate_cmd)

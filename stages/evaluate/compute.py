@@ -1,8 +1,8 @@
 """Adapter of the evaluate stage: Arrow tables and the published map in, eval_epochs and the report out.
 
-The map is read ONLY through the product's public consumer API ``stages.tiles.loader.open_map`` (imported
-lazily here, the one documented exception to "stages never import each other": the loader is what a vehicle
-links against, and evaluating through it is the point of this stage).
+The map is read only through the product's public consumer API, in ``stages.evaluate.map_access``. Beside the
+metrics, the evaluation gives a verdict (``stages.evaluate.verdict``): no map coverage, or with
+``fail_on_targets`` a missed target, fails it with a DataQualityError (exit 3) after the report is written.
 """
 from __future__ import annotations
 
@@ -15,14 +15,14 @@ import pyarrow.compute as pc
 from scipy.spatial.transform import Rotation
 
 from pipeline.declare import PartitionKey, StageContext
-from pipeline.errors import DatasetIOError, DataQualityError
-from stages.evaluate import mcl
+from pipeline.errors import DataQualityError
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
 from stages.evaluate.localize_mcl import odometry_increments
 from stages.evaluate.params import EvaluateParams
 from stages.common.geometry import wrap_angle_rad
 from stages.common.road_features import extract_road_features
 from stages.common.wheel_deskew import OdometryTrack, track_from_table
+from stages.evaluate.map_access import map_inputs, open_published_map
 from stages.evaluate.run import DriveArrays, evaluate_drive
 
 log = logging.getLogger(__name__)
@@ -70,6 +70,19 @@ def fall_back_on_wheel(icp: np.ndarray, wheel: np.ndarray, gate_yaw_rad: float) 
         with np.errstate(invalid="ignore"):
             use_wheel |= np.abs(wrap_angle_rad(out[:, 2] - wheel[:, 2])) > gate_yaw_rad
     out[use_wheel] = wheel[use_wheel]
+    return out
+
+
+def increments_without_wheel(icp: np.ndarray, gnss_q: np.ndarray) -> np.ndarray:
+    """(E,3) motion increments for a drive without wheel odometry: the ICP increment, or where ICP failed the
+    GNSS/INS pose difference (its velocity and yaw rate integrated over the epoch) in the frame of epoch k-1."""
+    out = np.array(icp, dtype=float, copy=True)
+    out[0] = 0.0
+    d = np.diff(gnss_q, axis=0)
+    c, s = np.cos(gnss_q[:-1, 2]), np.sin(gnss_q[:-1, 2])
+    gnss_inc = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], wrap_angle_rad(d[:, 2])])
+    missing = ~np.all(np.isfinite(out[1:]), axis=1)
+    out[1:][missing] = gnss_inc[missing]
     return out
 
 
@@ -130,41 +143,6 @@ def extract_features(ctx: StageContext, drive: str, epoch_scan_ids: np.ndarray, 
     return ep[order], pts[order]
 
 
-def open_published_map(ctx: StageContext):
-    from stages.tiles.loader import open_map  # the public consumer API (see the module doc)
-
-    row = ctx.inputs.read("map").to_pylist()
-    if not row:
-        raise DatasetIOError("input 'map' (map_tiles) has no published version; hint: run the tiles stage first")
-    path = Path(row[-1]["path"])
-    if not path.is_absolute():
-        path = Path(ctx.settings["root"]) / path
-    return open_map(path)
-
-
-def marking_field(mask: np.ndarray, cell_m: float, p: EvaluateParams) -> np.ndarray:
-    """The MCL's likelihood field of a marking window (row 0 south): ``raster_field`` of the params."""
-    if p.raster_field == "distance":
-        return mcl.distance_likelihood_field(mask, cell_m, p.raster_sigma_m)
-    return mcl.smooth_marking_mask(mask, cell_m, p.raster_blur_m)
-
-
-def map_inputs(reader, gnss_q: np.ndarray, p: EvaluateParams):
-    """Corner map over the drive's extent, and a raster fetcher (row 0 south) when the map has markings."""
-    xy = gnss_q[np.all(np.isfinite(gnss_q), axis=1), :2]
-    margin = p.sensor_range_m + 200.0
-    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
-    t = reader.corners_in_bbox(lo[0], lo[1], hi[0], hi[1])
-    cmap = CornerMap(np.column_stack([t["east_m"].to_numpy(), t["north_m"].to_numpy()]), reader.covariances(t),
-                     np.column_stack([t["theta1_rad"].to_numpy(), t["theta2_rad"].to_numpy()]))
-    fetch = None
-    if reader.cell_m is not None:
-        def fetch(e0: float, n0: float, e1: float, n1: float) -> mcl.Raster:
-            mask, origin, cell = reader.marking_window(e0, n0, e1, n1)
-            return mcl.Raster(marking_field(np.flipud(mask), cell, p), origin, cell)
-    return cmap, fetch
-
-
 def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveArrays, np.ndarray]:
     poses = _rows_of(ctx, "poses_gnss", drive).sort_by("scan_id")
     if poses.num_rows == 0:
@@ -175,14 +153,20 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     T_vl = np.asarray(info["T_vehicle_lidar"], dtype=float).reshape(4, 4)
     gnss_q = np.column_stack([poses["x_m"].to_numpy(), poses["y_m"].to_numpy(), yaw_of_quaternions(poses)])
     gnss_std = np.column_stack([poses[c].to_numpy() for c in ("std_east_m", "std_north_m", "std_yaw_rad")])
-    odo = _rows_of(ctx, "odometry", drive).sort_by("stamp_ns")
-    odo_inc = odometry_increments(odo["stamp_ns"].to_numpy(), odo["speed_mps"].to_numpy(),
-                                  odo["yaw_rate_radps"].to_numpy(), stamps)
+    odo = _rows_of(ctx, "odometry", drive).sort_by("stamp_ns") if ctx.inputs.has("odometry") else None
     icp = read_icp_increments(_rows_of(ctx, "edges", drive), scan_ids)
-    icp = fall_back_on_wheel(icp, odo_inc, np.deg2rad(p.icp_wheel_gate_deg))
+    if odo is not None and odo.num_rows >= 2:
+        odo_inc = odometry_increments(odo["stamp_ns"].to_numpy(), odo["speed_mps"].to_numpy(),
+                                      odo["yaw_rate_radps"].to_numpy(), stamps)
+        icp = fall_back_on_wheel(icp, odo_inc, np.deg2rad(p.icp_wheel_gate_deg))
+    else:
+        odo, odo_inc = None, increments_without_wheel(icp, gnss_q)
+        log.warning("evaluate %s: no wheel odometry; the EKF runs on ICP increments alone, the MCL on ICP "
+                    "increments (GNSS/INS pose differences where ICP failed: %d of %d epochs), features not deskewed",
+                    drive, int((~np.all(np.isfinite(icp[1:]), axis=1)).sum()), len(stamps))
     corners = read_corners(_rows_of(ctx, "corners", drive), scan_ids, T_vl)
     if "mcl" in p.methods:
-        track = track_from_table(odo) if p.feature_deskew else None
+        track = track_from_table(odo) if p.feature_deskew and odo is not None else None
         f_ep, f_xy = extract_features(ctx, drive, scan_ids, T_vl, p, track)
     else:
         f_ep, f_xy = np.zeros(0, np.int64), np.zeros((0, 2))
@@ -190,27 +174,14 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
                        corners, f_ep, f_xy), scan_ids
 
 
-def read_truth_corners(reference_path: Path) -> np.ndarray | None:
-    """(K,2) east/north of the simulator's ``corners.csv`` beside the truth trajectory, or None (real data)."""
-    path = Path(reference_path).with_name("corners.csv")
-    if not path.is_file():
-        return None
-    try:
-        rows = np.genfromtxt(path, delimiter=",", names=True)
-        return np.column_stack([np.atleast_1d(rows["east_m"]), np.atleast_1d(rows["north_m"])])
-    except (ValueError, KeyError) as exc:
-        from pipeline.errors import FormatError
-
-        raise FormatError(f"{path}: expected a CSV with east_m, north_m columns ({exc}); hint: it is the simulator's "
-                          "truth/corners.csv, remove it if it is something else") from exc
-
-
-def read_references(ctx: StageContext, drive: str, cmap: CornerMap | None = None
+def read_references(ctx: StageContext, drive: str, map_origin, p: EvaluateParams, cmap: CornerMap | None = None
                     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``map`` (poses_optimized), ``truth`` (TUM) and, when the simulator's true corners sit beside the truth,
-    ``truth_in_map``: the truth moved into the map frame by a rigid fit of the map corners on the true ones."""
-    from stages.common.geometry import read_tum
+    """``map`` (poses_optimized), ``truth`` (a TUM file moved into the map's frame by geodesy, see
+    ``reference.read_reference``) and, when the simulator's true corners sit beside the truth, ``truth_in_map``:
+    the truth moved onto the map by a rigid fit of the map corners on the true ones (the map-relative reference)."""
     from stages.evaluate.metrics import align_truth_to_map, transform_poses
+    from stages.evaluate.params import parse_reference_frame
+    from stages.evaluate.reference import read_reference, read_truth_corners
 
     refs = {}
     if ctx.inputs.has("reference"):
@@ -220,10 +191,9 @@ def read_references(ctx: StageContext, drive: str, cmap: CornerMap | None = None
                                                                        yaw_of_quaternions(t)]))
     truth = (ctx.settings.get("references") or {}).get(drive)
     if truth:
-        stamps_s, T = read_tum(truth)
-        refs["truth"] = (np.round(stamps_s * 1e9).astype(np.int64),
-                         np.column_stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])]))
-        truth_corners = read_truth_corners(Path(truth))
+        ref = read_reference(Path(truth), map_origin, parse_reference_frame(p.reference_frame))
+        refs["truth"] = (ref.stamps_ns, ref.q)
+        truth_corners = read_truth_corners(Path(truth), ref.T_map_origin_ref)
         fit = align_truth_to_map(cmap.en_m, truth_corners) if cmap is not None and truth_corners is not None else None
         if fit is not None:
             R, t, resid = fit
@@ -234,26 +204,58 @@ def read_references(ctx: StageContext, drive: str, cmap: CornerMap | None = None
 
 
 def compute(ctx: StageContext) -> dict:
-    from stages.evaluate.outputs import epochs_table, write_report
+    import json
+
+    import pyarrow.parquet as pq
+
+    from stages.evaluate.outputs import epochs_table, metrics_table_text, write_report
+    from stages.evaluate.run import first_fix
+    from stages.evaluate.verdict import coverage, verdict, verdict_line
 
     p: EvaluateParams = ctx.params  # type: ignore[assignment]
     drive = ctx.partition.drive
     d, scan_ids = read_drive(ctx, drive, p)
     reader = open_published_map(ctx)
     cmap, fetch = map_inputs(reader, d.gnss_q, p)
-    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, cmap), p)
-    import pyarrow.parquet as pq
-
+    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p)
+    ekf = ev.runs.get("ekf")
+    cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
+                   p.sensor_range_m, p.coverage_min_in_range, p.coverage_min_associated)
+    v = verdict(ev.metrics, cov, p)
+    comparison, prev_ev = compare_with_previous(ctx, drive, reader, d, cmap, ev, p)
     out = ctx.artifact_dir("report")
-    write_report(out, ev, cmap, fetch, drive=drive, map_info={"path": str(reader.path), "version": reader.version})
+    name = reader.path.parent.name
+    write_report(out, ev, cmap, fetch, drive=drive, verdict=v, comparison=comparison, previous=prev_ev,
+                 map_info={"name": name, "path": str(reader.path), "version": reader.version})
     table = epochs_table(ev, drive)
     pq.write_table(table, out / "epochs.parquet")  # the per-epoch table beside the report, for DIR users
-    import json
-
-    from stages.evaluate.outputs import metrics_table_text
-
+    log.info("evaluate %s on %s v%04d: %s", drive, name, reader.version, verdict_line(v))
+    if v["status"] == "no coverage" or (v["status"] == "fail" and p.fail_on_targets):
+        raise DataQualityError(f"evaluation of {drive} on map {name} v{reader.version:04d}: {verdict_line(v)}; "
+                               f"report: {out / 'report.html'}")
     final = ctx.committed_artifact_dir("report")
     doc = json.loads((out / "metrics.json").read_text())
-    outcome = [f"evaluation of {drive} on map version {reader.version}:", metrics_table_text(doc),
+    outcome = [f"evaluation of {drive} on map version {reader.version}:", metrics_table_text(doc), verdict_line(v),
                f"report: {final / 'report.html'}", f"metrics: {final / 'metrics.json'}"]
     return {"epochs": table, "_extra": {"outcome": outcome}}
+
+
+def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays, cmap: CornerMap, ev, p):
+    """The EKF on the map's previous version (same drive, same references): (comparison entry, Evaluation) or
+    (None, None) when the version has no parent."""
+    from stages.evaluate.compare import comparison_document, previous_version
+    from stages.evaluate.verdict import judged_reference
+
+    prev = previous_version(reader)
+    if prev is None:
+        return None, None
+    prev_cmap, _ = map_inputs(prev, d.gnss_q, p)
+    p_prev = p.model_copy(update={"methods": ["ekf"]})
+    ev_prev = evaluate_drive(d, prev_cmap, None, read_references(ctx, drive, reader.origin, p, prev_cmap), p_prev)
+    ref = judged_reference(ev.metrics, "ekf")
+    if ref == "truth_in_map":  # fitted on each version's own corners: compare against the common absolute truth
+        ref = "truth"
+    doc = comparison_document(reader.version, prev.version, cmap, prev_cmap, ev.metrics, ev_prev.metrics, ref)
+    log.info("evaluate %s: previous version v%04d: %d corners added, %d removed, %d moved near the drive", drive,
+             prev.version, doc["added"], doc["removed"], doc["moved"])
+    return doc, ev_prev

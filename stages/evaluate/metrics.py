@@ -15,6 +15,7 @@ from stages.evaluate.ekf import nees, nees_band
 METRIC_KEYS = ("rms_2d_m", "max_2d_m", "p95_2d_m", "p99_2d_m", "heading_rms_deg", "lateral_rms_m",
                "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean",
                "epochs")
+NEES_Q95_3DOF = 7.814727903251179  # chi-square 0.95 quantile, 3 dof (scipy.stats.chi2.ppf(0.95, 3))
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,8 @@ def summarize(errors: Errors) -> dict:
     """The metrics.json entry of one method against one reference (NaN epochs excluded)."""
     ok = np.all(np.isfinite(errors.err_xy_m), axis=1) & np.isfinite(errors.err_yaw_rad)
     if not ok.any():
-        return {key: None for key in METRIC_KEYS} | {"epochs": 0, "nees_band95": [None, None]}
+        return {key: None for key in METRIC_KEYS} | {"epochs": 0, "nees_band95": [None, None],
+                                                     "nees_share_below_q95": None}
     h = np.hypot(errors.err_xy_m[ok, 0], errors.err_xy_m[ok, 1])
     yaw_deg = np.rad2deg(errors.err_yaw_rad[ok])
     nees_ok = errors.nees[ok][np.isfinite(errors.nees[ok])]
@@ -87,6 +89,7 @@ def summarize(errors: Errors) -> dict:
         "nees_mean": _json_float(float(np.mean(nees_ok))) if len(nees_ok) else None,
         "epochs": int(ok.sum()),
         "nees_band95": [_json_float(band[0]), _json_float(band[1])],
+        "nees_share_below_q95": float(np.mean(nees_ok <= NEES_Q95_3DOF)) if len(nees_ok) else None,
     }
     return out
 

@@ -14,11 +14,7 @@ from stages.evaluate.run import Evaluation
 
 log = logging.getLogger(__name__)
 
-# Issue 10 targets (map-relative errors; gangnam map from drive 0, evaluated on drive 1).
-TARGETS = {
-    "ekf": {"rms_2d_m": 0.10, "p95_2d_m": 0.20, "p99_2d_m": 0.28, "max_2d_m": 0.40, "heading_rms_deg": 0.15},
-    "mcl": {"mean_abs_x_m": 0.10, "mean_abs_y_m": 0.10, "mean_abs_heading_deg": 0.15},
-}
+# The papers' figures beside the targets (Im et al. 2016 Table 3; Kim et al. Table 2); targets are in the params.
 PAPER = {
     "ekf": {"rms_2d_m": 0.138, "p95_2d_m": 0.25, "p99_2d_m": 0.33, "max_2d_m": 0.46, "heading_rms_deg": 0.168},
     "mcl": {"mean_abs_x_m": 0.125, "mean_abs_y_m": 0.129, "mean_abs_heading_deg": 0.195},
@@ -66,20 +62,10 @@ def epochs_table(ev: Evaluation, drive: str | None = None) -> pa.Table:
                      schema=schema)
 
 
-def check_targets(method: str, summary: dict) -> dict | None:
-    if method not in TARGETS:
-        return None
-    out = {key: {"target": lim, "paper": PAPER[method][key], "value": summary.get(key),
-                 "ok": summary.get(key) is not None and summary[key] <= lim} for key, lim in TARGETS[method].items()}
-    if method == "ekf":
-        lo, hi = summary.get("nees_band95") or [None, None]
-        val = summary.get("nees_mean")
-        out["nees_mean"] = {"band95": [lo, hi], "value": val,
-                            "ok": None not in (lo, hi, val) and lo <= val <= hi}
-    return out
-
-
-def metrics_document(ev: Evaluation, drive: str | None, map_info: dict) -> dict:
+def metrics_document(ev: Evaluation, drive: str | None, map_info: dict, verdict: dict | None = None,
+                     comparison: dict | None = None) -> dict:
+    """metrics.json: per method its metrics against the primary reference, each reference beside, the targets
+    judged (``verdict``, see stages.evaluate.verdict) and, when the map has a previous version, ``comparison``."""
     methods = {}
     for m in (m for m in METHOD_ORDER if m in ev.runs):
         by_ref = ev.metrics.get(m, {})
@@ -90,9 +76,14 @@ def metrics_document(ev: Evaluation, drive: str | None, map_info: dict) -> dict:
                       "truth_in_map": by_ref.get("truth_in_map"),
                       "seconds": round(r.seconds, 4),
                       "epochs_per_s": round(n_run / r.seconds, 1) if r.seconds > 0 else None,
-                      "targets": check_targets(m, primary) if ev.primary == "map" else None}
-    return {"drive": drive, "map": map_info, "primary_reference": ev.primary,
-            "references": sorted(ev.references), "methods": methods}
+                      "targets": (verdict or {}).get("targets", {}).get(m)}
+    doc = {"drive": drive, "map": map_info, "primary_reference": ev.primary,
+           "references": sorted(ev.references), "methods": methods}
+    if verdict is not None:
+        doc["verdict"] = verdict
+    if comparison is not None:
+        doc["comparison"] = comparison
+    return doc
 
 
 def _atomic_write(path: Path, text: str) -> None:
@@ -115,16 +106,17 @@ def write_tum_files(out_dir: Path, ev: Evaluation) -> list[Path]:
     return paths
 
 
-def write_report(out_dir: Path, ev: Evaluation, cmap, fetch, *, drive: str | None, map_info: dict) -> dict:
+def write_report(out_dir: Path, ev: Evaluation, cmap, fetch, *, drive: str | None, map_info: dict,
+                 verdict: dict | None = None, comparison: dict | None = None, previous=None) -> dict:
     """metrics.json, <method>_tum.txt and the self-contained report.html into ``out_dir``."""
     from stages.evaluate.report import render_report
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    doc = metrics_document(ev, drive, map_info)
+    doc = metrics_document(ev, drive, map_info, verdict, comparison)
     _atomic_write(out_dir / "metrics.json", json.dumps(doc, indent=2))
     write_tum_files(out_dir, ev)
-    _atomic_write(out_dir / "report.html", render_report(ev, doc, cmap))
+    _atomic_write(out_dir / "report.html", render_report(ev, doc, cmap, previous))
     log.info("evaluation report written to %s", out_dir / "report.html")
     return doc
 

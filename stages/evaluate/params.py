@@ -71,9 +71,47 @@ class EvaluateParams(Params):
     feature_max_range_m: float = Field(30.0, gt=0)
     # References
     reference_max_gap_s: float = Field(1.0, gt=0, description="no reference across gaps longer than this")
+    reference_frame: str = Field("auto", description="frame of a reference trajectory file: 'auto' (the ENU "
+                                 "origin its header line or NAME.frame.json sidecar states; refused when it states "
+                                 "none), 'map' (already in the map's ENU frame) or 'LAT,LON,H' (ENU about that "
+                                 "WGS84 origin)")
+    # Coverage (issue 28): below either share the verdict is "no coverage" and the evaluation fails (exit 3)
+    coverage_min_in_range: float = Field(0.5, ge=0, le=1, description="min share of epochs with a map corner "
+                                         "within sensor_range_m of the GNSS/INS position")
+    coverage_min_associated: float = Field(0.1, ge=0, le=1, description="min share of epochs where the EKF "
+                                           "associated at least one map corner")
+    # Targets (issue 28, map-relative): a verdict per target in metrics.json and the report
+    target_ekf_rms_2d_m: float = Field(0.10, gt=0, description="EKF horizontal RMS (tiny: 0.15)")
+    target_ekf_p99_2d_m: float = Field(0.28, gt=0)
+    target_ekf_max_2d_m: float = Field(0.40, gt=0)
+    target_ekf_heading_rms_deg: float = Field(0.15, gt=0)
+    target_nees_share_below_q95: float = Field(0.95, gt=0, le=1, description="NEES is consistent when its mean "
+                                              "is in the 95 % band or at least this share of epochs is under the "
+                                              "chi-square 0.95 quantile (3 dof)")
+    target_mcl_mean_abs_x_m: float = Field(0.10, gt=0)
+    target_mcl_mean_abs_y_m: float = Field(0.10, gt=0)
+    target_mcl_mean_abs_heading_deg: float = Field(0.15, gt=0)
+    fail_on_targets: bool = Field(False, description="a missed target fails the evaluation (exit 3)")
 
     @model_validator(mode="after")
     def _methods(self) -> "EvaluateParams":
         if not self.methods:
             raise ValueError("methods: name at least one of 'ekf', 'mcl'")
+        parse_reference_frame(self.reference_frame)
         return self
+
+
+def parse_reference_frame(value: str):
+    """'auto' | 'map' | an EnuOrigin from 'LAT,LON,H' (ValueError otherwise)."""
+    if value in ("auto", "map"):
+        return value
+    from stages.common.geodesy import EnuOrigin
+
+    try:
+        lat, lon, h = (float(v) for v in value.split(","))
+    except ValueError:
+        raise ValueError(f"reference_frame: expected 'auto', 'map' or 'LAT,LON,H' (degrees, degrees, metres); "
+                         f"got {value!r}") from None
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        raise ValueError(f"reference_frame: latitude/longitude out of range in {value!r}")
+    return EnuOrigin(lat, lon, h)

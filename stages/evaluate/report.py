@@ -140,7 +140,8 @@ def _metrics_html(doc: dict) -> str:
             "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean", "epochs")
     rows = []
     for m, entry in doc["methods"].items():
-        for ref_name, s in (("map-relative", entry.get("map_relative")), ("absolute (truth)", entry.get("absolute"))):
+        for ref_name, s in (("map-relative", entry.get("map_relative")), ("absolute (truth)", entry.get("absolute")),
+                            ("truth fitted on the map's corners", entry.get("truth_in_map"))):
             if not s:
                 continue
             cells = "".join(f"<td>{'' if s.get(k) is None else (s[k] if isinstance(s[k], int) else f'{s[k]:.4f}')}</td>"
@@ -150,7 +151,100 @@ def _metrics_html(doc: dict) -> str:
     return f"<table><tr><th>method</th><th>reference</th>{head}</tr>{''.join(rows)}</table>"
 
 
-def render_report(ev, doc: dict, cmap) -> str:
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return str(v) if isinstance(v, (int, str)) else f"{v:.4g}"
+
+
+def _verdict_html(doc: dict) -> str:
+    """The verdict: coverage, then one row per target (value, target, met) against the reference it was judged on."""
+    v = doc.get("verdict")
+    if not v:
+        return ""
+    c = v["coverage"]
+    status = html.escape(v["status"])
+    color = {"pass": "#1a7f37", "fail": "#cf222e", "no coverage": "#cf222e"}.get(v["status"], "#9a6700")
+    assoc = "-" if c["share_associated"] is None else f"{100 * c['share_associated']:.1f} %"
+    rows = [f"<tr><th>coverage</th><td>map corner within {c['sensor_range_m']:g} m</td>"
+            f"<td>{100 * c['share_corner_in_range']:.1f} %</td><td>&ge; {100 * c['min_share_in_range']:.0f} %</td>"
+            f"<td>{'yes' if c['share_corner_in_range'] >= c['min_share_in_range'] else 'NO'}</td><td>GNSS/INS</td></tr>",
+            f"<tr><th>coverage</th><td>epochs with an EKF association</td><td>{assoc}</td>"
+            f"<td>&ge; {100 * c['min_share_associated']:.0f} %</td><td>{'-' if c['share_associated'] is None else ('yes' if c['share_associated'] >= c['min_share_associated'] else 'NO')}</td><td>EKF</td></tr>"]
+    for m, targets in v["targets"].items():
+        ref = v["judged_against"].get(m, "-")
+        for key, t in targets.items():
+            if key == "nees_consistent":
+                value = f"mean {_fmt(t['value'])}, {_fmt(None if t['share_below_q95'] is None else 100 * t['share_below_q95'])} % under q95"
+                target = f"mean in {_fmt(t['band95'])} or &ge; {100 * t['min_share_below_q95']:.0f} % under q95"
+            else:
+                value, target = _fmt(t["value"]), f"&le; {_fmt(t['target'])}"
+            ok = "yes" if t["ok"] else "<b style='color:#cf222e'>NO</b>"
+            rows.append(f"<tr><th>{html.escape(m)}</th><td>{html.escape(key)}</td><td>{value}</td><td>{target}</td>"
+                        f"<td>{ok}</td><td>{html.escape(ref)}</td></tr>")
+    return (f"<h2>Verdict: <span style='color:{color}'>{status}</span></h2><table><tr><th>method</th><th>metric"
+            "</th><th>value</th><th>target</th><th>met</th><th>reference</th></tr>" + "".join(rows) + "</table>")
+
+
+def figure_version_changes(ev, cmap, comp: dict) -> str:
+    """The map's corners near the drive with those added / removed / moved since the previous version."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 7))
+    if cmap is not None and len(cmap.en_m):
+        ax.scatter(cmap.en_m[:, 0], cmap.en_m[:, 1], s=8, c="0.6", marker="s",
+                   label=f"v{comp['current_version']:04d} corners")
+    ref = ev.references.get(ev.primary) if ev.primary else None
+    if ref is not None:
+        ax.plot(ref[:, 0], ref[:, 1], color="tab:blue", lw=1.0, alpha=0.6, label="drive")
+    for key, style, label in (("added_en_m", dict(c="tab:green", marker="+", s=90), "added"),
+                              ("removed_en_m", dict(c="tab:red", marker="x", s=70), "removed"),
+                              ("moved_en_m", dict(facecolors="none", edgecolors="tab:orange", marker="o", s=80),
+                               f"moved > {comp['moved_threshold_m']:g} m")):
+        pts = np.asarray(comp[key], dtype=float).reshape(-1, 2)
+        ax.scatter(pts[:, 0], pts[:, 1], label=f"{label} ({len(pts)})", **style)
+    ax.set_aspect("equal", adjustable="datalim"), ax.legend(fontsize=8)
+    ax.set_xlabel("east (m)"), ax.set_ylabel("north (m)")
+    ax.set_title(f"Corners changed from v{comp['previous_version']:04d} to v{comp['current_version']:04d}")
+    return _png(fig)
+
+
+def figure_version_errors(ev, previous, comp: dict) -> str | None:
+    import matplotlib.pyplot as plt
+
+    name = comp.get("reference")
+    if name is None or "ekf" not in ev.runs or previous is None or "ekf" not in previous.runs:
+        return None
+    t = (ev.stamps_ns - ev.stamps_ns[0]) * 1e-9
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    for e, label, color in ((ev, f"v{comp['current_version']:04d}", "tab:red"),
+                            (previous, f"v{comp['previous_version']:04d}", "tab:gray")):
+        ref = e.references.get(name)
+        if ref is not None:
+            ax.plot(t, np.hypot(*compute_errors(e.runs["ekf"].q, ref).err_xy_m.T), color=color, lw=0.8, label=label)
+    ax.set_yscale("log"), ax.set_xlabel("time (s)"), ax.set_ylabel("EKF horizontal error (m)"), ax.legend(fontsize=8)
+    ax.set_title(f"EKF error on both versions against '{name}'")
+    return _png(fig)
+
+
+def _comparison_html(comp: dict | None) -> str:
+    if not comp:
+        return ""
+    cur, prev = comp["ekf"]["current"] or {}, comp["ekf"]["previous"] or {}
+    keys = ("rms_2d_m", "p99_2d_m", "max_2d_m", "heading_rms_deg", "nees_mean", "epochs")
+    rows = "".join(f"<tr><th>v{v:04d}</th>" + "".join(f"<td>{_fmt(s.get(k))}</td>" for k in keys) + "</tr>"
+                   for v, s in ((comp["current_version"], cur), (comp["previous_version"], prev)))
+    return (f"<h2>Previous version v{comp['previous_version']:04d}</h2><p>EKF on both versions, same drive, against "
+            f"'{html.escape(str(comp['reference']))}'. Corners near the drive: {comp['corners_near_drive']['previous']}"
+            f" -&gt; {comp['corners_near_drive']['current']}; {comp['added']} added, {comp['removed']} removed, "
+            f"{comp['moved']} moved by more than {comp['moved_threshold_m']:g} m (matched within "
+            f"{comp['match_radius_m']:g} m).</p><table><tr><th>version</th>"
+            + "".join(f"<th>{k}</th>" for k in keys) + f"</tr>{rows}</table>")
+
+
+def render_report(ev, doc: dict, cmap, previous=None) -> str:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,10 +254,18 @@ def render_report(ev, doc: dict, cmap) -> str:
             ("Corners used per epoch", figure_corners_per_epoch(ev)),
             ("Covariance ellipses where corners are sparse", figure_ellipses(ev, cmap))]
     body = "".join(f"<h2>{t}</h2><img alt='{t}' src='data:image/png;base64,{b}'/>" for t, b in figs if b)
+    comp = doc.get("comparison")
+    if comp:
+        cfigs = [("Corners changed since the previous version", figure_version_changes(ev, cmap, comp)),
+                 ("EKF error on both versions", figure_version_errors(ev, previous, comp))]
+        body = _comparison_html(comp) + "".join(f"<h3>{t}</h3><img alt='{t}' src='data:image/png;base64,{b}'/>"
+                                                for t, b in cfigs if b) + body
     title = f"cornermap evaluation: drive {html.escape(str(doc.get('drive')))}"
-    meta = html.escape(str(doc.get("map")))
+    m = doc.get("map") or {}
+    meta = html.escape(f"{m.get('name', '')} v{int(m['version']):04d} ({m.get('path', '')})" if m.get("version")
+                       else str(m))
     return (f"<!doctype html><html><head><meta charset='utf-8'><title>{title}</title><style>"
             "body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:12px}"
             "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}img{max-width:100%}</style></head>"
             f"<body><h1>{title}</h1><p>map: {meta}; primary reference: {doc.get('primary_reference')}</p>"
-            f"{_metrics_html(doc)}{body}</body></html>")
+            f"{_verdict_html(doc)}<h2>Metrics</h2>{_metrics_html(doc)}{body}</body></html>")

@@ -26,7 +26,7 @@ class DriveArrays:
 
     stamps_ns: np.ndarray  # (E,)
     icp_increments: np.ndarray  # (E,3) dx, dy, dyaw from epoch k-1 in its vehicle frame; NaN where missing
-    odo_increments: np.ndarray  # (E,3) the same from wheel speed + gyro
+    odo_increments: np.ndarray  # (E,3) the same from wheel speed + gyro (no wheel odometry: ICP, else GNSS/INS)
     gnss_q: np.ndarray  # (E,3) GNSS/INS x, y, yaw at each epoch
     gnss_std: np.ndarray  # (E,3) std of east, north, yaw
     gnss_valid: np.ndarray  # (E,) bool

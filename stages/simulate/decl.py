@@ -16,7 +16,7 @@ class SimulateParams(Params):
 STAGE = StageDecl(
     name="simulate",
     summary="Synthetic city and drives (HDL-32E scans, urban RTK/INS, odometry, survey LAS, ground truth).",
-    code_version="3",
+    code_version="4",
     inputs={},
     outputs={"drives": "raw_drives"},
     params=SimulateParams,

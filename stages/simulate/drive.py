@@ -55,6 +55,7 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
                    scan_limit: int | None, rng: np.random.Generator,
                    progress: Callable[[int, int], None] | None = None) -> DriveResult:
     from stages.common.geometry import write_tum
+    from stages.common.trajectory_frame import frame_header, write_sidecar
 
     rng_route, rng_traffic, rng_sensor, rng_gnss, rng_odo = rng.spawn(5)
     poly, turns = lane_polyline(city, spec.loop, spec.lane)
@@ -88,7 +89,11 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
     T[:, :3, :3] = rotations_enu_vehicle(truth[:, 2], truth[:, 3], truth[:, 4])
     T[:, :2, 3] = truth[:, :2]
     # TUM time = the drive's time base as ingested: GPS seconds since the GPS epoch (week * 604800 + seconds).
-    write_tum(truth_dir / f"drive_{spec.index}_poses_tum.txt", p.gps_week * 604800.0 + gps_scan, T)
+    # The frame (ENU about the simulator's origin) is stated in a header line and a sidecar JSON.
+    tum = truth_dir / f"drive_{spec.index}_poses_tum.txt"
+    write_tum(tum, p.gps_week * 604800.0 + gps_scan, T, header=frame_header(origin))
+    write_sidecar(tum, origin, time="GPS seconds since the GPS epoch (week * 604800 + seconds of week)",
+                  body="vehicle: x forward, y left, z up; origin on the ground under the lidar")
 
     stats = _write_gnss(spec, p, traj, buildings, origin, drive_dir, truth_dir, rng_gnss)
     wheel, gyro = simulate_odometry(traj.speed_mps, traj.yaw_rate_radps, 0.01, rng_odo)

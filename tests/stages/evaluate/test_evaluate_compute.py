@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -10,13 +11,16 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.testing import make_context
 from schemas import schema_of
+from stages.common.geodesy import EnuOrigin
 from stages.common.geometry import write_tum, se3_from_xyz_rpy
+from stages.common.trajectory_frame import frame_header
 from stages.evaluate import compute as compute_mod
 from stages.evaluate.params import EvaluateParams
 from stages.evaluate.synthetic import (ground_ring_scan, observe_corners, paint_markings, relative_increments,
                                        road_trajectory, roadside_corners)
 
 N, CELL, DRIVE = 40, 0.1, "drive_1"
+MAP_ORIGIN = EnuOrigin(37.4979, 127.0276, 57.0)
 
 
 def _table(name: str, cols: dict) -> pa.Table:
@@ -31,9 +35,10 @@ def _quat(yaw: np.ndarray) -> np.ndarray:
 class FakeMap:
     """Stands in for stages.tiles.loader.MapReader (north-up marking rasters, corner tables)."""
 
-    def __init__(self, corners, dirs, mask, origin):
-        self.corners, self.dirs, self.mask, self.origin = corners, dirs, mask, origin
-        self.cell_m, self.path, self.version = CELL, "fake/v0001", 1
+    def __init__(self, corners, dirs, mask, raster_origin):
+        self.corners, self.dirs, self.mask, self.raster_origin = corners, dirs, mask, raster_origin
+        self.cell_m, self.path, self.version = CELL, Path("fake/v0001"), 1
+        self.origin, self.manifest = MAP_ORIGIN, {"version": 1}
 
     def corners_in_bbox(self, e0, n0, e1, n1):
         n = len(self.corners)
@@ -47,7 +52,7 @@ class FakeMap:
         return np.stack([np.stack([ee, en], -1), np.stack([en, nn], -1)], -2)
 
     def marking_window(self, e0, n0, e1, n1):
-        return np.flipud(self.mask), self.origin, CELL  # the loader's convention: row 0 = north edge
+        return np.flipud(self.mask), self.raster_origin, CELL  # the loader's convention: row 0 = north edge
 
 
 @pytest.fixture()
@@ -106,12 +111,22 @@ def stage_context(tmp_path, monkeypatch):
                       "intensity": inten, "ring": ring, "time_offset_s": np.zeros(n)})
     tables["scans"] = pa.concat_tables([_table("scans_raw", s) for s in scans])
     truth_path = tmp_path / "truth.txt"
-    write_tum(truth_path, stamps * 1e-9, np.stack([se3_from_xyz_rpy(x, y, 0, 0, 0, a) for x, y, a in truth]))
+    write_tum(truth_path, stamps * 1e-9, np.stack([se3_from_xyz_rpy(x, y, 0, 0, 0, a) for x, y, a in truth]),
+              header=frame_header(MAP_ORIGIN))
     monkeypatch.setattr(compute_mod, "open_published_map", lambda ctx: FakeMap(corners, dirs, mask, origin))
     ctx = make_context("evaluate", EvaluateParams(n_particles=300), tables, partition=compute_mod.PartitionKey(
         drive=DRIVE), settings={"references": {DRIVE: str(truth_path)}, "eval_drives": [DRIVE]},
         outputs=("report",), workdir=tmp_path)
     return ctx, truth
+
+
+def _rerun(ctx, tmp_path, **changes):
+    """The same context with other settings or params (a fresh artifact directory)."""
+    from dataclasses import replace
+
+    out = tmp_path / f"run{len(list(tmp_path.glob('run*')))}"
+    return replace(ctx, params=ctx.params.model_copy(update=changes.pop("params", {})),
+                   settings={**ctx.settings, **changes.pop("settings", {})}, artifact_dirs={"report": out})
 
 
 def test_compute_writes_epochs_and_report(stage_context):

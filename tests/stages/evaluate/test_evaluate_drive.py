@@ -11,6 +11,7 @@ from stages.evaluate.outputs import epochs_table, write_report
 from stages.evaluate.params import EvaluateParams
 from stages.evaluate.run import evaluate_drive
 from stages.evaluate.synthetic import synthetic_drive
+from stages.evaluate.verdict import coverage, verdict
 
 
 @pytest.fixture(scope="module")
@@ -18,11 +19,11 @@ def outage_evaluation():
     rng = np.random.default_rng(21)
     d, cmap, fetch, truth, stamps = synthetic_drive(600, rng, outage_s=(20.0, 30.0))
     refs = {"truth": (stamps, truth), "map": (stamps, truth + [0.02, -0.01, 0.0])}
-    return evaluate_drive(d, cmap, fetch, refs, EvaluateParams(n_particles=500)), d
+    return evaluate_drive(d, cmap, fetch, refs, EvaluateParams(n_particles=500)), d, cmap
 
 
 def test_gnss_outage_of_30_s_breaks_neither_localizer(outage_evaluation):
-    ev, d = outage_evaluation
+    ev, d, _ = outage_evaluation
     assert (~d.gnss_valid).sum() == 300
     for m in ("ekf", "mcl"):
         assert np.all(np.isfinite(ev.runs[m].q)), m
@@ -45,8 +46,12 @@ def test_filters_start_at_the_first_valid_fix():
 
 
 def test_outputs_metrics_tum_report_and_epochs(outage_evaluation, tmp_path):
-    ev, _ = outage_evaluation
-    doc = write_report(tmp_path, ev, None, None, drive="drive_1", map_info={"version": 1})
+    ev, d, cmap = outage_evaluation
+    p = EvaluateParams()
+    cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ev.runs["ekf"].n_associated, 0, p.sensor_range_m,
+                   p.coverage_min_in_range, p.coverage_min_associated)
+    v = verdict(ev.metrics, cov, p)
+    doc = write_report(tmp_path, ev, cmap, None, drive="drive_1", map_info={"version": 1}, verdict=v)
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
     assert on_disk == json.loads(json.dumps(doc))
     for m in ("ekf", "mcl", "rtk_ins", "icp_dr"):
@@ -61,7 +66,14 @@ def test_outputs_metrics_tum_report_and_epochs(outage_evaluation, tmp_path):
         np.testing.assert_allclose(T[:, 0, 3], r.q[ok, 0], atol=1e-6)
     assert on_disk["primary_reference"] == "map"
     assert on_disk["methods"]["ekf"]["targets"]["rms_2d_m"]["target"] == 0.10
+    assert on_disk["verdict"]["judged_against"] == {"ekf": "map", "mcl": "map"}
+    assert on_disk["verdict"]["coverage"]["ok"] and on_disk["verdict"]["status"] in ("pass", "fail")
+    for m, targets in on_disk["verdict"]["targets"].items():  # every verdict is the comparison it claims
+        for key, t in targets.items():
+            if key != "nees_consistent":
+                assert t["ok"] == (t["value"] <= t["target"]) and t["value"] == on_disk["methods"][m][key]
     page = (tmp_path / "report.html").read_text()
+    assert "Verdict:" in page and "rms_2d_m" in page
     assert page.count("data:image/png;base64,") >= 4
     table = epochs_table(ev, "drive_1")
     assert set(table["method"].to_pylist()) == {"ekf", "mcl", "rtk_ins", "icp_dr"}

@@ -1,0 +1,53 @@
+"""Access to the published map for the evaluation: the map input of the stage, the corners over a drive's extent
+and the marking raster as the MCL's likelihood field.
+
+The map is read ONLY through the product's public consumer API ``stages.tiles.loader.open_map`` (imported
+lazily, the one documented exception to "stages never import each other": the loader is what a vehicle links
+against, and evaluating through it is the point of this stage).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.declare import StageContext
+from pipeline.errors import DatasetIOError
+from stages.evaluate import mcl
+from stages.evaluate.localize_ekf import CornerMap
+from stages.evaluate.params import EvaluateParams
+
+
+def open_published_map(ctx: StageContext):
+    from stages.tiles.loader import open_map  # the public consumer API (see the module doc)
+
+    row = ctx.inputs.read("map").to_pylist()
+    if not row:
+        raise DatasetIOError("input 'map' (map_tiles) has no published version; hint: run the tiles stage first")
+    path = Path(row[-1]["path"])
+    if not path.is_absolute():
+        path = Path(ctx.settings["root"]) / path
+    return open_map(path)
+
+
+def marking_field(mask: np.ndarray, cell_m: float, p: EvaluateParams) -> np.ndarray:
+    """The MCL's likelihood field of a marking window (row 0 south): ``raster_field`` of the params."""
+    if p.raster_field == "distance":
+        return mcl.distance_likelihood_field(mask, cell_m, p.raster_sigma_m)
+    return mcl.smooth_marking_mask(mask, cell_m, p.raster_blur_m)
+
+
+def map_inputs(reader, gnss_q: np.ndarray, p: EvaluateParams):
+    """Corner map over the drive's extent, and a raster fetcher (row 0 south) when the map has markings."""
+    xy = gnss_q[np.all(np.isfinite(gnss_q), axis=1), :2]
+    margin = p.sensor_range_m + 200.0
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    t = reader.corners_in_bbox(lo[0], lo[1], hi[0], hi[1])
+    cmap = CornerMap(np.column_stack([t["east_m"].to_numpy(), t["north_m"].to_numpy()]), reader.covariances(t),
+                     np.column_stack([t["theta1_rad"].to_numpy(), t["theta2_rad"].to_numpy()]))
+    fetch = None
+    if reader.cell_m is not None:
+        def fetch(e0: float, n0: float, e1: float, n1: float) -> mcl.Raster:
+            mask, origin, cell = reader.marking_window(e0, n0, e1, n1)
+            return mcl.Raster(marking_field(np.flipud(mask), cell, p), origin, cell)
+    return cmap, fetch

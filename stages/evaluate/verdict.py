@@ -1,0 +1,111 @@
+"""Verdicts of an evaluation: map coverage of the drive, and each target of issue 28 met or missed (pure numpy).
+
+Coverage: the share of epochs (with a valid GNSS/INS fix) that have a map corner within the sensor range of
+the GNSS/INS position, and the share where the EKF associated at least one map corner. Below either threshold
+the verdict is "no coverage": a drive that does not overlap the map must not score (a drive 60 km away once
+evaluated with exit 0 and EKF 0.11 m, never having associated a corner).
+
+Targets are judged against the map-relative reference when there is one (``map``: the pose graph's
+co-registration, or ``truth_in_map``: the truth fitted onto the map's corners), else against the absolute truth;
+the verdict names the reference it used.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+JUDGE_ORDER = ("map", "truth_in_map", "truth")
+
+
+def coverage(gnss_q: np.ndarray, gnss_valid: np.ndarray, map_en_m: np.ndarray, n_associated: np.ndarray | None,
+             start_epoch: int, sensor_range_m: float, min_in_range: float, min_associated: float) -> dict:
+    """Coverage entry of metrics.json (shares in [0, 1]; ``ok`` False means "no coverage")."""
+    from scipy.spatial import cKDTree
+
+    ok = np.asarray(gnss_valid, bool) & np.all(np.isfinite(gnss_q), axis=1)
+    ok[:start_epoch] = False
+    n = int(ok.sum())
+    in_range = np.zeros(len(ok), bool)
+    if len(map_en_m) and n:
+        d, _ = cKDTree(np.asarray(map_en_m, float)).query(gnss_q[ok, :2], distance_upper_bound=sensor_range_m)
+        in_range[ok] = np.isfinite(d)
+    share_in = float(in_range[ok].mean()) if n else 0.0
+    share_assoc = None
+    if n_associated is not None:
+        share_assoc = float((np.asarray(n_associated)[ok] > 0).mean()) if n else 0.0
+    good = n > 0 and share_in >= min_in_range and (share_assoc is None or share_assoc >= min_associated)
+    return {"epochs": n, "map_corners": int(len(map_en_m)), "sensor_range_m": sensor_range_m,
+            "share_corner_in_range": share_in, "share_associated": share_assoc,
+            "min_share_in_range": min_in_range, "min_share_associated": min_associated, "ok": bool(good)}
+
+
+def target_limits(p) -> dict[str, dict[str, float]]:
+    """Targets per method from the evaluate params (metric key -> upper limit)."""
+    return {"ekf": {"rms_2d_m": p.target_ekf_rms_2d_m, "p99_2d_m": p.target_ekf_p99_2d_m,
+                    "max_2d_m": p.target_ekf_max_2d_m, "heading_rms_deg": p.target_ekf_heading_rms_deg},
+            "mcl": {"mean_abs_x_m": p.target_mcl_mean_abs_x_m, "mean_abs_y_m": p.target_mcl_mean_abs_y_m,
+                    "mean_abs_heading_deg": p.target_mcl_mean_abs_heading_deg}}
+
+
+def judge_method(method: str, summary: dict, limits: dict[str, float], min_nees_share: float) -> dict:
+    """Per target {target, value, ok}; for the EKF also ``nees_consistent`` (mean in its 95 % band, or at least
+    ``min_nees_share`` of the epochs under the chi-square 0.95 quantile)."""
+    out = {}
+    for key, lim in limits.items():
+        v = summary.get(key)
+        out[key] = {"target": lim, "value": v, "ok": v is not None and v <= lim}
+    if method == "ekf":
+        lo, hi = summary.get("nees_band95") or [None, None]
+        mean, share = summary.get("nees_mean"), summary.get("nees_share_below_q95")
+        in_band = None not in (lo, hi, mean) and lo <= mean <= hi
+        out["nees_consistent"] = {"band95": [lo, hi], "value": mean, "share_below_q95": share,
+                                  "min_share_below_q95": min_nees_share,
+                                  "ok": bool(in_band or (share is not None and share >= min_nees_share))}
+    return out
+
+
+def judged_reference(metrics: dict[str, dict[str, dict]], method: str) -> str | None:
+    by_ref = metrics.get(method, {})
+    return next((r for r in JUDGE_ORDER if (by_ref.get(r) or {}).get("epochs")), None)
+
+
+def verdict(metrics: dict[str, dict[str, dict]], cov: dict, p) -> dict:
+    """The verdict entry of metrics.json: status 'pass' | 'fail' | 'no coverage' | 'no reference'."""
+    limits = target_limits(p)
+    targets, missed, refs = {}, [], {}
+    for m in (m for m in limits if m in metrics):
+        ref = judged_reference(metrics, m)
+        if ref is None:
+            continue
+        refs[m] = ref
+        targets[m] = judge_method(m, metrics[m][ref], limits[m], p.target_nees_share_below_q95)
+        for key, t in targets[m].items():
+            if not t["ok"]:
+                missed.append(f"{m} {key} {_fmt(t['value'])} (target {_fmt(t.get('target', t.get('band95')))}, "
+                              f"against '{ref}')")
+    if not cov["ok"]:
+        status = "no coverage"
+    elif not targets:
+        status = "no reference"
+    else:
+        status = "fail" if missed else "pass"
+    return {"status": status, "coverage": cov, "judged_against": refs, "targets": targets, "missed": missed}
+
+
+def verdict_line(v: dict) -> str:
+    """One line for the CLI and the error message."""
+    c = v["coverage"]
+    assoc = "-" if c["share_associated"] is None else f"{100 * c['share_associated']:.0f}%"
+    cov = (f"{100 * c['share_corner_in_range']:.0f}% of {c['epochs']} epochs with a map corner within "
+           f"{c['sensor_range_m']:g} m (min {100 * c['min_share_in_range']:.0f}%), {assoc} associated "
+           f"(min {100 * c['min_share_associated']:.0f}%)")
+    if v["status"] == "no coverage":
+        return f"verdict: no coverage: {cov}"
+    if v["status"] == "fail":
+        return f"verdict: fail: {len(v['missed'])} target(s) missed: " + "; ".join(v["missed"]) + f" [coverage {cov}]"
+    return f"verdict: {v['status']} [coverage {cov}]"
+
+
+def _fmt(x) -> str:
+    if isinstance(x, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in x) + "]"
+    return "-" if x is None else f"{x:.4g}"
