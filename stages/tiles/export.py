@@ -18,7 +18,8 @@ from stages.common.im2016_text import format_im2016_text
 if TYPE_CHECKING:  # pragma: no cover
     from stages.tiles.loader import MapReader
 
-FORMATS = ("im2016-text", "geojson", "autoware")
+FORMATS = ("im2016-text", "geojson", "autoware", "geotiff")
+GEOJSON_CRS = "urn:ogc:def:crs:OGC:1.3:CRS84"
 
 
 def corners_geojson(corners: pa.Table, origin: EnuOrigin, properties: dict[str, Any] | None = None) -> dict:
@@ -43,7 +44,10 @@ def corners_geojson(corners: pa.Table, origin: EnuOrigin, properties: dict[str, 
                                      "cov_m2": [float(col["cov_ee_m2"][k]), float(col["cov_en_m2"][k]),
                                                 float(col["cov_nn_m2"][k])],
                                      "n_obs": int(col["n_obs"][k]), "n_drives": int(col["n_drives"][k])}})
-    doc: dict[str, Any] = {"type": "FeatureCollection", "features": feats}
+    # RFC 7946 coordinates are always WGS84 lon/lat; the 2008 "crs" member says so for readers that look for it
+    # (GDAL/OGR, QGIS): OGC CRS84 = WGS84 with longitude first.
+    doc: dict[str, Any] = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": GEOJSON_CRS}},
+                           "features": feats}
     if properties:
         doc["cornermap"] = properties  # a foreign member (RFC 7946 s.6.1): map name, version, ENU origin
     return doc
@@ -83,6 +87,27 @@ def _atomic_write(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
+def export_geotiffs(reader: "MapReader", out: Path) -> list[Path]:
+    """Every raster layer of every tile as a COG ``out/{layer}/{i}_{j}.tif`` in the map's local TM CRS."""
+    from stages.tiles.layers import local_tm_proj4, sidecar_layers, write_cog
+
+    crs = local_tm_proj4(reader.manifest["enu_origin"])
+    tags = {"cornermap_map": str(reader.manifest.get("map_name")), "cornermap_version": str(reader.version),
+            "cornermap_enu_origin": json.dumps(reader.manifest["enu_origin"])}
+    files = []
+    for i, j in reader.tile_keys():
+        meta = reader.tile_entry(i, j).get("marking")
+        if not meta:
+            continue
+        cell = float(meta["cell_m"])
+        for layer in sorted(sidecar_layers(reader.path / reader.tile_entry(i, j)["dir"], meta)):
+            values = reader.tile_layer(i, j, layer)
+            north = float(meta["origin_north_m"]) + values.shape[0] * cell
+            files.append(write_cog(Path(out) / layer / f"{i}_{j}.tif", values, float(meta["origin_east_m"]), north,
+                                   cell, crs, layer, tags))
+    return files
+
+
 def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float = 10.0,
                column_step_m: float = 0.5) -> list[Path]:
     """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for autoware)."""
@@ -92,7 +117,7 @@ def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float 
     out = Path(out)
     if fmt == "im2016-text":
         text = format_im2016_text(*(corners[c].to_numpy() for c in (
-            "corner_id", "east_m", "north_m", "theta1_rad", "theta2_rad", "cov_ee_m2", "cov_en_m2", "cov_nn_m2")))
+            "corner_id", "east_m", "north_m", "theta1_rad", "theta2_rad", "cov_ee_m2", "cov_en_m2", "cov_nn_m2")), origin=reader.manifest["enu_origin"])
         _atomic_write(out, text.encode("utf-8"))
         return [out]
     if fmt == "geojson":
@@ -101,6 +126,8 @@ def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float 
         doc = corners_geojson(corners, reader.origin, props)
         _atomic_write(out, json.dumps(doc, separators=(",", ":")).encode("utf-8"))
         return [out]
+    if fmt == "geotiff":
+        return export_geotiffs(reader, out)
     east, north = corners["east_m"].to_numpy(), corners["north_m"].to_numpy()
     xyz = corner_columns_xyz(east, north, column_height_m, column_step_m)
     per = len(xyz) // max(1, len(east))

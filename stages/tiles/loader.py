@@ -99,6 +99,16 @@ class MapReader:
             return None
         return self._markings.get((int(i), int(j)))
 
+    def tile_layer(self, i: int, j: int, layer: str = "marking_mask") -> np.ndarray:
+        """Any raster layer of tile (i, j), decoded (row 0 = north): masks uint8, ``intensity`` / ``elevation_*``
+        float64 with NaN = no data, ``point_count`` uint16 (stages/tiles/layers.py). Not cached."""
+        from stages.tiles.layers import read_layer
+
+        marking = self.tile_entry(i, j).get("marking")
+        if not marking:
+            raise UnknownNameError(f"{self.path}: tile ({i},{j}) has no raster layers")
+        return read_layer(self.path / self._tiles[(int(i), int(j))]["dir"], marking, layer)
+
     def _load_corners(self, key: tuple[int, int]) -> tuple[pa.Table, np.ndarray, np.ndarray]:
         path = self.path / self._tiles[key]["dir"] / layout.CORNERS_FILE
         try:
