@@ -96,7 +96,7 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
     typer.echo("total: +{} -{} ~{} corners, {} marking px changed".format(*totals))
 
 
-def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | geojson | autoware | geotiff"),
+def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | geojson | markings-geojson | autoware | geotiff"),
            out: Path = typer.Option(..., "--out", "-o", help="Output file (directory for autoware and geotiff)."),
            root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
            column_height_m: float = typer.Option(10.0, "--column-height-m",

@@ -18,7 +18,7 @@ from stages.common.im2016_text import format_im2016_text
 if TYPE_CHECKING:  # pragma: no cover
     from stages.tiles.loader import MapReader
 
-FORMATS = ("im2016-text", "geojson", "autoware", "geotiff")
+FORMATS = ("im2016-text", "geojson", "markings-geojson", "autoware", "geotiff")
 GEOJSON_CRS = "urn:ogc:def:crs:OGC:1.3:CRS84"
 
 
@@ -50,6 +50,26 @@ def corners_geojson(corners: pa.Table, origin: EnuOrigin, properties: dict[str, 
                            "features": feats}
     if properties:
         doc["cornermap"] = properties  # a foreign member (RFC 7946 s.6.1): map name, version, ENU origin
+    return doc
+
+
+def markings_geojson(features: list, origin: EnuOrigin, properties: dict[str, Any] | None = None) -> dict:
+    """RFC 7946 FeatureCollection of typed road markings: LineString / Polygon [lon, lat] (WGS84, 1e-9 deg)."""
+    feats = []
+    for k, f in enumerate(features):
+        xy = np.asarray(f.xy_m, float)
+        ring = np.vstack([xy, xy[:1]]) if f.is_polygon else xy
+        llh = enu_to_geodetic(np.column_stack([ring, np.zeros(len(ring))]), origin)
+        coords = np.round(llh[:, [1, 0]], 9).tolist()
+        geom = {"type": "Polygon", "coordinates": [coords]} if f.is_polygon else {"type": "LineString",
+                                                                                   "coordinates": coords}
+        feats.append({"type": "Feature", "id": k, "geometry": geom,
+                      "properties": {"type": f.type, "width_m": round(float(f.width_m), 3),
+                                     "length_m": round(float(f.length_m), 3)}})
+    doc: dict[str, Any] = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": GEOJSON_CRS}},
+                           "features": feats}
+    if properties:
+        doc["cornermap"] = properties
     return doc
 
 
@@ -120,9 +140,16 @@ def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float 
             "corner_id", "east_m", "north_m", "theta1_rad", "theta2_rad", "cov_ee_m2", "cov_en_m2", "cov_nn_m2")), origin=reader.manifest["enu_origin"])
         _atomic_write(out, text.encode("utf-8"))
         return [out]
+    props = {"map_name": reader.manifest.get("map_name"), "version": reader.version,
+             "enu_origin": reader.manifest["enu_origin"], "manifest_sha256": reader.manifest_sha256}
+    if fmt == "markings-geojson":
+        from stages.tiles.vectors import read_map_features
+
+        doc = markings_geojson(read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()]),
+                               reader.origin, props)
+        _atomic_write(out, json.dumps(doc, separators=(",", ":")).encode("utf-8"))
+        return [out]
     if fmt == "geojson":
-        props = {"map_name": reader.manifest.get("map_name"), "version": reader.version,
-                 "enu_origin": reader.manifest["enu_origin"], "manifest_sha256": reader.manifest_sha256}
         doc = corners_geojson(corners, reader.origin, props)
         _atomic_write(out, json.dumps(doc, separators=(",", ":")).encode("utf-8"))
         return [out]

@@ -84,3 +84,17 @@ def test_im2016_text_names_its_origin_and_geojson_its_crs(city_map, tmp_path):
     export_map(city_map, "geojson", tmp_path / "c.geojson")
     doc = json.loads((tmp_path / "c.geojson").read_text())
     assert pyproj.CRS(doc["crs"]["properties"]["name"]).equals(pyproj.CRS("OGC:CRS84"))
+
+
+def test_markings_geojson_puts_the_painted_line_on_earth(city_map, tmp_path):
+    export_map(city_map, "markings-geojson", tmp_path / "m.geojson")
+    doc = json.loads((tmp_path / "m.geojson").read_text())
+    assert doc["crs"]["properties"]["name"].endswith("CRS84")
+    lines = [f for f in doc["features"] if f["properties"]["type"] == "lane_solid"]
+    assert len(lines) == 3  # the line crosses tiles (0, 0..2): one clipped piece per tile
+    from stages.common.geodesy import geodetic_to_enu
+
+    for f in lines:
+        lon, lat = np.array(f["geometry"]["coordinates"]).T
+        enu = geodetic_to_enu(lat, lon, np.full(len(lat), ORIGIN.h_m), ORIGIN)
+        np.testing.assert_allclose(enu[:, 0], LINE_EAST_M, atol=0.05)
