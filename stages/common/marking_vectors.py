@@ -6,7 +6,7 @@ Method (OpenCV components + principal axes, no learned model):
 1. 3 x 3 closing (fills the one-cell holes of a sparsely sampled paint patch), 8-connected components; each
    component's pixel centres give its principal axis, length ``L`` and width ``W`` (extent along / across the
    axis + one cell) and fill ratio (painted area / (L W)).
-2. Each component is one of: *piece* of a line (``W <= line_max_width_m``, or a long component up to
+2. Each component is one of: *piece* of a line (``W <= line_max_width_m`` = 0.35 m, or a long component up to
    0.7 m wide: a double centre line), *bar* (0.3..0.9 m wide, 1.2..8 m long, filled: a
    crosswalk stripe or a stop line), *arrow* (3..7 m long, 0.4..1.3 m wide, fill < 0.6), or noise.
 3. Pieces on one straight line (axes within ``chain_angle_deg``, lateral offset <= ``chain_offset_m``, gap
@@ -15,8 +15,9 @@ Method (OpenCV components + principal axes, no learned model):
    is noise. Long chains follow curves: the centreline is the mean of the chain's pixels per ``bin_m`` along
    the axis.
 4. Three or more parallel bars side by side (centres within 1.6 m across their axes) form a crosswalk
-   (polygon: the oriented rectangle around them); a bar alone (or two) is a stop line (its centreline), unless
-   a line piece within 4 m runs parallel to it (then it is a short double centre line: a line piece).
+   (polygon: the oriented rectangle around them; bars within 20 deg, as partly seen stripes skew); a bar alone
+   (or two) is a stop line (its centreline) when 2.5 m long or more and at most 0.65 m wide, unless a line
+   piece within 4 m runs parallel to it (then it is a short double centre line: a line piece).
 5. Arrows keep their simplified outline (``cv2.approxPolyDP``, 0.1 m).
 """
 from __future__ import annotations
@@ -177,7 +178,7 @@ def _chain_lines(pieces: list[_Comp], angle_deg: float, offset_m: float, gap_m: 
 
 
 def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_m: float,
-                context_m: float) -> tuple[list[MarkingFeature], list[_Comp]]:
+                context_m: float, stop_min_m: float) -> tuple[list[MarkingFeature], list[_Comp]]:
     """Crosswalks and stop lines from the bars; bars that are parallel to a nearby line piece (a short double
     centre line) are returned as line pieces."""
     pairs = []
@@ -188,7 +189,7 @@ def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_
             d = bars[b].centre - bars[a].centre
             along = abs(d @ bars[a].axis)
             across = abs(d @ np.array([-bars[a].axis[1], bars[a].axis[0]]))
-            if across <= pitch_m and along <= 0.5 * (bars[a].s1 - bars[a].s0):
+            if across <= pitch_m and along <= max(1.0, 0.5 * (bars[a].s1 - bars[a].s0)):
                 pairs.append((a, b))
     out, as_pieces = [], []
     for group in _union_find(len(bars), pairs):
@@ -206,13 +207,15 @@ def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_
             if any(_angle_between(q.axis, bar.axis) <= angle_deg for q in near):
                 as_pieces.append(bar)
                 continue
+            if bar.s1 - bar.s0 < stop_min_m or bar.width_m > 0.65:
+                continue  # a fragment (of a partly seen crosswalk, say): no type
             xy = bar.centre + np.array([bar.s0, bar.s1])[:, None] * bar.axis
             out.append(MarkingFeature("stop_line", xy, bar.width_m, bar.s1 - bar.s0))
     return out, as_pieces
 
 
 def vectorize_markings(mask: np.ndarray, west_m: float, south_m: float, cell_m: float, *,
-                       line_max_width_m: float = 0.3, min_area_m2: float = 0.04, min_line_m: float = 1.5,
+                       line_max_width_m: float = 0.35, min_area_m2: float = 0.04, min_line_m: float = 1.5,
                        chain_angle_deg: float = 6.0, chain_offset_m: float = 0.3, chain_gap_m: float = 6.0,
                        dash_gap_m: float = 2.0, solid_cover: float = 0.7, bin_m: float = 5.0) -> list[MarkingFeature]:
     """Typed features of a binary marking raster (row 0 = north edge; south-west corner at (west_m, south_m))."""
@@ -221,11 +224,11 @@ def vectorize_markings(mask: np.ndarray, west_m: float, south_m: float, cell_m: 
         length = comp.s1 - comp.s0
         if comp.width_m <= line_max_width_m or (comp.width_m <= 0.7 and length >= 8.0):
             pieces.append(comp)
-        elif 0.3 <= comp.width_m <= 0.9 and 1.2 <= length <= 8.0 and comp.fill >= 0.6:
+        elif comp.width_m <= 0.9 and 1.2 <= length <= 8.0 and comp.fill >= 0.6:
             bars.append(comp)
         elif 3.0 <= length <= 7.0 and 0.4 <= comp.width_m <= 1.3 and comp.fill < 0.6:
             feats.append(MarkingFeature("arrow", comp.ring, comp.width_m, length))
-    bar_feats, more_pieces = _group_bars(bars, pieces, 10.0, 1.6, 4.0)
+    bar_feats, more_pieces = _group_bars(bars, pieces, 20.0, 1.6, 4.0, 2.5)
     feats += bar_feats
     feats += _chain_lines(pieces + more_pieces, chain_angle_deg, chain_offset_m, chain_gap_m, dash_gap_m,
                           solid_cover, min_line_m, bin_m)

@@ -106,7 +106,8 @@ def asphalt_albedo(bounds_en, rng: np.random.Generator, res_m: float = 2.0) -> R
 
 def marking_truth_features(city: City) -> list[tuple[str, np.ndarray]]:
     """Typed truth geometry of ``generate_markings``' paint, ENU: (type, coordinates) with type one of
-    lane_solid / lane_dashed / stop_line (centrelines, (2, 2)), crosswalk (outer rectangle of its stripes) and
+    lane_solid / lane_dashed / stop_line (centrelines, (2, 2); the double centre line is one line along its
+    middle, Lanelet2's solid_solid), crosswalk (outer rectangle of its stripes) and
     arrow (outline). A dashed line runs from its first dash's start to its last dash's end."""
     out: list[tuple[str, np.ndarray]] = []
     for a, b, hw, lanes in street_edges(city):
@@ -119,8 +120,7 @@ def marking_truth_features(city: City) -> list[tuple[str, np.ndarray]]:
         s0, s1 = c + 5.5, length - c - 5.5
         if s1 - s0 < 6:
             continue
-        local: list[tuple[str, np.ndarray]] = [("lane_solid", np.array([[s0, 0.175], [s1, 0.175]])),
-                                               ("lane_solid", np.array([[s0, -0.175], [s1, -0.175]]))]
+        local: list[tuple[str, np.ndarray]] = [("lane_solid", np.array([[s0, 0.0], [s1, 0.0]]))]  # double line
         edge_d = lanes * LANE_W_M
         for side in (-1.0, 1.0):
             local.append(("lane_solid", np.array([[s0, side * edge_d], [s1, side * edge_d]])))

@@ -1,4 +1,4 @@
-"""Exports of a published map: Im 2016 Table 1 text, GeoJSON (WGS84), Autoware (projector info + PCD).
+"""Exports of a published map: Im 2016 Table 1 text, GeoJSON (WGS84; corners and markings), GeoTIFF, Autoware.
 
 ``*_document`` / ``*_bytes`` functions are pure (arrays in, text/bytes out); ``export_map`` writes files.
 """
@@ -84,13 +84,6 @@ def autoware_projector_yaml(origin: EnuOrigin) -> str:
             f"  altitude: {origin.h_m:.4f}\n")
 
 
-def corner_columns_xyz(east_m: np.ndarray, north_m: np.ndarray, height_m: float, step_m: float) -> np.ndarray:
-    """Each corner as a vertical column of points from 0 to ``height_m`` (it is a vertical edge), (N*K, 3)."""
-    z = np.arange(0.0, height_m + 1e-9, step_m) if height_m > 0 else np.zeros(1)
-    k = len(z)
-    return np.column_stack([np.repeat(east_m, k), np.repeat(north_m, k), np.tile(z, len(east_m))])
-
-
 def pcd_bytes(xyz_m: np.ndarray, intensity: np.ndarray) -> bytes:
     """Binary PCD v0.7 with float32 x y z intensity (what Autoware's map loader reads)."""
     n = len(xyz_m)
@@ -128,9 +121,11 @@ def export_geotiffs(reader: "MapReader", out: Path) -> list[Path]:
     return files
 
 
-def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float = 10.0,
-               column_step_m: float = 0.5) -> list[Path]:
-    """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for autoware)."""
+def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = None) -> list[Path]:
+    """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for autoware/geotiff).
+
+    ``root``: the output root holding the datasets the map was built from (autoware reads scans and poses there;
+    default: the root of the map's own ROOT/maps/NAME/vNNNN directory)."""
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
     corners = reader.all_corners()
@@ -155,11 +150,7 @@ def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float 
         return [out]
     if fmt == "geotiff":
         return export_geotiffs(reader, out)
-    east, north = corners["east_m"].to_numpy(), corners["north_m"].to_numpy()
-    xyz = corner_columns_xyz(east, north, column_height_m, column_step_m)
-    per = len(xyz) // max(1, len(east))
-    intensity = np.repeat(corners["n_obs"].to_numpy().astype(float), per)
-    files = [out / "map_projector_info.yaml", out / "pointcloud_map.pcd"]
-    _atomic_write(files[0], autoware_projector_yaml(reader.origin).encode("utf-8"))
-    _atomic_write(files[1], pcd_bytes(xyz, intensity))
-    return files
+    from stages.tiles.autoware import export_autoware
+
+    return export_autoware(reader, out, Path(root) if root is not None else reader.path.parents[2],
+                           write=_atomic_write)
