@@ -29,6 +29,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from stages.tiles.loader import MapReader
 
 log = logging.getLogger(__name__)
+_CHUNK = 1_000_000
 DOUBLE_LINE_MIN_WIDTH_M = 0.35  # a solid line this wide is two lines merged at the raster's resolution
 OSM_TAGS = {"lane_solid": {"type": "line_thin", "subtype": "solid"},
             "lane_dashed": {"type": "line_thin", "subtype": "dashed"},
@@ -124,7 +125,12 @@ def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, 
         rng = np.linalg.norm(lidar, axis=1)
         t_ns = scans["stamp_ns"].to_numpy() + np.round(scans["time_offset_s"].to_numpy().astype(float) * 1e9).astype(np.int64)
         ok = (rng > 1.0) & (rng < max_range_m) & (t_ns >= stamps[0]) & (t_ns <= stamps[-1])
-        pts, origins = scan_to_map(lidar[ok], t_ns[ok], T_vl, stamps, pxyz, pq_)
+        lidar, t_ok = lidar[ok], t_ns[ok]
+        parts = [scan_to_map(lidar[a:a + _CHUNK], t_ok[a:a + _CHUNK], T_vl, stamps, pxyz, pq_)
+                 for a in range(0, len(lidar), _CHUNK)]  # chunks bound the per-point rotation matrices
+        pts = np.vstack([q[0] for q in parts]) if parts else np.zeros((0, 3))
+        origins = np.vstack([q[1] for q in parts]).astype(np.float32) if parts else np.zeros((0, 3), np.float32)
+        del parts
         # the road under the vehicle: its height at the nearest pose (vehicle frame origin on the road)
         from scipy.spatial import cKDTree
 

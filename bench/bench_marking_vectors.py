@@ -1,0 +1,101 @@
+"""Vector road markings of a published map scored against the simulator's typed marking truth.
+
+    .venv/bin/python -m bench.bench_marking_vectors --root runs/demo            # map from the root, truth there
+    .venv/bin/python -m bench.bench_marking_vectors --root runs/demo --map demo --tol-m 0.3 --json out.json
+
+Predicted: every tile's ``markings.parquet`` of the LATEST version (what the tiles stage published). Truth: the
+simulator's painted elements, typed (``stages.simulate.markings.marking_truth_features``), regenerated from the
+run's ``truth/city.json`` (pixel-identical to ``truth/markings.png``). Only truth the map observed counts
+(cells with LiDAR points, ``point_count`` > 0), since the simulator also paints streets no drive took. Scores per
+type: lines as sampled centrelines within ``--tol-m``, crosswalks/arrows as objects (stages/common/marking_scores).
+Also times the vectorization of every tile (what publishing adds), on the same masks.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def observed_fn(reader):
+    """(N, 2) ENU -> bool: the cell holding the point has LiDAR points in the map."""
+    counts = {}
+    for key in reader.tile_keys():
+        meta = reader.tile_entry(*key).get("marking")
+        if meta:
+            counts[key] = (reader.tile_layer(*key, "point_count"), meta)
+
+    def observed(xy: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(xy), bool)
+        size = reader.tile_size_m
+        for k, (e, n) in enumerate(np.asarray(xy, float)):
+            got = counts.get((int(np.floor(e / size)), int(np.floor(n / size))))
+            if got is None:
+                continue
+            img, meta = got
+            cell = float(meta["cell_m"])
+            col = int((e - meta["origin_east_m"]) // cell)
+            row = img.shape[0] - 1 - int((n - meta["origin_north_m"]) // cell)
+            r0, r1, c0, c1 = max(0, row - 3), min(img.shape[0], row + 4), max(0, col - 3), min(img.shape[1], col + 4)
+            out[k] = bool((img[r0:r1, c0:c1] > 0).any())  # within 0.3 m of an observed cell
+        return out
+
+    return observed
+
+
+def main(argv: list[str] | None = None) -> dict:
+    from stages.common.marking_scores import score_markings
+    from stages.simulate.markings import city_from_description, marking_truth_features
+    from stages.tiles.cli import map_dir_of
+    from stages.tiles.loader import open_map
+    from stages.tiles.vectors import read_map_features, tile_features
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--map", default=None)
+    ap.add_argument("--truth", type=Path, default=None, help="truth/city.json (default: the root's simulate run)")
+    ap.add_argument("--tol-m", type=float, default=0.3)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    reader = open_map(map_dir_of(args.root, args.map))
+    city_json = args.truth or next(iter(sorted((args.root / "datasets" / "raw_drives").glob(
+        "*/artifacts/all/truth/city.json"))), None)
+    if city_json is None:
+        raise SystemExit(f"no truth/city.json under {args.root}/datasets/raw_drives; pass --truth")
+    truth = marking_truth_features(city_from_description(json.loads(Path(city_json).read_text())))
+    feats = read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()])
+    scores = score_markings([(f.type, f.xy_m) for f in feats], truth, tol_m=args.tol_m, observed=observed_fn(reader))
+
+    def mask_of(key):
+        if key not in reader.tile_keys() or not reader.tile_entry(*key).get("marking"):
+            return None
+        meta = reader.tile_entry(*key)["marking"]
+        return (reader.tile_marking(*key), float(meta["origin_east_m"]), float(meta["origin_north_m"]),
+                float(meta["cell_m"]))
+
+    keys = [k for k in reader.tile_keys() if reader.tile_entry(*k).get("marking")]
+    times = []
+    for key in keys:
+        t0 = time.perf_counter()
+        tile_features(key, reader.tile_size_m, mask_of)
+        times.append(time.perf_counter() - t0)
+    result = {"map": str(reader.path), "tol_m": args.tol_m, "scores": scores, "n_tiles": len(keys),
+              "vectorize_s_per_tile_median": float(np.median(times)) if times else None,
+              "vectorize_s_per_tile_max": float(np.max(times)) if times else None}
+    print(f"{reader.path}: {len(feats)} features in {len(keys)} raster tiles; tolerance {args.tol_m} m")
+    print(f"{'type':<12} {'precision':>9} {'recall':>7} {'predicted':>9} {'truth seen':>10}")
+    for kind, s in scores.items():
+        print(f"{kind:<12} {s['precision']:>9.3f} {s['recall']:>7.3f} {s['n_predicted']:>9d} {s['n_truth']:>10d}")
+    if times:
+        print(f"vectorize per tile (window with 10 m margin): median {np.median(times) * 1e3:.0f} ms, "
+              f"max {np.max(times) * 1e3:.0f} ms")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+    return result
+
+
+if __name__ == "__main__":
+    main()
