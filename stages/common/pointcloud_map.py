@@ -16,6 +16,7 @@ import numpy as np
 
 _BITS = 21
 _OFF = 1 << (_BITS - 1)
+_RAY_CHUNK = 100_000
 
 
 def voxel_keys(xyz_m: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -58,24 +59,33 @@ def free_space_keep(points_m: np.ndarray, origins_m: np.ndarray, pass_id: np.nda
     above = pts[:, 2] > np.asarray(ground_z_m, float) + ground_clear_m
     hit_keys = voxel_keys(pts, voxel_m)
     hits = np.unique(np.column_stack([hit_keys[above], pass_id[above]]), axis=0)  # (voxel, pass) hit pairs
-    # free samples along a subset of rays
+    # free samples along a subset of rays, in chunks of rays (memory), reduced to unique (voxel, pass) counts
     sel = np.arange(0, len(pts), max(1, ray_stride))
-    o, p = np.asarray(origins_m, float)[sel], pts[sel]
-    d = p - o
-    rng = np.linalg.norm(d, axis=1)
-    ok = (rng > stop_m + voxel_m) & (rng < max_range_m)
-    o, d, rng, pid, gz = o[ok], d[ok], rng[ok], pass_id[sel][ok], np.asarray(ground_z_m, float)[sel][ok]
-    n_steps = np.floor((rng - stop_m) / (voxel_m / 2)).astype(np.int64)
-    ray = np.repeat(np.arange(len(rng)), n_steps)
-    k = np.arange(n_steps.sum()) - np.repeat(np.cumsum(n_steps) - n_steps, n_steps)
-    s = (k + 0.5) * (voxel_m / 2) / rng[ray]
-    samples = o[ray] + d[ray] * s[:, None]
-    keep_sample = samples[:, 2] > gz[ray] + ground_clear_m
-    free = np.column_stack([voxel_keys(samples[keep_sample], voxel_m), pid[ray][keep_sample]])
+    origins_m = np.asarray(origins_m)
+    ground_z_m = np.asarray(ground_z_m, float)
+    parts = []
+    for c0 in range(0, len(sel), _RAY_CHUNK):
+        idx = sel[c0:c0 + _RAY_CHUNK]
+        o, p = origins_m[idx].astype(float), pts[idx]
+        d = p - o
+        rng = np.linalg.norm(d, axis=1)
+        ok = (rng > stop_m + voxel_m) & (rng < max_range_m)
+        o, d, rng, pid, gz = o[ok], d[ok], rng[ok], pass_id[idx][ok], ground_z_m[idx][ok]
+        n_steps = np.floor((rng - stop_m) / (voxel_m / 2)).astype(np.int64)
+        ray = np.repeat(np.arange(len(rng)), n_steps)
+        k = np.arange(n_steps.sum()) - np.repeat(np.cumsum(n_steps) - n_steps, n_steps)
+        samples = o[ray] + d[ray] * ((k + 0.5) * (voxel_m / 2) / rng[ray])[:, None]
+        keep_sample = samples[:, 2] > gz[ray] + ground_clear_m
+        pairs = np.column_stack([voxel_keys(samples[keep_sample], voxel_m), pid[ray][keep_sample]])
+        u, n = np.unique(pairs, axis=0, return_counts=True)
+        parts.append((u, n))
+    free = np.vstack([u for u, _ in parts]) if parts else np.zeros((0, 2), np.int64)
+    counts = np.concatenate([n for _, n in parts]) if parts else np.zeros(0, np.int64)
     if not len(free) or not len(hits):
         return np.ones(len(pts), bool)
     # free crossings of passes that never hit the voxel: (voxel, pass) pairs as dense scalar codes
-    free_u, free_n = np.unique(free, axis=0, return_counts=True)
+    free_u, inv = np.unique(free, axis=0, return_inverse=True)
+    free_n = np.bincount(inv.ravel(), weights=counts, minlength=len(free_u))
     vox_all, vox_idx = np.unique(np.r_[free_u[:, 0], hits[:, 0]], return_inverse=True)
     pas_all, pas_idx = np.unique(np.r_[free_u[:, 1], hits[:, 1]], return_inverse=True)
     code = vox_idx.astype(np.int64) * len(pas_all) + pas_idx
