@@ -110,12 +110,12 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
         lines = [g for k, g in truth if k in kinds[tags["type"]]]
         for nd in way.iter("nd"):
             p = xy[nd.get("ref")]
-            if tags["type"] == "crosswalk_polygon":  # inside the painted crosswalk area (partly seen ones too)
+            if tags["type"] == "crosswalk_polygon":  # in the painted crosswalk area (partly seen ones too), 0.3 m slack
                 import cv2
 
                 inside = max(cv2.pointPolygonTest(g.astype(np.float32).reshape(-1, 1, 2), (float(p[0]), float(p[1])),
                                                   True) for g in lines)
-                assert inside >= -0.25, (p, inside)
+                assert inside >= -0.3, (p, inside)
             else:  # on a painted line of its type: within 5 cm across it, at most 0.25 m beyond its ends
                 best = np.inf
                 for a, b in ((g[0], g[-1]) for g in lines):
