@@ -59,6 +59,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--truth", type=Path, default=None, help="truth/city.json (default: the root's simulate run)")
     ap.add_argument("--tol-m", type=float, default=0.3)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--figure", type=Path, default=None, help="PNG: the densest raster tile, mask + vectors")
     args = ap.parse_args(argv)
     reader = open_map(map_dir_of(args.root, args.map))
     city_json = args.truth or next(iter(sorted((args.root / "datasets" / "raw_drives").glob(
@@ -94,7 +95,44 @@ def main(argv: list[str] | None = None) -> dict:
               f"max {np.max(times) * 1e3:.0f} ms")
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
+    if args.figure and keys:
+        draw_figure(reader, feats, truth, keys, args.figure)
     return result
+
+
+def draw_figure(reader, feats, truth, keys, path: Path) -> None:
+    """The densest tile: marking mask in grey, truth in thin black, vectors coloured by type."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    key = max(keys, key=lambda k: reader.tile_entry(*k).get("n_marking_px", 0))
+    e0, n0 = key[0] * reader.tile_size_m, key[1] * reader.tile_size_m
+    e1, n1 = e0 + reader.tile_size_m, n0 + reader.tile_size_m
+    mask, (we, sn), cell = reader.marking_window(e0, n0, e1, n1)
+    fig, ax = plt.subplots(figsize=(9, 9))
+    ax.imshow(mask > 0, cmap="Greys", alpha=0.35, extent=(we, we + mask.shape[1] * cell, sn, sn + mask.shape[0] * cell))
+    colours = {"lane_solid": "tab:blue", "lane_dashed": "tab:green", "stop_line": "tab:red",
+               "crosswalk": "tab:purple", "arrow": "tab:orange"}
+    for kind, xy in truth:
+        ring = np.vstack([xy, xy[:1]]) if kind in ("crosswalk", "arrow") else xy
+        ax.plot(ring[:, 0], ring[:, 1], color="k", lw=0.5, ls=":")
+    seen = set()
+    for f in feats:
+        ring = np.vstack([f.xy_m, f.xy_m[:1]]) if f.is_polygon else f.xy_m
+        ax.plot(ring[:, 0], ring[:, 1], color=colours[f.type], lw=1.6, label=None if f.type in seen else f.type)
+        seen.add(f.type)
+    ax.set_xlim(e0, e1)
+    ax.set_ylim(n0, n1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("east (m, map ENU)")
+    ax.set_ylabel("north (m)")
+    ax.set_title(f"tile {key}: marking mask (grey), truth (dotted), vector markings (colour)")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -6,18 +6,20 @@ Method (OpenCV components + principal axes, no learned model):
 1. 3 x 3 closing (fills the one-cell holes of a sparsely sampled paint patch), 8-connected components; each
    component's pixel centres give its principal axis, length ``L`` and width ``W`` (extent along / across the
    axis + one cell) and fill ratio (painted area / (L W)).
-2. Each component is one of: *piece* of a line (``W <= line_max_width_m`` = 0.35 m, or a long component up to
-   0.7 m wide: a double centre line), *bar* (0.3..0.9 m wide, 1.2..8 m long, filled: a
-   crosswalk stripe or a stop line), *arrow* (3..7 m long, 0.4..1.3 m wide, fill < 0.6), or noise.
+2. Each component is one of: *piece* of a line (``W <= line_max_width_m`` = 0.35 m), *bar* (up to 0.9 m wide,
+   at least 1.2 m long, fill >= 0.6: a crosswalk stripe, a stop line or a double centre line), *arrow*
+   (3..7 m long, 0.4..1.3 m wide, fill < 0.6), or noise.
 3. Pieces on one straight line (axes within ``chain_angle_deg``, lateral offset <= ``chain_offset_m``, gap
    <= ``chain_gap_m``) chain into one line. A chain whose pieces cover >= ``solid_cover`` of its length with no
    gap over ``dash_gap_m`` is a solid lane line, otherwise dashed; a lone piece shorter than ``min_line_m``
    is noise. Long chains follow curves: the centreline is the mean of the chain's pixels per ``bin_m`` along
    the axis.
-4. Three or more parallel bars side by side (centres within 1.6 m across their axes) form a crosswalk
-   (polygon: the oriented rectangle around them; bars within 20 deg, as partly seen stripes skew); a bar alone
-   (or two) is a stop line (its centreline) when 2.5 m long or more and at most 0.65 m wide, unless a line
-   piece within 4 m runs parallel to it (then it is a short double centre line: a line piece).
+4. Three or more parallel bars of similar length (within 2x) side by side (centres within 1.6 m across their
+   axes) form a crosswalk (polygon: the oriented rectangle around them; bars within 20 deg, as partly seen
+   stripes skew). Any other bar is part of a lane line (a double centre line, or a line the raster drew
+   wide; chained with the pieces) when longer than 15 m (no stop line is), or at least 5 m long with a line
+   piece or another such bar running parallel within 6 m; otherwise it is a stop line (its centreline) when
+   at least 2.5 m long and at most 0.75 m wide, else noise.
 5. Arrows keep their simplified outline (``cv2.approxPolyDP``, 0.1 m).
 """
 from __future__ import annotations
@@ -189,10 +191,13 @@ def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_
             d = bars[b].centre - bars[a].centre
             along = abs(d @ bars[a].axis)
             across = abs(d @ np.array([-bars[a].axis[1], bars[a].axis[0]]))
-            if across <= pitch_m and along <= max(1.0, 0.5 * (bars[a].s1 - bars[a].s0)):
+            la, lb = bars[a].s1 - bars[a].s0, bars[b].s1 - bars[b].s0
+            if across <= pitch_m and along <= max(1.0, 0.5 * la) and max(la, lb) <= 2.0 * min(la, lb):
                 pairs.append((a, b))
     out, as_pieces = [], []
-    for group in _union_find(len(bars), pairs):
+    groups = _union_find(len(bars), pairs)
+    lone = [bars[k] for g in groups if len(g) < 3 for k in g]
+    for group in groups:
         if len(group) >= 3:
             import cv2
 
@@ -203,11 +208,13 @@ def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_
             continue
         for k in group:
             bar = bars[k]
-            near = [q for q in pieces if np.min(np.linalg.norm(q.pts - bar.centre, axis=1)) <= context_m]
-            if any(_angle_between(q.axis, bar.axis) <= angle_deg for q in near):
+            near = [q for q in pieces + lone if q is not bar
+                    and np.min(np.linalg.norm(q.pts - bar.centre, axis=1)) <= context_m]
+            length = bar.s1 - bar.s0
+            if length > 15.0 or (length >= 5.0 and any(_angle_between(q.axis, bar.axis) <= angle_deg for q in near)):
                 as_pieces.append(bar)
                 continue
-            if bar.s1 - bar.s0 < stop_min_m or bar.width_m > 0.65:
+            if length < stop_min_m or bar.width_m > 0.75:
                 continue  # a fragment (of a partly seen crosswalk, say): no type
             xy = bar.centre + np.array([bar.s0, bar.s1])[:, None] * bar.axis
             out.append(MarkingFeature("stop_line", xy, bar.width_m, bar.s1 - bar.s0))
@@ -222,13 +229,13 @@ def vectorize_markings(mask: np.ndarray, west_m: float, south_m: float, cell_m: 
     pieces, bars, feats = [], [], []
     for comp in _components(mask, west_m, south_m, cell_m, min_area_m2):
         length = comp.s1 - comp.s0
-        if comp.width_m <= line_max_width_m or (comp.width_m <= 0.7 and length >= 8.0):
+        if comp.width_m <= line_max_width_m:
             pieces.append(comp)
-        elif comp.width_m <= 0.9 and 1.2 <= length <= 8.0 and comp.fill >= 0.6:
+        elif comp.width_m <= 0.9 and length >= 1.2 and comp.fill >= 0.6:
             bars.append(comp)
         elif 3.0 <= length <= 7.0 and 0.4 <= comp.width_m <= 1.3 and comp.fill < 0.6:
             feats.append(MarkingFeature("arrow", comp.ring, comp.width_m, length))
-    bar_feats, more_pieces = _group_bars(bars, pieces, 20.0, 1.6, 4.0, 2.5)
+    bar_feats, more_pieces = _group_bars(bars, pieces, 20.0, 1.6, 6.0, 2.5)
     feats += bar_feats
     feats += _chain_lines(pieces + more_pieces, chain_angle_deg, chain_offset_m, chain_gap_m, dash_gap_m,
                           solid_cover, min_line_m, bin_m)
