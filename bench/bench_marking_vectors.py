@@ -2,6 +2,10 @@
 
     .venv/bin/python -m bench.bench_marking_vectors --root runs/demo            # map from the root, truth there
     .venv/bin/python -m bench.bench_marking_vectors --root runs/demo --map demo --tol-m 0.3 --json out.json
+    .venv/bin/python -m bench.bench_marking_vectors --root runs/demo --rasters   # the markings stage's tiles
+
+``--rasters`` scores the markings stage's committed tiles (``marking_rasters`` under the root) vectorized by the
+same code the tiles stage publishes with, without a published map.
 
 Predicted: every tile's ``markings.parquet`` of the LATEST version (what the tiles stage published). Truth: the
 simulator's painted elements, typed (``stages.simulate.markings.marking_truth_features``), regenerated from the
@@ -46,6 +50,42 @@ def observed_fn(reader):
     return observed
 
 
+class RasterDirReader:
+    """The loader calls the bench uses, served from a ``marking_rasters`` dataset (tile+IIII+JJJJ directories)."""
+
+    def __init__(self, dataset_dir: Path, tile_size_m: float = 100.0):
+        import cv2
+
+        self.path, self.tile_size_m, self._tiles = dataset_dir, tile_size_m, {}
+        for d in sorted((dataset_dir / "artifacts").glob("tile*")):
+            meta = json.loads((d / "raster.json").read_text())
+            key = (int(round(meta["origin_east_m"] / tile_size_m)), int(round(meta["origin_north_m"] / tile_size_m)))
+            self._tiles[key] = {"dir": d, "marking": meta, "n_marking_px": 0,
+                                "mask": cv2.imread(str(d / "marking_mask.png"), cv2.IMREAD_GRAYSCALE),
+                                "count": cv2.imread(str(d / "point_count.png"), cv2.IMREAD_UNCHANGED)}
+            self._tiles[key]["n_marking_px"] = int((self._tiles[key]["mask"] > 0).sum())
+
+    def tile_keys(self):
+        return sorted(self._tiles)
+
+    def tile_entry(self, i, j):
+        return self._tiles[(i, j)]
+
+    def tile_marking(self, i, j):
+        return self._tiles[(i, j)]["mask"]
+
+    def tile_layer(self, i, j, layer):
+        return self._tiles[(i, j)]["count"]
+
+    def marking_window(self, e0, n0, e1, n1):
+        from stages.tiles.vectors import mosaic_window
+
+        cell = float(next(iter(self._tiles.values()))["marking"]["cell_m"])
+        parts = [(t["mask"], float(t["marking"]["origin_east_m"]), float(t["marking"]["origin_north_m"]))
+                 for t in self._tiles.values()]
+        return mosaic_window(e0, n0, e1, n1, cell, parts), (e0, n0), cell
+
+
 def main(argv: list[str] | None = None) -> dict:
     from stages.common.marking_scores import score_markings
     from stages.simulate.markings import city_from_description, marking_truth_features
@@ -58,16 +98,32 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--map", default=None)
     ap.add_argument("--truth", type=Path, default=None, help="truth/city.json (default: the root's simulate run)")
     ap.add_argument("--tol-m", type=float, default=0.3)
+    ap.add_argument("--rasters", action="store_true", help="score the root's marking_rasters, not a map")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--figure", type=Path, default=None, help="PNG: the densest raster tile, mask + vectors")
     args = ap.parse_args(argv)
-    reader = open_map(map_dir_of(args.root, args.map))
+    if args.rasters:
+        from stages.tiles.vectors import tile_features as _tf
+
+        dirs = [d for d in sorted((args.root / "datasets" / "marking_rasters").glob("*")) if (d / "_manifest.json").is_file()]
+        if not dirs:
+            raise SystemExit(f"no committed marking_rasters under {args.root}/datasets")
+        reader = RasterDirReader(max(dirs, key=lambda d: json.loads((d / "_manifest.json").read_text())
+                                     .get("committed_utc", "")))
+    else:
+        reader = open_map(map_dir_of(args.root, args.map))
     city_json = args.truth or next(iter(sorted((args.root / "datasets" / "raw_drives").glob(
         "*/artifacts/all/truth/city.json"))), None)
     if city_json is None:
         raise SystemExit(f"no truth/city.json under {args.root}/datasets/raw_drives; pass --truth")
     truth = marking_truth_features(city_from_description(json.loads(Path(city_json).read_text())))
-    feats = read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()])
+    if args.rasters:
+        mask_of0 = (lambda key: None if key not in reader.tile_keys() else (
+            reader.tile_marking(*key), float(reader.tile_entry(*key)["marking"]["origin_east_m"]),
+            float(reader.tile_entry(*key)["marking"]["origin_north_m"]), float(reader.tile_entry(*key)["marking"]["cell_m"])))
+        feats = [f for k in reader.tile_keys() for f in _tf(k, reader.tile_size_m, mask_of0)]
+    else:
+        feats = read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()])
     scores = score_markings([(f.type, f.xy_m) for f in feats], truth, tol_m=args.tol_m, observed=observed_fn(reader))
 
     def mask_of(key):

@@ -17,8 +17,9 @@ Method (OpenCV components + principal axes, no learned model):
 4. Three or more parallel bars of similar length (within 2x) side by side (centres within 1.6 m across their
    axes) form a crosswalk (polygon: the oriented rectangle around them; bars within 20 deg, as partly seen
    stripes skew). Any other bar is part of a lane line (a double centre line, or a line the raster drew
-   wide; chained with the pieces) when longer than 15 m (no stop line is), or at least 5 m long with a line
-   piece or another such bar running parallel within 6 m; otherwise it is a stop line (its centreline) when
+   wide; chained with the pieces) when collinear with a piece or another such bar (a dash of a dashed line:
+   axes within 6 deg, 0.3 m across, gap <= 6 m), when longer than 15 m (no stop line is), or when at least
+   5 m long with a piece or bar parallel within 6 m; otherwise it is a stop line (its centreline) when
    at least 2.5 m long and at most 0.75 m wide, else noise.
 5. Arrows keep their simplified outline (``cv2.approxPolyDP``, 0.1 m).
 """
@@ -211,7 +212,12 @@ def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_
             near = [q for q in pieces + lone if q is not bar
                     and np.min(np.linalg.norm(q.pts - bar.centre, axis=1)) <= context_m]
             length = bar.s1 - bar.s0
-            if length > 15.0 or (length >= 5.0 and any(_angle_between(q.axis, bar.axis) <= angle_deg for q in near)):
+            normal = np.array([-bar.axis[1], bar.axis[0]])
+            collinear = any(_angle_between(q.axis, bar.axis) <= 6.0 and abs((q.centre - bar.centre) @ normal) <= 0.3
+                            for q in pieces + lone if q is not bar
+                            and abs((q.centre - bar.centre) @ bar.axis) <= (length + q.s1 - q.s0) / 2 + 6.0)
+            if collinear or length > 15.0 or (
+                    length >= 5.0 and any(_angle_between(q.axis, bar.axis) <= angle_deg for q in near)):
                 as_pieces.append(bar)
                 continue
             if length < stop_min_m or bar.width_m > 0.75:
