@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -30,7 +30,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 _CHUNK = 1_000_000
-DOUBLE_LINE_MIN_WIDTH_M = 0.35  # a solid line this wide is two lines merged at the raster's resolution
+DOUBLE_LINE_MIN_WIDTH_M = 0.55  # two lines merged in the raster (0.5 m of paint drawn ~0.7 m; a single
+# 0.15 m line is drawn 0.3-0.4 m wide)
 OSM_TAGS = {"lane_solid": {"type": "line_thin", "subtype": "solid"},
             "lane_dashed": {"type": "line_thin", "subtype": "dashed"},
             "stop_line": {"type": "stop_line"},
@@ -156,7 +157,7 @@ def map_drives(reader: "MapReader") -> list[str]:
 
 
 def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float = 20.0, voxel_m: float = 0.2,
-                    write: "callable" = None) -> list[Path]:
+                    write: Callable[[Path, bytes], None]) -> list[Path]:
     """Write the Autoware folder (module docstring) under ``out``; returns the files written."""
     from stages.tiles.export import autoware_projector_yaml, pcd_bytes
     from stages.tiles.vectors import read_map_features
