@@ -171,3 +171,69 @@ def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):
     ambiguous = _evaluate(root, "--map", str(root / "maps" / "tiny"), "--drive", str(drive), "--out",
                           str(tmp_path / "e2"))
     assert ambiguous.returncode == 1 and "is a path and --root" in ambiguous.stderr
+
+
+def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_paint(tiny_sync, tmp_path):
+    """The Autoware folder of the tiny map: PCD cells read by open3d inside their metadata cells, building
+    corners of the map standing in the cloud; Lanelet2 OSM nodes on the simulator's painted markings."""
+    import xml.etree.ElementTree as ET
+
+    import numpy as np
+    import open3d as o3d
+    import yaml
+
+    from stages.simulate.markings import city_from_description, marking_truth_features
+    from stages.tiles.export import export_map
+    from stages.tiles.loader import open_map
+
+    root, _ = tiny_sync
+    reader = open_map(root / "maps" / "tiny")
+    out = tmp_path / "aw"
+    export_map(reader, "autoware", out)
+    assert yaml.safe_load((out / "map_projector_info.yaml").read_text())["projector_type"] == "LocalCartesian"
+    meta = yaml.safe_load((out / "pointcloud_map_metadata.yaml").read_text())
+    res = meta.pop("x_resolution")
+    assert meta.pop("y_resolution") == res and meta
+    clouds = []
+    for name, (x0, y0) in meta.items():
+        pts = np.asarray(o3d.io.read_point_cloud(str(out / "pointcloud_map" / name)).points)
+        assert len(pts) and (pts[:, 0] >= x0).all() and (pts[:, 0] < x0 + res).all()
+        assert (pts[:, 1] >= y0).all() and (pts[:, 1] < y0 + res).all()
+        clouds.append(pts)
+    cloud = np.vstack(clouds)
+    from scipy.spatial import cKDTree
+
+    walls = cKDTree(cloud[cloud[:, 2] > 2.0][:, :2])  # building walls, above cars and people
+    corners = reader.all_corners()
+    d, _ = walls.query(np.column_stack([corners["east_m"].to_numpy(), corners["north_m"].to_numpy()]))
+    assert np.median(d) < 0.1 and (d < 0.3).mean() > 0.8, d  # the corner map's corners stand on the cloud's walls
+
+    [city_json] = list((root / "datasets" / "raw_drives").glob("*/artifacts/all/truth/city.json"))
+    truth = marking_truth_features(city_from_description(json.loads(city_json.read_text())))
+    osm = ET.parse(out / "lanelet2_map.osm").getroot()
+    xy = {n.get("id"): np.array([float(n.find("tag[@k='local_x']").get("v")), float(n.find("tag[@k='local_y']").get("v"))])
+          for n in osm.iter("node")}
+    kinds = {"line_thin": ("lane_solid", "lane_dashed"), "stop_line": ("stop_line",), "crosswalk_polygon": ("crosswalk",)}
+    n_checked = 0
+    for way in osm.iter("way"):
+        tags = {t.get("k"): t.get("v") for t in way.iter("tag")}
+        lines = [g for k, g in truth if k in kinds[tags["type"]]]
+        for nd in way.iter("nd"):
+            p = xy[nd.get("ref")]
+            if tags["type"] == "crosswalk_polygon":  # in the painted crosswalk area (partly seen ones too), 0.3 m slack
+                import cv2
+
+                inside = max(cv2.pointPolygonTest(g.astype(np.float32).reshape(-1, 1, 2), (float(p[0]), float(p[1])),
+                                                  True) for g in lines)
+                assert inside >= -0.3, (p, inside)
+            else:  # on a painted line of its type: within 5 cm across it, at most 0.25 m beyond its ends
+                best = np.inf
+                for a, b in ((g[0], g[-1]) for g in lines):
+                    u = (b - a) / np.linalg.norm(b - a)
+                    s = (p - a) @ u
+                    beyond = max(0.0, -s, s - np.linalg.norm(b - a))
+                    if beyond <= 0.25:
+                        best = min(best, abs((p - a) @ np.array([-u[1], u[0]])))
+                assert best <= 0.05, (tags, p, best)
+            n_checked += 1
+    assert n_checked >= 10

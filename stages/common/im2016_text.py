@@ -4,14 +4,21 @@ One line per corner, tab-separated: index, east (m), north (m), direction angle 
 (deg), then the 2x2 covariance row-major (m^2: ee en ne nn). Lines starting with ``#`` are comments; the first
 line is a header naming the columns. Positions carry millimetres, angles hundredths of a degree, covariances
 three significant digits.
+
+With an origin, comment lines before the column header state the frame so the numbers can be placed on Earth:
+``# frame: ENU (east, north, up) ...``, ``# origin: lat_deg=... lon_deg=... h_m=... (WGS84, ellipsoidal)``,
+``# units: ...``; ``parse_frame_header`` reads the origin back.
 """
 from __future__ import annotations
 
 import io
+import re
 
 import numpy as np
 
 from pipeline.errors import FormatError
+
+_ORIGIN_RE = re.compile(r"^#\s*origin:\s*lat_deg=(\S+)\s+lon_deg=(\S+)\s+h_m=(\S+)")
 
 HEADER = ("# Index\tEast (m)\tNorth (m)\tDirection Angle 1 (deg)\tDirection Angle 2 (deg)\t"
           "Covariance Matrix (2x2, m^2: ee en ne nn)")
@@ -21,15 +28,40 @@ _FMT = ["%d", "%.3f", "%.3f", "%.2f", "%.2f", "%.2e", "%.2e", "%.2e", "%.2e"]
 
 def format_im2016_text(corner_id: np.ndarray, east_m: np.ndarray, north_m: np.ndarray, theta1_rad: np.ndarray,
                        theta2_rad: np.ndarray, cov_ee_m2: np.ndarray, cov_en_m2: np.ndarray,
-                       cov_nn_m2: np.ndarray) -> str:
-    """Columns of a corner map -> Table 1 text (header line included)."""
+                       cov_nn_m2: np.ndarray, origin: dict[str, float] | None = None) -> str:
+    """Columns of a corner map -> Table 1 text (header line included).
+
+    ``origin`` ({lat_deg, lon_deg, h_m}, WGS84): the map's ENU origin, written as frame comment lines first.
+    """
     cols = [np.asarray(corner_id, float), east_m, north_m, np.degrees(theta1_rad), np.degrees(theta2_rad),
             cov_ee_m2, cov_en_m2, cov_en_m2, cov_nn_m2]
     buf = io.StringIO()
+    if origin is not None:
+        buf.write(frame_header(origin))
     buf.write(HEADER + "\n")
     if len(cols[0]):
         np.savetxt(buf, np.column_stack([np.asarray(c, float) for c in cols]), fmt=_FMT, delimiter="\t")
     return buf.getvalue()
+
+
+def frame_header(origin: dict[str, float]) -> str:
+    """Comment lines naming the frame, the WGS84 origin (1e-9 deg, 0.1 mm) and the units."""
+    return ("# frame: local ENU (east, north, up) tangent plane about the origin below; angles counter-clockwise "
+            "from east\n"
+            f"# origin: lat_deg={float(origin['lat_deg']):.9f} lon_deg={float(origin['lon_deg']):.9f} "
+            f"h_m={float(origin['h_m']):.4f} (WGS84, ellipsoidal height)\n"
+            "# units: east/north m, angles deg, covariance m^2\n")
+
+
+def parse_frame_header(text: str) -> dict[str, float] | None:
+    """The origin stated by ``frame_header`` in ``text`` ({lat_deg, lon_deg, h_m}), or None when absent."""
+    for line in text.splitlines():
+        if not line.startswith("#"):
+            break
+        m = _ORIGIN_RE.match(line)
+        if m:
+            return {"lat_deg": float(m.group(1)), "lon_deg": float(m.group(2)), "h_m": float(m.group(3))}
+    return None
 
 
 def parse_im2016_text(text: str, *, source: str = "<text>") -> dict[str, np.ndarray]:

@@ -102,3 +102,53 @@ def asphalt_albedo(bounds_en, rng: np.random.Generator, res_m: float = 2.0) -> R
     patches = np.clip(patches / (patches.max() + 1e-12) * 3, 0, 1)
     albedo = np.clip(0.10 + 0.018 * field_ + 0.04 * patches, 0.05, 0.16).astype(np.float32)
     return Raster(albedo, west, north, res_m)
+
+
+def marking_truth_features(city: City) -> list[tuple[str, np.ndarray]]:
+    """Typed truth geometry of ``generate_markings``' paint, ENU: (type, coordinates) with type one of
+    lane_solid / lane_dashed / stop_line (centrelines, (2, 2); the double centre line is one line along its
+    middle, Lanelet2's solid_solid), crosswalk (outer rectangle of its stripes) and
+    arrow (outline). A dashed line runs from its first dash's start to its last dash's end."""
+    out: list[tuple[str, np.ndarray]] = []
+    for a, b, hw, lanes in street_edges(city):
+        pa, pb = city.nodes_en[a], city.nodes_en[b]
+        length = float(np.linalg.norm(pb - pa))
+        t = (pb - pa) / length
+        n = np.array([-t[1], t[0]])
+        hw_cross = city.hw_col_m if a[0] == b[0] else city.hw_row_m
+        c = 1.25 * hw_cross + 1.0
+        s0, s1 = c + 5.5, length - c - 5.5
+        if s1 - s0 < 6:
+            continue
+        local: list[tuple[str, np.ndarray]] = [("lane_solid", np.array([[s0, 0.0], [s1, 0.0]]))]  # double line
+        edge_d = lanes * LANE_W_M
+        for side in (-1.0, 1.0):
+            local.append(("lane_solid", np.array([[s0, side * edge_d], [s1, side * edge_d]])))
+            for k in range(1, lanes):
+                starts = np.arange(s0, s1 - 3.0, 8.0)
+                local.append(("lane_dashed", np.array([[starts[0], side * k * LANE_W_M],
+                                                       [starts[-1] + 3.0, side * k * LANE_W_M]])))
+        for s_cw in (c, length - c - 4.0):
+            d = np.arange(-hw + 1.0, hw - 1.0, 1.0)
+            local.append(("crosswalk", _rect(s_cw, s_cw + 4.0, float(d[0]), float(d[-1]) + 0.5)))
+        local.append(("stop_line", np.array([[length - c - 4.725, -edge_d], [length - c - 4.725, -0.3]])))
+        local.append(("stop_line", np.array([[c + 4.725, 0.3], [c + 4.725, edge_d]])))
+        if s1 - s0 > 25:
+            for k in range(lanes):
+                dk = (k + 0.5) * LANE_W_M
+                local.append(("arrow", _arrow(length - c - 12.0, -dk, 1.0)))
+                local.append(("arrow", _arrow(c + 12.0, dk, -1.0)))
+        for kind, geom in local:
+            out.append((kind, pa + geom[:, :1] * t + geom[:, 1:2] * n))
+    return out
+
+
+def city_from_description(doc: dict) -> City:
+    """The street layout of a ``truth/city.json`` (intersections, half widths, lanes) as a City, enough for
+    ``generate_markings`` / ``marking_truth_features`` (no buildings, trees, poles or cars)."""
+    return City(nodes_en=np.asarray(doc["intersections_en"], float),
+                hw_row_m=float(doc["road_half_width_m"]["east_west"]),
+                hw_col_m=float(doc["road_half_width_m"]["north_south"]),
+                lanes_row=int(doc["lanes_per_direction"]["east_west"]),
+                lanes_col=int(doc["lanes_per_direction"]["north_south"]),
+                curbs_en=[], buildings=[], trees=np.zeros((0, 5)), poles=np.zeros((0, 2)), parked=np.zeros((0, 5)))

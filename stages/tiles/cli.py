@@ -20,6 +20,7 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles diff v0001 v0002 --root runs/demo --map demo\n\n"
             "  cornermap tiles export --format geojson --out city.geojson --root runs/demo\n\n"
             "  cornermap tiles export --format autoware --out autoware_map/ --root runs/demo\n\n"
+            "  cornermap tiles export --format geotiff --out rasters/ --root runs/demo\n\n"
             "  cornermap tiles verify --all --root runs/demo")
 
 
@@ -105,12 +106,10 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
     typer.echo("total: +{} -{} ~{} corners, {} marking px changed".format(*totals))
 
 
-def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | geojson | autoware"),
-           out: Path = typer.Option(..., "--out", "-o", help="Output file (directory for autoware)."),
-           root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
-           column_height_m: float = typer.Option(10.0, "--column-height-m",
-                                                 help="autoware: each corner drawn as a vertical column this tall")) -> None:
-    """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), or Autoware (projector info + PCD).
+def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | geojson | markings-geojson | autoware | geotiff"),
+           out: Path = typer.Option(..., "--out", "-o", help="Output file (directory for autoware and geotiff)."),
+           root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT) -> None:
+    """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), Autoware map folder, or GeoTIFFs (COG).
 
     Examples: [b]cornermap tiles export -f geojson -o city.geojson --root runs/demo[/b];
     [b]cornermap tiles export -f autoware -o autoware_map/ --root runs/demo --version v0002[/b]
@@ -121,7 +120,7 @@ def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | ge
     if fmt not in FORMATS:
         raise typer.BadParameter(f"{fmt!r}; expected one of {', '.join(FORMATS)}", param_hint="--format")
     reader = open_map(map_dir_of(root, map_name), version)
-    for path in export_map(reader, fmt, out, column_height_m=column_height_m):
+    for path in export_map(reader, fmt, out, root=root):
         typer.echo(f"wrote {path}")
 
 

@@ -1,11 +1,10 @@
-"""Exports of a published map: Im 2016 Table 1 text, GeoJSON (WGS84), Autoware (projector info + PCD).
+"""Exports of a published map: Im 2016 Table 1 text, GeoJSON (WGS84; corners and markings), GeoTIFF, Autoware.
 
 ``*_document`` / ``*_bytes`` functions are pure (arrays in, text/bytes out); ``export_map`` writes files.
 """
 from __future__ import annotations
 
 import json
-import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -13,16 +12,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pyarrow as pa
 
-from pipeline.errors import DatasetIOError, LimitError, PublishConflictError
+from pipeline.errors import DatasetIOError, PublishConflictError
 from stages.common.geodesy import EnuOrigin, enu_to_geodetic
 from stages.common.im2016_text import format_im2016_text
 
 if TYPE_CHECKING:  # pragma: no cover
     from stages.tiles.loader import MapReader
 
-FORMATS = ("im2016-text", "geojson", "autoware")
-MAX_COLUMN_HEIGHT_M = 1000.0  # autoware columns: a corner is a building edge, not a space elevator
-MAX_EXPORT_POINTS = 200_000_000  # 3.2 GB of float32 x y z intensity
+FORMATS = ("im2016-text", "geojson", "markings-geojson", "autoware", "geotiff")
+GEOJSON_CRS = "urn:ogc:def:crs:OGC:1.3:CRS84"
 
 
 def corners_geojson(corners: pa.Table, origin: EnuOrigin, properties: dict[str, Any] | None = None) -> dict:
@@ -47,9 +45,32 @@ def corners_geojson(corners: pa.Table, origin: EnuOrigin, properties: dict[str, 
                                      "cov_m2": [float(col["cov_ee_m2"][k]), float(col["cov_en_m2"][k]),
                                                 float(col["cov_nn_m2"][k])],
                                      "n_obs": int(col["n_obs"][k]), "n_drives": int(col["n_drives"][k])}})
-    doc: dict[str, Any] = {"type": "FeatureCollection", "features": feats}
+    # RFC 7946 coordinates are always WGS84 lon/lat; the 2008 "crs" member says so for readers that look for it
+    # (GDAL/OGR, QGIS): OGC CRS84 = WGS84 with longitude first.
+    doc: dict[str, Any] = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": GEOJSON_CRS}},
+                           "features": feats}
     if properties:
         doc["cornermap"] = properties  # a foreign member (RFC 7946 s.6.1): map name, version, ENU origin
+    return doc
+
+
+def markings_geojson(features: list, origin: EnuOrigin, properties: dict[str, Any] | None = None) -> dict:
+    """RFC 7946 FeatureCollection of typed road markings: LineString / Polygon [lon, lat] (WGS84, 1e-9 deg)."""
+    feats = []
+    for k, f in enumerate(features):
+        xy = np.asarray(f.xy_m, float)
+        ring = np.vstack([xy, xy[:1]]) if f.is_polygon else xy
+        llh = enu_to_geodetic(np.column_stack([ring, np.zeros(len(ring))]), origin)
+        coords = np.round(llh[:, [1, 0]], 9).tolist()
+        geom = {"type": "Polygon", "coordinates": [coords]} if f.is_polygon else {"type": "LineString",
+                                                                                   "coordinates": coords}
+        feats.append({"type": "Feature", "id": k, "geometry": geom,
+                      "properties": {"type": f.type, "width_m": round(float(f.width_m), 3),
+                                     "length_m": round(float(f.length_m), 3)}})
+    doc: dict[str, Any] = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": GEOJSON_CRS}},
+                           "features": feats}
+    if properties:
+        doc["cornermap"] = properties
     return doc
 
 
@@ -62,13 +83,6 @@ def autoware_projector_yaml(origin: EnuOrigin) -> str:
             f"  latitude: {origin.lat_deg:.10f}\n"
             f"  longitude: {origin.lon_deg:.10f}\n"
             f"  altitude: {origin.h_m:.4f}\n")
-
-
-def corner_columns_xyz(east_m: np.ndarray, north_m: np.ndarray, height_m: float, step_m: float) -> np.ndarray:
-    """Each corner as a vertical column of points from 0 to ``height_m`` (it is a vertical edge), (N*K, 3)."""
-    z = np.arange(0.0, height_m + 1e-9, step_m) if height_m > 0 else np.zeros(1)
-    k = len(z)
-    return np.column_stack([np.repeat(east_m, k), np.repeat(north_m, k), np.tile(z, len(east_m))])
 
 
 def pcd_bytes(xyz_m: np.ndarray, intensity: np.ndarray) -> bytes:
@@ -103,48 +117,61 @@ def check_export_target(out: Path, map_dir: Path) -> None:
                                    "(it could replace LATEST or a published file). hint: choose another --out")
 
 
-def check_column_limits(n_corners: int, height_m: float, step_m: float) -> None:
-    """Named LimitError before allocating: height in [0, MAX_COLUMN_HEIGHT_M], step > 0, bounded points."""
-    if not (math.isfinite(height_m) and 0.0 <= height_m <= MAX_COLUMN_HEIGHT_M):
-        raise LimitError(f"--column-height-m {height_m}: expected 0 to {MAX_COLUMN_HEIGHT_M} m")
-    if not (math.isfinite(step_m) and step_m > 0.0):
-        raise LimitError(f"column step {step_m} m: expected a positive number")
-    points = n_corners * (int(height_m / step_m) + 1)
-    if points > MAX_EXPORT_POINTS:
-        raise LimitError(f"autoware export of {n_corners} corners as {height_m} m columns every {step_m} m = "
-                         f"{points} points, more than the limit of {MAX_EXPORT_POINTS}; hint: lower "
-                         "--column-height-m")
+def export_geotiffs(reader: "MapReader", out: Path) -> list[Path]:
+    """Every raster layer of every tile as a COG ``out/{layer}/{i}_{j}.tif`` in the map's local TM CRS."""
+    from stages.tiles.layers import local_tm_proj4, sidecar_layers, write_cog
+
+    crs = local_tm_proj4(reader.manifest["enu_origin"])
+    tags = {"cornermap_map": str(reader.manifest.get("map_name")), "cornermap_version": str(reader.version),
+            "cornermap_enu_origin": json.dumps(reader.manifest["enu_origin"])}
+    files = []
+    for i, j in reader.tile_keys():
+        meta = reader.tile_entry(i, j).get("marking")
+        if not meta:
+            continue
+        cell = float(meta["cell_m"])
+        for layer in sorted(sidecar_layers(reader.path / reader.tile_entry(i, j)["dir"], meta)):
+            values = reader.tile_layer(i, j, layer)
+            north = float(meta["origin_north_m"]) + values.shape[0] * cell
+            files.append(write_cog(Path(out) / layer / f"{i}_{j}.tif", values, float(meta["origin_east_m"]), north,
+                                   cell, crs, layer, tags))
+    return files
 
 
-def export_map(reader: "MapReader", fmt: str, out: Path, column_height_m: float = 10.0,
-               column_step_m: float = 0.5) -> list[Path]:
-    """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for autoware)."""
+def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = None) -> list[Path]:
+    """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for autoware/geotiff).
+
+    ``root``: the output root holding the datasets the map was built from (autoware reads scans and poses there;
+    default: the root of the map's own ROOT/maps/NAME/vNNNN directory)."""
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
     out = Path(out)
     check_export_target(out, reader.path.parent)
-    if fmt == "autoware":
-        check_column_limits(0, column_height_m, column_step_m)
+    if fmt in ("autoware", "geotiff"):
         if out.exists() and not out.is_dir():
-            raise DatasetIOError(f"{out}: not a directory; the autoware export writes a directory")
+            raise DatasetIOError(f"{out}: not a directory; the {fmt} export writes a directory")
     corners = reader.all_corners()
     if fmt == "im2016-text":
         text = format_im2016_text(*(corners[c].to_numpy() for c in (
-            "corner_id", "east_m", "north_m", "theta1_rad", "theta2_rad", "cov_ee_m2", "cov_en_m2", "cov_nn_m2")))
+            "corner_id", "east_m", "north_m", "theta1_rad", "theta2_rad", "cov_ee_m2", "cov_en_m2", "cov_nn_m2")), origin=reader.manifest["enu_origin"])
         _atomic_write(out, text.encode("utf-8"))
         return [out]
+    props = {"map_name": reader.manifest.get("map_name"), "version": reader.version,
+             "enu_origin": reader.manifest["enu_origin"], "manifest_sha256": reader.manifest_sha256}
+    if fmt == "markings-geojson":
+        from stages.tiles.vectors import read_map_features
+
+        doc = markings_geojson(read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()]),
+                               reader.origin, props)
+        _atomic_write(out, json.dumps(doc, separators=(",", ":")).encode("utf-8"))
+        return [out]
     if fmt == "geojson":
-        props = {"map_name": reader.manifest.get("map_name"), "version": reader.version,
-                 "enu_origin": reader.manifest["enu_origin"], "manifest_sha256": reader.manifest_sha256}
         doc = corners_geojson(corners, reader.origin, props)
         _atomic_write(out, json.dumps(doc, separators=(",", ":")).encode("utf-8"))
         return [out]
-    east, north = corners["east_m"].to_numpy(), corners["north_m"].to_numpy()
-    check_column_limits(len(east), column_height_m, column_step_m)
-    xyz = corner_columns_xyz(east, north, column_height_m, column_step_m)
-    per = len(xyz) // max(1, len(east))
-    intensity = np.repeat(corners["n_obs"].to_numpy().astype(float), per)
-    files = [out / "map_projector_info.yaml", out / "pointcloud_map.pcd"]
-    _atomic_write(files[0], autoware_projector_yaml(reader.origin).encode("utf-8"))
-    _atomic_write(files[1], pcd_bytes(xyz, intensity))
-    return files
+    if fmt == "geotiff":
+        return export_geotiffs(reader, out)
+    from stages.tiles.autoware import export_autoware
+
+    return export_autoware(reader, out, Path(root) if root is not None else reader.path.parents[2],
+                           write=_atomic_write)

@@ -162,6 +162,24 @@ class MapReader:
         rel = f"{self._tiles[key]['dir']}/{name}"
         return self.path / rel, read_verified(self.path, rel, self.manifest.get("files", {}), self.trust_files)
 
+    def tile_layer(self, i: int, j: int, layer: str = "marking_mask") -> np.ndarray:
+        """Any raster layer of tile (i, j), decoded (row 0 = north): masks uint8, ``intensity`` / ``elevation_*``
+        float64 with NaN = no data, ``point_count`` uint16 (stages/tiles/layers.py). Not cached. The sidecar and
+        the layer's file are checked against the manifest (sha256, inside the version) before decoding."""
+        from stages.tiles.layers import read_layer, sidecar_layers
+
+        key = (int(i), int(j))
+        marking = self.tile_entry(i, j).get("marking")
+        if not marking:
+            raise UnknownNameError(f"{self.path}: tile ({i},{j}) has no raster layers")
+        tile_dir = self.path / self._tiles[key]["dir"]
+        if (tile_dir / "raster.json").is_file():
+            self._read(key, "raster.json")
+        entry = sidecar_layers(tile_dir, marking).get(layer)
+        if entry:
+            self._read(key, str(entry["file"]))
+        return read_layer(tile_dir, marking, layer)
+
     def _load_corners(self, key: tuple[int, int]) -> tuple[pa.Table, np.ndarray, np.ndarray]:
         path, data = self._read(key, layout.CORNERS_FILE)
         try:

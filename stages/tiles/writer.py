@@ -21,6 +21,7 @@ from pipeline.versioned import sha256_file
 from stages.common.tiling import tile_bounds
 from stages.tiles import layout
 from stages.tiles.core import group_by_tile
+from stages.tiles.vectors import MARKINGS_FILE, features_table, tile_features
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,24 @@ def transcode_mask_png(src: Path, dst: Path) -> None:
     dst.write_bytes(buf.tobytes())
 
 
+def _vectorize(by_key: dict[tuple[int, int], RasterTile], tile_size_m: float) -> dict[tuple[int, int], pa.Table]:
+    """Vector markings of every raster tile (stages/tiles/vectors.py), masks decoded once each."""
+    import cv2
+
+    masks: dict[tuple[int, int], Any] = {}
+
+    def mask_of(key: tuple[int, int]):
+        if key not in masks:
+            raster = by_key.get(key)
+            name = next((f for f in layout.MARKING_MASK_FILES if raster and f in raster.files), None)
+            img = cv2.imread(str(raster.files[name]), cv2.IMREAD_GRAYSCALE) if name else None
+            masks[key] = None if img is None else (img, float(raster.meta["origin_east_m"]),
+                                                   float(raster.meta["origin_north_m"]), float(raster.meta["cell_m"]))
+        return masks[key]
+
+    return {key: features_table(tile_features(key, tile_size_m, mask_of)) for key in sorted(by_key)}
+
+
 def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, rasters: list[RasterTile],
                     trajectories: list[DriveTrajectory]) -> dict[str, Any]:
     """Write tiles/ and trajectories/ under ``staging``; return the ``tiles`` and ``source_drives`` fields."""
@@ -84,6 +103,7 @@ def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, raster
     north = corners["north_m"].to_numpy()
     groups = group_by_tile(east, north, tile_size_m)
     by_key = {(r.i, r.j): r for r in rasters}
+    vectors = _vectorize(by_key, tile_size_m)
     empty = corners.slice(0, 0)
     tiles = []
     for key in sorted(set(groups) | set(by_key)):
@@ -104,6 +124,8 @@ def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, raster
                     transcode_mask_png(src, tile_dir / name)
                 else:
                     shutil.copyfile(src, tile_dir / name)
+            pq.write_table(vectors[key], tile_dir / MARKINGS_FILE, compression="zstd")
+            entry["n_marking_features"] = vectors[key].num_rows
             entry["n_marking_px"] = int(raster.meta.get("n_marking_px", 0))
             entry["marking"] = {**raster.meta, "mask_file": mask, "layers": sorted(raster.files)}
         entry["files"] = {p.name: sha256_file(p) for p in sorted(tile_dir.iterdir())}

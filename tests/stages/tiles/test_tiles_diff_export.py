@@ -98,7 +98,8 @@ def test_im2016_text_round_trip(two_builds, tmp_path):
     out = tmp_path / "corners.txt"
     export_map(a, "im2016-text", out)
     text = out.read_text()
-    assert text.splitlines()[0].startswith("# Index\tEast (m)") and len(text.splitlines()[1].split("\t")) == 9
+    lines = [ln for ln in text.splitlines() if not ln.startswith("# ") or ln.startswith("# Index")]
+    assert lines[0].startswith("# Index\tEast (m)") and len(lines[1].split("\t")) == 9
     cols = parse_im2016_text(text, source=str(out))
     c = a.all_corners()
     np.testing.assert_array_equal(cols["corner_id"], c["corner_id"].to_numpy())
@@ -107,28 +108,35 @@ def test_im2016_text_round_trip(two_builds, tmp_path):
     np.testing.assert_allclose(cols["cov_en_m2"], c["cov_en_m2"].to_numpy(), rtol=1e-2)
 
 
-def test_autoware_export_projector_info_and_pcd(two_builds, tmp_path):
-    a = two_builds[0]
-    files = export_map(a, "autoware", tmp_path / "aw", column_height_m=2.0, column_step_m=0.5)
-    info = yaml.safe_load(files[0].read_text())
-    assert info["projector_type"] == "LocalCartesian" and info["vertical_datum"] == "WGS84"
-    assert info["map_origin"]["latitude"] == pytest.approx(ORIGIN.lat_deg, abs=1e-9)
-    raw = files[1].read_bytes()
-    head, _, body = raw.partition(b"DATA binary\n")
-    n = a.all_corners().num_rows * 5  # z = 0, 0.5, ... 2.0
-    assert f"POINTS {n}".encode() in head and len(body) == n * 16
-    pts = np.frombuffer(body, "<f4").reshape(n, 4)
-    c = a.all_corners()
-    np.testing.assert_allclose(pts[::5, 0], c["east_m"].to_numpy(), atol=1e-4)
-    np.testing.assert_allclose(pts[:5, 2], [0, 0.5, 1, 1.5, 2])
+def test_autoware_export_without_the_build_datasets_names_what_is_missing(two_builds, tmp_path):
+    from pipeline.errors import DatasetIOError
+
+    with pytest.raises(DatasetIOError, match="no committed data"):
+        export_map(two_builds[0], "autoware", tmp_path / "aw", root=tmp_path)
 
 
-def test_open3d_reads_the_autoware_pcd(two_builds, tmp_path):
-    import open3d as o3d
+def test_autoware_metadata_and_lanelet2_documents():
+    import xml.etree.ElementTree as ET
 
-    files = export_map(two_builds[0], "autoware", tmp_path / "aw")
-    cloud = o3d.io.read_point_cloud(str(files[1]))
-    assert len(cloud.points) == two_builds[0].all_corners().num_rows * 21
+    from stages.common.marking_vectors import MarkingFeature
+    from stages.common.geodesy import geodetic_to_enu
+    from stages.tiles.autoware import lanelet2_osm, pointcloud_metadata_yaml
+
+    meta = yaml.safe_load(pointcloud_metadata_yaml([(0, -1), (-2, 3)], 20.0))
+    assert meta == {"x_resolution": 20, "y_resolution": 20, "0_-1.pcd": [0, -20], "-2_3.pcd": [-40, 60]}
+    feats = [MarkingFeature("lane_dashed", np.array([[10.0, 5.0], [40.0, 5.0]]), 0.15, 30.0),
+             MarkingFeature("crosswalk", np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 9.0], [0.0, 9.0]]), 4.0, 9.0),
+             MarkingFeature("arrow", np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 1.0]]), 0.7, 5.0)]
+    root = ET.fromstring(lanelet2_osm(feats, ORIGIN))
+    ways = root.findall("way")
+    assert [{t.get("k"): t.get("v") for t in w.findall("tag")}["type"] for w in ways] == ["line_thin",
+                                                                                        "crosswalk_polygon"]
+    refs = [nd.get("ref") for nd in ways[1].findall("nd")]
+    assert len(refs) == 5 and refs[0] == refs[-1]  # a closed area
+    for node in root.findall("node"):
+        tags = {t.get("k"): float(t.get("v")) for t in node.findall("tag")}
+        enu = geodetic_to_enu(float(node.get("lat")), float(node.get("lon")), ORIGIN.h_m, ORIGIN)[0]
+        assert abs(enu[0] - tags["local_x"]) < 1e-3 and abs(enu[1] - tags["local_y"]) < 1e-3
 
 
 def test_im2016_text_malformed_lines_name_the_line():

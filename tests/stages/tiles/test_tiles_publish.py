@@ -5,6 +5,7 @@ import json
 import shutil
 
 import numpy as np
+import pyarrow.parquet as pq
 import pyarrow as pa
 import pytest
 
@@ -45,7 +46,12 @@ def test_publish_writes_a_complete_documented_version(city):
     t00 = next(t for t in m["tiles"] if (t["i"], t["j"]) == (0, 0))
     assert t00["bounds_m"] == [0.0, 0.0, 100.0, 100.0]
     assert set(t00["files"]) == {"corners.parquet", "marking_mask.png", "traversable_mask.png", "intensity.png",
-                                 "elevation_min.png", "elevation_mean.png", "point_count.png", "raster.json"}
+                                 "elevation_min.png", "elevation_mean.png", "point_count.png", "raster.json",
+                                 "markings.parquet"}
+    vec = pq.read_table(vdir / "tiles" / "0_0" / "markings.parquet").to_pylist()  # the painted line, clipped
+    assert [(v["type"], v["geometry"]) for v in vec] == [("lane_solid", "LineString")] and t00["n_marking_features"] == 1
+    np.testing.assert_allclose(vec[0]["east_m"], 50.25, atol=0.05)
+    assert sorted(vec[0]["north_m"])[0] == 0.0 and sorted(vec[0]["north_m"])[-1] == 100.0
     assert t00["marking"]["mask_file"] == "marking_mask.png"
     assert t00["n_marking_px"] == 200 and t00["marking"]["cell_m"] == 0.5
     assert m["inputs"]["corner_map"] == {"dataset": "corner_map", "fingerprint": "fp1-corner_map"}
@@ -147,7 +153,7 @@ def test_flat_prefixed_raster_artifacts_are_copied_per_tile(city):
     _publish(root, corners, flat_rasters=True)
     reader = open_map(root / "maps" / "city")
     t = reader.tile_entry(0, 1)
-    assert set(t["files"]) == {"corners.parquet", "marking.png", "intensity.png", "raster.json"}
+    assert set(t["files"]) == {"corners.parquet", "marking.png", "intensity.png", "raster.json", "markings.parquet"}
     assert t["marking"]["mask_file"] == "marking.png" and reader.tile_marking(0, 1).sum() == 255 * 200
     assert "marking.png" not in reader.tile_entry(1, 1)["files"]  # another tile's files are not copied
 

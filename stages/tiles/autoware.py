@@ -1,0 +1,185 @@
+"""``tiles export --format autoware``: an Autoware map folder built from a published map version.
+
+    OUT/
+      map_projector_info.yaml          LocalCartesian about the map's ENU origin
+      pointcloud_map/{ix}_{iy}.pcd     binary PCD (float32 x y z intensity), map ENU metres, one per grid cell
+      pointcloud_map_metadata.yaml     x_resolution, y_resolution, "{ix}_{iy}.pcd: [x_min, y_min]" per file
+      lanelet2_map.osm                 road markings as Lanelet2 line strings / areas (local_x, local_y, ele tags)
+
+The point cloud is accumulated from the map drives' scans (``scans_raw`` under the output root) on their
+optimized poses (the version's ``poses`` input), deskewed, filtered by the free-space test of
+stages/common/pointcloud_map.py and voxel-downsampled with open3d. Layout follows Autoware's map loader
+documentation (divided point cloud map + metadata; map_projection_loader's LocalCartesian; Autoware's Lanelet2
+conventions: line_thin solid/solid_solid/dashed, stop_line, crosswalk_polygon).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from pipeline.errors import DatasetIOError
+from stages.common.geodesy import EnuOrigin, enu_to_geodetic
+from stages.common.pointcloud_map import free_space_keep, grid_split, scan_to_map, voxel_downsample
+
+if TYPE_CHECKING:  # pragma: no cover
+    from stages.tiles.loader import MapReader
+
+log = logging.getLogger(__name__)
+_CHUNK = 1_000_000
+DOUBLE_LINE_MIN_WIDTH_M = 0.55  # two lines merged in the raster (0.5 m of paint drawn ~0.7 m; a single
+# 0.15 m line is drawn 0.3-0.4 m wide)
+OSM_TAGS = {"lane_solid": {"type": "line_thin", "subtype": "solid"},
+            "lane_dashed": {"type": "line_thin", "subtype": "dashed"},
+            "stop_line": {"type": "stop_line"},
+            "crosswalk": {"type": "crosswalk_polygon", "area": "yes"}}
+
+
+def pointcloud_metadata_yaml(cells: list[tuple[int, int]], cell_m: float) -> str:
+    """Autoware ``pointcloud_map_metadata.yaml``: resolution and each file's lower-left (x, y) in metres."""
+    lines = [f"x_resolution: {cell_m:g}", f"y_resolution: {cell_m:g}"]
+    lines += [f"{i}_{j}.pcd: [{i * cell_m:g}, {j * cell_m:g}]" for i, j in sorted(cells)]
+    return "\n".join(lines) + "\n"
+
+
+def lanelet2_osm(features: list, origin: EnuOrigin, height_m: float = 0.0) -> str:
+    """OSM XML of the marking features (arrows have no Lanelet2 line type here and are skipped): one node per
+    vertex (lat/lon from the ENU origin, plus Autoware's local_x / local_y / ele tags), one way per feature,
+    closed for crosswalk areas."""
+    from xml.sax.saxutils import quoteattr
+
+    nodes, ways = [], []
+    next_id = 1
+    for f in features:
+        tags = OSM_TAGS.get(f.type)
+        if tags is None:
+            continue
+        if f.type == "lane_solid" and f.width_m >= DOUBLE_LINE_MIN_WIDTH_M:
+            tags = {**tags, "subtype": "solid_solid"}  # a double (centre) line
+        xy = np.asarray(f.xy_m, float)
+        llh = enu_to_geodetic(np.column_stack([xy, np.full(len(xy), height_m)]), origin)
+        ids = []
+        for (e, n), (lat, lon, h) in zip(xy, llh):
+            nodes.append(f'  <node id="{next_id}" version="1" lat="{lat:.10f}" lon="{lon:.10f}">\n'
+                         f'    <tag k="local_x" v="{e:.4f}"/>\n    <tag k="local_y" v="{n:.4f}"/>\n'
+                         f'    <tag k="ele" v="{height_m:.4f}"/>\n  </node>')
+            ids.append(next_id)
+            next_id += 1
+        if f.is_polygon:
+            ids.append(ids[0])
+        refs = "".join(f'\n    <nd ref="{k}"/>' for k in ids)
+        tag_xml = "".join(f"\n    <tag k={quoteattr(k)} v={quoteattr(v)}/>" for k, v in
+                          {**tags, "cornermap:type": f.type, "width": f"{f.width_m:.2f}"}.items())
+        ways.append(f'  <way id="{next_id}" version="1">{refs}{tag_xml}\n  </way>')
+        next_id += 1
+    return ('<?xml version="1.0" encoding="UTF-8"?>\n<osm version="0.6" generator="cornermap">\n'
+            + "\n".join(nodes + ways) + "\n</osm>\n")
+
+
+def _committed(root: Path, dataset: str, fingerprint: str | None = None) -> tuple[Path, dict]:
+    """Committed directory + manifest of ``dataset`` (the given fingerprint, else the latest committed)."""
+    from pipeline.store import dataset_dir, read_manifest
+
+    if fingerprint:
+        d = dataset_dir(root, dataset, fingerprint)
+        m = read_manifest(d)
+        if m is not None:
+            return d, m
+    found = [(read_manifest(p), p) for p in sorted((root / "datasets" / dataset).glob("*")) if p.is_dir()]
+    found = [(m, p) for m, p in found if m is not None]
+    if not found:
+        raise DatasetIOError(f"{root}/datasets/{dataset}: no committed data; hint: the autoware export reads the "
+                             "map's scans and poses from the output root (--root) that built the map")
+    m, p = max(found, key=lambda mp: mp[0].get("committed_utc", ""))
+    return p, m
+
+
+def _read(root: Path, dataset: str, drive: str, fingerprint: str | None = None, columns=None):
+    import pyarrow.parquet as pq
+    import pyarrow as pa
+
+    d, m = _committed(root, dataset, fingerprint)
+    files = [d / f["path"] for f in m["files"] if f.get("partition", {}).get("drive") == drive]
+    if not files:
+        raise DatasetIOError(f"{d}: no {dataset} rows for drive {drive!r}")
+    return pa.concat_tables([pq.read_table(f, columns=columns) for f in files])
+
+
+def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, voxel_m: float = 0.2,
+                         free_voxel_m: float = 0.5, pass_s: float = 5.0, max_range_m: float = 60.0
+                         ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Map-frame cloud of ``drives`` (deskewed, dynamic points dropped, downsampled): (xyz, intensity, stats)."""
+    inputs = reader.manifest.get("inputs", {})
+    pts_all, org_all, pass_all, gz_all, inten_all = [], [], [], [], []
+    for k, drive in enumerate(drives):
+        poses = _read(root, "poses_optimized", drive, (inputs.get("poses") or {}).get("fingerprint")).sort_by("stamp_ns")
+        info = _read(root, "drive_info", drive, (inputs.get("drive_info") or {}).get("fingerprint"))
+        T_vl = np.asarray(info["T_vehicle_lidar"][0].as_py(), float).reshape(4, 4)
+        scans = _read(root, "scans_raw", drive, columns=["stamp_ns", "x_m", "y_m", "z_m", "intensity", "time_offset_s"])
+        stamps = poses["stamp_ns"].to_numpy()
+        pxyz = np.column_stack([poses[c].to_numpy() for c in ("x_m", "y_m", "z_m")])
+        pq_ = np.column_stack([poses[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
+        lidar = np.column_stack([scans[c].to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
+        rng = np.linalg.norm(lidar, axis=1)
+        t_ns = scans["stamp_ns"].to_numpy() + np.round(scans["time_offset_s"].to_numpy().astype(float) * 1e9).astype(np.int64)
+        ok = (rng > 1.0) & (rng < max_range_m) & (t_ns >= stamps[0]) & (t_ns <= stamps[-1])
+        lidar, t_ok = lidar[ok], t_ns[ok]
+        parts = [scan_to_map(lidar[a:a + _CHUNK], t_ok[a:a + _CHUNK], T_vl, stamps, pxyz, pq_)
+                 for a in range(0, len(lidar), _CHUNK)]  # chunks bound the per-point rotation matrices
+        pts = np.vstack([q[0] for q in parts]) if parts else np.zeros((0, 3))
+        origins = np.vstack([q[1] for q in parts]).astype(np.float32) if parts else np.zeros((0, 3), np.float32)
+        del parts
+        # the road under the vehicle: its height at the nearest pose (vehicle frame origin on the road)
+        from scipy.spatial import cKDTree
+
+        _, near = cKDTree(pxyz[:, :2]).query(pts[:, :2])
+        pts_all.append(pts)
+        org_all.append(origins)
+        gz_all.append(pxyz[near, 2])
+        pass_all.append(k * 1_000_000 + ((t_ns[ok] - stamps[0]) // int(pass_s * 1e9)))
+        inten_all.append(scans["intensity"].to_numpy()[ok].astype(float))
+    pts, org, pid = np.vstack(pts_all), np.vstack(org_all), np.concatenate(pass_all)
+    keep = free_space_keep(pts, org, pid, np.concatenate(gz_all), voxel_m=free_voxel_m)
+    xyz, inten = voxel_downsample(pts[keep], np.concatenate(inten_all)[keep], voxel_m)
+    stats = {"points_in": int(len(pts)), "dynamic_dropped": int((~keep).sum()), "points_out": int(len(xyz)),
+             "drives": drives, "voxel_m": voxel_m, "free_voxel_m": free_voxel_m, "pass_s": pass_s}
+    return xyz, inten, stats
+
+
+def map_drives(reader: "MapReader") -> list[str]:
+    """Drives whose observations built the corner map (its ``drives`` column), else every source drive."""
+    corners = reader.all_corners()
+    seen = sorted({d for s in corners["drives"].to_pylist() for d in (s or "").split(",") if d})
+    return seen or sorted(d["drive"] for d in reader.manifest.get("source_drives", []))
+
+
+def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float = 20.0, voxel_m: float = 0.2,
+                    write: Callable[[Path, bytes], None]) -> list[Path]:
+    """Write the Autoware folder (module docstring) under ``out``; returns the files written."""
+    from stages.tiles.export import autoware_projector_yaml, pcd_bytes
+    from stages.tiles.vectors import read_map_features
+
+    out = Path(out)
+    drives = map_drives(reader)
+    xyz, inten, stats = accumulate_map_cloud(reader, Path(root), drives, voxel_m=voxel_m)
+    log.info("autoware point cloud: %s", stats)
+    files = [out / "map_projector_info.yaml"]
+    write(files[0], autoware_projector_yaml(reader.origin).encode("utf-8"))
+    cells = grid_split(xyz, grid_m)
+    for (i, j), idx in sorted(cells.items()):
+        path = out / "pointcloud_map" / f"{i}_{j}.pcd"
+        write(path, pcd_bytes(xyz[idx], inten[idx]))
+        files.append(path)
+    files.append(out / "pointcloud_map_metadata.yaml")
+    write(files[-1], pointcloud_metadata_yaml(list(cells), grid_m).encode("utf-8"))
+    feats = read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()])
+    files.append(out / "lanelet2_map.osm")
+    write(files[-1], lanelet2_osm(feats, reader.origin).encode("utf-8"))
+    files.append(out / "cornermap_export.json")
+    write(files[-1], json.dumps({"map_name": reader.manifest.get("map_name"), "version": reader.version,
+                                 "manifest_sha256": reader.manifest_sha256, "pointcloud": stats,
+                                 "grid_m": grid_m, "n_marking_features": len(feats)}, indent=1).encode("utf-8"))
+    return files

@@ -1,0 +1,100 @@
+"""Exports opened with the libraries their users use: rasterio for the GeoTIFFs, pyproj for the frames."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyproj
+import pytest
+
+from stages.common.geodesy import enu_to_geodetic
+from stages.common.im2016_text import parse_frame_header, parse_im2016_text
+from stages.tiles.compute import compute
+from stages.tiles.export import export_map
+from stages.tiles.layers import local_tm_proj4
+from stages.tiles.loader import open_map
+from tests.stages.tiles.tiles_synth import (CELL_M, LINE_EAST_M, ORIGIN, TILE_M, building_corners, buildings,
+                                            city_context, corner_table)
+
+rasterio = pytest.importorskip("rasterio")
+
+
+@pytest.fixture(scope="module")
+def city_map(tmp_path_factory):
+    root = tmp_path_factory.mktemp("georef")
+    xy, dirs, _ = building_corners(buildings())
+    compute(city_context(root, corner_table(xy, dirs, seed=3)))
+    return open_map(root / "maps" / "city")
+
+
+def test_local_tm_keeps_the_enu_grid_within_a_tenth_of_a_millimetre():
+    enu = np.array([[x, y, 0.0] for x in (-1000.0, -300.0, 0.0, 450.0, 1000.0) for y in (-1000.0, 0.0, 1000.0)])
+    llh = enu_to_geodetic(enu, ORIGIN)
+    tm = pyproj.Transformer.from_crs("EPSG:4326", pyproj.CRS.from_proj4(local_tm_proj4(ORIGIN.as_dict())),
+                                     always_xy=True)
+    x, y = tm.transform(llh[:, 1], llh[:, 0])
+    assert np.abs(np.column_stack([x, y]) - enu[:, :2]).max() < 1e-4
+
+
+def test_every_layer_is_a_cog_with_crs_bounds_nodata_and_description(city_map, tmp_path):
+    files = export_map(city_map, "geotiff", tmp_path / "tif")
+    layers = {p.parent.name for p in files}
+    assert layers == {"marking_mask", "traversable_mask", "intensity", "elevation_min", "elevation_mean",
+                      "point_count"}
+    assert len(files) == 6 * 3  # tiles (0, 0..2)
+    crs = pyproj.CRS.from_proj4(local_tm_proj4(ORIGIN.as_dict()))
+    for path in files:
+        i, j = (int(k) for k in path.stem.split("_"))
+        with rasterio.open(path) as ds:
+            assert ds.driver == "GTiff" and ds.profile.get("tiled")
+            assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"  # GDAL's COG driver wrote it
+            assert pyproj.CRS.from_wkt(ds.crs.to_wkt()).equals(crs)
+            assert ds.bounds == pytest.approx((i * TILE_M, j * TILE_M, (i + 1) * TILE_M, (j + 1) * TILE_M))
+            assert ds.res == (CELL_M, CELL_M) and ds.descriptions[0].startswith(path.parent.name)
+            data = ds.read(1)
+            want = city_map.tile_layer(i, j, path.parent.name)
+            if path.parent.name == "intensity":
+                assert np.isnan(ds.nodata)
+                np.testing.assert_allclose(data, want, rtol=1e-6)
+            if path.parent.name == "marking_mask":
+                # the painted line lands at the pixel whose centre is at east = LINE_EAST_M (+- half a cell)
+                cols = np.flatnonzero(data.any(axis=0))
+                east = [ds.xy(0, c)[0] for c in cols]
+                assert np.allclose(east, LINE_EAST_M, atol=CELL_M / 2 + 1e-9)
+                np.testing.assert_array_equal(data, want)
+
+
+def test_loader_serves_any_layer(city_map):
+    assert city_map.tile_layer(0, 1, "point_count").max() == 3
+    assert np.nanmax(city_map.tile_layer(0, 1, "intensity")) <= 100
+    np.testing.assert_array_equal(city_map.tile_layer(0, 1, "marking_mask"), city_map.tile_marking(0, 1))
+    from pipeline.errors import CornermapError
+
+    with pytest.raises(CornermapError, match="no raster layer 'nope'"):
+        city_map.tile_layer(0, 1, "nope")
+
+
+def test_im2016_text_names_its_origin_and_geojson_its_crs(city_map, tmp_path):
+    export_map(city_map, "im2016-text", tmp_path / "c.txt")
+    text = (tmp_path / "c.txt").read_text()
+    assert parse_frame_header(text) == pytest.approx({"lat_deg": ORIGIN.lat_deg, "lon_deg": ORIGIN.lon_deg,
+                                                      "h_m": ORIGIN.h_m})
+    assert "# frame: local ENU" in text and "# units:" in text
+    assert len(parse_im2016_text(text)["corner_id"]) == city_map.all_corners().num_rows
+    export_map(city_map, "geojson", tmp_path / "c.geojson")
+    doc = json.loads((tmp_path / "c.geojson").read_text())
+    assert pyproj.CRS(doc["crs"]["properties"]["name"]).equals(pyproj.CRS("OGC:CRS84"))
+
+
+def test_markings_geojson_puts_the_painted_line_on_earth(city_map, tmp_path):
+    export_map(city_map, "markings-geojson", tmp_path / "m.geojson")
+    doc = json.loads((tmp_path / "m.geojson").read_text())
+    assert doc["crs"]["properties"]["name"].endswith("CRS84")
+    lines = [f for f in doc["features"] if f["properties"]["type"] == "lane_solid"]
+    assert len(lines) == 3  # the line crosses tiles (0, 0..2): one clipped piece per tile
+    from stages.common.geodesy import geodetic_to_enu
+
+    for f in lines:
+        lon, lat = np.array(f["geometry"]["coordinates"]).T
+        enu = geodetic_to_enu(lat, lon, np.full(len(lat), ORIGIN.h_m), ORIGIN)
+        np.testing.assert_allclose(enu[:, 0], LINE_EAST_M, atol=0.05)
