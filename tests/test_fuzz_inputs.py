@@ -109,13 +109,10 @@ CSV = ("gps_week,gps_seconds,latitude_deg,longitude_deg\n"
        + "".join(f"2200,{345600 + k * 0.01:.2f},37.5{k:03d},127.0{k:03d}\n" for k in range(20)))
 
 
-@pytest.mark.xfail(raises=UnicodeDecodeError, strict=False,
-                   reason="gnss_csv.read_header decodes a non-UTF-8 header with a bare UnicodeDecodeError; the "
-                          "reader is being rewritten (GNSS sanity checks) and should turn it into a FormatError")
 @FUZZ
 @given(data=st.data())
 def test_csv_reader(tmp_path, data):
-    from stages.ingest.gnss_csv import read_csv_columns
+    from stages.ingest.csv_columns import read_csv_columns
 
     path = tmp_path / "fuzz.csv"
     path.write_bytes(_mutate(CSV.encode(), data))

@@ -18,9 +18,13 @@ class TimestampIssue:
 
 
 def read_header(path: Path, delimiter: str = ",") -> list[str]:
+    """The header line's column names; a file that is not UTF-8 text is a FormatError naming it."""
     try:
-        with open(path, newline="") as fh:
+        with open(path, newline="", encoding="utf-8") as fh:
             return [c.strip() for c in next(csv.reader(fh, delimiter=delimiter), [])]
+    except UnicodeDecodeError as exc:
+        raise FormatError(f"{path}: header line is not UTF-8 text (byte {exc.start}: {exc.reason}); expected a "
+                          f"CSV with a header line") from None
     except OSError as exc:
         raise DatasetIOError(f"{path}: cannot read CSV: {exc.strerror or exc}") from exc
 

@@ -181,7 +181,7 @@ def read_first_fix(path: Path, spec: GnssSpec) -> tuple[float, float, float] | N
         raise FormatError(f"{path}: CSV lacks one of {c.lat}, {c.lon}, {c.height}; header has "
                           f"{', '.join(header)}") from None
     scale = 1.0 if spec.latlon_unit == "deg" else 180.0 / np.pi
-    with open(path, newline="") as fh:
+    with open(path, newline="", encoding="utf-8", errors="replace") as fh:
         rows = csv.reader(fh)
         next(rows, None)
         for row in rows:
