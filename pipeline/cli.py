@@ -196,7 +196,7 @@ def _register_stages() -> None:
             register(app, sub) if len(inspect.signature(register).parameters) >= 2 else register(app)
         # A stage whose CLI module adds a top-level command of its own name (simulate, evaluate) is used that way.
         if not any(c.name == name for c in app.registered_commands):
-            app.add_typer(sub, name=name, help=decl.summary)
+            app.add_typer(sub, name=name, help=sub.info.help or decl.summary)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -12,12 +12,10 @@ from typing import Optional
 import typer
 
 EXAMPLES = ("Examples:\n\n"
-            "  cornermap evaluate --root runs/demo --map demo --drive runs/sim/drive_1/drive.yaml "
+            "  cornermap evaluate --map city --root runs/maps --drive runs/sim/drive_1/drive.yaml "
             "--reference runs/sim/truth/drive_1_poses_tum.txt --out runs/eval1\n\n"
-            "  cornermap evaluate --root runs/demo --map demo --version v0002 --drive D.yaml --method ekf "
-            "--reference map --out runs/eval2\n\n"
-            "  cornermap evaluate --root runs/demo --map demo --drive D.yaml --reference TRAJ.tum "
-            "--reference-frame 37.4979,127.0276,57.0 --fail-on-targets --out runs/eval3")
+            "  cornermap evaluate --map tiny --root runs/tiny --version v0001 --drive runs/sim/drive_1/drive.yaml "
+            "--method ekf --reference map --out runs/eval2")
 
 
 def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: dict, map_name: str,

@@ -16,12 +16,11 @@ MAP_OPT = typer.Option(None, "--map", "-m", help="Map name under ROOT/maps; defa
 VERSION_OPT = typer.Option("LATEST", "--version", help="LATEST, vNNNN or N.")
 
 EXAMPLES = ("Examples:\n\n"
-            "  cornermap tiles ls --root runs/demo\n\n"
-            "  cornermap tiles diff v0001 v0002 --root runs/demo --map demo\n\n"
-            "  cornermap tiles export --format geojson --out city.geojson --root runs/demo\n\n"
-            "  cornermap tiles export --format autoware --out autoware_map/ --root runs/demo\n\n"
-            "  cornermap tiles export --format geotiff --out rasters/ --root runs/demo\n\n"
-            "  cornermap tiles verify --all --root runs/demo")
+            "  cornermap tiles ls --map tiny --root runs/tiny\n\n"
+            "  cornermap tiles diff v0001 LATEST --map tiny --root runs/tiny\n\n"
+            "  cornermap tiles export --format geojson --out runs/city.geojson --map city --root runs/maps\n\n"
+            "  cornermap tiles export --format geotiff --out runs/rasters --map city --root runs/maps\n\n"
+            "  cornermap tiles verify --all --map tiny --root runs/tiny")
 
 
 def map_dir_of(root: Path, name: Optional[str]) -> Path:
@@ -49,7 +48,7 @@ def map_dir_of(root: Path, name: Optional[str]) -> Path:
 def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
     """List the versions of a map (* marks LATEST) with tiles, corners, parent and creation time.
 
-    Example: [b]cornermap tiles ls --root runs/demo[/b]
+    Example: [b]cornermap tiles ls --map tiny --root runs/tiny[/b]
     """
     from pipeline.errors import MapFormatError
     from pipeline.versioned import list_versions, read_latest, read_manifest, version_name
@@ -80,7 +79,7 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
          as_json: bool = typer.Option(False, "--json", help="Print the per-tile diff as JSON.")) -> None:
     """Per tile: corners added, removed, moved more than a threshold; marking pixels changed (A -> B).
 
-    Example: [b]cornermap tiles diff v0001 LATEST --root runs/demo --map demo[/b]
+    Example: [b]cornermap tiles diff v0001 LATEST --map tiny --root runs/tiny[/b]
     """
     import math
 
@@ -111,8 +110,9 @@ def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | ge
            root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT) -> None:
     """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), Autoware map folder, or GeoTIFFs (COG).
 
-    Examples: [b]cornermap tiles export -f geojson -o city.geojson --root runs/demo[/b];
-    [b]cornermap tiles export -f autoware -o autoware_map/ --root runs/demo --version v0002[/b]
+    Examples: [b]cornermap tiles export -f im2016-text -o runs/city.txt --map city --root runs/maps[/b];
+    [b]cornermap tiles export -f markings-geojson -o runs/markings.geojson --map city --root runs/maps[/b]; an
+    Autoware map folder (point cloud map tiles, projector info, Lanelet2 markings): -f autoware -o DIR
     """
     from stages.tiles.export import FORMATS, export_map
     from stages.tiles.loader import open_map
@@ -128,7 +128,7 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
            all_versions: bool = typer.Option(False, "--all", help="Verify every version, not only one.")) -> None:
     """Recompute every file's sha256 and compare with the manifest; exit 1 on any mismatch.
 
-    Example: [b]cornermap tiles verify --all --root runs/demo[/b]
+    Example: [b]cornermap tiles verify --all --map tiny --root runs/tiny[/b]
     """
     from pipeline.errors import ChecksumError, UnknownNameError
     from pipeline.versioned import list_versions, resolve_version, trusted_manifest_digests, version_name
