@@ -58,6 +58,21 @@ def read_icp_increments(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndarr
     return inc
 
 
+def read_icp_covariances(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndarray:
+    """(E,3,3) covariance of each epoch's ICP increment (dx, dy, dyaw) in the previous vehicle frame: the planar
+    marginal of the inverse of the edge's 6x6 information (gtsam order rx ry rz tx ty tz); NaN where none."""
+    cov = np.full((len(epoch_scan_ids), 3, 3), np.nan)
+    if edges.num_rows == 0 or "information" not in edges.column_names:
+        return cov
+    edges = edges.filter(pc.equal(edges["converged"], True))
+    k = epoch_index(edges["scan_id"].to_numpy(), epoch_scan_ids)
+    ok = k > 0
+    info = np.asarray(edges["information"].combine_chunks().flatten().to_numpy(), dtype=float).reshape(-1, 6, 6)[ok]
+    idx = np.array([3, 4, 2])
+    cov[k[ok]] = np.linalg.inv(info)[:, idx[:, None], idx[None, :]]
+    return cov
+
+
 def fall_back_on_wheel(icp: np.ndarray, wheel: np.ndarray, gate_yaw_rad: float) -> np.ndarray:
     """(E,3) ICP increments with the failed ones (NaN) and, when ``gate_yaw_rad`` > 0, those whose heading change
     differs from the wheel/gyro increment's by more than it replaced by the wheel/gyro increment. Why: after a
@@ -178,8 +193,9 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     odo = _rows_of(ctx, "odometry", drive).sort_by("stamp_ns")
     odo_inc = odometry_increments(odo["stamp_ns"].to_numpy(), odo["speed_mps"].to_numpy(),
                                   odo["yaw_rate_radps"].to_numpy(), stamps)
-    icp = read_icp_increments(_rows_of(ctx, "edges", drive), scan_ids)
-    icp = fall_back_on_wheel(icp, odo_inc, np.deg2rad(p.icp_wheel_gate_deg))
+    edges = _rows_of(ctx, "edges", drive)
+    icp_raw = read_icp_increments(edges, scan_ids)
+    icp = fall_back_on_wheel(icp_raw, odo_inc, np.deg2rad(p.icp_wheel_gate_deg))
     corners = read_corners(_rows_of(ctx, "corners", drive), scan_ids, T_vl)
     if "mcl" in p.methods:
         track = track_from_table(odo) if p.feature_deskew else None
@@ -187,7 +203,7 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     else:
         f_ep, f_xy = np.zeros(0, np.int64), np.zeros((0, 2))
     return DriveArrays(stamps, icp, odo_inc, gnss_q, gnss_std, poses["valid"].to_numpy(zero_copy_only=False),
-                       corners, f_ep, f_xy), scan_ids
+                       corners, f_ep, f_xy, icp_raw, read_icp_covariances(edges, scan_ids)), scan_ids
 
 
 def read_truth_corners(reference_path: Path) -> np.ndarray | None:
