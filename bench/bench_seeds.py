@@ -111,6 +111,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from pipeline.cli import execute_workflow
+    from pipeline.errors import CornermapError
 
     rows = {f: {"ekf": {}, "mcl": {}} for f in ("map_relative", "absolute")}
     for seed in args.seeds:
@@ -120,7 +121,12 @@ def main() -> None:
             for ds in ("eval_epochs", "eval_report"):
                 shutil.rmtree(run_dir / "datasets" / ds, ignore_errors=True)
         t0 = time.perf_counter()
-        execute_workflow(wf, root=None, scheduler=None, only=None, dry_run=False, quiet=True)
+        try:
+            execute_workflow(wf, root=None, scheduler=None, only=None, dry_run=False, quiet=True)
+        except CornermapError as exc:  # a build that publishes no map is a result too: reported, not skipped
+            print(f"seed {seed}: FAILED after {time.perf_counter() - t0:.0f} s: {str(exc).splitlines()[0]} "
+                  f"{' '.join(str(exc).splitlines()[1:2])}", flush=True)
+            continue
         doc = latest_metrics(run_dir)
         print(f"seed {seed}: {time.perf_counter() - t0:.0f} s, {run_dir}", flush=True)
         for frame in rows:
