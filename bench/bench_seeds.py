@@ -133,6 +133,10 @@ def main() -> None:
             for method in ("ekf", "mcl"):
                 rows[frame][method][seed] = frame_metrics(doc, method, frame)
         rows["map_relative"]["ekf"][seed]["nees_share_chi2_95"] = nees_share(run_dir, "ekf")
+        for frame in rows:  # one line per seed as it finishes (the tables follow at the end)
+            e, m = rows[frame]["ekf"][seed], rows[frame]["mcl"][seed]
+            print(f"  {frame}: EKF " + " ".join(f"{lab}={fmt(e.get(k, np.nan), nd)}" for k, lab, nd in EKF_COLS)
+                  + " | MCL " + " ".join(f"{lab}={fmt(m.get(k, np.nan), nd)}" for k, lab, nd in MCL_COLS), flush=True)
     for frame in rows:
         print_table(f"EKF, {frame} ({args.preset})", rows[frame]["ekf"], EKF_COLS)
         print_table(f"MCL, {frame} ({args.preset})", rows[frame]["mcl"], MCL_COLS)
