@@ -6,6 +6,9 @@ State ``q = (x_m, y_m, yaw_rad)``: the vehicle reference point in the map's ENU 
 Motion (eq. 2): ``q_{k+1} = q_k + G(yaw_k) u_k`` with ``u = (dx, dy, dyaw)`` the ICP increment expressed in the
 previous vehicle frame. The paper writes ``F = I``; the exact linearisation keeps the heading column
 ``dG/dyaw u`` so that the covariance grows with heading uncertainty (needed for a consistent NEES).
+``predict_wheel_icp`` is the alternative motion model of the 5-state filter (gyro bias and wheel scale as states,
+the wheel/gyro increment as the prior, the ICP increment with its registration covariance as a measurement of it);
+the measurement updates below work on either state size (the corners observe the first three states).
 
 Measurement (eqs. 3-5): for each associated corner i, ``r_i = |p_i - p|`` and
 ``alpha_i = atan2(y_i - y, x_i - x) - yaw``; the rows of ``H`` follow eq. (5).
