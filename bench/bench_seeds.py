@@ -28,7 +28,7 @@ WORST_MIN = {"nees_share_chi2_95"}
 
 
 def write_workflow(preset: str, seed: int, run_dir: Path, methods: list[str] | None,
-                   ekf_motion: str | None = None) -> Path:
+                   ekf_motion: str | None = None, evaluate_params: dict | None = None) -> Path:
     spec = yaml.safe_load((REPO / "workflows" / f"{preset}.yaml").read_text())
     spec["root"] = str(run_dir)
     spec["name"] = f"{preset}-{seed}"
@@ -37,7 +37,9 @@ def write_workflow(preset: str, seed: int, run_dir: Path, methods: list[str] | N
         spec["params"].setdefault("evaluate", {})["methods"] = methods
     if ekf_motion:
         spec["params"].setdefault("evaluate", {})["ekf_motion"] = ekf_motion
-    path = run_dir / "workflow.yaml"
+    if evaluate_params:
+        spec["params"].setdefault("evaluate", {}).update(evaluate_params)
+    path = run_dir / f"workflow-{abs(hash(yaml.safe_dump(spec))) % 10**8}.yaml"
     run_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
     return path
@@ -108,6 +110,8 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", choices=["ekf", "mcl"], default=None)
     ap.add_argument("--ekf-motion", choices=["wheel_bias", "icp"], default=None,
                     help="the EKF motion model (default: the evaluate params' default)")
+    ap.add_argument("--set", nargs="+", default=[], metavar="NAME=VALUE",
+                    help="evaluate params for calibration runs (only on calibration seeds)")
     args = ap.parse_args()
 
     from pipeline.cli import execute_workflow
@@ -116,7 +120,8 @@ def main() -> None:
     rows = {f: {"ekf": {}, "mcl": {}} for f in ("map_relative", "absolute")}
     for seed in args.seeds:
         run_dir = (args.root / f"{args.preset}-{seed}").resolve()
-        wf = write_workflow(args.preset, seed, run_dir, args.methods, args.ekf_motion)
+        wf = write_workflow(args.preset, seed, run_dir, args.methods, args.ekf_motion,
+                            {k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.set)})
         if args.fresh_evaluate:
             for ds in ("eval_epochs", "eval_report"):
                 shutil.rmtree(run_dir / "datasets" / ds, ignore_errors=True)
