@@ -68,9 +68,11 @@ def ekf_config(p: EvaluateParams) -> EkfConfig:
                      wall_heading_sigma_rad=np.deg2rad(p.wall_heading_sigma_deg),
                      gyro_bias_sigma_rad_s=np.deg2rad(p.ekf_gyro_bias_sigma_deg_s),
                      gyro_bias_rw_rad_s_per_sqrt_s=np.deg2rad(p.ekf_gyro_bias_rw_deg_s_per_sqrt_s),
-                     wheel_scale_sigma=p.ekf_wheel_scale_sigma, wheel_scale_rw_per_sqrt_m=p.ekf_wheel_scale_rw_per_sqrt_m,
+                     wheel_scale_sigma=p.ekf_wheel_scale_sigma,
+                     wheel_scale_rw_per_sqrt_m=p.ekf_wheel_scale_rw_per_sqrt_m,
                      wheel_sigma_frac=p.ekf_wheel_sigma_frac, wheel_sigma_lateral_frac=p.ekf_wheel_sigma_lateral_frac,
-                     gyro_sigma_yaw_rad=np.deg2rad(p.ekf_gyro_sigma_yaw_deg), gyro_sigma_yaw_frac=p.ekf_gyro_sigma_yaw_frac,
+                     gyro_sigma_yaw_rad=np.deg2rad(p.ekf_gyro_sigma_yaw_deg),
+                     gyro_sigma_yaw_frac=p.ekf_gyro_sigma_yaw_frac,
                      icp_gate_chi2=float(chi2.ppf(p.ekf_icp_gate_probability, 3)))
 
 

@@ -78,7 +78,7 @@ def test_straight_without_corners_and_with_a_gyro_bias_keeps_nees_consistent():
         rng = np.random.default_rng(100 + i)
         bias = rng.normal(0, CFG.gyro_bias_sigma_rad_s)  # a draw of the prior the filter states
         scale = 1.0 + rng.normal(0, CFG.wheel_scale_sigma)
-        wheel, icp, cov, stamps, bias_true, scale_true = scripted_drive(truth, rng, icp_until=100, bias_rad_s=bias, scale=scale)
+        wheel, icp, cov, stamps, _, _ = scripted_drive(truth, rng, icp_until=100, bias_rad_s=bias, scale=scale)
         q0 = truth[0] + rng.multivariate_normal(np.zeros(3), P0)
         r5 = run_ekf(icp, empty_obs(), empty_map(), q0, P0, 0, CFG, wheel_increments=wheel,
                      stamps_ns=stamps, icp_cov=cov)
