@@ -69,8 +69,9 @@ def _empty(name: str) -> pa.Table:
 def compute(ctx) -> dict[str, Any]:
     p: CornerMapParams = ctx.params
     drives = list(ctx.settings.get("map_drives") or [])
-    corners = select_drives(ctx.inputs.read("corners"), drives)
-    poses = select_drives(ctx.inputs.read("poses"), drives)
+    all_corners, all_poses = ctx.inputs.read("corners"), ctx.inputs.read("poses")
+    corners = select_drives(all_corners, drives)
+    poses = select_drives(all_poses, drives)
     pose_row, has_pose = match_poses(corners, poses)
     finite = _finite_rows(corners)
     keep = has_pose & finite
@@ -112,8 +113,41 @@ def compute(ctx) -> dict[str, Any]:
                                "n_partition_conflicts": report.n_conflicts, "n_clusters": len(kept),
                                "n_kept": int(kept.sum()), "n_rejected": int((~kept).sum())})
     log.info("cornermap: %d observations -> %d clusters -> %d corners kept", len(labels), len(kept), kept.sum())
-    return {"corner_map": corner_map_table(summary, kept), "rejected": rejected_table(summary, kept, reasons),
-            "_extra": extra}
+    table = corner_map_table(summary, kept)
+    en_map = np.column_stack([table["east_m"].to_numpy(), table["north_m"].to_numpy()])
+    extra["cornermap"]["layer_vs_poses"] = check_layer_vs_poses(ctx, all_corners, all_poses, en_map, p)
+    return {"corner_map": table, "rejected": rejected_table(summary, kept, reasons), "_extra": extra}
+
+
+def check_layer_vs_poses(ctx, corners: pa.Table, poses: pa.Table, en_map: np.ndarray, p: CornerMapParams) -> dict:
+    """``frame_check.layer_vs_poses`` over every drive with corners and optimized poses (the evaluation drives
+    too: a localizer is scored against their poses); a drive whose median offset exceeds ``frame_check_warn_m``
+    is logged as a warning."""
+    from stages.cornermap.frame_check import layer_vs_poses
+
+    pose_row, has_pose = match_poses(corners, poses)
+    keep = has_pose & _finite_rows(corners)
+    if not keep.any() or not len(en_map):
+        return {}
+    joined, pose_row = corners.filter(pa.array(keep)), pose_row[keep]
+    names, code = np.unique(joined["drive"].to_numpy(zero_copy_only=False), return_inverse=True)
+    names = [str(d) for d in names]
+    T_map_vehicle, cov_pose = _pose_matrices(poses, pose_row)
+    col = lambda c: joined[c].to_numpy()  # noqa: E731
+    obs = transform_to_enu(np.column_stack([col("x_m"), col("y_m")]),
+                           np.column_stack([col("theta1_rad"), col("theta2_rad")]),
+                           covariance_from_components(col("cov_xx_m2"), col("cov_xy_m2"), col("cov_yy_m2")),
+                           T_map_vehicle, _extrinsics(ctx.inputs.read("drive_info"), names)[code], cov_pose)
+    out = layer_vs_poses(en_map, obs.en_m, code, names, max_match_m=p.frame_check_match_m)
+    for name, row in out.items():
+        off = row.get("median_offset_en_m")
+        if off is None:
+            continue
+        level = logging.WARNING if np.hypot(*off) > p.frame_check_warn_m else logging.INFO
+        log.log(level, "cornermap: corner layer vs %s's optimized poses: median offset (%.3f, %.3f) m, rms %.3f m, "
+                "rigid fit %.3f m / %.3f deg over %d observations", name, off[0], off[1], row["rms_m"],
+                row["fit_shift_m"], row["fit_rotation_deg"], row["n_matched"])
+    return out
 
 
 def corner_map_table(s, kept: np.ndarray) -> pa.Table:

@@ -9,6 +9,9 @@ from pipeline.declare import Params
 class CornerMapParams(Params):
     # Clustering (clustering.py): a radius graph on east/north, capped at k neighbours, gated by direction angles.
     link_radius_m: float = Field(0.35, gt=0.0, description="two observations closer than this may be linked")
+    frame_check_match_m: float = Field(1.0, gt=0.0, description="corner layer vs poses check: an observation "
+                                       "placed with its drive's optimized pose matches a map corner within this")
+    frame_check_warn_m: float = Field(0.05, gt=0.0, description="warn when a drive's median offset exceeds this")
     angle_tol_deg: float = Field(12.0, gt=0.0, lt=90.0,
                                  description="both wall directions must agree within this to link")
     max_neighbors: int = Field(24, ge=2, description="k of the k-nearest-neighbour graph (bounds the work)")

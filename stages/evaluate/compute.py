@@ -58,6 +58,21 @@ def read_icp_increments(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndarr
     return inc
 
 
+def read_icp_covariances(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndarray:
+    """(E,3,3) covariance of each epoch's ICP increment (dx, dy, dyaw) in the previous vehicle frame: the planar
+    marginal of the inverse of the edge's 6x6 information (gtsam order rx ry rz tx ty tz); NaN where none."""
+    cov = np.full((len(epoch_scan_ids), 3, 3), np.nan)
+    if edges.num_rows == 0 or "information" not in edges.column_names:
+        return cov
+    edges = edges.filter(pc.equal(edges["converged"], True))
+    k = epoch_index(edges["scan_id"].to_numpy(), epoch_scan_ids)
+    ok = k > 0
+    info = np.asarray(edges["information"].combine_chunks().flatten().to_numpy(), dtype=float).reshape(-1, 6, 6)[ok]
+    idx = np.array([3, 4, 2])
+    cov[k[ok]] = np.linalg.inv(info)[:, idx[:, None], idx[None, :]]
+    return cov
+
+
 def fall_back_on_wheel(icp: np.ndarray, wheel: np.ndarray, gate_yaw_rad: float) -> np.ndarray:
     """(E,3) ICP increments with the failed ones (NaN) and, when ``gate_yaw_rad`` > 0, those whose heading change
     differs from the wheel/gyro increment's by more than it replaced by the wheel/gyro increment. Why: after a
@@ -154,13 +169,16 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     gnss_q = np.column_stack([poses["x_m"].to_numpy(), poses["y_m"].to_numpy(), yaw_of_quaternions(poses)])
     gnss_std = np.column_stack([poses[c].to_numpy() for c in ("std_east_m", "std_north_m", "std_yaw_rad")])
     odo = _rows_of(ctx, "odometry", drive).sort_by("stamp_ns") if ctx.inputs.has("odometry") else None
-    icp = read_icp_increments(_rows_of(ctx, "edges", drive), scan_ids)
+    edges = _rows_of(ctx, "edges", drive)
+    icp_raw = read_icp_increments(edges, scan_ids)
     if odo is not None and odo.num_rows >= 2:
         odo_inc = odometry_increments(odo["stamp_ns"].to_numpy(), odo["speed_mps"].to_numpy(),
                                       odo["yaw_rate_radps"].to_numpy(), stamps)
-        icp = fall_back_on_wheel(icp, odo_inc, np.deg2rad(p.icp_wheel_gate_deg))
+        icp = fall_back_on_wheel(icp_raw, odo_inc, np.deg2rad(p.icp_wheel_gate_deg))
     else:
+        icp = icp_raw
         odo, odo_inc = None, increments_without_wheel(icp, gnss_q)
+        icp_raw = None  # the wheel/gyro motion model (ekf_motion wheel_bias) needs wheels: the ICP model runs
         log.warning("evaluate %s: no wheel odometry; the EKF runs on ICP increments alone, the MCL on ICP "
                     "increments (GNSS/INS pose differences where ICP failed: %d of %d epochs), features not deskewed",
                     drive, int((~np.all(np.isfinite(icp[1:]), axis=1)).sum()), len(stamps))
@@ -171,7 +189,7 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     else:
         f_ep, f_xy = np.zeros(0, np.int64), np.zeros((0, 2))
     return DriveArrays(stamps, icp, odo_inc, gnss_q, gnss_std, poses["valid"].to_numpy(zero_copy_only=False),
-                       corners, f_ep, f_xy), scan_ids
+                       corners, f_ep, f_xy, icp_raw, read_icp_covariances(edges, scan_ids)), scan_ids
 
 
 def read_references(ctx: StageContext, drive: str, map_origin, p: EvaluateParams, cmap: CornerMap | None = None

@@ -6,6 +6,9 @@ State ``q = (x_m, y_m, yaw_rad)``: the vehicle reference point in the map's ENU 
 Motion (eq. 2): ``q_{k+1} = q_k + G(yaw_k) u_k`` with ``u = (dx, dy, dyaw)`` the ICP increment expressed in the
 previous vehicle frame. The paper writes ``F = I``; the exact linearisation keeps the heading column
 ``dG/dyaw u`` so that the covariance grows with heading uncertainty (needed for a consistent NEES).
+``predict_wheel_icp`` is the alternative motion model of the 5-state filter (gyro bias and wheel scale as states,
+the wheel/gyro increment as the prior, the ICP increment with its registration covariance as a measurement of it);
+the measurement updates below work on either state size (the corners observe the first three states).
 
 Measurement (eqs. 3-5): for each associated corner i, ``r_i = |p_i - p|`` and
 ``alpha_i = atan2(y_i - y, x_i - x) - yaw``; the rows of ``H`` follow eq. (5).
@@ -43,6 +46,56 @@ def predict(state: EkfState, increment: np.ndarray, Q: np.ndarray) -> EkfState:
     q = np.array([x + c * dx - s * dy, y + s * dx + c * dy, float(wrap_angle_rad(yaw + dyaw))])
     P = F @ state.P @ F.T + G @ Q @ G.T
     return EkfState(q, 0.5 * (P + P.T))
+
+
+def predict_wheel_icp(state: EkfState, wheel: np.ndarray, dt_s: float, Q_wheel: np.ndarray,
+                      icp: np.ndarray | None, Q_icp: np.ndarray | None, Q_bias: np.ndarray,
+                      gate_chi2: float) -> tuple[EkfState, float]:
+    """Motion update of the 5-state filter ``(x, y, yaw, gyro_bias_rad_s, wheel_scale_err)``.
+
+    The true increment ``d`` (vehicle frame of the previous epoch) is a latent with the wheel/gyro prior
+    ``d = ((1 - s) dx_w, (1 - s) dy_w, dyaw_w - b dt) + w``, ``w ~ N(0, Q_wheel)``; an ICP increment, when given,
+    measures it, ``icp = d + v``, ``v ~ N(0, Q_icp)`` (``Q_icp`` from the registration's own information, so a
+    degenerate direction weighs nothing). The update of the augmented state ``(q, b, s, d)`` estimates the gyro bias
+    and the wheel scale while ICP agrees with the wheels; an ICP increment whose innovation exceeds ``gate_chi2``
+    (3 dof) is not used. The pose is then composed with ``d``. ``Q_bias`` (2x2) is the random walk of (b, s) over
+    the step. Returns the new state and the ICP innovation's chi-square (NaN without ICP).
+    """
+    q, P = state.q, state.P
+    dx_w, dy_w, dyaw_w = np.asarray(wheel, dtype=float)
+    b, sc = q[3], q[4]
+    d = np.array([(1.0 - sc) * dx_w, (1.0 - sc) * dy_w, dyaw_w - b * dt_s])
+    J = np.zeros((3, 5))  # d(d)/d(state)
+    J[0, 4], J[1, 4], J[2, 3] = -dx_w, -dy_w, -dt_s
+    X = np.concatenate([q, d])
+    PA = np.zeros((8, 8))
+    PA[:5, :5] = P
+    PA[:5, 5:] = P @ J.T
+    PA[5:, :5] = J @ P
+    PA[5:, 5:] = J @ P @ J.T + Q_wheel
+    chi2 = float("nan")
+    if icp is not None and np.all(np.isfinite(icp)) and Q_icp is not None:
+        nu = np.asarray(icp, dtype=float) - d
+        nu[2] = wrap_angle_rad(nu[2])
+        S = PA[5:, 5:] + Q_icp
+        chi2 = float(nu @ np.linalg.solve(S, nu))
+        if chi2 <= gate_chi2:
+            K = np.linalg.solve(S, PA[5:, :]).T  # PA H^T S^-1 with H = [0 | I3]
+            X = X + K @ nu
+            I_KH = np.eye(8)
+            I_KH[:, 5:] -= K
+            PA = I_KH @ PA @ I_KH.T + K @ Q_icp @ K.T
+    x, y, yaw = X[:3]
+    dx, dy, dyaw = X[5:]
+    c, s = np.cos(yaw), np.sin(yaw)
+    A = np.zeros((5, 8))
+    A[:3, :3] = [[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]]
+    A[:3, 5:] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    A[3, 3] = A[4, 4] = 1.0
+    q_new = np.array([x + c * dx - s * dy, y + s * dx + c * dy, float(wrap_angle_rad(yaw + dyaw)), X[3], X[4]])
+    P_new = A @ PA @ A.T
+    P_new[3:, 3:] += Q_bias
+    return EkfState(q_new, 0.5 * (P_new + P_new.T)), chi2
 
 
 def predict_range_bearing(q: np.ndarray, corners_en_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -87,8 +140,8 @@ def update(state: EkfState, z_meas: np.ndarray, corners_en_m: np.ndarray, R_bloc
     z_pred, H_rb = predict_range_bearing(state.q, np.asarray(corners_en_m, dtype=float).reshape(-1, 2))
     nu_rb = z_meas - z_pred
     nu_rb[:, 1] = wrap_angle_rad(nu_rb[:, 1])
-    H = np.zeros((2 * n + m, 3))
-    H[:2 * n] = H_rb
+    H = np.zeros((2 * n + m, len(state.q)))
+    H[:2 * n, :3] = H_rb
     H[2 * n:, 2] = 1.0
     nu = np.concatenate([nu_rb.reshape(-1), wrap_angle_rad(yaw_meas - state.q[2])])
     R = np.zeros((2 * n + m, 2 * n + m))
@@ -100,7 +153,7 @@ def update(state: EkfState, z_meas: np.ndarray, corners_en_m: np.ndarray, R_bloc
     K = np.linalg.solve(S, PHt.T).T  # P H^T S^-1 (S, P symmetric)
     q = state.q + K @ nu
     q[2] = wrap_angle_rad(q[2])
-    I_KH = np.eye(3) - K @ H
+    I_KH = np.eye(len(q)) - K @ H
     P = I_KH @ state.P @ I_KH.T + K @ R @ K.T
     return EkfState(q, 0.5 * (P + P.T)), nu
 
@@ -110,7 +163,7 @@ def update_heading(state: EkfState, yaw_meas_rad: np.ndarray, sigma_rad: float) 
     yaw_meas = np.asarray(yaw_meas_rad, dtype=float).reshape(-1)
     if len(yaw_meas) == 0:
         return state
-    H = np.zeros((len(yaw_meas), 3))
+    H = np.zeros((len(yaw_meas), len(state.q)))
     H[:, 2] = 1.0
     R = np.eye(len(yaw_meas)) * sigma_rad**2
     nu = wrap_angle_rad(yaw_meas - state.q[2])
@@ -118,7 +171,7 @@ def update_heading(state: EkfState, yaw_meas_rad: np.ndarray, sigma_rad: float) 
     K = np.linalg.solve(S, H @ state.P).T
     q = state.q + K @ nu
     q[2] = wrap_angle_rad(q[2])
-    I_KH = np.eye(3) - K @ H
+    I_KH = np.eye(len(q)) - K @ H
     P = I_KH @ state.P @ I_KH.T + K @ R @ K.T
     return EkfState(q, 0.5 * (P + P.T))
 

@@ -52,6 +52,18 @@ class EkfConfig:
     # Heading measured by the associated corners' wall directions (0 = off, the paper's range/bearing only).
     # Range/bearing to a single corner leaves the rotation about that corner unobservable (see docs).
     wall_heading_sigma_rad: float = np.deg2rad(1.5)
+    # Wheel/gyro motion model with the gyro bias and the wheel scale as states (used when run_ekf is given the
+    # wheel increments): the simulator's / a MEMS gyro's bias spec and random walk, a wheel scale of 1 %.
+    gyro_bias_sigma_rad_s: float = np.deg2rad(0.115)
+    gyro_bias_rw_rad_s_per_sqrt_s: float = np.deg2rad(0.0057)
+    wheel_scale_sigma: float = 0.01
+    wheel_scale_rw_per_sqrt_m: float = 1e-3
+    wheel_sigma_frac: float = 0.005  # along-track wheel noise per metre (beside the scale)
+    wheel_sigma_lateral_frac: float = 0.002  # across-track (slip) per metre
+    wheel_sigma_xy_m: float = 0.005  # floor per step
+    gyro_sigma_yaw_rad: float = np.deg2rad(0.01)  # gyro white noise per step
+    gyro_sigma_yaw_frac: float = 0.005  # gyro scale error per radian turned
+    icp_gate_chi2: float = 16.27  # ICP vs wheel/gyro increment, chi-square 3 dof, 99.9 %
 
 
 @dataclass(frozen=True)
@@ -82,9 +94,52 @@ def increment_covariance(increment: np.ndarray, cfg: EkfConfig) -> np.ndarray:
     return np.diag([s_xy**2, s_xy**2, s_yaw**2])
 
 
+def wheel_covariance(wheel: np.ndarray, cfg: EkfConfig) -> np.ndarray:
+    """Covariance (vehicle frame) of a wheel/gyro increment beside its scale and bias (which are states)."""
+    dist = float(np.hypot(wheel[0], wheel[1]))
+    s_along = cfg.wheel_sigma_frac * dist + cfg.wheel_sigma_xy_m
+    s_lat = cfg.wheel_sigma_lateral_frac * dist + cfg.wheel_sigma_xy_m
+    s_yaw = cfg.gyro_sigma_yaw_frac * abs(float(wheel[2])) + cfg.gyro_sigma_yaw_rad
+    return np.diag([s_along**2, s_lat**2, s_yaw**2])
+
+
+def icp_covariance(increment: np.ndarray, cov_info: np.ndarray | None, cfg: EkfConfig) -> np.ndarray:
+    """The ICP increment's covariance: the registration's own (planar marginal of its information; large along a
+    degenerate street's axis) plus the per-step floors of ``increment_covariance``."""
+    Q = increment_covariance(increment, cfg)
+    if cov_info is not None and np.all(np.isfinite(cov_info)):
+        Q = Q + cov_info
+    return Q
+
+
+def _motion(state: ekf.EkfState, k: int, increments: np.ndarray, wheel: np.ndarray | None, dt_s: np.ndarray | None,
+            icp_cov: np.ndarray | None, cfg: EkfConfig) -> tuple[ekf.EkfState, bool]:
+    """One motion update; returns the state and whether an ICP increment was used."""
+    inc = increments[k]
+    if wheel is None:
+        if np.all(np.isfinite(inc)):
+            return ekf.predict(state, inc, increment_covariance(inc, cfg)), True
+        # no ICP edge: inflate as if standing still with a large uncertainty
+        return ekf.EkfState(state.q, state.P + np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2])), False
+    dt = float(dt_s[k])
+    dist = float(np.hypot(wheel[k, 0], wheel[k, 1]))
+    Q_bias = np.diag([cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * dt, cfg.wheel_scale_rw_per_sqrt_m**2 * dist])
+    ok = bool(np.all(np.isfinite(inc)))
+    Q_icp = icp_covariance(inc, None if icp_cov is None else icp_cov[k], cfg) if ok else None
+    state, chi2 = ekf.predict_wheel_icp(state, wheel[k], dt, wheel_covariance(wheel[k], cfg), inc if ok else None,
+                                        Q_icp, Q_bias, cfg.icp_gate_chi2)
+    return state, bool(ok and chi2 <= cfg.icp_gate_chi2)
+
+
 def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0: np.ndarray, P0: np.ndarray,
-            start_epoch: int, cfg: EkfConfig = EkfConfig()) -> EkfRun:
-    """Run the filter from ``start_epoch`` (initialised with q0, P0 there) to the last epoch."""
+            start_epoch: int, cfg: EkfConfig = EkfConfig(), wheel_increments: np.ndarray | None = None,
+            stamps_ns: np.ndarray | None = None, icp_cov: np.ndarray | None = None) -> EkfRun:
+    """Run the filter from ``start_epoch`` (initialised with q0, P0 there) to the last epoch.
+
+    With ``wheel_increments`` (E,3) and ``stamps_ns`` the state carries the gyro bias and the wheel scale error
+    (``ekf.predict_wheel_icp``): ICP increments (NaN = failed; ``icp_cov`` (E,3,3) their registration covariance)
+    are fused with the bias-corrected wheel/gyro increments. Without them: the paper's ICP-only motion model.
+    """
     from scipy.spatial import cKDTree
 
     n = len(increments)
@@ -95,19 +150,28 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     off = obs.slices(n)
     tree = cKDTree(cmap.en_m) if len(cmap.en_m) else None
     floor = np.diag([cfg.range_sigma_floor_m**2, cfg.bearing_sigma_floor_rad**2])
-    state = ekf.EkfState(np.asarray(q0, dtype=float).copy(), np.asarray(P0, dtype=float).copy())
+    q_init, P_init = np.asarray(q0, dtype=float).copy(), np.asarray(P0, dtype=float).copy()
+    dt_s = None
+    if wheel_increments is not None:
+        if stamps_ns is None:
+            raise ValueError("run_ekf: wheel_increments need stamps_ns")
+        dt_s = np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9])
+        q_init = np.concatenate([q_init[:3], [0.0, 0.0]])
+        P5 = np.zeros((5, 5))
+        P5[:3, :3] = P_init[:3, :3]
+        P5[3, 3], P5[4, 4] = cfg.gyro_bias_sigma_rad_s**2, cfg.wheel_scale_sigma**2
+        P_init = P5
+    state = ekf.EkfState(q_init, P_init)
+    n_icp = 0
     for k in range(start_epoch, n):
         if k > start_epoch:
-            inc = increments[k]
-            if np.all(np.isfinite(inc)):
-                state = ekf.predict(state, inc, increment_covariance(inc, cfg))
-            else:  # no ICP edge: inflate as if standing still with a large uncertainty
-                state = ekf.EkfState(state.q, state.P + np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2]))
+            state, used = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg)
+            n_icp += used
         lo, hi = off[k], off[k + 1]
         if hi > lo and tree is not None:
             near = np.asarray(tree.query_ball_point(state.q[:2], cfg.sensor_range_m), dtype=np.int64)
             if len(near):
-                a = associate(state.q, state.P, obs.xy_vehicle_m[lo:hi], obs.cov_vehicle_m2[lo:hi],
+                a = associate(state.q[:3], state.P[:3, :3], obs.xy_vehicle_m[lo:hi], obs.cov_vehicle_m2[lo:hi],
                               obs.dirs_vehicle_rad[lo:hi], cmap.en_m[near],
                               cmap.cov_m2[near], cmap.dirs_enu_rad[near], sensor_range_m=cfg.sensor_range_m,
                               gate_chi2=cfg.gate_chi2, angle_tol_rad=cfg.angle_tol_rad, method=cfg.association,
@@ -121,7 +185,11 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
                                           cfg.wall_heading_sigma_rad)
                     n_assoc[k] = len(idx)
                     a_epoch.append(np.full(len(idx), k)), a_map.append(idx)
-        q_out[k], P_out[k] = state.q, state.P
+        q_out[k], P_out[k] = state.q[:3], state.P[:3, :3]
+    if wheel_increments is not None:
+        log.info("ekf: %d of %d motion updates used ICP; gyro bias at the end %.4f +- %.4f deg/s, wheel scale error "
+                 "%.4f +- %.4f", n_icp, n - start_epoch - 1, np.degrees(state.q[3]), np.degrees(np.sqrt(state.P[3, 3])),
+                 state.q[4], np.sqrt(state.P[4, 4]))
     cat = (lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64))
     return EkfRun(q_out, P_out, n_assoc, cat(a_epoch), cat(a_map))
 

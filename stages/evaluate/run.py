@@ -33,6 +33,8 @@ class DriveArrays:
     corners: CornerObservations
     feature_epoch: np.ndarray  # (F,) int, sorted
     features_vehicle_m: np.ndarray  # (F,2)
+    icp_raw_increments: np.ndarray | None = None  # (E,3) ICP increments alone (NaN = failed), no wheel fallback
+    icp_cov: np.ndarray | None = None  # (E,3,3) their covariance from the registration's information
 
 
 @dataclass
@@ -63,7 +65,15 @@ def ekf_config(p: EvaluateParams) -> EkfConfig:
                      angle_tol_rad=np.deg2rad(p.angle_gate_deg), association=p.association,
                      range_sigma_floor_m=p.range_sigma_floor_m,
                      bearing_sigma_floor_rad=np.deg2rad(p.bearing_sigma_floor_deg),
-                     wall_heading_sigma_rad=np.deg2rad(p.wall_heading_sigma_deg))
+                     wall_heading_sigma_rad=np.deg2rad(p.wall_heading_sigma_deg),
+                     gyro_bias_sigma_rad_s=np.deg2rad(p.ekf_gyro_bias_sigma_deg_s),
+                     gyro_bias_rw_rad_s_per_sqrt_s=np.deg2rad(p.ekf_gyro_bias_rw_deg_s_per_sqrt_s),
+                     wheel_scale_sigma=p.ekf_wheel_scale_sigma,
+                     wheel_scale_rw_per_sqrt_m=p.ekf_wheel_scale_rw_per_sqrt_m,
+                     wheel_sigma_frac=p.ekf_wheel_sigma_frac, wheel_sigma_lateral_frac=p.ekf_wheel_sigma_lateral_frac,
+                     gyro_sigma_yaw_rad=np.deg2rad(p.ekf_gyro_sigma_yaw_deg),
+                     gyro_sigma_yaw_frac=p.ekf_gyro_sigma_yaw_frac,
+                     icp_gate_chi2=float(chi2.ppf(p.ekf_icp_gate_probability, 3)))
 
 
 def first_fix(d: DriveArrays) -> int:
@@ -91,7 +101,11 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
     runs["icp_dr"] = MethodRun(dead_reckon(d.icp_increments, q0, k0), None, np.zeros(n, np.int32))
     if "ekf" in p.methods and cmap is not None:
         t0 = time.perf_counter()
-        r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_config(p))
+        if p.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
+            r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, ekf_config(p),
+                        wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov)
+        else:
+            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_config(p))
         runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx)
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
     if "mcl" in p.methods and fetch is not None:

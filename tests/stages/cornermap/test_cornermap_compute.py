@@ -95,3 +95,18 @@ def test_empty_input_gives_empty_tables(tables):
     corners, poses, info = tables
     result = _run((corners.slice(0, 0), poses, info))
     assert result["corner_map"].num_rows == 0 and result["corner_map"].schema.equals(SCHEMAS["corner_map"])
+
+
+def test_layer_vs_poses_measures_a_drive_whose_poses_sit_in_another_frame(tables):
+    """The map from drive_a; drive_b's optimized poses moved 0.4 m east (a pose graph whose reference drive is
+    not tied to the map drive's frame): the check reports that offset for drive_b and none for drive_a."""
+    corners, poses, info = tables
+    is_b = pc.equal(poses["drive"], "drive_b")
+    moved = poses.set_column(poses.schema.get_field_index("x_m"), "x_m",
+                             pc.if_else(is_b, pc.add(poses["x_m"], 0.4), poses["x_m"]))
+    result = _run((corners, moved, info), map_drives=["drive_a"])
+    check = result["_extra"]["cornermap"]["layer_vs_poses"]
+    assert np.hypot(*check["drive_a"]["median_offset_en_m"]) < 0.02 and check["drive_a"]["rms_m"] < 0.05
+    np.testing.assert_allclose(check["drive_b"]["median_offset_en_m"], [0.4, 0.0], atol=0.02)
+    assert check["drive_b"]["n_matched"] > 0.9 * check["drive_b"]["n_observations"]
+    assert abs(check["drive_b"]["fit_rotation_deg"]) < 0.1

@@ -1,0 +1,151 @@
+"""Localization accuracy per simulated city seed: simulate -> build -> evaluate through the engine, one workflow
+per seed, then per-seed and worst-case rows (EKF and MCL, map-relative and absolute).
+
+    .venv/bin/python -m bench.bench_seeds --preset tiny --seeds 11 12 13 14 15 --root /work/scratch-x/seeds
+
+Each seed runs ``workflows/<preset>.yaml`` with ``params.simulate.seed`` changed, under ``ROOT/<preset>-<seed>``
+(the engine skips stages whose fingerprints are committed, so a second run only redoes what changed).
+``--fresh-evaluate`` drops the committed evaluate outputs first (after a code change that does not change the
+evaluate params). Which seeds are calibration and which validation seeds: docs/evaluation.md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+EKF_COLS = [("rms_2d_m", "RMS m", 3), ("p99_2d_m", "p99 m", 3), ("max_2d_m", "max m", 3),
+            ("heading_rms_deg", "hdg deg", 3), ("nees_mean", "NEES", 2), ("nees_share_chi2_95", "<chi2", 2)]
+MCL_COLS = [("mean_abs_x_m", "|x| m", 3), ("mean_abs_y_m", "|y| m", 3), ("mean_abs_heading_deg", "|hdg| deg", 3)]
+# Worst = largest, except the share of epochs under the chi-square quantile (smallest); NEES: farthest from 3.
+WORST_MIN = {"nees_share_chi2_95"}
+
+
+def write_workflow(preset: str, seed: int, run_dir: Path, methods: list[str] | None,
+                   ekf_motion: str | None = None, evaluate_params: dict | None = None) -> Path:
+    spec = yaml.safe_load((REPO / "workflows" / f"{preset}.yaml").read_text())
+    spec["root"] = str(run_dir)
+    spec["name"] = f"{preset}-{seed}"
+    spec["params"].setdefault("simulate", {})["seed"] = seed
+    if methods:
+        spec["params"].setdefault("evaluate", {})["methods"] = methods
+    if ekf_motion:
+        spec["params"].setdefault("evaluate", {})["ekf_motion"] = ekf_motion
+    if evaluate_params:
+        spec["params"].setdefault("evaluate", {}).update(evaluate_params)
+    path = run_dir / f"workflow-{abs(hash(yaml.safe_dump(spec))) % 10**8}.yaml"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return path
+
+
+def latest_metrics(run_dir: Path) -> dict:
+    files = sorted((run_dir / "datasets" / "eval_report").glob("*/artifacts/*/metrics.json"),
+                   key=lambda p: p.stat().st_mtime)
+    if not files:
+        raise SystemExit(f"{run_dir}: no eval_report/*/metrics.json after the run")
+    return json.loads(files[-1].read_text())
+
+
+def nees_share(run_dir: Path, method: str, dof: int = 3) -> float:
+    """Share of the EKF's epochs whose NEES (vs the primary reference) is under the chi-square 0.95 quantile."""
+    import pyarrow.parquet as pq
+    from scipy.stats import chi2
+
+    files = sorted((run_dir / "datasets" / "eval_report").glob("*/artifacts/*/epochs.parquet"),
+                   key=lambda p: p.stat().st_mtime)
+    if not files:
+        return float("nan")
+    t = pq.read_table(files[-1])
+    if "nees" not in t.column_names:
+        return float("nan")
+    sel = np.asarray(t["method"].to_pylist()) == method
+    v = np.array([np.nan if x is None else x for x in t["nees"].to_pylist()], dtype=float)[sel]
+    v = v[np.isfinite(v)]
+    return float(np.mean(v <= chi2.ppf(0.95, dof))) if len(v) else float("nan")
+
+
+def frame_metrics(doc: dict, method: str, frame: str) -> dict:
+    m = doc.get("methods", {}).get(method, {})
+    return dict(m.get(frame) or {})
+
+
+def fmt(v, nd: int) -> str:
+    return "nan" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def print_table(title: str, rows: dict[int, dict], cols) -> None:
+    print(f"\n{title}")
+    print("| seed | " + " | ".join(c[1] for c in cols) + " |")
+    print("|---" * (len(cols) + 1) + "|")
+    for seed, r in rows.items():
+        print(f"| {seed} | " + " | ".join(fmt(r.get(k, np.nan), nd) for k, _, nd in cols) + " |")
+    worst = []
+    for k, _, nd in cols:
+        vals = np.array([r.get(k, np.nan) for r in rows.values()], dtype=float)
+        vals = vals[np.isfinite(vals)]
+        if not len(vals):
+            worst.append("nan")
+        elif k in WORST_MIN:
+            worst.append(fmt(vals.min(), nd))
+        elif k == "nees_mean":
+            worst.append(fmt(vals[np.argmax(np.abs(vals - 3.0))], nd))
+        else:
+            worst.append(fmt(vals.max(), nd))
+    print("| worst | " + " | ".join(worst) + " |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", default="tiny", choices=["tiny", "demo", "gangnam"])
+    ap.add_argument("--seeds", type=int, nargs="+", required=True)
+    ap.add_argument("--root", type=Path, required=True, help="scratch folder for the per-seed runs")
+    ap.add_argument("--fresh-evaluate", action="store_true", help="recompute the evaluate stage")
+    ap.add_argument("--methods", nargs="+", choices=["ekf", "mcl"], default=None)
+    ap.add_argument("--ekf-motion", choices=["wheel_bias", "icp"], default=None,
+                    help="the EKF motion model (default: the evaluate params' default)")
+    ap.add_argument("--set", nargs="+", default=[], metavar="NAME=VALUE",
+                    help="evaluate params for calibration runs (only on calibration seeds)")
+    args = ap.parse_args()
+
+    from pipeline.cli import execute_workflow
+    from pipeline.errors import CornermapError
+
+    rows = {f: {"ekf": {}, "mcl": {}} for f in ("map_relative", "absolute")}
+    for seed in args.seeds:
+        run_dir = (args.root / f"{args.preset}-{seed}").resolve()
+        wf = write_workflow(args.preset, seed, run_dir, args.methods, args.ekf_motion,
+                            {k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.set)})
+        if args.fresh_evaluate:
+            for ds in ("eval_epochs", "eval_report"):
+                shutil.rmtree(run_dir / "datasets" / ds, ignore_errors=True)
+        t0 = time.perf_counter()
+        try:
+            execute_workflow(wf, root=None, scheduler=None, only=None, dry_run=False, quiet=True)
+        except CornermapError as exc:  # a build that publishes no map is a result too: reported, not skipped
+            print(f"seed {seed}: FAILED after {time.perf_counter() - t0:.0f} s: {str(exc).splitlines()[0]} "
+                  f"{' '.join(str(exc).splitlines()[1:2])}", flush=True)
+            continue
+        doc = latest_metrics(run_dir)
+        print(f"seed {seed}: {time.perf_counter() - t0:.0f} s, {run_dir}", flush=True)
+        for frame in rows:
+            for method in ("ekf", "mcl"):
+                rows[frame][method][seed] = frame_metrics(doc, method, frame)
+        rows["map_relative"]["ekf"][seed]["nees_share_chi2_95"] = nees_share(run_dir, "ekf")
+        for frame in rows:  # one line per seed as it finishes (the tables follow at the end)
+            e, m = rows[frame]["ekf"][seed], rows[frame]["mcl"][seed]
+            print(f"  {frame}: EKF " + " ".join(f"{lab}={fmt(e.get(k, np.nan), nd)}" for k, lab, nd in EKF_COLS)
+                  + " | MCL " + " ".join(f"{lab}={fmt(m.get(k, np.nan), nd)}" for k, lab, nd in MCL_COLS), flush=True)
+    for frame in rows:
+        print_table(f"EKF, {frame} ({args.preset})", rows[frame]["ekf"], EKF_COLS)
+        print_table(f"MCL, {frame} ({args.preset})", rows[frame]["mcl"], MCL_COLS)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""The 5-state EKF (gyro bias and wheel scale as states, ICP weighted by its own information) on scripted drives
+with known truth: it must stay consistent where ICP fails and no corner is seen, which the ICP-only model is not."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import chi2
+
+from stages.evaluate import ekf
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, run_ekf
+from stages.evaluate.synthetic import relative_increments
+
+RATE_HZ = 10.0
+BIAS_RAD_S = np.deg2rad(-0.147)  # the gyro bias of the diagnosed drive
+WHEEL_SCALE = 1.008
+
+
+def straight(n: int, speed_mps: float = 8.0) -> np.ndarray:
+    s = np.arange(n) * speed_mps / RATE_HZ
+    return np.column_stack([s, np.zeros(n), np.zeros(n)])
+
+
+def empty_obs() -> CornerObservations:
+    return CornerObservations(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2)))
+
+
+def empty_map() -> CornerMap:
+    return CornerMap(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2)))
+
+
+# The model the filter states, exactly (ICP's covariance is the registration's, without extra floors).
+CFG = EkfConfig(icp_sigma_frac=0.0, icp_sigma_xy_m=0.0, icp_sigma_yaw_rad=0.0)
+
+
+def scripted_drive(truth: np.ndarray, rng: np.random.Generator, icp_until: int, degenerate_along: bool = False,
+                   bias_rad_s: float = BIAS_RAD_S, scale: float = WHEEL_SCALE):
+    """Wheel/gyro increments drawn from the filter's stated model (a scale error and a gyro bias, both random
+    walks, and white noise); ICP increments with a 2 mm / 0.002 deg error until ``icp_until`` and failed (NaN)
+    after it, or, with ``degenerate_along``, present but 30 % short along track (a street with no structure
+    across it) with the information saying so."""
+    from stages.evaluate.localize_ekf import wheel_covariance
+
+    n = len(truth)
+    dt = 1.0 / RATE_HZ
+    true_inc = relative_increments(truth)
+    dist = np.hypot(true_inc[:, 0], true_inc[:, 1])
+    bias = bias_rad_s + np.cumsum(rng.normal(0, CFG.gyro_bias_rw_rad_s_per_sqrt_s * np.sqrt(dt), n))
+    sc = scale - 1.0 + np.cumsum(rng.normal(0, CFG.wheel_scale_rw_per_sqrt_m * np.sqrt(dist)))
+    wheel = true_inc.copy()
+    wheel[:, :2] *= (1.0 + sc)[:, None]
+    for k in range(1, n):
+        wheel[k] += rng.multivariate_normal(np.zeros(3), wheel_covariance(true_inc[k], CFG))
+    wheel[:, 2] += bias * dt
+    wheel[0] = 0.0
+    icp = true_inc + rng.normal(0, 1, (n, 3)) * [0.002, 0.002, np.deg2rad(0.002)]
+    cov = np.tile(np.diag([0.002**2, 0.002**2, np.deg2rad(0.002) ** 2]), (n, 1, 1))
+    if degenerate_along:
+        icp[icp_until:, 0] = 0.7 * true_inc[icp_until:, 0]
+        cov[icp_until:, 0, 0] = 10.0**2
+    else:
+        icp[icp_until:] = np.nan
+        cov[icp_until:] = np.nan
+    stamps = (np.arange(n) * dt * 1e9).astype(np.int64)
+    return wheel, icp, cov, stamps, bias, sc
+
+
+def errors_and_nees(run, truth):
+    e = run.q - truth
+    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return e, ekf.nees(run.q, run.P, truth)
+
+
+def test_straight_without_corners_and_with_a_gyro_bias_keeps_nees_consistent():
+    n, runs = 600, 40  # 60 s: 10 s with ICP, then 50 s with failed ICP and no corner
+    truth = straight(n)
+    P0 = np.diag([0.05**2, 0.05**2, np.deg2rad(0.05) ** 2])
+    nees_5, nees_3, bias_z = [], [], []
+    for i in range(runs):
+        rng = np.random.default_rng(100 + i)
+        bias = rng.normal(0, CFG.gyro_bias_sigma_rad_s)  # a draw of the prior the filter states
+        scale = 1.0 + rng.normal(0, CFG.wheel_scale_sigma)
+        wheel, icp, cov, stamps, _, _ = scripted_drive(truth, rng, icp_until=100, bias_rad_s=bias, scale=scale)
+        q0 = truth[0] + rng.multivariate_normal(np.zeros(3), P0)
+        r5 = run_ekf(icp, empty_obs(), empty_map(), q0, P0, 0, CFG, wheel_increments=wheel,
+                     stamps_ns=stamps, icp_cov=cov)
+        nees_5.append(errors_and_nees(r5, truth)[1][1:])
+        # The paper's model with the failed ICP increments replaced by the wheel/gyro ones (the old fallback).
+        fallback = np.where(np.isfinite(icp), icp, wheel)
+        r3 = run_ekf(fallback, empty_obs(), empty_map(), q0, P0, 0, EkfConfig(icp_sigma_yaw_rad=np.deg2rad(0.004)))
+        nees_3.append(errors_and_nees(r3, truth)[1][1:])
+    nees_5, nees_3 = np.array(nees_5), np.array(nees_3)
+    # Monte-Carlo mean NEES per epoch inside the two-sided 99 % band of a chi-square with 3 * runs dof.
+    lo, hi = chi2.ppf(0.005, 3 * runs) / runs, chi2.ppf(0.995, 3 * runs) / runs
+    mean_5 = nees_5.mean(axis=0)
+    assert np.mean((mean_5 >= lo) & (mean_5 <= hi)) >= 0.9, (mean_5.min(), mean_5.max(), lo, hi)
+    assert np.mean(nees_5 <= chi2.ppf(0.95, 3)) >= 0.9
+    # The ICP-only model claims ICP-grade heading after the fallback: its NEES leaves the band by far.
+    assert nees_3.mean(axis=0)[-1] > 10 * hi
+
+
+def test_gyro_bias_is_estimated_while_icp_holds():
+    n = 300
+    truth = straight(n)
+    rng = np.random.default_rng(7)
+    wheel, icp, cov, stamps, bias_true, scale_true = scripted_drive(truth, rng, icp_until=n)
+    state = ekf.EkfState(np.array([0.0, 0.0, 0.0, 0.0, 0.0]),
+                         np.diag([0.05**2, 0.05**2, np.deg2rad(0.05) ** 2, np.deg2rad(0.115) ** 2, 0.01**2]))
+    cfg = CFG
+    from stages.evaluate.localize_ekf import icp_covariance, wheel_covariance
+
+    chis = []
+    Q_bias = np.diag([cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * 0.1, cfg.wheel_scale_rw_per_sqrt_m**2 * 0.8])
+    for k in range(1, n):
+        state, chi = ekf.predict_wheel_icp(state, wheel[k], 0.1, wheel_covariance(wheel[k], cfg), icp[k],
+                                           icp_covariance(icp[k], cov[k], cfg), Q_bias, cfg.icp_gate_chi2)
+        chis.append(chi)
+    assert np.mean(np.array(chis) > cfg.icp_gate_chi2) < 0.01  # consistent ICP passes its 99.9 % gate
+    sb, ss = np.sqrt(state.P[3, 3]), np.sqrt(state.P[4, 4])
+    assert abs(state.q[3] - bias_true[-1]) < 3 * sb and sb < np.deg2rad(0.03)
+    assert abs(state.q[4] - scale_true[-1]) < 3 * ss and ss < 0.005
+
+
+def test_degenerate_icp_direction_weighs_nothing():
+    """ICP 30 % short along track in a street without cross structure, its information saying so: the filter
+    follows the wheels along track and stays within its covariance."""
+    n = 400
+    truth = straight(n)
+    rng = np.random.default_rng(3)
+    wheel, icp, cov, stamps, bias_true, scale_true = scripted_drive(truth, rng, icp_until=50, degenerate_along=True)
+    P0 = np.diag([0.05**2, 0.05**2, np.deg2rad(0.05) ** 2])
+    r = run_ekf(icp, empty_obs(), empty_map(), truth[0], P0, 0, CFG, wheel_increments=wheel,
+                stamps_ns=stamps, icp_cov=cov)
+    e, nees = errors_and_nees(r, truth)
+    # ICP alone would be 0.3 * 8 m/s * 35 s = 84 m short; the wheels' scale random walk is the error left.
+    assert abs(e[-1, 0]) < min(10.0, 3 * np.sqrt(r.P[-1, 0, 0]))
+    assert np.mean(nees <= chi2.ppf(0.99, 3)) >= 0.95
