@@ -41,4 +41,5 @@ def test_help_examples_use_root_and_map_name():
     from stages.evaluate.cli import EXAMPLES
 
     lines = [ln for ln in EXAMPLES.splitlines() if ln.strip().startswith("cornermap evaluate")]
-    assert len(lines) == 3 and all("--root runs/demo --map demo " in ln for ln in lines)
+    assert len(lines) == 2 and all(" --root runs/" in ln and "--map " in ln for ln in lines)
+    assert not any("/maps/" in ln for ln in lines)  # a map is named, never a path (tests/test_help_examples.py)
