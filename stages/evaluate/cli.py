@@ -173,7 +173,7 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
                for arg, (ds, _) in inputs.items()}
     store = StoreInputReader(plan.root, inputs, schemas)
     map_row = pa.table({"map_name": [reader.path.parent.name], "version": [reader.version],
-                        "path": [str(reader.path)]})
+                        "path": [str(Path(reader.path).resolve())]})  # absolute: the work root is elsewhere
     drive_name = next(iter(plan.workflow.spec.drives)).name
     settings = plan.workflow.settings(plan.root)
     settings["references"] = {drive_name: str(Path(reference).resolve()) if reference not in (None, "map") else None}
