@@ -130,3 +130,21 @@ def test_origin_from_the_first_drive_with_gnss(tmp_path):
     first = resolve_enu_origin(None, [a.drive_file, b.drive_file])
     assert first == resolve_enu_origin(None, [a.drive_file]) != resolve_enu_origin(None, [b.drive_file])
     assert resolve_enu_origin({"lat_deg": 1, "lon_deg": 2, "h_m": 3}, [a.drive_file]).h_m == 3.0
+
+
+def test_gnss_that_does_not_overlap_the_scans_is_reported_and_fails_drive_check(tmp_path):
+    """Issue 22 finding 7: GNSS a day away from the scans left 0 valid poses with nothing in the report."""
+    from stages.ingest.drive_check import check_drive
+
+    drive = write_synthetic_drive(tmp_path)
+    stamps = drive.drive_file.parent / "scans" / "stamps.csv"
+    rows = list(csv.reader(stamps.open()))
+    stamps.write_text("\n".join([",".join(rows[0])] + [f"{r[0]},{float(r[1]) + 86_400:.9f},{r[2]}"
+                                                        for r in rows[1:]]) + "\n")
+    tables, _ = _run(drive, drive.origin)
+    report = tables["report"][1].to_pylist()
+    coverage = [r for r in report if r["kind"] == "gnss_coverage"]
+    assert coverage and coverage[0]["count"] == 6 and "0 of 6 scan stamps" in coverage[0]["reason"]
+    assert not any(tables["poses_gnss"][1]["valid"].to_pylist())
+    check = check_drive(drive.drive_file)
+    assert any("no scan stamp lies inside the GNSS time span" in p for p in check.problems), check.problems
