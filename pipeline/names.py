@@ -48,3 +48,24 @@ def inside(root: Path | str, *parts: str | Path) -> Path:
         raise PathEscapeError(f"{rel!r} resolves to {path}, outside {base}; hint: paths from input must stay "
                               "inside their root")
     return path
+
+
+def published_map_dir(root: Path | str | None, name: str | None, hint: str = "pass --root ROOT --map NAME") -> Path:
+    """``ROOT/maps/NAME`` of a published map, the one naming rule of every command (``--root ROOT --map NAME``);
+    with no name, the only map under ``ROOT/maps``. UnknownNameError (with "did you mean") otherwise."""
+    from pipeline.errors import UnknownNameError
+    from pipeline.registry import suggest
+
+    if name is not None:
+        check_name(name, "map", "--map")
+    maps = Path(root if root is not None else ".") / "maps"
+    have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
+    if name is None:
+        if len(have) != 1:
+            raise UnknownNameError(f"{maps}: {'no maps' if not have else 'several maps: ' + ', '.join(have)}; "
+                                   f"hint: {hint}")
+        name = have[0]
+    if name not in have:
+        raise UnknownNameError(f"{maps}: no map {name!r}; have {', '.join(have) or 'none'}{suggest(name, have)}; "
+                               "hint: --root is the folder holding maps/NAME")
+    return maps / name

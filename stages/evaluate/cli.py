@@ -45,8 +45,7 @@ def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: di
 def open_named_map(root: Optional[Path], map_arg: Optional[str], version: str):
     """The map named as on every command: ``--root ROOT --map NAME [--version vNNNN]``. A ``--map`` holding a path
     separator is a path (ROOT/maps/NAME or a vNNNN folder) and is accepted alone, when it is unambiguous."""
-    from pipeline.errors import ConfigError, UnknownNameError
-    from pipeline.registry import suggest
+    from pipeline.errors import ConfigError
     from stages.tiles.loader import open_map
 
     if map_arg is not None and ("/" in map_arg or "\\" in map_arg):
@@ -64,18 +63,9 @@ def open_named_map(root: Optional[Path], map_arg: Optional[str], version: str):
         if problems:
             raise ConfigError("cornermap evaluate", problems)
         return open_map(path, version)
-    maps = Path(root if root is not None else ".") / "maps"
-    have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
-    name = map_arg
-    if name is None:
-        if len(have) != 1:
-            raise UnknownNameError(f"{maps}: {'no maps' if not have else 'several maps: ' + ', '.join(have)}; "
-                                   "hint: pass --root ROOT --map NAME")
-        name = have[0]
-    if name not in have:
-        raise UnknownNameError(f"{maps}: no map {name!r}; have {', '.join(have) or 'none'}{suggest(name, have)}; "
-                               "hint: --root is the folder holding maps/NAME")
-    return open_map(maps / name, version)
+    from pipeline.names import published_map_dir
+
+    return open_map(published_map_dir(root, map_arg), version)
 
 
 def _evaluate_params(params_file: Optional[Path], methods: list[str], reference_frame: Optional[str],

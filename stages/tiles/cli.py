@@ -24,25 +24,10 @@ EXAMPLES = ("Examples:\n\n"
 
 
 def map_dir_of(root: Path, name: Optional[str]) -> Path:
-    """ROOT/maps/NAME; with no name, the only map under ROOT/maps."""
-    from pipeline.errors import UnknownNameError
+    """ROOT/maps/NAME; with no name, the only map under ROOT/maps (``pipeline.names.published_map_dir``)."""
+    from pipeline.names import published_map_dir
 
-    from pipeline.names import check_name
-
-    if name is not None:
-        check_name(name, "map", "--map")
-    maps = Path(root) / "maps"
-    have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
-    if name is None:
-        if len(have) != 1:
-            raise UnknownNameError(f"{maps}: {'no maps' if not have else 'several maps: ' + ', '.join(have)}; "
-                                   "hint: pass --map NAME (and --root ROOT)")
-        name = have[0]
-    if name not in have:
-        from pipeline.registry import suggest
-
-        raise UnknownNameError(f"{maps}: no map {name!r}; have {', '.join(have) or 'none'}{suggest(name, have)}")
-    return maps / name
+    return published_map_dir(root, name, hint="pass --map NAME (and --root ROOT)")
 
 
 def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
