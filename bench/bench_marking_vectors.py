@@ -78,7 +78,7 @@ class RasterDirReader:
         return self._tiles[(i, j)]["count"]
 
     def marking_window(self, e0, n0, e1, n1):
-        from stages.tiles.vectors import mosaic_window
+        from mapformat.vectors import mosaic_window
 
         cell = float(next(iter(self._tiles.values()))["marking"]["cell_m"])
         parts = [(t["mask"], float(t["marking"]["origin_east_m"]), float(t["marking"]["origin_north_m"]))
@@ -90,8 +90,8 @@ def main(argv: list[str] | None = None) -> dict:
     from stages.common.marking_scores import score_markings
     from stages.simulate.markings import city_from_description, marking_truth_features
     from stages.tiles.cli import map_dir_of
-    from stages.tiles.loader import open_map
-    from stages.tiles.vectors import read_map_features, tile_features
+    from mapformat.loader import open_map
+    from mapformat.vectors import read_map_features, tile_features
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path, required=True)
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--figure", type=Path, default=None, help="PNG: the densest raster tile, mask + vectors")
     args = ap.parse_args(argv)
     if args.rasters:
-        from stages.tiles.vectors import tile_features as _tf
+        from mapformat.vectors import tile_features as _tf
 
         dirs = [d for d in sorted((args.root / "datasets" / "marking_rasters").glob("*")) if (d / "_manifest.json").is_file()]
         if not dirs:

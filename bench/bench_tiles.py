@@ -23,7 +23,7 @@ from pipeline.declare import PartitionKey
 from pipeline.testing import make_context
 from schemas import SCHEMAS
 from stages.tiles.compute import compute
-from stages.tiles.loader import open_map
+from mapformat.loader import open_map
 from stages.tiles.params import TilesParams
 
 TILE_M = 100.0
@@ -156,7 +156,7 @@ def main() -> None:
         cold_both.append(t2 - t0)
     print(f"load one tile (cold cache, OS page cache warm): corners {_ms(cold_corners)}; corners + marking "
           f"{_ms(cold_both)}")
-    from stages.tiles import loader as loader_module
+    from mapformat import loader as loader_module
 
     first, trusted = [], []
     for _ in range(args.repeats):

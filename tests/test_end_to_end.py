@@ -184,8 +184,8 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
     import yaml
 
     from stages.simulate.markings import city_from_description, marking_truth_features
-    from stages.tiles.export import export_map
-    from stages.tiles.loader import open_map
+    from mapformat.export import export_map
+    from mapformat.loader import open_map
 
     root, _ = tiny_sync
     reader = open_map(root / "maps" / "tiny")

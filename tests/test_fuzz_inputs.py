@@ -147,8 +147,8 @@ json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats
 def test_manifest_reader_and_loader(published, tmp_path, data):
     import shutil
 
-    from stages.tiles.loader import open_map
-    from stages.tiles.verify import verify_map
+    from mapformat.loader import open_map
+    from mapformat.verify import verify_map
 
     vdir = tmp_path / "v0001"
     if not vdir.exists():  # one copy per test run; each example rewrites only the manifest

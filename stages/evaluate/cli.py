@@ -46,7 +46,7 @@ def open_named_map(root: Optional[Path], map_arg: Optional[str], version: str):
     """The map named as on every command: ``--root ROOT --map NAME [--version vNNNN]``. A ``--map`` holding a path
     separator is a path (ROOT/maps/NAME or a vNNNN folder) and is accepted alone, when it is unambiguous."""
     from pipeline.errors import ConfigError
-    from stages.tiles.loader import open_map
+    from mapformat.loader import open_map
 
     if map_arg is not None and ("/" in map_arg or "\\" in map_arg):
         path = Path(map_arg)

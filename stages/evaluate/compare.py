@@ -46,7 +46,7 @@ def match_corners(current_en_m: np.ndarray, previous_en_m: np.ndarray, match_rad
 def previous_version(reader):
     """A reader of the version this one was built on (``parent_version`` in its manifest), or None."""
     from pipeline.errors import CornermapError
-    from stages.tiles.loader import open_map  # the public consumer API (see compute's module doc)
+    from mapformat.loader import open_map  # the public consumer API (see compute's module doc)
 
     parent = reader.manifest.get("parent_version")
     if parent is None:

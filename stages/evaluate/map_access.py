@@ -1,7 +1,7 @@
 """Access to the published map for the evaluation: the map input of the stage, the corners over a drive's extent
 and the marking raster as the MCL's likelihood field.
 
-The map is read ONLY through the product's public consumer API ``stages.tiles.loader.open_map`` (imported
+The map is read ONLY through the product's public consumer API ``mapformat.loader.open_map`` (imported
 lazily, the one documented exception to "stages never import each other": the loader is what a vehicle links
 against, and evaluating through it is the point of this stage).
 """
@@ -19,7 +19,7 @@ from stages.evaluate.params import EvaluateParams
 
 
 def open_published_map(ctx: StageContext):
-    from stages.tiles.loader import open_map  # the public consumer API (see the module doc)
+    from mapformat.loader import open_map  # the public consumer API (see the module doc)
 
     row = ctx.inputs.read("map").to_pylist()
     if not row:

@@ -69,8 +69,8 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
     import math
 
     from pipeline.errors import LimitError
-    from stages.tiles.diff import diff_maps
-    from stages.tiles.loader import open_map
+    from mapformat.diff import diff_maps
+    from mapformat.loader import open_map
 
     for opt, value in (("--move-threshold-m", move_threshold_m), ("--match-radius-m", match_radius_m)):
         if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
@@ -99,8 +99,8 @@ def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | ge
     [b]cornermap tiles export -f markings-geojson -o runs/markings.geojson --map city --root runs/maps[/b]; an
     Autoware map folder (point cloud map tiles, projector info, Lanelet2 markings): -f autoware -o DIR
     """
-    from stages.tiles.export import FORMATS, export_map
-    from stages.tiles.loader import open_map
+    from mapformat.export import FORMATS, export_map
+    from mapformat.loader import open_map
 
     if fmt not in FORMATS:
         raise typer.BadParameter(f"{fmt!r}; expected one of {', '.join(FORMATS)}", param_hint="--format")
@@ -117,7 +117,7 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
     """
     from pipeline.errors import ChecksumError, UnknownNameError
     from pipeline.versioned import list_versions, resolve_version, trusted_manifest_digests, version_name
-    from stages.tiles.verify import verify_map
+    from mapformat.verify import verify_map
 
     d = map_dir_of(root, map_name)
     dirs = [d / version_name(v) for v in list_versions(d)] if all_versions else [resolve_version(d, version)]

@@ -15,7 +15,8 @@ from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
 from pipeline.names import check_name, inside
 from pipeline.versioned import publish_version
 from stages.common.geodesy import EnuOrigin
-from stages.tiles import core, layout
+from mapformat import layout
+from stages.tiles import core
 from stages.tiles.decl import STAGE
 from stages.tiles.writer import DriveTrajectory, RasterTile, write_map_files
 

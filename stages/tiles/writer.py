@@ -19,9 +19,9 @@ from pipeline.errors import DatasetIOError
 from pipeline.names import inside
 from pipeline.versioned import sha256_file
 from stages.common.tiling import tile_bounds
-from stages.tiles import layout
+from mapformat import layout
 from stages.tiles.core import group_by_tile
-from stages.tiles.vectors import MARKINGS_FILE, features_table, tile_features
+from mapformat.vectors import MARKINGS_FILE, features_table, tile_features
 
 
 @dataclass(frozen=True)
@@ -78,7 +78,7 @@ def transcode_mask_png(src: Path, dst: Path) -> None:
 
 
 def _vectorize(by_key: dict[tuple[int, int], RasterTile], tile_size_m: float) -> dict[tuple[int, int], pa.Table]:
-    """Vector markings of every raster tile (stages/tiles/vectors.py), masks decoded once each."""
+    """Vector markings of every raster tile (mapformat/vectors.py), masks decoded once each."""
     import cv2
 
     masks: dict[tuple[int, int], Any] = {}

@@ -33,7 +33,7 @@ def _quat(yaw: np.ndarray) -> np.ndarray:
 
 
 class FakeMap:
-    """Stands in for stages.tiles.loader.MapReader (north-up marking rasters, corner tables)."""
+    """Stands in for mapformat.loader.MapReader (north-up marking rasters, corner tables)."""
 
     def __init__(self, corners, dirs, mask, raster_origin):
         self.corners, self.dirs, self.mask, self.raster_origin = corners, dirs, mask, raster_origin

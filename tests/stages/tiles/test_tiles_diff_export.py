@@ -9,9 +9,9 @@ import yaml
 
 from stages.common.im2016_text import parse_im2016_text
 from stages.tiles.compute import compute
-from stages.tiles.diff import count_changed_pixels, diff_maps, match_corners
-from stages.tiles.export import export_map
-from stages.tiles.loader import open_map
+from mapformat.diff import count_changed_pixels, diff_maps, match_corners
+from mapformat.export import export_map
+from mapformat.loader import open_map
 from tests.stages.tiles.tiles_synth import ORIGIN, building_corners, buildings, city_context, corner_table
 
 REMOVED_BUILDING = 14  # block (2, 2): its corners lie in tile (1, 1)
@@ -120,7 +120,7 @@ def test_autoware_metadata_and_lanelet2_documents():
 
     from stages.common.marking_vectors import MarkingFeature
     from stages.common.geodesy import geodetic_to_enu
-    from stages.tiles.autoware import lanelet2_osm, pointcloud_metadata_yaml
+    from mapformat.autoware import lanelet2_osm, pointcloud_metadata_yaml
 
     meta = yaml.safe_load(pointcloud_metadata_yaml([(0, -1), (-2, 3)], 20.0))
     assert meta == {"x_resolution": 20, "y_resolution": 20, "0_-1.pcd": [0, -20], "-2_3.pcd": [-40, 60]}

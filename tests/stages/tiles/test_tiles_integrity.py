@@ -15,10 +15,10 @@ import pytest
 from pipeline.errors import IntegrityError, LimitError, PathEscapeError, PublishConflictError
 from pipeline.versioned import LATEST_NAME, read_latest_entry, read_manifest, trusted_manifest_digests
 from stages.tiles.compute import compute
-from stages.tiles.diff import diff_maps
-from stages.tiles.export import export_map
-from stages.tiles.loader import open_map
-from stages.tiles.verify import verify_map
+from mapformat.diff import diff_maps
+from mapformat.export import export_map
+from mapformat.loader import open_map
+from mapformat.verify import verify_map
 from tests.stages.tiles.tiles_synth import building_corners, buildings, city_context, corner_table
 
 
@@ -144,7 +144,7 @@ def test_old_latest_without_digest_is_read_with_a_warning(map_dir, caplog):
 
 def test_finding5_marking_window_is_bounded(map_dir, tmp_path):
     """(The autoware export no longer builds corner columns, whose --column-height-m 1e9 tried 104 GiB: it is
-    the map drives' point cloud, voxel-downsampled; see stages/tiles/autoware.py.)"""
+    the map drives' point cloud, voxel-downsampled; see mapformat/autoware.py.)"""
     reader = open_map(map_dir)
     with pytest.raises(LimitError, match="cells"):
         reader.marking_window(0.0, 0.0, 200_000.0, 200_000.0)

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.errors import UnknownNameError
 from stages.tiles.compute import compute
-from stages.tiles.loader import open_map
+from mapformat.loader import open_map
 from stages.tiles.params import TilesParams
 from tests.stages.tiles.tiles_synth import (CELL_M, LINE_EAST_M, building_corners, buildings, city_context,
                                             corner_table)

@@ -14,9 +14,9 @@ from pipeline.versioned import list_versions, read_latest, read_manifest
 from stages.common.geometry import read_tum
 from stages.tiles.compute import compute
 from stages.tiles.decl import STAGE
-from stages.tiles.loader import open_map
+from mapformat.loader import open_map
 from stages.tiles.params import TilesParams
-from stages.tiles.verify import verify_map
+from mapformat.verify import verify_map
 from tests.stages.tiles.tiles_synth import (ORIGIN, building_corners, buildings, city_context, corner_table,
                                             drive_path)
 

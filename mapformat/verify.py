@@ -7,8 +7,8 @@ from pathlib import Path
 from pipeline.errors import MapFormatError, PathEscapeError
 from pipeline.names import inside
 from pipeline.versioned import MANIFEST_NAME, read_manifest, verify_version
-from stages.tiles import layout
-from stages.tiles.loader import check_manifest_format
+from mapformat import layout
+from mapformat.loader import check_manifest_format
 
 
 def verify_map(version_dir: Path, manifest_sha256: str | None = None) -> list[str]:

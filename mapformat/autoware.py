@@ -26,7 +26,7 @@ from stages.common.geodesy import EnuOrigin, enu_to_geodetic
 from stages.common.pointcloud_map import free_space_keep, grid_split, scan_to_map, voxel_downsample
 
 if TYPE_CHECKING:  # pragma: no cover
-    from stages.tiles.loader import MapReader
+    from mapformat.loader import MapReader
 
 log = logging.getLogger(__name__)
 _CHUNK = 1_000_000
@@ -159,8 +159,8 @@ def map_drives(reader: "MapReader") -> list[str]:
 def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float = 20.0, voxel_m: float = 0.2,
                     write: Callable[[Path, bytes], None]) -> list[Path]:
     """Write the Autoware folder (module docstring) under ``out``; returns the files written."""
-    from stages.tiles.export import autoware_projector_yaml, pcd_bytes
-    from stages.tiles.vectors import read_map_features
+    from mapformat.export import autoware_projector_yaml, pcd_bytes
+    from mapformat.vectors import read_map_features
 
     out = Path(out)
     drives = map_drives(reader)

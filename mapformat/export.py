@@ -17,7 +17,7 @@ from stages.common.geodesy import EnuOrigin, enu_to_geodetic
 from stages.common.im2016_text import format_im2016_text
 
 if TYPE_CHECKING:  # pragma: no cover
-    from stages.tiles.loader import MapReader
+    from mapformat.loader import MapReader
 
 FORMATS = ("im2016-text", "geojson", "markings-geojson", "autoware", "geotiff")
 GEOJSON_CRS = "urn:ogc:def:crs:OGC:1.3:CRS84"
@@ -119,7 +119,7 @@ def check_export_target(out: Path, map_dir: Path) -> None:
 
 def export_geotiffs(reader: "MapReader", out: Path) -> list[Path]:
     """Every raster layer of every tile as a COG ``out/{layer}/{i}_{j}.tif`` in the map's local TM CRS."""
-    from stages.tiles.layers import local_tm_proj4, sidecar_layers, write_cog
+    from mapformat.layers import local_tm_proj4, sidecar_layers, write_cog
 
     crs = local_tm_proj4(reader.manifest["enu_origin"])
     tags = {"cornermap_map": str(reader.manifest.get("map_name")), "cornermap_version": str(reader.version),
@@ -159,7 +159,7 @@ def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = Non
     props = {"map_name": reader.manifest.get("map_name"), "version": reader.version,
              "enu_origin": reader.manifest["enu_origin"], "manifest_sha256": reader.manifest_sha256}
     if fmt == "markings-geojson":
-        from stages.tiles.vectors import read_map_features
+        from mapformat.vectors import read_map_features
 
         doc = markings_geojson(read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()]),
                                reader.origin, props)
@@ -171,7 +171,7 @@ def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = Non
         return [out]
     if fmt == "geotiff":
         return export_geotiffs(reader, out)
-    from stages.tiles.autoware import export_autoware
+    from mapformat.autoware import export_autoware
 
     return export_autoware(reader, out, Path(root) if root is not None else reader.path.parents[2],
                            write=_atomic_write)

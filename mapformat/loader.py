@@ -34,7 +34,7 @@ from pipeline.names import inside
 from pipeline.versioned import MANIFEST_NAME, read_manifest, resolve_version, trusted_manifest_digests
 from stages.common.geodesy import EnuOrigin
 from stages.common.tiling import tile_key_of
-from stages.tiles import layout
+from mapformat import layout
 
 
 MAX_WINDOW_CELLS = 1 << 28  # 256 Mi cells = 256 MiB of uint8: e.g. 16 km x 16 km at 1 m cells
@@ -164,9 +164,9 @@ class MapReader:
 
     def tile_layer(self, i: int, j: int, layer: str = "marking_mask") -> np.ndarray:
         """Any raster layer of tile (i, j), decoded (row 0 = north): masks uint8, ``intensity`` / ``elevation_*``
-        float64 with NaN = no data, ``point_count`` uint16 (stages/tiles/layers.py). Not cached. The sidecar and
+        float64 with NaN = no data, ``point_count`` uint16 (mapformat/layers.py). Not cached. The sidecar and
         the layer's file are checked against the manifest (sha256, inside the version) before decoding."""
-        from stages.tiles.layers import read_layer, sidecar_layers
+        from mapformat.layers import read_layer, sidecar_layers
 
         key = (int(i), int(j))
         marking = self.tile_entry(i, j).get("marking")

@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from stages.common.tiling import tile_key_of
 
 if TYPE_CHECKING:  # pragma: no cover
-    from stages.tiles.loader import MapReader
+    from mapformat.loader import MapReader
 
 
 @dataclass(frozen=True)
