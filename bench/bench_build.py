@@ -6,8 +6,9 @@ every process (pool workers and spawned processes included), scans per second en
 
 The simulation is made once per preset and seed and cached (``--cache``, default ``~/.cache/cornermap-bench``);
 simulate and evaluation are not timed. Every run builds into a fresh root (deleted afterwards unless ``--keep``).
-Stage wall and CPU come from the run summary (CPU: this process and its finished child processes; on a remote
-cluster only the client's). RSS is sampled every 0.2 s over the process tree.
+Stage figures come from the run summary: when its first partition started and its last ended (seconds from the
+run's start; stages overlap), wall from first submit to commit, and CPU of its partition tasks (their threads and
+the pools they started). RSS is sampled every 0.2 s over the process tree.
 """
 from __future__ import annotations
 
@@ -79,21 +80,6 @@ def write_workflow(folder: Path, sim: Path, drives: list[str], root: Path, sched
     return path
 
 
-def _walls_from_manifests(plan, t_start: float) -> dict:
-    """Stage walls from the committed manifests' times (1 s resolution), for engines that do not time stages."""
-    import datetime as dt
-
-    from pipeline.store import dataset_dir, read_manifest
-
-    out, last = {}, t_start
-    for name, sp in plan.stages.items():
-        m = read_manifest(dataset_dir(plan.root, next(iter(sp.outputs.values())), sp.fingerprint))
-        t = dt.datetime.fromisoformat(m["committed_utc"]).timestamp() if m else last
-        out[name] = {"wall_s": round(t - last, 1), "cpu_s": None}
-        last = t
-    return out
-
-
 def count_scans(sim: Path, drives: list[str]) -> int:
     return sum(sum(1 for _ in (sim / d / "scans").glob("*.pcd")) for d in drives)
 
@@ -104,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--drives", nargs="+", default=None, help="drives to build (default: drive_0 drive_1)")
     ap.add_argument("--scheduler", default="local", help="local | sync | tcp://HOST:PORT")
+    ap.add_argument("--workers", type=int, default=None, help="local pool size (default: the machine's cores)")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cornermap-bench")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here")
     ap.add_argument("--keep", action="store_true", help="keep the build root")
@@ -117,13 +104,13 @@ def main(argv: list[str] | None = None) -> int:
     wf = write_workflow(work, sim, drives, work / "root", args.scheduler)
     sampler = RssSampler()
     sampler.start()
-    t0, t_start = time.perf_counter(), time.time()
+    t0 = time.perf_counter()
     try:
-        result = execute_workflow(wf, root=None, scheduler=args.scheduler, only=None, dry_run=False, quiet=True)
+        result = execute_workflow(wf, root=None, scheduler=args.scheduler, only=None, dry_run=False, quiet=True,
+                                  workers=args.workers)
         wall = time.perf_counter() - t0
-        stages = {k: {"wall_s": v.get("wall_s"), "cpu_s": v.get("cpu_s")} for k, v in result["summary"].items()}
-        if any(v["wall_s"] is None for v in stages.values()):  # an engine without stage timing: manifest times
-            stages = _walls_from_manifests(result["plan"], t_start)
+        stages = {k: {"wall_s": v.get("wall_s"), "cpu_s": v.get("cpu_s"), "started_s": v.get("started_s"),
+                      "ended_s": v.get("ended_s")} for k, v in result["summary"].items()}
     finally:
         sampler.stop()
         if not args.keep:
@@ -131,14 +118,15 @@ def main(argv: list[str] | None = None) -> int:
     n_scans = count_scans(sim, drives)
     peaks = sorted(sampler.peaks.values(), key=lambda x: -x[1])
     doc = {"preset": args.preset, "seed": args.seed, "drives": drives, "scans": n_scans, "scheduler": args.scheduler,
+           "workers": args.workers,
            "wall_s": round(wall, 1), "scans_per_s": round(n_scans / wall, 1), "stages": stages,
            "peak_rss_mb_max": round(peaks[0][1] / 2**20) if peaks else None,
            "peak_rss_mb_by_process": [(name, round(rss / 2**20)) for name, rss in peaks[:8]]}
     print(f"{args.preset} seed {args.seed}, {', '.join(drives)}: {n_scans} scans, {wall:.1f} s wall, "
           f"{n_scans / wall:.1f} scans/s end to end, peak RSS {doc['peak_rss_mb_max']} MB (largest process)")
-    print("| stage | wall s | CPU s |\n|---|---|---|")
+    print("| stage | from s | to s | wall s | CPU s |\n|---|---|---|---|---|")
     for k, v in stages.items():
-        print(f"| {k} | {v['wall_s']} | {v['cpu_s']} |")
+        print(f"| {k} | {v.get('started_s')} | {v.get('ended_s')} | {v['wall_s']} | {v['cpu_s']} |")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(doc, indent=1))

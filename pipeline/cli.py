@@ -25,6 +25,8 @@ app.add_typer(catalog_app, name="catalog")
 ROOT_OPT = typer.Option(None, "--root", help="Output root (datasets/, maps/); default: the workflow's root.")
 SCHED_OPT = typer.Option(None, "--scheduler",
                          help="local (processes sized to the machine) | sync | threads | distributed | tcp://HOST:PORT")
+WORKERS_OPT = typer.Option(None, "--workers", min=1,
+                           help="Processes (or threads) of a local scheduler; default: the machine's cores.")
 QUIET_OPT = typer.Option(False, "--quiet", "-q", help="No progress display.")
 PARAMS_OPT = typer.Option(None, "--params", help="YAML file {stage: {param: value}} overriding workflow params.")
 
@@ -63,8 +65,10 @@ def _load_param_file(path: Optional[Path]) -> dict:
 
 
 def execute_workflow(workflow_path: Path, *, root: Optional[Path], scheduler: Optional[str], only: list[str] | None,
-                     dry_run: bool, quiet: bool, params_file: Optional[Path] = None) -> dict:
-    from pipeline.execute import Scheduler, run_plan
+                     dry_run: bool, quiet: bool, params_file: Optional[Path] = None,
+                     workers: Optional[int] = None) -> dict:
+    from pipeline.execute import Scheduler
+    from pipeline.flow import run_plan
     from pipeline.plan import describe_plan, make_plan
     from pipeline.progress import StageProgress, print_plan
     from pipeline.workflow import load_workflow
@@ -81,7 +85,7 @@ def execute_workflow(workflow_path: Path, *, root: Optional[Path], scheduler: Op
     if dry_run:
         print_plan(describe_plan(plan), plan.root)
         return {"dry_run": True}
-    sched = Scheduler(scheduler or wf.spec.scheduler)
+    sched = Scheduler(scheduler or wf.spec.scheduler, workers=workers)
     try:
         with StageProgress(enabled=not quiet) as progress:
             summary = run_plan(plan, sched, progress.update)
@@ -98,7 +102,8 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a 
             root: Optional[Path] = ROOT_OPT, scheduler: Optional[str] = SCHED_OPT,
             only: Optional[list[str]] = typer.Option(None, "--only", help="Run only these stages (repeatable)."),
             dry_run: bool = typer.Option(False, "--dry-run", help="Print order, partitions, fingerprints, decisions."),
-            quiet: bool = QUIET_OPT, params: Optional[Path] = PARAMS_OPT) -> None:
+            quiet: bool = QUIET_OPT, params: Optional[Path] = PARAMS_OPT,
+            workers: Optional[int] = WORKERS_OPT) -> None:
     """Run a workflow: stages in dependency order; unchanged stages are skipped.
 
     Relative paths inside a workflow file resolve against the file's folder; the output root is --root, else the
@@ -108,7 +113,7 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a 
     [b]cornermap run tiny --root runs/tiny --scheduler tcp://127.0.0.1:8786[/b] (a dask.distributed scheduler)
     """
     result = execute_workflow(workflow, root=root, scheduler=scheduler, only=only, dry_run=dry_run, quiet=quiet,
-                              params_file=params)
+                              params_file=params, workers=workers)
     if not dry_run:
         from pipeline.progress import print_outcomes
 

@@ -1,4 +1,4 @@
-"""Runs a plan on dask: one delayed task per partition (readable keys), then one commit task per stage.
+"""The engine's tasks: one per partition (readable keys), then one commit per stage; ``pipeline.flow`` runs them.
 
 Tasks receive and return small JSON-able manifests, never arrays, so the same graph runs on the synchronous,
 threaded or multiprocessing scheduler, or on a dask.distributed cluster (``tcp://host:port``).
@@ -20,7 +20,7 @@ from pipeline.declare import PartitionKey, Partitioning, StageContext
 from pipeline.errors import CornermapError, StageError
 from pipeline.plan import Plan, StagePlan
 from pipeline.registry import get_stage
-from pipeline.store import (StoreInputReader, atomic_write_json, commit_artifacts, dataset_dir, read_manifest,
+from pipeline.store import (StoreInputReader, atomic_write_json, commit_artifacts, dataset_dir, merge_part_extras,
                             write_pieces)
 
 log = logging.getLogger(__name__)
@@ -48,10 +48,10 @@ _STEP_PROGRESS: dict[str, Callable[[str, int, int], None]] = {}  # stage -> disp
 
 
 def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
-             artifact_dirs: dict[str, Path]) -> StageContext:
+             artifact_dirs: dict[str, Path], provisional: dict[str, list[str]] | None = None) -> StageContext:
     decl = get_stage(spec["stage"])
     reader = StoreInputReader(Path(spec["root"]), {a: tuple(v) for a, v in spec["inputs"].items()},
-                              {a: resolve_schema(r) for a, r in spec["input_schemas"].items()})
+                              {a: resolve_schema(r) for a, r in spec["input_schemas"].items()}, provisional)
     return StageContext(stage=spec["stage"], partition=partition, params=decl.params.model_validate(spec["params"]),
                         inputs=reader, drives={k: Path(v) for k, v in spec["drives"].items()},
                         settings=spec["settings"], scratch_dir=scratch, artifact_dirs=artifact_dirs,
@@ -71,8 +71,27 @@ def _part_marker(spec: dict[str, Any], key: str, label: str) -> Path:
     return dataset_dir(Path(spec["root"]), out["dataset"], spec["fingerprint"]) / "_parts" / f"{label}.json"
 
 
-def run_partition(spec: dict[str, Any], partition: dict[str, Any]) -> dict[str, Any]:
-    """One task: compute one partition, write its outputs atomically, then its part markers (commit)."""
+def _task_cpu_s() -> float:
+    """CPU seconds of the calling thread and of this process's finished children (the pools a task starts)."""
+    import resource
+
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.thread_time() + children.ru_utime + children.ru_stime
+
+
+def run_partition(spec: dict[str, Any], partition: dict[str, Any],
+                  provisional: dict[str, list[str]] | None = None) -> dict[str, Any]:
+    """One task: compute one partition, write its outputs atomically, then its part markers (commit).
+    ``provisional``: input arg -> upstream partition labels to read before that stage commits (pipeline.flow).
+    The result records when it ran (``t_start``/``t_end``, epoch s) and its CPU seconds."""
+    t_start, cpu0 = time.time(), _task_cpu_s()
+    result = _run_partition(spec, partition, provisional)
+    result.update(t_start=t_start, t_end=time.time(), cpu_s=round(_task_cpu_s() - cpu0, 3))
+    return result
+
+
+def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
+                   provisional: dict[str, list[str]] | None) -> dict[str, Any]:
     import json
 
     _ensure_extra_stages(spec)
@@ -92,7 +111,7 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any]) -> dict[str, 
                for k, o in spec["outputs"].items() if o["kind"] == "artifacts"}
     scratch.mkdir(parents=True, exist_ok=True)
     try:
-        ctx = _context(spec, pk, scratch, staging)
+        ctx = _context(spec, pk, scratch, staging, provisional)
         compute = get_stage(spec["stage"]).load_compute()
         try:
             result = dict(compute(ctx) or {})
@@ -127,11 +146,7 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any]) -> dict[str, 
 def commit_stage(spec: dict[str, Any], parts: list[dict[str, Any]]) -> dict[str, Any]:
     """Write each output dataset's manifest last: the commit marker that readers look for."""
     root = Path(spec["root"])
-    extra: dict[str, Any] = {}
-    for p in sorted(parts, key=lambda p: p["label"]):
-        for k, v in p["extra"].items():
-            extra.setdefault(k, v) if k != "partitions" else None
-    extra["partitions"] = {p["label"]: p["extra"] for p in parts if p["extra"]}
+    extra = merge_part_extras(parts)
     manifests = {}
     for key, out in spec["outputs"].items():
         files = [f for p in parts for f in p["outputs"][key]["files"]]
@@ -181,24 +196,12 @@ def task_key(sp: StagePlan, pk: PartitionKey) -> str:
 Progress = Callable[[str, int, int], None]
 
 
-def run_stage(plan: Plan, sp: StagePlan, scheduler: "Scheduler", progress: Progress | None = None) -> dict:
-    from dask import delayed
-
-    keys = enumerate_partitions(plan, sp)
-    spec = _task_spec(plan, sp)
-    if progress is not None:  # inner steps of partitions that run in this process (single-partition stages)
-        _STEP_PROGRESS[sp.name] = lambda step, done, total: progress(f"{sp.name}: {step}", done, total)
-    tasks = [delayed(run_partition, pure=False)(spec, pk.as_dict(), dask_key_name=task_key(sp, pk)) for pk in keys]
-    try:
-        parts = scheduler.compute(tasks, label=sp.name, progress=progress)
-    finally:
-        _STEP_PROGRESS.pop(sp.name, None)
-    result = scheduler.compute([delayed(commit_stage, pure=False)(spec, parts,
-                                                                  dask_key_name=f"commit-{sp.name}-{sp.fp8}")],
-                               label=f"commit {sp.name}", progress=None)[0]
-    sp.committed = True
-    sp.ran = True
-    return result
+def set_step_progress(stage: str, display: Callable[[str, int, int], None] | None) -> None:
+    """Where a stage's inner steps (``StageContext.report_step``) are shown when it runs in this process."""
+    if display is None:
+        _STEP_PROGRESS.pop(stage, None)
+    else:
+        _STEP_PROGRESS[stage] = display
 
 
 # Native thread pools of the libraries a task may call (OpenMP: open3d; BLAS). A pool of one process per core
@@ -224,7 +227,8 @@ def one_thread_per_process():
 
 
 class Scheduler:
-    """Local dask schedulers (sync, threads, processes) or a dask.distributed cluster at ``tcp://...``."""
+    """Where a run's tasks go: ``sync``, ``threads``, ``local``/``processes`` (pools of ``pipeline.flow``), or a
+    dask.distributed cluster (``distributed`` starts a local one; ``tcp://HOST:PORT`` connects)."""
 
     def __init__(self, address: str = "local", workers: int | None = None):
         self.address = address
@@ -245,72 +249,6 @@ class Scheduler:
             return "distributed"
         return {"local": "processes", "synchronous": "sync"}.get(self.address, self.address)
 
-    def compute(self, tasks: list, *, label: str, progress: Progress | None) -> list:
-        import dask
-
-        total = len(tasks)
-        if progress:  # the bar (and its elapsed-time clock) starts when the stage starts, not at its first result
-            progress(label, 0, total)
-        if self._client is not None:
-            from distributed import as_completed
-
-            futures = self._client.compute(tasks)
-            done = 0
-            for _ in as_completed(futures):
-                done += 1
-                if progress:
-                    progress(label, done, total)
-            return self._client.gather(futures)
-        kind = self.kind
-        if kind == "processes" and total <= 1:
-            kind = "sync"  # no pool to spin up for a single task
-        from dask.callbacks import Callback
-
-        counter = {"n": 0}
-
-        def posttask(key, result, dsk, state, worker_id):
-            if isinstance(key, str) and not key.startswith("commit-"):
-                counter["n"] += 1
-                if progress:
-                    progress(label, counter["n"], total)
-
-        with Callback(posttask=posttask):
-            if kind == "processes":
-                with one_thread_per_process():
-                    return list(dask.compute(*tasks, scheduler="processes", num_workers=self.workers))
-            if kind == "threads":
-                return list(dask.compute(*tasks, scheduler="threads", num_workers=self.workers))
-            return list(dask.compute(*tasks, scheduler="sync"))
-
     def close(self) -> None:
         if self._client is not None:
             self._client.close()
-
-
-def run_plan(plan: Plan, scheduler: Scheduler, progress: Progress | None = None) -> dict[str, Any]:
-    summary: dict[str, Any] = {}
-    for name, sp in plan.stages.items():
-        if not sp.selected:
-            continue
-        if sp.committed:
-            log.info("stage %s: skipped (fingerprint %s already committed)", name, sp.fp8)
-            summary[name] = {"decision": "skipped", "fingerprint": sp.fingerprint[:16]}
-            continue
-        for arg, (ds, fp) in sp.inputs.items():
-            if fp and read_manifest(dataset_dir(plan.root, ds, fp)) is None and arg not in sp.decl.optional_inputs:
-                raise StageError(f"stage {name!r} input {arg!r}: dataset {ds!r} (fingerprint {fp[:8]}) is not "
-                                 f"committed under {plan.root}; hint: run its producer (drop --only)")
-        log.info("stage %s: running (fingerprint %s)", name, sp.fp8)
-        wall0, cpu0 = time.perf_counter(), _cpu_s()
-        outputs = run_stage(plan, sp, scheduler, progress)
-        summary[name] = {"decision": "ran", "fingerprint": sp.fingerprint[:16], "outputs": outputs,
-                         "wall_s": round(time.perf_counter() - wall0, 3), "cpu_s": round(_cpu_s() - cpu0, 3)}
-    return summary
-
-
-def _cpu_s() -> float:
-    """CPU seconds of this process and of its finished child processes (local pools; not a remote cluster)."""
-    import resource
-
-    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime

@@ -24,6 +24,9 @@ class StagePlan:
     committed: bool = False
     partitions: list[PartitionKey] | None = None  # None until known (dynamic partitioning)
     selected: bool = True
+    # (dataset, fingerprint) of datasets this stage reads through templated paths (``${raw_drives}/...`` drives
+    # and references) rather than declared inputs: it starts after their stages commit.
+    path_inputs: set[tuple[str, str]] = field(default_factory=set)
     ran: bool = False  # set when this run computed the stage (false: skipped as committed, or not selected)
 
     @property
@@ -81,12 +84,14 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
         # Resolve drives and references with the fingerprints of upstream producers known so far.
         drives: dict[str, Path] = {}
         drive_fps: dict[str, str] = {}
+        bases: set[str] = set()
         for d in workflow.spec.drives:
             if decl.drive_role and d.role != decl.drive_role:
                 continue
             if TEMPLATE.search(d.path):
                 path, basis = _resolve_template(d.path, root, dataset_fp, workflow.base_dir)
                 drive_fps[d.name] = stable_hash({"template": d.path, "basis": basis})
+                bases.add(basis)
             else:
                 path = workflow.resolve(d.path)
                 if path not in drive_fp_cache:
@@ -97,6 +102,7 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
         refs = {d.name: _resolve_template(d.reference, root, dataset_fp, workflow.base_dir) if d.reference else
                 (None, None) for d in workflow.spec.drives}
         settings["references"] = {n: (str(p) if p is not None else None) for n, (p, _) in refs.items()}
+        bases.update(b for _, b in refs.values())
         keys = decl.settings_keys if decl.settings_keys is not None else set(settings) - {"root"}
         fp_settings = {k: settings[k] for k in sorted(keys) if k in settings}
         if "references" in fp_settings:
@@ -112,7 +118,8 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
             dataset_fp[ds] = fp
         committed = all(read_manifest(dataset_dir(root, ds, fp)) is not None for ds in decl.outputs.values())
         sp = StagePlan(name, decl, fp, params, inputs, dict(decl.outputs), drives, settings, committed,
-                       selected=(only is None or name in only))
+                       selected=(only is None or name in only),
+                       path_inputs={tuple(b.split(":", 1)) for b in bases if b})
         if decl.partition == Partitioning.SINGLE:
             sp.partitions = [PartitionKey()]
         elif decl.partition == Partitioning.PER_DRIVE and not decl.plan:

@@ -179,6 +179,37 @@ def read_manifest(out_dir: Path) -> dict[str, Any] | None:
         raise DatasetIOError(f"{path}: unreadable manifest ({exc}); delete the directory to rebuild") from exc
 
 
+def merge_part_extras(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    """A stage's metadata from its partitions' ``extra``: the first (by label) value of each key, and every
+    partition's own under ``partitions``."""
+    extra: dict[str, Any] = {}
+    for p in sorted(parts, key=lambda p: p["label"]):
+        for k, v in p["extra"].items():
+            if k != "partitions":
+                extra.setdefault(k, v)
+    extra["partitions"] = {p["label"]: p["extra"] for p in parts if p["extra"]}
+    return extra
+
+
+def provisional_manifest(out_dir: Path, labels: list[str], fingerprint: str) -> dict[str, Any]:
+    """A manifest of some committed partitions of a dataset whose stage has not committed yet, read from their
+    part markers (each written atomically after its partition's files): lets a downstream partition start on the
+    slices it reads while the rest of the upstream stage still runs. Raises if a named partition is missing."""
+    parts, files, artifacts = [], [], {}
+    for label in sorted(labels):
+        marker = Path(out_dir) / "_parts" / f"{label}.json"
+        try:
+            doc = json.loads(marker.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise DatasetIOError(f"{marker}: partition {label!r} is not committed ({exc})") from exc
+        parts.append({"label": label, "extra": doc.get("extra", {})})
+        files.extend(doc["output"]["files"])
+        if doc["output"].get("artifacts") is not None:
+            artifacts[label] = doc["output"]["artifacts"]
+    return {"fingerprint": fingerprint, "files": sorted(files, key=lambda f: f["path"]), "artifacts": artifacts,
+            "extra": merge_part_extras(parts), "partitions": sorted(labels), "provisional": True}
+
+
 def _matches(record_partition: dict[str, Any], partition: PartitionKey | None) -> bool:
     if partition is None:
         return True
@@ -188,22 +219,30 @@ def _matches(record_partition: dict[str, Any], partition: PartitionKey | None) -
 class StoreInputReader(InputReader):
     """Reads committed datasets through their manifests (never by listing directories)."""
 
-    def __init__(self, root: Path, inputs: dict[str, tuple[str, str]], schemas: dict[str, pa.Schema | None]):
+    def __init__(self, root: Path, inputs: dict[str, tuple[str, str]], schemas: dict[str, pa.Schema | None],
+                 provisional: dict[str, list[str]] | None = None):
         self.root = Path(root)
         self._inputs = inputs  # arg -> (dataset, fingerprint) ; fingerprint "" = absent optional input
         self._schemas = schemas
+        # arg -> labels of the committed partitions to read while the producing stage still runs (see
+        # ``provisional_manifest``); the engine passes it only to partitions that read no other slice.
+        self._provisional = dict(provisional or {})
         self._manifests: dict[str, dict | None] = {}
         self._row_groups: dict[tuple[str, str], list[tuple[str, int, Any, Any]]] = {}
 
     def __getstate__(self) -> dict:
         """Picklable (a stage may hand its reader to worker processes): caches are rebuilt where it lands."""
-        return {"root": self.root, "_inputs": self._inputs, "_schemas": self._schemas, "_manifests": {},
-                "_row_groups": {}}
+        return {"root": self.root, "_inputs": self._inputs, "_schemas": self._schemas,
+                "_provisional": self._provisional, "_manifests": {}, "_row_groups": {}}
 
     def _manifest(self, arg: str) -> dict | None:
         if arg not in self._manifests:
             dataset, fp = self._inputs.get(arg, ("", ""))
-            self._manifests[arg] = read_manifest(dataset_dir(self.root, dataset, fp)) if fp else None
+            if fp and arg in self._provisional:
+                self._manifests[arg] = provisional_manifest(dataset_dir(self.root, dataset, fp),
+                                                            self._provisional[arg], fp)
+            else:
+                self._manifests[arg] = read_manifest(dataset_dir(self.root, dataset, fp)) if fp else None
         return self._manifests[arg]
 
     def has(self, arg: str) -> bool:

@@ -113,22 +113,14 @@ def test_processes_scheduler_equals_sync(tmp_path):
     assert read_output(tmp_path / "sync", "toy_squares").equals(read_output(tmp_path / "proc", "toy_squares"))
 
 
-def _thread_pool_env(_):
-    return {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-
-
-def test_processes_pool_starts_one_native_thread_per_process(monkeypatch):
+def test_processes_pool_starts_one_native_thread_per_process(tmp_path, monkeypatch):
     """A process per core must not also start an OpenMP/BLAS thread per core; a user's setting is kept and the
     parent's environment is left as it was."""
-    from dask import delayed
-
-    from pipeline.execute import Scheduler
-
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "3")
-    out = Scheduler("processes", workers=2).compute([delayed(_thread_pool_env)(i) for i in range(2)], label="t",
-                                                    progress=None)
-    assert out == [{"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "3"}] * 2
+    run(write_toy(tmp_path), root=tmp_path / "proc", scheduler="processes")
+    notes = [p.read_text() for p in (tmp_path / "proc" / "datasets" / "toy_notes").glob("*/artifacts/*/note.txt")]
+    assert len(notes) == 8 and all("OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=3" in n for n in notes), notes
     assert "OMP_NUM_THREADS" not in os.environ and os.environ["OPENBLAS_NUM_THREADS"] == "3"
 
 
@@ -196,3 +188,20 @@ def test_schema_mismatch_lists_every_bad_column():
         conform_table(bad, NUMBERS, "test")
     msg = str(info.value)
     assert "'drive'" in msg and "'chunk'" in msg and "'value'" in msg and "'extra'" in msg
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "processes"])
+def test_downstream_partitions_start_before_the_upstream_stage_ends(tmp_path, scheduler):
+    """One dataflow for the workflow: squares of drive d0 run while numbers of drive d1 still sleeps, and the
+    result equals a stage-by-stage (sync) run."""
+    params = {"numbers": {"slow_drive": "d1", "sleep_s": 3.0}}
+    path = write_toy(tmp_path, params=params)
+    out = run(path, root=tmp_path / "flow", scheduler=scheduler)
+    s = out["summary"]
+    assert s["squares"]["started_s"] < s["numbers"]["ended_s"] - 1.0, s
+    assert s["total"]["started_s"] >= s["squares"]["ended_s"]  # a single stage waits for its producer's commit
+    run(path, root=tmp_path / "sync", scheduler="sync")
+    for ds in ("toy_numbers", "toy_squares", "toy_total"):
+        assert read_output(tmp_path / "flow", ds).equals(read_output(tmp_path / "sync", ds))
+    again = run(path, root=tmp_path / "flow", scheduler=scheduler)
+    assert decisions(again) == {"numbers": "skipped", "squares": "skipped", "total": "skipped"}

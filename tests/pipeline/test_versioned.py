@@ -207,6 +207,7 @@ _LOOP_CHILD = textwrap.dedent("""
     from pathlib import Path
     from pipeline.versioned import publish_version
     d = Path(sys.argv[1])
+    print("ready", flush=True)
     k = 0
     while True:
         k += 1
@@ -224,7 +225,8 @@ def test_sigkilled_publisher_never_leaves_latest_on_an_incomplete_version(tmp_pa
     rng = np.random.default_rng(20240611)
     for delay_s in rng.uniform(0.15, 0.9, size=6):
         proc = subprocess.Popen([sys.executable, "-c", _LOOP_CHILD, str(d)], cwd=REPO,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert proc.stdout.readline().strip() == "ready"  # the kill delays count from the publishing loop's start
         time.sleep(float(delay_s))
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)

@@ -19,6 +19,8 @@ class NumbersParams(Params):
     n_chunks: int = 4
     per_chunk: int = 100
     seed: int = 0
+    slow_drive: str = ""  # this drive's partition sleeps ``sleep_s`` (lets a test see stages overlap)
+    sleep_s: float = 0.0
 
 
 class SquaresParams(Params):
@@ -33,6 +35,8 @@ class TotalParams(Params):
 def numbers(ctx):
     p = ctx.params
     rng = np.random.default_rng(p.seed)
+    if p.sleep_s and ctx.partition.drive == p.slow_drive:
+        time.sleep(p.sleep_s)
 
     def pieces():
         for c in range(p.n_chunks):
@@ -49,7 +53,8 @@ def squares(ctx):
     v = t["value"].to_numpy() ** 2 + ctx.params.offset
     out = pa.table({"drive": t["drive"], "chunk": t["chunk"], "value": v})
     note = ctx.artifact_dir("notes") / "note.txt"
-    note.write_text(f"{ctx.partition.label} pid={os.getpid()}\n")
+    threads = " ".join(f"{v}={os.environ.get(v)}" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"))
+    note.write_text(f"{ctx.partition.label} pid={os.getpid()} {threads}\n")
     return {"squares": out, "notes": None}
 
 

@@ -1,0 +1,249 @@
+"""Runs a whole plan as one dataflow: a stage's partition is submitted as soon as the partitions it reads are
+committed, not after the whole upstream stage, so independent stages and the drives of a workflow overlap.
+
+Which partition waits for what (the engine knows only partitionings, never what a stage computes):
+- a per-drive or per-scan-chunk stage whose running producers are all per-drive or per-scan-chunk streams by
+  drive: its partitions of drive ``d`` start when every producer's partitions of ``d`` are committed (their part
+  markers written), and read exactly those partitions (``StoreInputReader`` ``provisional``); its chunk list of
+  ``d`` is read the same way from its ``partition_source``;
+- any other stage (single, per tile, or one with a ``plan`` function) waits for its producers' commits, and a
+  stage that reads another's files by path (a drive ``${raw_drives}/...``) waits for that stage's commit;
+- stages with no path between them run at the same time (corners beside the pose graph, markings beside the
+  corner map).
+Commit semantics are unchanged: a stage's manifest is written after its last partition, a partition's outputs
+before its part marker, and committed stages are skipped by fingerprint.
+
+Where tasks run: ``sync`` in order in this process; ``threads`` a thread pool; ``local``/``processes`` a spawn
+process pool (one native thread per process) that lives for the whole run, with single-partition stages in a
+thread of this process (their inner steps show in the progress display and their own ``parallel_map`` pools
+start there); ``distributed``/``tcp://`` futures on the dask cluster (dask's local schedulers compute a static
+graph, which cannot grow the partitions an upstream partition reveals; the cluster's futures can).
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing as mp
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from pipeline.declare import PartitionKey, Partitioning
+from pipeline.errors import StageError
+from pipeline.execute import (Progress, Scheduler, _context, _task_spec, commit_stage, enumerate_partitions,
+                              one_thread_per_process, run_partition, set_step_progress, task_key)
+from pipeline.plan import Plan, StagePlan
+from pipeline.store import dataset_dir, read_manifest
+
+log = logging.getLogger(__name__)
+STREAMING = (Partitioning.PER_DRIVE, Partitioning.PER_SCAN_CHUNK)
+
+
+class TaskPool:
+    """Submits engine tasks where the scheduler says; ``here=True`` keeps a task in this process."""
+
+    def __init__(self, scheduler: Scheduler):
+        self.kind = scheduler.kind
+        self._client = scheduler._client
+        self._pool = None
+        self._here = None
+        workers = scheduler.workers
+        if self.kind == "threads":
+            self._pool = ThreadPoolExecutor(max_workers=workers)
+        elif self.kind == "processes":
+            self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+            self._here = ThreadPoolExecutor(max_workers=2)
+
+    def submit(self, fn: Callable, *args: Any, key: str, here: bool = False):
+        if self._client is not None:
+            return self._client.submit(fn, *args, key=key, pure=False)
+        if self._pool is None:  # sync: run now, in order
+            fut: Future = Future()
+            try:
+                fut.set_result(fn(*args))
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller through the future
+                fut.set_exception(exc)
+            return fut
+        return (self._here if here and self._here is not None else self._pool).submit(fn, *args)
+
+    def wait_any(self, futures: list) -> list:
+        if self._client is not None:
+            from distributed import wait as dwait
+
+            return list(dwait(futures, return_when="FIRST_COMPLETED").done)
+        return list(wait(futures, return_when=FIRST_COMPLETED).done)
+
+    def close(self, cancel: bool) -> None:
+        for pool in (self._here, self._pool):
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=cancel)
+
+
+@dataclass
+class _Stage:
+    sp: StagePlan
+    spec: dict[str, Any]
+    producers: dict[str, str] = field(default_factory=dict)  # input arg -> producing stage running in this run
+    after: set = field(default_factory=set)  # stages running in this run whose files it reads by path
+    keys: dict[str, PartitionKey] = field(default_factory=dict)  # label -> key, submitted so far
+    done: dict[str, dict] = field(default_factory=dict)  # label -> task result
+    drives_expanded: set = field(default_factory=set)
+    all_known: bool = False
+    committed: bool = False
+    t_submit: float | None = None
+    outputs: dict | None = None
+
+    @property
+    def name(self) -> str:
+        return self.sp.name
+
+    def drive_done(self, drive: str) -> bool:
+        """All of this stage's partitions of ``drive`` are committed (True once the stage itself is)."""
+        if self.committed:
+            return True
+        if not (self.all_known or drive in self.drives_expanded):
+            return False
+        return all(lbl in self.done for lbl, k in self.keys.items() if k.drive == drive)
+
+
+class Flow:
+    def __init__(self, plan: Plan, scheduler: Scheduler, progress: Progress | None):
+        self.plan, self.scheduler, self.progress = plan, scheduler, progress
+        self.stages: dict[str, _Stage] = {}
+        self.pending: dict[Any, tuple[str, str]] = {}  # future -> (stage, label)
+        self.summary: dict[str, Any] = {}
+        producers = {(ds, sp.fingerprint): sp.name for sp in plan.stages.values()
+                     if sp.selected and not sp.committed for ds in sp.outputs.values()}
+        for name, sp in plan.stages.items():
+            if not sp.selected:
+                continue
+            if sp.committed:
+                log.info("stage %s: skipped (fingerprint %s already committed)", name, sp.fp8)
+                self.summary[name] = {"decision": "skipped", "fingerprint": sp.fingerprint[:16]}
+                continue
+            st = _Stage(sp, _task_spec(plan, sp))
+            for arg, (ds, fp) in sp.inputs.items():
+                if (ds, fp) in producers:
+                    st.producers[arg] = producers[(ds, fp)]
+                elif fp and read_manifest(dataset_dir(plan.root, ds, fp)) is None \
+                        and arg not in sp.decl.optional_inputs:
+                    raise StageError(f"stage {name!r} input {arg!r}: dataset {ds!r} (fingerprint {fp[:8]}) is not "
+                                     f"committed under {plan.root}; hint: run its producer (drop --only)")
+            st.after = {producers[key] for key in sp.path_inputs if key in producers}
+            self.stages[name] = st
+
+    # -- what can start ------------------------------------------------------------------------------------
+    def _streams(self, st: _Stage) -> bool:
+        if st.sp.decl.partition not in STREAMING or st.sp.decl.plan:
+            return False
+        return all(self.stages[p].sp.decl.partition in STREAMING and not self.stages[p].sp.decl.plan
+                   for p in st.producers.values())
+
+    def _drives(self, st: _Stage) -> list[str]:
+        """Drives a streaming stage's partitions can belong to."""
+        if st.sp.partitions is not None:
+            return sorted({k.drive for k in st.sp.partitions if k.drive is not None})
+        src = st.sp.decl.partition_source
+        if src in st.producers:
+            return self._drives(self.stages[st.producers[src]])
+        return sorted(st.sp.drives)
+
+    def _advance(self) -> None:
+        for st in self.stages.values():
+            if st.committed:
+                continue
+            if any(not self.stages[a].committed for a in st.after):
+                continue
+            running = [self.stages[p] for p in st.producers.values() if not self.stages[p].committed]
+            if not st.all_known and not running:
+                self._submit(st, enumerate_partitions(self.plan, st.sp), provisional=None)
+                st.all_known = True
+            elif not st.all_known and self._streams(st):
+                for drive in self._drives(st):
+                    if drive in st.drives_expanded or not all(u.drive_done(drive) for u in running):
+                        continue
+                    provisional = {arg: sorted(lbl for lbl, k in self.stages[p].keys.items() if k.drive == drive)
+                                   for arg, p in st.producers.items() if not self.stages[p].committed}
+                    self._submit(st, self._keys_of_drive(st, drive, provisional), provisional)
+                    st.drives_expanded.add(drive)
+            if st.all_known and len(st.done) == len(st.keys):
+                self._commit(st)
+
+    def _keys_of_drive(self, st: _Stage, drive: str, provisional: dict[str, list[str]]) -> list[PartitionKey]:
+        if st.sp.partitions is not None:
+            return [k for k in st.sp.partitions if k.drive == drive]
+        src = st.sp.decl.partition_source
+        ctx = _context(st.spec, PartitionKey(), self.plan.root / "tmp" / f"plan-{st.name}", {}, provisional)
+        return sorted({PartitionKey(drive=k.drive, chunk=k.chunk) for k in ctx.inputs.partitions(src)
+                       if k.drive == drive})
+
+    def _submit(self, st: _Stage, keys: list[PartitionKey], provisional: dict[str, list[str]] | None) -> None:
+        if st.t_submit is None:
+            st.t_submit = time.perf_counter()
+            log.info("stage %s: running (fingerprint %s)", st.name, st.sp.fp8)
+            if self.progress is not None and self.scheduler.kind != "distributed":
+                set_step_progress(st.name, lambda step, d, t, n=st.name: self.progress(f"{n}: {step}", d, t))
+        here = st.sp.decl.partition == Partitioning.SINGLE
+        for pk in keys:
+            if pk.label in st.keys:
+                continue
+            st.keys[pk.label] = pk
+            fut = self.pool.submit(run_partition, st.spec, pk.as_dict(), provisional, key=task_key(st.sp, pk),
+                                   here=here)
+            self.pending[fut] = (st.name, pk.label)
+        self._show(st)
+
+    def _show(self, st: _Stage) -> None:
+        if self.progress is not None:
+            self.progress(st.name, len(st.done), len(st.keys))
+
+    def _commit(self, st: _Stage) -> None:
+        parts = [st.done[lbl] for lbl in sorted(st.done)]
+        st.outputs = commit_stage(st.spec, parts)
+        st.committed = st.sp.committed = st.sp.ran = True
+        if st.sp.partitions is None:
+            st.sp.partitions = sorted(st.keys.values())
+        set_step_progress(st.name, None)
+        starts = [p["t_start"] for p in parts if "t_start" in p]
+        ends = [p["t_end"] for p in parts if "t_end" in p]
+        self.summary[st.name] = {
+            "decision": "ran", "fingerprint": st.sp.fingerprint[:16], "outputs": st.outputs,
+            "wall_s": round(time.perf_counter() - (st.t_submit or time.perf_counter()), 3),
+            "cpu_s": round(sum(p.get("cpu_s", 0.0) for p in parts), 3),
+            "started_s": round(min(starts) - self.t0, 3) if starts else None,
+            "ended_s": round(max(ends) - self.t0, 3) if ends else None,
+            "partitions": len(parts)}
+
+    # -- the loop ------------------------------------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        self.t0 = time.time()
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(one_thread_per_process())
+            self.pool = TaskPool(self.scheduler)
+            failed = True
+            try:
+                self._advance()
+                while self.pending:
+                    for fut in self.pool.wait_any(list(self.pending)):
+                        name, label = self.pending.pop(fut)
+                        st = self.stages[name]
+                        st.done[label] = fut.result()  # a failed partition raises here; the run stops
+                        self._show(st)
+                    self._advance()
+                stuck = [n for n, st in self.stages.items() if not st.committed]
+                if stuck:
+                    raise StageError(f"stages {stuck} could not start: their inputs never became available")
+                failed = False
+            finally:
+                for name in self.stages:
+                    set_step_progress(name, None)
+                self.pool.close(cancel=failed)
+        ordered = {n: self.summary[n] for n in self.plan.stages if n in self.summary}
+        return ordered
+
+
+def run_plan(plan: Plan, scheduler: Scheduler, progress: Progress | None = None) -> dict[str, Any]:
+    """Run every selected, uncommitted stage of ``plan``; returns the run summary per stage (decision, outputs,
+    wall and CPU seconds, when its first partition started and its last ended, seconds from the run's start)."""
+    return Flow(plan, scheduler, progress).run()
