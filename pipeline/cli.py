@@ -11,13 +11,16 @@ import typer
 from pipeline.errors import CornermapError
 
 app = typer.Typer(
-    name="cornermap", no_args_is_help=True, add_completion=False, rich_markup_mode="rich",
+    name="cornermap",
+    no_args_is_help=True,
+    add_completion=False,
+    rich_markup_mode="rich",
     help="Batch production of LiDAR localization maps (vertical-corner landmarks + road-marking rasters).\n\n"
-         "Examples:\n\n"
-         "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
-         "  cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57\n\n"
-         "  cornermap run tiny --root runs/tiny --dry-run\n\n"
-         "  cornermap corners params",
+    "Examples:\n\n"
+    "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
+    "  cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57\n\n"
+    "  cornermap run tiny --root runs/tiny --dry-run\n\n"
+    "  cornermap corners params",
 )
 catalog_app = typer.Typer(no_args_is_help=True, help="Inspect and validate the data catalog.")
 app.add_typer(catalog_app, name="catalog")
@@ -116,18 +119,26 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a 
 
 
 @app.command("build")
-def build_cmd(drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml of a map drive (repeatable)."),
-              map_name: str = typer.Option(..., "--map", help="Map name: publishes ROOT/maps/NAME/vNNNN."),
-              root: Path = typer.Option(..., "--root", help="Output root."),
-              origin: Optional[str] = typer.Option(None, "--origin", help="The map's ENU origin LAT,LON,H (degrees, "
-                                                   "degrees, metres WGS84); default: the first GNSS fix of the first drive."),
-              scheduler: Optional[str] = SCHED_OPT, quiet: bool = QUIET_OPT,
-              workflow: str = typer.Option("map_rebuild", "--workflow",
-                                           help="The map workflow to run on these drives (a file or a packaged name).")
-              ) -> None:
+def build_cmd(
+    drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml of a map drive (repeatable)."),
+    map_name: str = typer.Option(..., "--map", help="Map name: publishes ROOT/maps/NAME/vNNNN."),
+    root: Path = typer.Option(..., "--root", help="Output root."),
+    origin: Optional[str] = typer.Option(
+        None,
+        "--origin",
+        help="The map's ENU origin LAT,LON,H (degrees, "
+        "degrees, metres WGS84); default: the first GNSS fix of the first drive.",
+    ),
+    scheduler: Optional[str] = SCHED_OPT,
+    quiet: bool = QUIET_OPT,
+    workflow: str = typer.Option(
+        "map_rebuild", "--workflow", help="The map workflow to run on these drives (a file or a packaged name)."
+    ),
+) -> None:
     """Build and publish the next version of map NAME from drives (the standard map workflow).
 
-    Example: [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
+    Example:
+    [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
     """
     from pipeline.build import parse_origin, write_build_workflow
     from pipeline.names import check_name
@@ -158,8 +169,10 @@ def catalog_ls(catalog: Optional[Path] = typer.Argument(None, help="Catalog fold
 
 
 @catalog_app.command("validate")
-def catalog_validate(catalog: Optional[Path] = typer.Argument(None, help="default: the packaged catalog"),
-                     workflows: list[Path] = typer.Option([], "--workflow", help="Also validate these workflows.")) -> None:
+def catalog_validate(
+    catalog: Optional[Path] = typer.Argument(None, help="default: the packaged catalog"),
+    workflows: list[Path] = typer.Option([], "--workflow", help="Also validate these workflows."),
+) -> None:
     """Validate the catalog (and workflows): every problem is listed at once.
 
     Example: [b]cornermap catalog validate --workflow tiny[/b]
@@ -188,7 +201,6 @@ def _register_stages() -> None:
         sub = stage_app(decl)
         if decl.cli:
             import importlib
-
             import inspect
 
             register = importlib.import_module(decl.cli).register

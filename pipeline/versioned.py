@@ -39,10 +39,23 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
 
 from pipeline.errors import DatasetIOError, PublishConflictError
-from pipeline.version_read import (LATEST_NAME, MANIFEST_NAME, MAX_MANIFEST_BYTES, _VERSION_RE,  # noqa: F401
-                                   check_version, list_versions, parse_version, read_latest, read_latest_entry,
-                                   read_manifest, resolve_version, sha256_file, trusted_manifest_digests,
-                                   verify_version, version_name)
+from pipeline.version_read import (  # noqa: F401
+    _VERSION_RE,
+    LATEST_NAME,
+    MANIFEST_NAME,
+    MAX_MANIFEST_BYTES,
+    check_version,
+    list_versions,
+    parse_version,
+    read_latest,
+    read_latest_entry,
+    read_manifest,
+    resolve_version,
+    sha256_file,
+    trusted_manifest_digests,
+    verify_version,
+    version_name,
+)
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,8 @@
 """Schemas of the pose graph stage."""
 import pyarrow as pa
 
-from schemas.registry import field as f, register
+from schemas.registry import field as f
+from schemas.registry import register
 
 DRIVE = f("drive", pa.string())
 POSE = [

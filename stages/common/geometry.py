@@ -83,8 +83,8 @@ def tum_rows_to_poses(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def write_tum(path, stamps_s: np.ndarray, T_world_body: np.ndarray, header: str = "") -> None:
     """Write a TUM trajectory (t x y z qx qy qz qw), atomically; ``header`` lines become '# ' comments."""
-    from pathlib import Path
     import os
+    from pathlib import Path
 
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -103,8 +103,8 @@ def read_tum(path) -> tuple[np.ndarray, np.ndarray]:
 
 def write_kitti(path, T_world_body: np.ndarray) -> None:
     """KITTI odometry format: 12 numbers per line, the top 3x4 of each pose."""
-    from pathlib import Path
     import os
+    from pathlib import Path
 
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")

@@ -16,13 +16,13 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import DataQualityError
-from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
-from stages.evaluate.localize_mcl import odometry_increments
-from stages.evaluate.params import EvaluateParams
 from stages.common.geometry import wrap_angle_rad
 from stages.common.road_features import extract_road_features
 from stages.common.wheel_deskew import OdometryTrack, track_from_table
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
+from stages.evaluate.localize_mcl import odometry_increments
 from stages.evaluate.map_access import map_inputs, open_published_map
+from stages.evaluate.params import EvaluateParams
 from stages.evaluate.run import DriveArrays, evaluate_drive
 
 log = logging.getLogger(__name__)
@@ -106,8 +106,9 @@ def read_corners(corners: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar:
     order = np.argsort(k, kind="stable")
     order = order[k[order] >= 0]
     col = lambda name: corners[name].to_numpy()[order]  # noqa: E731
-    cov = np.stack([np.stack([col("cov_xx_m2"), col("cov_xy_m2")], -1), np.stack([col("cov_xy_m2"), col("cov_yy_m2")], -1)],
-                   -2)
+    cov = np.stack(
+        [np.stack([col("cov_xx_m2"), col("cov_xy_m2")], -1), np.stack([col("cov_xy_m2"), col("cov_yy_m2")], -1)], -2
+    )
     xy, cov_v, dirs = corners_to_vehicle(T_vehicle_lidar, np.column_stack([col("x_m"), col("y_m")]), cov,
                                          np.column_stack([col("theta1_rad"), col("theta2_rad")]))
     return CornerObservations(k[order], xy, cov_v, dirs)

@@ -113,7 +113,10 @@ def align_truth_to_map(map_en_m: np.ndarray, truth_en_m: np.ndarray, max_match_m
     by this transform is the map-relative reference the localizer can be held to (``truth_in_map``)."""
     from scipy.spatial import cKDTree
 
-    map_en, truth_en = np.asarray(map_en_m, dtype=float).reshape(-1, 2), np.asarray(truth_en_m, dtype=float).reshape(-1, 2)
+    map_en, truth_en = (
+        np.asarray(map_en_m, dtype=float).reshape(-1, 2),
+        np.asarray(truth_en_m, dtype=float).reshape(-1, 2),
+    )
     if len(map_en) < min_pairs or len(truth_en) == 0:
         return None
     d, j = cKDTree(truth_en).query(map_en)

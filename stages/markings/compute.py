@@ -18,12 +18,12 @@ from pipeline.declare import PartitionKey
 from pipeline.errors import ConfigError, FormatError
 from schemas import SCHEMAS
 from stages.common.drive_tables import select_drives
+from stages.common.marking_raster.elevation_grid import GridAccumulator
+from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.common.tiling import tile_bounds, tile_key_of, tile_shape_px, tiles_touching
 from stages.markings.accumulate import pose_matrices, scans_to_enu
-from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.markings.params import MarkingParams
 from stages.markings.raster_io import TileRasters, write_tile_rasters
-from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 
 log = logging.getLogger(__name__)
 DEFAULT_TILE_SIZE_M = 100.0

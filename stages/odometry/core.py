@@ -9,13 +9,20 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-
 import open3d as o3d
 
 from stages.common.geometry import se3_inverse
 from stages.common.ground_plane import GroundPlane, align_ground_planes, fit_ground_plane, ground_mask
-from stages.common.registration import (RegistrationResult, adjoint_se3, crop_range, deskew_points,
-                                        floor_information, point_to_plane_hessian, prepare_cloud, register_clouds)
+from stages.common.registration import (
+    RegistrationResult,
+    adjoint_se3,
+    crop_range,
+    deskew_points,
+    floor_information,
+    point_to_plane_hessian,
+    prepare_cloud,
+    register_clouds,
+)
 
 
 @dataclass(frozen=True)

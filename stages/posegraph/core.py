@@ -55,8 +55,8 @@ def span_betweens(drive: DriveInput, offset: int, robust: str, kernel_k: float) 
     if drive.spans is None:
         return []
     sp = drive.spans
-    return [Between(offset + int(i), offset + int(j), T, I, "span", robust, kernel_k)
-            for i, j, T, I in zip(sp.i, sp.j, sp.T_i_j, sp.information)]
+    return [Between(offset + int(i), offset + int(j), T, info, "span", robust, kernel_k)
+            for i, j, T, info in zip(sp.i, sp.j, sp.T_i_j, sp.information)]
 
 
 def has_wheel(drive: DriveInput, k: int) -> bool:

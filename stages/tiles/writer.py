@@ -15,13 +15,13 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from mapformat import layout
+from mapformat.vectors import MARKINGS_FILE, features_table, tile_features
 from pipeline.errors import DatasetIOError
 from pipeline.names import inside
 from pipeline.versioned import sha256_file
 from stages.common.tiling import tile_bounds
-from mapformat import layout
 from stages.tiles.core import group_by_tile
-from mapformat.vectors import MARKINGS_FILE, features_table, tile_features
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,6 @@ from pipeline.testing import make_context
 from schemas.registry import schema_of
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.odometry.params import OdometryParams
-
 from tests.stages.odometry.conftest import raycast_scan
 
 T_VEHICLE_LIDAR = se3_from_xyz_rpy(0.8, 0.0, 1.9, 0.0, 0.01, 0.02)

@@ -10,7 +10,6 @@ from scipy.spatial.transform import Rotation
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import prepare_cloud, register_clouds
 from stages.odometry.core import Scan, estimate_edges, gate_edge
-
 from tests.stages.odometry.conftest import hdl32_rays
 
 PERIOD_S = 0.1

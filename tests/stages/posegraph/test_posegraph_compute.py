@@ -11,7 +11,6 @@ from pipeline.testing import make_context
 from schemas.registry import schema_of
 from stages.common.geometry import read_tum, se3_from_xyz_rpy, se3_inverse
 from stages.posegraph.params import PosegraphParams
-
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
 from tests.stages.posegraph.conftest import perturb
 
@@ -25,11 +24,23 @@ def _drive_tables(name, T_true, scene, rng, t0_s, gnss_offset_m):
     for k, T in enumerate(T_true):
         pts = raycast_scan(scene, T @ T_VL, rng).astype(np.float32)
         m = len(pts)
-        scans.append(pa.table({"drive": [name] * m, "chunk": pa.array([0] * m, pa.int32()),
-                               "scan_id": pa.array([k] * m, pa.int64()), "stamp_ns": pa.array([stamps[k]] * m, pa.int64()),
-                               "x_m": pts[:, 0], "y_m": pts[:, 1], "z_m": pts[:, 2], "intensity": np.zeros(m, np.float32),
-                               "ring": np.zeros(m, np.int16), "time_offset_s": np.zeros(m, np.float32)},
-                              schema=schema_of("scans_raw")))
+        scans.append(
+            pa.table(
+                {
+                    "drive": [name] * m,
+                    "chunk": pa.array([0] * m, pa.int32()),
+                    "scan_id": pa.array([k] * m, pa.int64()),
+                    "stamp_ns": pa.array([stamps[k]] * m, pa.int64()),
+                    "x_m": pts[:, 0],
+                    "y_m": pts[:, 1],
+                    "z_m": pts[:, 2],
+                    "intensity": np.zeros(m, np.float32),
+                    "ring": np.zeros(m, np.int16),
+                    "time_offset_s": np.zeros(m, np.float32),
+                },
+                schema=schema_of("scans_raw"),
+            )
+        )
         if k:
             E = perturb(se3_inverse(T_true[k - 1]) @ T, 2e-4, 3e-3, rng)
             q = Rotation.from_matrix(E[:3, :3]).as_quat()

@@ -8,11 +8,16 @@ from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.posegraph.core import base_problem, calibrate_wheel, calibrated_wheel_increments, dead_reckoning
 from stages.posegraph.gnss_factors import select_epochs
 from stages.posegraph.graph import marginal_cov_xy_yaw, optimize
-from stages.posegraph.metrics import (horizontal_errors_m, relative_errors_m, revisit_pairs, rms,
-                                      self_consistency_errors_m, summarize)
+from stages.posegraph.metrics import (
+    horizontal_errors_m,
+    relative_errors_m,
+    revisit_pairs,
+    rms,
+    self_consistency_errors_m,
+    summarize,
+)
 from stages.posegraph.params import PosegraphParams
 from stages.posegraph.solve import LoopRecord, optimize_with_loops
-
 from tests.stages.posegraph.conftest import circuit_truth, perturb
 
 
@@ -103,8 +108,15 @@ def test_gnss_fix_and_bias_chain_errors_match_their_formulas():
     separately), Gauss-Markov step b_1 - decay * b_0; checked against the formulas at random values."""
     import gtsam
 
-    from stages.posegraph.graph import (BiasLink, BiasPrior, PositionPrior, Problem, _antenna_key, _bias_key,
-                                        _key, build_graph)
+    from stages.posegraph.graph import (
+        BiasLink,
+        PositionPrior,
+        Problem,
+        _antenna_key,
+        _bias_key,
+        _key,
+        build_graph,
+    )
 
     rng = np.random.default_rng(0)
     T = se3_from_xyz_rpy(*rng.normal(0, 5, 3), *rng.normal(0, 0.2, 3))
@@ -154,7 +166,8 @@ def test_gravity_only_attitude_prior_leaves_heading_free_and_holds_roll_pitch():
 def test_wheel_increments_bridge_failed_icp_far_better_than_gnss_increments(two_lap_drive):
     """A 30-scan stretch of failed ICP (a degenerate street): bridged by wheel increments (scale 1 % short,
     gyro bias 0.1 deg/s, both calibrated against the accepted ICP edges) the relative error over that stretch
-    stays within what the factors' heading std allows; bridged by GNSS increments it follows the GNSS noise. Truth is the oracle."""
+    stays within what the factors' heading std allows; bridged by GNSS increments it follows the GNSS noise.
+    Truth is the oracle."""
     T_true, drive = two_lap_drive
     rng = np.random.default_rng(5)
     gap = np.arange(100, 130)

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import IntegrityError, LimitError, PathEscapeError, PublishConflictError
-from pipeline.versioned import LATEST_NAME, read_latest_entry, read_manifest, trusted_manifest_digests
-from stages.tiles.compute import compute
 from mapformat.diff import diff_maps
 from mapformat.export import export_map
 from mapformat.loader import open_map
 from mapformat.verify import verify_map
+from pipeline.errors import IntegrityError, LimitError, PathEscapeError, PublishConflictError
+from pipeline.versioned import LATEST_NAME, read_latest_entry, read_manifest, trusted_manifest_digests
+from stages.tiles.compute import compute
 from tests.stages.tiles.tiles_synth import building_corners, buildings, city_context, corner_table
 
 
@@ -83,7 +83,9 @@ def test_finding1_every_bit_flip_in_a_tile_file_is_refused(map_dir):
 
 
 def test_finding2_an_edited_manifest_fails_verify_and_the_loader(map_dir):
-    _edit_manifest(map_dir / "v0002", lambda m: m["enu_origin"].__setitem__("lat_deg", m["enu_origin"]["lat_deg"] + 0.01))
+    _edit_manifest(
+        map_dir / "v0002", lambda m: m["enu_origin"].__setitem__("lat_deg", m["enu_origin"]["lat_deg"] + 0.01)
+    )
     digests = trusted_manifest_digests(map_dir)
     problems = verify_map(map_dir / "v0002", digests.get(2))
     assert any("digest recorded outside" in p for p in problems), problems
