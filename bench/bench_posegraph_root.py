@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 from bench.bench_posegraph import _overrides, truth_poses
-from pipeline.declare import PartitionKey
 
 
 def main() -> None:
@@ -37,7 +36,7 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
-    from pipeline.execute import _context, _task_spec
+    from pipeline.api import stage_context
     from pipeline.plan import make_plan
     from pipeline.store import dataset_dir
     from pipeline.workflow import load_workflow
@@ -54,7 +53,7 @@ def main() -> None:
                if arg not in sp.decl.optional_inputs and not fp]
     if missing:
         raise SystemExit(f"{root}: no committed input for posegraph: {', '.join(missing)}; run the upstream stages")
-    ctx = _context(_task_spec(plan, sp), PartitionKey(), Path(tempfile.mkdtemp(prefix="bench-pg-")), {})
+    ctx = stage_context(plan, "posegraph", Path(tempfile.mkdtemp(prefix="bench-pg-")))
     p = ctx.params
     drives, _ = read_drive_inputs(ctx)
     sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"

@@ -8,6 +8,7 @@ from typing import Optional
 
 import typer
 
+from pipeline.api import execute_workflow
 from pipeline.errors import CornermapError
 
 app = typer.Typer(
@@ -51,48 +52,6 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version_cal
           verbose: bool = typer.Option(False, "--verbose", "-v", help="Log at INFO level.")) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-
-
-def _load_param_file(path: Optional[Path]) -> dict:
-    if path is None:
-        return {}
-    from pipeline.errors import ConfigError
-    from pipeline.safe_yaml import load_yaml_file
-
-    data = load_yaml_file(path) or {}
-    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
-        raise ConfigError(str(path), ["expected a mapping {stage: {param: value}}"])
-    return data
-
-
-def execute_workflow(workflow_path: Path, *, root: Optional[Path], scheduler: Optional[str], only: list[str] | None,
-                     dry_run: bool, quiet: bool, params_file: Optional[Path] = None) -> dict:
-    from pipeline.execute import Scheduler, run_plan
-    from pipeline.plan import describe_plan, make_plan
-    from pipeline.progress import StageProgress, print_plan
-    from pipeline.workflow import load_workflow
-
-    wf = load_workflow(workflow_path, param_overrides=_load_param_file(params_file))
-    if only:
-        from pipeline.errors import UnknownNameError
-        from pipeline.registry import suggest
-
-        for name in only:
-            if name not in wf.stages:
-                raise UnknownNameError(f"--only {name!r}: not a stage of {workflow_path}{suggest(name, wf.stages)}")
-    plan = make_plan(wf, wf.root_dir(root), only=only)
-    if dry_run:
-        print_plan(describe_plan(plan), plan.root)
-        return {"dry_run": True}
-    sched = Scheduler(scheduler or wf.spec.scheduler)
-    try:
-        with StageProgress(enabled=not quiet) as progress:
-            summary = run_plan(plan, sched, progress.update)
-    finally:
-        sched.close()
-    if not quiet:
-        print_plan(describe_plan(plan), plan.root, summary)
-    return {"plan": plan, "summary": summary}
 
 
 @app.command("run")

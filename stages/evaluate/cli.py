@@ -72,11 +72,11 @@ def _evaluate_params(params_file: Optional[Path], methods: list[str], reference_
                      fail_on_targets: bool) -> tuple[object, dict]:
     from pydantic import ValidationError
 
-    from pipeline.cli import _load_param_file
+    from pipeline.api import load_param_file
     from pipeline.errors import ConfigError
     from stages.evaluate.params import EvaluateParams
 
-    overrides = _load_param_file(params_file) if params_file else {}
+    overrides = load_param_file(params_file) if params_file else {}
     mine = dict(overrides.get("evaluate", {}))
     mine["methods"] = methods
     if reference_frame is not None:
@@ -159,8 +159,8 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
 
     import pyarrow as pa
 
+    from pipeline.api import execute_workflow
     from pipeline.catalog import resolve_schema
-    from pipeline.cli import execute_workflow
     from pipeline.declare import PartitionKey, StageContext
     from pipeline.store import StoreInputReader
     from stages.evaluate.compute import compute
