@@ -24,6 +24,7 @@ import numpy as np
 from pipeline.errors import DatasetIOError
 from stages.common.geodesy import EnuOrigin, enu_to_geodetic
 from stages.common.pointcloud_map import free_space_keep, grid_split, scan_to_map, voxel_downsample
+from stages.common.records import Extrinsics
 
 if TYPE_CHECKING:  # pragma: no cover
     from mapformat.loader import MapReader
@@ -119,7 +120,7 @@ def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, 
             "stamp_ns"
         )
         info = _read(root, "drive_info", drive, (inputs.get("drive_info") or {}).get("fingerprint"))
-        T_vl = np.asarray(info["T_vehicle_lidar"][0].as_py(), float).reshape(4, 4)
+        T_vl = Extrinsics.from_table(info).of(drive)
         scans = _read(root, "scans_raw", drive, columns=["stamp_ns", "x_m", "y_m", "z_m", "intensity", "time_offset_s"])
         stamps = poses["stamp_ns"].to_numpy()
         pxyz = np.column_stack([poses[c].to_numpy() for c in ("x_m", "y_m", "z_m")])

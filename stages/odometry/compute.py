@@ -52,10 +52,9 @@ def poses_from_table(table: pa.Table, valid_only: bool = True) -> dict[int, np.n
         return {}
     if valid_only and "valid" in table.column_names:
         table = table.filter(table["valid"])
-    from stages.common.geometry import poses_from_xyz_quat
+    from stages.common.records import pose_matrices
 
-    T = poses_from_xyz_quat(np.column_stack([table[c].to_numpy() for c in ("x_m", "y_m", "z_m")]),
-                            np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")]))
+    T = pose_matrices(table)
     return {int(s): T[i] for i, s in enumerate(table["scan_id"].to_numpy())}
 
 
@@ -99,19 +98,17 @@ def wheel_guides(scans: list[Scan], track: OdometryTrack | None) -> dict[int, np
 
 def edges_to_table(edges: list[Edge], drive: str, chunk: int, schema: str = "odometry_edges") -> pa.Table:
     """Edges -> ``odometry_edges`` rows, or ``odometry_span_edges`` rows (which add ``scan_id_from``)."""
-    from scipy.spatial.transform import Rotation
+    from stages.common.records import INCREMENT_COLUMNS, pose_columns
 
     n = len(edges)
     T = np.array([e.T_prev_curr for e in edges]).reshape(n, 4, 4)
-    q = Rotation.from_matrix(T[:, :3, :3]).as_quat() if n else np.zeros((0, 4))
     info = np.array([e.information.reshape(36) for e in edges]).reshape(n, 36)
     cols = {
         "drive": pa.array([drive] * n, pa.string()), "chunk": pa.array([chunk] * n, pa.int32()),
         "scan_id_from": pa.array([e.scan_id_from for e in edges], pa.int64()),
         "scan_id": pa.array([e.scan_id for e in edges], pa.int64()),
         "stamp_ns": pa.array([e.stamp_ns for e in edges], pa.int64()),
-        "dx_m": T[:, 0, 3], "dy_m": T[:, 1, 3], "dz_m": T[:, 2, 3],
-        "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3],
+        **pose_columns(T, position=INCREMENT_COLUMNS),
         "fitness": pa.array([e.fitness for e in edges], pa.float64()),
         "inlier_rmse_m": pa.array([e.inlier_rmse_m for e in edges], pa.float64()),
         "information": pa.FixedSizeListArray.from_arrays(pa.array(info.reshape(-1), pa.float64()), 36)
