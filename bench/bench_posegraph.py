@@ -99,7 +99,7 @@ def main() -> None:
                     help="override an odometry param (repeatable)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    from stages.posegraph import metrics as M
+    from stages.common import trajectory_metrics as M
     from stages.posegraph.core import dead_reckoning
     from stages.posegraph.graph import marginal_cov_xy_yaw
     from stages.posegraph.params import PosegraphParams

@@ -38,7 +38,7 @@ def _version_callback(value: bool) -> None:
         from importlib.metadata import version
 
         import dask
-        import gtsam  # noqa: F401
+        import gtsam  # noqa: F401 - fails here, not later, when gtsam is broken
         import open3d
 
         typer.echo(f"cornermap {version('cornermap')} (open3d {open3d.__version__}, "

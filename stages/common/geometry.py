@@ -110,3 +110,13 @@ def write_kitti(path, T_world_body: np.ndarray) -> None:
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     np.savetxt(tmp, T_world_body[:, :3, :4].reshape(len(T_world_body), 12), fmt="%.9e")
     os.replace(tmp, path)
+
+
+def fit_rigid_2d(src_m: np.ndarray, dst_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rotation R (2x2) and translation t with ``dst ~ src @ R.T + t`` (Kabsch, no scale)."""
+    src, dst = np.asarray(src_m, dtype=float), np.asarray(dst_m, dtype=float)
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cd - R @ cs

@@ -5,10 +5,7 @@ import numpy as np
 import pytest
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
-from stages.posegraph.core import base_problem, calibrate_wheel, calibrated_wheel_increments, dead_reckoning
-from stages.posegraph.gnss_factors import select_epochs
-from stages.posegraph.graph import marginal_cov_xy_yaw, optimize
-from stages.posegraph.metrics import (
+from stages.common.trajectory_metrics import (
     horizontal_errors_m,
     relative_errors_m,
     revisit_pairs,
@@ -16,6 +13,9 @@ from stages.posegraph.metrics import (
     self_consistency_errors_m,
     summarize,
 )
+from stages.posegraph.core import base_problem, calibrate_wheel, calibrated_wheel_increments, dead_reckoning
+from stages.posegraph.gnss_factors import select_epochs
+from stages.posegraph.graph import marginal_cov_xy_yaw, optimize
 from stages.posegraph.params import PosegraphParams
 from stages.posegraph.solve import LoopRecord, optimize_with_loops
 from tests.stages.posegraph.conftest import circuit_truth, perturb
@@ -309,7 +309,7 @@ def test_edge_yaw_calibration_nees_is_one_for_a_true_model_and_exposes_a_pessimi
     """Edges whose heading error is drawn from the std their information claims give NEES ~1 in every bin; a
     model claiming 10x the std gives ~0.01; bins split by the true rotation of the edge."""
     from stages.common.geometry import se3_from_xyz_rpy
-    from stages.posegraph.metrics import edge_yaw_calibration
+    from stages.common.trajectory_metrics import edge_yaw_calibration
 
     rng = np.random.default_rng(5)
     n = 4000

@@ -129,8 +129,8 @@ def test_finding2_file_entries_outside_the_version_are_not_hashed(map_dir, monke
     hashed = []
     import pipeline.versioned as versioned
 
-    real = versioned.sha256_file
-    monkeypatch.setattr(versioned, "sha256_file", lambda p: hashed.append(str(p)) or real(p))
+    real = versioned.file_sha256
+    monkeypatch.setattr(versioned, "file_sha256", lambda p: hashed.append(str(p)) or real(p))
     problems = verify_map(vdir)
     assert sum("leaves the version directory" in p for p in problems) == 2, problems
     assert not any("etc" in h for h in hashed)
