@@ -57,7 +57,7 @@ class Run:
     poses: np.ndarray  # (N,4,4)
     seconds: float  # registration only
     n_registered: int
-    n_flagged: int  # edges our gate marked not converged (chained anyway: ICP-only)
+    n_flagged: int  # edges our gate did not accept (chained anyway: ICP-only)
     pose_shift: int
 
 
@@ -134,33 +134,6 @@ def chain(increments: Iterable[np.ndarray]) -> np.ndarray:
     return np.array(poses)
 
 
-# estimate_edges keyword -> OdometryParams field where the names differ (the stage's compute does the same)
-_PARAM_ALIASES = {"max_deviation_guide_m": "max_deviation_wheel_m",
-                  "max_deviation_guide_rad": "max_deviation_wheel_rad"}
-
-
-def edge_kwargs(p) -> dict:
-    """estimate_edges keywords from OdometryParams, by name (aliases above; deskew as a bool); keywords the
-    params do not carry keep estimate_edges' defaults."""
-    import inspect
-
-    from stages.odometry.core import estimate_edges
-
-    out = {}
-    for name, prm in inspect.signature(estimate_edges).parameters.items():
-        if prm.kind is not inspect.Parameter.KEYWORD_ONLY or name == "guide_increments":
-            continue
-        field = _PARAM_ALIASES.get(name, name)
-        if name == "deskew":
-            out[name] = p.deskew != "none"
-        elif field in type(p).model_fields:
-            out[name] = getattr(p, field)
-        elif prm.default is inspect.Parameter.empty:
-            raise TypeError(f"estimate_edges needs {name!r}, which OdometryParams does not carry; hint: update "
-                            "bench_odometry._PARAM_ALIASES")
-    return out
-
-
 def odometry_ours(chunks: Iterable[list], T_vehicle_lidar: np.ndarray, track=None, threads: int = 0,
                   engine: str = "ours", **overrides) -> Run:
     """Our odometry stage's algorithm, chunk by chunk as the stage runs it, without GNSS/INS (ICP-only);
@@ -170,7 +143,7 @@ def odometry_ours(chunks: Iterable[list], T_vehicle_lidar: np.ndarray, track=Non
     from stages.odometry.params import OdometryParams
 
     p = OdometryParams(**overrides)
-    kw = edge_kwargs(p)
+    cfg = p.edge_config()
     edges, seconds, prev = [], 0.0, None
     for chunk in chunks:
         scans = ([prev] if prev is not None else []) + chunk
@@ -178,7 +151,7 @@ def odometry_ours(chunks: Iterable[list], T_vehicle_lidar: np.ndarray, track=Non
         guides = wheel_guides(scans, track)
         if p.deskew == "odometry":
             scans, _ = deskew_with_wheel_odometry(scans, track, T_vehicle_lidar)
-        edges += estimate_edges(scans, T_vehicle_lidar, {}, guide_increments=guides or None, **kw)
+        edges += estimate_edges(scans, T_vehicle_lidar, {}, cfg, guide_increments=guides or None)
         seconds += time.perf_counter() - t0  # span edges (p.span_scans) are part of the stage's cost
         prev = chunk[-1]
     edges = [e for e in edges if e.span == 1]  # the dead-reckoning chain
@@ -186,7 +159,7 @@ def odometry_ours(chunks: Iterable[list], T_vehicle_lidar: np.ndarray, track=Non
     if ids and ids != list(range(ids[0], ids[0] + len(ids))):
         raise ValueError(f"{engine}: edges are not consecutive (scan ids {ids[:5]}...); hint: a scan is missing")
     return Run(engine, threads, chain(e.T_prev_curr for e in edges), seconds, len(edges),
-               sum(not e.converged for e in edges), 0)
+               sum(not e.accepted for e in edges), 0)
 
 
 def kiss_config(threads: int, deskew: bool):
@@ -466,7 +439,7 @@ def report_sim(sim: Path, drive: str, n_max: int | None, threads: list[int], opt
     print("\nours = stage defaults (wheel-odometry deskew + wheel guides for the initial guess and the gate); "
           "ours lidar-only = deskew own_sweep, no wheel odometry (2 registrations per edge); kiss-icp = its "
           "defaults with per-point time (deskew to the end of the sweep: its pose k is compared at scan k+1); "
-          "flagged = edges our gate marks not converged (off the wheel guide), chained anyway: ICP-only.")
+          "flagged = edges our gate does not accept (off the wheel guide), chained anyway: ICP-only.")
     runs = {(r.engine, r.threads): P for (r, _), P in zip(results, rebased)}
     t0 = threads[0]
     if ("kiss-icp", t0) in runs:

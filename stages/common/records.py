@@ -4,7 +4,7 @@
   relative ``dx_m, dy_m, dz_m`` + quaternion of ``odometry_edges``) <-> (N,4,4) homogeneous matrices:
   ``pose_matrices`` / ``pose_columns``, the heading alone with ``yaw_rad``; a drive's trajectory as ``Trajectory``.
 - ``drive_info.T_vehicle_lidar`` (16 floats, row-major 4x4; maps lidar points into the vehicle frame) <->
-  ``Extrinsics`` (one matrix per drive), with a named error for a short row or a missing drive.
+  ``Extrinsics`` (one matrix per drive), with a named error for a short or non-rigid row or a missing drive.
 
 Quaternions are (x, y, z, w) (scipy's order). No algorithms here.
 """
@@ -97,7 +97,11 @@ class Extrinsics:
             if flat is None or len(flat) != 16:
                 raise FormatError(f"drive_info row of drive {drive!r}: T_vehicle_lidar must hold 16 values "
                                   f"(row-major 4x4), got {None if flat is None else len(flat)}")
-            out[drive] = np.asarray(flat, float).reshape(4, 4)
+            T = np.asarray(flat, float).reshape(4, 4)
+            if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6):
+                raise FormatError(f"drive_info row of drive {drive!r}: T_vehicle_lidar is not a rigid 4x4 transform; "
+                                  f"got {T.tolist()}")
+            out[drive] = T
         return cls(out)
 
     def of(self, drive: str) -> np.ndarray:

@@ -45,7 +45,7 @@ def read_icp_increments(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndarr
     inc = np.full((len(epoch_scan_ids), 3), np.nan)
     if edges.num_rows == 0:
         return inc
-    edges = edges.filter(pc.equal(edges["converged"], True))
+    edges = edges.filter(pc.equal(edges["accepted"], True))
     k = epoch_index(edges["scan_id"].to_numpy(), epoch_scan_ids)
     ok = k > 0
     yaw = yaw_rad(edges)
@@ -59,7 +59,7 @@ def read_icp_covariances(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndar
     cov = np.full((len(epoch_scan_ids), 3, 3), np.nan)
     if edges.num_rows == 0 or "information" not in edges.column_names:
         return cov
-    edges = edges.filter(pc.equal(edges["converged"], True))
+    edges = edges.filter(pc.equal(edges["accepted"], True))
     k = epoch_index(edges["scan_id"].to_numpy(), epoch_scan_ids)
     ok = k > 0
     info = np.asarray(edges["information"].combine_chunks().flatten().to_numpy(), dtype=float).reshape(-1, 6, 6)[ok]

@@ -38,7 +38,7 @@ def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Tabl
     if e.num_rows:
         Te = pose_matrices(e, position=INCREMENT_COLUMNS)
         info = _information(e)
-        conv = e["converged"].to_numpy(zero_copy_only=False)
+        conv = e["accepted"].to_numpy(zero_copy_only=False)
         edge_T[pos[inside]] = Te[inside]
         edge_info[pos[inside]] = info[inside]
         edge_ok[pos[inside]] = conv[inside]
@@ -59,7 +59,7 @@ def _span_edges(drive: str, ids: np.ndarray, span_edges: pa.Table | None) -> Spa
     """The drive's accepted span edges whose two scans both have a poses_gnss row (positions into ``ids``)."""
     if span_edges is None:
         return None
-    e = span_edges.filter(pc.and_(pc.equal(span_edges["drive"], drive), span_edges["converged"]))
+    e = span_edges.filter(pc.and_(pc.equal(span_edges["drive"], drive), span_edges["accepted"]))
     a, b = e["scan_id_from"].to_numpy(), e["scan_id"].to_numpy()
     pa_, pb = np.searchsorted(ids, a), np.searchsorted(ids, b)
     ok = (pa_ < len(ids)) & (pb < len(ids))

@@ -61,5 +61,9 @@ def test_extrinsics_round_trip_and_named_errors():
         ext.of("d2")
     with pytest.raises(FormatError, match="drive 'x'.*16 values.*got 3"):
         Extrinsics.from_table(pa.table({"drive": ["x"], "T_vehicle_lidar": [[1.0, 2.0, 3.0]]}))
+    sheared = np.eye(4)
+    sheared[0, 1] = 0.3
+    with pytest.raises(FormatError, match="drive 'y'.*not a rigid"):
+        Extrinsics.from_table(pa.table({"drive": ["y"], "T_vehicle_lidar": [Extrinsics.to_column(sheared)]}))
     with pytest.raises(FormatError, match="4x4"):
         Extrinsics.to_column(np.eye(3))

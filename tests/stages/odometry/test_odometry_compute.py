@@ -79,7 +79,7 @@ def test_compute_chunks_overlap_and_edges_match_truth(street_scene):
         D = se3_inverse(T_true) @ T_est
         assert np.linalg.norm(D[:3, 3]) < 0.02, (k, D[:3, 3])
         assert np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec()) < np.deg2rad(0.1)
-        assert row["converged"] and row["fitness"] > 0.7
+        assert row["accepted"] and row["fitness"] > 0.7
         assert np.all(np.linalg.eigvalsh(np.reshape(row["information"], (6, 6))) > 0)
 
 

@@ -48,7 +48,7 @@ def _drive_tables(name, T_true, scene, rng, t0_s, gnss_offset_m):
                           "dy_m": E[1, 3], "dz_m": E[2, 3], "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
                           "fitness": 0.9, "inlier_rmse_m": 0.05,
                           "information": np.diag([2e-4 ** -2] * 3 + [3e-3 ** -2] * 3).reshape(-1).tolist(),
-                          "converged": True})
+                          "accepted": True})
     G = T_true.copy()
     G[:, :3, 3] += gnss_offset_m + rng.normal(0, 0.05, (n, 3))
     q = Rotation.from_matrix(G[:, :3, :3]).as_quat()
