@@ -61,7 +61,7 @@ def main() -> None:
         stamps_s = opt.stamp_ns * 1e-9
         for name, T in (("RTK/INS only", g.T[on_opt]), ("optimised", opt.T)):
             s = M.summarize(T, T_true, stamps_s)
-            print(f"| {drive} | {name} | " + " | ".join(f"{s[k]:.3f}" for k in KEYS) + " |")
+            print(f"| {drive} | {name} | " + " | ".join("-" if np.isnan(s[k]) else f"{s[k]:.3f}" for k in KEYS) + " |")
         est_all.append(opt.T)
         true_all.append(T_true)
         t_all.append(stamps_s + 1e6 * n)  # drives apart in time: every pair across drives is a revisit

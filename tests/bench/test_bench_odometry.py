@@ -5,18 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.bench_odometry import (
+from bench.odometry_engines import (
     Run,
     compare_trajectories,
     errors_vs_truth,
     inverse_poses,
     kiss_available,
-    kitti_files,
     odometry_kiss,
     odometry_ours,
     on_common_scans,
-    read_scan,
 )
+from bench.odometry_sources import kitti_files, read_scan
 from stages.common.geometry import se3_from_xyz_rpy
 from stages.odometry.core import Scan
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
