@@ -1,7 +1,7 @@
 """Pose-graph bench on a simulated city: RTK/INS-only, ICP-only and optimised errors against ground truth,
 with and without survey anchoring, with a planted false loop, and the optimisation time.
 
-    .venv/bin/python -m bench.bench_posegraph --preset tiny --seed 7 --sim /tmp/cornermap-sim-tiny
+    .venv/bin/python -m bench.bench_posegraph --preset tiny --seed 7 --sim runs/sim-tiny
 
 Keeps the scans in memory (fine for tiny/demo; gangnam needs the engine's store: `cornermap run`).
 """
@@ -107,7 +107,7 @@ def main() -> None:
     from stages.posegraph.survey_anchor import survey_anchor_callback
     from stages.posegraph.tables import drive_input
 
-    sim = args.sim or Path(f"/tmp/cornermap-sim-{args.preset}-{args.seed}")
+    sim = args.sim or Path(f"runs/sim-{args.preset}-{args.seed}")
     if not (sim / "simulation.json").exists():
         from stages.simulate.core import simulate
 
