@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | sha256sum | cut -c1-12)
 DEMO_ROOT ?= runs/demo
 
-.PHONY: demo test test-slow venv sysdeps bench clean
+.PHONY: demo lint test test-slow venv sysdeps bench clean
 
 sysdeps:
 	@if ! ldconfig -p | grep -q 'libusb-1.0.so.0'; then \
@@ -25,7 +25,12 @@ venv: sysdeps $(STAMP)
 demo: venv
 	$(BIN)/cornermap run workflows/demo.yaml --root $(DEMO_ROOT)
 
-test: venv
+# Fast static checks (seconds): ruff (pyproject [tool.ruff]) and the import contracts (pyproject [tool.importlinter]).
+lint: venv
+	$(BIN)/ruff check .
+	PYTHONPATH=$(CURDIR) $(BIN)/lint-imports
+
+test: lint
 	$(BIN)/python -m pytest -n 2 --dist loadfile -q
 
 test-slow: venv

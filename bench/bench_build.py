@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keep", action="store_true", help="keep the build root")
     args = ap.parse_args(argv)
 
-    from pipeline.cli import execute_workflow
+    from pipeline.api import execute_workflow
 
     sim = simulated(args.cache, args.preset, args.seed)
     drives = args.drives or ["drive_0", "drive_1"]

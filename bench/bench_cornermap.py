@@ -63,8 +63,13 @@ def _is_number(text: str) -> bool:
 
 
 def synthetic_inputs(args) -> dict:
-    from stages.cornermap.synthetic import (drive_info_table, footprint_corners, grid_city, observe_drive,
-                                           serpentine_route)
+    from stages.cornermap.synthetic import (
+        drive_info_table,
+        footprint_corners,
+        grid_city,
+        observe_drive,
+        serpentine_route,
+    )
 
     if args.sim:
         city = json.loads((Path(args.sim) / "truth" / "city.json").read_text())
@@ -125,7 +130,8 @@ def pipeline_inputs(args) -> dict:
 def _seen_from_observations(corners, poses, info, drive0, truth_en) -> np.ndarray:
     """Scans of drive 0 with an observation within 0.5 m of each true corner (when truth has no count)."""
     from scipy.spatial import cKDTree
-    from scipy.spatial.transform import Rotation
+
+    from stages.common.records import Extrinsics, pose_matrices
 
     c = corners.filter(pc.equal(corners["drive"], drive0))
     p = poses.filter(pc.equal(poses["drive"], drive0))
@@ -133,10 +139,8 @@ def _seen_from_observations(corners, poses, info, drive0, truth_en) -> np.ndarra
     keep = np.array([s in row for s in c["scan_id"].to_pylist()], bool)
     c = c.filter(pa.array(keep))
     rows = np.array([row[s] for s in c["scan_id"].to_pylist()], np.int64)
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3, :3] = Rotation.from_quat(np.column_stack([p[k].to_numpy()[rows] for k in ("qx", "qy", "qz", "qw")])).as_matrix()
-    T[:, :3, 3] = np.column_stack([p[k].to_numpy()[rows] for k in ("x_m", "y_m", "z_m")])
-    Tvl = np.asarray(info.filter(pc.equal(info["drive"], drive0))["T_vehicle_lidar"][0].as_py()).reshape(4, 4)
+    T = pose_matrices(p, rows)
+    Tvl = Extrinsics.from_table(info).of(drive0)
     n = len(rows)
     obs = transform_to_enu(np.column_stack([c["x_m"].to_numpy(), c["y_m"].to_numpy()]),
                            np.column_stack([c["theta1_rad"].to_numpy(), c["theta2_rad"].to_numpy()]),
@@ -212,9 +216,13 @@ def main(argv=None) -> None:
     reasons = Counter(r.split(":")[0] for text in rej["reason"].to_pylist() for r in text.split("; "))
     print(f"machine: {os.cpu_count()} cores; mode: {'pipeline' if args.corners else 'synthetic'}"
           f"{' sim=' + args.sim if args.sim else ' grid city %dx%d' % (args.cols, args.rows)}; drives: {args.drives}")
-    print(f"observations: {extra['n_observations']}  clusters: {extra['n_clusters']}  kept: {extra['n_kept']}  "
-          f"rejected: {extra['n_rejected']} {dict(reasons)}")
-    print(f"inputs {t_inputs:.1f} s, compute {t_compute:.2f} s ({extra['n_observations'] / t_compute / 1e3:.0f} k obs/s)")
+    print(
+        f"observations: {extra['n_observations']}  clusters: {extra['n_clusters']}  kept: {extra['n_kept']}  "
+        f"rejected: {extra['n_rejected']} {dict(reasons)}"
+    )
+    print(
+        f"inputs {t_inputs:.1f} s, compute {t_compute:.2f} s ({extra['n_observations'] / t_compute / 1e3:.0f} k obs/s)"
+    )
     rule = "seen as a corner (two opaque walls in view)" if views is not None else "line of sight"
     print(f"eligible true corners ({rule} in >= 20 scans of {data['drive0']}): {in_frame['n_eligible']} of "
           f"{len(data['truth_en'])}")

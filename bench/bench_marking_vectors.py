@@ -87,11 +87,11 @@ class RasterDirReader:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    from mapformat.loader import open_map
+    from mapformat.vectors import read_map_features, tile_features
     from stages.common.marking_scores import score_markings
     from stages.simulate.markings import city_from_description, marking_truth_features
     from stages.tiles.cli import map_dir_of
-    from mapformat.loader import open_map
-    from mapformat.vectors import read_map_features, tile_features
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path, required=True)
@@ -105,7 +105,11 @@ def main(argv: list[str] | None = None) -> dict:
     if args.rasters:
         from mapformat.vectors import tile_features as _tf
 
-        dirs = [d for d in sorted((args.root / "datasets" / "marking_rasters").glob("*")) if (d / "_manifest.json").is_file()]
+        dirs = [
+            d
+            for d in sorted((args.root / "datasets" / "marking_rasters").glob("*"))
+            if (d / "_manifest.json").is_file()
+        ]
         if not dirs:
             raise SystemExit(f"no committed marking_rasters under {args.root}/datasets")
         reader = RasterDirReader(max(dirs, key=lambda d: json.loads((d / "_manifest.json").read_text())
@@ -118,9 +122,12 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(f"no truth/city.json under {args.root}/datasets/raw_drives; pass --truth")
     truth = marking_truth_features(city_from_description(json.loads(Path(city_json).read_text())))
     if args.rasters:
-        mask_of0 = (lambda key: None if key not in reader.tile_keys() else (
-            reader.tile_marking(*key), float(reader.tile_entry(*key)["marking"]["origin_east_m"]),
-            float(reader.tile_entry(*key)["marking"]["origin_north_m"]), float(reader.tile_entry(*key)["marking"]["cell_m"])))
+        def mask_of0(key):
+            if key not in reader.tile_keys():
+                return None
+            marking = reader.tile_entry(*key)["marking"]
+            return (reader.tile_marking(*key), float(marking["origin_east_m"]), float(marking["origin_north_m"]),
+                    float(marking["cell_m"]))
         feats = [f for k in reader.tile_keys() for f in _tf(k, reader.tile_size_m, mask_of0)]
     else:
         feats = read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()])

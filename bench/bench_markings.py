@@ -120,8 +120,8 @@ def bench_amsterdam(params: MarkingParams, workdir: Path, data_dir: Path, figure
     result = {**throughput(tiles, 50.0, params.cell_m), "n_marking_px": tile["row"]["n_marking_px"],
               "n_traversable_px": tile["row"]["n_traversable_px"], "occupied_px": int((r.count > 0).sum())}
     if figure:
-        from stages.markings.figure import plot_marking_layers
         from stages.common.marking_raster.threshold import normalise_intensity
+        from stages.markings.figure import plot_marking_layers
 
         image, _, _ = normalise_intensity(r.intensity, r.traversable_mask, params.intensity_low_pct,
                                           params.intensity_high_pct)
@@ -245,8 +245,8 @@ def bench_pipeline_rasters(sim_dir: Path, rasters_dir: Path, poses_dir: Path | N
 
 def _sim_figure(tiles, truth, meta, params, figure: Path, name: str) -> None:
     """The tile with the most marking pixels, with the truth overlay."""
-    from stages.markings.figure import plot_marking_layers
     from stages.common.marking_raster.threshold import normalise_intensity
+    from stages.markings.figure import plot_marking_layers
 
     best = max(tiles, key=lambda t: t["row"]["n_marking_px"])
     r = best["rasters"]

@@ -1,7 +1,7 @@
 """Pose-graph bench on a simulated city: RTK/INS-only, ICP-only and optimised errors against ground truth,
 with and without survey anchoring, with a planted false loop, and the optimisation time.
 
-    .venv/bin/python -m bench.bench_posegraph --preset tiny --seed 7 --sim /tmp/cornermap-sim-tiny
+    .venv/bin/python -m bench.bench_posegraph --preset tiny --seed 7 --sim runs/sim-tiny
 
 Keeps the scans in memory (fine for tiny/demo; gangnam needs the engine's store: `cornermap run`).
 """
@@ -29,8 +29,8 @@ def _tables(out) -> pa.Table:
 def ingest(sim: Path, drives: list[str]) -> dict[str, pa.Table]:
     import json
 
-    from stages.ingest.params import IngestParams
     from stages.ingest.compute import compute
+    from stages.ingest.params import IngestParams
 
     origin = json.loads((sim / "simulation.json").read_text())["enu_origin"]  # the truth's ENU frame
 
@@ -99,7 +99,7 @@ def main() -> None:
                     help="override an odometry param (repeatable)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    from stages.posegraph import metrics as M
+    from stages.common import trajectory_metrics as M
     from stages.posegraph.core import dead_reckoning
     from stages.posegraph.graph import marginal_cov_xy_yaw
     from stages.posegraph.params import PosegraphParams
@@ -107,7 +107,7 @@ def main() -> None:
     from stages.posegraph.survey_anchor import survey_anchor_callback
     from stages.posegraph.tables import drive_input
 
-    sim = args.sim or Path(f"/tmp/cornermap-sim-{args.preset}-{args.seed}")
+    sim = args.sim or Path(f"runs/sim-{args.preset}-{args.seed}")
     if not (sim / "simulation.json").exists():
         from stages.simulate.core import simulate
 
@@ -117,7 +117,10 @@ def main() -> None:
     print(f"machine: {os.cpu_count()} cores; preset {args.preset} seed {args.seed}; drives {drives}")
     tables = ingest(sim, drives)
     edges, dt, n = run_odometry(tables, _overrides(args.odometry_set))
-    print(f"odometry: {n} edges in {dt:.1f} s = {n / dt:.1f} scans/s incl. in-memory table filtering (GICP, {OdometryParams().voxel_m} m voxels)")
+    print(
+        f"odometry: {n} edges in {dt:.1f} s = {n / dt:.1f} scans/s incl. in-memory table filtering "
+        f"(GICP, {OdometryParams().voxel_m} m voxels)"
+    )
     tables["edges"] = edges
     scans = tables["scans"]
 
@@ -179,9 +182,12 @@ def main() -> None:
         pairs = M.revisit_pairs(both_true, both_t, radius_m=6.0)  # tiny's second drive: the other lane, 3.5 m
         sc = M.rms(M.self_consistency_errors_m(both_est, both_true, pairs))
         s = M.summarize(ref.poses, T_true, ref_d.stamps_ns * 1e-9)
-        print(f"reference drive {d}: loops {sum(r.accepted for r in ref.loops)}/{len(ref.loops)}; map vs "
-              f"reference self-consistency RMS {sc:.3f} m over {len(pairs)} pairs; abs horizontal RMS "
-              f"{s['abs_horizontal_rms_m']:.3f} m; RTK/INS-only {M.rms(M.horizontal_errors_m(ref_d.gnss_T, T_true)):.3f} m")
+        print(
+            f"reference drive {d}: loops {sum(r.accepted for r in ref.loops)}/{len(ref.loops)}; map vs "
+            f"reference self-consistency RMS {sc:.3f} m over {len(pairs)} pairs; abs horizontal RMS "
+            f"{s['abs_horizontal_rms_m']:.3f} m; "
+            f"RTK/INS-only {M.rms(M.horizontal_errors_m(ref_d.gnss_T, T_true)):.3f} m"
+        )
 
 
 if __name__ == "__main__":

@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 from bench.bench_posegraph import _overrides, truth_poses
-from pipeline.declare import PartitionKey
 
 
 def main() -> None:
@@ -37,11 +36,11 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
-    from pipeline.execute import _context, _task_spec
+    from pipeline.api import stage_context
     from pipeline.plan import make_plan
     from pipeline.store import dataset_dir
     from pipeline.workflow import load_workflow
-    from stages.posegraph import metrics as M
+    from stages.common import trajectory_metrics as M
     from stages.posegraph.compute import read_drive_inputs, scan_loader
     from stages.posegraph.core import dead_reckoning
     from stages.posegraph.solve import LoopRecord, solve_map
@@ -54,7 +53,7 @@ def main() -> None:
                if arg not in sp.decl.optional_inputs and not fp]
     if missing:
         raise SystemExit(f"{root}: no committed input for posegraph: {', '.join(missing)}; run the upstream stages")
-    ctx = _context(_task_spec(plan, sp), PartitionKey(), Path(tempfile.mkdtemp(prefix="bench-pg-")), {})
+    ctx = stage_context(plan, "posegraph", Path(tempfile.mkdtemp(prefix="bench-pg-")))
     p = ctx.params
     drives, _ = read_drive_inputs(ctx)
     sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"
@@ -95,9 +94,8 @@ def main() -> None:
 
 
 def print_information_bound(truth: np.ndarray, gnss_T: np.ndarray, valid: np.ndarray, dead_reckoning: np.ndarray):
-    from stages.common.geometry import wrap_angle_rad
-    from stages.evaluate.metrics import fit_rigid_2d
-    from stages.posegraph import metrics as M
+    from stages.common import trajectory_metrics as M
+    from stages.common.geometry import fit_rigid_2d, wrap_angle_rad
 
     xy, g = truth[:, :2, 3], gnss_T[:, :2, 3]
     R, t = fit_rigid_2d(xy[valid], g[valid])
@@ -121,7 +119,7 @@ def print_information_bound(truth: np.ndarray, gnss_T: np.ndarray, valid: np.nda
 def print_edge_heading_calibration(drive, truth: np.ndarray) -> None:
     """Heading error of the accepted ICP edges vs truth by the edge's turn, beside the std their information
     claims (odometry's floors and ``rot_sigma_per_rad``): the check behind that parameter's default."""
-    from stages.posegraph.metrics import edge_yaw_calibration
+    from stages.common.trajectory_metrics import edge_yaw_calibration
 
     k = np.flatnonzero(drive.edge_ok[1:]) + 1
     sets = [("consecutive", k - 1, k, drive.edge_T[k], drive.edge_info[k])]

@@ -23,7 +23,7 @@ def main() -> None:
     ap.add_argument("--root", type=Path, default=None)
     args = ap.parse_args()
 
-    from pipeline.cli import execute_workflow
+    from pipeline.api import execute_workflow
     from pipeline.plan import make_plan
     from pipeline.store import dataset_dir
     from pipeline.workflow import load_workflow

@@ -114,7 +114,7 @@ def main() -> None:
                     help="evaluate params for calibration runs (only on calibration seeds)")
     args = ap.parse_args()
 
-    from pipeline.cli import execute_workflow
+    from pipeline.api import execute_workflow
     from pipeline.errors import CornermapError
 
     rows = {f: {"ekf": {}, "mcl": {}} for f in ("map_relative", "absolute")}

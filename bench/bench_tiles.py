@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from mapformat.loader import open_map
 from pipeline.declare import PartitionKey
 from pipeline.testing import make_context
 from schemas import SCHEMAS
 from stages.tiles.compute import compute
-from mapformat.loader import open_map
 from stages.tiles.params import TilesParams
 
 TILE_M = 100.0

@@ -24,6 +24,7 @@ import numpy as np
 from pipeline.errors import DatasetIOError
 from stages.common.geodesy import EnuOrigin, enu_to_geodetic
 from stages.common.pointcloud_map import free_space_keep, grid_split, scan_to_map, voxel_downsample
+from stages.common.records import Extrinsics
 
 if TYPE_CHECKING:  # pragma: no cover
     from mapformat.loader import MapReader
@@ -98,8 +99,8 @@ def _committed(root: Path, dataset: str, fingerprint: str | None = None) -> tupl
 
 
 def _read(root: Path, dataset: str, drive: str, fingerprint: str | None = None, columns=None):
-    import pyarrow.parquet as pq
     import pyarrow as pa
+    import pyarrow.parquet as pq
 
     d, m = _committed(root, dataset, fingerprint)
     files = [d / f["path"] for f in m["files"] if f.get("partition", {}).get("drive") == drive]
@@ -115,16 +116,20 @@ def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, 
     inputs = reader.manifest.get("inputs", {})
     pts_all, org_all, pass_all, gz_all, inten_all = [], [], [], [], []
     for k, drive in enumerate(drives):
-        poses = _read(root, "poses_optimized", drive, (inputs.get("poses") or {}).get("fingerprint")).sort_by("stamp_ns")
+        poses = _read(root, "poses_optimized", drive, (inputs.get("poses") or {}).get("fingerprint")).sort_by(
+            "stamp_ns"
+        )
         info = _read(root, "drive_info", drive, (inputs.get("drive_info") or {}).get("fingerprint"))
-        T_vl = np.asarray(info["T_vehicle_lidar"][0].as_py(), float).reshape(4, 4)
+        T_vl = Extrinsics.from_table(info).of(drive)
         scans = _read(root, "scans_raw", drive, columns=["stamp_ns", "x_m", "y_m", "z_m", "intensity", "time_offset_s"])
         stamps = poses["stamp_ns"].to_numpy()
         pxyz = np.column_stack([poses[c].to_numpy() for c in ("x_m", "y_m", "z_m")])
         pq_ = np.column_stack([poses[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
         lidar = np.column_stack([scans[c].to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
         rng = np.linalg.norm(lidar, axis=1)
-        t_ns = scans["stamp_ns"].to_numpy() + np.round(scans["time_offset_s"].to_numpy().astype(float) * 1e9).astype(np.int64)
+        t_ns = scans["stamp_ns"].to_numpy() + np.round(scans["time_offset_s"].to_numpy().astype(float) * 1e9).astype(
+            np.int64
+        )
         ok = (rng > 1.0) & (rng < max_range_m) & (t_ns >= stamps[0]) & (t_ns <= stamps[-1])
         lidar, t_ok = lidar[ok], t_ns[ok]
         parts = [scan_to_map(lidar[a:a + _CHUNK], t_ok[a:a + _CHUNK], T_vl, stamps, pxyz, pq_)

@@ -152,8 +152,22 @@ def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = Non
             raise DatasetIOError(f"{out}: not a directory; the {fmt} export writes a directory")
     corners = reader.all_corners()
     if fmt == "im2016-text":
-        text = format_im2016_text(*(corners[c].to_numpy() for c in (
-            "corner_id", "east_m", "north_m", "theta1_rad", "theta2_rad", "cov_ee_m2", "cov_en_m2", "cov_nn_m2")), origin=reader.manifest["enu_origin"])
+        text = format_im2016_text(
+            *(
+                corners[c].to_numpy()
+                for c in (
+                    "corner_id",
+                    "east_m",
+                    "north_m",
+                    "theta1_rad",
+                    "theta2_rad",
+                    "cov_ee_m2",
+                    "cov_en_m2",
+                    "cov_nn_m2",
+                )
+            ),
+            origin=reader.manifest["enu_origin"],
+        )
         _atomic_write(out, text.encode("utf-8"))
         return [out]
     props = {"map_name": reader.manifest.get("map_name"), "version": reader.version,

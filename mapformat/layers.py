@@ -7,7 +7,8 @@ A tile's ``raster.json`` sidecar (written by the markings stage) lists every lay
 GeoTIFF CRS: a transverse Mercator centred on the map's ENU origin (no false easting/northing, WGS84, scale
 factor putting it at the origin's height). At the origin its x/y axes are east/north with the ENU plane's scale,
 so the ENU raster lattice is written as-is (an affine north-up transform, no resampling); TM and the ENU tangent
-plane part by 0.02 mm at 1 km from the origin, 0.4 mm at 3 km, 16 mm at 10 km (pyproj; tested at 1 km). In a UTM zone the ENU grid would be rotated by the meridian convergence
+plane part by 0.02 mm at 1 km from the origin, 0.4 mm at 3 km, 16 mm at 10 km (pyproj; tested at 1 km).
+In a UTM zone the ENU grid would be rotated by the meridian convergence
 (~1 deg at 127 E 37.5 N, 0.1 deg from the central meridian) and scaled by 0.9996..1.0004, so the raster would
 have to be resampled.
 """
@@ -56,7 +57,9 @@ def sidecar_layers(tile_dir: Path, marking_meta: dict[str, Any]) -> dict[str, di
         try:
             doc = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as exc:
-            raise MapFormatError(f"{path}: unreadable raster sidecar ({exc}); hint: run `cornermap tiles verify`") from exc
+            raise MapFormatError(
+                f"{path}: unreadable raster sidecar ({exc}); hint: run `cornermap tiles verify`"
+            ) from exc
         layers = {k: v for k, v in (doc.get("layers") or {}).items() if (Path(tile_dir) / v.get("file", "")).is_file()}
     mask_file = marking_meta.get("mask_file")
     if mask_file:
@@ -92,15 +95,22 @@ def write_cog(path: Path, values: np.ndarray, west_m: float, north_m: float, cel
               layer: str, tags: dict[str, str] | None = None) -> Path:
     """One band Cloud-Optimized GeoTIFF (deflate, internal tiles, overviews) of ``values`` (row 0 = north)."""
     import rasterio
+    from affine import Affine
     from rasterio.io import MemoryFile
     from rasterio.shutil import copy as rio_copy
-    from affine import Affine
 
     dtype, nodata, description = LAYER_BANDS.get(layer, (str(values.dtype), None, layer))
     data = np.asarray(values).astype(dtype)
-    profile = {"driver": "GTiff", "width": data.shape[1], "height": data.shape[0], "count": 1, "dtype": dtype,
-               "crs": rasterio.crs.CRS.from_string(crs), "transform": Affine(cell_m, 0.0, west_m, 0.0, -cell_m, north_m),
-               "nodata": nodata}
+    profile = {
+        "driver": "GTiff",
+        "width": data.shape[1],
+        "height": data.shape[0],
+        "count": 1,
+        "dtype": dtype,
+        "crs": rasterio.crs.CRS.from_string(crs),
+        "transform": Affine(cell_m, 0.0, west_m, 0.0, -cell_m, north_m),
+        "nodata": nodata,
+    }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")

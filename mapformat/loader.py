@@ -29,13 +29,12 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from mapformat import layout
 from pipeline.errors import IntegrityError, LimitError, MapFormatError, PathEscapeError, UnknownNameError
 from pipeline.names import inside
 from pipeline.versioned import MANIFEST_NAME, read_manifest, resolve_version, trusted_manifest_digests
 from stages.common.geodesy import EnuOrigin
 from stages.common.tiling import tile_key_of
-from mapformat import layout
-
 
 MAX_WINDOW_CELLS = 1 << 28  # 256 Mi cells = 256 MiB of uint8: e.g. 16 km x 16 km at 1 m cells
 _VERIFIED: dict[tuple[str, int, int, int], str] = {}  # (path, size, mtime_ns, inode) -> sha256, this process
@@ -56,7 +55,9 @@ def read_verified(version_dir: Path, rel: str, files: dict[str, Any], trust: boo
                                      "hint: run `cornermap tiles verify`")
             data = fh.read()
     except OSError as exc:
-        raise MapFormatError(f"{path}: cannot read ({exc.strerror or exc}); hint: run `cornermap tiles verify`") from exc
+        raise MapFormatError(
+            f"{path}: cannot read ({exc.strerror or exc}); hint: run `cornermap tiles verify`"
+        ) from exc
     key = (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
     if trust or _VERIFIED.get(key) == entry["sha256"]:
         return data
@@ -124,10 +125,14 @@ class MapReader:
         except PathEscapeError:
             raise
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise MapFormatError(f"{self.path / MANIFEST_NAME}: malformed manifest ({type(exc).__name__}: {exc}); "
-                                 "hint: run `cornermap tiles verify`") from exc
+            raise MapFormatError(
+                f"{self.path / MANIFEST_NAME}: malformed manifest ({type(exc).__name__}: {exc}); "
+                "hint: run `cornermap tiles verify`"
+            ) from exc
         if not (self.tile_size_m > 0 and np.isfinite(self.tile_size_m)):
-            raise MapFormatError(f"{self.path / MANIFEST_NAME}: tile_size_m {self.tile_size_m} is not a positive number")
+            raise MapFormatError(
+                f"{self.path / MANIFEST_NAME}: tile_size_m {self.tile_size_m} is not a positive number"
+            )
         if len(cells) > 1:
             raise MapFormatError(f"{self.path}: marking rasters use several cell sizes {sorted(cells)} m")
         self.cell_m: float | None = cells.pop() if cells else None
@@ -185,7 +190,9 @@ class MapReader:
         try:
             table = pq.ParquetFile(pa.BufferReader(data)).read(use_threads=False).cast(self._schema)
         except (OSError, pa.ArrowInvalid, ValueError) as exc:
-            raise MapFormatError(f"{path}: cannot read tile corners ({exc}); hint: run `cornermap tiles verify`") from exc
+            raise MapFormatError(
+                f"{path}: cannot read tile corners ({exc}); hint: run `cornermap tiles verify`"
+            ) from exc
         return table, table["east_m"].to_numpy(), table["north_m"].to_numpy()
 
     def _load_marking(self, key: tuple[int, int]) -> np.ndarray:
@@ -232,7 +239,9 @@ class MapReader:
         parts = [self._corners.get(k)[0] for k in self.tile_keys()]
         return pa.concat_tables(parts) if parts else self._empty
 
-    def marking_window(self, e0: float, n0: float, e1: float, n1: float) -> tuple[np.ndarray, tuple[float, float], float]:
+    def marking_window(
+        self, e0: float, n0: float, e1: float, n1: float
+    ) -> tuple[np.ndarray, tuple[float, float], float]:
         """Mosaic of the marking rasters over the box, on the raster cell lattice.
 
         Returns (mask uint8 of shape (rows, cols), (east_m, north_m) of the window's lower-left corner, cell_m).

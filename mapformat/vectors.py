@@ -105,5 +105,7 @@ def read_map_features(version_dir, tile_entries: list[dict]) -> list[MarkingFeat
         try:
             out += table_features(pq.read_table(path))
         except (OSError, pa.ArrowInvalid, KeyError) as exc:
-            raise MapFormatError(f"{path}: cannot read vector markings ({exc}); hint: run `cornermap tiles verify`") from exc
+            raise MapFormatError(
+                f"{path}: cannot read vector markings ({exc}); hint: run `cornermap tiles verify`"
+            ) from exc
     return out

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mapformat import layout
+from mapformat.loader import check_manifest_format
 from pipeline.errors import MapFormatError, PathEscapeError
 from pipeline.names import inside
 from pipeline.versioned import MANIFEST_NAME, read_manifest, verify_version
-from mapformat import layout
-from mapformat.loader import check_manifest_format
 
 
 def verify_map(version_dir: Path, manifest_sha256: str | None = None) -> list[str]:

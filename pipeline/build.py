@@ -34,7 +34,6 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
     """The map workflow (a file or a packaged name) with these drives, map name, root and origin, written under
     ``ROOT/workflows/`` (absolute paths: the build's record of what it ran)."""
     from pipeline.resources import resolve_workflow
-
     from pipeline.safe_yaml import load_yaml_file
 
     path = resolve_workflow(template)

@@ -8,16 +8,20 @@ from typing import Optional
 
 import typer
 
+from pipeline.api import execute_workflow
 from pipeline.errors import CornermapError
 
 app = typer.Typer(
-    name="cornermap", no_args_is_help=True, add_completion=False, rich_markup_mode="rich",
+    name="cornermap",
+    no_args_is_help=True,
+    add_completion=False,
+    rich_markup_mode="rich",
     help="Batch production of LiDAR localization maps (vertical-corner landmarks + road-marking rasters).\n\n"
-         "Examples:\n\n"
-         "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
-         "  cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57\n\n"
-         "  cornermap run tiny --root runs/tiny --dry-run\n\n"
-         "  cornermap corners params",
+    "Examples:\n\n"
+    "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
+    "  cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57\n\n"
+    "  cornermap run tiny --root runs/tiny --dry-run\n\n"
+    "  cornermap corners params",
 )
 catalog_app = typer.Typer(no_args_is_help=True, help="Inspect and validate the data catalog.")
 app.add_typer(catalog_app, name="catalog")
@@ -36,7 +40,7 @@ def _version_callback(value: bool) -> None:
         from importlib.metadata import version
 
         import dask
-        import gtsam  # noqa: F401
+        import gtsam  # noqa: F401 - fails here, not later, when gtsam is broken
         import open3d
 
         typer.echo(f"cornermap {version('cornermap')} (open3d {open3d.__version__}, "
@@ -50,50 +54,6 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version_cal
           verbose: bool = typer.Option(False, "--verbose", "-v", help="Log at INFO level.")) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-
-
-def _load_param_file(path: Optional[Path]) -> dict:
-    if path is None:
-        return {}
-    from pipeline.errors import ConfigError
-    from pipeline.safe_yaml import load_yaml_file
-
-    data = load_yaml_file(path) or {}
-    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
-        raise ConfigError(str(path), ["expected a mapping {stage: {param: value}}"])
-    return data
-
-
-def execute_workflow(workflow_path: Path, *, root: Optional[Path], scheduler: Optional[str], only: list[str] | None,
-                     dry_run: bool, quiet: bool, params_file: Optional[Path] = None,
-                     workers: Optional[int] = None) -> dict:
-    from pipeline.execute import Scheduler
-    from pipeline.flow import run_plan
-    from pipeline.plan import describe_plan, make_plan
-    from pipeline.progress import StageProgress, print_plan
-    from pipeline.workflow import load_workflow
-
-    wf = load_workflow(workflow_path, param_overrides=_load_param_file(params_file))
-    if only:
-        from pipeline.errors import UnknownNameError
-        from pipeline.registry import suggest
-
-        for name in only:
-            if name not in wf.stages:
-                raise UnknownNameError(f"--only {name!r}: not a stage of {workflow_path}{suggest(name, wf.stages)}")
-    plan = make_plan(wf, wf.root_dir(root), only=only)
-    if dry_run:
-        print_plan(describe_plan(plan), plan.root)
-        return {"dry_run": True}
-    sched = Scheduler(scheduler or wf.spec.scheduler, workers=workers)
-    try:
-        with StageProgress(enabled=not quiet) as progress:
-            summary = run_plan(plan, sched, progress.update)
-    finally:
-        sched.close()
-    if not quiet:
-        print_plan(describe_plan(plan), plan.root, summary)
-    return {"plan": plan, "summary": summary}
 
 
 @app.command("run")
@@ -121,18 +81,26 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a 
 
 
 @app.command("build")
-def build_cmd(drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml of a map drive (repeatable)."),
-              map_name: str = typer.Option(..., "--map", help="Map name: publishes ROOT/maps/NAME/vNNNN."),
-              root: Path = typer.Option(..., "--root", help="Output root."),
-              origin: Optional[str] = typer.Option(None, "--origin", help="The map's ENU origin LAT,LON,H (degrees, "
-                                                   "degrees, metres WGS84); default: the first GNSS fix of the first drive."),
-              scheduler: Optional[str] = SCHED_OPT, quiet: bool = QUIET_OPT,
-              workflow: str = typer.Option("map_rebuild", "--workflow",
-                                           help="The map workflow to run on these drives (a file or a packaged name).")
-              ) -> None:
+def build_cmd(
+    drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml of a map drive (repeatable)."),
+    map_name: str = typer.Option(..., "--map", help="Map name: publishes ROOT/maps/NAME/vNNNN."),
+    root: Path = typer.Option(..., "--root", help="Output root."),
+    origin: Optional[str] = typer.Option(
+        None,
+        "--origin",
+        help="The map's ENU origin LAT,LON,H (degrees, "
+        "degrees, metres WGS84); default: the first GNSS fix of the first drive.",
+    ),
+    scheduler: Optional[str] = SCHED_OPT,
+    quiet: bool = QUIET_OPT,
+    workflow: str = typer.Option(
+        "map_rebuild", "--workflow", help="The map workflow to run on these drives (a file or a packaged name)."
+    ),
+) -> None:
     """Build and publish the next version of map NAME from drives (the standard map workflow).
 
-    Example: [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
+    Example:
+    [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
     """
     from pipeline.build import parse_origin, write_build_workflow
     from pipeline.names import check_name
@@ -163,8 +131,10 @@ def catalog_ls(catalog: Optional[Path] = typer.Argument(None, help="Catalog fold
 
 
 @catalog_app.command("validate")
-def catalog_validate(catalog: Optional[Path] = typer.Argument(None, help="default: the packaged catalog"),
-                     workflows: list[Path] = typer.Option([], "--workflow", help="Also validate these workflows.")) -> None:
+def catalog_validate(
+    catalog: Optional[Path] = typer.Argument(None, help="default: the packaged catalog"),
+    workflows: list[Path] = typer.Option([], "--workflow", help="Also validate these workflows."),
+) -> None:
     """Validate the catalog (and workflows): every problem is listed at once.
 
     Example: [b]cornermap catalog validate --workflow tiny[/b]
@@ -193,7 +163,6 @@ def _register_stages() -> None:
         sub = stage_app(decl)
         if decl.cli:
             import importlib
-
             import inspect
 
             register = importlib.import_module(decl.cli).register

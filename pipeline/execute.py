@@ -16,12 +16,18 @@ from pathlib import Path
 from typing import Any, Callable
 
 from pipeline.catalog import resolve_schema
-from pipeline.declare import PartitionKey, Partitioning, StageContext
+from pipeline.declare import Partitioning, PartitionKey, StageContext
 from pipeline.errors import CornermapError, StageError
 from pipeline.plan import Plan, StagePlan
 from pipeline.registry import get_stage
-from pipeline.store import (StoreInputReader, atomic_write_json, commit_artifacts, dataset_dir, merge_part_extras,
-                            write_pieces)
+from pipeline.store import (
+    StoreInputReader,
+    atomic_write_json,
+    commit_artifacts,
+    dataset_dir,
+    merge_part_extras,
+    write_pieces,
+)
 
 log = logging.getLogger(__name__)
 

@@ -29,10 +29,20 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, Thr
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from pipeline.declare import PartitionKey, Partitioning
+from pipeline.declare import Partitioning, PartitionKey
 from pipeline.errors import StageError
-from pipeline.execute import (Progress, Scheduler, _context, _task_spec, commit_stage, enumerate_partitions,
-                              one_thread_per_process, run_partition, set_step_progress, task_key)
+from pipeline.execute import (
+    Progress,
+    Scheduler,
+    _context,
+    _task_spec,
+    commit_stage,
+    enumerate_partitions,
+    one_thread_per_process,
+    run_partition,
+    set_step_progress,
+    task_key,
+)
 from pipeline.plan import Plan, StagePlan
 from pipeline.store import dataset_dir, read_manifest
 

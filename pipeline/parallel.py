@@ -1,12 +1,13 @@
 """Parallel map for the independent inner steps of a single-partition stage (many small registrations).
 
 ``parallel_map(fn, items, workers=N)`` returns ``[fn(x) for x in items]`` in order. Where it runs:
+- ``workers <= 1`` or fewer than two items: in this process, in order (also inside a cluster task);
 - inside a dask.distributed worker: as tasks on the same cluster (``worker_client``: the partition task secedes
   while they run, so a cluster of any size does the inner work);
-- elsewhere with ``workers > 1``: a process pool of ``workers`` processes (``spawn``: no forked OpenMP state),
+- elsewhere: a process pool of ``workers`` (default: the usable cores) processes (``spawn``: no forked OpenMP state),
   one OpenMP/BLAS thread each, started with ``initializer(*initargs)`` (large shared inputs are sent once per
   process this way, not once per item);
-- else (``workers <= 1`` or fewer than two items): in this process, in order.
+- else (one usable core): in this process, in order.
 ``fn`` must be importable by name (a module-level function) and its items and results picklable and small.
 Results are identical whichever way it ran (each item is computed alone). Progress: ``progress(done, total)``.
 """
@@ -49,12 +50,10 @@ def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], *, workers: int
                  progress: Callable[[int, int], None] | None = None) -> list[Any]:
     items = list(items)
     total = len(items)
-    workers = default_workers() if workers is None else int(workers)
     if total == 0:
         return []
-    if _in_distributed_worker() and total > 1:
-        return _on_cluster(fn, items, initializer, initargs, progress)
-    if workers <= 1 or total < 2:
+    if (workers is not None and int(workers) <= 1) or total < 2:
+        log.debug("parallel_map %s: %d items in this process", getattr(fn, "__name__", fn), total)
         if initializer is not None:
             initializer(*initargs)
         out = []
@@ -63,6 +62,13 @@ def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], *, workers: int
             if progress:
                 progress(n, total)
         return out
+    if _in_distributed_worker():
+        log.debug("parallel_map %s: %d items as cluster tasks", getattr(fn, "__name__", fn), total)
+        return _on_cluster(fn, items, initializer, initargs, progress)
+    workers = default_workers() if workers is None else int(workers)
+    if workers <= 1:
+        return parallel_map(fn, items, workers=1, initializer=initializer, initargs=initargs, progress=progress)
+    log.debug("parallel_map %s: %d items on %d processes", getattr(fn, "__name__", fn), total, min(workers, total))
     return _on_pool(fn, items, min(workers, total), initializer, initargs, progress)
 
 

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.declare import PartitionKey, Partitioning, StageDecl
+from pipeline.declare import Partitioning, PartitionKey, StageDecl
 from pipeline.fingerprint import drive_fingerprint, file_key, stable_hash, stage_fingerprint
 from pipeline.store import dataset_dir, read_manifest
 from pipeline.workflow import TEMPLATE, Workflow

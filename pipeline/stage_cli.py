@@ -38,7 +38,7 @@ def stage_app(decl: StageDecl) -> typer.Typer:
             params: Optional[Path] = typer.Option(None, "--params", help="YAML {stage: {param: value}}."),
             dry_run: bool = typer.Option(False, "--dry-run"), quiet: bool = typer.Option(False, "--quiet", "-q")):
         """Run this stage alone on committed inputs of a workflow."""
-        from pipeline.cli import execute_workflow
+        from pipeline.api import execute_workflow
         from pipeline.progress import print_outcomes
 
         result = execute_workflow(workflow, root=root, scheduler=scheduler, only=[decl.name], dry_run=dry_run,

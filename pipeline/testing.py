@@ -8,10 +8,9 @@ from typing import Any, Mapping
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from pipeline.catalog import PARTITION_COLUMNS as _PARTITION_COLUMNS
 from pipeline.declare import InputReader, Params, PartitionKey, StageContext
 from pipeline.errors import UnknownNameError
-
-from pipeline.catalog import PARTITION_COLUMNS as _PARTITION_COLUMNS
 
 
 class MemoryInputReader(InputReader):

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import ChecksumError, DatasetIOError, MapFormatError, PathEscapeError, UnknownNameError
+from pipeline.fingerprint import file_sha256
 from pipeline.names import inside
 
 log = logging.getLogger("pipeline.versioned")
@@ -22,7 +23,6 @@ LATEST_NAME = "LATEST"
 _VERSION_RE = re.compile(r"^v(\d{4,})$")
 _SHA_RE = re.compile(r"^[0-9a-f]{64}$")
 MAX_MANIFEST_BYTES = 64 << 20
-_CHUNK = 1 << 20
 
 
 def version_name(version: int) -> str:
@@ -38,14 +38,6 @@ def parse_version(text: str | int) -> int:
     if not m:
         raise UnknownNameError(f"{text!r} is not a version; expected vNNNN (e.g. v0003), a number, or LATEST")
     return int(m.group(1))
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(_CHUNK), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def list_versions(collection_dir: Path) -> list[int]:
@@ -180,7 +172,7 @@ def verify_version(version_dir: Path, manifest_sha256: str | None = None) -> lis
         if not path.is_file():
             problems.append(f"{path}: missing (manifest lists it)")
             continue
-        got = sha256_file(path)
+        got = file_sha256(path)
         if got != entry.get("sha256"):
             problems.append(f"{path}: sha256 {got[:16]}... differs from manifest {str(entry.get('sha256'))[:16]}...")
     present = {p.relative_to(version_dir).as_posix() for p in version_dir.rglob("*") if p.is_file()}

@@ -39,10 +39,23 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
 
 from pipeline.errors import DatasetIOError, PublishConflictError
-from pipeline.version_read import (LATEST_NAME, MANIFEST_NAME, MAX_MANIFEST_BYTES, _VERSION_RE,  # noqa: F401
-                                   check_version, list_versions, parse_version, read_latest, read_latest_entry,
-                                   read_manifest, resolve_version, sha256_file, trusted_manifest_digests,
-                                   verify_version, version_name)
+from pipeline.fingerprint import file_sha256
+from pipeline.version_read import (  # noqa: F401 - re-exported: the publishing API in one module
+    _VERSION_RE,
+    LATEST_NAME,
+    MANIFEST_NAME,
+    MAX_MANIFEST_BYTES,
+    check_version,
+    list_versions,
+    parse_version,
+    read_latest,
+    read_latest_entry,
+    read_manifest,
+    resolve_version,
+    trusted_manifest_digests,
+    verify_version,
+    version_name,
+)
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +140,7 @@ def _hash_tree(staging: Path, durable: bool) -> dict[str, dict[str, Any]]:
             raise DatasetIOError(f"{path}: the writer must not create {MANIFEST_NAME}; the publisher writes it")
         if durable:
             _fsync_path(path)
-        files[rel] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+        files[rel] = {"sha256": file_sha256(path), "bytes": path.stat().st_size}
     return files
 
 

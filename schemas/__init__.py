@@ -5,4 +5,4 @@
 """
 from __future__ import annotations
 
-from schemas.registry import SCHEMAS, field, schema_of  # noqa: F401
+from schemas.registry import SCHEMAS, field, schema_of  # noqa: F401 - the package's public names

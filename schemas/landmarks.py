@@ -1,7 +1,8 @@
 """Schemas of corner extraction and the corner map."""
 import pyarrow as pa
 
-from schemas.registry import field as f, register
+from schemas.registry import field as f
+from schemas.registry import register
 
 register(
     "corners_per_scan", "Vertical corners extracted from one scan, in the lidar frame (Im et al. 2016 s.2).",
@@ -19,15 +20,23 @@ register(
 )
 
 register(
-    "corner_map", "One record per physical corner in the map's ENU frame (Im et al. 2016 Table 1).",
+    "corner_map",
+    "One record per physical corner in the map's ENU frame (Im et al. 2016 Table 1).",
     f("corner_id", pa.int64()),
-    f("east_m", pa.float64(), "m", "enu"), f("north_m", pa.float64(), "m", "enu"),
+    f("east_m", pa.float64(), "m", "enu"),
+    f("north_m", pa.float64(), "m", "enu"),
     f("theta1_rad", pa.float64(), "rad", "enu", doc="canonical order: wrap(theta2 - theta1) in (0, pi]"),
     f("theta2_rad", pa.float64(), "rad", "enu"),
-    f("cov_ee_m2", pa.float64(), "m^2", doc="uncertainty of the map point (docs/cornermap.md)"), f("cov_en_m2", pa.float64(), "m^2"), f("cov_nn_m2", pa.float64(), "m^2"),
-    f("n_obs", pa.int64()), f("n_drives", pa.int32()), f("drives", pa.string(), doc="comma-separated"),
-    f("first_seen_ns", pa.int64(), "ns"), f("last_seen_ns", pa.int64(), "ns"),
-    f("interior_angle_rad", pa.float64(), "rad"), f("convex", pa.bool_()),
+    f("cov_ee_m2", pa.float64(), "m^2", doc="uncertainty of the map point (docs/cornermap.md)"),
+    f("cov_en_m2", pa.float64(), "m^2"),
+    f("cov_nn_m2", pa.float64(), "m^2"),
+    f("n_obs", pa.int64()),
+    f("n_drives", pa.int32()),
+    f("drives", pa.string(), doc="comma-separated"),
+    f("first_seen_ns", pa.int64(), "ns"),
+    f("last_seen_ns", pa.int64(), "ns"),
+    f("interior_angle_rad", pa.float64(), "rad"),
+    f("convex", pa.bool_()),
 )
 
 register(

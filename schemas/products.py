@@ -1,7 +1,8 @@
 """Schemas of the marking layer, map tiles and evaluation."""
 import pyarrow as pa
 
-from schemas.registry import field as f, register
+from schemas.registry import field as f
+from schemas.registry import register
 
 register(
     "marking_raster", "Per tile raster metadata; rasters are PNG files beside it (see docs/map-format.md).",

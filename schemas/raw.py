@@ -1,7 +1,8 @@
 """Schemas written by ingest: raw scans in the sensor frame, GNSS/INS in ENU, odometry, survey cloud."""
 import pyarrow as pa
 
-from schemas.registry import field as f, register
+from schemas.registry import field as f
+from schemas.registry import register
 
 DRIVE = f("drive", pa.string(), doc="drive name from the workflow")
 CHUNK = f("chunk", pa.int32(), doc="scan chunk index within the drive")

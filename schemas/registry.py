@@ -27,4 +27,4 @@ def schema_of(name: str) -> pa.Schema:
 
 
 # Import the modules that register schemas (kept small, one per data-flow step).
-from schemas import raw, trajectory, landmarks, products, tiles  # noqa: E402,F401
+from schemas import landmarks, products, raw, tiles, trajectory  # noqa: E402,F401 - importing registers them

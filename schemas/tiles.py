@@ -1,7 +1,8 @@
 """Schema of the tiles stage's output: one row per published (or reused) map version."""
 import pyarrow as pa
 
-from schemas.registry import field as f, register
+from schemas.registry import field as f
+from schemas.registry import register
 
 register(
     "map_tiles", "The map version the tiles stage published (or reused) under ROOT/maps/NAME (docs/map-format.md).",

@@ -1,7 +1,8 @@
 """Schemas of the pose graph stage."""
 import pyarrow as pa
 
-from schemas.registry import field as f, register
+from schemas.registry import field as f
+from schemas.registry import register
 
 DRIVE = f("drive", pa.string())
 POSE = [
@@ -18,7 +19,7 @@ def _edge_fields(frame: str) -> list:
         f("fitness", pa.float64(), doc="share of source points with a correspondence"),
         f("inlier_rmse_m", pa.float64(), "m"),
         f("information", pa.list_(pa.float64(), 36), doc="6x6 row-major, gtsam order (rx ry rz tx ty tz)"),
-        f("converged", pa.bool_()),
+        f("accepted", pa.bool_(), doc="the odometry gate accepted the edge (registered, fitness, deviation)"),
     ]
 
 

@@ -183,9 +183,9 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
     import open3d as o3d
     import yaml
 
-    from stages.simulate.markings import city_from_description, marking_truth_features
     from mapformat.export import export_map
     from mapformat.loader import open_map
+    from stages.simulate.markings import city_from_description, marking_truth_features
 
     root, _ = tiny_sync
     reader = open_map(root / "maps" / "tiny")
@@ -212,9 +212,17 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
     [city_json] = list((root / "datasets" / "raw_drives").glob("*/artifacts/all/truth/city.json"))
     truth = marking_truth_features(city_from_description(json.loads(city_json.read_text())))
     osm = ET.parse(out / "lanelet2_map.osm").getroot()
-    xy = {n.get("id"): np.array([float(n.find("tag[@k='local_x']").get("v")), float(n.find("tag[@k='local_y']").get("v"))])
-          for n in osm.iter("node")}
-    kinds = {"line_thin": ("lane_solid", "lane_dashed"), "stop_line": ("stop_line",), "crosswalk_polygon": ("crosswalk",)}
+    xy = {
+        n.get("id"): np.array(
+            [float(n.find("tag[@k='local_x']").get("v")), float(n.find("tag[@k='local_y']").get("v"))]
+        )
+        for n in osm.iter("node")
+    }
+    kinds = {
+        "line_thin": ("lane_solid", "lane_dashed"),
+        "stop_line": ("stop_line",),
+        "crosswalk_polygon": ("crosswalk",),
+    }
     n_checked = 0
     for way in osm.iter("way"):
         tags = {t.get("k"): t.get("v") for t in way.iter("tag")}

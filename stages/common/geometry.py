@@ -83,8 +83,8 @@ def tum_rows_to_poses(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def write_tum(path, stamps_s: np.ndarray, T_world_body: np.ndarray, header: str = "") -> None:
     """Write a TUM trajectory (t x y z qx qy qz qw), atomically; ``header`` lines become '# ' comments."""
-    from pathlib import Path
     import os
+    from pathlib import Path
 
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -103,10 +103,20 @@ def read_tum(path) -> tuple[np.ndarray, np.ndarray]:
 
 def write_kitti(path, T_world_body: np.ndarray) -> None:
     """KITTI odometry format: 12 numbers per line, the top 3x4 of each pose."""
-    from pathlib import Path
     import os
+    from pathlib import Path
 
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     np.savetxt(tmp, T_world_body[:, :3, :4].reshape(len(T_world_body), 12), fmt="%.9e")
     os.replace(tmp, path)
+
+
+def fit_rigid_2d(src_m: np.ndarray, dst_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rotation R (2x2) and translation t with ``dst ~ src @ R.T + t`` (Kabsch, no scale)."""
+    src, dst = np.asarray(src_m, dtype=float), np.asarray(dst_m, dtype=float)
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cd - R @ cs

@@ -18,7 +18,6 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-
 _ASHMAN_D_MIN = 4.0
 _MAX_SPLIT_DEPTH = 4
 

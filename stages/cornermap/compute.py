@@ -10,7 +10,7 @@ import pyarrow as pa
 from pipeline.errors import DataQualityError
 from schemas import SCHEMAS
 from stages.common.drive_tables import select_drives
-from stages.common.geometry import poses_from_xyz_quat
+from stages.common.records import Extrinsics, pose_matrices
 from stages.cornermap.aggregate import aggregate_clusters
 from stages.cornermap.clustering import cluster_observations
 from stages.cornermap.filtering import FilterThresholds, reject_reasons
@@ -47,17 +47,16 @@ def _finite_rows(t: pa.Table) -> np.ndarray:
 
 def _extrinsics(drive_info: pa.Table, drive_names: list[str]) -> np.ndarray:
     """(D,4,4) T_vehicle_lidar per drive name."""
-    rows = {r["drive"]: r["T_vehicle_lidar"] for r in drive_info.select(["drive", "T_vehicle_lidar"]).to_pylist()}
+    rows = Extrinsics.from_table(drive_info.select(["drive", "T_vehicle_lidar"])).T_vehicle_lidar
     missing = [d for d in drive_names if d not in rows]
     if missing:
         raise DataQualityError(f"cornermap: drives {missing} have corners but no drive_info row (T_vehicle_lidar); "
                                f"drive_info has {sorted(rows)}; hint: run ingest for those drives")
-    return np.stack([np.asarray(rows[d], dtype=float).reshape(4, 4) for d in drive_names])
+    return np.stack([rows[d] for d in drive_names])
 
 
 def _pose_matrices(poses: pa.Table, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    T = poses_from_xyz_quat(np.column_stack([poses[c].to_numpy()[rows] for c in ("x_m", "y_m", "z_m")]),
-                            np.column_stack([poses[c].to_numpy()[rows] for c in ("qx", "qy", "qz", "qw")]))
+    T = pose_matrices(poses, rows)
     cov_all = np.asarray(poses["cov_xy_yaw"].combine_chunks().flatten().to_numpy(), dtype=float)
     return T, cov_all.reshape(-1, 3, 3)[rows]
 

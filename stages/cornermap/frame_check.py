@@ -11,14 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-
-def fit_rigid_2d(src_m: np.ndarray, dst_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares R (2x2), t (2,) with dst ~ R src + t (Kabsch, no scale)."""
-    cs, cd = src_m.mean(axis=0), dst_m.mean(axis=0)
-    U, _, Vt = np.linalg.svd((src_m - cs).T @ (dst_m - cd))
-    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
+from stages.common.geometry import fit_rigid_2d
 
 
 def layer_vs_poses(map_en_m: np.ndarray, obs_en_m: np.ndarray, obs_drive_code: np.ndarray, drive_names: list[str],

@@ -131,7 +131,20 @@ def observe_drive(drive: str, route: np.ndarray, corners_en: np.ndarray, corners
 
 
 def drive_info_table(drives: list[str]) -> pa.Table:
-    return pa.Table.from_pylist([{"drive": d, "sensor": "synthetic", "T_vehicle_lidar": T_VEHICLE_LIDAR.ravel().tolist(),
-                                  "origin_lat_deg": 37.4979, "origin_lon_deg": 127.0276, "origin_h_m": 57.0,
-                                  "n_scans": 0, "n_quarantined": 0, "drive_file": ""} for d in drives],
-                                schema=SCHEMAS["drive_info"])
+    return pa.Table.from_pylist(
+        [
+            {
+                "drive": d,
+                "sensor": "synthetic",
+                "T_vehicle_lidar": T_VEHICLE_LIDAR.ravel().tolist(),
+                "origin_lat_deg": 37.4979,
+                "origin_lon_deg": 127.0276,
+                "origin_h_m": 57.0,
+                "n_scans": 0,
+                "n_quarantined": 0,
+                "drive_file": "",
+            }
+            for d in drives
+        ],
+        schema=SCHEMAS["drive_info"],
+    )

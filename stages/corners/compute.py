@@ -8,8 +8,9 @@ import pyarrow as pa
 
 from pipeline.declare import StageContext
 from schemas.registry import schema_of
-from stages.corners.core import extract_corners, select_scan_layers
+from stages.common.records import Extrinsics
 from stages.common.wheel_deskew import OdometryTrack, track_from_table
+from stages.corners.core import extract_corners, select_scan_layers
 from stages.corners.determine import Corners
 from stages.corners.params import CornerParams
 
@@ -63,8 +64,8 @@ def corners_table(drive: str, chunk: int, scan_ids: list[int], stamps_ns: list[i
 def _extrinsic(ctx: StageContext) -> np.ndarray | None:
     if not ctx.inputs.has("drive_info"):
         return None
-    info = ctx.inputs.read("drive_info", partition=ctx.partition, columns=["T_vehicle_lidar"])
-    return np.asarray(info["T_vehicle_lidar"][0].as_py(), float).reshape(4, 4) if info.num_rows else None
+    info = ctx.inputs.read("drive_info", partition=ctx.partition, columns=["drive", "T_vehicle_lidar"])
+    return Extrinsics.from_table(info).of(ctx.partition.drive) if info.num_rows else None
 
 
 def _odometry_track(ctx: StageContext, params: CornerParams) -> OdometryTrack | None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+
 def _ring_index(ring: np.ndarray) -> np.ndarray:
     ring = np.asarray(ring)
     if ring.size and int(ring.min()) < 0:

@@ -45,8 +45,8 @@ def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: di
 def open_named_map(root: Optional[Path], map_arg: Optional[str], version: str):
     """The map named as on every command: ``--root ROOT --map NAME [--version vNNNN]``. A ``--map`` holding a path
     separator is a path (ROOT/maps/NAME or a vNNNN folder) and is accepted alone, when it is unambiguous."""
-    from pipeline.errors import ConfigError
     from mapformat.loader import open_map
+    from pipeline.errors import ConfigError
 
     if map_arg is not None and ("/" in map_arg or "\\" in map_arg):
         path = Path(map_arg)
@@ -72,11 +72,11 @@ def _evaluate_params(params_file: Optional[Path], methods: list[str], reference_
                      fail_on_targets: bool) -> tuple[object, dict]:
     from pydantic import ValidationError
 
-    from pipeline.cli import _load_param_file
+    from pipeline.api import load_param_file
     from pipeline.errors import ConfigError
     from stages.evaluate.params import EvaluateParams
 
-    overrides = _load_param_file(params_file) if params_file else {}
+    overrides = load_param_file(params_file) if params_file else {}
     mine = dict(overrides.get("evaluate", {}))
     mine["methods"] = methods
     if reference_frame is not None:
@@ -90,25 +90,39 @@ def _evaluate_params(params_file: Optional[Path], methods: list[str], reference_
                                                  for e in exc.errors()]) from None
 
 
-def evaluate_cmd(drive: Path = typer.Option(..., "--drive", help="drive.yaml of the evaluation drive."),
-                 root: Optional[Path] = typer.Option(None, "--root", envvar="CORNERMAP_ROOT",
-                                                     help="Output root holding maps/NAME/ (default: .)."),
-                 map_arg: Optional[str] = typer.Option(None, "--map", "-m", help="Map name under ROOT/maps "
-                                                       "(default: the only map there); a path to ROOT/maps/NAME "
-                                                       "or to a vNNNN folder is accepted alone."),
-                 version: str = typer.Option("LATEST", "--version", help="LATEST, vNNNN or N."),
-                 method: str = typer.Option("both", "--method", help="ekf | mcl | both"),
-                 reference: Optional[str] = typer.Option(None, "--reference",
-                                                         help="TRAJ.tum (truth) or 'map' (pose-graph co-registration)."),
-                 reference_frame: Optional[str] = typer.Option(
-                     None, "--reference-frame", help="Frame of --reference TRAJ.tum: auto (the ENU origin its header "
-                     "line or TRAJ.frame.json states; refused if none), map, or LAT,LON,H."),
-                 fail_on_targets: bool = typer.Option(False, "--fail-on-targets",
-                                                      help="Exit 3 when a target is missed (no coverage always does)."),
-                 params: Optional[Path] = typer.Option(None, "--params", help="YAML {stage: {param: value}}; the "
-                                                       "'evaluate' entry sets targets and thresholds."),
-                 out: Path = typer.Option(..., "--out", help="Output directory (metrics.json, report.html, ...)."),
-                 quiet: bool = typer.Option(False, "--quiet", "-q")) -> None:
+def evaluate_cmd(
+    drive: Path = typer.Option(..., "--drive", help="drive.yaml of the evaluation drive."),
+    root: Optional[Path] = typer.Option(
+        None, "--root", envvar="CORNERMAP_ROOT", help="Output root holding maps/NAME/ (default: .)."
+    ),
+    map_arg: Optional[str] = typer.Option(
+        None,
+        "--map",
+        "-m",
+        help="Map name under ROOT/maps "
+        "(default: the only map there); a path to ROOT/maps/NAME "
+        "or to a vNNNN folder is accepted alone.",
+    ),
+    version: str = typer.Option("LATEST", "--version", help="LATEST, vNNNN or N."),
+    method: str = typer.Option("both", "--method", help="ekf | mcl | both"),
+    reference: Optional[str] = typer.Option(
+        None, "--reference", help="TRAJ.tum (truth) or 'map' (pose-graph co-registration)."
+    ),
+    reference_frame: Optional[str] = typer.Option(
+        None,
+        "--reference-frame",
+        help="Frame of --reference TRAJ.tum: auto (the ENU origin its header "
+        "line or TRAJ.frame.json states; refused if none), map, or LAT,LON,H.",
+    ),
+    fail_on_targets: bool = typer.Option(
+        False, "--fail-on-targets", help="Exit 3 when a target is missed (no coverage always does)."
+    ),
+    params: Optional[Path] = typer.Option(
+        None, "--params", help="YAML {stage: {param: value}}; the 'evaluate' entry sets targets and thresholds."
+    ),
+    out: Path = typer.Option(..., "--out", help="Output directory (metrics.json, report.html, ...)."),
+    quiet: bool = typer.Option(False, "--quiet", "-q"),
+) -> None:
     """Localize a drive on a published map (corner EKF, marking MCL, RTK/INS and ICP baselines), score it and give a
     verdict: exit 3 when the drive has no map coverage or, with --fail-on-targets, when a target is missed."""
     from pipeline.errors import ConfigError
@@ -145,8 +159,8 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
 
     import pyarrow as pa
 
+    from pipeline.api import execute_workflow
     from pipeline.catalog import resolve_schema
-    from pipeline.cli import execute_workflow
     from pipeline.declare import PartitionKey, StageContext
     from pipeline.store import StoreInputReader
     from stages.evaluate.compute import compute

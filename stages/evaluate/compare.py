@@ -45,8 +45,8 @@ def match_corners(current_en_m: np.ndarray, previous_en_m: np.ndarray, match_rad
 
 def previous_version(reader):
     """A reader of the version this one was built on (``parent_version`` in its manifest), or None."""
-    from pipeline.errors import CornermapError
     from mapformat.loader import open_map  # the public consumer API (see compute's module doc)
+    from pipeline.errors import CornermapError
 
     parent = reader.manifest.get("parent_version")
     if parent is None:

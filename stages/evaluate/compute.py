@@ -12,25 +12,20 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from scipy.spatial.transform import Rotation
 
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import DataQualityError
-from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
-from stages.evaluate.localize_mcl import odometry_increments
-from stages.evaluate.params import EvaluateParams
 from stages.common.geometry import wrap_angle_rad
+from stages.common.records import Extrinsics, yaw_rad
 from stages.common.road_features import extract_road_features
 from stages.common.wheel_deskew import OdometryTrack, track_from_table
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
+from stages.evaluate.localize_mcl import odometry_increments
 from stages.evaluate.map_access import map_inputs, open_published_map
+from stages.evaluate.params import EvaluateParams
 from stages.evaluate.run import DriveArrays, evaluate_drive
 
 log = logging.getLogger(__name__)
-
-
-def yaw_of_quaternions(t: pa.Table) -> np.ndarray:
-    q = np.column_stack([t[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
-    return Rotation.from_quat(q).as_euler("ZYX")[:, 0]
 
 
 def _rows_of(ctx: StageContext, arg: str, drive: str, columns: list[str] | None = None) -> pa.Table:
@@ -50,10 +45,10 @@ def read_icp_increments(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndarr
     inc = np.full((len(epoch_scan_ids), 3), np.nan)
     if edges.num_rows == 0:
         return inc
-    edges = edges.filter(pc.equal(edges["converged"], True))
+    edges = edges.filter(pc.equal(edges["accepted"], True))
     k = epoch_index(edges["scan_id"].to_numpy(), epoch_scan_ids)
     ok = k > 0
-    yaw = yaw_of_quaternions(edges)
+    yaw = yaw_rad(edges)
     inc[k[ok]] = np.column_stack([edges["dx_m"].to_numpy(), edges["dy_m"].to_numpy(), yaw])[ok]
     return inc
 
@@ -64,7 +59,7 @@ def read_icp_covariances(edges: pa.Table, epoch_scan_ids: np.ndarray) -> np.ndar
     cov = np.full((len(epoch_scan_ids), 3, 3), np.nan)
     if edges.num_rows == 0 or "information" not in edges.column_names:
         return cov
-    edges = edges.filter(pc.equal(edges["converged"], True))
+    edges = edges.filter(pc.equal(edges["accepted"], True))
     k = epoch_index(edges["scan_id"].to_numpy(), epoch_scan_ids)
     ok = k > 0
     info = np.asarray(edges["information"].combine_chunks().flatten().to_numpy(), dtype=float).reshape(-1, 6, 6)[ok]
@@ -106,8 +101,9 @@ def read_corners(corners: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar:
     order = np.argsort(k, kind="stable")
     order = order[k[order] >= 0]
     col = lambda name: corners[name].to_numpy()[order]  # noqa: E731
-    cov = np.stack([np.stack([col("cov_xx_m2"), col("cov_xy_m2")], -1), np.stack([col("cov_xy_m2"), col("cov_yy_m2")], -1)],
-                   -2)
+    cov = np.stack(
+        [np.stack([col("cov_xx_m2"), col("cov_xy_m2")], -1), np.stack([col("cov_xy_m2"), col("cov_yy_m2")], -1)], -2
+    )
     xy, cov_v, dirs = corners_to_vehicle(T_vehicle_lidar, np.column_stack([col("x_m"), col("y_m")]), cov,
                                          np.column_stack([col("theta1_rad"), col("theta2_rad")]))
     return CornerObservations(k[order], xy, cov_v, dirs)
@@ -164,9 +160,8 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
         raise DataQualityError(f"drive {drive!r}: poses_gnss has no rows; hint: was the drive ingested?")
     scan_ids = poses["scan_id"].to_numpy()
     stamps = poses["stamp_ns"].to_numpy()
-    info = _rows_of(ctx, "drive_info", drive).to_pylist()[0]
-    T_vl = np.asarray(info["T_vehicle_lidar"], dtype=float).reshape(4, 4)
-    gnss_q = np.column_stack([poses["x_m"].to_numpy(), poses["y_m"].to_numpy(), yaw_of_quaternions(poses)])
+    T_vl = Extrinsics.from_table(_rows_of(ctx, "drive_info", drive)).of(drive)
+    gnss_q = np.column_stack([poses["x_m"].to_numpy(), poses["y_m"].to_numpy(), yaw_rad(poses)])
     gnss_std = np.column_stack([poses[c].to_numpy() for c in ("std_east_m", "std_north_m", "std_yaw_rad")])
     odo = _rows_of(ctx, "odometry", drive).sort_by("stamp_ns") if ctx.inputs.has("odometry") else None
     edges = _rows_of(ctx, "edges", drive)
@@ -206,7 +201,7 @@ def read_references(ctx: StageContext, drive: str, map_origin, p: EvaluateParams
         t = _rows_of(ctx, "reference", drive)
         if t.num_rows:
             refs["map"] = (t["stamp_ns"].to_numpy(), np.column_stack([t["x_m"].to_numpy(), t["y_m"].to_numpy(),
-                                                                       yaw_of_quaternions(t)]))
+                                                                       yaw_rad(t)]))
     truth = (ctx.settings.get("references") or {}).get(drive)
     if truth:
         ref = read_reference(Path(truth), map_origin, parse_reference_frame(p.reference_frame))

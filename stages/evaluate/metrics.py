@@ -1,4 +1,5 @@
-"""Localisation errors in the reference frame and their summary statistics (pure numpy).
+"""Localisation errors in the reference frame (x, y, yaw) and their summary statistics with NEES (pure numpy).
+Truth-vs-estimate metrics of full (N,4,4) trajectories live in ``stages.common.trajectory_metrics``.
 
 Errors are estimate minus reference. Lateral / longitudinal components are taken in the reference heading
 (longitudinal along the reference's forward axis, lateral to its left).
@@ -9,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.common.geometry import wrap_angle_rad
+from stages.common.geometry import fit_rigid_2d, wrap_angle_rad
+from stages.common.trajectory_metrics import rms
 from stages.evaluate.ekf import nees, nees_band
 
 METRIC_KEYS = ("rms_2d_m", "max_2d_m", "p95_2d_m", "p99_2d_m", "heading_rms_deg", "lateral_rms_m",
@@ -78,11 +80,11 @@ def summarize(errors: Errors) -> dict:
     nees_ok = errors.nees[ok][np.isfinite(errors.nees[ok])]
     band = nees_band(len(nees_ok))
     out = {
-        "rms_2d_m": float(np.sqrt(np.mean(h**2))), "max_2d_m": float(h.max()),
+        "rms_2d_m": rms(h), "max_2d_m": float(h.max()),
         "p95_2d_m": float(np.percentile(h, 95)), "p99_2d_m": float(np.percentile(h, 99)),
-        "heading_rms_deg": float(np.sqrt(np.mean(yaw_deg**2))),
-        "lateral_rms_m": float(np.sqrt(np.mean(errors.err_lateral_m[ok] ** 2))),
-        "longitudinal_rms_m": float(np.sqrt(np.mean(errors.err_longitudinal_m[ok] ** 2))),
+        "heading_rms_deg": rms(yaw_deg),
+        "lateral_rms_m": rms(errors.err_lateral_m[ok]),
+        "longitudinal_rms_m": rms(errors.err_longitudinal_m[ok]),
         "mean_abs_x_m": float(np.mean(np.abs(errors.err_xy_m[ok, 0]))),
         "mean_abs_y_m": float(np.mean(np.abs(errors.err_xy_m[ok, 1]))),
         "mean_abs_heading_deg": float(np.mean(np.abs(yaw_deg))),
@@ -94,16 +96,6 @@ def summarize(errors: Errors) -> dict:
     return out
 
 
-def fit_rigid_2d(src_m: np.ndarray, dst_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotation R (2x2) and translation t with ``dst ~ src @ R.T + t`` (Kabsch, no scale)."""
-    src, dst = np.asarray(src_m, dtype=float), np.asarray(dst_m, dtype=float)
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
-
-
 def align_truth_to_map(map_en_m: np.ndarray, truth_en_m: np.ndarray, max_match_m: float = 1.5,
                        min_pairs: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Rigid transform from the truth frame to the map frame, fitted on map corners matched to their nearest true
@@ -113,7 +105,10 @@ def align_truth_to_map(map_en_m: np.ndarray, truth_en_m: np.ndarray, max_match_m
     by this transform is the map-relative reference the localizer can be held to (``truth_in_map``)."""
     from scipy.spatial import cKDTree
 
-    map_en, truth_en = np.asarray(map_en_m, dtype=float).reshape(-1, 2), np.asarray(truth_en_m, dtype=float).reshape(-1, 2)
+    map_en, truth_en = (
+        np.asarray(map_en_m, dtype=float).reshape(-1, 2),
+        np.asarray(truth_en_m, dtype=float).reshape(-1, 2),
+    )
     if len(map_en) < min_pairs or len(truth_en) == 0:
         return None
     d, j = cKDTree(truth_en).query(map_en)

@@ -168,16 +168,21 @@ def _verdict_html(doc: dict) -> str:
     status = html.escape(v["status"])
     color = {"pass": "#1a7f37", "fail": "#cf222e", "no coverage": "#cf222e"}.get(v["status"], "#9a6700")
     assoc = "-" if c["share_associated"] is None else f"{100 * c['share_associated']:.1f} %"
-    rows = [f"<tr><th>coverage</th><td>map corner within {c['sensor_range_m']:g} m</td>"
-            f"<td>{100 * c['share_corner_in_range']:.1f} %</td><td>&ge; {100 * c['min_share_in_range']:.0f} %</td>"
-            f"<td>{'yes' if c['share_corner_in_range'] >= c['min_share_in_range'] else 'NO'}</td><td>GNSS/INS</td></tr>",
-            f"<tr><th>coverage</th><td>epochs with an EKF association</td><td>{assoc}</td>"
-            f"<td>&ge; {100 * c['min_share_associated']:.0f} %</td><td>{'-' if c['share_associated'] is None else ('yes' if c['share_associated'] >= c['min_share_associated'] else 'NO')}</td><td>EKF</td></tr>"]
+    share_assoc = c["share_associated"]
+    assoc_ok = "-" if share_assoc is None else "yes" if share_assoc >= c["min_share_associated"] else "NO"
+    rows = [
+        f"<tr><th>coverage</th><td>map corner within {c['sensor_range_m']:g} m</td>"
+        f"<td>{100 * c['share_corner_in_range']:.1f} %</td><td>&ge; {100 * c['min_share_in_range']:.0f} %</td>"
+        f"<td>{'yes' if c['share_corner_in_range'] >= c['min_share_in_range'] else 'NO'}</td><td>GNSS/INS</td></tr>",
+        f"<tr><th>coverage</th><td>epochs with an EKF association</td><td>{assoc}</td>"
+        f"<td>&ge; {100 * c['min_share_associated']:.0f} %</td><td>{assoc_ok}</td><td>EKF</td></tr>",
+    ]
     for m, targets in v["targets"].items():
         ref = v["judged_against"].get(m, "-")
         for key, t in targets.items():
             if key == "nees_consistent":
-                value = f"mean {_fmt(t['value'])}, {_fmt(None if t['share_below_q95'] is None else 100 * t['share_below_q95'])} % under q95"
+                share = None if t["share_below_q95"] is None else 100 * t["share_below_q95"]
+                value = f"mean {_fmt(t['value'])}, {_fmt(share)} % under q95"
                 target = f"mean in {_fmt(t['band95'])} or &ge; {100 * t['min_share_below_q95']:.0f} % under q95"
             else:
                 value, target = _fmt(t["value"]), f"&le; {_fmt(t['target'])}"

@@ -91,7 +91,9 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
                 ) -> dict[str, MethodRun]:
     k0 = first_fix(d)
     q0 = d.gnss_q[k0]
-    P0 = np.diag(np.maximum(d.gnss_std[k0], [p.init_sigma_xy_m, p.init_sigma_xy_m, np.deg2rad(p.init_sigma_yaw_deg)]) ** 2)
+    P0 = np.diag(
+        np.maximum(d.gnss_std[k0], [p.init_sigma_xy_m, p.init_sigma_xy_m, np.deg2rad(p.init_sigma_yaw_deg)]) ** 2
+    )
     runs: dict[str, MethodRun] = {}
     n = len(d.stamps_ns)
     valid = d.gnss_valid[:, None] & np.isfinite(d.gnss_q)

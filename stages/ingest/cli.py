@@ -17,16 +17,16 @@ def register(app: typer.Typer) -> None:
 
         Examples:
           cornermap inspect ../shared/data/kitti_raw_0048_city/0000000000.pcd
-          cornermap inspect ../shared/data/nuscenes_hdl32e_sweep/n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin --format nuscenes_bin --sensor hdl32e
+          cornermap inspect --format nuscenes_bin --sensor hdl32e \
+            ../shared/data/nuscenes_hdl32e_sweep/n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin
         """
         import numpy as np
 
+        from pipeline.errors import UnknownNameError
+        from pipeline.registry import suggest
         from stages.ingest.pcd import read_pcd
         from stages.ingest.scan_formats import drop_invalid_points, read_scan
         from stages.ingest.sensors import SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order
-
-        from pipeline.errors import UnknownNameError
-        from pipeline.registry import suggest
 
         name = path.name.lower()
         kind = fmt or ("pcd" if name.endswith(".pcd") else "las" if name.endswith((".las", ".laz")) else "kitti_bin")

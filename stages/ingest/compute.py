@@ -9,6 +9,7 @@ import numpy as np
 from pipeline.declare import StageContext
 from pipeline.errors import ConfigError
 from stages.common.geodesy import EnuOrigin, geodetic_to_enu
+from stages.common.records import Extrinsics
 from stages.ingest.drive_file import DriveSpec, load_drive_file
 from stages.ingest.gnss_csv import GnssLimits, find_gaps, read_gnss, read_odometry
 from stages.ingest.origin import resolve_enu_origin
@@ -211,7 +212,7 @@ class DriveIngest:
         o = self.origin
         return _table("drive_info", {
             "drive": [self.drive], "sensor": [self.spec.sensor],
-            "T_vehicle_lidar": [self.spec.T_vehicle_lidar_matrix.ravel().tolist()],
+            "T_vehicle_lidar": [Extrinsics.to_column(self.spec.T_vehicle_lidar_matrix)],
             "origin_lat_deg": [o.lat_deg if o else np.nan], "origin_lon_deg": [o.lon_deg if o else np.nan],
             "origin_h_m": [o.h_m if o else np.nan], "n_scans": [len(rows)],
             "n_quarantined": [sum(r["status"] != "ok" for r in rows)],

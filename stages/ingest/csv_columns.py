@@ -29,8 +29,9 @@ def read_header(path: Path, delimiter: str = ",") -> list[str]:
         raise DatasetIOError(f"{path}: cannot read CSV: {exc.strerror or exc}") from exc
 
 
-def read_csv_columns(path: Path, names: list[str], delimiter: str = ",", *, bad_cells: list[TimestampIssue] | None = None
-                     ) -> dict[str, np.ndarray]:
+def read_csv_columns(
+    path: Path, names: list[str], delimiter: str = ",", *, bad_cells: list[TimestampIssue] | None = None
+) -> dict[str, np.ndarray]:
     """Named columns as float64. Rows with the wrong number of values raise FormatError listing them (up to 10)
     with their record numbers. A non-numeric cell raises too, unless ``bad_cells`` is given: then the cell
     becomes NaN and a (record, reason) is appended, so that the caller rejects that row only."""

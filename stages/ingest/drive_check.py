@@ -24,7 +24,9 @@ class DriveCheck:
 
 
 def _span(stamps_ns: np.ndarray) -> str:
-    return f"{(stamps_ns.max() - stamps_ns.min()) / 1e9:.1f} s ({stamps_ns.min() / 1e9:.3f}..{stamps_ns.max() / 1e9:.3f})"
+    return (
+        f"{(stamps_ns.max() - stamps_ns.min()) / 1e9:.1f} s ({stamps_ns.min() / 1e9:.3f}..{stamps_ns.max() / 1e9:.3f})"
+    )
 
 
 def check_drive(path: Path, params: IngestParams = IngestParams(), sample_scans: int = 5) -> DriveCheck:
@@ -59,10 +61,12 @@ def check_drive(path: Path, params: IngestParams = IngestParams(), sample_scans:
         dt = np.diff(g.stamp_ns) / 1e9
         rate = 1.0 / np.median(dt) if len(dt) else 0.0
         inside = (stamped >= g.stamp_ns[0]) & (stamped <= g.stamp_ns[-1]) if len(stamped) else np.zeros(0, bool)
-        out.summary.append(f"gnss: {len(g.stamp_ns)} fixes at {rate:.1f} Hz over {_span(g.stamp_ns)}; covers "
-                           f"{int(inside.sum())} of {len(stamped)} scan stamps ({100 * inside.mean() if len(inside) else 0:.0f} %)"
-                           f"; roll/pitch {'present' if g.roll_pitch_known else 'absent (no prior)'}"
-                           f"; std {'defaults for ' + ', '.join(g.defaults_used) if g.defaults_used else 'from the file'}")
+        out.summary.append(
+            f"gnss: {len(g.stamp_ns)} fixes at {rate:.1f} Hz over {_span(g.stamp_ns)}; covers "
+            f"{int(inside.sum())} of {len(stamped)} scan stamps ({100 * inside.mean() if len(inside) else 0:.0f} %)"
+            f"; roll/pitch {'present' if g.roll_pitch_known else 'absent (no prior)'}"
+            f"; std {'defaults for ' + ', '.join(g.defaults_used) if g.defaults_used else 'from the file'}"
+        )
         if len(stamped) and not inside.any():
             out.problems.append(f"gnss: no scan stamp lies inside the GNSS time span (scans {_span(stamped)}, GNSS "
                                 f"{_span(g.stamp_ns)}); hint: check gnss.time.base, scan_times and their units")

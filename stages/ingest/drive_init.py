@@ -17,6 +17,7 @@ from stages.ingest.drive_init_csv import draft_csvs
 from stages.ingest.scan_formats import read_scan
 from stages.ingest.sensors import SENSORS, elevation_deg
 
+
 @dataclass
 class Draft:
     """The drive file being drafted: ordered YAML lines, and what could not be inferred."""

@@ -4,8 +4,7 @@ from __future__ import annotations
 from stages.ingest.drive_file import DriveSpec
 from stages.ingest.gnss_csv import NS_PER_WEEK, GnssFixes, read_scan_stamps, stamps_ns
 from stages.ingest.report import IngestReport
-from stages.ingest.scan_pass import (MAX_SCAN_ID, ScanFile, list_scan_files, scan_numbers,
-                                     stamp_from_filename_us)
+from stages.ingest.scan_pass import MAX_SCAN_ID, ScanFile, list_scan_files, scan_numbers, stamp_from_filename_us
 
 
 def list_scans(spec: DriveSpec, gnss: GnssFixes | None, max_scans: int | None, report: IngestReport

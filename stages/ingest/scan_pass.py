@@ -15,7 +15,7 @@ import numpy as np
 from pipeline.errors import CornermapError, FormatError
 from stages.ingest.drive_file import DriveSpec
 from stages.ingest.scan_formats import SCAN_SUFFIXES, ScanPoints, drop_invalid_points, read_scan
-from stages.ingest.sensors import (SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order)
+from stages.ingest.sensors import SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order
 
 log = logging.getLogger(__name__)
 PIECE_ROWS = 2_000_000
@@ -121,7 +121,9 @@ def process_scan(scan: ScanFile, spec: DriveSpec, chunk: int, min_range_m: float
                               f"{drops['zero']} at (0,0,0), {drops['near']} nearer than {min_range_m} m)")
         ring, source = assign_rings(points, spec, vote_min_share)
     except (CornermapError, OSError, ValueError, MemoryError) as exc:  # a per-file problem: quarantine this file
-        reason = str(exc) if isinstance(exc, CornermapError) else f"{scan.path}: unreadable ({type(exc).__name__}: {exc})"
+        reason = (
+            str(exc) if isinstance(exc, CornermapError) else f"{scan.path}: unreadable ({type(exc).__name__}: {exc})"
+        )
         log.warning("quarantined %s: %s", scan.path, reason)
         return ScanResult({**row, "reason": reason}, None, None, [], {})
     n_rings = len(elevation_table(spec)) or (int(ring.max()) + 1 if len(ring) and source != "none" else 0)

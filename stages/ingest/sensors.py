@@ -129,7 +129,8 @@ def rings_from_elevation_voted(x: np.ndarray, y: np.ndarray, z: np.ndarray,
     sensor origin, and motion-compensated exports move near points). When the cloud is organised in firing
     blocks of ``n_rings`` points (count divisible by ``n_rings``), every slot of the block is the same laser:
     each slot takes the majority ring of its points. Used only when every slot has a clear majority
-    (``min_share``, counting points beyond ``min_vote_range_m``) and the winners are a permutation of all rings; otherwise the per-point result stands.
+    (``min_share``, counting points beyond ``min_vote_range_m``) and the winners are a permutation of all rings;
+    otherwise the per-point result stands.
     Returns (rings, voted).
     """
     per_point = rings_from_elevation(x, y, z, elevations_deg)

@@ -9,13 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.common.geometry import poses_from_xyz_quat
-
-
-def pose_matrices(x_m, y_m, z_m, qx, qy, qz, qw) -> np.ndarray:
-    """Pose columns (quaternion x, y, z, w) -> (M,4,4) homogeneous matrices."""
-    return poses_from_xyz_quat(np.column_stack([x_m, y_m, z_m]), np.column_stack([qx, qy, qz, qw]))
-
 
 def scans_to_enu(points_lidar_m: np.ndarray, point_scan_ids: np.ndarray, pose_scan_ids: np.ndarray,
                  T_map_vehicle: np.ndarray, T_vehicle_lidar: np.ndarray, *, min_range_m: float = 2.5,

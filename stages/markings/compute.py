@@ -15,15 +15,16 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline.declare import PartitionKey
-from pipeline.errors import ConfigError, FormatError
+from pipeline.errors import ConfigError
 from schemas import SCHEMAS
 from stages.common.drive_tables import select_drives
-from stages.common.tiling import tile_bounds, tile_key_of, tile_shape_px, tiles_touching
-from stages.markings.accumulate import pose_matrices, scans_to_enu
 from stages.common.marking_raster.elevation_grid import GridAccumulator
+from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
+from stages.common.records import Extrinsics, pose_matrices
+from stages.common.tiling import tile_bounds, tile_key_of, tile_shape_px, tiles_touching
+from stages.markings.accumulate import scans_to_enu
 from stages.markings.params import MarkingParams
 from stages.markings.raster_io import TileRasters, write_tile_rasters
-from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 
 log = logging.getLogger(__name__)
 DEFAULT_TILE_SIZE_M = 100.0
@@ -89,14 +90,7 @@ def _survey_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[
 
 
 def _extrinsics(ctx) -> dict[str, np.ndarray]:
-    table = ctx.inputs.read("drive_info", columns=["drive", "T_vehicle_lidar"])
-    out = {}
-    for drive, flat in zip(table["drive"].to_pylist(), table["T_vehicle_lidar"].to_pylist()):
-        if flat is None or len(flat) != 16:
-            raise FormatError(f"drive_info row of drive {drive!r}: T_vehicle_lidar must hold 16 values "
-                              f"(row-major 4x4), got {None if flat is None else len(flat)}")
-        out[drive] = np.asarray(flat, float).reshape(4, 4)
-    return out
+    return Extrinsics.from_table(ctx.inputs.read("drive_info", columns=["drive", "T_vehicle_lidar"])).T_vehicle_lidar
 
 
 def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -113,7 +107,7 @@ def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[t
     for drive in sorted(set(poses["drive"].to_pylist())):
         dp = poses.filter(pc.equal(poses["drive"], drive))
         ids = dp["scan_id"].to_numpy()
-        T_map_vehicle = pose_matrices(*(dp[c].to_numpy() for c in _POSE_COLUMNS[2:]))
+        T_map_vehicle = pose_matrices(dp)
         T_vehicle_lidar = extrinsics.get(drive, np.eye(4))
         if drive not in extrinsics:
             log.warning("no drive_info for drive %s: using identity T_vehicle_lidar", drive)

@@ -11,8 +11,9 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline.declare import PartitionKey, StageContext
-from pipeline.errors import DataQualityError, FormatError
+from pipeline.errors import DataQualityError
 from schemas.registry import schema_of
+from stages.common.records import Extrinsics
 from stages.common.wheel_deskew import OdometryTrack, track_from_table, wheel_increments
 from stages.odometry.core import Edge, Scan, estimate_edges
 
@@ -52,21 +53,10 @@ def poses_from_table(table: pa.Table, valid_only: bool = True) -> dict[int, np.n
         return {}
     if valid_only and "valid" in table.column_names:
         table = table.filter(table["valid"])
-    from stages.common.geometry import poses_from_xyz_quat
+    from stages.common.records import pose_matrices
 
-    T = poses_from_xyz_quat(np.column_stack([table[c].to_numpy() for c in ("x_m", "y_m", "z_m")]),
-                            np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")]))
+    T = pose_matrices(table)
     return {int(s): T[i] for i, s in enumerate(table["scan_id"].to_numpy())}
-
-
-def extrinsic_from_drive_info(table: pa.Table, drive: str) -> np.ndarray:
-    rows = table.filter(pc.equal(table["drive"], drive)) if "drive" in table.column_names else table
-    if rows.num_rows == 0:
-        raise FormatError(f"drive_info: no row for drive {drive!r}; hint: run ingest for this drive first")
-    T = np.asarray(rows["T_vehicle_lidar"][0].as_py(), dtype=float).reshape(4, 4)
-    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6):
-        raise FormatError(f"drive_info[{drive}].T_vehicle_lidar: expected a rigid 4x4 transform; got {T.tolist()}")
-    return T
 
 
 def _odometry_track(ctx: StageContext) -> OdometryTrack | None:
@@ -99,24 +89,22 @@ def wheel_guides(scans: list[Scan], track: OdometryTrack | None) -> dict[int, np
 
 def edges_to_table(edges: list[Edge], drive: str, chunk: int, schema: str = "odometry_edges") -> pa.Table:
     """Edges -> ``odometry_edges`` rows, or ``odometry_span_edges`` rows (which add ``scan_id_from``)."""
-    from scipy.spatial.transform import Rotation
+    from stages.common.records import INCREMENT_COLUMNS, pose_columns
 
     n = len(edges)
     T = np.array([e.T_prev_curr for e in edges]).reshape(n, 4, 4)
-    q = Rotation.from_matrix(T[:, :3, :3]).as_quat() if n else np.zeros((0, 4))
     info = np.array([e.information.reshape(36) for e in edges]).reshape(n, 36)
     cols = {
         "drive": pa.array([drive] * n, pa.string()), "chunk": pa.array([chunk] * n, pa.int32()),
         "scan_id_from": pa.array([e.scan_id_from for e in edges], pa.int64()),
         "scan_id": pa.array([e.scan_id for e in edges], pa.int64()),
         "stamp_ns": pa.array([e.stamp_ns for e in edges], pa.int64()),
-        "dx_m": T[:, 0, 3], "dy_m": T[:, 1, 3], "dz_m": T[:, 2, 3],
-        "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3],
+        **pose_columns(T, position=INCREMENT_COLUMNS),
         "fitness": pa.array([e.fitness for e in edges], pa.float64()),
         "inlier_rmse_m": pa.array([e.inlier_rmse_m for e in edges], pa.float64()),
         "information": pa.FixedSizeListArray.from_arrays(pa.array(info.reshape(-1), pa.float64()), 36)
         if n else pa.array([], pa.list_(pa.float64(), 36)),
-        "converged": pa.array([e.converged for e in edges], pa.bool_()),
+        "accepted": pa.array([e.accepted for e in edges], pa.bool_()),
     }
     sch = schema_of(schema)
     return pa.table({name: cols[name] for name in sch.names}, schema=sch)
@@ -135,7 +123,8 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
         prev_tab = ctx.inputs.read("scans", partition=prev_key, columns=SCAN_COLUMNS,
                                    filters=pc.field("scan_id") == scans[0].scan_id - 1)
         scans = scans_from_table(prev_tab) + scans
-    T_vehicle_lidar = extrinsic_from_drive_info(ctx.inputs.read("drive_info"), drive)
+    info = ctx.inputs.read("drive_info", columns=["drive", "T_vehicle_lidar"])
+    T_vehicle_lidar = Extrinsics.from_table(info).of(drive)
     track = _odometry_track(ctx)
     guides = wheel_guides(scans, track)
     if p.deskew == "odometry":
@@ -145,21 +134,12 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
             log.info("odometry %s: %d scans deskewed with wheel odometry, the others with their own sweep",
                      ctx.partition.label, n_wheel)
     gnss_tab = ctx.inputs.read("poses_gnss", partition=PartitionKey(drive=drive))
-    edges = estimate_edges(scans, T_vehicle_lidar, poses_from_table(gnss_tab), method=p.method,
-                           voxel_m=p.voxel_m, knn=p.knn, max_corr_m=p.max_corr_m,
-                           max_iterations=p.max_iterations, relative_tolerance=p.relative_tolerance,
-                           min_range_m=p.min_range_m, max_range_m=p.max_range_m, deskew=p.deskew != "none",
-                           min_fitness=p.min_fitness, max_deviation_m=p.max_deviation_m,
-                           max_deviation_rad=p.max_deviation_rad,
-                           point_sigma_m=p.point_sigma_m, min_sigma_m=p.min_sigma_m,
-                           min_sigma_rad=p.min_sigma_rad, rot_sigma_per_rad=p.rot_sigma_per_rad,
-                           ground_split=p.ground_split, ground_tolerance_m=p.ground_tolerance_m,
-                           guide_increments=guides, max_deviation_guide_m=p.max_deviation_wheel_m,
-                           max_deviation_guide_rad=p.max_deviation_wheel_rad, span_scans=p.span_scans)
+    edges = estimate_edges(scans, T_vehicle_lidar, poses_from_table(gnss_tab), p.edge_config(),
+                           guide_increments=guides)
     spans = [e for e in edges if e.span > 1]
     edges = [e for e in edges if e.span == 1]
-    n_bad = sum(not e.converged for e in edges)
+    n_bad = sum(not e.accepted for e in edges)
     if n_bad:
-        log.warning("odometry %s: %d of %d edges did not converge", ctx.partition.label, n_bad, len(edges))
+        log.warning("odometry %s: the gate rejected %d of %d edges", ctx.partition.label, n_bad, len(edges))
     return {"edges": edges_to_table(edges, drive, chunk),
             "span_edges": edges_to_table(spans, drive, chunk, "odometry_span_edges")}

@@ -1,4 +1,5 @@
-"""Odometry over a sequence of scans: initial guesses, deskewing, registration, vehicle-frame edges.
+"""Odometry over a sequence of scans, in named steps: prepare (``prepare.py``), pair, register, deskew over the
+own sweep and register again, vehicle-frame edges with the gate, span edges.
 
 Arrays in, arrays out. ``T_vehicle_lidar`` maps lidar points into the vehicle frame; an edge is
 ``T_prev_curr`` of the vehicle frame with its 6x6 information (gtsam order, body frame of the edge).
@@ -6,16 +7,21 @@ Arrays in, arrays out. ``T_vehicle_lidar`` maps lidar points into the vehicle fr
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
-import open3d as o3d
-
 from stages.common.geometry import se3_inverse
-from stages.common.ground_plane import GroundPlane, align_ground_planes, fit_ground_plane, ground_mask
-from stages.common.registration import (RegistrationResult, adjoint_se3, crop_range, deskew_points,
-                                        floor_information, point_to_plane_hessian, prepare_cloud, register_clouds)
+from stages.common.ground_plane import align_ground_planes
+from stages.common.registration import (
+    RegistrationResult,
+    adjoint_se3,
+    deskew_points,
+    floor_information,
+    point_to_plane_hessian,
+    register_clouds,
+)
+from stages.odometry.config import EdgeConfig, PrepareConfig
+from stages.odometry.prepare import PreparedScan, prepare_scan, prepare_scans
 
 
 @dataclass(frozen=True)
@@ -34,7 +40,7 @@ class Edge:
     fitness: float
     inlier_rmse_m: float
     information: np.ndarray  # 6x6 gtsam order
-    converged: bool
+    accepted: bool  # the gate's decision (gate_edge): registered, enough overlap, near the reference increment
     span: int = 1  # 1: consecutive scans; N > 1: a span edge over N scans (``span_scans``)
 
     @property
@@ -94,49 +100,144 @@ def gate_edge(T_v: np.ndarray, T_gnss_v: np.ndarray | None, fitness: float, regi
     return bool(np.linalg.norm(D[:3, 3]) <= max_deviation_m and rotation_angle_rad(D) <= max_deviation_rad)
 
 
-@dataclass
-class _Prepared:
-    """One scan ready for registration: structure cloud (registration), road plane and ground points (height,
-    roll, pitch and their information)."""
+@dataclass(frozen=True)
+class _Pairs:
+    """Consecutive scan pairs by position ``k`` (scan k-1 -> k): their duration, reference increments (GNSS/INS,
+    replaced by the guide where one exists) and which of them are guided."""
 
-    points_m: np.ndarray
-    time_offset_s: np.ndarray | None
-    structure: o3d.geometry.PointCloud
-    plane: GroundPlane | None
-    ground_points_m: np.ndarray | None
-    voxel_m: float
-    knn: int
-
-    @cached_property
-    def ground(self) -> o3d.geometry.PointCloud | None:
-        """Ground cloud with normals, built on first use (only the final edges' information needs it; scans
-        deskewed after a first pass are prepared again)."""
-        if self.ground_points_m is None:
-            return None
-        return prepare_cloud(self.ground_points_m, self.voxel_m, self.knn, with_covariances=False)
+    k: list[int]
+    dt_s: dict[int, float]
+    reference_v: dict[int, np.ndarray]
+    guided: set[int]
 
 
-def _prepare(points_m: np.ndarray, time_offset_s: np.ndarray | None, T_vehicle_lidar: np.ndarray, *,
-             voxel_m: float, knn: int, with_cov: bool, ground_split: bool, ground_tolerance_m: float) -> _Prepared:
-    plane = fit_ground_plane(points_m, T_vehicle_lidar) if ground_split else None
-    if plane is None:
-        return _Prepared(points_m, time_offset_s, prepare_cloud(points_m, voxel_m, knn, with_covariances=with_cov),
-                         None, None, voxel_m, knn)
-    on_ground = ground_mask(points_m, plane, ground_tolerance_m)
-    return _Prepared(points_m, time_offset_s,
-                     prepare_cloud(points_m[~on_ground], voxel_m, knn, with_covariances=with_cov), plane,
-                     points_m[on_ground], voxel_m, knn)
+def pair_scans(scans: list[Scan], gnss_poses: dict[int, np.ndarray],
+               guide_increments: dict[int, np.ndarray] | None) -> _Pairs:
+    """Step 2: the consecutive pairs (ids k-1, k) and their reference increments."""
+    pairs = [k for k in range(1, len(scans)) if scans[k].scan_id == scans[k - 1].scan_id + 1]
+    dt_s = {k: (scans[k].stamp_ns - scans[k - 1].stamp_ns) * 1e-9 for k in pairs}
+    reference = {k: se3_inverse(gnss_poses[scans[k - 1].scan_id]) @ gnss_poses[scans[k].scan_id]
+                 for k in pairs if scans[k - 1].scan_id in gnss_poses and scans[k].scan_id in gnss_poses}
+    guided = {k for k in pairs if guide_increments and scans[k].scan_id in guide_increments}
+    for k in guided:
+        reference[k] = guide_increments[scans[k].scan_id]
+    return _Pairs(pairs, dt_s, reference, guided)
 
 
-def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: dict[int, np.ndarray], *,
-                   method: str, voxel_m: float, knn: int, max_corr_m: float, max_iterations: int,
-                   relative_tolerance: float, min_range_m: float, max_range_m: float, deskew: bool,
-                   min_fitness: float, max_deviation_m: float, max_deviation_rad: float, point_sigma_m: float,
-                   min_sigma_m: float, min_sigma_rad: float, rot_sigma_per_rad: float = 0.0,
-                   ground_split: bool = True, ground_tolerance_m: float = 0.25,
-                   guide_increments: dict[int, np.ndarray] | None = None,
-                   max_deviation_guide_m: float = 0.05, max_deviation_guide_rad: float = 0.0035,
-                   span_scans: tuple[int, ...] | list[int] = ()) -> list[Edge]:
+def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar: np.ndarray, cfg: EdgeConfig,
+                   guesses_l: dict[int, np.ndarray] | None = None) -> dict[int, RegistrationResult]:
+    """Step 3: register every pair's structure clouds. Initial guess: ``guesses_l`` (lidar frame) when given,
+    else the reference increment, else constant velocity from the last converged pair."""
+    T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
+    out: dict[int, RegistrationResult] = {}
+    last_v, last_dt = None, None
+    for k in pairs.k:
+        if guesses_l is not None:
+            guess_l = guesses_l[k]
+        else:
+            ratio = pairs.dt_s[k] / last_dt if (pairs.dt_s[k] > 0 and last_dt) else 1.0
+            guess_v = pairs.reference_v.get(k)
+            guess_v = guess_v if guess_v is not None else initial_guess(None, None, last_v, ratio)
+            guess_l = T_lidar_vehicle @ guess_v @ T_vehicle_lidar
+        res = register_clouds(prepared[k].structure, prepared[k - 1].structure, guess_l, **cfg.registration_kwargs())
+        out[k] = res
+        if res.converged and guesses_l is None:
+            last_v, last_dt = T_vehicle_lidar @ res.T_target_source @ T_lidar_vehicle, pairs.dt_s[k]
+    return out
+
+
+def with_road(src: PreparedScan, tgt: PreparedScan, res: RegistrationResult) -> np.ndarray:
+    """The registration with height, roll and pitch from the two scans' road planes."""
+    if res.converged and src.plane is not None and tgt.plane is not None:
+        return align_ground_planes(res.T_target_source, src.plane, tgt.plane)
+    return res.T_target_source
+
+
+def deskew_own_sweep(prepared: list[PreparedScan], pairs: _Pairs, results: dict[int, RegistrationResult],
+                     T_vehicle_lidar: np.ndarray, cfg: PrepareConfig, with_cov: bool
+                     ) -> tuple[list[PreparedScan], dict[int, np.ndarray]]:
+    """Step 4 (``deskew``): each timed scan deskewed with the motion over *its own* sweep (the edge to the next
+    scan; the last scan uses the edge before it), prepared again. Returns the scans and the motions (lidar
+    frame), which are the next registration's initial guesses. The sweep motion includes the road planes'
+    height/roll/pitch: structure-only ICP leaves them weak, and a wrong roll rate tilts the deskewed scan
+    (measured: 0.09 deg roll error per edge)."""
+    motion = {k: with_road(prepared[k], prepared[k - 1], r) for k, r in results.items()}
+    out = list(prepared)
+    for i, p in enumerate(prepared):
+        if p.time_offset_s is None:
+            continue
+        own = next((k for k in (i + 1, i) if k in results and results[k].converged and pairs.dt_s[k] > 0), None)
+        if own is None:
+            continue
+        pts = deskew_points(p.points_m, p.time_offset_s, motion[own], pairs.dt_s[own])
+        out[i] = prepare_scan(pts, None, T_vehicle_lidar, cfg, with_cov)
+    return out, motion
+
+
+def vehicle_edge(src: PreparedScan, tgt: PreparedScan, res: RegistrationResult, T_vehicle_lidar: np.ndarray,
+                 cfg: EdgeConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Vehicle-frame increment (road planes applied) and its information: the structure's point-to-plane
+    Hessian, plus the ground's where the road planes were used; floored; a rotation term in turns."""
+    info = cfg.information
+    H = res.hessian  # the structure's, computed by register_clouds with the same max_corr_m / point_sigma_m
+    T_l = with_road(src, tgt, res)
+    if T_l is not res.T_target_source and src.ground is not None and tgt.ground is not None:
+        H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, cfg.icp.max_corr_m, info.point_sigma_m)
+    T_v, info_v = lidar_to_vehicle_edge(T_l, floor_information(H, info.min_sigma_m, info.min_sigma_rad),
+                                        T_vehicle_lidar)
+    if info.rot_sigma_per_rad > 0:  # turns: residual rotation error grows with the edge's rotation
+        info_v = floor_information(info_v, 1e-9, info.rot_sigma_per_rad * rotation_angle_rad(T_v) + 1e-12)
+    return T_v, info_v
+
+
+def consecutive_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _Pairs,
+                      results: dict[int, RegistrationResult], T_vehicle_lidar: np.ndarray, cfg: EdgeConfig
+                      ) -> list[Edge]:
+    """Step 5: every pair's vehicle edge with the gate's decision (guided pairs: the planar guide gate)."""
+    g = cfg.gate
+    edges: list[Edge] = []
+    for k in pairs.k:
+        res = results[k]
+        T_v, info_v = vehicle_edge(prepared[k], prepared[k - 1], res, T_vehicle_lidar, cfg)
+        guided = k in pairs.guided
+        accepted = gate_edge(T_v, pairs.reference_v.get(k), res.fitness, res.converged, min_fitness=g.min_fitness,
+                             max_deviation_m=g.max_deviation_guide_m if guided else g.max_deviation_m,
+                             max_deviation_rad=g.max_deviation_guide_rad if guided else g.max_deviation_rad,
+                             planar=guided)
+        edges.append(Edge(scans[k].scan_id, scans[k].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
+                          accepted))
+    return edges
+
+
+def span_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _Pairs, edges: list[Edge],
+               T_vehicle_lidar: np.ndarray, cfg: EdgeConfig) -> list[Edge]:
+    """Step 6 (``span_scans``): each scan at a position i that is a multiple of N registered onto the scan N
+    positions before, from the chain of the N accepted consecutive edges between them and gated against it."""
+    g = cfg.gate
+    T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
+    by_position = dict(zip(pairs.k, edges))
+    out: list[Edge] = []
+    for span in sorted(set(int(n) for n in cfg.span_scans if int(n) > 1)):
+        for i in range(span, len(scans), span):
+            chain = [by_position.get(k) for k in range(i - span + 1, i + 1)]
+            if any(e is None or not e.accepted for e in chain):
+                continue  # a gap or a rejected edge inside: no reference to start from or gate against
+            T_chain_v = np.eye(4)
+            for e in chain:
+                T_chain_v = T_chain_v @ e.T_prev_curr
+            src, tgt = prepared[i], prepared[i - span]
+            res = register_clouds(src.structure, tgt.structure, T_lidar_vehicle @ T_chain_v @ T_vehicle_lidar,
+                                  **cfg.registration_kwargs())
+            T_v, info_v = vehicle_edge(src, tgt, res, T_vehicle_lidar, cfg)
+            accepted = gate_edge(T_v, T_chain_v, res.fitness, res.converged, min_fitness=g.min_fitness,
+                                 max_deviation_m=g.max_deviation_m, max_deviation_rad=g.max_deviation_rad)
+            out.append(Edge(scans[i].scan_id, scans[i].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
+                            accepted, span))
+    return out
+
+
+def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: dict[int, np.ndarray],
+                   cfg: EdgeConfig, guide_increments: dict[int, np.ndarray] | None = None) -> list[Edge]:
     """Register each scan onto its predecessor (``scans`` sorted by id; pairs need consecutive ids).
 
     ``gnss_poses`` maps scan_id -> T_map_vehicle for scans with a valid GNSS/INS solution (initial guesses and
@@ -144,115 +245,22 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
     with wheel odometry by the stage). With ``ground_split`` the road plane is fitted per scan, the structure
     above it is registered (GICP) and the ground planes then fix height, roll and pitch; the information sums
     the point-to-plane Hessians of structure and ground. With ``deskew`` and per-point times, a first pass
-    estimates every edge, each scan is then deskewed with the motion over *its own* sweep (the edge to the next
-    scan; the last scan uses the edge before it) and registered again. (Deskewing both scans of a pair with the
-    pair's motion, as an earlier version did, cancels nothing in turns; measured in docs/posegraph.md.)
-    ``rot_sigma_per_rad`` adds a rotation std proportional to the edge's rotation angle.
+    estimates every edge, each scan is then deskewed with the motion over its own sweep and registered again
+    (deskewing both scans of a pair with the pair's motion cancels nothing in turns).
     ``guide_increments`` (scan_id -> vehicle increment from the previous scan, e.g. wheel odometry) replace the
     GNSS/INS increments as initial guess and gate reference where given: a multipath jump makes a GNSS
     increment tens of centimetres wrong, which rejected correct ICP edges (measured on the simulator). Edges
     with a guide are gated at ``max_deviation_guide_m`` / ``_rad`` (the guide is far better than GNSS/INS).
-    ``span_scans`` (e.g. (10, 30, 90)): after the consecutive edges, each scan at a position i that is a multiple
-    of N in ``scans`` is also registered onto the scan N positions before it, starting from the chain of the N
-    accepted consecutive edges between them and gated against that chain (``max_deviation_m`` / ``_rad``). These
-    span edges (``Edge.span`` = N, after the consecutive ones in the returned list) carry the same information
+    Span edges (``Edge.span`` = N, after the consecutive ones in the returned list) carry the same information
     model; each spans N scans with one registration error instead of N, which cuts the random walk and the
-    per-edge bias of chained scan-to-scan ICP (gangnam: docs/posegraph.md, tenth pass).
+    per-edge bias of chained scan-to-scan ICP.
     """
-    T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
-    to_lidar = lambda T_v: T_lidar_vehicle @ T_v @ T_vehicle_lidar  # noqa: E731
-    with_cov = method == "gicp"
-    prep_kw = dict(voxel_m=voxel_m, knn=knn, with_cov=with_cov, ground_split=ground_split,
-                   ground_tolerance_m=ground_tolerance_m)
-    prepared = []
-    for scan in scans:
-        ok = crop_range(scan.points_lidar_m, min_range_m, max_range_m)
-        t_s = scan.time_offset_s[ok] if scan.time_offset_s is not None else None
-        prepared.append(_prepare(scan.points_lidar_m[ok], t_s, T_vehicle_lidar, **prep_kw))
-    pairs = [k for k in range(1, len(scans)) if scans[k].scan_id == scans[k - 1].scan_id + 1]
-    dt_s = {k: (scans[k].stamp_ns - scans[k - 1].stamp_ns) * 1e-9 for k in pairs}
-    T_gnss_v = {k: se3_inverse(gnss_poses[scans[k - 1].scan_id]) @ gnss_poses[scans[k].scan_id]
-                for k in pairs if scans[k - 1].scan_id in gnss_poses and scans[k].scan_id in gnss_poses}
-    guided = {k for k in pairs if guide_increments and scans[k].scan_id in guide_increments}
-    for k in guided:
-        T_gnss_v[k] = guide_increments[scans[k].scan_id]
-    reg = dict(method=method, max_corr_m=max_corr_m, max_iterations=max_iterations, point_sigma_m=point_sigma_m,
-               min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad, relative_tolerance=relative_tolerance)
-
-    def register_all(guesses: dict[int, np.ndarray] | None) -> dict[int, RegistrationResult]:
-        out: dict[int, RegistrationResult] = {}
-        last_v, last_dt = None, None
-        for k in pairs:
-            if guesses is not None:
-                guess_l = guesses[k]
-            else:
-                ratio = dt_s[k] / last_dt if (dt_s[k] > 0 and last_dt) else 1.0
-                guess_v = T_gnss_v.get(k)
-                guess_l = to_lidar(guess_v if guess_v is not None else initial_guess(None, None, last_v, ratio))
-            res = register_clouds(prepared[k].structure, prepared[k - 1].structure, guess_l, **reg)
-            out[k] = res
-            if res.converged and guesses is None:
-                last_v, last_dt = T_vehicle_lidar @ res.T_target_source @ T_lidar_vehicle, dt_s[k]
-        return out
-
-    def with_road(src: _Prepared, tgt: _Prepared, res: RegistrationResult) -> np.ndarray:
-        """The registration with height, roll and pitch from the two scans' road planes."""
-        if res.converged and src.plane is not None and tgt.plane is not None:
-            return align_ground_planes(res.T_target_source, src.plane, tgt.plane)
-        return res.T_target_source
-
-    def vehicle_edge(src: _Prepared, tgt: _Prepared, res: RegistrationResult) -> tuple[np.ndarray, np.ndarray]:
-        """Vehicle-frame increment (road planes applied) and its information: the structure's point-to-plane
-        Hessian, plus the ground's where the road planes were used; floored; a rotation term in turns."""
-        H = res.hessian  # the structure's, computed by register_clouds with the same max_corr_m / point_sigma_m
-        T_l = with_road(src, tgt, res)
-        if T_l is not res.T_target_source and src.ground is not None and tgt.ground is not None:
-            H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, max_corr_m, point_sigma_m)
-        T_v, info_v = lidar_to_vehicle_edge(T_l, floor_information(H, min_sigma_m, min_sigma_rad), T_vehicle_lidar)
-        if rot_sigma_per_rad > 0:  # turns: residual rotation error grows with the edge's rotation
-            info_v = floor_information(info_v, 1e-9, rot_sigma_per_rad * rotation_angle_rad(T_v) + 1e-12)
-        return T_v, info_v
-
-    results = register_all(None)
-    timed = [p.time_offset_s is not None for p in prepared]
-    if deskew and any(timed):
-        # the sweep motion must include the road planes' height/roll/pitch: structure-only ICP leaves them
-        # weak, and a wrong roll rate tilts the deskewed scan (measured: 0.09 deg roll error per edge)
-        motion = {k: with_road(prepared[k], prepared[k - 1], r) for k, r in results.items()}
-        for i, p in enumerate(prepared):
-            if not timed[i]:
-                continue
-            own = next((k for k in (i + 1, i) if k in results and results[k].converged and dt_s[k] > 0), None)
-            if own is None:
-                continue
-            pts = deskew_points(p.points_m, p.time_offset_s, motion[own], dt_s[own])
-            prepared[i] = _prepare(pts, None, T_vehicle_lidar, **prep_kw)
-        results = register_all(motion)
-
-    edges: list[Edge] = []
-    for k in pairs:
-        res = results[k]
-        T_v, info_v = vehicle_edge(prepared[k], prepared[k - 1], res)
-        accepted = gate_edge(T_v, T_gnss_v.get(k), res.fitness, res.converged, min_fitness=min_fitness,
-                             max_deviation_m=max_deviation_guide_m if k in guided else max_deviation_m,
-                             max_deviation_rad=max_deviation_guide_rad if k in guided else max_deviation_rad,
-                             planar=k in guided)
-        edges.append(Edge(scans[k].scan_id, scans[k].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
-                          accepted))
-    by_position = dict(zip(pairs, edges))
-    for span in sorted(set(int(n) for n in span_scans if int(n) > 1)):
-        for i in range(span, len(scans), span):
-            chain = [by_position.get(k) for k in range(i - span + 1, i + 1)]
-            if any(e is None or not e.converged for e in chain):
-                continue  # a gap or a rejected edge inside: no reference to start from or gate against
-            T_chain_v = np.eye(4)
-            for e in chain:
-                T_chain_v = T_chain_v @ e.T_prev_curr
-            src, tgt = prepared[i], prepared[i - span]
-            res = register_clouds(src.structure, tgt.structure, to_lidar(T_chain_v), **reg)
-            T_v, info_v = vehicle_edge(src, tgt, res)
-            accepted = gate_edge(T_v, T_chain_v, res.fitness, res.converged, min_fitness=min_fitness,
-                                 max_deviation_m=max_deviation_m, max_deviation_rad=max_deviation_rad)
-            edges.append(Edge(scans[i].scan_id, scans[i].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
-                              accepted, span))
-    return edges
+    with_cov = cfg.icp.method == "gicp"
+    prepared = prepare_scans(scans, T_vehicle_lidar, cfg.prepare, with_cov)
+    pairs = pair_scans(scans, gnss_poses, guide_increments)
+    results = register_pairs(prepared, pairs, T_vehicle_lidar, cfg)
+    if cfg.deskew and any(p.time_offset_s is not None for p in prepared):
+        prepared, motion = deskew_own_sweep(prepared, pairs, results, T_vehicle_lidar, cfg.prepare, with_cov)
+        results = register_pairs(prepared, pairs, T_vehicle_lidar, cfg, guesses_l=motion)
+    edges = consecutive_edges(scans, prepared, pairs, results, T_vehicle_lidar, cfg)
+    return edges + span_edges(scans, prepared, pairs, edges, T_vehicle_lidar, cfg)

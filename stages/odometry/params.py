@@ -6,6 +6,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from pipeline.declare import Params
+from stages.odometry.config import EdgeConfig, GateConfig, IcpConfig, InformationConfig, PrepareConfig
 
 
 class OdometryParams(Params):
@@ -26,7 +27,7 @@ class OdometryParams(Params):
                                "pattern's pull towards zero motion)")
     ground_tolerance_m: float = Field(0.25, gt=0, description="points within this distance of the fitted road "
                                       "plane are ground")
-    min_fitness: float = Field(0.3, ge=0, le=1, description="below: edge marked not converged")
+    min_fitness: float = Field(0.3, ge=0, le=1, description="below: edge not accepted")
     max_deviation_m: float = Field(0.3, gt=0, description="ICP vs valid GNSS/INS increment (good to ~0.1 m); "
                                    "above: edge rejected")
     max_deviation_rad: float = Field(0.0175, gt=0, description="same, rotation angle (1 deg)")
@@ -48,6 +49,21 @@ class OdometryParams(Params):
                                   "scans instead of N chained ones; gangnam without survey: absolute 0.320 -> "
                                   "0.255 m, heading 0.096 -> 0.060 deg; ~6 % odometry time); [] = consecutive edges "
                                   "only")
+
+    def edge_config(self) -> EdgeConfig:
+        """The algorithm's settings in sections (``estimate_edges`` never sees this params object)."""
+        return EdgeConfig(
+            prepare=PrepareConfig(voxel_m=self.voxel_m, knn=self.knn, min_range_m=self.min_range_m,
+                                  max_range_m=self.max_range_m, ground_split=self.ground_split,
+                                  ground_tolerance_m=self.ground_tolerance_m),
+            icp=IcpConfig(method=self.method, max_corr_m=self.max_corr_m, max_iterations=self.max_iterations,
+                          relative_tolerance=self.relative_tolerance),
+            information=InformationConfig(point_sigma_m=self.point_sigma_m, min_sigma_m=self.min_sigma_m,
+                                          min_sigma_rad=self.min_sigma_rad, rot_sigma_per_rad=self.rot_sigma_per_rad),
+            gate=GateConfig(min_fitness=self.min_fitness, max_deviation_m=self.max_deviation_m,
+                            max_deviation_rad=self.max_deviation_rad, max_deviation_guide_m=self.max_deviation_wheel_m,
+                            max_deviation_guide_rad=self.max_deviation_wheel_rad),
+            deskew=self.deskew != "none", span_scans=tuple(self.span_scans))
 
     @model_validator(mode="after")
     def _ranges(self) -> "OdometryParams":

@@ -26,7 +26,7 @@ class DriveInput:
     gnss_valid: np.ndarray  # (N,) bool
     edge_T: np.ndarray  # (N,4,4) T_prev_curr into scan k (identity where none)
     edge_info: np.ndarray  # (N,6,6)
-    edge_ok: np.ndarray  # (N,) bool: an ICP edge from scan k-1 into scan k exists and converged
+    edge_ok: np.ndarray  # (N,) bool: an ICP edge from scan k-1 into scan k exists and was accepted
     T_vehicle_lidar: np.ndarray  # (4,4)
     wheel_T: np.ndarray | None = None  # (N,4,4) planar wheel-odometry increment into scan k (where wheel_ok)
     wheel_ok: np.ndarray | None = None  # (N,) bool
@@ -55,8 +55,8 @@ def span_betweens(drive: DriveInput, offset: int, robust: str, kernel_k: float) 
     if drive.spans is None:
         return []
     sp = drive.spans
-    return [Between(offset + int(i), offset + int(j), T, I, "span", robust, kernel_k)
-            for i, j, T, I in zip(sp.i, sp.j, sp.T_i_j, sp.information)]
+    return [Between(offset + int(i), offset + int(j), T, info, "span", robust, kernel_k)
+            for i, j, T, info in zip(sp.i, sp.j, sp.T_i_j, sp.information)]
 
 
 def has_wheel(drive: DriveInput, k: int) -> bool:
@@ -77,7 +77,7 @@ def bridge_increment(drive: DriveInput, k: int) -> np.ndarray:
 
 
 def increments(drive: DriveInput) -> np.ndarray:
-    """(N,4,4) T_prev_curr for every scan (index 0 is the identity): ICP where it converged, else bridged."""
+    """(N,4,4) T_prev_curr for every scan (index 0 is the identity): ICP where accepted, else bridged."""
     inc = np.tile(np.eye(4), (drive.n, 1, 1))
     for k in range(1, drive.n):
         inc[k] = drive.edge_T[k] if drive.edge_ok[k] else bridge_increment(drive, k)

@@ -82,7 +82,11 @@ class PosegraphParams(Params):
     loop_kernel_k: float = Field(3.0, gt=0)
     loop_max_whitened_residual: float = Field(30.0, gt=0, description="post-check: reject loops above")
     loop_min_sigma_m: float = Field(0.02, gt=0)
-    loop_min_sigma_rad: float = Field(0.005, gt=0, description="loops fix positions; the map's heading is INS-grade (0.2-0.4 deg), tighter loops fight it")
+    loop_min_sigma_rad: float = Field(
+        0.005,
+        gt=0,
+        description="loops fix positions; the map's heading is INS-grade (0.2-0.4 deg), tighter loops fight it",
+    )
     # survey anchoring
     survey_stride_m: float = Field(10.0, gt=0)
     survey_crop_m: float = Field(40.0, gt=0)

@@ -17,10 +17,10 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from stages.common.road_features import extract_road_features
 from stages.common.marking_raster.elevation_grid import GridAccumulator
-from stages.common.marking_raster.settings import MarkingRasterSettings
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
+from stages.common.marking_raster.settings import MarkingRasterSettings
+from stages.common.road_features import extract_road_features
 from stages.posegraph.core import deskew_scan_lidar
 from stages.posegraph.marking_match import MarkingMatch, match_markings
 

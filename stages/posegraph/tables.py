@@ -4,18 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from scipy.spatial.transform import Rotation
 
 from pipeline.errors import FormatError
 from schemas.registry import schema_of
-from stages.common.geometry import poses_from_xyz_quat
+from stages.common.records import INCREMENT_COLUMNS, Extrinsics, pose_columns, pose_matrices
 from stages.common.wheel_deskew import track_from_table, wheel_increments
 from stages.posegraph.core import DriveInput, SpanEdges, calibrate_wheel, calibrated_wheel_increments
-
-
-def _T_from_columns(table: pa.Table, x: str, y: str, z: str) -> np.ndarray:
-    return poses_from_xyz_quat(np.column_stack([table[c].to_numpy() for c in (x, y, z)]),
-                               np.column_stack([table[c].to_numpy() for c in ("qx", "qy", "qz", "qw")]))
 
 
 def _information(edges: pa.Table) -> np.ndarray:
@@ -30,10 +24,7 @@ def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Tabl
     g = gnss.filter(pc.equal(gnss["drive"], drive)).sort_by("scan_id")
     if g.num_rows == 0:
         raise FormatError(f"poses_gnss: no rows for drive {drive!r}; hint: is it in the workflow's drives?")
-    info_rows = drive_info.filter(pc.equal(drive_info["drive"], drive))
-    if info_rows.num_rows == 0:
-        raise FormatError(f"drive_info: no row for drive {drive!r}; hint: run ingest for this drive first")
-    T_vl = np.asarray(info_rows["T_vehicle_lidar"][0].as_py(), float).reshape(4, 4)
+    T_vl = Extrinsics.from_table(drive_info).of(drive)
     ids = g["scan_id"].to_numpy()
     n = len(ids)
     e = edges.filter(pc.equal(edges["drive"], drive))
@@ -45,14 +36,14 @@ def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Tabl
     edge_info = np.tile(np.eye(6), (n, 1, 1))
     edge_ok = np.zeros(n, bool)
     if e.num_rows:
-        Te = _T_from_columns(e, "dx_m", "dy_m", "dz_m")
+        Te = pose_matrices(e, position=INCREMENT_COLUMNS)
         info = _information(e)
-        conv = e["converged"].to_numpy(zero_copy_only=False)
+        conv = e["accepted"].to_numpy(zero_copy_only=False)
         edge_T[pos[inside]] = Te[inside]
         edge_info[pos[inside]] = info[inside]
         edge_ok[pos[inside]] = conv[inside]
     std = np.column_stack([g[c].to_numpy() for c in ("std_east_m", "std_north_m", "std_up_m")])
-    d = DriveInput(drive, ids, g["stamp_ns"].to_numpy(), _T_from_columns(g, "x_m", "y_m", "z_m"), std,
+    d = DriveInput(drive, ids, g["stamp_ns"].to_numpy(), pose_matrices(g), std,
                    g["std_yaw_rad"].to_numpy(), g["valid"].to_numpy(zero_copy_only=False), edge_T, edge_info,
                    edge_ok, T_vl, *_wheel_arrays(drive, ids, g["stamp_ns"].to_numpy(), odometry))
     d.spans = _span_edges(drive, ids, span_edges)
@@ -68,14 +59,14 @@ def _span_edges(drive: str, ids: np.ndarray, span_edges: pa.Table | None) -> Spa
     """The drive's accepted span edges whose two scans both have a poses_gnss row (positions into ``ids``)."""
     if span_edges is None:
         return None
-    e = span_edges.filter(pc.and_(pc.equal(span_edges["drive"], drive), span_edges["converged"]))
+    e = span_edges.filter(pc.and_(pc.equal(span_edges["drive"], drive), span_edges["accepted"]))
     a, b = e["scan_id_from"].to_numpy(), e["scan_id"].to_numpy()
     pa_, pb = np.searchsorted(ids, a), np.searchsorted(ids, b)
     ok = (pa_ < len(ids)) & (pb < len(ids))
     ok[ok] &= (ids[pa_[ok]] == a[ok]) & (ids[pb[ok]] == b[ok])
     if not ok.any():
         return SpanEdges(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
-    T = _T_from_columns(e, "dx_m", "dy_m", "dz_m")
+    T = pose_matrices(e, position=INCREMENT_COLUMNS)
     return SpanEdges(pa_[ok], pb[ok], T[ok], _information(e)[ok])
 
 
@@ -98,10 +89,8 @@ def _wheel_arrays(drive: str, ids: np.ndarray, stamps_ns: np.ndarray, odometry: 
 
 
 def poses_table(name: str, drive: DriveInput, T: np.ndarray, cov_xy_yaw: np.ndarray | None = None) -> pa.Table:
-    q = Rotation.from_matrix(T[:, :3, :3]).as_quat() if len(T) else np.zeros((0, 4))
     cols = {"drive": pa.array([drive.name] * drive.n, pa.string()), "scan_id": pa.array(drive.scan_ids, pa.int64()),
-            "stamp_ns": pa.array(drive.stamps_ns, pa.int64()), "x_m": T[:, 0, 3], "y_m": T[:, 1, 3],
-            "z_m": T[:, 2, 3], "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]}
+            "stamp_ns": pa.array(drive.stamps_ns, pa.int64()), **pose_columns(T)}
     if cov_xy_yaw is not None:
         cols["cov_xy_yaw"] = pa.FixedSizeListArray.from_arrays(
             pa.array(np.asarray(cov_xy_yaw, float).reshape(-1), pa.float64()), 9)

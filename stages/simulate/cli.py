@@ -7,13 +7,17 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
-    app.command("simulate", help=(
-        "Generate a synthetic city and K drives (HDL-32E PCD scans, INSPVA GNSS/INS CSV, wheel/gyro CSV, "
-        "survey LAS, ground truth), deterministic from (preset, seed).\n\n"
-        "Examples:\n\n"
-        "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
-        "  cornermap simulate --preset gangnam --seed 3 --out runs/gangnam_sim --drives 3 --max-scans 20\n\n"
-        "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50"))(simulate_command)
+    app.command(
+        "simulate",
+        help=(
+            "Generate a synthetic city and K drives (HDL-32E PCD scans, INSPVA GNSS/INS CSV, wheel/gyro CSV, "
+            "survey LAS, ground truth), deterministic from (preset, seed).\n\n"
+            "Examples:\n\n"
+            "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
+            "  cornermap simulate --preset gangnam --seed 3 --out runs/gangnam_sim --drives 3 --max-scans 20\n\n"
+            "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50"
+        ),
+    )(simulate_command)
 
 
 def simulate_command(

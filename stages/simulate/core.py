@@ -24,7 +24,7 @@ from stages.simulate.mesh import Scene, build_building_soup, build_static_soup
 from stages.simulate.presets import Preset, get_preset
 from stages.simulate.sensor import MOUNT_HEIGHT_M, LaserCalibration, build_beam_table
 from stages.simulate.survey import generate_survey
-from stages.simulate.trajectory import choose_loop_cells, lane_polyline, loop_nodes
+from stages.simulate.trajectory import choose_loop_cells, loop_nodes
 from stages.simulate.truth import building_corners, city_description, count_visible_scans
 
 log = logging.getLogger(__name__)

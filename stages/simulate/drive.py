@@ -126,9 +126,17 @@ def _write_gnss(spec: DriveSpec, p: Preset, traj, buildings: Scene, origin, driv
     v = err.valid
     llh = enu_to_geodetic(enu[v], origin)
     azimuth = (90.0 - np.degrees(state[:, 2] + err.err_yaw_rad)) % 360.0
-    writers.write_gnss_csv(drive_dir / "gnss_inspva.csv", p.gps_week, spec.gps_t0_s + t[v], llh,
-                           np.degrees(state[v, 4] + err.err_roll_rad[v]), np.degrees(state[v, 3] + err.err_pitch_rad[v]),
-                           azimuth[v], err.std_enu_m[v], np.degrees(err.std_yaw_rad[v]))
+    writers.write_gnss_csv(
+        drive_dir / "gnss_inspva.csv",
+        p.gps_week,
+        spec.gps_t0_s + t[v],
+        llh,
+        np.degrees(state[v, 4] + err.err_roll_rad[v]),
+        np.degrees(state[v, 3] + err.err_pitch_rad[v]),
+        azimuth[v],
+        err.std_enu_m[v],
+        np.degrees(err.std_yaw_rad[v]),
+    )
     h = np.linalg.norm(err.err_enu_m[v, :2], axis=1)
     stats = {"rms_m": round(float(np.sqrt(np.mean(h ** 2))), 4), "max_m": round(float(h.max()), 4),
              "seconds_above_1m": round(float((h > 1.0).sum() / GNSS_RATE_HZ), 2),

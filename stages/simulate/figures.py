@@ -73,6 +73,7 @@ def plot_birdseye(sim_dir: Path, out: Path) -> None:
     matplotlib.use("Agg")
     import cv2
     import matplotlib.pyplot as plt
+
     from stages.common.geometry import read_tum
 
     city = json.loads((sim_dir / "truth/city.json").read_text())
@@ -111,6 +112,7 @@ def plot_gnss(sim_dir: Path, out: Path) -> dict:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     from stages.common.geodesy import EnuOrigin, geodetic_to_enu
     from stages.common.geometry import read_tum
 

@@ -40,7 +40,9 @@ def generate_survey(city: City, route_en: np.ndarray, corridor_m: float, marking
     res = spacing_m
     shape = (int(np.ceil((north - south) / res)), int(np.ceil((east - west) / res)))
     corridor = np.zeros(shape, np.uint8)
-    px = np.round(np.column_stack([(route_en[:, 0] - west) / res, (north - route_en[:, 1]) / res]) * 16).astype(np.int32)
+    px = np.round(np.column_stack([(route_en[:, 0] - west) / res, (north - route_en[:, 1]) / res]) * 16).astype(
+        np.int32
+    )
     cv2.polylines(corridor, [px], False, 1, thickness=int(2 * corridor_m / res), shift=4)
     sidewalk = np.zeros(shape, np.uint8)
     _fill(sidewalk, city.curbs_en, west, north, res)

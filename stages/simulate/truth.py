@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.simulate.city import City
 from stages.common.geometry import wrap_angle_rad
+from stages.simulate.city import City
 from stages.simulate.geom2d import point_in_polygon, point_segment_distance_m, polygon_corners
 from stages.simulate.mesh import Scene
 

@@ -68,9 +68,9 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
     """
     import math
 
-    from pipeline.errors import LimitError
     from mapformat.diff import diff_maps
     from mapformat.loader import open_map
+    from pipeline.errors import LimitError
 
     for opt, value in (("--move-threshold-m", move_threshold_m), ("--match-radius-m", match_radius_m)):
         if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
@@ -90,9 +90,15 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
     typer.echo("total: +{} -{} ~{} corners, {} marking px changed".format(*totals))
 
 
-def export(fmt: str = typer.Option(..., "--format", "-f", help="im2016-text | geojson | markings-geojson | autoware | geotiff"),
-           out: Path = typer.Option(..., "--out", "-o", help="Output file (directory for autoware and geotiff)."),
-           root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT) -> None:
+def export(
+    fmt: str = typer.Option(
+        ..., "--format", "-f", help="im2016-text | geojson | markings-geojson | autoware | geotiff"
+    ),
+    out: Path = typer.Option(..., "--out", "-o", help="Output file (directory for autoware and geotiff)."),
+    root: Path = ROOT_OPT,
+    map_name: Optional[str] = MAP_OPT,
+    version: str = VERSION_OPT,
+) -> None:
     """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), Autoware map folder, or GeoTIFFs (COG).
 
     Examples: [b]cornermap tiles export -f im2016-text -o runs/city.txt --map city --root runs/maps[/b];
@@ -115,9 +121,9 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
 
     Example: [b]cornermap tiles verify --all --map tiny --root runs/tiny[/b]
     """
+    from mapformat.verify import verify_map
     from pipeline.errors import ChecksumError, UnknownNameError
     from pipeline.versioned import list_versions, resolve_version, trusted_manifest_digests, version_name
-    from mapformat.verify import verify_map
 
     d = map_dir_of(root, map_name)
     dirs = [d / version_name(v) for v in list_versions(d)] if all_versions else [resolve_version(d, version)]

@@ -10,12 +10,12 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from mapformat import layout
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
 from pipeline.names import check_name, inside
 from pipeline.versioned import publish_version
 from stages.common.geodesy import EnuOrigin
-from mapformat import layout
 from stages.tiles import core
 from stages.tiles.decl import STAGE
 from stages.tiles.writer import DriveTrajectory, RasterTile, write_map_files

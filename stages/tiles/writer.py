@@ -15,13 +15,13 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.errors import DatasetIOError
-from pipeline.names import inside
-from pipeline.versioned import sha256_file
-from stages.common.tiling import tile_bounds
 from mapformat import layout
-from stages.tiles.core import group_by_tile
 from mapformat.vectors import MARKINGS_FILE, features_table, tile_features
+from pipeline.errors import DatasetIOError
+from pipeline.fingerprint import file_sha256
+from pipeline.names import inside
+from stages.common.tiling import tile_bounds
+from stages.tiles.core import group_by_tile
 
 
 @dataclass(frozen=True)
@@ -128,7 +128,7 @@ def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, raster
             entry["n_marking_features"] = vectors[key].num_rows
             entry["n_marking_px"] = int(raster.meta.get("n_marking_px", 0))
             entry["marking"] = {**raster.meta, "mask_file": mask, "layers": sorted(raster.files)}
-        entry["files"] = {p.name: sha256_file(p) for p in sorted(tile_dir.iterdir())}
+        entry["files"] = {p.name: file_sha256(p) for p in sorted(tile_dir.iterdir())}
         tiles.append(entry)
     drives = []
     for traj in sorted(trajectories, key=lambda t: t.drive):

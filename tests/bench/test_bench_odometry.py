@@ -5,9 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.bench_odometry import (Run, compare_trajectories, edge_kwargs, errors_vs_truth, inverse_poses,
-                                  kiss_available, kitti_files, odometry_kiss, odometry_ours, on_common_scans,
-                                  read_scan)
+from bench.odometry_engines import (
+    Run,
+    compare_trajectories,
+    errors_vs_truth,
+    inverse_poses,
+    kiss_available,
+    odometry_kiss,
+    odometry_ours,
+    on_common_scans,
+)
+from bench.odometry_sources import kitti_files, read_scan
 from stages.common.geometry import se3_from_xyz_rpy
 from stages.odometry.core import Scan
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
@@ -56,15 +64,6 @@ def test_end_of_sweep_poses_are_compared_at_the_next_scan_start():
     assert c["dt_max_mm"] < 1e-6 and c["dpos_max_mm"] < 1e-6
     wrong = compare_trajectories(rel[:7], b)
     assert wrong["dt_max_mm"] > 100
-
-
-def test_edge_kwargs_carry_every_param_the_registration_takes():
-    from stages.odometry.params import OdometryParams
-
-    kw = edge_kwargs(OdometryParams(voxel_m=0.7, deskew="none", ground_split=False))
-    assert kw["voxel_m"] == 0.7 and kw["deskew"] is False and kw["ground_split"] is False
-    assert edge_kwargs(OdometryParams(deskew="own_sweep"))["deskew"] is True
-    assert "guide_increments" not in kw
 
 
 @pytest.fixture(scope="module")

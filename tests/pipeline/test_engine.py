@@ -51,7 +51,7 @@ def write_toy(tmp: Path, *, params: dict | None = None, stages=("numbers", "squa
 
 
 def run(path: Path, **kw):
-    from pipeline.cli import execute_workflow
+    from pipeline.api import execute_workflow
 
     return execute_workflow(path, root=kw.pop("root", None), scheduler=kw.pop("scheduler", None),
                             only=kw.pop("only", None), dry_run=False, quiet=True, **kw)
@@ -68,6 +68,24 @@ def read_output(root: Path, dataset: str) -> pa.Table:
 
 def decisions(result) -> dict[str, str]:
     return {k: v["decision"] for k, v in result["summary"].items()}
+
+
+def test_stage_context_reads_what_the_run_committed(tmp_path):
+    """The public stage context (benches call a stage's functions with it) sees the plan's params and reads the
+    committed input; a stage outside the plan is a named error."""
+    from pipeline.api import stage_context
+    from pipeline.errors import UnknownNameError
+    from pipeline.plan import make_plan
+
+    path = write_toy(tmp_path, params={"total": {"scale": 3.0}})
+    plan = run(path)["plan"]
+    ctx = stage_context(make_plan(plan.workflow, plan.root), "total", tmp_path / "scratch")
+    assert ctx.params.scale == 3.0
+    got = ctx.inputs.read("squares")
+    want = read_output(plan.root, "toy_squares")
+    assert sorted(got["value"].to_pylist()) == sorted(want["value"].to_pylist()) and got.num_rows > 0
+    with pytest.raises(UnknownNameError, match="did you mean 'total'"):
+        stage_context(plan, "totl", tmp_path / "scratch")
 
 
 def test_second_run_skips_and_param_change_reruns_downstream(tmp_path):

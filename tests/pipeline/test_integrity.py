@@ -135,7 +135,9 @@ def test_yaml_size_cap_and_non_utf8(tmp_path):
 def test_catalog_schema_references_cannot_import_arbitrary_modules(tmp_path):
     from pipeline.catalog import load_catalog
 
-    (tmp_path / "c.yaml").write_text("datasets:\n  evil:\n    schema: 'os:system'\n  bad:\n    schema: 'antigravity:x'\n")
+    (tmp_path / "c.yaml").write_text(
+        "datasets:\n  evil:\n    schema: 'os:system'\n  bad:\n    schema: 'antigravity:x'\n"
+    )
     with pytest.raises(ConfigError) as info:
         load_catalog([tmp_path / "c.yaml"])
     assert str(info.value).count("may only name a module of the schemas package") == 2

@@ -3,7 +3,6 @@ workflow file, fingerprints without locations (a moved workflow + root + drives 
 referenced file does not), and the settings each stage reads."""
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
@@ -57,7 +56,6 @@ def test_moved_project_skips_every_stage_and_a_changed_drive_file_does_not(tmp_p
 def test_packaged_workflows_and_catalog_load_by_name_from_any_folder(tmp_path, monkeypatch):
     from pipeline.errors import ConfigError
     from pipeline.resources import packaged_catalog_dir, packaged_workflows, resolve_workflow
-    from pipeline.workflow import load_workflow
 
     monkeypatch.chdir(tmp_path)
     assert {"demo", "tiny", "gangnam", "map_rebuild"} <= set(packaged_workflows())

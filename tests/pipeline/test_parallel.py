@@ -39,3 +39,16 @@ def test_inside_a_cluster_task_the_items_run_as_cluster_tasks():
 def test_empty_and_single_item_run_in_process():
     assert parallel_map(shifted_square, [], workers=4) == []
     assert parallel_map(shifted_square, [2.0], workers=4, initializer=remember, initargs=(1.0,))[0][0] == 5.0
+
+
+def test_a_serial_request_inside_a_cluster_task_stays_in_process(monkeypatch):
+    """workers=1 means this process even inside a dask.distributed worker (the cluster branch is not taken)."""
+    import pipeline.parallel as par
+
+    def no_cluster(*_a, **_k):
+        raise AssertionError("workers=1 went to the cluster")
+
+    monkeypatch.setattr(par, "_in_distributed_worker", lambda: True)
+    monkeypatch.setattr(par, "_on_cluster", no_cluster)
+    out = parallel_map(shifted_square, ITEMS, workers=1, initializer=remember, initargs=(0.5,))
+    assert [v for v, _ in out] == EXPECTED and {pid for _, pid in out} == {os.getpid()}

@@ -1,7 +1,6 @@
 """pipeline.versioned: immutable versions, atomic LATEST, exclusive publisher, crash safety, retention."""
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -14,9 +13,21 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ChecksumError, PublishConflictError, UnknownNameError
-from pipeline.versioned import (LATEST_NAME, apply_retention, check_version, list_versions, parse_version,
-                                publish_lock, publish_version, read_latest, read_manifest, resolve_version,
-                                verify_version, version_name, write_latest)
+from pipeline.versioned import (
+    LATEST_NAME,
+    apply_retention,
+    check_version,
+    list_versions,
+    parse_version,
+    publish_lock,
+    publish_version,
+    read_latest,
+    read_manifest,
+    resolve_version,
+    verify_version,
+    version_name,
+    write_latest,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -7,8 +7,12 @@ import pytest
 
 from stages.common.marking_scores import sample_polyline, score_markings
 from stages.common.marking_vectors import TYPES, clip_polyline_to_box, vectorize_markings
-from stages.simulate.markings import (city_from_description, generate_markings, marking_truth_features,
-                                      rasterize_markings)
+from stages.simulate.markings import (
+    city_from_description,
+    generate_markings,
+    marking_truth_features,
+    rasterize_markings,
+)
 
 CITY = {"intersections_en": [[[0, 0], [120, 0], [240, 0]], [[0, 100], [120, 100], [240, 100]]],
         "road_half_width_m": {"east_west": 9.0, "north_south": 9.0},

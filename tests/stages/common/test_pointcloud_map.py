@@ -4,8 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.common.pointcloud_map import (free_space_keep, grid_split, interpolate_poses, scan_to_map,
-                                          voxel_downsample, voxel_keys)
+from stages.common.pointcloud_map import (
+    free_space_keep,
+    grid_split,
+    interpolate_poses,
+    scan_to_map,
+    voxel_downsample,
+    voxel_keys,
+)
 
 
 def _box(rng, e0, e1, n0, n1, z0, z1, n):

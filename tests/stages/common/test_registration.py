@@ -7,10 +7,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
-from stages.common.registration import (adjoint_se3, deskew_points, floor_information, point_to_plane_hessian,
-                                        prepare_cloud, register_clouds, regularize_covariances)
+from stages.common.registration import (
+    adjoint_se3,
+    deskew_points,
+    floor_information,
+    point_to_plane_hessian,
+    prepare_cloud,
+    register_clouds,
+    regularize_covariances,
+)
 from stages.odometry.core import scale_motion
-
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
 
 

@@ -3,11 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.errors import ConfigError
-from stages.common.tiling import (pixel_center_of, tile_bounds, tile_key_of, tile_pixel_of, tile_shape_px,
-                                  tiles_touching)
+from stages.common.tiling import pixel_center_of, tile_bounds, tile_key_of, tile_pixel_of, tile_shape_px, tiles_touching
 
 coord = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
 grid = st.sampled_from([(100.0, 0.1), (50.0, 0.25), (20.0, 0.1), (64.0, 0.5), (0.3, 0.1)])

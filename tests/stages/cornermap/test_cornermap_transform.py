@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from stages.common.geometry import se3_from_xyz_rpy, transform_points
 from stages.cornermap.angles import canonicalize_pairs, pair_difference_rad, wrap_rad

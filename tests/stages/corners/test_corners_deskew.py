@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.corners.core import extract_corners
 from stages.common.wheel_deskew import deskew_points, vehicle_motion_xy_yaw
+from stages.corners.core import extract_corners
 from stages.corners.synthetic import Scene, box_building, cast_scan
 
 BOX = box_building((0.0, 0.0), (12.0, 8.0), yaw_rad=0.4, height_m=14.0)

@@ -3,12 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from stages.corners.candidates import CornerCandidates, find_corner_candidates
 from stages.corners.determine import determine_corners, floor_covariance
-from stages.corners.layers import (estimate_ring_elevation_deg, find_run_starts, order_rings_by_azimuth,
-                                   select_layers)
+from stages.corners.layers import estimate_ring_elevation_deg, find_run_starts, order_rings_by_azimuth, select_layers
 from stages.corners.lines import extract_lines, fit_lines_tls, split_iepf
 from stages.corners.synthetic import HDL32E_ELEVATION_DEG, Scene, box_building, cast_scan
 

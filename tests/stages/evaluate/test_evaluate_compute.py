@@ -12,12 +12,18 @@ from scipy.spatial.transform import Rotation
 from pipeline.testing import make_context
 from schemas import schema_of
 from stages.common.geodesy import EnuOrigin
-from stages.common.geometry import write_tum, se3_from_xyz_rpy
+from stages.common.geometry import se3_from_xyz_rpy, write_tum
 from stages.common.trajectory_frame import frame_header
 from stages.evaluate import compute as compute_mod
 from stages.evaluate.params import EvaluateParams
-from stages.evaluate.synthetic import (ground_ring_scan, observe_corners, paint_markings, relative_increments,
-                                       road_trajectory, roadside_corners)
+from stages.evaluate.synthetic import (
+    ground_ring_scan,
+    observe_corners,
+    paint_markings,
+    relative_increments,
+    road_trajectory,
+    roadside_corners,
+)
 
 N, CELL, DRIVE = 40, 0.1, "drive_1"
 MAP_ORIGIN = EnuOrigin(37.4979, 127.0276, 57.0)
@@ -86,7 +92,7 @@ def stage_context(tmp_path, monkeypatch):
             "stamp_ns": stamps[1:], "dx_m": inc[1:, 0], "dy_m": inc[1:, 1], "dz_m": zeros[1:],
             **dict(zip(("qx", "qy", "qz", "qw"), _quat(inc[1:, 2]).T)), "fitness": ones[1:],
             "inlier_rmse_m": 0.05 * ones[1:], "information": [np.eye(6).ravel()] * (N - 1),
-            "converged": np.ones(N - 1, bool)}),
+            "accepted": np.ones(N - 1, bool)}),
         "corners": _table("corners_per_scan", {
             "drive": [DRIVE] * len(ep), "chunk": np.zeros(len(ep), int), "scan_id": ep, "stamp_ns": stamps[ep],
             "corner_idx": np.zeros(len(ep), int), "x_m": xy[:, 0], "y_m": xy[:, 1], "theta1_rad": cdirs[:, 0],

@@ -73,7 +73,7 @@ def test_straight_without_corners_and_with_a_gyro_bias_keeps_nees_consistent():
     n, runs = 600, 40  # 60 s: 10 s with ICP, then 50 s with failed ICP and no corner
     truth = straight(n)
     P0 = np.diag([0.05**2, 0.05**2, np.deg2rad(0.05) ** 2])
-    nees_5, nees_3, bias_z = [], [], []
+    nees_5, nees_3 = [], []
     for i in range(runs):
         rng = np.random.default_rng(100 + i)
         bias = rng.normal(0, CFG.gyro_bias_sigma_rad_s)  # a draw of the prior the filter states

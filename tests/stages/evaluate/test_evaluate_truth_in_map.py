@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stages.evaluate.metrics import align_truth_to_map, fit_rigid_2d, transform_poses
+from stages.common.geometry import fit_rigid_2d
+from stages.evaluate.metrics import align_truth_to_map, transform_poses
 
 
 def _transform(yaw_rad: float, t: np.ndarray):

@@ -12,7 +12,10 @@ from stages.common.geodesy import EnuOrigin
 from stages.common.geometry import read_tum, write_tum
 from stages.common.trajectory_frame import frame_header, move_poses, sidecar_path, write_sidecar
 from stages.evaluate import compute as compute_mod
-from tests.stages.evaluate.test_evaluate_compute import MAP_ORIGIN, FakeMap, _rerun, stage_context  # noqa: F401
+from tests.stages.evaluate import test_evaluate_compute
+from tests.stages.evaluate.test_evaluate_compute import MAP_ORIGIN, FakeMap, _rerun
+
+stage_context = test_evaluate_compute.stage_context  # the shared fixture, registered here by name
 
 OTHER_ORIGIN = EnuOrigin(MAP_ORIGIN.lat_deg + 0.021, MAP_ORIGIN.lon_deg - 0.034, MAP_ORIGIN.h_m + 31.0)  # ~3.7 km
 
@@ -56,8 +59,9 @@ def test_truth_in_another_frame_gives_the_same_numbers(stage_context, tmp_path):
     given = ",".join(str(v) for v in (OTHER_ORIGIN.lat_deg, OTHER_ORIGIN.lon_deg, OTHER_ORIGIN.h_m))
     doc = _metrics(_rerun(ctx, tmp_path, params={"methods": ["ekf"], "reference_frame": given},
                           settings={"references": {"drive_1": str(with_sidecar)}}))
-    assert doc["methods"]["ekf"]["absolute"]["rms_2d_m"] == pytest.approx(base["methods"]["ekf"]["absolute"]["rms_2d_m"],
-                                                                          abs=2e-5)
+    assert doc["methods"]["ekf"]["absolute"]["rms_2d_m"] == pytest.approx(
+        base["methods"]["ekf"]["absolute"]["rms_2d_m"], abs=2e-5
+    )
 
 
 def test_reference_that_states_no_frame_is_refused_unless_told(stage_context, tmp_path):

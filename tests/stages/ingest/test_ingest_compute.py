@@ -10,12 +10,12 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.declare import PartitionKey
 from pipeline.testing import make_context
+from schemas import SCHEMAS
 from stages.ingest.compute import compute
 from stages.ingest.origin import resolve_enu_origin
 from stages.ingest.params import IngestParams
 from stages.ingest.pcd import write_pcd
 from stages.ingest.testing import write_synthetic_drive
-from schemas import SCHEMAS
 
 
 def _run(drive, origin=None, **params):

@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from pipeline.errors import FormatError
 from stages.common.geodesy import EnuOrigin, geodetic_to_enu
-from stages.ingest.drive_file import GnssSpec
 from stages.ingest.csv_columns import read_csv_columns
+from stages.ingest.drive_file import GnssSpec
 from stages.ingest.gnss_csv import monotonic_mask, read_gnss, stamps_ns
 from stages.ingest.pose_interpolation import attitude_from_rpy, interpolate_poses, vehicle_origin_from_reference
 from stages.ingest.survey import crs_to_enu

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from pipeline.errors import FormatError
-from stages.ingest.drive_file import GnssSpec
 from stages.ingest.csv_columns import read_csv_columns
+from stages.ingest.drive_file import GnssSpec
 from stages.ingest.gnss_csv import GnssLimits, read_gnss, read_scan_stamps
 from stages.ingest.scan_pass import scan_numbers
 from stages.ingest.sensors import SENSORS, rings_from_point_order

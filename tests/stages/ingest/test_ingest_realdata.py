@@ -9,7 +9,7 @@ import yaml
 
 from pipeline.declare import PartitionKey
 from pipeline.testing import make_context
-from stages.common.geodesy import EnuOrigin, projected_to_geodetic
+from stages.common.geodesy import projected_to_geodetic
 from stages.ingest.compute import compute
 from stages.ingest.params import IngestParams
 from stages.ingest.scan_formats import read_scan

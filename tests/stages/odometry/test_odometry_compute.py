@@ -12,7 +12,6 @@ from pipeline.testing import make_context
 from schemas.registry import schema_of
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.odometry.params import OdometryParams
-
 from tests.stages.odometry.conftest import raycast_scan
 
 T_VEHICLE_LIDAR = se3_from_xyz_rpy(0.8, 0.0, 1.9, 0.0, 0.01, 0.02)
@@ -80,7 +79,7 @@ def test_compute_chunks_overlap_and_edges_match_truth(street_scene):
         D = se3_inverse(T_true) @ T_est
         assert np.linalg.norm(D[:3, 3]) < 0.02, (k, D[:3, 3])
         assert np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec()) < np.deg2rad(0.1)
-        assert row["converged"] and row["fitness"] > 0.7
+        assert row["accepted"] and row["fitness"] > 0.7
         assert np.all(np.linalg.eigvalsh(np.reshape(row["information"], (6, 6))) > 0)
 
 

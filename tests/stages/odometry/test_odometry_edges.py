@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import prepare_cloud, register_clouds
+from stages.odometry.config import EdgeConfig
 from stages.odometry.core import Scan, estimate_edges, gate_edge
-
 from tests.stages.odometry.conftest import hdl32_rays
 
 PERIOD_S = 0.1
@@ -69,10 +69,10 @@ def test_swept_scans_give_accurate_edges_without_feedback(swept_sequence, deskew
     2 cm / 0.05 deg. The first deskew (source with the last motion, target with an older one) fed each edge's
     error into the next and diverged on the simulator (1.7 m after 20 scans)."""
     scans, step = swept_sequence
-    edges = estimate_edges(scans, np.eye(4), {}, deskew=deskew, **EDGE_KW)
+    edges = estimate_edges(scans, np.eye(4), {}, EdgeConfig.flat(deskew=deskew, **EDGE_KW))
     assert len(edges) == 5
     errs = np.array([_err(e.T_prev_curr, step) for e in edges])
-    assert all(e.converged for e in edges)
+    assert all(e.accepted for e in edges)
     assert errs[:, 0].max() < 0.02 and errs[:, 1].max() < 0.05, errs
 
 
@@ -151,10 +151,10 @@ def test_structure_only_registration_with_road_planes_and_own_sweep_deskew(swept
     # the wheel model drives an arc, the sequence a chord (1.3 cm apart after 1.2 m): a guide, not the answer
     assert len(guides) == 5 and g_err[:, 0].max() < 0.02 and g_err[:, 1].max() < 0.01
     for seq in (wheel_scans, scans):  # wheel-deskewed, then own-sweep deskew inside estimate_edges
-        edges = estimate_edges(seq, T_vl, {}, deskew=True, ground_split=True, guide_increments=guides,
-                               **{**EDGE_KW, "voxel_m": 1.0, "max_corr_m": 1.0})
+        cfg = EdgeConfig.flat(deskew=True, ground_split=True, **{**EDGE_KW, "voxel_m": 1.0, "max_corr_m": 1.0})
+        edges = estimate_edges(seq, T_vl, {}, cfg, guide_increments=guides)
         errs = np.array([_err(e.T_prev_curr, step) for e in edges])
-        assert all(e.converged for e in edges)
+        assert all(e.accepted for e in edges)
         assert errs[:, 0].max() < 0.01 and errs[:, 1].max() < 0.03, errs
         sigma = np.sqrt(np.diag(np.linalg.inv(edges[2].information)))
         assert sigma[5] < 0.02  # height is held by the road planes although only structure was registered
@@ -176,13 +176,13 @@ def test_span_edges_register_scans_n_apart_from_the_chain(swept_sequence):
     """Span edges over 2 and 5 scans of the rolling sequence recover step^N (within the consecutive edges'
     tolerance), come after the unchanged consecutive edges, and name their earlier scan."""
     scans, step = swept_sequence
-    plain = estimate_edges(scans, np.eye(4), {}, deskew=True, **EDGE_KW)
-    edges = estimate_edges(scans, np.eye(4), {}, deskew=True, span_scans=(5, 2), **EDGE_KW)
+    plain = estimate_edges(scans, np.eye(4), {}, EdgeConfig.flat(deskew=True, **EDGE_KW))
+    edges = estimate_edges(scans, np.eye(4), {}, EdgeConfig.flat(deskew=True, span_scans=(5, 2), **EDGE_KW))
     assert [e.span for e in edges] == [1] * 5 + [2, 2, 5]
     for a, b in zip(plain, edges[:5]):
         np.testing.assert_allclose(a.T_prev_curr, b.T_prev_curr, atol=1e-6)
     for e in edges[5:]:
-        assert e.converged and e.scan_id_from == e.scan_id - e.span
+        assert e.accepted and e.scan_id_from == e.scan_id - e.span
         t_err, r_err = _err(e.T_prev_curr, np.linalg.matrix_power(step, e.span))
         assert t_err < 0.02 and r_err < 0.05, (e.span, t_err, r_err)
         assert np.all(np.linalg.eigvalsh(e.information) > 0)
@@ -191,6 +191,6 @@ def test_span_edges_register_scans_n_apart_from_the_chain(swept_sequence):
 def test_span_edge_rejected_when_a_consecutive_edge_inside_is_missing(swept_sequence):
     scans, _ = swept_sequence
     gap = scans[:2] + scans[3:]  # scan 2 quarantined: ids 0 1 3 4 5
-    edges = estimate_edges(gap, np.eye(4), {}, deskew=False, span_scans=(2,), **EDGE_KW)
+    edges = estimate_edges(gap, np.eye(4), {}, EdgeConfig.flat(deskew=False, span_scans=(2,), **EDGE_KW))
     spans = [(e.scan_id_from, e.scan_id) for e in edges if e.span > 1]
     assert spans == [(3, 5)]  # position 2 (scan 3) would span the gap from scan 0: skipped; 4 (scan 5) from 3

@@ -15,7 +15,9 @@ def circuit_truth(n_laps: int = 2, side_m: float = 60.0, step_m: float = 1.0, z_
     yaws = []
     for lap in range(n_laps):
         for side in range(4):
-            yaws += [side * np.pi / 2] * (per_side - 5) + list(np.linspace(side * np.pi / 2, (side + 1) * np.pi / 2, 6)[1:])
+            yaws += [side * np.pi / 2] * (per_side - 5) + list(
+                np.linspace(side * np.pi / 2, (side + 1) * np.pi / 2, 6)[1:]
+            )
     yaws = np.array(yaws)
     xy = np.cumsum(step_m * np.column_stack([np.cos(yaws), np.sin(yaws)]), axis=0)
     z = z_amp_m * np.sin(2 * np.pi * xy[:, 0] / (2 * side_m))

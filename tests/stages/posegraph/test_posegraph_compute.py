@@ -11,7 +11,6 @@ from pipeline.testing import make_context
 from schemas.registry import schema_of
 from stages.common.geometry import read_tum, se3_from_xyz_rpy, se3_inverse
 from stages.posegraph.params import PosegraphParams
-
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
 from tests.stages.posegraph.conftest import perturb
 
@@ -25,11 +24,23 @@ def _drive_tables(name, T_true, scene, rng, t0_s, gnss_offset_m):
     for k, T in enumerate(T_true):
         pts = raycast_scan(scene, T @ T_VL, rng).astype(np.float32)
         m = len(pts)
-        scans.append(pa.table({"drive": [name] * m, "chunk": pa.array([0] * m, pa.int32()),
-                               "scan_id": pa.array([k] * m, pa.int64()), "stamp_ns": pa.array([stamps[k]] * m, pa.int64()),
-                               "x_m": pts[:, 0], "y_m": pts[:, 1], "z_m": pts[:, 2], "intensity": np.zeros(m, np.float32),
-                               "ring": np.zeros(m, np.int16), "time_offset_s": np.zeros(m, np.float32)},
-                              schema=schema_of("scans_raw")))
+        scans.append(
+            pa.table(
+                {
+                    "drive": [name] * m,
+                    "chunk": pa.array([0] * m, pa.int32()),
+                    "scan_id": pa.array([k] * m, pa.int64()),
+                    "stamp_ns": pa.array([stamps[k]] * m, pa.int64()),
+                    "x_m": pts[:, 0],
+                    "y_m": pts[:, 1],
+                    "z_m": pts[:, 2],
+                    "intensity": np.zeros(m, np.float32),
+                    "ring": np.zeros(m, np.int16),
+                    "time_offset_s": np.zeros(m, np.float32),
+                },
+                schema=schema_of("scans_raw"),
+            )
+        )
         if k:
             E = perturb(se3_inverse(T_true[k - 1]) @ T, 2e-4, 3e-3, rng)
             q = Rotation.from_matrix(E[:3, :3]).as_quat()
@@ -37,7 +48,7 @@ def _drive_tables(name, T_true, scene, rng, t0_s, gnss_offset_m):
                           "dy_m": E[1, 3], "dz_m": E[2, 3], "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
                           "fitness": 0.9, "inlier_rmse_m": 0.05,
                           "information": np.diag([2e-4 ** -2] * 3 + [3e-3 ** -2] * 3).reshape(-1).tolist(),
-                          "converged": True})
+                          "accepted": True})
     G = T_true.copy()
     G[:, :3, 3] += gnss_offset_m + rng.normal(0, 0.05, (n, 3))
     q = Rotation.from_matrix(G[:, :3, :3]).as_quat()

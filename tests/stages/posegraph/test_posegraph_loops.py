@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
-from stages.common.registration import prepare_cloud, register_coarse_to_fine, score_alignment
+from stages.common.registration import register_coarse_to_fine, score_alignment
 from stages.posegraph.loops import verify_loop
-
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
 
 

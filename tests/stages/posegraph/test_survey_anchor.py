@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from stages.common.geometry import se3_from_xyz_rpy
+from stages.common.trajectory_metrics import horizontal_errors_m, rms
 from stages.posegraph.core import base_problem
 from stages.posegraph.graph import optimize
 from stages.posegraph.marking_match import MarkingMatch
-from stages.posegraph.metrics import horizontal_errors_m, rms
 from stages.posegraph.params import PosegraphParams
 from stages.posegraph.survey_anchor import SurveyMatch, survey_priors, vertical_information, vertical_part
 from stages.posegraph.survey_markings import horizontal_information_body, submap_scan_indices

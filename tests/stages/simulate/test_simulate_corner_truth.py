@@ -77,7 +77,9 @@ def _walls_scene(polys, glass=()):
 
 class _City:
     def __init__(self, polys, glass):
-        self.buildings = [type("B", (), {"footprint_en": p, "glass": g, "height_m": 20.0})() for p, g in zip(polys, glass)]
+        self.buildings = [
+            type("B", (), {"footprint_en": p, "glass": g, "height_m": 20.0})() for p, g in zip(polys, glass)
+        ]
 
 
 @pytest.mark.parametrize("glass_wall", [False, True])

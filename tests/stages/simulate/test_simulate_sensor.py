@@ -25,7 +25,9 @@ def _scan(soup: TriangleSoup, seed: int = 0):
 
 def _walls(p0, p1, height=30.0, refl=0.4):
     tris = vertical_quads(np.asarray(p0, float), np.asarray(p1, float), 0.0, height)
-    return TriangleSoup(tris.astype(np.float32), np.full(len(tris), WALL, np.uint8), np.full(len(tris), refl, np.float32))
+    return TriangleSoup(
+        tris.astype(np.float32), np.full(len(tris), WALL, np.uint8), np.full(len(tris), refl, np.float32)
+    )
 
 
 def test_ring_elevations_match_the_hdl32e_table(tiny_sim):

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import yaml
 
-from stages.common.im2016_text import parse_im2016_text
-from stages.tiles.compute import compute
 from mapformat.diff import count_changed_pixels, diff_maps, match_corners
 from mapformat.export import export_map
 from mapformat.loader import open_map
+from stages.common.im2016_text import parse_im2016_text
+from stages.tiles.compute import compute
 from tests.stages.tiles.tiles_synth import ORIGIN, building_corners, buildings, city_context, corner_table
 
 REMOVED_BUILDING = 14  # block (2, 2): its corners lie in tile (1, 1)
@@ -118,9 +118,9 @@ def test_autoware_export_without_the_build_datasets_names_what_is_missing(two_bu
 def test_autoware_metadata_and_lanelet2_documents():
     import xml.etree.ElementTree as ET
 
-    from stages.common.marking_vectors import MarkingFeature
-    from stages.common.geodesy import geodetic_to_enu
     from mapformat.autoware import lanelet2_osm, pointcloud_metadata_yaml
+    from stages.common.geodesy import geodetic_to_enu
+    from stages.common.marking_vectors import MarkingFeature
 
     meta = yaml.safe_load(pointcloud_metadata_yaml([(0, -1), (-2, 3)], 20.0))
     assert meta == {"x_resolution": 20, "y_resolution": 20, "0_-1.pcd": [0, -20], "-2_3.pcd": [-40, 60]}

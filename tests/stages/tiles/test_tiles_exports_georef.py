@@ -7,14 +7,22 @@ import numpy as np
 import pyproj
 import pytest
 
-from stages.common.geodesy import enu_to_geodetic
-from stages.common.im2016_text import parse_frame_header, parse_im2016_text
-from stages.tiles.compute import compute
 from mapformat.export import export_map
 from mapformat.layers import local_tm_proj4
 from mapformat.loader import open_map
-from tests.stages.tiles.tiles_synth import (CELL_M, LINE_EAST_M, ORIGIN, TILE_M, building_corners, buildings,
-                                            city_context, corner_table)
+from stages.common.geodesy import enu_to_geodetic
+from stages.common.im2016_text import parse_frame_header, parse_im2016_text
+from stages.tiles.compute import compute
+from tests.stages.tiles.tiles_synth import (
+    CELL_M,
+    LINE_EAST_M,
+    ORIGIN,
+    TILE_M,
+    building_corners,
+    buildings,
+    city_context,
+    corner_table,
+)
 
 rasterio = pytest.importorskip("rasterio")
 

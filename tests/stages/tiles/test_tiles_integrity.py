@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import IntegrityError, LimitError, PathEscapeError, PublishConflictError
-from pipeline.versioned import LATEST_NAME, read_latest_entry, read_manifest, trusted_manifest_digests
-from stages.tiles.compute import compute
 from mapformat.diff import diff_maps
 from mapformat.export import export_map
 from mapformat.loader import open_map
 from mapformat.verify import verify_map
+from pipeline.errors import IntegrityError, LimitError, PathEscapeError, PublishConflictError
+from pipeline.versioned import LATEST_NAME, read_latest_entry, read_manifest, trusted_manifest_digests
+from stages.tiles.compute import compute
 from tests.stages.tiles.tiles_synth import building_corners, buildings, city_context, corner_table
 
 
@@ -83,7 +83,9 @@ def test_finding1_every_bit_flip_in_a_tile_file_is_refused(map_dir):
 
 
 def test_finding2_an_edited_manifest_fails_verify_and_the_loader(map_dir):
-    _edit_manifest(map_dir / "v0002", lambda m: m["enu_origin"].__setitem__("lat_deg", m["enu_origin"]["lat_deg"] + 0.01))
+    _edit_manifest(
+        map_dir / "v0002", lambda m: m["enu_origin"].__setitem__("lat_deg", m["enu_origin"]["lat_deg"] + 0.01)
+    )
     digests = trusted_manifest_digests(map_dir)
     problems = verify_map(map_dir / "v0002", digests.get(2))
     assert any("digest recorded outside" in p for p in problems), problems
@@ -127,8 +129,8 @@ def test_finding2_file_entries_outside_the_version_are_not_hashed(map_dir, monke
     hashed = []
     import pipeline.versioned as versioned
 
-    real = versioned.sha256_file
-    monkeypatch.setattr(versioned, "sha256_file", lambda p: hashed.append(str(p)) or real(p))
+    real = versioned.file_sha256
+    monkeypatch.setattr(versioned, "file_sha256", lambda p: hashed.append(str(p)) or real(p))
     problems = verify_map(vdir)
     assert sum("leaves the version directory" in p for p in problems) == 2, problems
     assert not any("etc" in h for h in hashed)

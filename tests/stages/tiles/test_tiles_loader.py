@@ -5,12 +5,11 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
+from mapformat.loader import open_map
 from pipeline.errors import UnknownNameError
 from stages.tiles.compute import compute
-from mapformat.loader import open_map
 from stages.tiles.params import TilesParams
-from tests.stages.tiles.tiles_synth import (CELL_M, LINE_EAST_M, building_corners, buildings, city_context,
-                                            corner_table)
+from tests.stages.tiles.tiles_synth import CELL_M, LINE_EAST_M, building_corners, buildings, city_context, corner_table
 
 
 @pytest.fixture(scope="module")

@@ -5,20 +5,19 @@ import json
 import shutil
 
 import numpy as np
-import pyarrow.parquet as pq
 import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
+from mapformat.loader import open_map
+from mapformat.verify import verify_map
 from pipeline.errors import DataQualityError, MapFormatError
 from pipeline.versioned import list_versions, read_latest, read_manifest
 from stages.common.geometry import read_tum
 from stages.tiles.compute import compute
 from stages.tiles.decl import STAGE
-from mapformat.loader import open_map
 from stages.tiles.params import TilesParams
-from mapformat.verify import verify_map
-from tests.stages.tiles.tiles_synth import (ORIGIN, building_corners, buildings, city_context, corner_table,
-                                            drive_path)
+from tests.stages.tiles.tiles_synth import ORIGIN, building_corners, buildings, city_context, corner_table, drive_path
 
 
 @pytest.fixture()
@@ -49,7 +48,9 @@ def test_publish_writes_a_complete_documented_version(city):
                                  "elevation_min.png", "elevation_mean.png", "point_count.png", "raster.json",
                                  "markings.parquet"}
     vec = pq.read_table(vdir / "tiles" / "0_0" / "markings.parquet").to_pylist()  # the painted line, clipped
-    assert [(v["type"], v["geometry"]) for v in vec] == [("lane_solid", "LineString")] and t00["n_marking_features"] == 1
+    assert [(v["type"], v["geometry"]) for v in vec] == [("lane_solid", "LineString")] and t00[
+        "n_marking_features"
+    ] == 1
     np.testing.assert_allclose(vec[0]["east_m"], 50.25, atol=0.05)
     assert sorted(vec[0]["north_m"])[0] == 0.0 and sorted(vec[0]["north_m"])[-1] == 100.0
     assert t00["marking"]["mask_file"] == "marking_mask.png"

@@ -1,4 +1,5 @@
-"""Trajectory accuracy against ground truth (numpy; used by the bench and other stages' docs).
+"""Trajectory accuracy against ground truth (numpy): absolute, relative (KITTI-style), drift, revisit
+self-consistency and edge-heading calibration; used by the pose-graph and odometry benches and tests.
 
 All functions take matching (N,4,4) ``T_map_vehicle`` arrays (estimate, truth) of the same scans.
 """

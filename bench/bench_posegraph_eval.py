@@ -1,0 +1,78 @@
+"""The pose-graph stage's committed output against the simulator's truth (the figures of docs/posegraph.md).
+
+Reads ``poses_optimized`` and ``poses_gnss`` of the workflow's plan (the fingerprints the plan picks; run the stage
+first: ``cornermap run WF --only posegraph`` or the whole workflow) and the simulator's truth trajectories, then
+prints per drive the RTK/INS-only and optimised figures of ``stages.common.trajectory_metrics.summarize`` and the
+map-vs-reference agreement (revisit pairs across the drives, within ``--pair-radius-m`` in truth).
+
+    .venv/bin/python -m bench.bench_posegraph_eval -w workflows/gangnam.yaml [--root runs/gangnam]
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+KEYS = ["abs_horizontal_rms_m", "abs_horizontal_max_m", "self_consistency_rms_m", "self_consistency_heading_rms_deg",
+        "relative_10m_rms_m", "heading_rms_deg", "vertical_rms_m", "drift_100m_percent"]
+
+
+def committed(plan, stage: str, key: str, dataset: str):
+    """A reader of one committed output of ``stage`` in ``plan`` (arg ``key``)."""
+    from pipeline.errors import DatasetIOError
+    from pipeline.store import StoreInputReader
+
+    sp = plan.stages[stage]
+    if not sp.committed:
+        raise DatasetIOError(f"{plan.root}: stage {stage!r} has no committed output for this plan; run it first")
+    return StoreInputReader(plan.root, {key: (dataset, sp.fingerprint)}, {key: None})
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("-w", "--workflow", type=Path, required=True)
+    ap.add_argument("--root", type=Path, default=None, help="default: the workflow's root")
+    ap.add_argument("--pair-radius-m", type=float, default=8.0)
+    args = ap.parse_args()
+
+    from bench.bench_posegraph import truth_poses
+    from pipeline.plan import make_plan
+    from pipeline.store import dataset_dir
+    from pipeline.workflow import load_workflow
+    from stages.common import trajectory_metrics as M
+    from stages.common.records import Trajectory
+
+    wf = load_workflow(args.workflow)
+    plan = make_plan(wf, wf.root_dir(args.root))
+    sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"
+    optimized = committed(plan, "posegraph", "poses", "poses_optimized").read("poses")
+    gnss = committed(plan, "ingest", "gnss", "poses_gnss").read("gnss")
+    drives = sorted(set(optimized["drive"].to_pylist()))
+    print(f"root {plan.root}; drives {drives}")
+    print("| drive | trajectory | " + " | ".join(KEYS) + " |")
+    print("|---" * (len(KEYS) + 2) + "|")
+    est_all, true_all, t_all = [], [], []
+    for n, drive in enumerate(drives):
+        opt = Trajectory.from_table(optimized, drive)
+        T_true = truth_poses(sim, drive, opt.stamp_ns)
+        g = Trajectory.from_table(gnss, drive)
+        on_opt = np.isin(g.scan_id, opt.scan_id)
+        stamps_s = opt.stamp_ns * 1e-9
+        for name, T in (("RTK/INS only", g.T[on_opt]), ("optimised", opt.T)):
+            s = M.summarize(T, T_true, stamps_s)
+            print(f"| {drive} | {name} | " + " | ".join("-" if np.isnan(s[k]) else f"{s[k]:.3f}" for k in KEYS) + " |")
+        est_all.append(opt.T)
+        true_all.append(T_true)
+        t_all.append(stamps_s + 1e6 * n)  # drives apart in time: every pair across drives is a revisit
+    if len(drives) > 1:
+        pairs = M.revisit_pairs(np.concatenate(true_all), np.concatenate(t_all), radius_m=args.pair_radius_m)
+        first = len(est_all[0])
+        across = pairs[(pairs[:, 0] < first) != (pairs[:, 1] < first)]
+        err = M.self_consistency_errors_m(np.concatenate(est_all), np.concatenate(true_all), across)
+        print(f"map ({drives[0]}) vs the other drives: {M.rms(err):.3f} m RMS over {len(across)} pairs within "
+              f"{args.pair_radius_m:g} m")
+
+
+if __name__ == "__main__":
+    main()
