@@ -8,7 +8,8 @@
 
 The point cloud is accumulated from the map drives' scans (``scans_raw`` under the output root) on their
 optimized poses (the version's ``poses`` input), deskewed, filtered by the free-space test of
-stages/common/pointcloud_map.py and voxel-downsampled with open3d. Layout follows Autoware's map loader
+stages/common/pointcloud_map.py and voxel-downsampled (centroid per voxel), streamed in batches of scan points. Layout
+follows Autoware's map loader
 documentation (divided point cloud map + metadata; map_projection_loader's LocalCartesian; Autoware's Lanelet2
 conventions: line_thin solid/solid_solid/dashed, stop_line, crosswalk_polygon).
 """
@@ -23,14 +24,22 @@ import numpy as np
 
 from pipeline.errors import DatasetIOError
 from stages.common.geodesy import EnuOrigin, enu_to_geodetic
-from stages.common.pointcloud_map import free_space_keep, grid_split, scan_to_map, voxel_downsample
+from stages.common.pointcloud_map import (
+    VoxelSums,
+    dynamic_voxels,
+    free_space_evidence,
+    grid_split,
+    merge_counts,
+    scan_to_map,
+)
 from stages.common.records import Extrinsics
 
 if TYPE_CHECKING:  # pragma: no cover
     from mapformat.loader import MapReader
 
 log = logging.getLogger(__name__)
-_CHUNK = 1_000_000
+BATCH_POINTS = 500_000  # scan points per streamed batch (peak memory; see accumulate_map_cloud)
+GROUND_CLEAR_M = 0.3  # points this far above the road under the vehicle take part in the free-space test
 DOUBLE_LINE_MIN_WIDTH_M = 0.55  # two lines merged in the raster (0.5 m of paint drawn ~0.7 m; a single
 # 0.15 m line is drawn 0.3-0.4 m wide)
 OSM_TAGS = {"lane_solid": {"type": "line_thin", "subtype": "solid"},
@@ -109,48 +118,83 @@ def _read(root: Path, dataset: str, drive: str, fingerprint: str | None = None, 
     return pa.concat_tables([pq.read_table(f, columns=columns) for f in files])
 
 
+def _scan_batches(root: Path, drive: str, batch_points: int, columns: list[str]):
+    """``scans_raw`` rows of ``drive`` (the latest committed version) as record batches of ``batch_points``."""
+    import pyarrow.parquet as pq
+
+    d, m = _committed(root, "scans_raw")
+    files = [d / f["path"] for f in m["files"] if f.get("partition", {}).get("drive") == drive]
+    if not files:
+        raise DatasetIOError(f"{d}: no scans_raw rows for drive {drive!r}")
+    for f in files:
+        yield from pq.ParquetFile(f).iter_batches(batch_size=batch_points, columns=columns)
+
+
+class _Evidence:
+    """Free-space evidence of the batches seen so far, merged whenever it grows past ``compact_rows``."""
+
+    def __init__(self, compact_rows: int = 4_000_000):
+        self.hits, self.free, self.free_n, self.compact_rows = [], [], [], compact_rows
+
+    def add(self, hits: np.ndarray, free: np.ndarray, free_n: np.ndarray) -> None:
+        self.hits.append(hits)
+        self.free.append(free)
+        self.free_n.append(free_n)
+        if sum(len(x) for x in self.free) + sum(len(x) for x in self.hits) > self.compact_rows:
+            self.compact()
+
+    def compact(self) -> None:
+        self.hits = [np.unique(np.vstack(self.hits), axis=0)] if self.hits else []
+        if self.free:
+            free, n = merge_counts(np.vstack(self.free), np.concatenate(self.free_n))
+            self.free, self.free_n = [free], [n]
+
+
 def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, voxel_m: float = 0.2,
-                         free_voxel_m: float = 0.5, pass_s: float = 5.0, max_range_m: float = 60.0
-                         ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Map-frame cloud of ``drives`` (deskewed, dynamic points dropped, downsampled): (xyz, intensity, stats)."""
+                         free_voxel_m: float = 0.5, pass_s: float = 5.0, max_range_m: float = 60.0,
+                         batch_points: int = BATCH_POINTS) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Map-frame cloud of ``drives`` (deskewed, dynamic points dropped, downsampled): (xyz, intensity, stats).
+
+    Streams the scans in batches of ``batch_points``: each batch adds its free-space evidence and its voxel
+    sums (stages/common/pointcloud_map.py), so the peak memory is set by the batch size and the number of
+    occupied voxels, not by the number of points."""
+    from scipy.spatial import cKDTree
+
     inputs = reader.manifest.get("inputs", {})
-    pts_all, org_all, pass_all, gz_all, inten_all = [], [], [], [], []
+    sums, evidence = VoxelSums(voxel_m, free_voxel_m), _Evidence()
+    n_in = 0
+    cols = ["stamp_ns", "x_m", "y_m", "z_m", "intensity", "time_offset_s"]
     for k, drive in enumerate(drives):
         poses = _read(root, "poses_optimized", drive, (inputs.get("poses") or {}).get("fingerprint")).sort_by(
             "stamp_ns"
         )
         info = _read(root, "drive_info", drive, (inputs.get("drive_info") or {}).get("fingerprint"))
         T_vl = Extrinsics.from_table(info).of(drive)
-        scans = _read(root, "scans_raw", drive, columns=["stamp_ns", "x_m", "y_m", "z_m", "intensity", "time_offset_s"])
         stamps = poses["stamp_ns"].to_numpy()
         pxyz = np.column_stack([poses[c].to_numpy() for c in ("x_m", "y_m", "z_m")])
         pq_ = np.column_stack([poses[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
-        lidar = np.column_stack([scans[c].to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
-        rng = np.linalg.norm(lidar, axis=1)
-        t_ns = scans["stamp_ns"].to_numpy() + np.round(scans["time_offset_s"].to_numpy().astype(float) * 1e9).astype(
-            np.int64
-        )
-        ok = (rng > 1.0) & (rng < max_range_m) & (t_ns >= stamps[0]) & (t_ns <= stamps[-1])
-        lidar, t_ok = lidar[ok], t_ns[ok]
-        parts = [scan_to_map(lidar[a:a + _CHUNK], t_ok[a:a + _CHUNK], T_vl, stamps, pxyz, pq_)
-                 for a in range(0, len(lidar), _CHUNK)]  # chunks bound the per-point rotation matrices
-        pts = np.vstack([q[0] for q in parts]) if parts else np.zeros((0, 3))
-        origins = np.vstack([q[1] for q in parts]).astype(np.float32) if parts else np.zeros((0, 3), np.float32)
-        del parts
-        # the road under the vehicle: its height at the nearest pose (vehicle frame origin on the road)
-        from scipy.spatial import cKDTree
-
-        _, near = cKDTree(pxyz[:, :2]).query(pts[:, :2])
-        pts_all.append(pts)
-        org_all.append(origins)
-        gz_all.append(pxyz[near, 2])
-        pass_all.append(k * 1_000_000 + ((t_ns[ok] - stamps[0]) // int(pass_s * 1e9)))
-        inten_all.append(scans["intensity"].to_numpy()[ok].astype(float))
-    pts, org, pid = np.vstack(pts_all), np.vstack(org_all), np.concatenate(pass_all)
-    keep = free_space_keep(pts, org, pid, np.concatenate(gz_all), voxel_m=free_voxel_m)
-    xyz, inten = voxel_downsample(pts[keep], np.concatenate(inten_all)[keep], voxel_m)
-    stats = {"points_in": int(len(pts)), "dynamic_dropped": int((~keep).sum()), "points_out": int(len(xyz)),
-             "drives": drives, "voxel_m": voxel_m, "free_voxel_m": free_voxel_m, "pass_s": pass_s}
+        road = cKDTree(pxyz[:, :2])  # the road under the vehicle: its height at the nearest pose
+        for batch in _scan_batches(root, drive, batch_points, cols):
+            lidar = np.column_stack([batch.column(c).to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
+            rng = np.linalg.norm(lidar, axis=1)
+            t_ns = batch.column("stamp_ns").to_numpy() + np.round(
+                batch.column("time_offset_s").to_numpy().astype(float) * 1e9).astype(np.int64)
+            ok = (rng > 1.0) & (rng < max_range_m) & (t_ns >= stamps[0]) & (t_ns <= stamps[-1])
+            if not ok.any():
+                continue
+            pts, origins = scan_to_map(lidar[ok], t_ns[ok], T_vl, stamps, pxyz, pq_)
+            gz = pxyz[road.query(pts[:, :2])[1], 2]
+            pid = k * 1_000_000 + (t_ns[ok] - stamps[0]) // int(pass_s * 1e9)
+            evidence.add(*free_space_evidence(pts, origins, pid, gz, voxel_m=free_voxel_m,
+                                              ground_clear_m=GROUND_CLEAR_M, first_index=n_in))
+            sums.add(pts, batch.column("intensity").to_numpy()[ok].astype(float), pts[:, 2] > gz + GROUND_CLEAR_M)
+            n_in += len(pts)
+    evidence.compact()
+    dyn = dynamic_voxels(evidence.hits[0], evidence.free[0], evidence.free_n[0]) if n_in else np.zeros(0, np.int64)
+    xyz, inten, n_dropped = sums.centroids(dyn)
+    stats = {"points_in": int(n_in), "dynamic_dropped": n_dropped, "points_out": int(len(xyz)),
+             "drives": drives, "voxel_m": voxel_m, "free_voxel_m": free_voxel_m, "pass_s": pass_s,
+             "batch_points": batch_points}
     return xyz, inten, stats
 
 
@@ -162,14 +206,14 @@ def map_drives(reader: "MapReader") -> list[str]:
 
 
 def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float = 20.0, voxel_m: float = 0.2,
-                    write: Callable[[Path, bytes], None]) -> list[Path]:
+                    batch_points: int = BATCH_POINTS, write: Callable[[Path, bytes], None]) -> list[Path]:
     """Write the Autoware folder (module docstring) under ``out``; returns the files written."""
     from mapformat.export import autoware_projector_yaml, pcd_bytes
     from mapformat.vectors import read_map_features
 
     out = Path(out)
     drives = map_drives(reader)
-    xyz, inten, stats = accumulate_map_cloud(reader, Path(root), drives, voxel_m=voxel_m)
+    xyz, inten, stats = accumulate_map_cloud(reader, Path(root), drives, voxel_m=voxel_m, batch_points=batch_points)
     log.info("autoware point cloud: %s", stats)
     files = [out / "map_projector_info.yaml"]
     write(files[0], autoware_projector_yaml(reader.origin).encode("utf-8"))

@@ -173,12 +173,13 @@ def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):
     assert ambiguous.returncode == 1 and "is a path and --root" in ambiguous.stderr
 
 
-@pytest.mark.slow  # 3.4 GB and ~2-5 min on tiny; one default-suite run saw a worker reach 21.8 GB (OOM) here or near
+@pytest.mark.slow  # the export streams its scans (0.73 GB peak, was 3.4 GB) but takes ~70 s of CPU on tiny
 def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_paint(tiny_sync, tmp_path):
     """The Autoware folder of the tiny map: PCD cells read by open3d inside their metadata cells, building
     corners of the map standing in the cloud; Lanelet2 OSM nodes on the simulator's painted markings."""
     import xml.etree.ElementTree as ET
 
+    import cv2
     import numpy as np
     import open3d as o3d
     import yaml
@@ -223,26 +224,61 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
         "stop_line": ("stop_line",),
         "crosswalk_polygon": ("crosswalk",),
     }
-    n_checked = 0
+    checked: dict[str, int] = {}
     for way in osm.iter("way"):
         tags = {t.get("k"): t.get("v") for t in way.iter("tag")}
         lines = [g for k, g in truth if k in kinds[tags["type"]]]
-        for nd in way.iter("nd"):
-            p = xy[nd.get("ref")]
-            if tags["type"] == "crosswalk_polygon":  # in the painted crosswalk area (partly seen ones too), 0.3 m slack
-                import cv2
+        nodes = np.array([xy[nd.get("ref")] for nd in way.iter("nd")])
+        if tags["type"] == "crosswalk_polygon":  # on the outline of the simulator's painted crosswalk
+            outline = painted_outline(city_json.parent, max(lines, key=lambda g: _inside_m(g, nodes.mean(axis=0))))
+            signed = np.array([_inside_m(outline, p) for p in nodes])
+            sides = sorted(cv2.minAreaRect(nodes[:4].astype(np.float32))[1])
+            full = np.allclose(sides, sorted(cv2.minAreaRect(outline.astype(np.float32))[1]), atol=0.3)
+            if full:  # every corner within 5 cm of the paint's outline
+                assert np.abs(signed).max() <= 0.05, (nodes, signed)
+            else:  # partly seen (the raster's coverage cut its stripes): on the paint, 0.1 m slack at the cut
+                assert signed.min() >= -0.1, (nodes, signed)
+            checked["crosswalk" if full else "crosswalk_partial"] = (
+                checked.get("crosswalk" if full else "crosswalk_partial", 0) + 1
+            )
+            continue
+        for p in nodes:  # on a painted line of its type: within 5 cm across it, at most 0.25 m beyond its ends
+            best = np.inf
+            for a, b in ((g[0], g[-1]) for g in lines):
+                u = (b - a) / np.linalg.norm(b - a)
+                s = (p - a) @ u
+                beyond = max(0.0, -s, s - np.linalg.norm(b - a))
+                if beyond <= 0.25:
+                    best = min(best, abs((p - a) @ np.array([-u[1], u[0]])))
+            assert best <= 0.05, (tags, p, best)
+        checked[tags["type"]] = checked.get(tags["type"], 0) + len(nodes)
+    assert checked.get("line_thin", 0) >= 10 and checked.get("stop_line", 0) >= 2, checked
+    assert checked.get("crosswalk", 0) >= 2, checked
 
-                inside = max(cv2.pointPolygonTest(g.astype(np.float32).reshape(-1, 1, 2), (float(p[0]), float(p[1])),
-                                                  True) for g in lines)
-                assert inside >= -0.3, (p, inside)
-            else:  # on a painted line of its type: within 5 cm across it, at most 0.25 m beyond its ends
-                best = np.inf
-                for a, b in ((g[0], g[-1]) for g in lines):
-                    u = (b - a) / np.linalg.norm(b - a)
-                    s = (p - a) @ u
-                    beyond = max(0.0, -s, s - np.linalg.norm(b - a))
-                    if beyond <= 0.25:
-                        best = min(best, abs((p - a) @ np.array([-u[1], u[0]])))
-                assert best <= 0.05, (tags, p, best)
-            n_checked += 1
-    assert n_checked >= 10
+
+def _inside_m(polygon, p) -> float:
+    """Signed distance (m) of point p to a polygon: positive inside."""
+    import cv2
+    import numpy as np
+
+    return cv2.pointPolygonTest(np.asarray(polygon, np.float32).reshape(-1, 1, 2), (float(p[0]), float(p[1])), True)
+
+
+def painted_outline(truth_dir: Path, polygon):
+    """Outline of the paint the simulator put down for a marking polygon: the convex hull of the squares of the
+    truth raster's painted pixels (truth/markings.png, georeferenced by markings.json) within 0.15 m of it.
+    The simulator paints every pixel a polygon's outline touches, so its paint reaches up to one pixel (0.1 m)
+    beyond the polygon; the sensor, the raster and the export see this paint."""
+    import cv2
+    import numpy as np
+
+    meta = json.loads((truth_dir / "markings.json").read_text())
+    img = cv2.imread(str(truth_dir / "markings.png"), cv2.IMREAD_GRAYSCALE)
+    res, west, north = meta["resolution_m"], meta["west_m"], meta["north_m"]
+    lo, hi = np.min(polygon, axis=0) - 0.3, np.max(polygon, axis=0) + 0.3
+    c0, r0 = int((lo[0] - west) / res), int((north - hi[1]) / res)
+    rows, cols = np.nonzero(img[r0:int((north - lo[1]) / res) + 1, c0:int((hi[0] - west) / res) + 1])
+    centres = np.column_stack([west + (cols + c0 + 0.5) * res, north - (rows + r0 + 0.5) * res])
+    centres = centres[[_inside_m(polygon, c) >= -0.15 for c in centres]]
+    squares = np.vstack([centres + [dx, dy] for dx in (-res / 2, res / 2) for dy in (-res / 2, res / 2)])
+    return cv2.convexHull(squares.astype(np.float32))[:, 0, :].astype(float)

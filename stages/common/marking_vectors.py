@@ -15,8 +15,12 @@ Method (OpenCV components + principal axes, no learned model):
    is noise. Long chains follow curves: the centreline is the mean of the chain's pixels per ``bin_m`` along
    the axis.
 4. Three or more parallel bars of similar length (within 2x) side by side (centres within 1.6 m across their
-   axes) form a crosswalk (polygon: the oriented rectangle around them; bars within 20 deg, as partly seen
-   stripes skew). Any other bar is part of a lane line (a double centre line, or a line the raster drew
+   axes) form a crosswalk (bars within 20 deg, as partly seen stripes skew). Its polygon is a rectangle along
+   the stripes' mean axis whose four sides are placed on the stripes' outer pixel boundaries at sub-pixel
+   precision (``crosswalk_rectangle``: per scanline the outermost cell painted in the mask itself, not by the
+   closing, averaged over the scanlines; unbiased when a cell is painted with the probability of its paint
+   cover, as with one lidar point per cell). Any other bar is part of a lane line (a double centre line, or a line the
+   raster drew
    wide; chained with the pieces) when collinear with a piece or another such bar (a dash of a dashed line:
    axes within 6 deg, 0.3 m across, gap <= 6 m), when longer than 15 m (no stop line is), or when at least
    5 m long with a piece or bar parallel within 6 m; otherwise it is a stop line (its centreline) when
@@ -56,13 +60,14 @@ class _Comp:
     width_m: float
     fill: float
     ring: np.ndarray  # outline, ENU
+    painted: np.ndarray  # (m, 2) ENU centres of the component's cells painted in the mask itself (not by closing)
 
 
 def _components(mask: np.ndarray, west_m: float, south_m: float, cell_m: float, min_area_m2: float) -> list[_Comp]:
     import cv2
 
-    m = (np.asarray(mask) > 0).astype(np.uint8)
-    m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    raw = np.asarray(mask) > 0
+    m = cv2.morphologyEx(raw.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
     rows = m.shape[0]
     out = []
@@ -90,8 +95,9 @@ def _components(mask: np.ndarray, west_m: float, south_m: float, cell_m: float, 
         ring_px = cv2.approxPolyDP(max(contours, key=len), 0.1 / cell_m, True)[:, 0, :].astype(float)
         ring = np.column_stack([west_m + (ring_px[:, 0] + x0 + 0.5) * cell_m,
                                 south_m + (rows - (ring_px[:, 1] + y0) - 0.5) * cell_m])
+        painted = raw[y0:y0 + h, x0:x0 + w][r, c]
         out.append(_Comp(pts, centre, axis, float(s.min() - cell_m / 2), float(s.max() + cell_m / 2), width,
-                         len(pts) * cell_m * cell_m / (length * width), ring))
+                         len(pts) * cell_m * cell_m / (length * width), ring, pts[painted]))
     return out
 
 
@@ -180,8 +186,41 @@ def _chain_lines(pieces: list[_Comp], angle_deg: float, offset_m: float, gap_m: 
     return out
 
 
+def _side_offset(along: np.ndarray, across: np.ndarray, cell_m: float, upper: bool) -> float:
+    """Position (along ``along``) of a rectangle side through the outer pixel boundary of the pixels: per
+    scanline (pixels binned by ``across`` in cells) the extreme pixel centre moved half a cell outwards, averaged
+    over the scanlines within one cell of their median (a shorter outer stripe, a ragged end are left out). The
+    mean over scanlines of the outermost painted cell is unbiased when a cell is painted with the probability
+    of its paint cover (points sampled at random in it)."""
+    sign = 1.0 if upper else -1.0
+    bins = np.floor(across / cell_m).astype(np.int64)
+    order = np.lexsort((sign * along, bins))
+    last = np.r_[bins[order][1:] != bins[order][:-1], True]  # the outermost pixel of each scanline
+    y = along[order][last] + sign * cell_m / 2
+    return float(np.mean(y[np.abs(y - np.median(y)) <= cell_m]))
+
+
+def crosswalk_rectangle(pts_m: np.ndarray, axis: np.ndarray, cell_m: float) -> np.ndarray:
+    """Outer rectangle (4, 2) of a crosswalk's stripe pixels (centres, ENU), its sides along and across
+    ``axis`` (the stripes' direction): each side's offset from the stripes' pixel boundaries on that side
+    (``_side_offset``: the stripes' ends, the outer long edges of the first and last stripe)."""
+    u = np.asarray(axis, float) / np.linalg.norm(axis)
+    v = np.array([-u[1], u[0]])
+    c = pts_m.mean(axis=0)
+    s, t = (pts_m - c) @ u, (pts_m - c) @ v
+    s_lo, s_hi = _side_offset(s, t, cell_m, False), _side_offset(s, t, cell_m, True)  # stripe ends
+    t_lo, t_hi = _side_offset(t, s, cell_m, False), _side_offset(t, s, cell_m, True)  # outer stripes' edges
+    return np.array([c + a * u + b * v for a, b in ((s_lo, t_lo), (s_hi, t_lo), (s_hi, t_hi), (s_lo, t_hi))])
+
+
+def _stripe_axis(bars: list["_Comp"]) -> np.ndarray:
+    """Mean direction of the stripes (their principal axes, signs aligned, weighted by their pixel counts)."""
+    ref = bars[0].axis
+    return np.sum([len(b.pts) * (b.axis if b.axis @ ref >= 0 else -b.axis) for b in bars], axis=0)
+
+
 def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_m: float,
-                context_m: float, stop_min_m: float) -> tuple[list[MarkingFeature], list[_Comp]]:
+                context_m: float, stop_min_m: float, cell_m: float) -> tuple[list[MarkingFeature], list[_Comp]]:
     """Crosswalks and stop lines from the bars; bars that are parallel to a nearby line piece (a short double
     centre line) are returned as line pieces."""
     pairs = []
@@ -200,12 +239,11 @@ def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_
     lone = [bars[k] for g in groups if len(g) < 3 for k in g]
     for group in groups:
         if len(group) >= 3:
-            import cv2
-
-            pts = np.vstack([bars[k].pts for k in group]).astype(np.float32)
-            (cx, cy), (w, h), ang = cv2.minAreaRect(pts)
-            box = cv2.boxPoints(((cx, cy), (w + 0.1, h + 0.1), ang)).astype(float)
-            out.append(MarkingFeature("crosswalk", box, float(min(w, h) + 0.1), float(max(w, h) + 0.1)))
+            box = crosswalk_rectangle(
+                np.vstack([bars[k].painted for k in group]), _stripe_axis([bars[k] for k in group]), cell_m
+            )
+            sides = np.linalg.norm(np.diff(box[[0, 1, 2]], axis=0), axis=1)
+            out.append(MarkingFeature("crosswalk", box, float(sides.min()), float(sides.max())))
             continue
         for k in group:
             bar = bars[k]
@@ -241,7 +279,7 @@ def vectorize_markings(mask: np.ndarray, west_m: float, south_m: float, cell_m: 
             bars.append(comp)
         elif 3.0 <= length <= 7.0 and 0.4 <= comp.width_m <= 1.3 and comp.fill < 0.6:
             feats.append(MarkingFeature("arrow", comp.ring, comp.width_m, length))
-    bar_feats, more_pieces = _group_bars(bars, pieces, 20.0, 1.6, 6.0, 2.5)
+    bar_feats, more_pieces = _group_bars(bars, pieces, 20.0, 1.6, 6.0, 2.5, cell_m)
     feats += bar_feats
     feats += _chain_lines(pieces + more_pieces, chain_angle_deg, chain_offset_m, chain_gap_m, dash_gap_m,
                           solid_cover, min_line_m, bin_m)

@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from stages.common.pointcloud_map import (
+    VoxelSums,
+    free_space_evidence,
     free_space_keep,
     grid_split,
     interpolate_poses,
+    merge_counts,
     scan_to_map,
-    voxel_downsample,
     voxel_keys,
 )
 
@@ -52,13 +54,58 @@ def test_scan_to_map_deskews_with_the_pose_at_each_point_time():
     np.testing.assert_allclose(origins[1], [1.0, 0, 1.9], atol=1e-12)
 
 
-def test_voxel_downsample_and_grid_split():
+def test_voxel_sums_in_batches_equal_open3d_voxel_downsampling_and_drop_only_above_road_points():
+    import open3d as o3d
+
     rng = np.random.default_rng(1)
     xyz = rng.uniform(-30, 30, (5000, 3))
-    down, inten = voxel_downsample(xyz, np.full(len(xyz), 7.0), 5.0)
-    # at most one centroid per 5 m voxel: no two closer than... any voxel holds few; intensity averaged
-    assert len(down) <= 14 ** 3 and len(down) < len(xyz) / 2 and np.allclose(inten, 7.0)
-    assert len(np.unique(voxel_keys(down, 5.0))) >= len(down) / 8
+    xyz[0] = -32.5  # open3d's grid starts half a voxel below the minimum: put it on a multiple of 5 m
+    inten = rng.uniform(0, 1, len(xyz))
+    sums = VoxelSums(5.0, 0.5, compact_rows=1000)  # small: batches are merged several times
+    for a in range(0, len(xyz), 700):  # batches, in any order of points
+        sums.add(xyz[a:a + 700], inten[a:a + 700], np.zeros(700, bool)[:len(xyz[a:a + 700])])
+    down, down_i, n_dropped = sums.centroids(np.unique(voxel_keys(xyz, 0.5)))  # nothing above road: none dropped
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    pc.colors = o3d.utility.Vector3dVector(np.column_stack([inten] * 3))
+    ref = pc.voxel_down_sample(5.0)
+    order, ref_order = np.lexsort(down.T), np.lexsort(np.asarray(ref.points).T)
+    assert n_dropped == 0 and len(down) == len(ref.points)
+    np.testing.assert_allclose(down[order], np.asarray(ref.points)[ref_order], atol=1e-9)
+    np.testing.assert_allclose(down_i[order], np.asarray(ref.colors)[ref_order, 0], atol=1e-9)
+    # the above-road points of a dropped free-space voxel leave; the road points in it stay
+    sums = VoxelSums(0.2, 0.5)
+    sums.add(np.array([[0.1, 0.1, 0.1], [0.15, 0.1, 0.1], [0.1, 0.1, 0.05]]), np.ones(3), np.array([True, True, False]))
+    down, _, n_dropped = sums.centroids(voxel_keys(np.array([[0.1, 0.1, 0.1]]), 0.5))
+    assert n_dropped == 2
+    np.testing.assert_allclose(down, [[0.1, 0.1, 0.05]])
+
+
+def test_free_space_evidence_of_batches_merges_to_the_evidence_of_the_whole():
+    rng = np.random.default_rng(2)
+    pts = np.vstack([_box(rng, 0, 40, 10, 10.2, 0.0, 6.0, 4000), _box(rng, 18, 22, 4, 5.8, 0.3, 1.5, 600)])
+    origins = np.tile([20.0, 0.0, 1.9], (len(pts), 1))
+    pid = rng.integers(0, 3, len(pts))
+    whole = free_space_evidence(pts, origins, pid, np.zeros(len(pts)), sample_budget=5000)
+    parts = [
+        free_space_evidence(
+            pts[a : a + 999],
+            origins[a : a + 999],
+            pid[a : a + 999],
+            np.zeros(999)[: len(pts[a : a + 999])],
+            first_index=a,
+        )
+        for a in range(0, len(pts), 999)
+    ]
+    hits = np.unique(np.vstack([p[0] for p in parts]), axis=0)
+    free, n = merge_counts(np.vstack([p[1] for p in parts]), np.concatenate([p[2] for p in parts]))
+    np.testing.assert_array_equal(hits, whole[0])
+    np.testing.assert_array_equal(free, whole[1])
+    np.testing.assert_array_equal(n, whole[2])
+
+
+def test_grid_split_keeps_every_point_once():
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(-30, 30, (5000, 3))
     cells = grid_split(xyz, 20.0)
     assert sorted(np.concatenate(list(cells.values())).tolist()) == list(range(len(xyz)))
     for (i, j), idx in cells.items():
