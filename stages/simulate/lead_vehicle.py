@@ -8,8 +8,8 @@ stretches, and queues at the stop-and-go stops of the trajectory (``trajectory.p
   10 m/s, 2.5 m when the ego stands. It drives on the ego's own path (same lane, same turns), 0.2 m lateral
   offset at most; 85 % cars, 15 % vans/trucks.
 - **Queues**: at a stop-and-go stop, ``n`` vehicles stand ahead of the ego (the first as the lead) with 2.5 m
-  bumper gaps and creep with it; a vehicle leaves (turns off through the crossing) once it passes 8 m beyond
-  the ego's last stop. Queues show from 30 m before the ego's first stop of the episode.
+  bumper gaps and creep with it; a vehicle leaves (drives off through the crossing) once its rear moves past
+  the place where the first vehicle stood at the line. Queues show from 30 m before the ego's first stop.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ import numpy as np
 EGO_FRONT_M = 1.9  # ego bumper ahead of the vehicle origin (sensor.EGO_BOXES_M)
 STANDSTILL_GAP_M = 2.5
 QUEUE_LOOKAHEAD_M = 30.0
-QUEUE_EXIT_M = 8.0
+QUEUE_EXIT_M = 0.5  # a queued vehicle leaves once its rear moves this far past where it stood at the line
 STRETCH_M = (50.0, 200.0)
 
 
@@ -51,8 +51,8 @@ class LeadTraffic:
         v = float(np.interp(t_s, self.t_s, self.speed_mps))
         cars, lateral, headway, s_tail = [], 0.0, 0.0, -np.inf
         for s_first, s_last, queue in self.queues:
-            if s_first - QUEUE_LOOKAHEAD_M <= s_ego <= s_last + QUEUE_EXIT_M:
-                cars, s_tail = [(row, s_last + QUEUE_EXIT_M) for row in queue], s_first
+            if s_first - QUEUE_LOOKAHEAD_M <= s_ego <= s_last + 10.0:
+                cars, s_tail = [(row, s_last + EGO_FRONT_M + STANDSTILL_GAP_M + QUEUE_EXIT_M) for row in queue], s_first
                 break
         k = int(np.searchsorted(self.stretches[:, 0], s_ego, side="right")) - 1 if len(self.stretches) else -1
         if k >= 0 and s_ego < self.stretches[k, 1]:
@@ -74,7 +74,7 @@ class LeadTraffic:
             centre_s = max(centre_follow, centre_stand)
             gap = centre_s - car[0] / 2 - front_follow
             front_follow = front_stand = centre_s + car[0] / 2
-            if centre_s > s_exit or centre_s > self.s_m[-1]:
+            if centre_s - car[0] / 2 > s_exit or centre_s > self.s_m[-1]:
                 continue
             e, n, yaw = self._pose_at_s(np.array([centre_s]))[0]
             off = lateral if j == 0 else 0.0
@@ -104,10 +104,8 @@ def plan_lead_traffic(traj, share: float, rng: np.random.Generator) -> LeadTraff
                 cars.append(_vehicle(rng) + [rng.uniform(1.2, 2.2), rng.uniform(-0.2, 0.2)])
             pos += on + off
             on, off = _stretch_lengths(share, rng)
-    queues = []
-    s_of = lambda t: float(np.interp(t, traj.t_s, s))  # noqa: E731
-    for t_first, t_last, n in getattr(traj, "queue_stops", ()):
-        queues.append((s_of(t_first), s_of(t_last), np.array([_vehicle(rng) for _ in range(n)], float)))
+    queues = [(float(s_first), float(s_last), np.array([_vehicle(rng) for _ in range(n)], float))
+              for s_first, s_last, n in traj.queue_stops]
     return LeadTraffic(traj.t_s, s, np.column_stack([traj.east_m, traj.north_m, traj.yaw_enu_rad]),
                        traj.speed_mps, np.array(stretches, float).reshape(-1, 2), np.array(cars, float).reshape(-1, 6),
                        queues)
