@@ -86,11 +86,18 @@ def plot_birdseye(sim_dir: Path, out: Path) -> None:
     ax.imshow(np.minimum(small.astype(float) * 3, 255), cmap="gray_r", extent=extent, vmax=255 * 2.5, alpha=0.9)
     for b in city["buildings"]:
         fp = np.array(b["footprint_en"])
-        ax.fill(fp[:, 0], fp[:, 1], color="0.75", ec="0.3", lw=0.6)
+        built = np.array(b.get("outline_en", b["footprint_en"]))  # rounded / chamfered corners as built
+        ax.fill(built[:, 0], built[:, 1], color="0.75", ec="0.3", lw=0.6)
         for k, g in enumerate(b["glass_walls"]):
             if g:
                 seg = fp[[k, (k + 1) % len(fp)]]
                 ax.plot(seg[:, 0], seg[:, 1], color="deepskyblue", lw=2.2)
+    for item in city.get("furniture", []):
+        for e, n, yaw, length, width, *_ in item["boxes_en"]:
+            c, s_ = np.cos(yaw), np.sin(yaw)
+            loc = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1], [-1, -1]]) * [length / 2, width / 2]
+            ax.plot(e + c * loc[:, 0] - s_ * loc[:, 1], n + s_ * loc[:, 0] + c * loc[:, 1], color="darkorange", lw=1.0)
+    ax.plot([], [], color="darkorange", lw=1.0, label="street furniture")
     trees = np.array([[t["east_m"], t["north_m"]] for t in city["trees"]])
     ax.scatter(trees[:, 0], trees[:, 1], s=6, color="forestgreen", label="trees")
     _, T = read_tum(sim_dir / "truth/drive_0_poses_tum.txt")
