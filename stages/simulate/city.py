@@ -20,10 +20,20 @@ CURB_H_M = 0.15
 
 @dataclass(frozen=True)
 class Building:
-    footprint_en: np.ndarray  # (n, 2) counter-clockwise
+    footprint_en: np.ndarray  # (n, 2) counter-clockwise; vertices are the walls' intersections
     height_m: float
     glass: np.ndarray  # (n,) bool, wall k joins vertex k and k+1
     reflectance: float
+    outline_en: np.ndarray | None = None  # (m, 2) ccw with rounded/chamfered corners (corner_shapes.py)
+    outline_glass: np.ndarray | None = None  # (m,) bool per outline segment
+    corner_shape: np.ndarray | None = None  # (n,) 0 sharp, 1 rounded, 2 chamfered
+    shape_size_m: np.ndarray | None = None  # (n,) arc radius or cut length along each wall (0 when sharp)
+
+    def walls(self) -> tuple[np.ndarray, np.ndarray]:
+        """The outline as built (rounded/chamfered where shaped) and its per-segment glass flags."""
+        if self.outline_en is None:
+            return self.footprint_en, self.glass
+        return self.outline_en, self.outline_glass
 
 
 @dataclass
@@ -39,6 +49,7 @@ class City:
     poles: np.ndarray  # (P, 2)
     parked: np.ndarray  # (C, 5) east, north, yaw_enu_rad, length_m, width_m
     congested: set = field(default_factory=set)  # street edges with queues: ((j, i), (j2, i2))
+    furniture: list = field(default_factory=list)  # furniture.Furniture: shelters, kiosks, fences
 
     @property
     def bounds_en(self) -> tuple[float, float, float, float]:

@@ -7,17 +7,16 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
-    app.command(
-        "simulate",
-        help=(
-            "Generate a synthetic city and K drives (HDL-32E PCD scans, INSPVA GNSS/INS CSV, wheel/gyro CSV, "
-            "survey LAS, ground truth), deterministic from (preset, seed).\n\n"
-            "Examples:\n\n"
-            "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
-            "  cornermap simulate --preset gangnam --seed 3 --out runs/gangnam_sim --drives 3 --max-scans 20\n\n"
-            "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50"
-        ),
-    )(simulate_command)
+    app.command("simulate", help=(
+        "Generate a synthetic city and K drives (HDL-32E PCD scans, INSPVA GNSS/INS CSV, wheel/gyro CSV, "
+        "survey LAS, ground truth), deterministic from (preset, seed).\n\n"
+        "Examples:\n\n"
+        "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
+        "  cornermap simulate --preset gangnam --seed 3 --out runs/gangnam_sim --drives 3 --max-scans 20\n\n"
+        "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50\n\n"
+        "  cornermap simulate --preset demo --out runs/demo_lead --set queue_stop_share=0 "
+        "--set lead_vehicle_share=0.7   # a vehicle ahead in >= 50% of the scans (lead_vehicle_share=0: the same "
+        "city and drives without it)"))(simulate_command)
 
 
 def simulate_command(
@@ -28,12 +27,17 @@ def simulate_command(
     motion_distortion: bool = typer.Option(True, help="roll each scan during motion (per-firing poses)"),
     max_scans: int = typer.Option(None, help="cap the scans written per drive (quick looks, tests)"),
     quiet: bool = typer.Option(False, help="no progress bar"),
+    set_: list[str] = typer.Option([], "--set", help="change a preset field, KEY=VALUE or KEY=LO,HI (repeatable), "
+                                   "e.g. lead_vehicle_share=0.6, corner_radius_m=1,5; see docs/simulator.md"),
 ) -> None:
     from pipeline.errors import DatasetIOError
     from stages.simulate.core import simulate
 
     if out.exists() and not out.is_dir():
         raise DatasetIOError(f"--out {out}: exists and is not a directory; simulate writes a directory")
+    from stages.simulate.presets import get_preset
+
+    preset = get_preset(preset, **parse_overrides(set_))
     if quiet:
         summary = simulate(preset, seed, out, drives, motion_distortion, max_scans)
     else:
@@ -52,3 +56,23 @@ def simulate_command(
         st = summary.gnss_stats[name]
         typer.echo(f"{name}: {summary.n_scans[name]} scans, GNSS horizontal RMS {st['rms_m']:.2f} m, "
                    f"max {st['max_m']:.2f} m -> {out / name / 'drive.yaml'}")
+
+
+def parse_overrides(items: list[str]) -> dict:
+    """``KEY=VALUE`` / ``KEY=LO,HI`` strings -> preset field overrides (floats, or a pair of floats)."""
+    from pipeline.errors import ConfigError
+
+    out, bad = {}, []
+    for item in items:
+        key, sep, value = item.partition("=")
+        try:
+            nums = tuple(float(v) for v in value.split(","))
+        except ValueError:
+            nums = ()
+        if not sep or not key or len(nums) not in (1, 2):
+            bad.append(f"--set {item!r}: expected KEY=NUMBER or KEY=LO,HI")
+            continue
+        out[key.strip()] = nums[0] if len(nums) == 1 else nums
+    if bad:
+        raise ConfigError("simulate --set", bad)
+    return out

@@ -17,18 +17,21 @@ import numpy as np
 
 from pipeline.errors import ConfigError
 from stages.simulate import writers
-from stages.simulate.city import generate_city
+from stages.simulate.city import City, generate_city
+from stages.simulate.corner_shapes import SHAPE_NAMES, shape_corners
 from stages.simulate.drive import DriveSpec, simulate_drive
+from stages.simulate.furniture import furniture_corners, generate_furniture
 from stages.simulate.markings import asphalt_albedo, generate_markings, rasterize_markings
 from stages.simulate.mesh import Scene, build_building_soup, build_static_soup
-from stages.simulate.presets import Preset, get_preset
+from stages.simulate.presets import Preset, get_preset, preset_overrides
 from stages.simulate.sensor import MOUNT_HEIGHT_M, LaserCalibration, build_beam_table
 from stages.simulate.survey import generate_survey
 from stages.simulate.trajectory import choose_loop_cells, loop_nodes
 from stages.simulate.truth import building_corners, city_description, count_visible_scans
 
 log = logging.getLogger(__name__)
-CODE_VERSION = "1"
+CODE_VERSION = "2"
+FURNITURE_COLUMNS = ["id", "kind", "east_m", "north_m", "theta1_deg", "theta2_deg", "interior_angle_deg", "height_m"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +49,17 @@ class SimulationSummary:
 def component_rng(seed: int, name: str) -> np.random.Generator:
     """An independent generator per (seed, component name); stable across runs and platforms."""
     return np.random.default_rng(np.random.SeedSequence(entropy=seed, spawn_key=(zlib.crc32(name.encode()),)))
+
+
+def build_city(p: Preset, seed: int) -> City:
+    """The city of (preset, seed): street grid and buildings, then rounded/chamfered corners and street
+    furniture, each from its own generator (so the grid and footprints do not depend on those features)."""
+    city = generate_city(p, component_rng(seed, "city"))
+    city.buildings = shape_corners(city.buildings, p.rounded_corner_share, p.chamfered_corner_share,
+                                   p.corner_radius_m, p.chamfer_m, component_rng(seed, "corner_shapes"))
+    city.furniture = generate_furniture(city.curbs_en, p.sidewalk_m, p.furniture_per_km, city.trees, city.poles,
+                                       component_rng(seed, "furniture"))
+    return city
 
 
 def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | None = None,
@@ -67,7 +81,7 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     origin = EnuOrigin(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m)
     epsg = utm_epsg_for(origin.lat_deg, origin.lon_deg)
 
-    city = generate_city(p, component_rng(seed, "city"))
+    city = build_city(p, seed)
     marks = rasterize_markings(generate_markings(city), city.bounds_en)
     albedo = asphalt_albedo(city.bounds_en, component_rng(seed, "albedo"))
     static = Scene(build_static_soup(city, component_rng(seed, "mesh")))
@@ -80,7 +94,7 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     T_vehicle_lidar = np.eye(4)
     T_vehicle_lidar[2, 3] = MOUNT_HEIGHT_M
 
-    names, n_scans, stats, visible = [], {}, {}, {}
+    names, n_scans, stats, visible, ahead = [], {}, {}, {}, {}
     route0 = None
     for k in range(n_drives):
         spec = DriveSpec.for_index(k, loop, p, city, seed)
@@ -97,15 +111,19 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
         visible[name] = count_visible_scans(corners, static, result.scan_positions_en, MOUNT_HEIGHT_M)
         if k == 0:
             route0 = result.route_en
-        log.info("%s: %d scans, GNSS horizontal RMS %.2f m", name, result.n_scans, result.gnss_stats["rms_m"])
+        ahead[name] = result.lead_scan_share
+        log.info("%s: %d scans, GNSS horizontal RMS %.2f m, a vehicle ahead in %.0f%% of the scans", name,
+                 result.n_scans, result.gnss_stats["rms_m"], 100 * result.lead_scan_share)
 
     _write_survey(city, route0, p, marks, albedo, origin, epsg, out_dir, component_rng(seed, "survey"))
     _write_truth(out_dir / "truth", city, corners, visible, marks, origin, epsg)
     summary = SimulationSummary(p.name, seed, out_dir, names, n_scans, origin.as_dict(), epsg, stats)
     writers.write_json(out_dir / "simulation.json", {
         "preset": p.name, "seed": seed, "code_version": CODE_VERSION, "motion_distortion": motion_distortion,
+        "preset_overrides": preset_overrides(p),
         "scan_limit": scan_limit, "drives": names, "n_scans": n_scans, "enu_origin": origin.as_dict(),
-        "utm_epsg": epsg, "gnss_error_stats": stats, "T_vehicle_lidar": T_vehicle_lidar.tolist(),
+        "utm_epsg": epsg, "gnss_error_stats": stats,
+        "vehicles_ahead_scan_share": ahead, "T_vehicle_lidar": T_vehicle_lidar.tolist(),
         "vehicle_frame": "x forward, y left, z up; origin on the ground under the lidar",
         "laser_calibration": {"gain": np.round(calib.gain, 6).tolist(), "offset": np.round(calib.offset, 6).tolist()},
     })
@@ -130,10 +148,15 @@ def _write_truth(truth_dir: Path, city, corners, visible, marks, origin, epsg) -
         header.append(f"scans_visible_{name.split('_')[-1]}")
         cols.append(counts)
         fmts.append("%d")
-    header.append("height_m")
-    cols.append(corners["height_m"])
-    fmts.append("%.3f")
+    header += ["height_m", "corner_shape", "shape_size_m"]
+    cols += [corners["height_m"], np.array([SHAPE_NAMES[k] for k in corners["corner_shape"]], dtype=object),
+             corners["shape_size_m"]]
+    fmts += ["%.3f", "%s", "%.3f"]
     writers.write_csv(truth_dir / "corners.csv", header, cols, fmts)
+    fc = furniture_corners(city.furniture)
+    writers.write_csv(truth_dir / "furniture_corners.csv",
+                      FURNITURE_COLUMNS, [fc[k] for k in FURNITURE_COLUMNS],
+                      ["%d", "%s", "%.4f", "%.4f", "%.4f", "%.4f", "%.4f", "%.3f"])
     writers.write_png(truth_dir / "markings.png", np.where(marks.data > 0, 255, 0).astype(np.uint8))
     writers.write_json(truth_dir / "markings.json", {
         "frame": "ENU", "origin": origin.as_dict(), "resolution_m": marks.res_m,

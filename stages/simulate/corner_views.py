@@ -18,8 +18,7 @@ import numpy as np
 
 from pipeline.errors import ConfigError
 from stages.common.geometry import read_tum
-from stages.simulate.city import generate_city
-from stages.simulate.core import component_rng
+from stages.simulate.core import build_city, component_rng
 from stages.simulate.mesh import Scene, build_static_soup
 from stages.simulate.presets import get_preset
 from stages.simulate.sensor import MOUNT_HEIGHT_M
@@ -37,14 +36,15 @@ def sensed_corner_truth(sim_dir: Path, drive: str, **kwargs) -> SensedCornerTrut
     """Union walls and view counts of each truth corner for ``drive`` (kwargs: ``count_corner_views``)."""
     sim_dir = Path(sim_dir)
     meta = json.loads((sim_dir / "simulation.json").read_text())
-    city = generate_city(get_preset(meta["preset"]), component_rng(int(meta["seed"]), "city"))
+    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in meta.get("preset_overrides", {}).items()}
+    city = build_city(get_preset(meta["preset"], **overrides), int(meta["seed"]))
     stored = json.loads((sim_dir / "truth" / "city.json").read_text())["buildings"]
     rebuilt = [np.round(b.footprint_en, 3) for b in city.buildings]
     if len(rebuilt) != len(stored) or not all(np.allclose(a, np.asarray(b["footprint_en"]), atol=2e-3)
                                               for a, b in zip(rebuilt, stored)):
         raise ConfigError(str(sim_dir / "truth" / "city.json"), [
             f"the city rebuilt from preset {meta['preset']!r}, seed {meta['seed']} differs from the stored one "
-            "(simulated with preset overrides or another simulator version); cannot recount corner views"])
+            "(simulated by another simulator version); cannot recount corner views"])
     static = Scene(build_static_soup(city, component_rng(int(meta["seed"]), "mesh")))
     _, T = read_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
     corners = building_corners(city)

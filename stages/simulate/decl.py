@@ -11,12 +11,14 @@ class SimulateParams(Params):
     seed: int = 0
     drives: int | None = None  # None: the preset's default (2)
     motion_distortion: bool = True
+    # preset fields to change, e.g. {lead_vehicle_share: 0.6} (the issue-25 test city); see `simulate --set`
+    preset_overrides: dict[str, float | tuple[float, float]] = {}
 
 
 STAGE = StageDecl(
     name="simulate",
     summary="Synthetic city and drives (HDL-32E scans, urban RTK/INS, odometry, survey LAS, ground truth).",
-    code_version="4",
+    code_version="5",
     inputs={},
     outputs={"drives": "raw_drives"},
     params=SimulateParams,

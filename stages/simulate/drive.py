@@ -15,9 +15,11 @@ import numpy as np
 
 from stages.simulate import writers
 from stages.simulate.gnss import GNSS_RATE_HZ, simulate_gnss_errors, simulate_odometry, sky_blocked_fraction
+from stages.simulate.lead_vehicle import plan_lead_traffic
 from stages.simulate.mesh import VEHICLE, Scene, TriangleSoup, box_triangles
 from stages.simulate.presets import Preset
 from stages.simulate.sensor import N_AZIMUTH, SCAN_PERIOD_S, rotations_enu_vehicle, simulate_scan
+from stages.simulate.sensor_effects import SensorEffects
 from stages.simulate.traffic import ego_lanes, generate_traffic
 from stages.simulate.trajectory import lane_polyline, plan_drive
 
@@ -48,6 +50,7 @@ class DriveResult:
     gnss_stats: dict
     scan_positions_en: np.ndarray
     route_en: np.ndarray
+    lead_scan_share: float  # scans with a vehicle ahead in the ego lane
 
 
 def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: Scene, marks, albedo, beams,
@@ -57,10 +60,14 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
     from stages.common.geometry import write_tum
     from stages.common.trajectory_frame import frame_header, write_sidecar
 
-    rng_route, rng_traffic, rng_sensor, rng_gnss, rng_odo = rng.spawn(5)
+    rng_route, rng_traffic, rng_sensor, rng_gnss, rng_odo, rng_lead, rng_effects = rng.spawn(7)
     poly, turns = lane_polyline(city, spec.loop, spec.lane)
-    traj = plan_drive(poly, turns, spec.laps, p.cruise_mps, p.stop_share, rng_route)
+    traj = plan_drive(poly, turns, spec.laps, p.cruise_mps, p.stop_share, rng_route, queue_share=p.queue_stop_share)
     traffic = generate_traffic(city, p.traffic_per_km, ego_lanes(city, spec.loop, spec.lane), rng_traffic)
+    lead = plan_lead_traffic(traj, p.lead_vehicle_share, rng_lead)
+    effects = SensorEffects(p.angular_jitter_deg, p.beam_divergence_mrad, p.mixed_pixel_share,
+                            sector_dropout_scan_share=p.sector_dropout_scan_share,
+                            sector_dropout_deg=p.sector_dropout_deg)
     scan_dir = drive_dir / "scans"
     scan_dir.mkdir(parents=True, exist_ok=True)
 
@@ -70,17 +77,22 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
         n_scans = min(n_scans, int(scan_limit))
     t_scan = np.arange(n_scans) * SCAN_PERIOD_S
     t_col = np.arange(N_AZIMUTH) * (SCAN_PERIOD_S / N_AZIMUTH)
+    ahead = np.zeros((n_scans, 2))  # vehicles ahead in the ego lane, bumper gap of the nearest (m)
     for i, t0 in enumerate(t_scan):
         poses = traj.sample(t0 + t_col) if motion_distortion else np.repeat(traj.sample(np.array([t0])), N_AZIMUTH, 0)
         boxes, refl = traffic.boxes_at(float(t0), poses[0, :2])
-        dyn_tris = box_triangles(boxes)
+        lead_boxes, lead_refl, gaps = lead.vehicles_at(float(t0))
+        ahead[i] = len(gaps), gaps[0] if len(gaps) else np.nan
+        dyn_tris = box_triangles(np.concatenate([boxes, lead_boxes]))
         dynamic = Scene(TriangleSoup(dyn_tris.astype(np.float32), np.full(len(dyn_tris), VEHICLE, np.uint8),
-                                     np.repeat(refl, 12).astype(np.float32)))
-        pts = simulate_scan(beams, poses, static, dynamic, marks, albedo, calib, rng_sensor)
+                                     np.repeat(np.concatenate([refl, lead_refl]), 12).astype(np.float32)))
+        pts = simulate_scan(beams, poses, static, dynamic, marks, albedo, calib, rng_sensor, effects, rng_effects)
         writers.write_pcd(scan_dir / f"{i:06d}.pcd", pts)
         if progress and (i % 10 == 9 or i == n_scans - 1):
             progress(i + 1, n_scans)
     gps_scan = spec.gps_t0_s + t_scan
+    writers.write_csv(truth_dir / f"drive_{spec.index}_vehicles_ahead.csv", ["scan_id", "vehicles_ahead", "gap_m"],
+                      [np.arange(n_scans), ahead[:, 0], ahead[:, 1]], ["%d", "%d", "%.2f"])
     writers.write_csv(scan_dir / "stamps.csv", ["scan_id", "gps_week", "gps_seconds"],
                       [np.arange(n_scans), np.full(n_scans, p.gps_week), gps_scan], ["%d", "%d", "%.6f"])
 
@@ -100,7 +112,7 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
     writers.write_csv(drive_dir / "wheel_gyro.csv", ["gps_week", "gps_seconds", "wheel_speed_mps", "yaw_rate_radps"],
                       [np.full(len(traj.t_s), p.gps_week), spec.gps_t0_s + traj.t_s, wheel, gyro],
                       ["%d", "%.3f", "%.3f", "%.6f"])
-    return DriveResult(n_scans, stats, truth[:, :2], poly)
+    return DriveResult(n_scans, stats, truth[:, :2], poly, round(float((ahead[:, 0] > 0).mean()), 4))
 
 
 def gnss_errors_for(traj, buildings: Scene, p: Preset, rng: np.random.Generator):

@@ -87,11 +87,18 @@ def plot_birdseye(sim_dir: Path, out: Path) -> None:
     ax.imshow(np.minimum(small.astype(float) * 3, 255), cmap="gray_r", extent=extent, vmax=255 * 2.5, alpha=0.9)
     for b in city["buildings"]:
         fp = np.array(b["footprint_en"])
-        ax.fill(fp[:, 0], fp[:, 1], color="0.75", ec="0.3", lw=0.6)
+        built = np.array(b.get("outline_en", b["footprint_en"]))  # rounded / chamfered corners as built
+        ax.fill(built[:, 0], built[:, 1], color="0.75", ec="0.3", lw=0.6)
         for k, g in enumerate(b["glass_walls"]):
             if g:
                 seg = fp[[k, (k + 1) % len(fp)]]
                 ax.plot(seg[:, 0], seg[:, 1], color="deepskyblue", lw=2.2)
+    for item in city.get("furniture", []):
+        for e, n, yaw, length, width, *_ in item["boxes_en"]:
+            c, s_ = np.cos(yaw), np.sin(yaw)
+            loc = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1], [-1, -1]]) * [length / 2, width / 2]
+            ax.plot(e + c * loc[:, 0] - s_ * loc[:, 1], n + s_ * loc[:, 0] + c * loc[:, 1], color="darkorange", lw=1.0)
+    ax.plot([], [], color="darkorange", lw=1.0, label="street furniture")
     trees = np.array([[t["east_m"], t["north_m"]] for t in city["trees"]])
     ax.scatter(trees[:, 0], trees[:, 1], s=6, color="forestgreen", label="trees")
     _, T = read_tum(sim_dir / "truth/drive_0_poses_tum.txt")
@@ -105,6 +112,46 @@ def plot_birdseye(sim_dir: Path, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     plt.close(fig)
+
+
+def plot_scan_top(sim_dir: Path, drive: str, scan_id: int, out: Path, half_m: float = 35.0) -> dict:
+    """One scan from above in the map frame (truth pose, no deskew) over the built outlines and the furniture:
+    the lead vehicle ahead, rounded corners, mixed pixels trailing off facade edges. Returns what it shows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stages.common.geometry import read_tum
+
+    city = json.loads((sim_dir / "truth/city.json").read_text())
+    pts = read_pcd(sim_dir / drive / "scans" / f"{scan_id:06d}.pcd")
+    _, T = read_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
+    xyz = np.column_stack([pts["x"], pts["y"], pts["z"] + 1.9]).astype(float) @ T[scan_id, :3, :3].T + T[scan_id, :3, 3]
+    keep = xyz[:, 2] > 0.3  # above the road: walls, vehicles, furniture, trees
+    fig, ax = plt.subplots(figsize=(9, 9))
+    for b in city["buildings"]:
+        fp = np.array(b["footprint_en"])
+        built = np.array(b.get("outline_en", b["footprint_en"]))
+        ax.fill(built[:, 0], built[:, 1], color="0.88", ec="0.5", lw=0.6)
+        ax.plot(*np.vstack([fp, fp[:1]]).T, color="0.5", lw=0.5, ls=":")
+    for item in city.get("furniture", []):
+        for e, n, yaw, length, width, *_ in item["boxes_en"]:
+            c, s_ = np.cos(yaw), np.sin(yaw)
+            loc = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1], [-1, -1]]) * [length / 2, width / 2]
+            ax.plot(e + c * loc[:, 0] - s_ * loc[:, 1], n + s_ * loc[:, 0] + c * loc[:, 1], color="darkorange", lw=1.2)
+    sc = ax.scatter(xyz[keep, 0], xyz[keep, 1], s=0.6, c=np.minimum(xyz[keep, 2], 6.0), cmap="viridis")
+    ax.plot(T[:, 0, 3], T[:, 1, 3], color="crimson", lw=0.8)
+    ax.scatter([T[scan_id, 0, 3]], [T[scan_id, 1, 3]], marker="^", color="crimson", s=60, zorder=5)
+    ax.set_xlim(T[scan_id, 0, 3] - half_m, T[scan_id, 0, 3] + half_m)
+    ax.set_ylim(T[scan_id, 1, 3] - half_m, T[scan_id, 1, 3] + half_m)
+    ax.set_aspect("equal")
+    fig.colorbar(sc, ax=ax, shrink=0.7, label="height above road (m), points above 0.3 m")
+    ax.set_title(f"{drive} scan {scan_id}: built outlines (grey; dotted: walls' intersections), furniture (orange)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return {"points": int(len(xyz)), "above_road": int(keep.sum())}
 
 
 def plot_gnss(sim_dir: Path, out: Path) -> dict:
@@ -146,8 +193,15 @@ def main() -> None:
     ap.add_argument("--nuscenes", type=Path, required=True)
     ap.add_argument("--out", type=Path, default=Path("docs/figures"))
     ap.add_argument("--scan", default="drive_0/scans/000100.pcd")
+    ap.add_argument("--top-scan", type=int, help="also draw this scan of --tiny's drive 0 from above "
+                    "(simulator_tiny_scan_top.png)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.top_scan is not None:
+        print(
+            "scan from above:",
+            plot_scan_top(args.tiny, "drive_0", args.top_scan, args.out / "simulator_tiny_scan_top.png"),
+        )
     sim, real = read_pcd(args.tiny / args.scan), read_nuscenes(args.nuscenes)
     plot_rings(sim, real, args.out / "simulator_rings.png")
     a, b = ring_table(sim, real)

@@ -11,8 +11,9 @@ import numpy as np
 from stages.simulate.city import CURB_H_M, City
 from stages.simulate.geom2d import triangulate_polygon
 
-GROUND, SIDEWALK, CURB, WALL, SLAB, LEAF, TRUNK, POLE, PARKED, VEHICLE, EGO = range(11)
-CLASS_NAMES = ["ground", "sidewalk", "curb", "wall", "slab", "leaf", "trunk", "pole", "parked_car", "vehicle", "ego"]
+GROUND, SIDEWALK, CURB, WALL, SLAB, LEAF, TRUNK, POLE, PARKED, VEHICLE, EGO, FURNITURE = range(12)
+CLASS_NAMES = ["ground", "sidewalk", "curb", "wall", "slab", "leaf", "trunk", "pole", "parked_car", "vehicle", "ego",
+               "furniture"]
 LEAF_DENSITY_PER_M3 = 40.0
 LEAF_SIZE_M = 0.09
 
@@ -87,13 +88,13 @@ def build_static_soup(city: City, rng: np.random.Generator) -> TriangleSoup:
         parts.append(_soup(_polygon_at(curb, CURB_H_M), SIDEWALK, 0.28))
         parts.append(_soup(vertical_quads(curb, np.roll(curb, -1, 0), 0.0, CURB_H_M), CURB, 0.35))
     for b in city.buildings:
-        fp = b.footprint_en
-        solid = ~b.glass
+        fp, glass = b.walls()
+        solid = ~glass
         if solid.any():
             parts.append(_soup(vertical_quads(fp[solid], np.roll(fp, -1, 0)[solid], 0.0, b.height_m), WALL,
                                b.reflectance))
         parts.append(_soup(_polygon_at(fp, b.height_m), SLAB, 0.3))
-        if b.glass.any():  # interior floor slabs seen through the glass
+        if glass.any():  # interior floor slabs seen through the glass
             for z in np.arange(4.0, b.height_m - 1.0, max(4.0, b.height_m / 12)):
                 parts.append(_soup(_polygon_at(fp, float(z)), SLAB, 0.3))
     parts += _tree_soups(city.trees, rng)
@@ -106,6 +107,8 @@ def build_static_soup(city: City, rng: np.random.Generator) -> TriangleSoup:
         body = np.column_stack([pk[:, :5], np.full(len(pk), 0.3), np.full(len(pk), 1.2)])
         refl = np.repeat(rng.uniform(0.1, 0.7, len(pk)), 12)
         parts.append(_soup(box_triangles(body), PARKED, refl))
+    for item in city.furniture:
+        parts.append(_soup(box_triangles(item.boxes), FURNITURE, item.reflectance))
     return TriangleSoup.concat(parts)
 
 
@@ -161,7 +164,7 @@ def build_building_soup(city: City) -> TriangleSoup:
     """Buildings as closed solids (glass walls included): what blocks satellite signals."""
     parts = []
     for b in city.buildings:
-        fp = b.footprint_en
+        fp = b.walls()[0]
         parts.append(_soup(vertical_quads(fp, np.roll(fp, -1, 0), 0.0, b.height_m), WALL, b.reflectance))
         parts.append(_soup(_polygon_at(fp, b.height_m), SLAB, 0.3))
     return TriangleSoup.concat(parts)

@@ -6,7 +6,7 @@ experiment of Im et al. (2016, sec. 5): a dense urban grid, 4.5 km in two laps, 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 from pipeline.errors import ConfigError
 
@@ -48,6 +48,19 @@ class Preset:
     origin_lon_deg: float = 127.0276
     origin_h_m: float = 57.0  # WGS84 ellipsoidal (about 30 m orthometric + 27 m geoid)
     gps_week: int = 1890  # March 2016
+    # issue 25: what real streets showed (defaults apply to every preset; docs/simulator.md)
+    lead_vehicle_share: float = 0.3  # share of the drive's distance with a vehicle ahead in the ego lane
+    queue_stop_share: float = 0.5  # share of the stops that are stop-and-go queues (1-3 vehicles ahead)
+    rounded_corner_share: float = 0.15  # share of convex building corners rounded (radius corner_radius_m)
+    chamfered_corner_share: float = 0.10  # share of convex building corners cut (chamfer_m along each wall)
+    corner_radius_m: tuple[float, float] = (1.0, 5.0)
+    chamfer_m: tuple[float, float] = (1.0, 3.0)
+    furniture_per_km: float = 10.0  # bus shelters, kiosks, L-fences per km of kerb
+    angular_jitter_deg: float = 0.03  # std of each firing's azimuth and elevation
+    beam_divergence_mrad: float = 3.0  # full angle; range spread over the footprint on oblique surfaces
+    mixed_pixel_share: float = 0.5  # share of depth discontinuities (> 0.3 m) giving a mixed return
+    sector_dropout_scan_share: float = 0.02  # share of scans losing one azimuth sector
+    sector_dropout_deg: tuple[float, float] = (5.0, 30.0)
 
 
 PRESETS: dict[str, Preset] = {
@@ -75,8 +88,31 @@ PRESETS: dict[str, Preset] = {
 }
 
 
+SHARES = ("lead_vehicle_share", "queue_stop_share", "rounded_corner_share", "chamfered_corner_share",
+          "mixed_pixel_share", "sector_dropout_scan_share")
+
+
 def get_preset(name: str, **overrides) -> Preset:
-    """The preset record, with optional field overrides (used by tests to shorten runs)."""
+    """The preset record, with optional field overrides (tests shorten runs; ``--set`` changes a feature)."""
     if name not in PRESETS:
         raise ConfigError("simulate --preset", [f"unknown preset {name!r}; expected one of {sorted(PRESETS)}"])
-    return replace(PRESETS[name], **overrides) if overrides else PRESETS[name]
+    overrides = dict(overrides)
+    known = {f.name for f in fields(Preset)} - {"name"}
+    bad = [f"unknown preset field {k!r}; expected one of {sorted(known)}" for k in overrides if k not in known]
+    bad += [f"{k} must be within 0..1; got {v}" for k, v in overrides.items() if k in SHARES and not 0 <= v <= 1]
+    base = PRESETS[name]
+    for k, v in overrides.items():  # integer fields given as integral floats (from --set) stay integers
+        if isinstance(getattr(base, k, None), int) and isinstance(v, float):
+            if v.is_integer():
+                overrides[k] = int(v)
+            else:
+                bad.append(f"{k} must be an integer; got {v}")
+    if bad:
+        raise ConfigError(f"simulate preset {name!r} overrides", bad)
+    return replace(base, **overrides) if overrides else base
+
+
+def preset_overrides(p: Preset) -> dict:
+    """The fields of ``p`` that differ from its named preset (written to simulation.json)."""
+    base = PRESETS[p.name]
+    return {f.name: getattr(p, f.name) for f in fields(Preset) if getattr(p, f.name) != getattr(base, f.name)}

@@ -1,5 +1,6 @@
 """Velodyne HDL-32E model: published elevation table, firing order and timing, ray casting against the city,
-range noise, dropouts, intensity from reflectance and incidence with per-laser (uncalibrated) gain and
+range noise, dropouts, angular jitter / beam divergence / mixed pixels / sector dropouts
+(``sensor_effects.py``), intensity from reflectance and incidence with per-laser (uncalibrated) gain and
 offset, self-occlusion by the ego roof, and motion distortion (each firing uses the pose at its own time).
 
 Output points are in the instantaneous lidar frame (x forward, y left, z up), as a driver writes them.
@@ -12,6 +13,13 @@ import numpy as np
 
 from stages.simulate.markings import REFLECTANCE, Raster
 from stages.simulate.mesh import GROUND, Scene
+from stages.simulate.sensor_effects import (
+    SensorEffects,
+    column_jitter_rotations,
+    divergence_range_sigma_m,
+    dropped_columns,
+    mix_edge_ranges,
+)
 
 # Elevation of each ring (ring 0 = lowest beam), degrees, from the HDL-32E manual.
 ELEVATION_DEG = np.array([-30.67, -29.33, -28.00, -26.67, -25.33, -24.00, -22.67, -21.33, -20.00, -18.67, -17.33,
@@ -82,19 +90,34 @@ def rotations_enu_vehicle(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) 
 
 
 def simulate_scan(beams: BeamTable, poses_col: np.ndarray, static: Scene, dynamic: Scene, markings: Raster,
-                  albedo: Raster, calib: LaserCalibration, rng: np.random.Generator) -> dict[str, np.ndarray]:
+                  albedo: Raster, calib: LaserCalibration, rng: np.random.Generator,
+                  effects: SensorEffects | None = None, rng_effects: np.random.Generator | None = None
+                  ) -> dict[str, np.ndarray]:
     """One revolution. ``poses_col``: (N_AZIMUTH, 5) east, north, yaw, pitch, roll of the vehicle at each
-    azimuth column's time (all rows equal = no motion distortion). Returns PCD-ready arrays."""
+    azimuth column's time (all rows equal = no motion distortion). ``effects`` (with their own generator
+    ``rng_effects``): None = range noise only. Returns PCD-ready arrays."""
+    fx = effects if effects is not None and effects.active else None
     R = rotations_enu_vehicle(poses_col[:, 2], poses_col[:, 3], poses_col[:, 4])  # (C, 3, 3)
     lidar_origin = np.column_stack([poses_col[:, :2], np.zeros(len(poses_col))]) + R[:, :, 2] * MOUNT_HEIGHT_M
     d_lidar = beams.dirs_lidar.reshape(N_AZIMUTH, 32, 3)
-    dirs_w = np.matmul(d_lidar, R.transpose(0, 2, 1)).reshape(-1, 3)
+    R_cast = R
+    if fx is not None and fx.angular_jitter_deg > 0:  # cast along the jittered direction, report the nominal one
+        az = np.pi - 2 * np.pi * np.arange(N_AZIMUTH) / N_AZIMUTH
+        R_cast = np.matmul(R, column_jitter_rotations(az, fx.angular_jitter_deg, rng_effects))
+    dirs_w = np.matmul(d_lidar, R_cast.transpose(0, 2, 1)).reshape(-1, 3)
     origins_w = np.repeat(lidar_origin, 32, axis=0)
     t_s, prim_s = static.cast(origins_w, dirs_w)
     t_d, prim_d = dynamic.cast(origins_w, dirs_w)
     use_dyn = t_d < t_s
     r_true = np.where(use_dyn, t_d, t_s).astype(np.float64)
     hit = np.isfinite(r_true) & (r_true < MAX_RANGE_M) & (r_true > MIN_RANGE_M) & (r_true < beams.ego_range_m)
+    if fx is not None:
+        if fx.mixed_pixel_share > 0:
+            grid = np.where(hit, r_true, np.inf).reshape(N_AZIMUTH, 32)
+            r_true = mix_edge_ranges(grid, fx.mixed_pixel_share, fx.mixed_min_jump_m, rng_effects)[0].reshape(-1)
+        if fx.sector_dropout_scan_share > 0:
+            hit &= ~dropped_columns(N_AZIMUTH, fx.sector_dropout_scan_share, fx.sector_dropout_deg,
+                                    rng_effects)[beams.column]
     idx = np.flatnonzero(hit)
     dyn = use_dyn[idx]
     prim = np.where(dyn, prim_d[idx], prim_s[idx])
@@ -124,7 +147,10 @@ def simulate_scan(beams: BeamTable, poses_col: np.ndarray, static: Scene, dynami
     ring = beams.ring[idx]
     raw = 200.0 * refl * (0.35 + 0.65 * cos_inc) * (10.0 / np.maximum(r, 3.0)) ** 0.25
     intensity = np.clip(np.round(calib.gain[ring] * raw + calib.offset[ring] + rng.normal(0, 1.5, len(idx))), 0, 255)
-    r_meas = r + rng.normal(0.0, RANGE_SIGMA_M, len(idx))
+    sigma = RANGE_SIGMA_M
+    if fx is not None and fx.divergence_mrad > 0:  # range noise and the footprint's spread, independent
+        sigma = np.sqrt(RANGE_SIGMA_M ** 2 + divergence_range_sigma_m(r, cos_inc, fx.divergence_mrad) ** 2)
+    r_meas = r + rng.normal(0.0, sigma, len(idx))
     xyz = beams.dirs_lidar[idx] * r_meas[:, None]
     return {"x": xyz[:, 0].astype(np.float32), "y": xyz[:, 1].astype(np.float32), "z": xyz[:, 2].astype(np.float32),
             "intensity": intensity.astype(np.float32), "ring": ring, "time": beams.time_s[idx].astype(np.float32)}

@@ -1,5 +1,5 @@
 """The survey (mobile-mapping) cloud: dense, calibrated points on the road and sidewalks along the mapped
-streets, centimetre noise, nothing under parked cars, inside buildings, tree trunks or poles.
+streets, centimetre noise, nothing under parked cars, inside buildings, tree trunks, poles or street furniture.
 """
 from __future__ import annotations
 
@@ -47,8 +47,11 @@ def generate_survey(city: City, route_en: np.ndarray, corridor_m: float, marking
     sidewalk = np.zeros(shape, np.uint8)
     _fill(sidewalk, city.curbs_en, west, north, res)
     blocked = np.zeros(shape, np.uint8)
-    _fill(blocked, [b.footprint_en for b in city.buildings], west, north, res)
+    _fill(blocked, [b.walls()[0] for b in city.buildings], west, north, res)
     _fill(blocked, _rect_polys(city.parked), west, north, res)
+    furniture = [item.boxes[:, :5] for item in city.furniture]
+    if furniture:
+        _fill(blocked, _rect_polys(np.concatenate(furniture)), west, north, res)
     posts = np.concatenate([city.trees[:, :2], city.poles]) if len(city.trees) else city.poles
     _fill(blocked, _rect_polys(np.column_stack([posts, np.zeros(len(posts)), np.full((len(posts), 2), 0.35)])),
           west, north, res)

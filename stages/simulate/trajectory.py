@@ -28,6 +28,7 @@ class Trajectory:
     pitch_rad: np.ndarray
     roll_rad: np.ndarray
     length_m: float
+    queue_stops: tuple = ()  # (s_first_stop_m, s_last_stop_m, vehicles_ahead) of each stop-and-go queue
 
     def sample(self, t_s: np.ndarray) -> np.ndarray:
         """(N,) times -> (N, 5): east, north, yaw_enu_rad, pitch_rad, roll_rad (linear interpolation)."""
@@ -123,8 +124,10 @@ def lane_polyline(city: City, loop: list[tuple[int, int]], lane: int) -> tuple[n
 
 
 def plan_drive(poly_en: np.ndarray, turn_starts_m: list[float], laps: int, cruise_mps: float, stop_share: float,
-               rng: np.random.Generator, ds_m: float = 0.1) -> Trajectory:
-    """Speed profile and 100 Hz states for ``laps`` rounds of a closed lane polyline."""
+               rng: np.random.Generator, ds_m: float = 0.1, queue_share: float = 0.0) -> Trajectory:
+    """Speed profile and 100 Hz states for ``laps`` rounds of a closed lane polyline. A share ``queue_share``
+    of the stops are stop-and-go queues: 1-3 vehicles stand ahead, the ego stops at the queue's tail and
+    creeps forward one vehicle (6.5-8 m) at a time, 2-6 s per stop, before the final stop at the line."""
     from scipy.ndimage import gaussian_filter1d
 
     seg = np.linalg.norm(np.diff(poly_en, axis=0), axis=1)
@@ -146,6 +149,7 @@ def plan_drive(poly_en: np.ndarray, turn_starts_m: list[float], laps: int, cruis
         for ts in turn_starts_m:
             if rng.random() < stop_share and ts - 6.0 > 30.0:
                 stops.append((int((lap * lap_len + ts - 6.0) / ds_m), float(rng.uniform(5.0, 25.0))))
+    stops, queues = _queue_stops(stops, queue_share, ds_m, rng)
     v[0] = v[-1] = 0.0
     for idx, _ in stops:
         v[idx] = 0.0
@@ -170,4 +174,24 @@ def plan_drive(poly_en: np.ndarray, turn_starts_m: list[float], laps: int, cruis
     pitch = -0.008 * acc
     roll = gaussian_filter1d(0.006 * speed * yaw_rate, 20)
     return Trajectory(t, np.interp(s_t, s, east), np.interp(s_t, s, north), yaw_t, speed, yaw_rate, pitch, roll,
-                      float(s[-1]))
+                      float(s[-1]), tuple(queues))
+
+
+def _queue_stops(stops: list, queue_share: float, ds_m: float, rng: np.random.Generator) -> tuple[list, list]:
+    """Stops (sample index, dwell s) with the creeping stops of the queues added, and the queues as
+    (s_first_stop_m, s_last_stop_m, vehicles ahead)."""
+    if queue_share <= 0:
+        return stops, []
+    out, queues = list(stops), []
+    for idx, _ in stops:
+        if rng.random() >= queue_share:
+            continue
+        n = int(rng.integers(1, 4))
+        steps = rng.uniform(6.5, 8.0, n)
+        first = idx - int(round(steps.sum() / ds_m))
+        if first * ds_m < 20.0:
+            continue
+        back = np.cumsum(steps[::-1])[::-1]  # distance of each creeping stop behind the final one
+        out += [(idx - int(round(b / ds_m)), float(rng.uniform(2.0, 6.0))) for b in back]
+        queues.append((first * ds_m, idx * ds_m, n))
+    return sorted(out), queues

@@ -6,6 +6,7 @@ import numpy as np
 
 from stages.common.geometry import wrap_angle_rad
 from stages.simulate.city import City
+from stages.simulate.corner_shapes import SHAPE_NAMES
 from stages.simulate.geom2d import point_in_polygon, point_segment_distance_m, polygon_corners
 from stages.simulate.mesh import Scene
 
@@ -14,9 +15,15 @@ VISIBLE_RANGE_M = 60.0
 
 def building_corners(city: City) -> dict[str, np.ndarray]:
     """One row per footprint vertex: id, east, north, theta1/theta2 (deg, ENU ccw from east, along the two
-    walls away from the corner), interior angle (deg), glass walls (0-2), height, bisector (unit, inward)."""
-    rows = []
+    walls away from the corner), interior angle (deg), glass walls (0-2), height, bisector (unit, inward), and
+    the corner's shape (0 sharp, 1 rounded, 2 chamfered; the vertex is then the walls' intersection, outside
+    the built outline) with its size (arc radius or cut length, m)."""
+    rows, shape, size = [], [], []
     for b in city.buildings:
+        n = len(b.footprint_en)
+        kind, radius = getattr(b, "corner_shape", None), getattr(b, "shape_size_m", None)  # None: all sharp
+        shape.append(np.zeros(n, int) if kind is None else np.asarray(kind, int))
+        size.append(np.zeros(n) if radius is None else np.asarray(radius, float))
         ang = polygon_corners(b.footprint_en)
         glass = b.glass.astype(int) + np.roll(b.glass, 1).astype(int)  # wall k-1 and wall k meet at vertex k
         for k, p in enumerate(b.footprint_en):
@@ -27,7 +34,9 @@ def building_corners(city: City) -> dict[str, np.ndarray]:
     deg = lambda r: (np.degrees(r) + 180.0) % 360.0 - 180.0  # noqa: E731
     return {"id": np.arange(len(a)), "east_m": a[:, 0], "north_m": a[:, 1], "theta1_deg": deg(a[:, 2]),
             "theta2_deg": deg(a[:, 3]), "interior_angle_deg": np.degrees(a[:, 4]),
-            "glass_walls": a[:, 5].astype(int), "height_m": a[:, 6], "inward_en": a[:, 7:9]}
+            "glass_walls": a[:, 5].astype(int), "height_m": a[:, 6], "inward_en": a[:, 7:9],
+            "corner_shape": np.concatenate(shape) if shape else np.zeros(0, int),
+            "shape_size_m": np.concatenate(size) if size else np.zeros(0)}
 
 
 def count_visible_scans(corners: dict[str, np.ndarray], static: Scene, lidar_en: np.ndarray,
@@ -174,8 +183,13 @@ def city_description(city: City, origin: dict, epsg: int) -> dict:
         "lanes_per_direction": {"east_west": city.lanes_row, "north_south": city.lanes_col},
         "intersections_en": np.round(city.nodes_en, 3).tolist(),
         "buildings": [{"footprint_en": np.round(b.footprint_en, 3).tolist(), "height_m": round(b.height_m, 3),
-                       "glass_walls": b.glass.astype(int).tolist(), "reflectance": round(b.reflectance, 4)}
+                       "glass_walls": b.glass.astype(int).tolist(), "reflectance": round(b.reflectance, 4),
+                       "outline_en": np.round(b.walls()[0], 3).tolist(),
+                       "corner_shape": [SHAPE_NAMES[k] for k in (b.corner_shape if b.corner_shape is not None
+                                                                 else np.zeros(len(b.footprint_en), int))]}
                       for b in city.buildings],
+        "furniture": [{"kind": f.kind, "height_m": round(f.height_m, 3),
+                       "boxes_en": np.round(f.boxes, 4).tolist()} for f in city.furniture],
         "trees": [{"east_m": round(t[0], 3), "north_m": round(t[1], 3), "trunk_height_m": round(t[2], 3),
                    "crown_radius_m": round(t[3], 3), "crown_half_height_m": round(t[4], 3)} for t in city.trees],
         "poles_en": np.round(city.poles, 3).tolist(),
