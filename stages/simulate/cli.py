@@ -15,8 +15,9 @@ def register(app: typer.Typer) -> None:
         "  cornermap simulate --preset gangnam --seed 3 --out runs/gangnam_sim --drives 3 --max-scans 20\n\n"
         "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50\n\n"
         "  cornermap simulate --preset demo --out runs/demo_lead --set queue_stop_share=0 "
-        "--set lead_vehicle_share=0.7   # a vehicle ahead in >= 50% of the scans (lead_vehicle_share=0: the same "
-        "city and drives without it)"))(simulate_command)
+        "--set lead_vehicle_share=0.7\n\n"
+        "  (a vehicle ahead in >= 50% of the scans; lead_vehicle_share=0: the same city and drives without it)"
+    ))(simulate_command)
 
 
 def simulate_command(
