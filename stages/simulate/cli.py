@@ -13,7 +13,8 @@ def register(app: typer.Typer) -> None:
         "Examples:\n\n"
         "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
         "  cornermap simulate --preset gangnam --seed 3 --out runs/gangnam_sim --drives 3 --max-scans 20\n\n"
-        "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50"))(simulate_command)
+        "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50\n\n"
+        "  cornermap simulate --preset tiny --seed 7 --drives 3 --changes --out runs/tiny_changed"))(simulate_command)
 
 
 def simulate_command(
@@ -24,6 +25,9 @@ def simulate_command(
     motion_distortion: bool = typer.Option(True, help="roll each scan during motion (per-firing poses)"),
     max_scans: int = typer.Option(None, help="cap the scans written per drive (quick looks, tests)"),
     quiet: bool = typer.Option(False, help="no progress bar"),
+    changes: bool = typer.Option(False, "--changes", help="the city changes before the last drive (a building "
+                                 "demolished, one built, a crosswalk moved); truth in truth/changes.json"),
+    changes_from_drive: int = typer.Option(None, help="with --changes: first drive that sees the changed city"),
 ) -> None:
     from pipeline.errors import DatasetIOError
     from stages.simulate.core import simulate
@@ -31,7 +35,8 @@ def simulate_command(
     if out.exists() and not out.is_dir():
         raise DatasetIOError(f"--out {out}: exists and is not a directory; simulate writes a directory")
     if quiet:
-        summary = simulate(preset, seed, out, drives, motion_distortion, max_scans)
+        summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, changes=changes,
+                           changes_from_drive=changes_from_drive)
     else:
         from rich.progress import Progress
 
@@ -43,7 +48,8 @@ def simulate_command(
                     tasks[name] = bar.add_task(f"{name} scans", total=n)
                 bar.update(tasks[name], completed=i)
 
-            summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, progress)
+            summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, progress, changes=changes,
+                               changes_from_drive=changes_from_drive)
     for name in summary.drives:
         st = summary.gnss_stats[name]
         typer.echo(f"{name}: {summary.n_scans[name]} scans, GNSS horizontal RMS {st['rms_m']:.2f} m, "

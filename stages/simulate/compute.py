@@ -9,6 +9,7 @@ def compute(ctx: StageContext) -> dict:
 
     p = ctx.params
     summary = simulate(p.preset, p.seed, ctx.artifact_dir("drives"), n_drives=p.drives,
-                       motion_distortion=p.motion_distortion)
+                       motion_distortion=p.motion_distortion, changes=p.changes,
+                       changes_from_drive=p.changes_from_drive)
     return {"drives": None, "_extra": {"enu_origin": summary.enu_origin, "drives": summary.drives,
                                         "n_scans": summary.n_scans, "utm_epsg": summary.utm_epsg}}

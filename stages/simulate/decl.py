@@ -11,6 +11,8 @@ class SimulateParams(Params):
     seed: int = 0
     drives: int | None = None  # None: the preset's default (2)
     motion_distortion: bool = True
+    changes: bool = False  # dated variants: later drives see a changed city (stages/simulate/changes.py)
+    changes_from_drive: int | None = None  # first drive that sees the changed city; None: the last drive
 
 
 STAGE = StageDecl(
