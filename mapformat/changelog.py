@@ -50,8 +50,14 @@ def _theta(table: pa.Table) -> np.ndarray:
 def carry_ids(prev_corners: pa.Table | None, prev_next_id: int | None, corners: pa.Table,
               gates: IdGates) -> tuple[pa.Table, IdMatch, int]:
     """``corners`` with ``corner_id`` replaced by stable ids; the match to ``prev_corners`` (None: no previous
-    version in this frame) and the id counter after. Fresh ids go in (east, north) order."""
+    version in this frame) and the id counter after. Fresh ids go in (east, north) order. A map's first version
+    (no previous corners and no counter) keeps the corner stage's ids when they are unique and positive."""
     en, theta = _en(corners), _theta(corners)
+    given = corners["corner_id"].to_numpy() if corners.num_rows else np.zeros(0, np.int64)
+    if prev_corners is None and prev_next_id is None and (len(given) == 0 or (
+            given.min() >= 1 and len(np.unique(given)) == len(given))):
+        empty = match_corners(np.zeros((0, 2)), np.zeros((0, 2)), en, theta, gates)
+        return corners, empty, int(given.max()) + 1 if len(given) else 1
     order = np.lexsort((en[:, 1], en[:, 0])) if len(en) else np.zeros(0, np.int64)
     if prev_corners is None or prev_corners.num_rows == 0:
         match = match_corners(np.zeros((0, 2)), np.zeros((0, 2)), en, theta, gates)

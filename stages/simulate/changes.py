@@ -7,7 +7,8 @@ Between drive ``from_drive - 1`` and drive ``from_drive`` three things happen to
 Drives before ``from_drive`` see the city as generated, later ones the changed city. The truth of the change
 (removed and added building corners, the crosswalk's old and new outline, changed marking pixels) goes to
 ``truth/changes.json``; ``truth/corners.csv`` stays the city as of drive 0 and ``truth/corners_after.csv`` is
-the changed city's corners.
+the changed city's corners. Later drives' drive.yaml reference ``survey_changed/survey.las``, a survey of
+the changed city (same route and noise stream as ``survey/``), so maps built from them see the new paint.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import numpy as np
 from stages.simulate.city import City, Building
 from stages.simulate.markings import WHITE, Raster
 
+SURVEY_DIR = "survey_changed"  # the changed city's survey cloud; drives that see the change reference it
 CROSSWALK_SHIFT_M = -2.0  # along the street, towards its first intersection
 NEW_BUILDING_M = (22.0, 14.0)  # frontage along the street, depth
 REACH_M = 6.0  # a building "faces the loop" when a vertex is this close to the loop's sidewalk line

@@ -93,12 +93,14 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
         spec = DriveSpec.for_index(k, loop, p, city, seed)
         name = f"drive_{k}"
         drive_dir = out_dir / name
-        w_city, w_static, w_buildings, w_marks = worlds[plan is not None and k >= plan.from_drive]
+        changed = plan is not None and k >= plan.from_drive  # the drive sees the city as of its date
+        w_city, w_static, w_buildings, w_marks = worlds[changed]
         result = simulate_drive(spec, p, w_city, w_static, w_buildings, w_marks, albedo, beams, calib, origin,
                                 drive_dir, out_dir / "truth", motion_distortion, scan_limit,
                                 component_rng(seed, f"drive{k}"),
                                 (lambda i, n, _name=name: progress(_name, i, n)) if progress else None)
-        writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}")
+        writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}",
+                                 dated.SURVEY_DIR if changed else "survey")
         names.append(name)
         n_scans[name] = result.n_scans
         stats[name] = result.gnss_stats
@@ -109,7 +111,10 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
 
     _write_survey(city, route0, p, marks, albedo, origin, epsg, out_dir, component_rng(seed, "survey"))
     _write_truth(out_dir / "truth", city, corners, visible, marks, origin, epsg)
-    if plan is not None:
+    if plan is not None:  # the survey of the changed city, which later drives reference
+        (out_dir / dated.SURVEY_DIR).mkdir(exist_ok=True)
+        _write_survey(worlds[True][0], route0, p, worlds[True][3], albedo, origin, epsg, out_dir,
+                      component_rng(seed, "survey"), dated.SURVEY_DIR)
         dated.write_changes_truth(out_dir / "truth", plan, city, worlds[True][0], marks, worlds[True][3])
     summary = SimulationSummary(p.name, seed, out_dir, names, n_scans, origin.as_dict(), epsg, stats)
     writers.write_json(out_dir / "simulation.json", {
@@ -123,14 +128,15 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     return summary
 
 
-def _write_survey(city, route_en, p: Preset, marks, albedo, origin, epsg, out_dir: Path, rng) -> None:
+def _write_survey(city, route_en, p: Preset, marks, albedo, origin, epsg, out_dir: Path, rng,
+                  sub: str = "survey") -> None:
     from stages.common.geodesy import enu_to_geodetic, geodetic_to_projected
 
     corridor = max(city.hw_row_m, city.hw_col_m) + p.sidewalk_m
     xyz_enu, refl = generate_survey(city, route_en, corridor, marks, albedo, rng)
     llh = enu_to_geodetic(xyz_enu, origin)
     xyz_utm = geodetic_to_projected(llh[:, 0], llh[:, 1], llh[:, 2], f"EPSG:{epsg}")
-    writers.write_las(out_dir / "survey" / "survey.las", xyz_utm, np.round(refl * 65535.0), epsg)
+    writers.write_las(out_dir / sub / "survey.las", xyz_utm, np.round(refl * 65535.0), epsg)
 
 
 def _write_truth(truth_dir: Path, city, corners, visible, marks, origin, epsg) -> None:

@@ -34,6 +34,8 @@ def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: f
                     describe_origin(prev.origin), prev.tile_size_m)
     prev_corners = prev.all_corners() if prev is not None else None
     prev_next = prev.manifest.get("next_corner_id") if prev is not None else None
+    if prev is not None and prev_next is None:  # a parent from before the counter: never reuse its ids
+        prev_next = int(prev_corners["corner_id"].to_numpy().max()) + 1 if prev_corners.num_rows else 1
     ided, match, next_id = carry_ids(prev_corners if frame_unchanged else None, prev_next, corners, gates)
     files = write_files(ided)
     markings = marking_changes(files["tiles"], staging, prev if frame_unchanged else None)
