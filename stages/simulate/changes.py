@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from stages.simulate.city import City, Building
+from stages.simulate.city import Building, City
 from stages.simulate.markings import WHITE, Raster
 
 SURVEY_DIR = "survey_changed"  # the changed city's survey cloud; drives that see the change reference it
@@ -59,7 +59,7 @@ def crosswalk_stripes(city: City, a: tuple[int, int], b: tuple[int, int], shift_
     """ENU stripe polygons of the crosswalk at node a of street a-b (``generate_markings``' layout), shifted."""
     if (a, b) not in {(e[0], e[1]) for e in _street_keys(city)}:
         a, b = b, a
-    pa, t, n, length, hw, c = _edge_geometry(city, a, b)
+    pa, t, n, _, hw, c = _edge_geometry(city, a, b)
     s_cw = c + shift_m
     out = []
     for d in np.arange(-hw + 1.0, hw - 1.0, 1.0):

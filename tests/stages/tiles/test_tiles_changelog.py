@@ -94,7 +94,7 @@ def _app():
 
 def test_tiles_log_prints_the_history(history):
     app = _app()
-    root, d, xy, owner, _ = history
+    root, _, xy, _, _ = history
     res = CliRunner().invoke(app, ["tiles", "log", "--root", str(root), "--map", "city", "--details"])
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
