@@ -120,8 +120,8 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     writers.write_json(out_dir / "simulation.json", {
         "preset": p.name, "seed": seed, "code_version": CODE_VERSION, "motion_distortion": motion_distortion,
         "scan_limit": scan_limit, "drives": names, "n_scans": n_scans, "enu_origin": origin.as_dict(),
-        "utm_epsg": epsg, "gnss_error_stats": stats,
-        **({"changes": {"from_drive": plan.from_drive, "truth": "truth/changes.json"}} if plan is not None else {}), "T_vehicle_lidar": T_vehicle_lidar.tolist(),
+        "utm_epsg": epsg, "gnss_error_stats": stats, "T_vehicle_lidar": T_vehicle_lidar.tolist(),
+        **({"changes": {"from_drive": plan.from_drive, "truth": "truth/changes.json"}} if plan is not None else {}),
         "vehicle_frame": "x forward, y left, z up; origin on the ground under the lidar",
         "laser_calibration": {"gain": np.round(calib.gain, 6).tolist(), "offset": np.round(calib.offset, 6).tolist()},
     })
