@@ -1,9 +1,11 @@
 """Differences between two map versions: corners added / removed / moved, marking pixels changed, per tile.
 
-Corner ids are not stable across builds (clustering renumbers), so corners are matched geometrically:
+Corner ids are carried across versions of one map (mapformat/corner_ids.py), but diff compares any two
+versions (not only a parent and its child), so corners are matched geometrically here:
 mutual nearest neighbours within ``match_radius_m``. A matched pair further apart than ``move_threshold_m``
 is "moved"; unmatched corners of A are "removed", of B "added". A corner that moved more than the match
 radius therefore shows as removed + added. Removed/moved corners count in A's tile, added ones in B's.
+Two versions in different frames (ENU origin or tile size) are refused with ``ReferenceFrameError``.
 """
 from __future__ import annotations
 
@@ -17,6 +19,18 @@ from stages.common.tiling import tile_key_of
 
 if TYPE_CHECKING:  # pragma: no cover
     from mapformat.loader import MapReader
+
+
+def check_same_frame(a: "MapReader", b: "MapReader") -> None:
+    """Refuse two versions in different frames (origin or tile size): their coordinates do not compare."""
+    from mapformat.changelog import describe_origin, same_frame
+    from pipeline.errors import ReferenceFrameError
+
+    if not same_frame(a.origin, a.tile_size_m, b.origin, b.tile_size_m):
+        raise ReferenceFrameError(
+            f"v{a.version:04d} and v{b.version:04d} are in different frames: origin {describe_origin(a.origin)} "
+            f"with {a.tile_size_m:g} m tiles vs origin {describe_origin(b.origin)} with {b.tile_size_m:g} m tiles; "
+            "their coordinates do not compare, so no diff")
 
 
 @dataclass(frozen=True)
@@ -74,8 +88,7 @@ def count_changed_pixels(a: np.ndarray | None, b: np.ndarray | None) -> int:
 def diff_maps(a: "MapReader", b: "MapReader", move_threshold_m: float = 0.1,
               match_radius_m: float = 1.0) -> list[TileDiff]:
     """Per-tile differences from version A to version B (only tiles with a change), sorted by key."""
-    if a.tile_size_m != b.tile_size_m:
-        raise ValueError(f"cannot diff maps with different tile sizes ({a.tile_size_m} m vs {b.tile_size_m} m)")
+    check_same_frame(a, b)
     size = a.tile_size_m
     ta, tb = a.all_corners(), b.all_corners()
     a_en = np.column_stack([ta["east_m"].to_numpy(), ta["north_m"].to_numpy()]) if ta.num_rows else np.zeros((0, 2))

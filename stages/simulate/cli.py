@@ -16,7 +16,8 @@ def register(app: typer.Typer) -> None:
         "  cornermap simulate --preset demo --out runs/demo_sim --no-motion-distortion --max-scans 50\n\n"
         "  cornermap simulate --preset demo --out runs/demo_lead --set queue_stop_share=0 "
         "--set lead_vehicle_share=0.7\n\n"
-        "  (a vehicle ahead in >= 50% of the scans; lead_vehicle_share=0: the same city and drives without it)"
+        "  (a vehicle ahead in >= 50% of the scans; lead_vehicle_share=0: the same city and drives without it)\n\n"
+        "  cornermap simulate --preset tiny --seed 7 --drives 3 --changes --out runs/tiny_changed"
     ))(simulate_command)
 
 
@@ -30,6 +31,9 @@ def simulate_command(
     quiet: bool = typer.Option(False, help="no progress bar"),
     set_: list[str] = typer.Option([], "--set", help="change a preset field, KEY=VALUE or KEY=LO,HI (repeatable), "
                                    "e.g. lead_vehicle_share=0.6, corner_radius_m=1,5; see docs/simulator.md"),
+    changes: bool = typer.Option(False, "--changes", help="the city changes before the last drive (a building "
+                                 "demolished, one built, a crosswalk moved); truth in truth/changes.json"),
+    changes_from_drive: int = typer.Option(None, help="with --changes: first drive that sees the changed city"),
 ) -> None:
     from pipeline.errors import DatasetIOError
     from stages.simulate.core import simulate
@@ -40,7 +44,8 @@ def simulate_command(
 
     preset = get_preset(preset, **parse_overrides(set_))
     if quiet:
-        summary = simulate(preset, seed, out, drives, motion_distortion, max_scans)
+        summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, changes=changes,
+                           changes_from_drive=changes_from_drive)
     else:
         from rich.progress import Progress
 
@@ -52,7 +57,8 @@ def simulate_command(
                     tasks[name] = bar.add_task(f"{name} scans", total=n)
                 bar.update(tasks[name], completed=i)
 
-            summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, progress)
+            summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, progress, changes=changes,
+                               changes_from_drive=changes_from_drive)
     for name in summary.drives:
         st = summary.gnss_stats[name]
         typer.echo(f"{name}: {summary.n_scans[name]} scans, GNSS horizontal RMS {st['rms_m']:.2f} m, "

@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline.errors import ConfigError
+from stages.simulate import changes as dated
 from stages.simulate import writers
 from stages.simulate.city import City, generate_city
 from stages.simulate.corner_shapes import SHAPE_NAMES, shape_corners
@@ -64,9 +65,11 @@ def build_city(p: Preset, seed: int) -> City:
 
 def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | None = None,
              motion_distortion: bool = True, scan_limit: int | None = None,
-             progress: Callable[[str, int, int], None] | None = None) -> SimulationSummary:
+             progress: Callable[[str, int, int], None] | None = None, changes: bool = False,
+             changes_from_drive: int | None = None) -> SimulationSummary:
     """Generate a city, ``n_drives`` drives over it (drive 0 maps, later drives evaluate), a survey cloud
-    and ground truth into ``out_dir``. ``scan_limit`` caps the scans written per drive (tests)."""
+    and ground truth into ``out_dir``. ``scan_limit`` caps the scans written per drive (tests). With
+    ``changes``, drives from ``changes_from_drive`` (default: the last) see a changed city (changes.py)."""
     from stages.common.geodesy import EnuOrigin, utm_epsg_for
 
     p = get_preset(preset) if isinstance(preset, str) else preset
@@ -93,6 +96,11 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     corners = building_corners(city)
     T_vehicle_lidar = np.eye(4)
     T_vehicle_lidar[2, 3] = MOUNT_HEIGHT_M
+    worlds = {False: (city, static, buildings, marks)}  # dated variants: False = as generated
+    plan = None
+    if changes:
+        plan, *worlds[True] = dated.changed_world(city, loop, p.sidewalk_m, marks, n_drives, changes_from_drive,
+                                                  component_rng(seed, "changes"), component_rng(seed, "mesh"))
 
     names, n_scans, stats, visible, ahead = [], {}, {}, {}, {}
     route0 = None
@@ -100,15 +108,18 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
         spec = DriveSpec.for_index(k, loop, p, city, seed)
         name = f"drive_{k}"
         drive_dir = out_dir / name
-        result = simulate_drive(spec, p, city, static, buildings, marks, albedo, beams, calib, origin,
+        changed = plan is not None and k >= plan.from_drive  # the drive sees the city as of its date
+        w_city, w_static, w_buildings, w_marks = worlds[changed]
+        result = simulate_drive(spec, p, w_city, w_static, w_buildings, w_marks, albedo, beams, calib, origin,
                                 drive_dir, out_dir / "truth", motion_distortion, scan_limit,
                                 component_rng(seed, f"drive{k}"),
                                 (lambda i, n, _name=name: progress(_name, i, n)) if progress else None)
-        writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}")
+        writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}",
+                                 dated.SURVEY_DIR if changed else "survey")
         names.append(name)
         n_scans[name] = result.n_scans
         stats[name] = result.gnss_stats
-        visible[name] = count_visible_scans(corners, static, result.scan_positions_en, MOUNT_HEIGHT_M)
+        visible[name] = count_visible_scans(corners, w_static, result.scan_positions_en, MOUNT_HEIGHT_M)
         if k == 0:
             route0 = result.route_en
         ahead[name] = result.lead_scan_share
@@ -117,6 +128,11 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
 
     _write_survey(city, route0, p, marks, albedo, origin, epsg, out_dir, component_rng(seed, "survey"))
     _write_truth(out_dir / "truth", city, corners, visible, marks, origin, epsg)
+    if plan is not None:  # the survey of the changed city, which later drives reference
+        (out_dir / dated.SURVEY_DIR).mkdir(exist_ok=True)
+        _write_survey(worlds[True][0], route0, p, worlds[True][3], albedo, origin, epsg, out_dir,
+                      component_rng(seed, "survey"), dated.SURVEY_DIR)
+        dated.write_changes_truth(out_dir / "truth", plan, city, worlds[True][0], marks, worlds[True][3])
     summary = SimulationSummary(p.name, seed, out_dir, names, n_scans, origin.as_dict(), epsg, stats)
     writers.write_json(out_dir / "simulation.json", {
         "preset": p.name, "seed": seed, "code_version": CODE_VERSION, "motion_distortion": motion_distortion,
@@ -124,20 +140,22 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
         "scan_limit": scan_limit, "drives": names, "n_scans": n_scans, "enu_origin": origin.as_dict(),
         "utm_epsg": epsg, "gnss_error_stats": stats,
         "vehicles_ahead_scan_share": ahead, "T_vehicle_lidar": T_vehicle_lidar.tolist(),
+        **({"changes": {"from_drive": plan.from_drive, "truth": "truth/changes.json"}} if plan is not None else {}),
         "vehicle_frame": "x forward, y left, z up; origin on the ground under the lidar",
         "laser_calibration": {"gain": np.round(calib.gain, 6).tolist(), "offset": np.round(calib.offset, 6).tolist()},
     })
     return summary
 
 
-def _write_survey(city, route_en, p: Preset, marks, albedo, origin, epsg, out_dir: Path, rng) -> None:
+def _write_survey(city, route_en, p: Preset, marks, albedo, origin, epsg, out_dir: Path, rng,
+                  sub: str = "survey") -> None:
     from stages.common.geodesy import enu_to_geodetic, geodetic_to_projected
 
     corridor = max(city.hw_row_m, city.hw_col_m) + p.sidewalk_m
     xyz_enu, refl = generate_survey(city, route_en, corridor, marks, albedo, rng)
     llh = enu_to_geodetic(xyz_enu, origin)
     xyz_utm = geodetic_to_projected(llh[:, 0], llh[:, 1], llh[:, 2], f"EPSG:{epsg}")
-    writers.write_las(out_dir / "survey" / "survey.las", xyz_utm, np.round(refl * 65535.0), epsg)
+    writers.write_las(out_dir / sub / "survey.las", xyz_utm, np.round(refl * 65535.0), epsg)
 
 
 def _write_truth(truth_dir: Path, city, corners, visible, marks, origin, epsg) -> None:

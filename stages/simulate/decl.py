@@ -13,6 +13,8 @@ class SimulateParams(Params):
     motion_distortion: bool = True
     # preset fields to change, e.g. {lead_vehicle_share: 0.6} (the issue-25 test city); see `simulate --set`
     preset_overrides: dict[str, float | tuple[float, float]] = {}
+    changes: bool = False  # dated variants: later drives see a changed city (stages/simulate/changes.py)
+    changes_from_drive: int | None = None  # first drive that sees the changed city; None: the last drive
 
 
 STAGE = StageDecl(

@@ -54,7 +54,8 @@ def write_gnss_csv(path: Path, week: int, gps_s: np.ndarray, llh: np.ndarray, ro
     write_csv(path, header, cols, fmts)
 
 
-def write_drive_yaml(path: Path, name: str, T_vehicle_lidar: np.ndarray, survey_crs: str | None) -> None:
+def write_drive_yaml(path: Path, name: str, T_vehicle_lidar: np.ndarray, survey_crs: str | None,
+                     survey_dir: str = "survey") -> None:
     import yaml
 
     doc = {
@@ -79,7 +80,7 @@ def write_drive_yaml(path: Path, name: str, T_vehicle_lidar: np.ndarray, survey_
         "scan_times": {"source": "pcd_field"},
     }
     if survey_crs:
-        doc["survey"] = {"file": "../survey/survey.las", "crs": survey_crs}
+        doc["survey"] = {"file": f"../{survey_dir}/survey.las", "crs": survey_crs}
     text = ("# Simulated drive (cornermap simulate). Vehicle frame: x forward, y left, z up, origin on the ground\n"
             "# under the lidar. Scan stamps (scan start, GPS week + seconds of week) are in scans/stamps.csv.\n")
     path.write_text(text + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110))

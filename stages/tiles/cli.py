@@ -1,4 +1,4 @@
-"""``cornermap tiles ls|diff|export|verify``: inspect, compare, export and check published map versions.
+"""``cornermap tiles ls|diff|log|export|verify``: inspect, compare, export and check published map versions.
 
 Heavy imports happen inside the commands so ``cornermap --help`` stays instant.
 """
@@ -18,6 +18,7 @@ VERSION_OPT = typer.Option("LATEST", "--version", help="LATEST, vNNNN or N.")
 EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles ls --map tiny --root runs/tiny\n\n"
             "  cornermap tiles diff v0001 LATEST --map tiny --root runs/tiny\n\n"
+            "  cornermap tiles log --map tiny --root runs/tiny\n\n"
             "  cornermap tiles export --format geojson --out runs/city.geojson --map city --root runs/maps\n\n"
             "  cornermap tiles export --format geotiff --out runs/rasters --map city --root runs/maps\n\n"
             "  cornermap tiles verify --all --map tiny --root runs/tiny")
@@ -90,6 +91,50 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
     typer.echo("total: +{} -{} ~{} corners, {} marking px changed".format(*totals))
 
 
+def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+        as_json: bool = typer.Option(False, "--json", help="Print every version's changelog as JSON."),
+        details: bool = typer.Option(False, "--details", help="Also list the ids of added, removed and moved "
+                                     "corners and the changed tiles.")) -> None:
+    """History of a map, oldest first: per version its drives, corners added / removed / moved (stable ids),
+    marking pixels changed and whether the frame stayed the same (each version's changelog.json).
+
+    Example: [b]cornermap tiles log --map tiny --root runs/tiny[/b]
+    """
+    from mapformat.changelog import read_changelog, summary_line
+    from pipeline.errors import ChecksumError, MapFormatError
+    from pipeline.versioned import list_versions, read_latest, read_manifest, version_name
+
+    d = map_dir_of(root, map_name)
+    latest = read_latest(d)
+    docs = []
+    if not as_json:
+        typer.echo(f"{d}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
+    for v in list_versions(d):
+        mark = "*" if v == latest else " "
+        try:
+            m, _ = read_manifest(d / version_name(v))
+            doc = read_changelog(d / version_name(v), m)
+        except (MapFormatError, ChecksumError) as exc:
+            typer.echo(f"{mark} {version_name(v)}  unreadable: {exc}")
+            continue
+        docs.append({"version": version_name(v), "created_utc": m.get("created_utc"), "changelog": doc})
+        if as_json:
+            continue
+        typer.echo(f"{mark} {summary_line(version_name(v), m, doc)}")
+        if details and doc:
+            c = doc["corners"]
+            for key in ("added", "removed"):
+                if c[key]:
+                    typer.echo(f"    {key}: " + ", ".join(f"#{e['id']} ({e['east_m']:.2f}, {e['north_m']:.2f})"
+                                                        for e in c[key]))
+            if c["moved"]:
+                typer.echo("    moved: " + ", ".join(f"#{e['id']} {e['dist_m']:.2f} m" for e in c["moved"]))
+            for t in doc["markings"]["tiles"]:
+                typer.echo(f"    tile ({t['tile'][0]},{t['tile'][1]}): {t['px_changed']} marking px changed")
+    if as_json:
+        typer.echo(json.dumps(docs, indent=1))
+
+
 def export(
     fmt: str = typer.Option(
         ..., "--format", "-f", help="im2016-text | geojson | markings-geojson | autoware | geotiff"
@@ -144,13 +189,14 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
 
 
 def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
-    """Add ls/diff/export/verify to the ``tiles`` group (created on ``app`` when not given)."""
+    """Add ls/diff/log/export/verify to the ``tiles`` group (created on ``app`` when not given)."""
     target = stage_app
     if target is None:
-        target = typer.Typer(no_args_is_help=True, help="Published map versions: ls, diff, export, verify.")
+        target = typer.Typer(no_args_is_help=True, help="Published map versions: ls, diff, log, export, verify.")
         app.add_typer(target, name="tiles")
     target.info.help = (target.info.help or "Published map versions.") + "\n\n" + EXAMPLES
     target.command("ls")(ls)
     target.command("diff")(diff)
+    target.command("log")(log)
     target.command("export")(export)
     target.command("verify")(verify)

@@ -11,6 +11,7 @@ import numpy as np
 import pyarrow as pa
 
 from mapformat import layout
+from mapformat.changelog import write_changelog
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
 from pipeline.names import check_name, inside
@@ -18,6 +19,7 @@ from pipeline.versioned import publish_version
 from stages.common.geodesy import EnuOrigin
 from stages.tiles import core
 from stages.tiles.decl import STAGE
+from stages.tiles.history import carry_history
 from stages.tiles.writer import DriveTrajectory, RasterTile, write_map_files
 
 log = logging.getLogger(__name__)
@@ -69,16 +71,21 @@ def compute(ctx: StageContext) -> dict[str, Any]:
               "stage": STAGE.name, "code_version": STAGE.code_version, "params": resolved, "inputs": inputs,
               "quality": measured}
 
-    def write(staging: Path) -> dict[str, Any]:
-        files = write_map_files(staging, corners, size_m, rasters, trajectories)
-        return {**fields, "n_tiles": len(files["tiles"]), **files}
+    map_dir = inside(Path(ctx.settings["root"]) / "maps", check_name(name, "map", "tiles: settings.map_name"))
+    origin = EnuOrigin.from_dict(fields["enu_origin"])
+
+    def write(staging: Path) -> dict[str, Any]:  # runs under the map's publish lock: LATEST cannot move
+        _, doc = carry_history(map_dir, corners, origin, size_m, params, staging,
+                                  lambda table: write_map_files(staging, table, size_m, rasters, trajectories))
+        return {**fields, "n_tiles": len(doc["files"]["tiles"]), **doc["files"],
+                "next_corner_id": doc["changelog"]["corners"]["next_corner_id"],
+                "changelog": write_changelog(staging, doc["changelog"])}
 
     def unchanged(latest: dict[str, Any]) -> bool:
         fps = [v["fingerprint"] for v in inputs.values()]
         return (all(fps) and latest.get("inputs") == inputs and latest.get("params") == resolved
                 and latest.get("code_version") == STAGE.code_version)
 
-    map_dir = inside(Path(ctx.settings["root"]) / "maps", check_name(name, "map", "tiles: settings.map_name"))
     pub = publish_version(map_dir, write, keep_last=params.keep_last, reuse=unchanged)
     table = pa.table({
         "map_name": pa.array([name], pa.string()), "version": pa.array([pub.version], pa.int32()),

@@ -20,3 +20,10 @@ class TilesParams(Params):
                                                  "PSD covariances, unique ids; raster rows on the tile grid")
     path_step_m: float = Field(5.0, gt=0, description="spacing used to densify the driven path when "
                                                       "finding the tiles it crosses")
+    id_max_dist_m: float = Field(1.0, gt=0, description="corner identity: a corner keeps the previous version's "
+                                                        "id only within this distance (mapformat/corner_ids.py)")
+    id_max_angle_deg: float = Field(15.0, gt=0, le=90, description="corner identity: both wall directions "
+                                                                  "within this angle of the previous corner's")
+    changelog_move_threshold_m: float = Field(0.2, ge=0, description="changelog: a kept corner further than "
+                                                                     "this from its previous position is listed "
+                                                                     "as moved")

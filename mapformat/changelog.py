@@ -1,0 +1,187 @@
+"""A version's changelog (``changelog.json`` in the version folder, checksummed with the other files) and
+the corner identity carried over from the previous version at publish.
+
+Written by the tiles stage while it holds the map's publish lock, so "the previous version" is the LATEST the
+new one will replace (``parent_version`` in both the manifest and the changelog). File format:
+docs/map-format.md, "Corner identity and changelog".
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pyarrow as pa
+
+from mapformat.corner_ids import IdGates, IdMatch, assign_ids, match_corners
+from stages.common.geodesy import EnuOrigin
+from stages.common.tiling import tile_key_of
+
+CHANGELOG_FILE = "changelog.json"
+CHANGELOG_FORMAT = "cornermap-changelog"
+CHANGELOG_FORMAT_VERSION = 1
+ORIGIN_TOL_DEG, ORIGIN_TOL_M = 1e-9, 1e-3  # 1e-9 deg is ~0.1 mm on the ground
+
+
+def same_frame(origin_a: EnuOrigin, size_a: float, origin_b: EnuOrigin, size_b: float) -> bool:
+    return (abs(origin_a.lat_deg - origin_b.lat_deg) <= ORIGIN_TOL_DEG
+            and abs(origin_a.lon_deg - origin_b.lon_deg) <= ORIGIN_TOL_DEG
+            and abs(origin_a.h_m - origin_b.h_m) <= ORIGIN_TOL_M and float(size_a) == float(size_b))
+
+
+def describe_origin(o: EnuOrigin) -> str:
+    return f"({o.lat_deg:.9f}, {o.lon_deg:.9f}, {o.h_m:.3f} m)"
+
+
+def _en(table: pa.Table) -> np.ndarray:
+    if table.num_rows == 0:
+        return np.zeros((0, 2))
+    return np.column_stack([table["east_m"].to_numpy(), table["north_m"].to_numpy()])
+
+
+def _theta(table: pa.Table) -> np.ndarray:
+    if table.num_rows == 0:
+        return np.zeros((0, 2))
+    return np.column_stack([table["theta1_rad"].to_numpy(), table["theta2_rad"].to_numpy()])
+
+
+def carry_ids(prev_corners: pa.Table | None, prev_next_id: int | None, corners: pa.Table,
+              gates: IdGates) -> tuple[pa.Table, IdMatch, int]:
+    """``corners`` with ``corner_id`` replaced by stable ids; the match to ``prev_corners`` (None: no previous
+    version in this frame) and the id counter after. Fresh ids go in (east, north) order. A map's first version
+    (no previous corners and no counter) keeps the corner stage's ids when they are unique and positive."""
+    en, theta = _en(corners), _theta(corners)
+    given = corners["corner_id"].to_numpy() if corners.num_rows else np.zeros(0, np.int64)
+    if prev_corners is None and prev_next_id is None and (len(given) == 0 or (
+            given.min() >= 1 and len(np.unique(given)) == len(given))):
+        empty = match_corners(np.zeros((0, 2)), np.zeros((0, 2)), en, theta, gates)
+        return corners, empty, int(given.max()) + 1 if len(given) else 1
+    order = np.lexsort((en[:, 1], en[:, 0])) if len(en) else np.zeros(0, np.int64)
+    if prev_corners is None or prev_corners.num_rows == 0:
+        match = match_corners(np.zeros((0, 2)), np.zeros((0, 2)), en, theta, gates)
+        prev_ids = np.zeros(0, np.int64)
+    else:
+        match = match_corners(_en(prev_corners), _theta(prev_corners), en, theta, gates)
+        prev_ids = prev_corners["corner_id"].to_numpy()
+    floor = int(prev_ids.max()) + 1 if len(prev_ids) else 1  # cornermap numbers from 1
+    next_id = max(int(prev_next_id or 0), floor)
+    ids, next_id = assign_ids(prev_ids, match, len(en), next_id, order)
+    col = corners.schema.get_field_index("corner_id")
+    out = corners.set_column(col, corners.schema.field(col), pa.array(ids, corners.schema.field(col).type))
+    return out, match, next_id
+
+
+def _corner_entries(table: pa.Table, idx: np.ndarray, size_m: float) -> list[dict[str, Any]]:
+    en = _en(table)[idx]
+    ids = table["corner_id"].to_numpy()[idx] if len(idx) else np.zeros(0, np.int64)
+    ti, tj = tile_key_of(en[:, 0], en[:, 1], size_m) if len(idx) else (np.zeros(0), np.zeros(0))
+    return [{"id": int(c), "east_m": round(float(e), 3), "north_m": round(float(n), 3), "tile": [int(i), int(j)]}
+            for c, (e, n), i, j in zip(ids.tolist(), en.tolist(), np.asarray(ti).tolist(), np.asarray(tj).tolist())]
+
+
+def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, Any] | None,
+                    prev_corners: pa.Table | None, corners: pa.Table, match: IdMatch, gates: IdGates,
+                    move_threshold_m: float, origin: EnuOrigin, tile_size_m: float, frame_unchanged: bool | None,
+                    source_drives: list[dict[str, Any]], marking_px_changed: dict[tuple[int, int], int],
+                    next_corner_id: int) -> dict[str, Any]:
+    """The changelog document of a new version (all lists sorted, numbers rounded: deterministic text)."""
+    prev_drives = {d["drive"]: d.get("fingerprint") for d in (parent_manifest or {}).get("source_drives", [])}
+    new_drives = {d["drive"]: d.get("fingerprint") for d in source_drives}
+    n_prev = 0 if prev_corners is None else prev_corners.num_rows
+    removed = np.setdiff1d(np.arange(n_prev), match.i_prev)
+    added = np.setdiff1d(np.arange(corners.num_rows), match.i_new)
+    moved_sel = match.dist_m > move_threshold_m
+    new_ids = corners["corner_id"].to_numpy() if corners.num_rows else np.zeros(0, np.int64)
+    moved = [{"id": int(new_ids[j]), "dist_m": round(float(d), 3), "angle_deg": round(float(a), 2)}
+             for j, d, a in zip(match.i_new[moved_sel], match.dist_m[moved_sel], match.angle_deg[moved_sel])]
+    dist = match.dist_m
+    frame = {"enu_origin": origin.as_dict(), "tile_size_m": float(tile_size_m), "unchanged": frame_unchanged}
+    if parent_manifest is not None and not frame_unchanged:
+        frame["parent_enu_origin"] = parent_manifest.get("enu_origin")
+        frame["parent_tile_size_m"] = parent_manifest.get("tile_size_m")
+    return {
+        "format": CHANGELOG_FORMAT, "format_version": CHANGELOG_FORMAT_VERSION,
+        "parent_version": parent_version, "frame": frame,
+        "drives": {"added": sorted(set(new_drives) - set(prev_drives)),
+                   "removed": sorted(set(prev_drives) - set(new_drives)),
+                   "changed": sorted(d for d in set(new_drives) & set(prev_drives) if new_drives[d] != prev_drives[d]),
+                   "all": sorted(new_drives)},
+        "corners": {"n_before": int(n_prev), "n_after": int(corners.num_rows), "kept": int(len(match.i_new)),
+                    "added": _corner_entries(corners, added, tile_size_m),
+                    "removed": _corner_entries(prev_corners, removed, tile_size_m) if prev_corners is not None else [],
+                    "moved": moved, "move_threshold_m": move_threshold_m,
+                    "kept_dist_m": {"median": round(float(np.median(dist)), 4) if len(dist) else None,
+                                    "p95": round(float(np.percentile(dist, 95)), 4) if len(dist) else None,
+                                    "max": round(float(dist.max()), 4) if len(dist) else None},
+                    "id_gates": asdict(gates), "next_corner_id": int(next_corner_id)},
+        "markings": {"tiles": [{"tile": [i, j], "px_changed": int(n)}
+                               for (i, j), n in sorted(marking_px_changed.items()) if n],
+                     "total_px_changed": int(sum(marking_px_changed.values()))},
+    }
+
+
+def marking_changes(new_tiles: list[dict[str, Any]], staging: Path, prev: Any | None) -> dict[tuple[int, int], int]:
+    """Per tile: marking pixels whose painted state differs from the previous version (0 when the mask file's
+    sha256 is the same). ``prev`` is the previous version's MapReader, or None."""
+    import cv2
+
+    from mapformat.diff import count_changed_pixels
+
+    prev_entries = {k: prev.tile_entry(*k) for k in prev.tile_keys()} if prev is not None else {}
+    new_entries = {(int(t["i"]), int(t["j"])): t for t in new_tiles}
+    out = {}
+    for key in sorted(set(prev_entries) | set(new_entries)):
+        en, ep = new_entries.get(key, {}), prev_entries.get(key, {})
+        mask_n = (en.get("marking") or {}).get("mask_file")
+        mask_p = (ep.get("marking") or {}).get("mask_file")
+        sha_n = en.get("files", {}).get(mask_n) if mask_n else None
+        sha_p = ep.get("files", {}).get(mask_p) if mask_p else None
+        if sha_n == sha_p:
+            continue
+        img_n = cv2.imread(str(staging / en["dir"] / mask_n), cv2.IMREAD_UNCHANGED) if mask_n else None
+        img_p = prev.tile_marking(*key) if mask_p else None
+        out[key] = count_changed_pixels(img_p, img_n)
+    return out
+
+
+def write_changelog(staging: Path, doc: dict[str, Any]) -> str:
+    (staging / CHANGELOG_FILE).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    return CHANGELOG_FILE
+
+
+def read_changelog(version_dir: Path, manifest: dict[str, Any],
+                   read: Callable[[Path, str, dict], bytes] | None = None) -> dict[str, Any] | None:
+    """The version's changelog, its bytes checked against the manifest (None for a version without one)."""
+    from mapformat.loader import read_verified
+    from pipeline.errors import MapFormatError
+
+    rel = manifest.get("changelog")
+    if not rel:
+        return None
+    data = (read or read_verified)(Path(version_dir), str(rel), manifest.get("files", {}))
+    try:
+        doc = json.loads(data)
+    except ValueError as exc:
+        raise MapFormatError(
+            f"{Path(version_dir) / rel}: not JSON ({exc}); hint: run `cornermap tiles verify`"
+        ) from exc
+    if not isinstance(doc, dict) or doc.get("format") != CHANGELOG_FORMAT:
+        raise MapFormatError(f"{Path(version_dir) / rel}: not a {CHANGELOG_FORMAT} document")
+    return doc
+
+
+def summary_line(version: str, manifest: dict[str, Any], doc: dict[str, Any] | None) -> str:
+    """One line of ``cornermap tiles log``."""
+    parent = doc.get("parent_version") if doc else None
+    head = f"{version}  {manifest.get('created_utc', '?')}  parent={f'v{parent:04d}' if parent is not None else '-'}"
+    if doc is None:
+        return f"{head}  (no changelog: published before changelogs existed)"
+    c, d, m, f = doc["corners"], doc["drives"], doc["markings"], doc["frame"]
+    drives = ("+" + ",+".join(d["added"]) if d["added"] else "") + \
+             (" " + " ".join("-" + x for x in d["removed"]) if d["removed"] else "")
+    frame = {True: "frame unchanged", False: "FRAME CHANGED", None: "first version"}[f.get("unchanged")]
+    return (f"{head}  drives {drives.strip() or 'unchanged'}  corners +{len(c['added'])} -{len(c['removed'])} "
+            f"~{len(c['moved'])} kept={c['kept']} (n={c['n_after']})  marking px changed {m['total_px_changed']} "
+            f"in {len(m['tiles'])} tile(s)  {frame}")
