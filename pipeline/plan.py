@@ -24,7 +24,9 @@ class StagePlan:
     committed: bool = False
     partitions: list[PartitionKey] | None = None  # None until known (dynamic partitioning)
     selected: bool = True
-    ran: bool = False  # set when this run computed the stage (false: skipped as committed, or not selected)
+    drive_scope: dict[str, str] = field(default_factory=dict)  # drive -> scope fingerprint (pipeline/reuse.py)
+    ran: bool = False
+    reused_partitions: int = 0  # partitions linked from committed work instead of computed (set by the run)  # set when this run computed the stage (false: skipped as committed, or not selected)
 
     @property
     def fp8(self) -> str:
@@ -75,6 +77,7 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
     root = Path(root).resolve()
     plan = Plan(workflow, root)
     dataset_fp: dict[str, str] = {}
+    dataset_scope: dict[str, dict[str, str]] = {}  # dataset -> drive -> scope fingerprint (drive-scoped work)
     base_settings = workflow.settings(root)
     drive_fp_cache: dict[Path, str] = {}
     for name, decl in workflow.stages.items():
@@ -108,11 +111,20 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
                                inputs={a: f for a, (_, f) in inputs.items()},
                                drives=drive_fps if decl.uses_drives or decl.partition == Partitioning.PER_DRIVE
                                else {}, settings=fp_settings)
+        scope = {}
+        if decl.partition in (Partitioning.PER_DRIVE, Partitioning.PER_SCAN_CHUNK) and not decl.plan:
+            from pipeline.reuse import drive_scope_fingerprints
+
+            scope = drive_scope_fingerprints(
+                frame_pinned=bool(base_settings.get("enu_origin")), stage=name, code_version=decl.code_version, params=params, settings=fp_settings,
+                drive_fps=drive_fps, roles={d.name: d.role for d in workflow.spec.drives},
+                input_scopes={a: (dataset_scope.get(ds) if f else {}) for a, (ds, f) in inputs.items()})
         for ds in decl.outputs.values():
             dataset_fp[ds] = fp
+            dataset_scope[ds] = scope if scope else None
         committed = all(read_manifest(dataset_dir(root, ds, fp)) is not None for ds in decl.outputs.values())
         sp = StagePlan(name, decl, fp, params, inputs, dict(decl.outputs), drives, settings, committed,
-                       selected=(only is None or name in only))
+                       selected=(only is None or name in only), drive_scope=scope)
         if decl.partition == Partitioning.SINGLE:
             sp.partitions = [PartitionKey()]
         elif decl.partition == Partitioning.PER_DRIVE and not decl.plan:
