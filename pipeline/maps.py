@@ -161,7 +161,11 @@ def latest_origin(mdir: Path) -> dict[str, float] | None:
     latest = read_latest(mdir)
     if latest is None:
         return None
-    return read_manifest(Path(mdir) / version_name(latest))[0].get("enu_origin")
+    origin = read_manifest(Path(mdir) / version_name(latest))[0].get("enu_origin")
+    if not isinstance(origin, dict):
+        return None
+    return {"lat_deg": float(origin["lat_deg"]), "lon_deg": float(origin["lon_deg"]),
+            "h_m": float(origin.get("h_m", 0.0))}  # the manifest also names the ellipsoid (always WGS84)
 
 
 def pinned_frame(root: Path, name: str, origin: dict[str, float] | None) -> tuple[dict[str, float] | None,

@@ -165,6 +165,7 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
                                   hold_latest=True)
         run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True)
         result.summary = run["summary"]
+        result.lines.append(reuse_line(run["summary"]))
         candidate = _candidate_version(run["plan"])
         previous = read_latest(mdir)
         if candidate != previous and previous is not None and params.gate:
@@ -190,6 +191,18 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
         result.lines.append(f"published map {name!r} {version_name(candidate)} (LATEST): {len(drives)} drive(s), "
                             f"added {', '.join(p.parent.name for p, _ in good)}")
         return result
+
+
+def reuse_line(summary: dict) -> str:
+    """One line: per stage, ran (partitions computed/reused, wall s) or skipped as committed."""
+    parts = []
+    for stage, s in summary.items():
+        if s.get("decision") == "ran":
+            n, r = s.get("partitions", 0), s.get("partitions_reused", 0)
+            parts.append(f"{stage} {n - r} computed/{r} reused {s.get('wall_s', 0):.0f} s")
+        else:
+            parts.append(f"{stage} skipped")
+    return "build: " + ", ".join(parts)
 
 
 def _latest_text(mdir: Path) -> str:
