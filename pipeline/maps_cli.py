@@ -123,10 +123,10 @@ def gc_cmd(root: Path = ROOT_REQ,
         typer.echo(f"{'remove' if apply else 'would remove'} {d.relative_to(root)}")
     for d in plan.young_uncommitted:
         typer.echo(f"keep (uncommitted, younger than {min_age_h} h) {d.relative_to(root)}")
-    typer.echo(f"{len(plan.remove)} dataset folder(s), {gib(plan.remove_bytes)} "
-               f"{'freed' if apply else 'to free'}; {len(plan.keep)} kept ({gib(plan.keep_bytes)})")
     if apply:
         apply_gc(root, plan)
+    typer.echo(f"{len(plan.remove)} dataset folder(s), {gib(plan.remove_bytes)} "
+               f"{'freed' if apply else 'to free'}; {len(plan.keep)} kept ({gib(plan.keep_bytes)})")
 
 
 def register(app: typer.Typer) -> None:

@@ -180,3 +180,47 @@ def test_gate_comparison():
     assert compare(_metrics(1.15), _metrics(1.0), 0.05, 0.2).ok  # within 20 %
     assert not compare(None, _metrics(0.1), 0.05, 0.2).ok  # no coverage on the candidate
     assert compare(_metrics(0.3), None, 0.05, 0.2).ok  # nothing to compare
+
+
+def _dataset(root: Path, ds: str, fp: str, inputs: dict, payload: bytes | None = b"x" * 1000,
+             committed: bool = True) -> Path:
+    d = root / "datasets" / ds / fp
+    (d / "data").mkdir(parents=True)
+    if payload is not None:
+        (d / "data" / "part.parquet").write_bytes(payload)
+    if committed:
+        (d / "_manifest.json").write_text(json.dumps(
+            {"dataset": ds, "fingerprint": fp, "files": [],
+             "inputs": {k: {"dataset": k, "fingerprint": v} for k, v in inputs.items()}}))
+    return d
+
+
+def test_gc_keeps_what_kept_versions_reference_and_counts_links_once(tmp_path):
+    from pipeline.gc import apply_gc, plan_gc
+
+    scans = _dataset(tmp_path, "scans_raw", "a" * 16, {})
+    corners = _dataset(tmp_path, "corner_map", "b" * 16, {"scans": "a" * 16})
+    report = _dataset(tmp_path, "eval_report", "e" * 16, {"map": "b" * 16})  # downstream of a kept dataset
+    old_scans = _dataset(tmp_path, "scans_raw", "c" * 16, {}, payload=None)
+    os.link(scans / "data/part.parquet", old_scans / "data/part.parquet")  # linked by drive-scoped reuse
+    orphan = _dataset(tmp_path, "corner_map", "d" * 16, {"scans": "c" * 16}, payload=b"y" * 500)
+    running = _dataset(tmp_path, "corner_map", "f" * 16, {}, committed=False)
+    killed = _dataset(tmp_path, "corner_map", "0" * 16, {}, committed=False)
+    os.utime(killed, (0, 0))
+
+    def write(staging: Path) -> dict:
+        (staging / "t").write_bytes(b"t")
+        return {"inputs": {"corner_map": {"dataset": "corner_map", "fingerprint": "b" * 64}}}
+
+    publish_version(tmp_path / "maps/city", write, durable=False)
+    plan = plan_gc(tmp_path, min_age_h=24)
+    assert sorted(plan.keep) == sorted([scans, corners, report])
+    assert sorted(plan.remove) == sorted([old_scans, orphan, killed]) and plan.young_uncommitted == [running]
+    on_disk = sum(p.stat().st_size for d in plan.remove for p in d.rglob("*") if p.is_file())
+    assert plan.remove_bytes == on_disk - 1000  # the linked scans stay alive in the kept folder
+    res = cornermap("gc", "--root", str(tmp_path))
+    assert res.returncode == 0 and "3 dataset folder(s), 0.0 MiB to free; 3 kept" in res.stdout
+    assert old_scans.exists()  # a dry run deletes nothing
+    apply_gc(tmp_path, plan)
+    assert not old_scans.exists() and not orphan.exists() and not killed.exists()
+    assert scans.exists() and (scans / "data/part.parquet").read_bytes() == b"x" * 1000 and running.exists()
