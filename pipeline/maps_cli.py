@@ -11,8 +11,8 @@ from typing import Optional
 import typer
 
 maps_app = typer.Typer(no_args_is_help=True, help="A map's identity: pinned frame, tile size, drive set.\n\n"
-                       "Examples:\n\n  cornermap maps create --root runs/maps --map city --origin 37.4979,127.0276,57"
-                       "\n\n  cornermap maps show --root runs/maps --map city")
+                       "Examples:\n\n  cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57"
+                       "\n\n  cornermap maps show --root runs/maps --map kept")
 
 ROOT_REQ = typer.Option(..., "--root", help="Output root holding maps/NAME/ and datasets/.")
 MAP_REQ = typer.Option(..., "--map", help="Map name (ROOT/maps/NAME).")
@@ -29,7 +29,7 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                                                               "--check-drive (default: its own pose graph).")) -> None:
     """Write a map's identity (ROOT/maps/NAME/map.json): every build and rebuild of NAME uses this frame.
 
-    Example: [b]cornermap maps create --root runs/maps --map city --origin 37.4979,127.0276,57[/b]
+    Example: [b]cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57[/b]
     """
     from pipeline.build import parse_origin
     from pipeline.errors import ConfigError
@@ -56,7 +56,7 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
 def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ) -> None:
     """Print a map's frame and drives: when each was recorded (first/last pose, UTC), when added, its versions.
 
-    Example: [b]cornermap maps show --root runs/maps --map city[/b]
+    Example: [b]cornermap maps show --root runs/maps --map kept[/b]
     """
     from pipeline.maps import map_dir, require_identity
     from pipeline.maps_show import drive_rows
@@ -88,7 +88,7 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
 
     Exit codes: 0 published or nothing to do, 3 gate refused (LATEST unchanged), 1 error, 75 locked.
 
-    Example: [b]cornermap rebuild --root runs/maps --map city --inbox runs/inbox[/b]
+    Example: [b]cornermap rebuild --root runs/maps --map kept --inbox runs/sim[/b] (drive folders in runs/sim)
     """
     import math
 
@@ -113,7 +113,7 @@ def gc_cmd(root: Path = ROOT_REQ,
                                            "this (runs in progress) are kept.")) -> None:
     """Remove intermediates no kept map version and no current drive set references (dry run by default).
 
-    Example: [b]cornermap gc --root runs/maps[/b] then [b]cornermap gc --root runs/maps --apply[/b]
+    Example: [b]cornermap gc --root runs/maps[/b] (a dry run; add --apply to delete)
     """
     from pipeline.gc import apply_gc, plan_gc
 

@@ -155,7 +155,7 @@ def rollback(to: str = typer.Option(..., "--to", help="The version LATEST should
              root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
     """Point LATEST back at an older, verified version (a new LATEST write; no version is deleted).
 
-    Example: [b]cornermap tiles rollback --to v0002 --map city --root runs/maps[/b]
+    Example: [b]cornermap tiles rollback --to v0001 --map city --root runs/maps[/b]
     """
     from pipeline.maps import rollback as rollback_latest
     from pipeline.versioned import version_name
