@@ -135,8 +135,9 @@ def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
             plan.young_uncommitted.append(d)
         else:
             plan.remove.append(d)
-    kept_inodes = {(p.stat().st_dev, p.stat().st_ino) for d in plan.keep + plan.young_uncommitted
-                   for p in d.rglob("*") if p.is_file()}
+    kept_sizes = {(st.st_dev, st.st_ino): st.st_size for d in plan.keep + plan.young_uncommitted
+                  for p in d.rglob("*") if p.is_file() for st in (p.stat(),)}
+    kept_inodes = set(kept_sizes)
     seen: set[tuple[int, int]] = set()
     for d in plan.remove:
         for p in d.rglob("*"):
@@ -146,7 +147,7 @@ def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
                 if key not in kept_inodes and key not in seen:
                     seen.add(key)
                     plan.remove_bytes += st.st_size
-    plan.keep_bytes = sum(p.stat().st_size for p in {q for d in plan.keep for q in d.rglob("*") if q.is_file()})
+    plan.keep_bytes = sum(kept_sizes.values())  # per inode: hard-linked files once
     return plan
 
 
