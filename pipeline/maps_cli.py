@@ -54,7 +54,7 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
 
 @maps_app.command("show")
 def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ) -> None:
-    """Print a map's frame and drives: when each was recorded (first/last pose, UTC), when added, its versions.
+    """Print a map's frame and drives: when each was recorded (first/last pose), when added, its versions.
 
     Example: [b]cornermap maps show --root runs/maps --map kept[/b]
     """
@@ -67,7 +67,7 @@ def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ) -> None:
     typer.echo(f"map {ident.name}: origin {o.lat_deg},{o.lon_deg},{o.h_m} (WGS84), tiles {ident.tile_size_m} m, "
                f"created {ident.created_utc}" + (f", check drive {ident.check_drive.path}" if ident.check_drive else ""))
     rows = drive_rows(mdir, ident)
-    typer.echo(f"{'drive':16s} {'first (UTC)':20s} {'last (UTC)':20s} {'added':20s} versions")
+    typer.echo(f"{'drive':16s} {'first pose':20s} {'last pose':20s} {'added (UTC)':20s} versions")
     for r in rows:
         typer.echo(f"{r['name']:16s} {r['first']:20s} {r['last']:20s} {r['added']:20s} {r['versions']}")
     if not rows:

@@ -19,14 +19,33 @@ def _first_last_s(path: Path) -> tuple[float, float] | None:
     return None if first is None else (first, last)
 
 
-def _utc(t_s: float | None) -> str:
-    if t_s is None:
+GPS_EPOCH = datetime(1980, 1, 6, tzinfo=timezone.utc)
+
+
+def _time_base(drive_yaml: str) -> str:
+    """The drive's time base (``gnss.time.base`` of its drive file: gps by default, docs/drive-file.md)."""
+    from pipeline.safe_yaml import load_yaml_file
+
+    try:
+        doc = load_yaml_file(Path(drive_yaml)) or {}
+    except Exception:  # noqa: BLE001 - a drive file gone or unreadable: the dates are shown as unknown
+        return "?"
+    gnss = doc.get("gnss") if isinstance(doc, dict) else None
+    return str(((gnss or {}).get("time") or {}).get("base", "gps")) if gnss else "?"
+
+
+def _when(t_s: float | None, base: str) -> str:
+    """A stamp as a calendar time: GPS time (no leap seconds) labelled GPS, unix time labelled UTC."""
+    if t_s is None or base not in ("gps", "unix"):
         return "-"
-    return datetime.fromtimestamp(t_s, timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
+    from datetime import timedelta
+
+    t = GPS_EPOCH + timedelta(seconds=t_s) if base == "gps" else datetime.fromtimestamp(t_s, timezone.utc)
+    return t.strftime("%Y-%m-%d %H:%M") + (" GPS" if base == "gps" else " UTC")
 
 
 def drive_rows(mdir: Path, ident) -> list[dict]:
-    """name, first, last (recording span of the drive's poses, UTC), added, versions (the ones that hold it)."""
+    """name, first, last (recording span of the drive's poses in its time base), added, versions holding it."""
     from pipeline.errors import CornermapError
     from pipeline.version_read import list_versions, read_latest, read_manifest, version_name
 
@@ -49,6 +68,7 @@ def drive_rows(mdir: Path, ident) -> list[dict]:
     rows = []
     for d in ident.drives:
         first, last = span.get(d.name, (None, None))
-        rows.append({"name": d.name, "first": _utc(first), "last": _utc(last), "added": d.added_utc[:19],
+        base = _time_base(d.path)
+        rows.append({"name": d.name, "first": _when(first, base), "last": _when(last, base), "added": d.added_utc[:19],
                      "versions": " ".join(held.get(d.name, [])) or "-"})
     return rows
