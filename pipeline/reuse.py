@@ -5,7 +5,8 @@ A stage's fingerprint covers all of its drives, so adding a drive to a map gives
 a partition of drive D depends on D alone once the map's frame is pinned (``enu_origin`` set: the drive lists
 only choose an origin otherwise). Such a partition gets a *drive-scope fingerprint*::
 
-    scope(stage, D) = hash(stage, code_version, params, settings without the drive lists,
+    scope(stage, D) = hash(stage, code_version, params, settings without the drive lists (D's entry of
+                           per-drive settings such as references),
                            D's name, role and content fingerprint, scope(producer of each input, D))
 
 recorded in its part marker. When a new dataset directory needs partition ``label`` of drive D, a sibling
@@ -29,6 +30,7 @@ from pipeline.names import inside
 log = logging.getLogger(__name__)
 
 DRIVE_LIST_SETTINGS = ("map_drives", "eval_drives")
+PER_DRIVE_SETTINGS = ("references",)  # {drive: value}: a partition of drive D sees D's entry only
 
 
 def drive_scope_fingerprints(*, frame_pinned: bool, stage: str, code_version: str, params: dict,
@@ -40,9 +42,10 @@ def drive_scope_fingerprints(*, frame_pinned: bool, stage: str, code_version: st
     scope fingerprints ({} for an absent optional input, None for an input that is not drive-scoped)."""
     if not frame_pinned or any(v is None for v in input_scopes.values()):
         return {}
-    fixed = {k: v for k, v in settings.items() if k not in DRIVE_LIST_SETTINGS}
+    fixed = {k: v for k, v in settings.items() if k not in DRIVE_LIST_SETTINGS + PER_DRIVE_SETTINGS}
     out = {}
     for drive, dfp in drive_fps.items():
+        own = {k: (settings[k] or {}).get(drive) for k in PER_DRIVE_SETTINGS if k in settings}
         ins = {}
         for arg, scopes in input_scopes.items():
             if scopes and drive not in scopes:
@@ -50,7 +53,7 @@ def drive_scope_fingerprints(*, frame_pinned: bool, stage: str, code_version: st
             ins[arg] = scopes.get(drive, "absent") if scopes else "absent"
         else:
             out[drive] = stable_hash({"stage": stage, "code_version": code_version, "params": params,
-                                      "settings": fixed, "drive": drive, "role": roles.get(drive),
+                                      "settings": {**fixed, **own}, "drive": drive, "role": roles.get(drive),
                                       "drive_fingerprint": dfp, "inputs": ins})
     return out
 
