@@ -69,9 +69,9 @@ def main(argv: list[str] | None = None) -> dict:
         names = [f"drive_{k}" for k in range(a.drives)]
         old, new = names[:-1], names[-1]
         create_map(work / "A", "city", ORIGIN)
-        sum_a, wall_a, _ = _rebuild(work / "A", _inbox(sim, old, work / "inbox_A"), gate=False)
+        sum_a, _, _ = _rebuild(work / "A", _inbox(sim, old, work / "inbox_A"), gate=False)
         create_map(work / "B", "city", ORIGIN)
-        sum_b, wall_b, _ = _rebuild(work / "B", _inbox(sim, [new], work / "inbox_B"), gate=False)
+        sum_b, _, _ = _rebuild(work / "B", _inbox(sim, [new], work / "inbox_B"), gate=False)
         shutil.copytree(sim / new, work / "inbox_A" / new)
         sum_c, wall_c, lines_c = _rebuild(work / "A", work / "inbox_A", gate=a.gate)
         wa, wb, wc = _stage_walls(sum_a), _stage_walls(sum_b), _stage_walls(sum_c)

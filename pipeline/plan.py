@@ -25,8 +25,8 @@ class StagePlan:
     partitions: list[PartitionKey] | None = None  # None until known (dynamic partitioning)
     selected: bool = True
     drive_scope: dict[str, str] = field(default_factory=dict)  # drive -> scope fingerprint (pipeline/reuse.py)
-    ran: bool = False
-    reused_partitions: int = 0  # partitions linked from committed work instead of computed (set by the run)  # set when this run computed the stage (false: skipped as committed, or not selected)
+    ran: bool = False  # set when this run computed the stage (false: skipped as committed, or not selected)
+    reused_partitions: int = 0  # partitions linked from committed work instead of computed (set by the run)
 
     @property
     def fp8(self) -> str:
@@ -111,12 +111,13 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
                                inputs={a: f for a, (_, f) in inputs.items()},
                                drives=drive_fps if decl.uses_drives or decl.partition == Partitioning.PER_DRIVE
                                else {}, settings=fp_settings)
-        scope = {}
+        scope: dict[str, str] = {}  # with a pinned frame, per-drive partitions are reused across drive sets
         if decl.partition in (Partitioning.PER_DRIVE, Partitioning.PER_SCAN_CHUNK) and not decl.plan:
             from pipeline.reuse import drive_scope_fingerprints
 
             scope = drive_scope_fingerprints(
-                frame_pinned=bool(base_settings.get("enu_origin")), stage=name, code_version=decl.code_version, params=params, settings=fp_settings,
+                frame_pinned=bool(base_settings.get("enu_origin")), stage=name, code_version=decl.code_version,
+                params=params, settings=fp_settings,
                 drive_fps=drive_fps, roles={d.name: d.role for d in workflow.spec.drives},
                 input_scopes={a: (dataset_scope.get(ds) if f else {}) for a, (ds, f) in inputs.items()})
         for ds in decl.outputs.values():
