@@ -224,3 +224,24 @@ def test_gc_keeps_what_kept_versions_reference_and_counts_links_once(tmp_path):
     apply_gc(tmp_path, plan)
     assert not old_scans.exists() and not orphan.exists() and not killed.exists()
     assert scans.exists() and (scans / "data/part.parquet").read_bytes() == b"x" * 1000 and running.exists()
+
+
+def test_rebuild_quarantines_a_bad_drive_with_its_reason_and_goes_on(tmp_path):
+    create_map(tmp_path, "city", ORIGIN)
+    inbox = tmp_path / "inbox"
+    for name, text in (("drive_bad", "name: drive_bad\nsensor: hdl32e\nscans: {folder: nowhere, format: pcd}\n"),
+                       ("bad name!", "name: x\n")):
+        (inbox / name).mkdir(parents=True)
+        (inbox / name / "drive.yaml").write_text(text)
+    res = cornermap("rebuild", "--root", str(tmp_path), "--map", "city", "--inbox", str(inbox))
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert len(lines) == 3 and lines[-1].startswith("nothing to do") and "quarantined drive_bad" in res.stdout
+    q = inbox / "quarantine"
+    assert sorted(p.name for p in q.iterdir()) == ["bad name!", "bad name!.reason.txt", "drive_bad",
+                                                   "drive_bad.reason.txt"]
+    assert "drive check failed" in (q / "drive_bad.reason.txt").read_text()
+    assert "not allowed" in (q / "bad name!.reason.txt").read_text()
+    assert read_identity(tmp_path / "maps/city").drives == [] and not (tmp_path / "maps/city/LATEST").exists()
+    again = cornermap("rebuild", "--root", str(tmp_path), "--map", "city", "--inbox", str(inbox))
+    assert again.returncode == 0 and again.stdout.startswith("nothing to do")  # quarantine/ is not searched
