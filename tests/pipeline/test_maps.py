@@ -245,3 +245,46 @@ def test_rebuild_quarantines_a_bad_drive_with_its_reason_and_goes_on(tmp_path):
     assert read_identity(tmp_path / "maps/city").drives == [] and not (tmp_path / "maps/city/LATEST").exists()
     again = cornermap("rebuild", "--root", str(tmp_path), "--map", "city", "--inbox", str(inbox))
     assert again.returncode == 0 and again.stdout.startswith("nothing to do")  # quarantine/ is not searched
+
+
+def _fake_build(monkeypatch, tmp_path, cand_ekf_rms: float, prev_ekf_rms: float = 0.10):
+    """rebuild's orchestration with the build and the evaluations replaced: the build publishes a held candidate
+    (real publisher), the evaluations return known figures; the gate's comparison, LATEST and identity are real."""
+    import pipeline.cli
+    import pipeline.gate
+    import pipeline.rebuild
+
+    drive = tmp_path / "inbox" / "drive_new" / "drive.yaml"
+    drive.parent.mkdir(parents=True, exist_ok=True)
+    drive.write_text("name: drive_new\n")
+    published = {}
+
+    def execute_workflow(path, **kw):
+        published["v"] = _publish(tmp_path / "maps/city", b"candidate", move_latest=False).version
+        return {"summary": {}, "plan": None}
+
+    def evaluate(mdir, version, drive, reference, out):
+        return _metrics(cand_ekf_rms if version == published["v"] else prev_ekf_rms)
+
+    monkeypatch.setattr(pipeline.rebuild, "select_new_drives", lambda ident, inbox: ([(drive, "f" * 64)], []))
+    monkeypatch.setattr(pipeline.cli, "execute_workflow", execute_workflow)
+    monkeypatch.setattr(pipeline.rebuild, "_candidate_version", lambda plan: published["v"])
+    monkeypatch.setattr(pipeline.gate, "_evaluate", evaluate)
+
+
+@pytest.mark.parametrize("cand_rms, status, latest", [(0.30, "refused", 1), (0.11, "published", 2)])
+def test_rebuild_gate_moves_latest_only_when_not_worse(monkeypatch, tmp_path, cand_rms, status, latest):
+    from pipeline.rebuild import RebuildParams, rebuild
+
+    create_map(tmp_path, "city", ORIGIN)
+    _publish(tmp_path / "maps/city", b"v1")
+    _fake_build(monkeypatch, tmp_path, cand_rms)
+    res = rebuild(tmp_path, "city", tmp_path / "inbox", RebuildParams(min_free_gib=0.0))
+    mdir = tmp_path / "maps/city"
+    assert res.status == status and res.exit_code == (3 if status == "refused" else 0) and res.version == 2
+    assert read_latest(mdir) == latest and (mdir / "v0002/manifest.json").is_file()
+    gate = json.loads((mdir / "gate/v0002.json").read_text())
+    assert gate["ok"] == (status == "published") and gate["previous"] == 1
+    names = [d.name for d in read_identity(mdir).drives]
+    assert names == ([] if status == "refused" else ["drive_new"])
+    assert any("ekf.rms_2d_m" in line for line in res.lines)
