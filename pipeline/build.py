@@ -30,9 +30,11 @@ def parse_origin(text: str) -> dict[str, float]:
 
 
 def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: str, root: Path,
-                         origin: dict[str, float] | None = None) -> Path:
+                         origin: dict[str, float] | None = None, tile_size_m: float | None = None,
+                         hold_latest: bool = False) -> Path:
     """The map workflow (a file or a packaged name) with these drives, map name, root and origin, written under
-    ``ROOT/workflows/`` (absolute paths: the build's record of what it ran)."""
+    ``ROOT/workflows/`` (absolute paths: the build's record of what it ran). ``hold_latest``: publish the
+    version without moving LATEST (``cornermap rebuild`` moves it after its regression gate)."""
     from pipeline.resources import resolve_workflow
     from pipeline.safe_yaml import load_yaml_file
 
@@ -50,6 +52,10 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
     doc["root"] = str(Path(root).resolve())
     if origin is not None:
         doc["enu_origin"] = dict(origin)
+    if tile_size_m is not None:
+        doc["tile_size_m"] = float(tile_size_m)
+    if hold_latest:
+        doc["hold_latest"] = True
     doc["drives"] = [{"name": Path(d).resolve().parent.name, "path": str(Path(d).resolve()), "role": "map"}
                      for d in drives]
     text = yaml.safe_dump(doc, sort_keys=False)

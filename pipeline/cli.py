@@ -99,15 +99,20 @@ def build_cmd(
 ) -> None:
     """Build and publish the next version of map NAME from drives (the standard map workflow).
 
+    A map with an identity (cornermap maps create) or a published version keeps its frame: its origin is used,
+    and an --origin that differs is refused (exit 1).
+
     Example:
     [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
     """
     from pipeline.build import parse_origin, write_build_workflow
+    from pipeline.maps import pinned_frame
     from pipeline.names import check_name
 
     check_name(map_name, "map", "--map")
-    path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root,
-                                origin=parse_origin(origin) if origin else None)
+    pinned, tile_size_m = pinned_frame(root, map_name, parse_origin(origin) if origin else None)
+    path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root, origin=pinned,
+                                tile_size_m=tile_size_m)
     result = execute_workflow(path, root=root, scheduler=scheduler, only=None, dry_run=False, quiet=quiet)
     from pipeline.progress import print_outcomes
 
@@ -156,6 +161,9 @@ def _register_stages() -> None:
     if _REGISTERED:  # main() may run more than once in one process (tests)
         return
     _REGISTERED.append(True)
+    from pipeline.maps_cli import register as register_maps
+
+    register_maps(app)
     from pipeline.registry import load_stages
     from pipeline.stage_cli import stage_app
 

@@ -80,3 +80,10 @@ class PathEscapeError(CornermapError, ValueError):
 
 class LimitError(CornermapError, ValueError):
     """An input or option asks for more work or memory than the stated limit allows."""
+
+
+class RunLockedError(CornermapError, BlockingIOError):
+    """Another run holds a whole-run lock (e.g. a map rebuild); this one stopped without writing. Exit 75
+    (EX_TEMPFAIL: try again later)."""
+
+    exit_code = 75

@@ -47,6 +47,7 @@ def _task_spec(plan: Plan, sp: StagePlan) -> dict[str, Any]:
         "drives": {k: str(v) for k, v in sp.drives.items()},
         "settings": sp.settings,
         "extra_stages": os.environ.get("CORNERMAP_EXTRA_STAGES", ""),
+        "drive_scope": dict(sp.drive_scope),
     }
 
 
@@ -110,6 +111,11 @@ def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
         return {"label": label, "partition": partition, "outputs": {k: json.loads(m.read_text())["output"]
                                                                    for k, m in markers.items()},
                 "extra": first.get("extra", {}), "reused": True}
+    scope = spec.get("drive_scope", {}).get(pk.drive) if pk.drive is not None else None
+    if scope and markers:
+        reused = _reuse_from_sibling(spec, label, partition, scope, markers)
+        if reused is not None:
+            return reused
     root = Path(spec["root"])
     token = uuid.uuid4().hex[:8]
     scratch = root / "tmp" / f"{spec['stage']}-{label}-{token}"
@@ -141,12 +147,37 @@ def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
                 from exc
         for key, marker in markers.items():
             atomic_write_json(marker, {"label": label, "partition": partition, "output": outputs[key],
-                                       "extra": extra})
+                                       "extra": extra, "scope": scope})
         return {"label": label, "partition": partition, "outputs": outputs, "extra": extra, "reused": False}
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
         for path in staging.values():
             shutil.rmtree(path, ignore_errors=True)
+
+
+def _reuse_from_sibling(spec: dict[str, Any], label: str, partition: dict[str, Any], scope: str,
+                        markers: dict[str, Path]) -> dict[str, Any] | None:
+    """The partition linked from another build's committed copy with the same drive-scope fingerprint
+    (pipeline/reuse.py), or None when no complete copy exists."""
+    from pipeline.reuse import find_committed, link_partition
+
+    root = Path(spec["root"])
+    found = {}
+    for key, out in spec["outputs"].items():
+        own = dataset_dir(root, out["dataset"], spec["fingerprint"])
+        hit = find_committed(root / "datasets", out["dataset"], own, label, scope)
+        if hit is None:
+            return None
+        found[key] = (own, *hit)
+    for key, (own, src, doc) in found.items():
+        link_partition(src, own, label, doc["output"])
+    extra = next(iter(found.values()))[2].get("extra", {})
+    for key, (own, src, doc) in found.items():
+        atomic_write_json(markers[key], {"label": label, "partition": partition, "output": doc["output"],
+                                         "extra": doc.get("extra", {}), "scope": scope, "linked_from": src.name})
+    log.info("%s %s: reused the drive's committed work from %s", spec["stage"], label, src.name)
+    return {"label": label, "partition": partition, "outputs": {k: d["output"] for k, (_, _, d) in found.items()},
+            "extra": extra, "reused": True}
 
 
 def commit_stage(spec: dict[str, Any], parts: list[dict[str, Any]]) -> dict[str, Any]:

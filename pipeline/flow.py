@@ -212,6 +212,7 @@ class Flow:
         parts = [st.done[lbl] for lbl in sorted(st.done)]
         st.outputs = commit_stage(st.spec, parts)
         st.committed = st.sp.committed = st.sp.ran = True
+        st.sp.reused_partitions = sum(bool(p.get("reused")) for p in parts)
         if st.sp.partitions is None:
             st.sp.partitions = sorted(st.keys.values())
         set_step_progress(st.name, None)
@@ -223,7 +224,7 @@ class Flow:
             "cpu_s": round(sum(p.get("cpu_s", 0.0) for p in parts), 3),
             "started_s": round(min(starts) - self.t0, 3) if starts else None,
             "ended_s": round(max(ends) - self.t0, 3) if ends else None,
-            "partitions": len(parts)}
+            "partitions": len(parts), "partitions_reused": st.sp.reused_partitions}
 
     # -- the loop ------------------------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:

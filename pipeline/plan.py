@@ -27,7 +27,9 @@ class StagePlan:
     # (dataset, fingerprint) of datasets this stage reads through templated paths (``${raw_drives}/...`` drives
     # and references) rather than declared inputs: it starts after their stages commit.
     path_inputs: set[tuple[str, str]] = field(default_factory=set)
+    drive_scope: dict[str, str] = field(default_factory=dict)  # drive -> scope fingerprint (pipeline/reuse.py)
     ran: bool = False  # set when this run computed the stage (false: skipped as committed, or not selected)
+    reused_partitions: int = 0  # partitions linked from committed work instead of computed (set by the run)
 
     @property
     def fp8(self) -> str:
@@ -78,6 +80,7 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
     root = Path(root).resolve()
     plan = Plan(workflow, root)
     dataset_fp: dict[str, str] = {}
+    dataset_scope: dict[str, dict[str, str]] = {}  # dataset -> drive -> scope fingerprint (drive-scoped work)
     base_settings = workflow.settings(root)
     drive_fp_cache: dict[Path, str] = {}
     for name, decl in workflow.stages.items():
@@ -114,11 +117,21 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
                                inputs={a: f for a, (_, f) in inputs.items()},
                                drives=drive_fps if decl.uses_drives or decl.partition == Partitioning.PER_DRIVE
                                else {}, settings=fp_settings)
+        scope: dict[str, str] = {}  # with a pinned frame, per-drive partitions are reused across drive sets
+        if decl.partition in (Partitioning.PER_DRIVE, Partitioning.PER_SCAN_CHUNK) and not decl.plan:
+            from pipeline.reuse import drive_scope_fingerprints
+
+            scope = drive_scope_fingerprints(
+                frame_pinned=bool(base_settings.get("enu_origin")), stage=name, code_version=decl.code_version,
+                params=params, settings=fp_settings,
+                drive_fps=drive_fps, roles={d.name: d.role for d in workflow.spec.drives},
+                input_scopes={a: (dataset_scope.get(ds) if f else {}) for a, (ds, f) in inputs.items()})
         for ds in decl.outputs.values():
             dataset_fp[ds] = fp
+            dataset_scope[ds] = scope if scope else None
         committed = all(read_manifest(dataset_dir(root, ds, fp)) is not None for ds in decl.outputs.values())
         sp = StagePlan(name, decl, fp, params, inputs, dict(decl.outputs), drives, settings, committed,
-                       selected=(only is None or name in only),
+                       selected=(only is None or name in only), drive_scope=scope,
                        path_inputs={tuple(b.split(":", 1)) for b in bases if b})
         if decl.partition == Partitioning.SINGLE:
             sp.partitions = [PartitionKey()]

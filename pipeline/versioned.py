@@ -159,12 +159,15 @@ def apply_retention(collection_dir: Path, keep_last: int) -> list[int]:
 
 def publish_version(collection_dir: Path, write: Callable[[Path], Mapping[str, Any]], *,
                     keep_last: int | None = None, durable: bool = True,
-                    reuse: Callable[[dict[str, Any]], bool] | None = None) -> PublishedVersion:
+                    reuse: Callable[[dict[str, Any]], bool] | None = None,
+                    move_latest: bool = True) -> PublishedVersion:
     """Publish ``write``'s files as the next version and point ``LATEST`` at it.
 
     ``write(staging_dir)`` writes files under staging_dir and returns JSON-able manifest fields; the
     publisher adds ``version``, ``parent_version``, ``created_utc`` and ``files``. ``reuse(latest_manifest)``
-    returning True skips publishing and returns the latest version (idempotent rebuilds).
+    returning True skips publishing and returns the latest version (idempotent rebuilds). ``move_latest=False``
+    writes the complete version but leaves ``LATEST`` where it was (a candidate: a later check moves LATEST
+    with ``write_latest``, or leaves it unpublished).
     """
     collection_dir = Path(collection_dir)
     if keep_last is not None and keep_last < 1:
@@ -211,7 +214,8 @@ def publish_version(collection_dir: Path, write: Callable[[Path], Mapping[str, A
             raise
         if durable:
             _fsync_path(collection_dir, directory=True)
-        write_latest(collection_dir, number, durable, hashlib.sha256(raw).hexdigest())
+        if move_latest:
+            write_latest(collection_dir, number, durable, hashlib.sha256(raw).hexdigest())
         if keep_last is not None:
             apply_retention(collection_dir, keep_last)
         log.info("published %s (%d files)", final, len(files))

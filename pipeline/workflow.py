@@ -49,6 +49,7 @@ class WorkflowSpec(BaseModel):
     scheduler: str = "local"
     enu_origin: EnuOriginSpec | None = None
     tile_size_m: float = 100.0
+    hold_latest: bool = False  # publish the new map version without moving LATEST (a later gate moves it)
     drives: list[DriveEntry] = []
     stages: list[str]
     params: dict[str, dict[str, Any]] = {}
@@ -93,6 +94,7 @@ class Workflow:
             "eval_drives": [d.name for d in s.drives if d.role == "eval"],
             "root": str(root),
             "references": {d.name: d.reference for d in s.drives},
+            "hold_latest": s.hold_latest,
         }
 
 

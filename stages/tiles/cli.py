@@ -200,3 +200,17 @@ def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
     target.command("log")(log)
     target.command("export")(export)
     target.command("verify")(verify)
+    target.command("rollback")(rollback)
+
+
+def rollback(to: str = typer.Option(..., "--to", help="The version LATEST should name (vNNNN or N)."),
+             root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
+    """Point LATEST back at an older, verified version (a new LATEST write; no version is deleted).
+
+    Example: [b]cornermap tiles rollback --to v0001 --map city --root runs/maps[/b]
+    """
+    from pipeline.maps import rollback as rollback_latest
+    from pipeline.versioned import version_name
+
+    before, now = rollback_latest(map_dir_of(root, map_name), to)
+    typer.echo(f"LATEST: {version_name(before) if before is not None else 'none'} -> {version_name(now)}")

@@ -86,7 +86,8 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         return (all(fps) and latest.get("inputs") == inputs and latest.get("params") == resolved
                 and latest.get("code_version") == STAGE.code_version)
 
-    pub = publish_version(map_dir, write, keep_last=params.keep_last, reuse=unchanged)
+    pub = publish_version(map_dir, write, keep_last=params.keep_last, reuse=unchanged,
+                          move_latest=not ctx.settings.get("hold_latest", False))
     table = pa.table({
         "map_name": pa.array([name], pa.string()), "version": pa.array([pub.version], pa.int32()),
         "path": pa.array([f"maps/{name}/{pub.name}"], pa.string()),  # relative to the root: a moved root still works

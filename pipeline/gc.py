@@ -1,0 +1,167 @@
+"""``cornermap gc``: remove intermediates that no kept map version and no current drive set references.
+
+Kept fingerprints (each keeps every ``datasets/*/<fp16>`` directory of that fingerprint, i.e. all outputs of
+the stage run):
+  1. roots: the tiles inputs recorded in the manifest of every version directory under ``ROOT/maps/*/``
+     (kept versions, LATEST or not), the ``map_tiles`` rows naming such a version, and every stage of the
+     newest build workflow (``ROOT/workflows/build-NAME-*.yaml``) of each map whose identity lists the same
+     drives (the current drive set: the next rebuild reuses its per-drive work);
+  2. upstream: every input fingerprint a kept dataset's manifest records, transitively;
+  3. downstream: a committed dataset all of whose inputs are kept (e.g. evaluations of a kept map).
+A directory without ``_manifest.json`` (a run in progress or a killed one) is removed only when older than
+``min_age_h``. Every map's rebuild lock is held while deleting (exit 75 if a rebuild runs). Files are
+hard-linked between dataset directories by drive-scoped reuse (pipeline/reuse.py), so the bytes freed are
+counted per inode: a removed directory whose files live on in a kept one frees nothing.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline.store import FP_LEN
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class GcPlan:
+    keep: list[Path] = field(default_factory=list)
+    remove: list[Path] = field(default_factory=list)
+    remove_bytes: int = 0  # bytes freed (inodes with no link left in a kept directory)
+    keep_bytes: int = 0
+    young_uncommitted: list[Path] = field(default_factory=list)
+
+
+def _manifest(d: Path) -> dict | None:
+    try:
+        return json.loads((d / "_manifest.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _version_roots(root: Path) -> tuple[set[str], set[tuple[str, int]]]:
+    from pipeline.version_read import _VERSION_RE
+
+    fps, versions = set(), set()
+    maps = root / "maps"
+    for mdir in sorted(maps.iterdir()) if maps.is_dir() else []:
+        for vdir in sorted(mdir.iterdir()) if mdir.is_dir() else []:
+            m = _VERSION_RE.match(vdir.name)
+            if not m or not (vdir / "manifest.json").is_file():
+                continue
+            versions.add((mdir.name, int(m.group(1))))
+            try:
+                doc = json.loads((vdir / "manifest.json").read_text())
+            except (OSError, ValueError):
+                continue
+            for entry in (doc.get("inputs") or {}).values():
+                if isinstance(entry, dict) and entry.get("fingerprint"):
+                    fps.add(str(entry["fingerprint"])[:FP_LEN])
+    return fps, versions
+
+
+def _map_tiles_roots(root: Path, versions: set[tuple[str, int]]) -> set[str]:
+    import pyarrow.parquet as pq
+
+    out = set()
+    base = root / "datasets" / "map_tiles"
+    for d in sorted(base.iterdir()) if base.is_dir() else []:
+        m = _manifest(d)
+        for rec in (m or {}).get("files", []):
+            try:
+                rows = pq.read_table(d / rec["path"], columns=["map_name", "version"]).to_pylist()
+            except (OSError, ValueError):
+                continue
+            if any((r["map_name"], r["version"]) in versions for r in rows):
+                out.add(d.name)
+    return out
+
+
+def _drive_set_roots(root: Path) -> set[str]:
+    """Every stage fingerprint of the newest build workflow of each map that lists the map's current drives."""
+    from pipeline.maps import read_identity
+    from pipeline.plan import make_plan
+    from pipeline.safe_yaml import load_yaml_file
+    from pipeline.workflow import load_workflow
+
+    out: set[str] = set()
+    maps = root / "maps"
+    for mdir in sorted(maps.iterdir()) if maps.is_dir() else []:
+        ident = read_identity(mdir) if mdir.is_dir() else None
+        if ident is None or not ident.drives:
+            continue
+        current = sorted(d.path for d in ident.drives)
+        files = sorted((root / "workflows").glob(f"build-{mdir.name}-*.yaml"), key=lambda p: p.stat().st_mtime)
+        for wf_path in reversed(files):
+            doc = load_yaml_file(wf_path) or {}
+            if sorted(d.get("path") for d in doc.get("drives", [])) != current:
+                continue
+            plan = make_plan(load_workflow(wf_path), root)
+            out |= {sp.fingerprint[:FP_LEN] for sp in plan.stages.values()}
+            break
+    return out
+
+
+def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
+    root = Path(root)
+    dirs = sorted(d for d in (root / "datasets").glob("*/*") if d.is_dir())
+    manifests = {d: _manifest(d) for d in dirs}
+    roots, versions = _version_roots(root)
+    kept = roots | _map_tiles_roots(root, versions) | _drive_set_roots(root)
+    changed = True
+    while changed:  # upstream and downstream closure
+        changed = False
+        for d, m in manifests.items():
+            if m is None:
+                continue
+            ins = {str(v.get("fingerprint"))[:FP_LEN] for v in (m.get("inputs") or {}).values() if v.get("fingerprint")}
+            if d.name in kept and not ins <= kept:
+                kept |= ins
+                changed = True
+            elif d.name not in kept and ins and ins <= kept:
+                kept.add(d.name)
+                changed = True
+    plan = GcPlan()
+    now = time.time()
+    for d in dirs:
+        if d.name in kept:
+            plan.keep.append(d)
+        elif manifests[d] is None and now - d.stat().st_mtime < min_age_h * 3600:
+            plan.young_uncommitted.append(d)
+        else:
+            plan.remove.append(d)
+    kept_sizes = {(st.st_dev, st.st_ino): st.st_size for d in plan.keep + plan.young_uncommitted
+                  for p in d.rglob("*") if p.is_file() for st in (p.stat(),)}
+    kept_inodes = set(kept_sizes)
+    seen: set[tuple[int, int]] = set()
+    for d in plan.remove:
+        for p in d.rglob("*"):
+            if p.is_file():
+                st = p.stat()
+                key = (st.st_dev, st.st_ino)
+                if key not in kept_inodes and key not in seen:
+                    seen.add(key)
+                    plan.remove_bytes += st.st_size
+    plan.keep_bytes = sum(kept_sizes.values())  # per inode: hard-linked files once
+    return plan
+
+
+def apply_gc(root: Path, plan: GcPlan) -> None:
+    """Delete plan.remove while holding every map's rebuild lock (RunLockedError, exit 75, if one is held)."""
+    from pipeline.maps import run_lock
+
+    maps = Path(root) / "maps"
+    with ExitStack() as stack:
+        for mdir in sorted(maps.iterdir()) if maps.is_dir() else []:
+            if mdir.is_dir() and (mdir / "map.json").is_file():
+                stack.enter_context(run_lock(mdir))
+        for d in plan.remove:
+            trash = d.with_name(f".gc-{d.name}")
+            d.rename(trash)  # the dataset vanishes atomically, then its files go
+            shutil.rmtree(trash)
+            log.info("gc: removed %s", d)

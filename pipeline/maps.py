@@ -1,0 +1,251 @@
+"""A map as a maintained thing: its identity (pinned frame, tile size, drive set), its whole-run lock, rollback.
+
+Files under ``ROOT/maps/NAME/`` besides the versions (``pipeline/versioned.py``)::
+
+    map.json        the identity: schema, name, enu_origin (lat_deg, lon_deg, h_m WGS84), tile_size_m,
+                    created_utc, check_drive (optional) and the drive set (name, drive.yaml path, content
+                    fingerprint, added_utc, the version that added it); replaced atomically
+    .rebuild.lock   a whole-run lock (fcntl.flock, released by the kernel when its holder dies) holding
+                    "pid host start_utc" of the holder
+    gate/vNNNN.json the regression gate's comparison for candidate vNNNN
+
+Knows nothing about LiDAR: a drive is a ``drive.yaml`` path and its ``pipeline.fingerprint.drive_fingerprint``.
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import math
+import os
+import shutil
+import socket
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterator
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from pipeline.errors import ConfigError, DatasetIOError, RunLockedError, UnknownNameError
+from pipeline.names import check_name
+
+IDENTITY_NAME = "map.json"
+IDENTITY_SCHEMA = "cornermap.map-identity/1"
+LOCK_NAME = ".rebuild.lock"
+GATE_DIR = "gate"
+ORIGIN_TOL_DEG = 1e-9  # ~0.1 mm: two origins closer than this are the same frame
+ORIGIN_TOL_M = 1e-3
+
+
+class Origin(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    lat_deg: float = Field(ge=-90, le=90)
+    lon_deg: float = Field(ge=-180, le=180)
+    h_m: float = Field(ge=-1000, le=10000)
+
+
+class MapDrive(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str
+    path: str  # absolute drive.yaml
+    fingerprint: str
+    added_utc: str
+    added_in: int | None = None  # the version that first held it
+
+
+class CheckDrive(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    path: str  # absolute drive.yaml localized by the regression gate
+    reference: str | None = None  # truth TUM; None: the drive's own pose graph ("map")
+
+
+class MapIdentity(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    schema_: str = Field(IDENTITY_SCHEMA, alias="schema")
+    name: str
+    enu_origin: Origin
+    tile_size_m: float = Field(100.0, gt=0, le=10000)
+    created_utc: str
+    check_drive: CheckDrive | None = None
+    drives: list[MapDrive] = []
+
+    def dump(self) -> dict[str, Any]:
+        return self.model_dump(mode="json", by_alias=True)
+
+
+def utc_now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def map_dir(root: Path, name: str) -> Path:
+    return Path(root) / "maps" / check_name(name, "map", "--map")
+
+
+def read_identity(mdir: Path) -> MapIdentity | None:
+    """The map's identity, None when the map has none (an unpinned map); ConfigError when it is malformed."""
+    path = Path(mdir) / IDENTITY_NAME
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ConfigError(str(path), [f"not readable JSON: {exc}"]) from exc
+    if isinstance(doc, dict) and doc.get("schema") != IDENTITY_SCHEMA:
+        raise ConfigError(str(path), [f"schema {doc.get('schema')!r}; expected {IDENTITY_SCHEMA!r}"])
+    try:
+        return MapIdentity.model_validate(doc)
+    except ValidationError as exc:
+        raise ConfigError(str(path), [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()]) from None
+
+
+def require_identity(mdir: Path) -> MapIdentity:
+    ident = read_identity(mdir)
+    if ident is None:
+        raise UnknownNameError(f"{mdir}: no {IDENTITY_NAME}; hint: cornermap maps create --root ROOT --map "
+                               f"{mdir.name} --origin LAT,LON,H")
+    return ident
+
+
+def write_identity(mdir: Path, ident: MapIdentity) -> None:
+    """Atomic replace (temp file + fsync + rename): a reader sees the old identity or the new one."""
+    mdir.mkdir(parents=True, exist_ok=True)
+    tmp = mdir / f".{IDENTITY_NAME}.tmp-{os.getpid()}"
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(json.dumps(ident.dump(), indent=1) + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, mdir / IDENTITY_NAME)
+
+
+def create_map(root: Path, name: str, origin: dict[str, float], tile_size_m: float = 100.0,
+               check_drive: CheckDrive | None = None) -> MapIdentity:
+    """Write a new map's identity; refuses a map that already has one, or versions in another frame."""
+    mdir = map_dir(root, name)
+    if (mdir / IDENTITY_NAME).exists():
+        raise ConfigError(f"cornermap maps create --map {name}", [f"{mdir / IDENTITY_NAME} exists; a map's frame "
+                                                                  "is never changed (make a new map)"])
+    ident = MapIdentity(name=name, enu_origin=Origin(**origin), tile_size_m=tile_size_m, created_utc=utc_now(),
+                        check_drive=check_drive)
+    published = latest_origin(mdir)
+    if published is not None and not same_origin(published, ident.enu_origin.model_dump()):
+        raise ConfigError(f"cornermap maps create --map {name}",
+                          [f"its published versions are in the frame {fmt_origin(published)}, not "
+                           f"{fmt_origin(origin)}; pass that origin or make a new map"])
+    write_identity(mdir, ident)
+    (mdir / LOCK_NAME).touch()
+    return ident
+
+
+def same_origin(a: dict[str, float], b: dict[str, float]) -> bool:
+    return (math.isclose(a["lat_deg"], b["lat_deg"], abs_tol=ORIGIN_TOL_DEG)
+            and math.isclose(a["lon_deg"], b["lon_deg"], abs_tol=ORIGIN_TOL_DEG)
+            and math.isclose(a.get("h_m", 0.0), b.get("h_m", 0.0), abs_tol=ORIGIN_TOL_M))
+
+
+def fmt_origin(o: dict[str, float]) -> str:
+    return f"{o['lat_deg']:.9f},{o['lon_deg']:.9f},{o.get('h_m', 0.0):.3f}"
+
+
+def latest_origin(mdir: Path) -> dict[str, float] | None:
+    """The ENU origin of the version LATEST names (None without one)."""
+    from pipeline.version_read import read_latest, read_manifest, version_name
+
+    if not (Path(mdir) / "LATEST").is_file():
+        return None
+    latest = read_latest(mdir)
+    if latest is None:
+        return None
+    origin = read_manifest(Path(mdir) / version_name(latest))[0].get("enu_origin")
+    if not isinstance(origin, dict):
+        return None
+    return {"lat_deg": float(origin["lat_deg"]), "lon_deg": float(origin["lon_deg"]),
+            "h_m": float(origin.get("h_m", 0.0))}  # the manifest also names the ellipsoid (always WGS84)
+
+
+def pinned_frame(root: Path, name: str, origin: dict[str, float] | None) -> tuple[dict[str, float] | None,
+                                                                                  float | None]:
+    """The (origin, tile size) a build of map NAME must use: the identity's, else LATEST's origin; ``origin``
+    (from --origin) must agree with it. ConfigError (exit 1) when it does not."""
+    mdir = map_dir(root, name)
+    ident = read_identity(mdir)
+    pinned, source, tile = None, "", None
+    if ident is not None:
+        pinned, source, tile = ident.enu_origin.model_dump(), f"its identity {mdir / IDENTITY_NAME}", ident.tile_size_m
+    else:
+        pinned, source = latest_origin(mdir), f"its LATEST version in {mdir}"
+    if pinned is None:
+        return origin, None
+    if origin is not None and not same_origin(origin, pinned):
+        raise ConfigError("--origin", [f"map {name!r} is pinned to {fmt_origin(pinned)} by {source}; "
+                                       f"--origin {fmt_origin(origin)} would move its frame (refused)"])
+    return pinned, tile
+
+
+@dataclass(frozen=True)
+class LockHolder:
+    pid: int
+    host: str
+    start_utc: str
+
+
+@contextmanager
+def run_lock(mdir: Path) -> Iterator[None]:
+    """Whole-run lock of a map: exclusive, non-waiting, released by the kernel when the holder dies.
+    RunLockedError (exit 75) naming the holder when another run has it; nothing is written then."""
+    mdir.mkdir(parents=True, exist_ok=True)
+    path = mdir / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            holder = os.pread(fd, 512, 0).decode("utf-8", "replace").strip() or "unknown"
+            raise RunLockedError(f"{path}: another run of map {mdir.name!r} holds the lock ({holder}); this one "
+                                 "stopped without writing. hint: it is still running, or ended moments ago") from exc
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid={os.getpid()} host={socket.gethostname()} start={utc_now()}\n".encode(), 0)
+        os.fsync(fd)
+        yield
+    finally:
+        os.close(fd)
+
+
+def check_free_disk(root: Path, min_free_gib: float) -> None:
+    """DatasetIOError (exit 1) with the numbers when the file system of ``root`` has less free space."""
+    probe = Path(root)
+    while not probe.exists():
+        probe = probe.parent
+    free = shutil.disk_usage(probe).free / 2**30
+    if free < min_free_gib:
+        raise DatasetIOError(f"{probe}: {free:.2f} GiB free, {min_free_gib:.2f} GiB required to start a rebuild; "
+                             "hint: cornermap gc --root ROOT --apply, or free space, or lower --min-free-gib")
+
+
+def rollback(mdir: Path, to: str) -> tuple[int | None, int]:
+    """Point LATEST at an older complete, verified version (a new LATEST write; nothing is deleted).
+    Returns (previous LATEST, new LATEST)."""
+    from pipeline.errors import ChecksumError
+    from pipeline.versioned import parse_version, publish_lock, read_latest, verify_version, version_name, write_latest
+
+    number = parse_version(to)
+    vdir = Path(mdir) / version_name(number)
+    if not vdir.is_dir():
+        from pipeline.version_read import list_versions
+
+        have = ", ".join(version_name(v) for v in list_versions(mdir)) or "none"
+        raise UnknownNameError(f"{mdir}: no version {version_name(number)}; have {have}")
+    with publish_lock(Path(mdir)):
+        problems = verify_version(vdir)
+        if problems:
+            raise ChecksumError(f"{vdir}: {len(problems)} integrity problem(s), not rolled back to: {problems[0]}")
+        before = read_latest(mdir)
+        write_latest(Path(mdir), number)
+    return before, number

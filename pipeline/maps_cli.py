@@ -1,0 +1,137 @@
+"""``cornermap maps create|show``, ``cornermap rebuild`` and ``cornermap gc``: a map kept up to date on a schedule.
+
+Exit codes of ``rebuild`` (for monitoring): 0 published, 0 nothing to do, 3 the regression gate refused the
+candidate (LATEST unchanged), 1 error, 75 another rebuild of the map holds its lock. Heavy imports inside.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+maps_app = typer.Typer(no_args_is_help=True, help="A map's identity: pinned frame, tile size, drive set.\n\n"
+                       "Examples:\n\n  cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57"
+                       "\n\n  cornermap maps show --root runs/maps --map kept")
+
+ROOT_REQ = typer.Option(..., "--root", help="Output root holding maps/NAME/ and datasets/.")
+MAP_REQ = typer.Option(..., "--map", help="Map name (ROOT/maps/NAME).")
+
+
+@maps_app.command("create")
+def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
+               origin: str = typer.Option(..., "--origin", help="The map's ENU origin LAT,LON,H (degrees, degrees, "
+                                          "metres WGS84), fixed for every version."),
+               tile_size_m: float = typer.Option(100.0, "--tile-size-m", help="Tile edge in metres, fixed."),
+               check_drive: Optional[Path] = typer.Option(None, "--check-drive", help="drive.yaml the rebuild's "
+                                                          "regression gate localizes (default: the newest drive)."),
+               check_reference: Optional[Path] = typer.Option(None, "--check-reference", help="Truth TUM of "
+                                                              "--check-drive (default: its own pose graph).")) -> None:
+    """Write a map's identity (ROOT/maps/NAME/map.json): every build and rebuild of NAME uses this frame.
+
+    Example: [b]cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57[/b]
+    """
+    from pipeline.build import parse_origin
+    from pipeline.errors import ConfigError
+    from pipeline.maps import CheckDrive, create_map
+
+    if not (0 < tile_size_m <= 10000):
+        raise ConfigError("--tile-size-m", [f"expected 0 < S <= 10000 m; got {tile_size_m}"])
+    check = None
+    if check_drive is not None:
+        for opt, p in (("--check-drive", check_drive), ("--check-reference", check_reference)):
+            if p is not None and not p.is_file():
+                raise ConfigError(opt, [f"no such file {p}"])
+        check = CheckDrive(path=str(check_drive.resolve()),
+                           reference=str(check_reference.resolve()) if check_reference else None)
+    elif check_reference is not None:
+        raise ConfigError("--check-reference", ["applies to --check-drive only"])
+    ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check)
+    o = ident.enu_origin
+    typer.echo(f"created map {map_name!r}: origin {o.lat_deg},{o.lon_deg},{o.h_m}, tiles {ident.tile_size_m} m "
+               f"-> {root / 'maps' / map_name / 'map.json'}")
+
+
+@maps_app.command("show")
+def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ) -> None:
+    """Print a map's frame and drives: when each was recorded (first/last pose), when added, its versions.
+
+    Example: [b]cornermap maps show --root runs/maps --map kept[/b]
+    """
+    from pipeline.maps import map_dir, require_identity
+    from pipeline.maps_show import drive_rows
+
+    mdir = map_dir(root, map_name)
+    ident = require_identity(mdir)
+    o = ident.enu_origin
+    typer.echo(
+        f"map {ident.name}: origin {o.lat_deg},{o.lon_deg},{o.h_m} (WGS84), tiles {ident.tile_size_m} m, "
+        f"created {ident.created_utc}" + (f", check drive {ident.check_drive.path}" if ident.check_drive else "")
+    )
+    rows = drive_rows(mdir, ident)
+    typer.echo(f"{'drive':16s} {'first pose':20s} {'last pose':20s} {'added (UTC)':20s} versions")
+    for r in rows:
+        typer.echo(f"{r['name']:16s} {r['first']:20s} {r['last']:20s} {r['added']:20s} {r['versions']}")
+    if not rows:
+        typer.echo("(no drives yet: cornermap rebuild --root ROOT --map NAME --inbox DIR)")
+
+
+def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
+                inbox: Path = typer.Option(..., "--inbox", help="Folder of drive folders (each with a drive.yaml); "
+                                           "bad ones move to INBOX/quarantine/."),
+                min_free_gib: float = typer.Option(2.0, "--min-free-gib", help="Free space required to start."),
+                gate_tol_m: float = typer.Option(0.05, "--gate-tol-m", help="Gate: a localization figure may grow "
+                                                 "by max(this, --gate-tol-rel x previous) metres."),
+                gate_tol_rel: float = typer.Option(0.2, "--gate-tol-rel", help="Gate: relative tolerance."),
+                no_gate: bool = typer.Option(False, "--no-gate", help="Publish without the regression gate."),
+                scheduler: Optional[str] = typer.Option(None, "--scheduler", help="As for cornermap run."),
+                workflow: str = typer.Option("map_rebuild", "--workflow", help="The map workflow.")) -> None:
+    """Build the next version of map NAME from its drives plus the new ones in INBOX, gate it, publish it.
+
+    Exit codes: 0 published or nothing to do, 3 gate refused (LATEST unchanged), 1 error, 75 locked.
+
+    Example: [b]cornermap rebuild --root runs/maps --map kept --inbox runs/sim[/b] (drive folders in runs/sim)
+    """
+    import math
+
+    from pipeline.errors import ConfigError
+    from pipeline.rebuild import RebuildParams, rebuild
+
+    for opt, v in (("--min-free-gib", min_free_gib), ("--gate-tol-m", gate_tol_m), ("--gate-tol-rel", gate_tol_rel)):
+        if not (math.isfinite(v) and v >= 0):
+            raise ConfigError(opt, [f"expected a finite number >= 0; got {v}"])
+    params = RebuildParams(min_free_gib=min_free_gib, gate=not no_gate, gate_tol_m=gate_tol_m,
+                           gate_tol_rel=gate_tol_rel, workflow=workflow, scheduler=scheduler)
+    result = rebuild(root, map_name, inbox, params)
+    for line in result.lines:
+        typer.echo(line)
+    if result.exit_code:
+        raise typer.Exit(result.exit_code)
+
+
+def gc_cmd(root: Path = ROOT_REQ,
+           apply: bool = typer.Option(False, "--apply", help="Delete (default: a dry run that only prints)."),
+           min_age_h: float = typer.Option(24.0, "--min-age-h", help="Uncommitted dataset folders younger than "
+                                           "this (runs in progress) are kept.")) -> None:
+    """Remove intermediates no kept map version and no current drive set references (dry run by default).
+
+    Example: [b]cornermap gc --root runs/maps[/b] (a dry run; add --apply to delete)
+    """
+    from pipeline.gc import apply_gc, plan_gc
+
+    plan = plan_gc(root, min_age_h)
+    gib = lambda b: f"{b / 2**20:.1f} MiB"  # noqa: E731
+    for d in plan.remove:
+        typer.echo(f"{'remove' if apply else 'would remove'} {d.relative_to(root)}")
+    for d in plan.young_uncommitted:
+        typer.echo(f"keep (uncommitted, younger than {min_age_h} h) {d.relative_to(root)}")
+    if apply:
+        apply_gc(root, plan)
+    typer.echo(f"{len(plan.remove)} dataset folder(s), {gib(plan.remove_bytes)} "
+               f"{'freed' if apply else 'to free'}; {len(plan.keep)} kept ({gib(plan.keep_bytes)})")
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(maps_app, name="maps")
+    app.command("rebuild")(rebuild_cmd)
+    app.command("gc")(gc_cmd)
