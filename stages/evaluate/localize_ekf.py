@@ -68,6 +68,7 @@ class EkfConfig:
     # not fresh noise at each; a corner farther than consider_forget_m leaves the set. False: the paper's R only.
     map_consider: bool = True
     consider_forget_m: float = 120.0
+    map_cov_scale: float = 1.0  # multiplies the map's stored corner covariances (see params.ekf_map_cov_scale)
 
 
 @dataclass(frozen=True)
@@ -152,6 +153,8 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     n_assoc = np.zeros(n, dtype=np.int32)
     a_epoch, a_map = [], []
     off = obs.slices(n)
+    if cfg.map_cov_scale != 1.0:
+        cmap = CornerMap(cmap.en_m, cmap.cov_m2 * cfg.map_cov_scale, cmap.dirs_enu_rad)
     tree = cKDTree(cmap.en_m) if len(cmap.en_m) else None
     floor = np.diag([cfg.range_sigma_floor_m**2, cfg.bearing_sigma_floor_rad**2])
     q_init, P_init = np.asarray(q0, dtype=float).copy(), np.asarray(P0, dtype=float).copy()

@@ -66,6 +66,7 @@ def ekf_config(p: EvaluateParams) -> EkfConfig:
                      range_sigma_floor_m=p.range_sigma_floor_m,
                      bearing_sigma_floor_rad=np.deg2rad(p.bearing_sigma_floor_deg),
                      wall_heading_sigma_rad=np.deg2rad(p.wall_heading_sigma_deg), map_consider=p.ekf_map_consider,
+                     map_cov_scale=p.ekf_map_cov_scale,
                      gyro_bias_sigma_rad_s=np.deg2rad(p.ekf_gyro_bias_sigma_deg_s),
                      gyro_bias_rw_rad_s_per_sqrt_s=np.deg2rad(p.ekf_gyro_bias_rw_deg_s_per_sqrt_s),
                      wheel_scale_sigma=p.ekf_wheel_scale_sigma,
