@@ -103,6 +103,12 @@ class PosegraphParams(Params):
                                               "x this (demo, 112 fixed directions vs truth: errors 0.010 m RMS "
                                               "where the width is ~0.11 m, i.e. 0.06; 0.2 keeps a margin)")
     survey_marking_min_sigma_m: float = Field(0.01, gt=0, description="floor of the anchor std")
+    survey_marking_consensus_window_m: float = Field(300.0, gt=0, description="horizontal anchors are checked "
+                                                     "against the other anchors of their drive within this travel "
+                                                     "(anchor_consensus.py)")
+    survey_marking_consensus_drift_sigma_m: float = Field(0.10, gt=0, description="how much the pass-2 estimate's "
+                                                          "error may differ between anchors of one window")
+    survey_marking_consensus_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of that check")
     parallel_min_items: int = Field(32, ge=1, description="independent registrations (loop candidates, survey "
                                     "anchors) run in parallel processes (or cluster tasks) from this many on; "
                                     "fewer run in the stage's own process. Results do not depend on it")

@@ -6,6 +6,7 @@ the point-to-plane Hessian, so directions the ground alone does not fix (along a
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -14,6 +15,8 @@ from scipy.spatial import cKDTree
 from stages.common.ground_plane import rotation_between
 from stages.common.registration import floor_information, prepare_cloud, register_clouds
 from stages.posegraph.graph import PosePrior
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -200,9 +203,41 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
                                initializer=_use_survey, initargs=(survey_pts,), progress=step)
         if with_markings:
             found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
-            matches = [replace(m, horizontal=h) for m, h in zip(matches, found)]
+            matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets, p)
         if matches_out is not None:
             matches_out.extend(matches)
         return survey_priors(matches)
 
     return callback
+
+
+def checked_horizontal(matches: list[SurveyMatch], poses: np.ndarray, offsets: np.ndarray, p) -> list[SurveyMatch]:
+    """Accepted marking matches that disagree with their neighbours (``anchor_consensus``) turned into rejected
+    ones, with the reason; the others unchanged."""
+    from stages.posegraph.anchor_consensus import anchor_consensus
+    from scipy.stats import chi2
+
+    acc = [k for k, m in enumerate(matches) if m.horizontal is not None and m.horizontal.accepted]
+    if not acc:
+        return matches
+    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
+    step[np.asarray(offsets[:-1], np.int64)] = 0.0  # travel restarts with each drive
+    travel = np.cumsum(step)
+    idx = np.asarray([matches[k].i for k in acc], np.int64)
+    res = anchor_consensus(np.array([matches[k].horizontal.shift_en_m for k in acc]),
+                           np.array([matches[k].horizontal.information_en for k in acc]),
+                           np.searchsorted(offsets, idx, side="right") - 1, travel[idx],
+                           window_m=p.survey_marking_consensus_window_m,
+                           drift_sigma_m=p.survey_marking_consensus_drift_sigma_m,
+                           gate_chi2_1=float(chi2.ppf(p.survey_marking_consensus_probability, 1)),
+                           gate_chi2_2=float(chi2.ppf(p.survey_marking_consensus_probability, 2)))
+    out = list(matches)
+    for j, k in enumerate(acc):
+        if not res.keep[j]:
+            h = matches[k].horizontal
+            out[k] = replace(matches[k], horizontal=replace(h, accepted=False, information_en=np.zeros((2, 2)),
+                                                            reason=res.reason[j]))
+    if (~res.keep).any():
+        log.info("survey anchors: %d of %d horizontal anchors dropped as inconsistent with their neighbours",
+                 int((~res.keep).sum()), len(acc))
+    return out
