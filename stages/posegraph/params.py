@@ -103,6 +103,10 @@ class PosegraphParams(Params):
                                               "x this (demo, 112 fixed directions vs truth: errors 0.010 m RMS "
                                               "where the width is ~0.11 m, i.e. 0.06; 0.2 keeps a margin)")
     survey_marking_min_sigma_m: float = Field(0.01, gt=0, description="floor of the anchor std")
+    survey_marking_yaw_search_deg: float = Field(1.5, ge=0, description="the marking submap is also turned about "
+                                                 "its keyframe within +-this (0: translation only, whose shift "
+                                                 "inherits part of the estimate's heading error)")
+    survey_marking_yaw_step_deg: float = Field(0.5, gt=0, description="grid step of that search (then a parabola)")
     survey_marking_consensus_window_m: float = Field(300.0, gt=0, description="horizontal anchors are checked "
                                                      "against the other anchors of their drive within this travel "
                                                      "(anchor_consensus.py)")

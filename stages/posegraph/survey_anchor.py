@@ -173,7 +173,8 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
     with_markings = p.survey_markings and survey_intensity is not None and feature_load is not None
     marking_kwargs = dict(half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
                           search_m=p.survey_marking_search_m, raster=p.survey_marking_raster,
-                          sigma_scale=p.survey_marking_sigma_scale, min_sigma_m=p.survey_marking_min_sigma_m)
+                          sigma_scale=p.survey_marking_sigma_scale, min_sigma_m=p.survey_marking_min_sigma_m,
+                          yaw_search_deg=p.survey_marking_yaw_search_deg, yaw_step_deg=p.survey_marking_yaw_step_deg)
 
     def horizontal(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray) -> list:
         """The marking anchor of every keyframe, in blocks of consecutive keyframes run in parallel."""
