@@ -93,9 +93,11 @@ def vertical_information(sigma_z_m: float, sigma_tilt_rad: float, weak: float = 
     return np.diag([sigma_tilt_rad ** -2, sigma_tilt_rad ** -2, weak, weak, weak, sigma_z_m ** -2])
 
 
-def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345) -> list[PosePrior]:
+def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345, yaw_sigma_rad: float = 0.0
+                  ) -> list[PosePrior]:
     """Accepted matches as robust (Huber) absolute pose priors: the vertical part from the ground
-    registration, the horizontal part from the marking match, each where accepted."""
+    registration, the horizontal part from the marking match, each where accepted; with ``yaw_sigma_rad`` > 0
+    also the heading at which the marking submap matched (``survey_markings.best_yaw_match``)."""
     from stages.posegraph.survey_markings import horizontal_information_body
 
     out = []
@@ -105,6 +107,12 @@ def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345) -> list[P
         if h is not None and h.accepted:
             T[:2, 3] += h.shift_en_m
             info = info + horizontal_information_body(h.information_en, T[:3, :3])
+            if yaw_sigma_rad > 0:
+                c, s = np.cos(h.yaw_rad), np.sin(h.yaw_rad)
+                T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+                up = T[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # the map's vertical in the body frame
+                info = info.copy()
+                info[:3, :3] += np.outer(up, up) / yaw_sigma_rad**2
         if np.any(info):
             out.append(PosePrior(m.i, T, info, "survey", "huber", kernel_k))
     return out
@@ -207,7 +215,7 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
             matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets, p)
         if matches_out is not None:
             matches_out.extend(matches)
-        return survey_priors(matches)
+        return survey_priors(matches, yaw_sigma_rad=np.deg2rad(p.survey_marking_yaw_sigma_deg))
 
     return callback
 
