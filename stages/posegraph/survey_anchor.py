@@ -223,8 +223,9 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
 def checked_horizontal(matches: list[SurveyMatch], poses: np.ndarray, offsets: np.ndarray, p) -> list[SurveyMatch]:
     """Accepted marking matches that disagree with their neighbours (``anchor_consensus``) turned into rejected
     ones, with the reason; the others unchanged."""
-    from stages.posegraph.anchor_consensus import anchor_consensus
     from scipy.stats import chi2
+
+    from stages.posegraph.anchor_consensus import anchor_consensus
 
     acc = [k for k, m in enumerate(matches) if m.horizontal is not None and m.horizontal.accepted]
     if not acc:

@@ -85,7 +85,9 @@ def test_matched_heading_becomes_a_yaw_prior_only_when_asked():
     m = SurveyMatch(0, T, vertical_information(0.02, 0.001), 0.9, 0.1, True, "accepted", h)
     plain = survey_priors([m])[0]
     with_yaw = survey_priors([m], yaw_sigma_rad=np.deg2rad(0.2))[0]
-    yaw = lambda R: np.arctan2(R[1, 0], R[0, 0])  # noqa: E731
+    def yaw(R):
+        return np.arctan2(R[1, 0], R[0, 0])
+
     assert np.isclose(yaw(plain.T_map_vehicle), 0.3) and np.isclose(plain.information[2, 2], 0.0)
     assert np.isclose(yaw(with_yaw.T_map_vehicle), 0.3 - np.deg2rad(0.4))
     assert np.allclose(with_yaw.T_map_vehicle[:3, 3], plain.T_map_vehicle[:3, 3])  # position unchanged
