@@ -28,6 +28,7 @@ class Association:
     z_meas: np.ndarray  # (A,2) measured range_m, bearing_rad
     R_blocks: np.ndarray  # (A,2,2) extraction + map-corner noise in range/bearing (without H P H^T)
     d2: np.ndarray  # (A,) Mahalanobis distance squared
+    R_map_blocks: np.ndarray  # (A,2,2) the map-corner part of R_blocks (shared by every epoch using the corner)
 
 
 def range_bearing_of_points(xy_vehicle_m: np.ndarray, cov_vehicle_m2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -132,7 +133,7 @@ def associate(q: np.ndarray, P: np.ndarray, xy_vehicle_m: np.ndarray, cov_vehicl
     xy = np.asarray(xy_vehicle_m, dtype=float).reshape(-1, 2)
     map_en = np.asarray(map_en_m, dtype=float).reshape(-1, 2)
     empty = Association(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2)),
-                        np.zeros(0))
+                        np.zeros(0), np.zeros((0, 2, 2)))
     if len(xy) == 0 or len(map_en) == 0:
         return empty
     near = np.flatnonzero(np.hypot(*(map_en - q[:2]).T) <= sensor_range_m)
@@ -146,4 +147,4 @@ def associate(q: np.ndarray, P: np.ndarray, xy_vehicle_m: np.ndarray, cov_vehicl
                               np.asarray(map_dirs_enu_rad, dtype=float).reshape(-1, 2)[near],
                               gate_chi2, angle_tol_rad)
     rows, cols = assign(costs, method)
-    return Association(rows, near[cols], z_meas[rows], R_meas[rows] + R_map[cols], costs[rows, cols])
+    return Association(rows, near[cols], z_meas[rows], R_meas[rows] + R_map[cols], costs[rows, cols], R_map[cols])

@@ -42,15 +42,30 @@ def predict(state: EkfState, increment: np.ndarray, Q: np.ndarray) -> EkfState:
     dx, dy, dyaw = np.asarray(increment, dtype=float)
     c, s = np.cos(yaw), np.sin(yaw)
     G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    F = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+    F = predict_jacobian(state.q, increment)
     q = np.array([x + c * dx - s * dy, y + s * dx + c * dy, float(wrap_angle_rad(yaw + dyaw))])
     P = F @ state.P @ F.T + G @ Q @ G.T
     return EkfState(q, 0.5 * (P + P.T))
 
 
+def predict_jacobian(q: np.ndarray, increment: np.ndarray) -> np.ndarray:
+    """(3,3) Jacobian of ``predict``'s new pose with respect to the old one (the state transition of the errors)."""
+    dx, dy = float(increment[0]), float(increment[1])
+    c, s = np.cos(q[2]), np.sin(q[2])
+    return np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+
+
 def predict_wheel_icp(state: EkfState, wheel: np.ndarray, dt_s: float, Q_wheel: np.ndarray,
                       icp: np.ndarray | None, Q_icp: np.ndarray | None, Q_bias: np.ndarray,
                       gate_chi2: float) -> tuple[EkfState, float]:
+    """``predict_wheel_icp_transition`` without the transition matrix."""
+    new, chi2, _ = predict_wheel_icp_transition(state, wheel, dt_s, Q_wheel, icp, Q_icp, Q_bias, gate_chi2)
+    return new, chi2
+
+
+def predict_wheel_icp_transition(state: EkfState, wheel: np.ndarray, dt_s: float, Q_wheel: np.ndarray,
+                                 icp: np.ndarray | None, Q_icp: np.ndarray | None, Q_bias: np.ndarray,
+                                 gate_chi2: float) -> tuple[EkfState, float, np.ndarray]:
     """Motion update of the 5-state filter ``(x, y, yaw, gyro_bias_rad_s, wheel_scale_err)``.
 
     The true increment ``d`` (vehicle frame of the previous epoch) is a latent with the wheel/gyro prior
@@ -59,7 +74,8 @@ def predict_wheel_icp(state: EkfState, wheel: np.ndarray, dt_s: float, Q_wheel: 
     degenerate direction weighs nothing). The update of the augmented state ``(q, b, s, d)`` estimates the gyro bias
     and the wheel scale while ICP agrees with the wheels; an ICP increment whose innovation exceeds ``gate_chi2``
     (3 dof) is not used. The pose is then composed with ``d``. ``Q_bias`` (2x2) is the random walk of (b, s) over
-    the step. Returns the new state and the ICP innovation's chi-square (NaN without ICP).
+    the step. Returns the new state, the ICP innovation's chi-square (NaN without ICP) and the (5,5) transition of
+    the state's errors (for cross-covariances with states kept outside, e.g. ``consider``).
     """
     q, P = state.q, state.P
     dx_w, dy_w, dyaw_w = np.asarray(wheel, dtype=float)
@@ -74,6 +90,7 @@ def predict_wheel_icp(state: EkfState, wheel: np.ndarray, dt_s: float, Q_wheel: 
     PA[5:, :5] = J @ P
     PA[5:, 5:] = J @ P @ J.T + Q_wheel
     chi2 = float("nan")
+    M = np.eye(8)  # the ICP update's action on the augmented errors
     if icp is not None and np.all(np.isfinite(icp)) and Q_icp is not None:
         nu = np.asarray(icp, dtype=float) - d
         nu[2] = wrap_angle_rad(nu[2])
@@ -85,6 +102,7 @@ def predict_wheel_icp(state: EkfState, wheel: np.ndarray, dt_s: float, Q_wheel: 
             I_KH = np.eye(8)
             I_KH[:, 5:] -= K
             PA = I_KH @ PA @ I_KH.T + K @ Q_icp @ K.T
+            M = I_KH
     x, y, yaw = X[:3]
     dx, dy, dyaw = X[5:]
     c, s = np.cos(yaw), np.sin(yaw)
@@ -95,7 +113,8 @@ def predict_wheel_icp(state: EkfState, wheel: np.ndarray, dt_s: float, Q_wheel: 
     q_new = np.array([x + c * dx - s * dy, y + s * dx + c * dy, float(wrap_angle_rad(yaw + dyaw)), X[3], X[4]])
     P_new = A @ PA @ A.T
     P_new[3:, 3:] += Q_bias
-    return EkfState(q_new, 0.5 * (P_new + P_new.T)), chi2
+    Phi = A @ M @ np.vstack([np.eye(5), J])
+    return EkfState(q_new, 0.5 * (P_new + P_new.T)), chi2, Phi
 
 
 def predict_range_bearing(q: np.ndarray, corners_en_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

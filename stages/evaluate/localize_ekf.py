@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.common.geometry import wrap_angle_rad
-from stages.evaluate import ekf
+from stages.evaluate import consider, ekf
 from stages.evaluate.association import associate, wall_headings_rad
 
 log = logging.getLogger(__name__)
@@ -64,6 +64,11 @@ class EkfConfig:
     gyro_sigma_yaw_rad: float = np.deg2rad(0.01)  # gyro white noise per step
     gyro_sigma_yaw_frac: float = 0.005  # gyro scale error per radian turned
     icp_gate_chi2: float = 16.27  # ICP vs wheel/gyro increment, chi-square 3 dof, 99.9 %
+    # Map-corner errors as Schmidt "consider" states (``consider``): shared by every epoch that uses the corner,
+    # not fresh noise at each; a corner farther than consider_forget_m leaves the set. False: the paper's R only.
+    map_consider: bool = True
+    consider_forget_m: float = 120.0
+    map_cov_scale: float = 1.0  # multiplies the map's stored corner covariances (see params.ekf_map_cov_scale)
 
 
 @dataclass(frozen=True)
@@ -113,22 +118,22 @@ def icp_covariance(increment: np.ndarray, cov_info: np.ndarray | None, cfg: EkfC
 
 
 def _motion(state: ekf.EkfState, k: int, increments: np.ndarray, wheel: np.ndarray | None, dt_s: np.ndarray | None,
-            icp_cov: np.ndarray | None, cfg: EkfConfig) -> tuple[ekf.EkfState, bool]:
-    """One motion update; returns the state and whether an ICP increment was used."""
+            icp_cov: np.ndarray | None, cfg: EkfConfig) -> tuple[ekf.EkfState, bool, np.ndarray]:
+    """One motion update; returns the state, whether an ICP increment was used and the errors' transition."""
     inc = increments[k]
     if wheel is None:
         if np.all(np.isfinite(inc)):
-            return ekf.predict(state, inc, increment_covariance(inc, cfg)), True
+            return ekf.predict(state, inc, increment_covariance(inc, cfg)), True, ekf.predict_jacobian(state.q, inc)
         # no ICP edge: inflate as if standing still with a large uncertainty
-        return ekf.EkfState(state.q, state.P + np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2])), False
+        return ekf.EkfState(state.q, state.P + np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2])), False, np.eye(3)
     dt = float(dt_s[k])
     dist = float(np.hypot(wheel[k, 0], wheel[k, 1]))
     Q_bias = np.diag([cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * dt, cfg.wheel_scale_rw_per_sqrt_m**2 * dist])
     ok = bool(np.all(np.isfinite(inc)))
     Q_icp = icp_covariance(inc, None if icp_cov is None else icp_cov[k], cfg) if ok else None
-    state, chi2 = ekf.predict_wheel_icp(state, wheel[k], dt, wheel_covariance(wheel[k], cfg), inc if ok else None,
-                                        Q_icp, Q_bias, cfg.icp_gate_chi2)
-    return state, bool(ok and chi2 <= cfg.icp_gate_chi2)
+    state, chi2, Phi = ekf.predict_wheel_icp_transition(state, wheel[k], dt, wheel_covariance(wheel[k], cfg),
+                                                        inc if ok else None, Q_icp, Q_bias, cfg.icp_gate_chi2)
+    return state, bool(ok and chi2 <= cfg.icp_gate_chi2), Phi
 
 
 def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0: np.ndarray, P0: np.ndarray,
@@ -148,6 +153,8 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     n_assoc = np.zeros(n, dtype=np.int32)
     a_epoch, a_map = [], []
     off = obs.slices(n)
+    if cfg.map_cov_scale != 1.0:
+        cmap = CornerMap(cmap.en_m, cmap.cov_m2 * cfg.map_cov_scale, cmap.dirs_enu_rad)
     tree = cKDTree(cmap.en_m) if len(cmap.en_m) else None
     floor = np.diag([cfg.range_sigma_floor_m**2, cfg.bearing_sigma_floor_rad**2])
     q_init, P_init = np.asarray(q0, dtype=float).copy(), np.asarray(P0, dtype=float).copy()
@@ -162,10 +169,12 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
         P5[3, 3], P5[4, 4] = cfg.gyro_bias_sigma_rad_s**2, cfg.wheel_scale_sigma**2
         P_init = P5
     state = ekf.EkfState(q_init, P_init)
+    held = consider.empty(len(q_init))
     n_icp = 0
     for k in range(start_epoch, n):
         if k > start_epoch:
-            state, used = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg)
+            state, used, Phi = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg)
+            held = consider.forget(consider.propagate(held, Phi), state.q, cmap.en_m, cfg.consider_forget_m)
             n_icp += used
         lo, hi = off[k], off[k + 1]
         if hi > lo and tree is not None:
@@ -181,8 +190,14 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
                     yaw_walls = None
                     if cfg.wall_heading_sigma_rad > 0:
                         yaw_walls = wall_headings_rad(obs.dirs_vehicle_rad[lo:hi][a.meas_idx], cmap.dirs_enu_rad[idx])
-                    state, _ = ekf.update(state, a.z_meas, cmap.en_m[idx], a.R_blocks, yaw_walls,
-                                          cfg.wall_heading_sigma_rad)
+                    if cfg.map_consider:
+                        held, _ = consider.add(held, idx, cmap.cov_m2[idx])
+                        state, held, _ = consider.update(state, held, a.z_meas, idx, cmap.en_m[idx],
+                                                         a.R_blocks - a.R_map_blocks, yaw_walls,
+                                                         cfg.wall_heading_sigma_rad)
+                    else:
+                        state, _ = ekf.update(state, a.z_meas, cmap.en_m[idx], a.R_blocks, yaw_walls,
+                                              cfg.wall_heading_sigma_rad)
                     n_assoc[k] = len(idx)
                     a_epoch.append(np.full(len(idx), k)), a_map.append(idx)
         q_out[k], P_out[k] = state.q[:3], state.P[:3, :3]

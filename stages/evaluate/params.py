@@ -53,6 +53,9 @@ class EvaluateParams(Params):
                                        "shared by consecutive epochs)")
     bearing_sigma_floor_deg: float = Field(0.15, ge=0, description="added to extracted corners' bearing std")
     wall_heading_sigma_deg: float = Field(1.5, ge=0, description="heading from wall directions; 0 = off")
+    ekf_map_consider: bool = Field(True, description="map-corner errors as Schmidt consider states (shared by every "
+                                   "epoch using the corner, not fresh noise per epoch; evaluate/consider.py)")
+    ekf_map_cov_scale: float = Field(1.0, gt=0, description="multiplies the map's stored corner covariances")
     # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and
     # gyro bias; weights from the correlation of the scan's features with a distance likelihood field; low-variance
     # resampling; progressive correction and guarded injection (see localize_mcl.MclConfig for the measurements).

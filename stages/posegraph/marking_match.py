@@ -45,6 +45,7 @@ class MarkingMatch:
     n_features: int
     accepted: bool
     reason: str                 # "accepted" or why not (named numbers)
+    yaw_rad: float = 0.0        # heading correction of the submap the match was made at (survey_markings)
 
 
 def marking_kernel(survey_mask: np.ndarray, cell_m: float, blur_m: float) -> np.ndarray:

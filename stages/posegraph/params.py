@@ -107,6 +107,20 @@ class PosegraphParams(Params):
                                               "x this (demo, 112 fixed directions vs truth: errors 0.010 m RMS "
                                               "where the width is ~0.11 m, i.e. 0.06; 0.2 keeps a margin)")
     survey_marking_min_sigma_m: float = Field(0.01, gt=0, description="floor of the anchor std")
+    survey_marking_yaw_search_deg: float = Field(1.5, ge=0, description="the marking submap is also turned about "
+                                                 "its keyframe within +-this (0: translation only, whose shift "
+                                                 "inherits part of the estimate's heading error)")
+    survey_marking_yaw_step_deg: float = Field(0.5, gt=0, description="grid step of that search (then a parabola)")
+    survey_marking_yaw_sigma_deg: float = Field(0.2, ge=0, description="heading prior at the submap's matched "
+                                                "heading, this std (tiny calibration seeds 21/22: the matched "
+                                                "headings scatter 0.05-0.13 deg about the estimate's true heading "
+                                                "error); 0: no heading information from the markings")
+    survey_marking_consensus_window_m: float = Field(300.0, gt=0, description="horizontal anchors are checked "
+                                                     "against the other anchors of their drive within this travel "
+                                                     "(anchor_consensus.py)")
+    survey_marking_consensus_drift_sigma_m: float = Field(0.10, gt=0, description="how much the pass-2 estimate's "
+                                                          "error may differ between anchors of one window")
+    survey_marking_consensus_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of that check")
     parallel_min_items: int = Field(32, ge=1, description="independent registrations (loop candidates, survey "
                                     "anchors) run in parallel processes (or cluster tasks) from this many on; "
                                     "fewer run in the stage's own process. Results do not depend on it")

@@ -52,7 +52,7 @@ def _anchor_record(drives, offsets: np.ndarray, m) -> dict:
     if h is not None:
         rec.update({"horizontal_accepted": bool(h.accepted), "horizontal_reason": h.reason,
                     "marking_score": float(h.score), "n_features": int(h.n_features),
-                    "shift_en_m": [float(v) for v in h.shift_en_m]})
+                    "shift_en_m": [float(v) for v in h.shift_en_m], "yaw_deg": float(np.degrees(h.yaw_rad))})
         if h.accepted:
             cov = np.linalg.pinv(np.asarray(h.information_en, float))
             rec.update({"anchor_en_m": [float(v) for v in m.T_map_vehicle[:2, 3] + h.shift_en_m],

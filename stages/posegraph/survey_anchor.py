@@ -6,6 +6,7 @@ the point-to-plane Hessian, so directions the ground alone does not fix (along a
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -14,6 +15,8 @@ from scipy.spatial import cKDTree
 from stages.common.ground_plane import rotation_between
 from stages.common.registration import floor_information, prepare_cloud, register_clouds
 from stages.posegraph.graph import PosePrior
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -90,9 +93,11 @@ def vertical_information(sigma_z_m: float, sigma_tilt_rad: float, weak: float = 
     return np.diag([sigma_tilt_rad ** -2, sigma_tilt_rad ** -2, weak, weak, weak, sigma_z_m ** -2])
 
 
-def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345) -> list[PosePrior]:
+def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345, yaw_sigma_rad: float = 0.0
+                  ) -> list[PosePrior]:
     """Accepted matches as robust (Huber) absolute pose priors: the vertical part from the ground
-    registration, the horizontal part from the marking match, each where accepted."""
+    registration, the horizontal part from the marking match, each where accepted; with ``yaw_sigma_rad`` > 0
+    also the heading at which the marking submap matched (``survey_markings.best_yaw_match``)."""
     from stages.posegraph.survey_markings import horizontal_information_body
 
     out = []
@@ -102,6 +107,12 @@ def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345) -> list[P
         if h is not None and h.accepted:
             T[:2, 3] += h.shift_en_m
             info = info + horizontal_information_body(h.information_en, T[:3, :3])
+            if yaw_sigma_rad > 0:
+                c, s = np.cos(h.yaw_rad), np.sin(h.yaw_rad)
+                T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+                up = T[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # the map's vertical in the body frame
+                info = info.copy()
+                info[:3, :3] += np.outer(up, up) / yaw_sigma_rad**2
         if np.any(info):
             out.append(PosePrior(m.i, T, info, "survey", "huber", kernel_k))
     return out
@@ -170,7 +181,8 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
     with_markings = p.survey_markings and survey_intensity is not None and feature_load is not None
     marking_kwargs = dict(half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
                           search_m=p.survey_marking_search_m, raster=p.survey_marking_raster,
-                          sigma_scale=p.survey_marking_sigma_scale, min_sigma_m=p.survey_marking_min_sigma_m)
+                          sigma_scale=p.survey_marking_sigma_scale, min_sigma_m=p.survey_marking_min_sigma_m,
+                          yaw_search_deg=p.survey_marking_yaw_search_deg, yaw_step_deg=p.survey_marking_yaw_step_deg)
 
     def horizontal(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray) -> list:
         """The marking anchor of every keyframe, in blocks of consecutive keyframes run in parallel."""
@@ -200,9 +212,42 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
                                initializer=_use_survey, initargs=(survey_pts,), progress=step)
         if with_markings:
             found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
-            matches = [replace(m, horizontal=h) for m, h in zip(matches, found)]
+            matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets, p)
         if matches_out is not None:
             matches_out.extend(matches)
-        return survey_priors(matches)
+        return survey_priors(matches, yaw_sigma_rad=np.deg2rad(p.survey_marking_yaw_sigma_deg))
 
     return callback
+
+
+def checked_horizontal(matches: list[SurveyMatch], poses: np.ndarray, offsets: np.ndarray, p) -> list[SurveyMatch]:
+    """Accepted marking matches that disagree with their neighbours (``anchor_consensus``) turned into rejected
+    ones, with the reason; the others unchanged."""
+    from scipy.stats import chi2
+
+    from stages.posegraph.anchor_consensus import anchor_consensus
+
+    acc = [k for k, m in enumerate(matches) if m.horizontal is not None and m.horizontal.accepted]
+    if not acc:
+        return matches
+    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
+    step[np.asarray(offsets[:-1], np.int64)] = 0.0  # travel restarts with each drive
+    travel = np.cumsum(step)
+    idx = np.asarray([matches[k].i for k in acc], np.int64)
+    res = anchor_consensus(np.array([matches[k].horizontal.shift_en_m for k in acc]),
+                           np.array([matches[k].horizontal.information_en for k in acc]),
+                           np.searchsorted(offsets, idx, side="right") - 1, travel[idx],
+                           window_m=p.survey_marking_consensus_window_m,
+                           drift_sigma_m=p.survey_marking_consensus_drift_sigma_m,
+                           gate_chi2_1=float(chi2.ppf(p.survey_marking_consensus_probability, 1)),
+                           gate_chi2_2=float(chi2.ppf(p.survey_marking_consensus_probability, 2)))
+    out = list(matches)
+    for j, k in enumerate(acc):
+        if not res.keep[j]:
+            h = matches[k].horizontal
+            out[k] = replace(matches[k], horizontal=replace(h, accepted=False, information_en=np.zeros((2, 2)),
+                                                            reason=res.reason[j]))
+    if (~res.keep).any():
+        log.info("survey anchors: %d of %d horizontal anchors dropped as inconsistent with their neighbours",
+                 int((~res.keep).sum()), len(acc))
+    return out

@@ -75,3 +75,20 @@ def test_horizontal_anchors_pull_a_gnss_biased_graph_onto_truth(two_lap_drive):
     after = rms(horizontal_errors_m(optimize(problem), T_true))
     assert before > 0.15, before
     assert after < 0.05, (before, after)
+
+
+def test_matched_heading_becomes_a_yaw_prior_only_when_asked():
+    from dataclasses import replace
+
+    T = se3_from_xyz_rpy(10, 20, 1, 0, 0, 0.3)
+    h = replace(_match(True), yaw_rad=np.deg2rad(-0.4))
+    m = SurveyMatch(0, T, vertical_information(0.02, 0.001), 0.9, 0.1, True, "accepted", h)
+    plain = survey_priors([m])[0]
+    with_yaw = survey_priors([m], yaw_sigma_rad=np.deg2rad(0.2))[0]
+    def yaw(R):
+        return np.arctan2(R[1, 0], R[0, 0])
+
+    assert np.isclose(yaw(plain.T_map_vehicle), 0.3) and np.isclose(plain.information[2, 2], 0.0)
+    assert np.isclose(yaw(with_yaw.T_map_vehicle), 0.3 - np.deg2rad(0.4))
+    assert np.allclose(with_yaw.T_map_vehicle[:3, 3], plain.T_map_vehicle[:3, 3])  # position unchanged
+    assert np.isclose(with_yaw.information[2, 2], np.deg2rad(0.2) ** -2)  # level vehicle: body z = map up

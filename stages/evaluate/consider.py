@@ -1,0 +1,111 @@
+"""Map-corner errors as Schmidt-Kalman "consider" states of the corner EKF.
+
+A map corner's position error is fixed for the whole drive: every epoch that associates the corner sees the same
+error. Counted as fresh measurement noise at every epoch (``R = extraction + J C J^T``, eqs. 3-5 with the map
+covariance), it is averaged away: the filter's covariance shrinks below the error it carries (position NEES above
+its band at corner epochs). The Schmidt-Kalman filter keeps the errors ``c_k ~ N(0, C_k)`` of the corners it has
+used beside the vehicle state: ``C`` (the map's stored 2x2 covariances) is never updated (the map is not
+re-estimated) and the state is not corrected along it, but the cross-covariance ``P_xc`` between the vehicle
+errors and the corner errors is propagated through the motion and updated with every measurement, so a second look
+at a corner knows how much of its error the estimate already holds. A corner farther than ``forget_m`` from the
+vehicle leaves the set (its correlation is forgotten; seen again, it starts fresh).
+Pure numpy, new arrays out.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.common.geometry import wrap_angle_rad
+from stages.evaluate.ekf import EkfState, map_corner_jacobian, predict_range_bearing
+
+
+@dataclass(frozen=True)
+class ConsiderSet:
+    idx: np.ndarray  # (m,) map-corner rows held
+    P_xc: np.ndarray  # (n, 2m) cross-covariance of the vehicle state errors and the corners' (e, n) errors
+    C: np.ndarray  # (m, 2, 2) the corners' own covariances (constant)
+
+
+def empty(n_state: int) -> ConsiderSet:
+    return ConsiderSet(np.zeros(0, np.int64), np.zeros((n_state, 0)), np.zeros((0, 2, 2)))
+
+
+def propagate(cs: ConsiderSet, Phi: np.ndarray) -> ConsiderSet:
+    """Motion: the corners do not move, the vehicle errors go through their transition ``Phi`` (n, n)."""
+    return ConsiderSet(cs.idx, Phi @ cs.P_xc, cs.C)
+
+
+def forget(cs: ConsiderSet, xy_m: np.ndarray, corners_en_m: np.ndarray, forget_m: float) -> ConsiderSet:
+    """Drop the corners farther than ``forget_m`` from the vehicle position ``xy_m``."""
+    if len(cs.idx) == 0:
+        return cs
+    keep = np.hypot(*(corners_en_m[cs.idx] - np.asarray(xy_m)[:2]).T) <= forget_m
+    cols = np.repeat(keep, 2)
+    return ConsiderSet(cs.idx[keep], cs.P_xc[:, cols], cs.C[keep])
+
+
+def add(cs: ConsiderSet, idx: np.ndarray, C_blocks: np.ndarray) -> tuple[ConsiderSet, np.ndarray]:
+    """Add the corners not yet held (no correlation with the vehicle yet); returns the set and each given
+    corner's position in it."""
+    idx = np.asarray(idx, dtype=np.int64)
+    new = ~np.isin(idx, cs.idx)
+    held = cs
+    if new.any():
+        n = cs.P_xc.shape[0]
+        held = ConsiderSet(np.concatenate([cs.idx, idx[new]]), np.hstack([cs.P_xc, np.zeros((n, 2 * int(new.sum())))]),
+                           np.concatenate([cs.C, np.asarray(C_blocks, float).reshape(-1, 2, 2)[new]]))
+    pos = {int(k): i for i, k in enumerate(held.idx)}
+    return held, np.array([pos[int(k)] for k in idx], dtype=np.int64)
+
+
+def update(state: EkfState, cs: ConsiderSet, z_meas: np.ndarray, corner_idx: np.ndarray, corners_en_m: np.ndarray,
+           R_extraction: np.ndarray, yaw_meas_rad: np.ndarray | None = None, yaw_sigma_rad: float = 0.0
+           ) -> tuple[EkfState, ConsiderSet, np.ndarray]:
+    """Schmidt-Kalman update with N associated corners (rows ``corner_idx`` of the map, positions
+    ``corners_en_m`` (N,2), covariances already in ``cs`` or added here from ``cs``'s caller via ``add``).
+
+    ``R_extraction`` (N,2,2): the extracted corners' range/bearing noise only (the map part is the consider
+    states'). Optional direct heading measurements (M,) with std ``yaw_sigma_rad``, as ``ekf.update``.
+    Full-matrix Joseph form with the consider rows of the gain at zero. Returns (state, set, innovation).
+    """
+    z_meas = np.asarray(z_meas, dtype=float).reshape(-1, 2)
+    yaw_meas = np.zeros(0) if yaw_meas_rad is None else np.asarray(yaw_meas_rad, dtype=float).reshape(-1)
+    n, m_yaw, nx = len(z_meas), len(yaw_meas), len(state.q)
+    if n + m_yaw == 0:
+        return state, cs, np.zeros(0)
+    pos = np.array([int(np.flatnonzero(cs.idx == k)[0]) for k in np.asarray(corner_idx)], dtype=np.int64)
+    z_pred, H_rb = predict_range_bearing(state.q, np.asarray(corners_en_m, dtype=float).reshape(-1, 2))
+    nu_rb = z_meas - z_pred
+    nu_rb[:, 1] = wrap_angle_rad(nu_rb[:, 1])
+    nu = np.concatenate([nu_rb.reshape(-1), wrap_angle_rad(yaw_meas - state.q[2])])
+    rows = 2 * n + m_yaw
+    Hx = np.zeros((rows, nx))
+    Hx[:2 * n, :3] = H_rb
+    Hx[2 * n:, 2] = 1.0
+    nc = 2 * len(cs.idx)
+    Hc = np.zeros((rows, nc))
+    Jm = map_corner_jacobian(H_rb)
+    Cf = np.zeros((nc, nc))
+    for j, p in enumerate(cs.C):
+        Cf[2 * j:2 * j + 2, 2 * j:2 * j + 2] = p
+    for j, p in enumerate(pos):
+        Hc[2 * j:2 * j + 2, 2 * p:2 * p + 2] = Jm[j]
+    R = np.zeros((rows, rows))
+    for j in range(n):
+        R[2 * j:2 * j + 2, 2 * j:2 * j + 2] = R_extraction[j]
+    R[np.arange(2 * n, rows), np.arange(2 * n, rows)] = yaw_sigma_rad**2
+    P, Pxc = state.P, cs.P_xc
+    PHt = P @ Hx.T + Pxc @ Hc.T  # cov(x, innovation)
+    HcCf = Hc @ Cf
+    S = Hx @ PHt + Hc @ Pxc.T @ Hx.T + HcCf @ Hc.T + R
+    S = 0.5 * (S + S.T)
+    K = np.linalg.solve(S, PHt.T).T
+    q = state.q + K @ nu
+    q[2] = wrap_angle_rad(q[2])
+    A = np.eye(nx) - K @ Hx
+    B = K @ Hc
+    P_new = A @ P @ A.T - A @ Pxc @ B.T - B @ Pxc.T @ A.T + B @ Cf @ B.T + K @ R @ K.T
+    Pxc_new = A @ Pxc - K @ HcCf
+    return EkfState(q, 0.5 * (P_new + P_new.T)), ConsiderSet(cs.idx, Pxc_new, cs.C), nu
