@@ -1,11 +1,12 @@
 """Declaration of the tiles stage (imports nothing heavy)."""
-from pipeline.declare import Partitioning, StageDecl
+from pipeline.declare import Partitioning, StageDecl, source_digest
 from stages.tiles.params import TilesParams
 
 STAGE = StageDecl(
     name="tiles",
     summary="Publish the corner map and marking rasters as an immutable, checksummed map version (vNNNN + LATEST).",
-    code_version="2",
+    # the published layout and the vectorizer it runs are part of what it writes
+    code_version="2+" + source_digest("mapformat", "stages.common.marking_vectors"),
     inputs={"corner_map": "corner_map", "raster": "marking_raster", "rasters": "marking_rasters",
             "poses": "poses_optimized", "drive_info": "drive_info"},
     optional_inputs=frozenset({"raster", "rasters"}),
