@@ -114,9 +114,13 @@ def build_cmd(
     path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root, origin=pinned,
                                 tile_size_m=tile_size_m)
     result = execute_workflow(path, root=root, scheduler=scheduler, only=None, dry_run=False, quiet=quiet)
+    from pipeline.maps import stale_latest_note
     from pipeline.progress import print_outcomes
 
     print_outcomes(result["plan"])
+    note = stale_latest_note(result["plan"], map_name)
+    if note:
+        typer.echo(note, err=True)
 
 
 @catalog_app.command("ls")

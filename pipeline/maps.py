@@ -249,3 +249,30 @@ def rollback(mdir: Path, to: str) -> tuple[int | None, int]:
         before = read_latest(mdir)
         write_latest(Path(mdir), number)
     return before, number
+
+
+def stale_latest_note(plan: Any, name: str) -> str | None:
+    """When the version this run's drive set published is not LATEST (an earlier run published it, and another
+    drive set's version has been published since), the line that says so; None when it is LATEST."""
+    import pyarrow.parquet as pq
+
+    from pipeline.store import dataset_dir, read_manifest
+    from pipeline.versioned import read_latest, version_name
+
+    for sp in plan.stages.values():
+        for ds in sp.outputs.values():
+            if ds != "map_tiles":
+                continue
+            ddir = dataset_dir(plan.root, ds, sp.fingerprint)
+            m = read_manifest(ddir)
+            if not m or not m["files"]:
+                return None
+            table = pq.read_table(ddir / m["files"][0]["path"], columns=["map_name", "version"]).to_pylist()
+            mine = next((int(r["version"]) for r in table if r["map_name"] == name), None)
+            latest = read_latest(map_dir(plan.root, name))
+            if mine is None or latest is None or latest == mine:
+                return None
+            return (f"note: map {name!r}: this drive set is version {version_name(mine)} (published by an earlier "
+                    f"run), but LATEST is {version_name(latest)}; `cornermap tiles rollback --to "
+                    f"{version_name(mine)}` serves it, `cornermap rebuild` adds drives to the map")
+    return None

@@ -94,7 +94,9 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         "n_tiles": pa.array([int(pub.manifest["n_tiles"])], pa.int32()),
         "n_corners": pa.array([int(pub.manifest["n_corners"])], pa.int64()),
         "manifest_sha256": pa.array([pub.manifest_sha256], pa.string())}, schema=schema_of("map_tiles"))
-    outcome = [f"published map {name!r} version {pub.name}: {{root}}/maps/{name}/{pub.name} "
+    held = ctx.settings.get("hold_latest", False)
+    what = "wrote candidate (LATEST not moved)" if held else "published"
+    outcome = [f"{what} map {name!r} version {pub.name}: {{root}}/maps/{name}/{pub.name} "
                f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles)"]
     return {"published": table, "_extra": {"outcome": outcome}}
 
