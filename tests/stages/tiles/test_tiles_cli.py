@@ -9,18 +9,12 @@ from typer.testing import CliRunner
 
 from pipeline.errors import ChecksumError, UnknownNameError
 from stages.tiles.cli import register
-from stages.tiles.compute import compute
-from tests.stages.tiles.tiles_synth import building_corners, buildings, city_context, corner_table
+from tests.stages.tiles.tiles_synth import publish_two_versions
 
 
 @pytest.fixture(scope="module")
 def root(tmp_path_factory):
-    root = tmp_path_factory.mktemp("cli")
-    xy, dirs, owner = building_corners(buildings())
-    compute(city_context(root, corner_table(xy, dirs, seed=3)))
-    keep = owner != 0
-    compute(city_context(root, corner_table(xy[keep], dirs[keep], seed=4), fingerprint="fp2"))
-    return root
+    return publish_two_versions(tmp_path_factory.mktemp("cli"))
 
 
 @pytest.fixture(scope="module")

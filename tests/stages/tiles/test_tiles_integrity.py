@@ -18,18 +18,12 @@ from mapformat.loader import open_map
 from mapformat.verify import verify_map
 from pipeline.errors import IntegrityError, LimitError, PathEscapeError, PublishConflictError
 from pipeline.versioned import LATEST_NAME, read_latest_entry, read_manifest, trusted_manifest_digests
-from stages.tiles.compute import compute
-from tests.stages.tiles.tiles_synth import building_corners, buildings, city_context, corner_table
+from tests.stages.tiles.tiles_synth import publish_two_versions
 
 
 @pytest.fixture(scope="module")
 def pristine(tmp_path_factory):
-    root = tmp_path_factory.mktemp("integrity")
-    xy, dirs, owner = building_corners(buildings())
-    compute(city_context(root, corner_table(xy, dirs, seed=3)))
-    keep = owner != 0
-    compute(city_context(root, corner_table(xy[keep], dirs[keep], seed=4), fingerprint="fp2"))
-    return root
+    return publish_two_versions(tmp_path_factory.mktemp("integrity"))
 
 
 @pytest.fixture

@@ -153,3 +153,14 @@ def city_context(root: Path, corners: pa.Table, *, params=None, fingerprint: str
     if rasters and not flat_rasters:  # the store serves one artifact directory per partition
         ctx.inputs.artifact_dir = lambda arg, partition=None: base / partition.label
     return ctx
+
+
+def publish_two_versions(root: Path) -> Path:
+    """Two published versions of the synthetic city map under ``root``: all buildings, then without building 0."""
+    from stages.tiles.compute import compute
+
+    xy, dirs, owner = building_corners(buildings())
+    compute(city_context(root, corner_table(xy, dirs, seed=3)))
+    keep = owner != 0
+    compute(city_context(root, corner_table(xy[keep], dirs[keep], seed=4), fingerprint="fp2"))
+    return root
