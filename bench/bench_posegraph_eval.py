@@ -21,7 +21,7 @@ KEYS = ["abs_horizontal_rms_m", "abs_horizontal_max_m", "self_consistency_rms_m"
 def committed(plan, stage: str, key: str, dataset: str):
     """A reader of one committed output of ``stage`` in ``plan`` (arg ``key``)."""
     from pipeline.errors import DatasetIOError
-    from pipeline.store import StoreInputReader
+    from pipeline.reader import StoreInputReader
 
     sp = plan.stages[stage]
     if not sp.committed:

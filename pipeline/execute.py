@@ -19,15 +19,9 @@ from pipeline.catalog import resolve_schema
 from pipeline.declare import Partitioning, PartitionKey, StageContext
 from pipeline.errors import CornermapError, StageError
 from pipeline.plan import Plan, StagePlan
+from pipeline.reader import StoreInputReader, merge_part_extras
 from pipeline.registry import get_stage
-from pipeline.store import (
-    StoreInputReader,
-    atomic_write_json,
-    commit_artifacts,
-    dataset_dir,
-    merge_part_extras,
-    write_pieces,
-)
+from pipeline.store import atomic_write_json, commit_artifacts, dataset_dir, write_pieces
 
 log = logging.getLogger(__name__)
 

@@ -162,7 +162,7 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
     from pipeline.api import execute_workflow
     from pipeline.catalog import resolve_schema
     from pipeline.declare import PartitionKey, StageContext
-    from pipeline.store import StoreInputReader
+    from pipeline.reader import StoreInputReader
     from stages.evaluate.compute import compute
     from stages.evaluate.decl import STAGE
 

@@ -12,8 +12,9 @@ import yaml
 
 from pipeline.errors import ConfigError, IntegrityError, PathEscapeError
 from pipeline.names import check_name, inside, name_problem
+from pipeline.reader import StoreInputReader
 from pipeline.safe_yaml import load_yaml, load_yaml_file
-from pipeline.store import StoreInputReader, write_pieces
+from pipeline.store import write_pieces
 
 REPO = Path(__file__).resolve().parents[2]
 SCHEMA = pa.schema([("drive", pa.string()), ("scan_id", pa.int64()), ("x_m", pa.float64())])

@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.declare import PartitionKey
 from pipeline.errors import DatasetIOError
-from pipeline.store import StoreInputReader
+from pipeline.reader import StoreInputReader
 
 
 def _write_dataset(root, n_files=3, scans_per_file=10, rows_per_scan=7, row_group_rows=21):
