@@ -53,6 +53,11 @@ class CornerParams(Params):
                                           "walls of a candidate [deg].")
     max_interior_angle_deg: float = Field(155.0, gt=0.0, lt=180.0, description="Largest angle between the two "
                                           "walls of a candidate [deg]; obtuse and chamfered corners are kept.")
+    min_wall_length_m: float = Field(2.0, ge=0.0, description="Both lines of a candidate must be at least this "
+                                     "long: small structures (bus shelters, kiosks with a short side, fence "
+                                     "posts) fail, and so do the short chords the line split cuts a rounded "
+                                     "corner into (radius <= 5 m at split_distance_m 0.1 m: chords < 2 m), so a "
+                                     "rounded corner gives no corner [m].")
     # 5. Corner determination
     cluster_radius_m: float = Field(0.3, gt=0.0, description="Candidates of different layers closer than this "
                                     "in the horizontal plane belong to the same corner [m].")
