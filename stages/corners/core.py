@@ -77,13 +77,21 @@ def wall_lengths_m(corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np
 
 
 def _drop_short_walls(corners: Corners, corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np.ndarray,
-                      min_wall_length_m: float) -> tuple[Corners, np.ndarray]:
-    """Small-structure check: a corner whose shorter wall, as the best of its layers saw it, is shorter than
-    ``min_wall_length_m`` is dropped (bus shelters, kiosk sides, the chords of a rounded corner)."""
-    if not len(corners) or min_wall_length_m <= 0:
+                      p: CornerParams) -> tuple[Corners, np.ndarray]:
+    """Small-structure check on the walls as the best of a corner's layers saw them. Dropped when
+    - the shorter wall is under ``min_wall_length_m`` or the longer one under ``min_long_wall_length_m`` (bus
+      shelters, kiosks): a facade corner whose side wall is seen at a grazing angle keeps a long front wall,
+      so only the longer wall has to be long;
+    - the corner is obtuse (interior angle over ``obtuse_angle_deg``) and its shorter wall is under
+      ``min_obtuse_wall_length_m``: the chords the line split cuts a rounded corner into, and the facet of a
+      short chamfer, meet their neighbours at obtuse angles; a rounded corner gives no corner."""
+    if not len(corners):
         return corners, corner_of
     walls = wall_lengths_m(corner_of, length_a_m, length_b_m, len(corners))
-    return _keep(corners, corner_of, walls.min(axis=1) < min_wall_length_m)
+    shorter, longer = walls.min(axis=1), walls.max(axis=1)
+    obtuse = corners.interior_angle_rad > np.radians(p.obtuse_angle_deg)
+    return _keep(corners, corner_of, (shorter < p.min_wall_length_m) | (longer < p.min_long_wall_length_m)
+                 | (obtuse & (shorter < p.min_obtuse_wall_length_m)))
 
 
 def _drop_unverifiable(corners: Corners, corner_of: np.ndarray, cand_layer: np.ndarray, pts: np.ndarray,
@@ -143,7 +151,7 @@ def trace_corners(points_xyz: np.ndarray, ring: np.ndarray, params: CornerParams
                                            min_layers=p.min_layers, min_sigma_m=p.min_sigma_m,
                                            time_offset_s=cand_t, angular_sigma_rad=p.angular_sigma_mrad * 1e-3)
     corners, corner_of = _drop_short_walls(corners, corner_of, lines.length_m[cand.line_a],
-                                           lines.length_m[cand.line_b], p.min_wall_length_m)
+                                           lines.length_m[cand.line_b], p)
     corners, corner_of = _drop_unverifiable(corners, corner_of, cand.layer, pts, xy, layer, az, src, layers_used, p)
     return CornerTrace(xy_m=xy, layer=layer, layers_used=layers_used, lines=lines, line_label=label,
                        candidates=cand, candidate_corner=corner_of, corners=corners)
