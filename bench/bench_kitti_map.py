@@ -7,13 +7,12 @@ markings stage's peak RSS, and a figure of the accumulated markings and corners.
 
 DIR receives the drive folder (links to the shared scans) and the output root; it is reused when present.
 The markings stage is re-run alone in a child process (``cornermap run --only markings --scheduler sync``
-with a fingerprint-changing no-op override) so its peak RSS is measured on its own.
+with a fingerprint-changing no-op override, under /usr/bin/time) so its peak RSS is measured on its own.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -49,16 +48,21 @@ def build(work: Path) -> tuple[Path, Path]:
 
 
 def rerun_markings(root: Path, workflow: Path, params: dict) -> dict:
-    """Run the markings stage alone in a child process; its wall time and peak RSS (ru_maxrss of children)."""
+    """Bring every stage up to date with this code, then run the markings stage alone in a child process under
+    /usr/bin/time: its wall time and peak RSS."""
+    subprocess.run([sys.executable, "-m", "pipeline", "run", str(workflow), "--root", str(root), "--scheduler", "sync",
+                    "-q"], check=False, cwd=REPO, capture_output=True)  # upstream refresh (tiles' gate may refuse)
     markings = dict(params.get("markings") or {})
     markings["pose_buffer_m"] = float(markings.get("pose_buffer_m", 30.0)) + (time.time_ns() % 1000) * 1e-9  # new fp
     override = root.parent / "markings_override.yaml"
     override.write_text(yaml.safe_dump({**params, "markings": markings}))
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "pipeline", "run", str(workflow), "--root", str(root), "--only", "markings",
-                    "--scheduler", "sync", "-q", "--params", str(override)], check=True, cwd=REPO)
-    peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return {"markings_wall_s": round(time.perf_counter() - t0, 1), "markings_peak_rss_mb": round(peak_kb / 1024, 1)}
+    run = subprocess.run(["/usr/bin/time", "-f", "peak_kb=%M wall_s=%e", sys.executable, "-m", "pipeline", "run",
+                          str(workflow), "--root", str(root), "--only", "markings", "--scheduler", "sync", "-q",
+                          "--params", str(override)], cwd=REPO, capture_output=True, text=True)
+    if run.returncode != 0:
+        raise SystemExit(f"markings re-run failed: {run.stderr.strip().splitlines()[-3:]}")
+    stats = dict(kv.split("=") for kv in run.stderr.strip().splitlines()[-1].split())
+    return {"markings_wall_s": float(stats["wall_s"]), "markings_peak_rss_mb": round(int(stats["peak_kb"]) / 1024, 1)}
 
 
 def stitch(root: Path):
@@ -141,7 +145,7 @@ def plot(fig: dict, path: Path, title: str) -> None:
         for t in th:
             ax.plot([e, e + 2.0 * np.cos(t)], [n, n + 2.0 * np.sin(t)], "-", color="lime", lw=1.5)
     if len(fig["corners"]):
-        ax.plot(*fig["corners"].T, "o", color="lime", ms=7, mfc="none", label="map corners (walls 2 m)")
+        ax.plot(*fig["corners"].T, "o", color="lime", ms=7, mfc="none", label="map corners (ticks: wall directions)")
     occ = np.argwhere(layers["occupied"])
     west, east, south, north = fig["extent"]
     cell = (east - west) / layers["occupied"].shape[1]

@@ -99,24 +99,23 @@ class GridAccumulator:
         return int(flat.size)
 
     def _keep_lowest_layer(self, flat: np.ndarray, up: np.ndarray, inten: np.ndarray):
-        """Restart cells whose surface dropped by more than the band; keep the piece's points within the band."""
+        """Restart cells whose surface dropped below a kept point's band; keep the piece's points within the band.
+        Whole-grid arrays (no sort of the piece's cell ids): a few grid-sized temporaries per piece."""
         band = self.surface_band_m
-        cells, inverse = np.unique(flat, return_inverse=True)  # touched cells only: pieces are sparse in a tile
-        piece_min = np.full(cells.size, np.inf)
-        np.minimum.at(piece_min, inverse, up)
-        old_min = self._min_up[cells]
-        new_min = np.minimum(old_min, piece_min)
+        new_min = self._min_up.copy()
+        np.minimum.at(new_min, flat, up)
         # a kept point would now stand above the band: the cell restarts from the new, lower surface
-        restart = cells[(self._max_up[cells] > new_min + band) & (self._count[cells] > 0)]
-        self.n_above_surface += int(self._count[restart].sum())
-        self.n_points -= int(self._count[restart].sum())
+        restart = np.flatnonzero((self._max_up > new_min + band) & (self._count > 0))
+        dropped = int(self._count[restart].sum())
+        self.n_above_surface += dropped
+        self.n_points -= dropped
         self._count[restart] = 0
         self._sum_up[restart] = 0.0
         self._sum_intensity[restart] = 0.0
         self._max_up[restart] = -np.inf
-        self._min_up[cells] = new_min
-        low = up <= new_min[inverse] + band
-        self.n_above_surface += int(low.size - low.sum())
+        self._min_up = new_min
+        low = up <= new_min[flat] + band
+        self.n_above_surface += int(low.size - np.count_nonzero(low))
         return flat[low], up[low], inten[low]
 
     def finish(self, min_points: int = 1) -> ElevationGrid:
