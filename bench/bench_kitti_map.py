@@ -136,7 +136,7 @@ def plot(fig: dict, path: Path, title: str) -> None:
     rgb = np.dstack([gray * 0.8] * 3) * layers["occupied"][..., None]
     rgb[layers["traversable"] & ~layers["marking"]] *= np.array([0.75, 0.85, 1.0])
     rgb[layers["marking"]] = (1.0, 0.15, 0.1)
-    f, ax = plt.subplots(figsize=(11, 9), constrained_layout=True)
+    f, ax = plt.subplots(figsize=(10, 8), constrained_layout=True)
     ax.imshow(rgb, extent=fig["extent"], interpolation="nearest")
     ax.plot(*fig["path"].T, "-", color="cyan", lw=1.2, label="driven path (poses_optimized)")
     if len(fig["rejected"]):
@@ -155,7 +155,7 @@ def plot(fig: dict, path: Path, title: str) -> None:
     ax.set_ylabel("north (m)")
     ax.set_title(title + " - grey: intensity, blue tint: traversable, red: markings")
     ax.legend(loc="lower right", fontsize=8)
-    f.savefig(path, dpi=110)
+    f.savefig(path, dpi=80)
     plt.close(f)
 
 
