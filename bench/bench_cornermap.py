@@ -6,6 +6,10 @@ Examples (2-core machine):
   python -m bench.bench_cornermap --sim DIR --corners C.parquet --poses P.parquet --drive-info I.parquet \\
       [--truth-poses DIR/truth/drive_00.tum]                       # real extraction output of the pipeline
   add --figure docs/figures/cornermap_gangnam.png for the map with covariance ellipses over the buildings.
+  add --truth-filter COLUMN=VALUE (e.g. kind=building) to score against the rows of truth/corners.csv with that
+  value only: map corners on street furniture then count as false positives (precision against buildings).
+Every run prints "duplicates (1 m, matching walls)": pairs of map corners within 1 m whose walls agree within
+12 deg (the issue's definition), besides the map corners matched to one true corner twice.
 """
 from __future__ import annotations
 
@@ -35,6 +39,19 @@ log = logging.getLogger("bench.cornermap")
 
 def read_table(path: str) -> pa.Table:
     return ds.dataset(path, format="parquet", partitioning="hive").to_table()
+
+
+def truth_filter_mask(sim: Path, truth_filter: str) -> np.ndarray:
+    """(K,) rows of DIR/truth/corners.csv whose COLUMN equals VALUE (as text), from 'COLUMN=VALUE'."""
+    import csv
+
+    path = sim / "truth" / "corners.csv"
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(line for line in fh if not line.startswith("#")))
+    column, _, value = truth_filter.partition("=")
+    if rows and column not in rows[0]:
+        raise SystemExit(f"{path}: no column {column!r} for --truth-filter (columns: {sorted(rows[0])})")
+    return np.array([str(r[column]).strip() == value for r in rows], bool)
 
 
 def load_truth_corners(sim: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -122,6 +139,10 @@ def pipeline_inputs(args) -> dict:
 
         sensed = sensed_corner_truth(Path(args.sim), drive0)
         views, truth_theta = sensed.views.astype(float), sensed.theta_rad
+    if args.truth_filter:  # e.g. building corners only: street furniture in the map becomes false positives
+        keep = truth_filter_mask(Path(args.sim), args.truth_filter)
+        truth_en, truth_theta, seen = truth_en[keep], truth_theta[keep], seen[keep]
+        views = views[keep] if views is not None else None
     return {"corners": corners, "poses": poses, "drive_info": info, "truth_en": truth_en, "truth_theta": truth_theta,
             "seen": seen, "views": views, "truth_pose_en": truth_pose_en, "drive0": drive0,
             "buildings": [np.asarray(b["footprint_en"], float) for b in city["buildings"]]}
@@ -170,6 +191,8 @@ def main(argv=None) -> None:
     ap.add_argument("--drives", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--figure", help="write the map figure (PNG) here")
+    ap.add_argument("--truth-filter", help="COLUMN=VALUE: score against these rows of truth/corners.csv only "
+                                           "(with --corners), e.g. kind=building")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     if args.corners and not (args.poses and args.drive_info and args.sim):
@@ -234,6 +257,10 @@ def main(argv=None) -> None:
     for name, s in (("map (truth shifted by local pose offset)", in_frame), ("absolute", absolute)):
         print(f"| {name} | {s['precision']:.4f} | {s['recall']:.4f} | {s['rms_pos_m']:.4f} | "
               f"{s['rms_angle_deg']:.3f} | {s['n_duplicates']} |")
+    from stages.cornermap.merge import count_duplicates
+
+    print(f"duplicates (1 m, matching walls): {count_duplicates(map_en, map_theta, 1.0)}; merged groups "
+          f"{extra.get('n_merged_groups', 0)}, duplicates rejected {extra.get('n_duplicates_rejected', 0)}")
     print(f"drive 0: {km:.2f} km; text export {len(text.encode()) / 1024:.1f} KB = "
           f"{len(text.encode()) / 1024 / km:.1f} KB/km; Parquet (zstd) {parquet_bytes / 1024:.1f} KB = "
           f"{parquet_bytes / 1024 / km:.1f} KB/km")

@@ -4,6 +4,8 @@
     .venv/bin/python -m bench.bench_markings --sim /tmp/sim/gangnam  # precision/recall vs truth/markings.png
     .venv/bin/python -m bench.bench_markings --sim DIR --figure docs/figures/markings_gangnam.png
     .venv/bin/python -m bench.bench_markings --amsterdam --figure docs/figures/markings_amsterdam_2293_9698.png
+    .venv/bin/python -m bench.bench_markings --traffic    # recall with cars standing on the paint in a share of
+                                                          # the scans (synthetic street, seeds 2-5), band on / off
     .venv/bin/python -m bench.bench_markings --sim DIR --rasters ROOT/datasets/marking_rasters/<fp> \
         --poses ROOT/datasets/poses_optimized/<fp>   # a pipeline's tiles (e.g. source: drives) vs truth
 
@@ -266,6 +268,35 @@ def _sim_figure(tiles, truth, meta, params, figure: Path, name: str) -> None:
                         f"cell {r.cell_m} m", truth=tru, extent_m=extent)
 
 
+def bench_traffic(seeds=(2, 3, 4, 5), shares=(0.0, 0.5, 0.8, 1.0), density_per_m2: float = 2500.0) -> dict:
+    """Marking recall / precision (1 cell) of the synthetic street (stages.markings.synthetic.traffic_scans: two
+    box cars on the lane line and the crosswalk in ``share`` of 10 scans), with the lowest surface (default
+    band) and without it (band 0); the worst seed per row."""
+    from stages.common.marking_raster.elevation_grid import GridAccumulator
+    from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
+    from stages.markings.synthetic import traffic_scans, truth_raster
+
+    truth = truth_raster(200, 200, 0.0, 0.0, 0.1)
+    out = {}
+    for band in (MarkingParams().surface_band_m, 0.0):
+        params = MarkingParams(surface_band_m=band)
+        halo = halo_px_for(0.1, params.threshold_block_m, params.ground_window_m)
+        for share in shares:
+            scores = []
+            for seed in seeds:
+                acc = GridAccumulator(-halo * 0.1, -halo * 0.1, 0.1, (200 + 2 * halo, 200 + 2 * halo), band)
+                for scan in traffic_scans(np.random.default_rng(seed), traffic_share=share,
+                                          density_per_m2=density_per_m2):
+                    acc.add(scan.points_enu_m, scan.intensity)
+                layer = rasterize_grid(acc.finish(params.min_points_per_cell), halo, **params.rasterize_kwargs())
+                scores.append(match_masks(layer.marking, truth, tolerance_px=1))
+            out[f"band {band} m, cars in {share:.0%} of scans"] = {
+                "recall_worst": round(min(s["recall"] for s in scores), 4),
+                "recall_mean": round(float(np.mean([s["recall"] for s in scores])), 4),
+                "precision_worst": round(min(s["precision"] for s in scores), 4)}
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sim", type=Path, help="simulator output directory (survey/*.las, truth/markings.*)")
@@ -277,8 +308,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rasters", type=Path, help="a pipeline's marking_rasters dataset folder (with --sim): score "
                                                  "its tiles instead of running the stage on the survey")
     ap.add_argument("--poses", type=Path, help="poses_optimized dataset folder of that run (map-frame score)")
+    ap.add_argument("--traffic", action="store_true", help="recall with cars standing on the paint (synthetic)")
     args = ap.parse_args(argv)
     params = MarkingParams(cell_m=args.cell)
+    if args.traffic:
+        for name, row in bench_traffic().items():
+            print(name, json.dumps(row))
+        return
     print(f"machine: {_machine()}")
     with tempfile.TemporaryDirectory(prefix="bench-markings-") as tmp:
         workdir = Path(tmp)

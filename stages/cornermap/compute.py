@@ -14,6 +14,7 @@ from stages.common.records import Extrinsics, pose_matrices
 from stages.cornermap.aggregate import aggregate_clusters
 from stages.cornermap.clustering import cluster_observations
 from stages.cornermap.filtering import FilterThresholds, reject_reasons
+from stages.cornermap.merge import merge_duplicates
 from stages.cornermap.params import CornerMapParams
 from stages.cornermap.partition import cluster_partitioned
 from stages.cornermap.transform import covariance_from_components, transform_to_enu
@@ -102,16 +103,33 @@ def compute(ctx) -> dict[str, Any]:
 
     labels, report = cluster_partitioned(obs.en_m, obs.theta_enu_rad, cell_size_m=p.cell_size_m, halo_m=p.halo_m,
                                          link_radius_m=p.link_radius_m, workers=p.workers, cluster=cluster)
-    summary = aggregate_clusters(labels, obs, drive_code, drive_names, col("stamp_ns"), col("interior_angle_rad"),
-                                 col("convex"))
-    reasons = reject_reasons(summary, FilterThresholds(
-        min_obs=p.min_obs, min_drives=p.min_drives, max_spread_m=p.max_spread_m,
-        max_cov_trace_m2=p.max_cov_trace_m2, max_angle_spread_rad=np.radians(p.max_angle_spread_deg)))
+    thresholds = FilterThresholds(min_obs=p.min_obs, min_drives=p.min_drives, max_spread_m=p.max_spread_m,
+                                  max_cov_trace_m2=p.max_cov_trace_m2,
+                                  max_angle_spread_rad=np.radians(p.max_angle_spread_deg))
+
+    def summarise(lab):
+        return aggregate_clusters(lab, obs, drive_code, drive_names, col("stamp_ns"), col("interior_angle_rad"),
+                                  col("convex"))
+
+    summary = summarise(labels)
+    duplicate, n_merged = np.zeros(len(summary.n_obs), bool), 0
+    if p.merge_radius_m > 0:
+        labels, duplicate, n_merged = merge_duplicates(
+            labels, summary.en_m, summary.theta_rad, summary.n_obs,
+            lambda lab: np.array([r == "" for r in reject_reasons(summarise(lab), thresholds)], bool),
+            merge_radius_m=p.merge_radius_m, angle_tol_rad=np.radians(p.angle_tol_deg), max_neighbors=p.max_neighbors)
+        summary = summarise(labels)
+    reasons = reject_reasons(summary, thresholds)
+    for i in np.flatnonzero(duplicate):
+        reasons[i] = "; ".join(filter(None, [reasons[i], f"duplicate: a stronger corner with the same walls lies "
+                                                         f"within {p.merge_radius_m:.2f} m"]))
     kept = np.array([r == "" for r in reasons], bool)
-    extra["cornermap"].update({"n_cells": report.n_cells, "n_wide_clusters": report.n_wide_clusters,
+    extra["cornermap"].update({"n_merged_groups": n_merged, "n_duplicates_rejected": int(duplicate.sum()),
+                               "n_cells": report.n_cells, "n_wide_clusters": report.n_wide_clusters,
                                "n_partition_conflicts": report.n_conflicts, "n_clusters": len(kept),
                                "n_kept": int(kept.sum()), "n_rejected": int((~kept).sum())})
-    log.info("cornermap: %d observations -> %d clusters -> %d corners kept", len(labels), len(kept), kept.sum())
+    log.info("cornermap: %d observations -> %d clusters (%d duplicate groups merged, %d duplicates rejected) -> "
+             "%d corners kept", len(labels), len(kept), n_merged, int(duplicate.sum()), kept.sum())
     table = corner_map_table(summary, kept)
     en_map = np.column_stack([table["east_m"].to_numpy(), table["north_m"].to_numpy()])
     extra["cornermap"]["layer_vs_poses"] = check_layer_vs_poses(ctx, all_corners, all_poses, en_map, p)

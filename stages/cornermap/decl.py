@@ -5,7 +5,7 @@ from stages.cornermap.params import CornerMapParams
 STAGE = StageDecl(
     name="cornermap",
     summary="Cluster per-scan corners across scans and drives into one covariance-filtered map record per corner",
-    code_version="3",
+    code_version="4",
     inputs={"corners": "corners_per_scan", "poses": "poses_optimized", "drive_info": "drive_info"},
     outputs={"corner_map": "corner_map", "rejected": "corner_map_rejected"},
     params=CornerMapParams,

@@ -17,6 +17,10 @@ class CornerMapParams(Params):
     max_neighbors: int = Field(24, ge=2, description="k of the k-nearest-neighbour graph (bounds the work)")
     split_spread_m: float = Field(0.25, gt=0.0,
                                   description="a cluster whose principal std exceeds this is split by 2-means")
+    # Duplicates (merge.py): clusters of one physical corner that the link radius split.
+    merge_radius_m: float = Field(1.0, ge=0.0, description="clusters closer than this whose walls agree within "
+                                  "angle_tol_deg are one corner: merged when the merged cluster passes the filter, "
+                                  "else only the strongest is kept; 0 = off")
     # Spatial partitioning: square cells with a halo; a cluster belongs to the cell holding its centroid.
     cell_size_m: float = Field(200.0, gt=0.0)
     halo_m: float = Field(10.0, gt=0.0, description="must exceed twice the widest cluster plus link_radius_m")

@@ -113,7 +113,8 @@ def observe_drive(drive: str, route: np.ndarray, corners_en: np.ndarray, corners
         "stamp_ns": stamps[scan], "corner_idx": truth_idx, "x_m": x, "y_m": y,
         "theta1_rad": th[:, 0], "theta2_rad": th[:, 1], "cov_xx_m2": sigma**2, "cov_xy_m2": np.zeros(len(scan)),
         "cov_yy_m2": sigma**2, "n_layers": np.full(len(scan), 6, np.int16), "range_m": np.hypot(x, y),
-        "interior_angle_rad": np.full(len(scan), np.pi / 2), "convex": np.ones(len(scan), bool)},
+        "interior_angle_rad": np.full(len(scan), np.pi / 2), "convex": np.ones(len(scan), bool),
+        "time_offset_s": np.full(len(scan), np.nan)},
         schema=SCHEMAS["corners_per_scan"])
     # optimized poses: truth + a smooth drift (random walk low-passed), in the vehicle reference point
     drift = np.cumsum(rng.normal(0, 1, (n, 2)), axis=0)

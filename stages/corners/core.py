@@ -57,6 +57,43 @@ def _select_and_order(pts: np.ndarray, ring: np.ndarray, layers_used: np.ndarray
     return np.column_stack([x[order], y[order]]), layer[order], az[order], sel[keep][order]
 
 
+def _keep(corners: Corners, corner_of: np.ndarray, drop: np.ndarray) -> tuple[Corners, np.ndarray]:
+    """Remove the corners flagged in ``drop`` and re-index the candidates' corner mapping (-1: none)."""
+    if not drop.any():
+        return corners, corner_of
+    new_id = np.where(drop, -1, np.cumsum(~drop) - 1)
+    corner_of = np.where(corner_of >= 0, new_id[np.maximum(corner_of, 0)], -1)
+    return corners.take(np.flatnonzero(~drop)), corner_of
+
+
+def wall_lengths_m(corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np.ndarray, n_corners: int
+                   ) -> np.ndarray:
+    """(K, 2) length of each corner's two walls: the longest line any of its layers saw on each side."""
+    out = np.zeros((n_corners, 2))
+    used = corner_of >= 0
+    np.maximum.at(out[:, 0], corner_of[used], length_a_m[used])
+    np.maximum.at(out[:, 1], corner_of[used], length_b_m[used])
+    return out
+
+
+def _drop_short_walls(corners: Corners, corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np.ndarray,
+                      p: CornerParams) -> tuple[Corners, np.ndarray]:
+    """Small-structure check on the walls as the best of a corner's layers saw them. Dropped when
+    - the shorter wall is under ``min_wall_length_m`` or the longer one under ``min_long_wall_length_m`` (bus
+      shelters, kiosks): a facade corner whose side wall is seen at a grazing angle keeps a long front wall,
+      so only the longer wall has to be long;
+    - the corner is obtuse (interior angle over ``obtuse_angle_deg``) and its shorter wall is under
+      ``min_obtuse_wall_length_m``: the chords the line split cuts a rounded corner into, and the facet of a
+      short chamfer, meet their neighbours at obtuse angles; a rounded corner gives no corner."""
+    if not len(corners):
+        return corners, corner_of
+    walls = wall_lengths_m(corner_of, length_a_m, length_b_m, len(corners))
+    shorter, longer = walls.min(axis=1), walls.max(axis=1)
+    obtuse = corners.interior_angle_rad > np.radians(p.obtuse_angle_deg)
+    return _keep(corners, corner_of, (shorter < p.min_wall_length_m) | (longer < p.min_long_wall_length_m)
+                 | (obtuse & (shorter < p.min_obtuse_wall_length_m)))
+
+
 def _drop_unverifiable(corners: Corners, corner_of: np.ndarray, cand_layer: np.ndarray, pts: np.ndarray,
                        xy: np.ndarray, layer: np.ndarray, az: np.ndarray, src: np.ndarray,
                        layers_used: np.ndarray, p: CornerParams) -> tuple[Corners, np.ndarray]:
@@ -73,11 +110,7 @@ def _drop_unverifiable(corners: Corners, corner_of: np.ndarray, cand_layer: np.n
         np.maximum.at(top, corner_of[used], layer_elev[np.searchsorted(layer_ids, cand_layer[used])])
         drop |= find_passed_over(np.column_stack([corners.x_m, corners.y_m]), top, xy, az, layer, layer_ids,
                                  layer_elev, max_height_m=p.max_passover_height_m)
-    if drop.any():
-        new_id = np.where(drop, -1, np.cumsum(~drop) - 1)
-        corner_of = np.where(corner_of >= 0, new_id[np.maximum(corner_of, 0)], -1)
-        corners = corners.take(np.flatnonzero(~drop))
-    return corners, corner_of
+    return _keep(corners, corner_of, drop)
 
 
 def trace_corners(points_xyz: np.ndarray, ring: np.ndarray, params: CornerParams | None = None, *,
@@ -117,6 +150,8 @@ def trace_corners(points_xyz: np.ndarray, ring: np.ndarray, params: CornerParams
                                            cluster_max_angle_rad=np.radians(p.cluster_max_angle_deg),
                                            min_layers=p.min_layers, min_sigma_m=p.min_sigma_m,
                                            time_offset_s=cand_t, angular_sigma_rad=p.angular_sigma_mrad * 1e-3)
+    corners, corner_of = _drop_short_walls(corners, corner_of, lines.length_m[cand.line_a],
+                                           lines.length_m[cand.line_b], p)
     corners, corner_of = _drop_unverifiable(corners, corner_of, cand.layer, pts, xy, layer, az, src, layers_used, p)
     return CornerTrace(xy_m=xy, layer=layer, layers_used=layers_used, lines=lines, line_label=label,
                        candidates=cand, candidate_corner=corner_of, corners=corners)

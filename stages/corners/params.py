@@ -53,6 +53,21 @@ class CornerParams(Params):
                                           "walls of a candidate [deg].")
     max_interior_angle_deg: float = Field(155.0, gt=0.0, lt=180.0, description="Largest angle between the two "
                                           "walls of a candidate [deg]; obtuse and chamfered corners are kept.")
+    min_wall_length_m: float = Field(0.0, ge=0.0, description="Small-structure check: the shorter wall of a corner, "
+                                     "as the longest line any of its layers saw on that side, must be at least "
+                                     "this long; off by default: real facades seen at a grazing angle show side "
+                                     "walls of 1-1.5 m per ring (KITTI, nuScenes samples) [m].")
+    min_long_wall_length_m: float = Field(2.0, ge=0.0, description="... and the longer wall at least this long: "
+                                          "cars (the rear of a lead vehicle: walls 1.0-1.4 m), kiosks and shelters "
+                                          "with walls under 2 m, and the chords of a rounded corner give no "
+                                          "corner [m].")
+    obtuse_angle_deg: float = Field(120.0, gt=0.0, lt=180.0, description="Corners with a wider interior angle are "
+                                    "obtuse for the next check [deg].")
+    min_obtuse_wall_length_m: float = Field(2.0, ge=0.0, description="An obtuse corner's shorter wall must be at "
+                                            "least this long: a rounded corner (radius 1-5 m) is cut into chords "
+                                            "under 2 m that meet each other and the straight walls at obtuse "
+                                            "angles, so it gives no corner; a chamfer facet shorter than this "
+                                            "counts as rounded, a longer one gives two obtuse corners [m].")
     # 5. Corner determination
     cluster_radius_m: float = Field(0.3, gt=0.0, description="Candidates of different layers closer than this "
                                     "in the horizontal plane belong to the same corner [m].")

@@ -146,3 +146,15 @@ def city_block_scene(seed: int = 0, n_buildings: int = 14, n_trees: int = 10, ha
     trees = [TreeCrown((rng.uniform(-half_width_m, half_width_m), rng.choice([-1, 1]) * rng.uniform(7.5, 9.0),
                         rng.uniform(3.5, 6.0)), rng.uniform(1.5, 3.0)) for _ in range(n_trees)]
     return Scene(buildings, trees)
+
+
+def rounded_box_building(size_xy_m: tuple[float, float], radius_m: float, height_m: float = 14.0,
+                         step_deg: float = 3.0) -> Building:
+    """Box [0, W] x [0, H] whose corner at (W, H) is rounded by a quarter arc of ``radius_m`` (polygon vertices
+    every ``step_deg``); radius 0 gives the sharp box. The walls' intersection stays at (W, H)."""
+    w, h = size_xy_m
+    if radius_m <= 0:
+        return Building(np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]), height_m)
+    a = np.radians(np.arange(0.0, 90.0 + 1e-9, step_deg))
+    arc = np.array([w - radius_m, h - radius_m]) + radius_m * np.column_stack([np.cos(a), np.sin(a)])
+    return Building(np.vstack([[0.0, 0.0], [w, 0.0], arc, [0.0, h]]), height_m)

@@ -142,7 +142,8 @@ def compute(ctx) -> dict[str, Any]:
     e0, n0, e1, n1 = tile_bounds(key.tile_i, key.tile_j, size_m)
     halo_px = halo_px_for(cell_m, params.threshold_block_m, params.ground_window_m)
     halo_m = halo_px * cell_m
-    acc = GridAccumulator(e0 - halo_m, n0 - halo_m, cell_m, (rows + 2 * halo_px, cols + 2 * halo_px))
+    acc = GridAccumulator(e0 - halo_m, n0 - halo_m, cell_m, (rows + 2 * halo_px, cols + 2 * halo_px),
+                          surface_band_m=params.surface_band_m)
     source = cloud_source(ctx)
     pieces = (_survey_pieces if source == "survey" else _drive_pieces)(ctx, e0 - halo_m, n0 - halo_m,
                                                                        e1 + halo_m, n1 + halo_m)
@@ -153,15 +154,16 @@ def compute(ctx) -> dict[str, Any]:
     n_points = int(grid.count.sum())
     origin = ctx.settings.get("enu_origin")
     meta = {"tile_i": key.tile_i, "tile_j": key.tile_j, "tile_size_m": size_m, "source": source,
-            "n_points": n_points, "enu_origin": origin, "intensity_norm_low": layer.intensity_low,
+            "n_points": n_points, "n_above_surface": acc.n_above_surface, "enu_origin": origin, "intensity_norm_low": layer.intensity_low,
             "intensity_norm_high": layer.intensity_high, "threshold_offset_levels": layer.offset_levels,
             "params": params.model_dump()}
     rasters = TileRasters(marking_mask=layer.marking, traversable_mask=layer.traversable,
                           intensity=grid.mean_intensity, min_up_m=grid.min_up_m, mean_up_m=grid.mean_up_m,
                           count=grid.count, origin_east_m=e0, origin_north_m=n0, cell_m=cell_m, meta=meta)
     write_tile_rasters(ctx.artifact_dir("rasters"), rasters)
-    log.info("markings tile (%d, %d): %d points, %d traversable, %d marking cells (%s)", key.tile_i, key.tile_j,
-             n_points, int(layer.traversable.sum()), int(layer.marking.sum()), source)
+    log.info("markings tile (%d, %d): %d points (%d above the lowest surface dropped), %d traversable, %d marking "
+             "cells (%s)", key.tile_i, key.tile_j, n_points, acc.n_above_surface, int(layer.traversable.sum()),
+             int(layer.marking.sum()), source)
     row = {"tile_i": key.tile_i, "tile_j": key.tile_j, "origin_east_m": e0, "origin_north_m": n0,
            "cell_m": cell_m, "width_px": cols, "height_px": rows, "n_marking_px": int(layer.marking.sum()),
            "n_traversable_px": int(layer.traversable.sum()), "n_points": n_points, "source": source}

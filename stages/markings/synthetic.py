@@ -91,3 +91,50 @@ def truth_raster(rows: int, cols: int, origin_east_m: float, origin_north_m: flo
     north = origin_north_m + (rows - 1 - row + 0.5) * cell_m - offset_north_m
     ee, nn = np.meshgrid(east, north)
     return paint_mask_of(ee, nn)
+
+
+# Traffic standing on the paint: one car on the lane line, one on the crosswalk (east range, north range).
+TRAFFIC_CARS = (((4.0, 8.5), (8.1, 9.9)), ((13.8, 18.3), (6.0, 7.8)))
+
+
+def _car_points(rng: np.random.Generator, box, density_per_m2: float) -> tuple[np.ndarray, np.ndarray]:
+    """A box car's roof and four sides (0.1 m up to CAR_HEIGHT_M above the road), intensity 15."""
+    (e0, e1), (n0, n1) = box
+    n_roof = int(density_per_m2 * (e1 - e0) * (n1 - n0))
+    roof = np.column_stack([rng.uniform(e0, e1, n_roof), rng.uniform(n0, n1, n_roof)])
+    n_side = int(density_per_m2 * 2 * ((e1 - e0) + (n1 - n0)) * CAR_HEIGHT_M)
+    t, side = rng.uniform(0.0, 1.0, n_side), rng.integers(0, 4, n_side)
+    se = np.choose(side, [e0 + t * (e1 - e0), e0 + t * (e1 - e0), np.full(n_side, e0), np.full(n_side, e1 - 1e-3)])
+    sn = np.choose(side, [np.full(n_side, n0), np.full(n_side, n1 - 1e-3), n0 + t * (n1 - n0), n0 + t * (n1 - n0)])
+    en = np.vstack([roof, np.column_stack([se, sn])])
+    up = road_height_m(en[:, 0], en[:, 1]) + np.r_[np.full(n_roof, CAR_HEIGHT_M),
+                                                   rng.uniform(0.1, CAR_HEIGHT_M, n_side)]
+    return np.column_stack([en, up]), np.full(len(up), 15.0)
+
+
+def traffic_scans(rng: np.random.Generator, n_scans: int = 10, traffic_share: float = 0.8,
+                  density_per_m2: float = 500.0, size_m: float = 20.0, height_noise_m: float = 0.005
+                  ) -> list[SyntheticStreet]:
+    """The painted street (no parked car) seen in ``n_scans`` scans of ``density_per_m2 / n_scans`` each; in
+    the first ``round(traffic_share * n_scans)`` scans the ``TRAFFIC_CARS`` stand on the lane line and the
+    crosswalk and hide the road under them. Together the scans hold ``density_per_m2`` road points per m^2."""
+    with_cars = int(round(traffic_share * n_scans))
+    scans = []
+    for k in range(n_scans):
+        street = make_street(rng, density_per_m2 / n_scans, size_m, height_noise_m)
+        pts, inten = street.points_enu_m, street.intensity.astype(float)
+        parked = _inside(pts[:, 0], pts[:, 1], ((CAR[0][0] - 0.01, CAR[0][1]), (CAR[1][0] - 0.01, CAR[1][1])))
+        pts, inten = pts[~parked], inten[~parked]  # make_street's parked car: replaced by road below
+        (pe0, pe1), (pn0, pn1) = CAR
+        n_fill = int(density_per_m2 / n_scans * (pe1 - pe0) * (pn1 - pn0))
+        fill = np.column_stack([rng.uniform(pe0, pe1, n_fill), rng.uniform(pn0, pn1, n_fill)])
+        fill_up = road_height_m(fill[:, 0], fill[:, 1]) + rng.normal(0.0, height_noise_m, n_fill)
+        fill_int = 20.0 + 1.2 * (fill[:, 1] - ROAD_NORTH_M[0]) + rng.normal(0.0, 2.0, n_fill)
+        pts, inten = np.vstack([pts, np.column_stack([fill, fill_up])]), np.r_[inten, fill_int]
+        if k < with_cars:
+            for box in TRAFFIC_CARS:
+                hidden = _inside(pts[:, 0], pts[:, 1], box)
+                car_pts, car_int = _car_points(rng, box, density_per_m2 / n_scans)
+                pts, inten = np.vstack([pts[~hidden], car_pts]), np.r_[inten[~hidden], car_int]
+        scans.append(SyntheticStreet(pts, inten.astype(np.float32)))
+    return scans

@@ -3,6 +3,17 @@
 Pure numpy: points in, arrays out. Raster convention of stages/common/tiling.py: row 0 is the NORTH edge,
 column 0 the WEST edge; the grid's georeference is its south-west corner (origin_east_m, origin_north_m).
 Points can be added in pieces (``GridAccumulator``) so a tile is built from a stream with bounded memory.
+
+Lowest consistent surface (``surface_band_m`` > 0): only the points within ``surface_band_m`` of the lowest
+height seen in a cell count; points higher up (a car standing or driving over the road in some scans, a person,
+an overhanging branch) are dropped before any statistic. When a piece brings a lower surface than the cell
+had (road seen after the car moved on), the cell's earlier statistics are discarded and restart from the new
+layer (whenever one of its kept points would stand more than the band above the new lowest height). So a
+cell occupied by a vehicle in one scan and by road in another ends up as road with the road's intensity,
+whatever the order of the scans; the kept points always lie within [lowest, lowest + band]. A restart also
+drops earlier points that the new band would still hold (the pieces are whole scans or scan chunks, so the
+cell keeps the points of the pieces since its surface was last lowered). A single low outlier point restarts
+a cell too (no robust minimum).
 """
 from __future__ import annotations
 
@@ -50,7 +61,9 @@ def cell_index_of(east_m: np.ndarray, north_m: np.ndarray, origin_east_m: float,
 class GridAccumulator:
     """Running sums / minima / maxima on flat cell indices; ``add`` pieces, then ``finish``."""
 
-    def __init__(self, origin_east_m: float, origin_north_m: float, cell_m: float, shape: tuple[int, int]):
+    def __init__(self, origin_east_m: float, origin_north_m: float, cell_m: float, shape: tuple[int, int],
+                 surface_band_m: float = 0.0):
+        self.surface_band_m = float(surface_band_m)
         self.origin_east_m, self.origin_north_m, self.cell_m = float(origin_east_m), float(origin_north_m), cell_m
         self.shape = (int(shape[0]), int(shape[1]))
         n = self.shape[0] * self.shape[1]
@@ -60,9 +73,11 @@ class GridAccumulator:
         self._min_up = np.full(n, np.inf)
         self._max_up = np.full(n, -np.inf)
         self.n_points = 0
+        self.n_above_surface = 0  # points dropped as standing above the lowest surface (incl. restarted cells)
 
     def add(self, points_enu_m: np.ndarray, intensity: np.ndarray) -> int:
-        """Add (N,3) east/north/up points with (N,) intensity; returns how many fell inside the grid."""
+        """Add (N,3) east/north/up points with (N,) intensity; returns how many were kept (inside the grid and, with
+        a surface band, on the lowest surface)."""
         pts = np.asarray(points_enu_m, float).reshape(-1, 3)
         inten = np.asarray(intensity, float).reshape(-1)
         finite = np.isfinite(pts).all(axis=1) & np.isfinite(inten)
@@ -71,14 +86,37 @@ class GridAccumulator:
         keep = inside & finite
         flat = row[keep] * self.shape[1] + col[keep]
         up = pts[keep, 2]
+        inten = inten[keep]
         n = self._count.size
+        if self.surface_band_m > 0:
+            flat, up, inten = self._keep_lowest_layer(flat, up, inten)
         self._count += np.bincount(flat, minlength=n)
         self._sum_up += np.bincount(flat, weights=up, minlength=n)
-        self._sum_intensity += np.bincount(flat, weights=inten[keep], minlength=n)
+        self._sum_intensity += np.bincount(flat, weights=inten, minlength=n)
         np.minimum.at(self._min_up, flat, up)
         np.maximum.at(self._max_up, flat, up)
         self.n_points += int(flat.size)
         return int(flat.size)
+
+    def _keep_lowest_layer(self, flat: np.ndarray, up: np.ndarray, inten: np.ndarray):
+        """Restart cells whose surface dropped below a kept point's band; keep the piece's points within the band.
+        Whole-grid arrays (no sort of the piece's cell ids): a few grid-sized temporaries per piece."""
+        band = self.surface_band_m
+        new_min = self._min_up.copy()
+        np.minimum.at(new_min, flat, up)
+        # a kept point would now stand above the band: the cell restarts from the new, lower surface
+        restart = np.flatnonzero((self._max_up > new_min + band) & (self._count > 0))
+        dropped = int(self._count[restart].sum())
+        self.n_above_surface += dropped
+        self.n_points -= dropped
+        self._count[restart] = 0
+        self._sum_up[restart] = 0.0
+        self._sum_intensity[restart] = 0.0
+        self._max_up[restart] = -np.inf
+        self._min_up = new_min
+        low = up <= new_min[flat] + band
+        self.n_above_surface += int(low.size - np.count_nonzero(low))
+        return flat[low], up[low], inten[low]
 
     def finish(self, min_points: int = 1) -> ElevationGrid:
         """Cells with fewer than ``min_points`` points are reported empty (count kept, heights NaN)."""
@@ -96,8 +134,9 @@ class GridAccumulator:
 
 
 def grid_points(points_enu_m: np.ndarray, intensity: np.ndarray, origin_east_m: float, origin_north_m: float,
-                cell_m: float, shape: tuple[int, int], min_points: int = 1) -> ElevationGrid:
+                cell_m: float, shape: tuple[int, int], min_points: int = 1,
+                surface_band_m: float = 0.0) -> ElevationGrid:
     """One-shot elevation grid of (N,3) ENU points; see ``GridAccumulator``."""
-    acc = GridAccumulator(origin_east_m, origin_north_m, cell_m, shape)
+    acc = GridAccumulator(origin_east_m, origin_north_m, cell_m, shape, surface_band_m)
     acc.add(points_enu_m, intensity)
     return acc.finish(min_points)

@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.corners.core import trace_corners
+from stages.corners.core import trace_corners, wall_lengths_m
 from stages.corners.lines import LINE
+from stages.corners.params import CornerParams
 
 pytestmark = pytest.mark.realdata
 
@@ -31,6 +32,9 @@ def read_kitti(path: Path):
     return pts, (order_ring.max() - order_ring).astype(np.int16)  # first laser in the file is the top one
 
 
+NO_WALL_GATE = CornerParams(min_wall_length_m=0.0, min_long_wall_length_m=0.0, min_obtuse_wall_length_m=0.0)  # the extraction chain itself, without the small-structure gate
+
+
 def check_trace(trace, n_min, n_max):
     c = trace.corners
     assert n_min <= len(c) <= n_max, f"{len(c)} corners"
@@ -49,7 +53,7 @@ def test_nuscenes_hdl32e_sweep_has_facade_corners(shared_data):
     if not files:
         pytest.skip("no nuScenes sweep in shared data")
     pts, ring = read_nuscenes(files[0])
-    trace = trace_corners(pts, ring)
+    trace = trace_corners(pts, ring, NO_WALL_GATE)
     np.testing.assert_array_equal(trace.layers_used, np.arange(31, 23, -1))  # the eight upper HDL-32E beams
     check_trace(trace, 3, 20)
     # the paper's corners are right-angled facades mostly: most corners here are 90 +- 5 deg
@@ -64,8 +68,29 @@ def test_kitti_city_scans_have_facade_corners(shared_data):
     for f in files:
         pts, ring = read_kitti(f)
         assert ring.max() == 63
-        trace = trace_corners(pts, ring)
+        trace = trace_corners(pts, ring, NO_WALL_GATE)
         assert trace.layers_used.size == 8 and trace.layers_used.min() >= 54
         check_trace(trace, 0, 20)
         counts.append(len(trace.corners))
     assert sum(counts) >= len(files)  # on average at least one corner per scan in this street
+
+
+def test_kitti_corners_kept_by_the_wall_length_gate_have_long_walls(shared_data):
+    """The default gate keeps a subset: every survivor's longer wall is >= 2 m as its best layer saw it; in this
+    street it removes the corners that stay 8-11 m ahead in every scan (the rear of the car driving ahead:
+    walls 1.0-1.4 m)."""
+    files = sorted((shared_data / "kitti_raw_0048_city").glob("*.pcd"))[::3]
+    if not files:
+        pytest.skip("no KITTI scans in shared data")
+    kept = loose = 0
+    for f in files:
+        pts, ring = read_kitti(f)
+        trace = trace_corners(pts, ring)
+        c = trace.candidates
+        walls = wall_lengths_m(trace.candidate_corner, trace.lines.length_m[c.line_a],
+                               trace.lines.length_m[c.line_b], len(trace.corners))
+        assert np.all(walls.max(axis=1) >= 2.0)
+        assert not np.any((trace.corners.range_m > 8.0) & (trace.corners.range_m < 11.0))
+        kept += len(trace.corners)
+        loose += len(trace_corners(pts, ring, NO_WALL_GATE).corners)
+    assert 1 <= kept < loose

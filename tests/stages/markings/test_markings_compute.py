@@ -51,7 +51,8 @@ def test_survey_tile_end_to_end(street, tmp_path):
     assert out["raster"].schema.equals(SCHEMAS["marking_raster"]) and out["rasters"] is None
     assert row["source"] == "survey" and (row["width_px"], row["height_px"]) == (200, 200)
     assert (row["origin_east_m"], row["origin_north_m"]) == OFFSET
-    assert row["n_points"] == len(points) and row["n_marking_px"] == rasters.marking_mask.sum()
+    assert row["n_points"] + rasters.meta["n_above_surface"] == len(points) and rasters.meta["n_above_surface"] > 0
+    assert row["n_marking_px"] == rasters.marking_mask.sum()
     truth = truth_raster(200, 200, *OFFSET, 0.1, *OFFSET)
     scores = match_masks(rasters.marking_mask, truth)
     assert scores["precision"] >= 0.97 and scores["recall"] >= 0.97, scores
@@ -117,7 +118,7 @@ def test_drive_scans_rebuild_the_same_map(street, tmp_path):
     assert plan == [PartitionKey(tile_i=i, tile_j=j) for i in range(-1, 4) for j in range(0, 4)]
     out, rasters = _run(tables, (1, 2), params=params, tmp_path=tmp_path)
     row = out["raster"].to_pylist()[0]
-    assert row["source"] == "drives" and row["n_points"] == len(points)
+    assert row["source"] == "drives" and row["n_points"] + rasters.meta["n_above_surface"] == len(points)
     truth = truth_raster(200, 200, *OFFSET, 0.1, *OFFSET)
     scores = match_masks(rasters.marking_mask, truth)
     assert scores["precision"] >= 0.97 and scores["recall"] >= 0.97, scores
@@ -138,7 +139,7 @@ def test_source_param_picks_the_cloud_and_eval_drives_stay_out(street, tmp_path)
     for name, extra in (("scans", as_drive(tables["scans"], "d2")), ("poses", ev_poses),
                         ("drive_info", as_drive(tables["drive_info"], "d2"))):
         tables[name] = pa.concat_tables([tables[name], extra])
-    params = MarkingParams(min_range_m=0.0, source="drives")
+    params = MarkingParams(min_range_m=0.0, source="drives", surface_band_m=0.0)  # every point counts
     ctx = make_context("markings", params, tables, partition=PartitionKey(tile_i=1, tile_j=2),
                        settings={"tile_size_m": 20.0, "map_drives": ["d1"], "eval_drives": ["d2"]},
                        outputs=("raster", "rasters"), workdir=tmp_path)
