@@ -68,7 +68,9 @@ def rerun_markings(root: Path, workflow: Path, params: dict) -> dict:
 def stitch(root: Path):
     from stages.markings.raster_io import read_tile_rasters
 
-    tiles = [read_tile_rasters(p.parent) for p in sorted(latest(root, "marking_rasters").glob("artifacts/*/raster.json"))]
+    tiles = [
+        read_tile_rasters(p.parent) for p in sorted(latest(root, "marking_rasters").glob("artifacts/*/raster.json"))
+    ]
     tiles = [t for t in tiles if t.count.any()]
     cell = tiles[0].cell_m
     west = min(t.origin_east_m for t in tiles)
@@ -112,13 +114,22 @@ def measure(root: Path) -> tuple[dict, dict]:
         for part in r.split("; "):
             reasons[part.split(":")[0]] = reasons.get(part.split(":")[0], 0) + 1
     obs = read(root, "corners_per_scan")
-    out = {"scans": poses.num_rows, "path_m": round(float(np.sum(np.hypot(*np.diff(path, axis=0).T))), 1),
-           "occupied_cells_near_path": int((occ & near).sum()),
-           "traversable_share_near_path": round(float((layers["traversable"] & near).sum() / max((occ & near).sum(), 1)), 3),
-           "marking_px": int(layers["marking"].sum()), "marking_px_near_path": int((layers["marking"] & near).sum()),
-           "corner_observations": obs.num_rows, "map_corners": cmap.num_rows, "rejected_clusters": rejected.num_rows,
-           "rejected_reasons": reasons, "duplicates_1m": count_duplicates(en, th),
-           "corner_std_m_median": round(float(np.median(std)), 3) if len(std) else None}
+    out = {
+        "scans": poses.num_rows,
+        "path_m": round(float(np.sum(np.hypot(*np.diff(path, axis=0).T))), 1),
+        "occupied_cells_near_path": int((occ & near).sum()),
+        "traversable_share_near_path": round(
+            float((layers["traversable"] & near).sum() / max((occ & near).sum(), 1)), 3
+        ),
+        "marking_px": int(layers["marking"].sum()),
+        "marking_px_near_path": int((layers["marking"] & near).sum()),
+        "corner_observations": obs.num_rows,
+        "map_corners": cmap.num_rows,
+        "rejected_clusters": rejected.num_rows,
+        "rejected_reasons": reasons,
+        "duplicates_1m": count_duplicates(en, th),
+        "corner_std_m_median": round(float(np.median(std)), 3) if len(std) else None,
+    }
     fig = {"layers": layers, "intensity": intensity, "extent": extent, "path": path, "corners": en, "theta": th,
            "rejected": np.column_stack([rejected["east_m"].to_numpy(), rejected["north_m"].to_numpy()])}
     return out, fig

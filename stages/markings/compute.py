@@ -153,10 +153,19 @@ def compute(ctx) -> dict[str, Any]:
     grid = layer.grid
     n_points = int(grid.count.sum())
     origin = ctx.settings.get("enu_origin")
-    meta = {"tile_i": key.tile_i, "tile_j": key.tile_j, "tile_size_m": size_m, "source": source,
-            "n_points": n_points, "n_above_surface": acc.n_above_surface, "enu_origin": origin, "intensity_norm_low": layer.intensity_low,
-            "intensity_norm_high": layer.intensity_high, "threshold_offset_levels": layer.offset_levels,
-            "params": params.model_dump()}
+    meta = {
+        "tile_i": key.tile_i,
+        "tile_j": key.tile_j,
+        "tile_size_m": size_m,
+        "source": source,
+        "n_points": n_points,
+        "n_above_surface": acc.n_above_surface,
+        "enu_origin": origin,
+        "intensity_norm_low": layer.intensity_low,
+        "intensity_norm_high": layer.intensity_high,
+        "threshold_offset_levels": layer.offset_levels,
+        "params": params.model_dump(),
+    }
     rasters = TileRasters(marking_mask=layer.marking, traversable_mask=layer.traversable,
                           intensity=grid.mean_intensity, min_up_m=grid.min_up_m, mean_up_m=grid.mean_up_m,
                           count=grid.count, origin_east_m=e0, origin_north_m=n0, cell_m=cell_m, meta=meta)

@@ -32,7 +32,9 @@ def read_kitti(path: Path):
     return pts, (order_ring.max() - order_ring).astype(np.int16)  # first laser in the file is the top one
 
 
-NO_WALL_GATE = CornerParams(min_wall_length_m=0.0, min_long_wall_length_m=0.0, min_obtuse_wall_length_m=0.0)  # the extraction chain itself, without the small-structure gate
+NO_WALL_GATE = CornerParams(
+    min_wall_length_m=0.0, min_long_wall_length_m=0.0, min_obtuse_wall_length_m=0.0
+)  # the extraction chain itself, without the small-structure gate
 
 
 def check_trace(trace, n_min, n_max):

@@ -45,7 +45,10 @@ def test_cars_on_the_paint_in_80_percent_of_scans_keep_the_recall(seed):
     assert busy.marking[under].mean() >= 0.8
     assert busy.traversable[_under_cars()].mean() >= 0.9 and acc.n_above_surface > 0
     # without the lowest surface (every point counts) the cars' cells are not road and their paint is lost
-    old, _ = _layer(traffic_scans(np.random.default_rng(seed), traffic_share=0.8, density_per_m2=DENSITY), MarkingParams(surface_band_m=0))
+    old, _ = _layer(
+        traffic_scans(np.random.default_rng(seed), traffic_share=0.8, density_per_m2=DENSITY),
+        MarkingParams(surface_band_m=0),
+    )
     assert old.traversable[_under_cars()].mean() < 0.2 and old.marking[under].mean() < 0.2
 
 
@@ -53,7 +56,10 @@ def test_lowest_surface_is_the_same_whatever_the_scan_order():
     car = np.array([[0.05, 0.05, 1.5], [0.05, 0.05, 0.4]])  # a car roof and side over one cell
     road = np.array([[0.05, 0.05, 0.01], [0.05, 0.05, 0.03], [0.15, 0.05, 0.02]])
     grids = []
-    for pieces in ([(car, [15.0, 15.0]), (road, [40.0, 42.0, 30.0])], [(road, [40.0, 42.0, 30.0]), (car, [15.0, 15.0])]):
+    for pieces in (
+        [(car, [15.0, 15.0]), (road, [40.0, 42.0, 30.0])],
+        [(road, [40.0, 42.0, 30.0]), (car, [15.0, 15.0])],
+    ):
         acc = GridAccumulator(0.0, 0.0, 0.1, (1, 2), surface_band_m=0.15)
         for pts, inten in pieces:
             acc.add(pts, np.asarray(inten))
