@@ -80,7 +80,7 @@ def _is_number(text: str) -> bool:
 
 
 def synthetic_inputs(args) -> dict:
-    from stages.cornermap.synthetic import (
+    from fixtures.cornermap import (
         drive_info_table,
         footprint_corners,
         grid_city,

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
+from fixtures.corners import HDL32E_ELEVATION_DEG, cast_scan, city_block_scene
 from pipeline.errors import FormatError
 from stages.corners.core import extract_corners, select_scan_layers
 from stages.corners.params import CornerParams
-from stages.corners.synthetic import HDL32E_ELEVATION_DEG, cast_scan, city_block_scene
 
 _PCD_TYPES = {("F", 4): "<f4", ("F", 8): "<f8", ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4",
               ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4"}

@@ -21,13 +21,13 @@ def main() -> None:
     ap.add_argument("--figures", default=None, help="write the report's figures as eval_synthetic_*.png here")
     args = ap.parse_args()
 
+    from fixtures.evaluate import ground_ring_scan, paint_markings, synthetic_drive
     from stages.common.road_features import extract_road_features
     from stages.evaluate.localize_ekf import run_ekf
     from stages.evaluate.localize_mcl import mcl_config_from_params, run_mcl
     from stages.evaluate.outputs import metrics_document, metrics_table_text
     from stages.evaluate.params import EvaluateParams
     from stages.evaluate.run import ekf_config, evaluate_drive
-    from stages.evaluate.synthetic import ground_ring_scan, paint_markings, synthetic_drive
 
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared), "
           f"python {platform.python_version()}")

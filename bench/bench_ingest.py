@@ -25,8 +25,8 @@ def _make_drive(root: Path, n_scans: int) -> Path:
     import numpy as np
     import yaml
 
+    from fixtures.ingest import make_scan
     from stages.ingest.pcd import write_pcd
-    from stages.ingest.testing import make_scan
 
     scans = root / "drive_0" / "scans"
     scans.mkdir(parents=True)

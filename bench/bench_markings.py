@@ -90,7 +90,7 @@ def throughput(tiles: list[dict], tile_size_m: float, cell_m: float) -> dict:
 
 def bench_synthetic(params: MarkingParams, workdir: Path) -> dict:
     """A 100 m tile filled with 5 x 5 copies of the synthetic street (about 200 points / m^2)."""
-    from stages.markings.synthetic import make_street
+    from fixtures.markings import make_street
 
     pieces, inten = [], []
     for a in range(5):
@@ -269,12 +269,12 @@ def _sim_figure(tiles, truth, meta, params, figure: Path, name: str) -> None:
 
 
 def bench_traffic(seeds=(2, 3, 4, 5), shares=(0.0, 0.5, 0.8, 1.0), density_per_m2: float = 2500.0) -> dict:
-    """Marking recall / precision (1 cell) of the synthetic street (stages.markings.synthetic.traffic_scans: two
+    """Marking recall / precision (1 cell) of the synthetic street (fixtures.markings.traffic_scans: two
     box cars on the lane line and the crosswalk in ``share`` of 10 scans), with the lowest surface (default
     band) and without it (band 0); the worst seed per row."""
+    from fixtures.markings import traffic_scans, truth_raster
     from stages.common.marking_raster.elevation_grid import GridAccumulator
     from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
-    from stages.markings.synthetic import traffic_scans, truth_raster
 
     truth = truth_raster(200, 200, 0.0, 0.0, 0.1)
     out = {}

@@ -6,6 +6,7 @@ import pyarrow as pa
 import pytest
 from pydantic import ValidationError
 
+from fixtures.corners import Scene, box_building, cast_scan
 from pipeline.declare import Partitioning, PartitionKey
 from pipeline.testing import make_context
 from schemas.registry import schema_of
@@ -13,7 +14,6 @@ from stages.corners.compute import compute
 from stages.corners.core import extract_corners
 from stages.corners.decl import STAGE
 from stages.corners.params import CornerParams
-from stages.corners.synthetic import Scene, box_building, cast_scan
 
 SCENE = Scene([box_building((0.0, 0.0), (12.0, 8.0), yaw_rad=0.4, height_m=14.0),
                box_building((-30.0, 25.0), (10.0, 10.0), yaw_rad=-0.2, height_m=20.0)])

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fixtures.corners import Scene, box_building, cast_scan
 from stages.common.wheel_deskew import deskew_points, vehicle_motion_xy_yaw
 from stages.corners.core import extract_corners
-from stages.corners.synthetic import Scene, box_building, cast_scan
 
 BOX = box_building((0.0, 0.0), (12.0, 8.0), yaw_rad=0.4, height_m=14.0)
 POSE = (22.0 * np.cos(0.4 + np.pi / 4), 22.0 * np.sin(0.4 + np.pi / 4), -2.0)

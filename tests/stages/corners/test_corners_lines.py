@@ -6,11 +6,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from fixtures.corners import HDL32E_ELEVATION_DEG, Scene, box_building, cast_scan
 from stages.corners.candidates import CornerCandidates, find_corner_candidates
 from stages.corners.determine import determine_corners, floor_covariance
 from stages.corners.layers import estimate_ring_elevation_deg, find_run_starts, order_rings_by_azimuth, select_layers
 from stages.corners.lines import extract_lines, fit_lines_tls, split_iepf
-from stages.corners.synthetic import HDL32E_ELEVATION_DEG, Scene, box_building, cast_scan
 
 
 def polyline_points(vertices, spacing_m=0.05):

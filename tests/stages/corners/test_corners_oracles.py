@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fixtures.corners import Building, Scene, TreeCrown, box_building, cast_scan, polygon_interior_angles_rad
 from stages.corners.core import extract_corners, trace_corners
 from stages.corners.lines import LINE
 from stages.corners.params import CornerParams
-from stages.corners.synthetic import Building, Scene, TreeCrown, box_building, cast_scan, polygon_interior_angles_rad
 
 
 def to_world(corners, pose):

@@ -6,9 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.corners.core import extract_corners
-from stages.corners.params import CornerParams
-from stages.corners.synthetic import (
+from fixtures.corners import (
     HDL32E_ELEVATION_DEG,
     Building,
     Scene,
@@ -16,6 +14,8 @@ from stages.corners.synthetic import (
     cast_scan,
     rounded_box_building,
 )
+from stages.corners.core import extract_corners
+from stages.corners.params import CornerParams
 
 NO_GATE = CornerParams(min_wall_length_m=0.0, min_long_wall_length_m=0.0, min_obtuse_wall_length_m=0.0)
 HDL64E_ELEVATION_DEG = np.linspace(-24.9, 2.0, 64)

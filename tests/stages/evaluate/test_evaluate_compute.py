@@ -9,14 +9,7 @@ import pyarrow as pa
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.testing import make_context
-from schemas import schema_of
-from stages.common.geodesy import EnuOrigin
-from stages.common.geometry import se3_from_xyz_rpy, write_tum
-from stages.common.trajectory_frame import frame_header
-from stages.evaluate import compute as compute_mod
-from stages.evaluate.params import EvaluateParams
-from stages.evaluate.synthetic import (
+from fixtures.evaluate import (
     ground_ring_scan,
     observe_corners,
     paint_markings,
@@ -24,6 +17,13 @@ from stages.evaluate.synthetic import (
     road_trajectory,
     roadside_corners,
 )
+from pipeline.testing import make_context
+from schemas import schema_of
+from stages.common.geodesy import EnuOrigin
+from stages.common.geometry import se3_from_xyz_rpy, write_tum
+from stages.common.trajectory_frame import frame_header
+from stages.evaluate import compute as compute_mod
+from stages.evaluate.params import EvaluateParams
 
 N, CELL, DRIVE = 40, 0.1, "drive_1"
 MAP_ORIGIN = EnuOrigin(37.4979, 127.0276, 57.0)

@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
+from fixtures.evaluate import synthetic_drive
 from stages.common.geometry import read_tum
 from stages.evaluate.outputs import epochs_table, write_report
 from stages.evaluate.params import EvaluateParams
 from stages.evaluate.run import evaluate_drive
-from stages.evaluate.synthetic import synthetic_drive
 from stages.evaluate.verdict import coverage, verdict
 
 

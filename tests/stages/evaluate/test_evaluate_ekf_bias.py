@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
+from fixtures.evaluate import relative_increments
 from stages.evaluate import ekf
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, run_ekf
-from stages.evaluate.synthetic import relative_increments
 
 RATE_HZ = 10.0
 BIAS_RAD_S = np.deg2rad(-0.147)  # the gyro bias of the diagnosed drive

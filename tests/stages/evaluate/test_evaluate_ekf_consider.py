@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
+from fixtures.evaluate import relative_increments, road_trajectory, roadside_corners
 from stages.common.geometry import wrap_angle_rad
 from stages.evaluate import consider, ekf
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, run_ekf
-from stages.evaluate.synthetic import relative_increments, road_trajectory, roadside_corners
 
 MAP_SIGMA_M = 0.08  # per corner, fixed for a whole run: dominates the extraction noise below
 EXTRACT_SIGMA_M = 0.01

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
+from fixtures.evaluate import ground_ring_scan, paint_markings, relative_increments
 from stages.common.road_features import extract_road_features, ring_adaptive_threshold, voxel_filter_per_ring
 from stages.evaluate import mcl
 from stages.evaluate.localize_mcl import MclConfig, odometry_increments, run_mcl
 from stages.evaluate.metrics import compute_errors
-from stages.evaluate.synthetic import ground_ring_scan, paint_markings, relative_increments
 
 CELL = 0.1
 T_VEHICLE_LIDAR = np.eye(4)

@@ -5,9 +5,9 @@ import numpy as np
 import typer
 from typer.testing import CliRunner
 
+from fixtures.ingest import make_scan
 from stages.ingest.cli import register
 from stages.ingest.pcd import write_pcd
-from stages.ingest.testing import make_scan
 
 
 def test_inspect_reports_header_and_ring_coverage(tmp_path):

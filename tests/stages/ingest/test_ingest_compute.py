@@ -8,6 +8,7 @@ import pyarrow as pa
 import pytest
 from scipy.spatial.transform import Rotation
 
+from fixtures.ingest import write_synthetic_drive
 from pipeline.declare import PartitionKey
 from pipeline.testing import make_context
 from schemas import SCHEMAS
@@ -15,7 +16,6 @@ from stages.ingest.compute import compute
 from stages.ingest.origin import resolve_enu_origin
 from stages.ingest.params import IngestParams
 from stages.ingest.pcd import write_pcd
-from stages.ingest.testing import write_synthetic_drive
 
 
 def _run(drive, origin=None, **params):
@@ -58,7 +58,7 @@ def test_poses_follow_the_truth_with_lever_arm(tmp_path):
     poses = tables["poses_gnss"][1]
     assert poses["valid"].to_pylist() == [True] * 6
     # truth at the scan stamps (constant speed and yaw rate: the arc interpolated between 10 ms fixes)
-    from stages.ingest.testing import vehicle_truth
+    from fixtures.ingest import vehicle_truth
 
     t_s = (drive.scan_stamps_ns - drive.gnss_stamps_ns[0]) / 1e9
     xyz, yaw = vehicle_truth(t_s)

@@ -4,9 +4,9 @@ from __future__ import annotations
 import pytest
 import yaml
 
+from fixtures.ingest import write_synthetic_drive
 from pipeline.errors import ConfigError, DatasetIOError
 from stages.ingest.drive_file import load_drive_file
-from stages.ingest.testing import write_synthetic_drive
 
 
 @pytest.fixture()

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fixtures.ingest import write_synthetic_drive
 from pipeline.errors import FormatError
 from stages.ingest.drive_file import load_drive_file
 from stages.ingest.lzf import compress_literal_lzf
 from stages.ingest.pcd import MAX_DECOMPRESSED_BYTES, decode_pcd, encode_pcd
 from stages.ingest.scan_formats import points_from_pcd, read_kitti_bin
 from stages.ingest.scan_pass import ScanFile, process_scan
-from stages.ingest.testing import write_synthetic_drive
 from tests.stages.ingest.test_ingest_compute import _run
 
 HEADER = ("VERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {types}\nCOUNT {counts}\nWIDTH {n}\nHEIGHT 1\n"

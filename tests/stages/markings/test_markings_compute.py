@@ -7,6 +7,7 @@ import pyarrow.compute  # noqa: F401  (pa.compute)
 import pytest
 from scipy.spatial.transform import Rotation
 
+from fixtures.markings import make_street, truth_raster
 from pipeline.declare import PartitionKey
 from pipeline.errors import ConfigError
 from pipeline.testing import make_context
@@ -17,7 +18,6 @@ from stages.markings.decl import STAGE
 from stages.markings.metrics import match_masks
 from stages.markings.params import MarkingParams
 from stages.markings.raster_io import read_tile_rasters
-from stages.markings.synthetic import make_street, truth_raster
 
 OFFSET = (20.0, 40.0)  # the 20 m street scene sits in tile (1, 2) of a 20 m grid
 

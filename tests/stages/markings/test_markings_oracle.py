@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from fixtures.markings import CAR, ROAD_NORTH_M, make_street, truth_raster
 from stages.common.marking_raster.elevation_grid import GridAccumulator, grid_points
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.common.marking_raster.threshold import extract_markings, metres_to_odd_px
 from stages.common.marking_raster.traversable import find_traversable, neighbour_step_m, open_ground_m
 from stages.markings.metrics import match_masks
 from stages.markings.params import MarkingParams
-from stages.markings.synthetic import CAR, ROAD_NORTH_M, make_street, truth_raster
 
 CELL_M = 0.1
 

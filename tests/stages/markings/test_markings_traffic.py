@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fixtures.markings import TRAFFIC_CARS, traffic_scans, truth_raster
 from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.markings.metrics import match_masks
 from stages.markings.params import MarkingParams
-from stages.markings.synthetic import TRAFFIC_CARS, traffic_scans, truth_raster
 
 CELL_M = 0.1
 DENSITY = 2500.0  # points per m^2 over all scans: ~5 road points per cell from the 20 % of scans without cars
