@@ -41,6 +41,7 @@ def main() -> None:
     from pipeline.store import dataset_dir
     from pipeline.workflow import load_workflow
     from stages.common import trajectory_metrics as M
+    from stages.common.geometry import fit_rigid_2d
     from stages.common.records import Trajectory
 
     wf = load_workflow(args.workflow)
@@ -52,7 +53,7 @@ def main() -> None:
     print(f"root {plan.root}; drives {drives}")
     print("| drive | trajectory | " + " | ".join(KEYS) + " |")
     print("|---" * (len(KEYS) + 2) + "|")
-    est_all, true_all, t_all = [], [], []
+    est_all, true_all, t_all, frames = [], [], [], []
     for n, drive in enumerate(drives):
         opt = Trajectory.from_table(optimized, drive)
         T_true = truth_poses(sim, drive, opt.stamp_ns)
@@ -62,9 +63,15 @@ def main() -> None:
         for name, T in (("RTK/INS only", g.T[on_opt]), ("optimised", opt.T)):
             s = M.summarize(T, T_true, stamps_s)
             print(f"| {drive} | {name} | " + " | ".join("-" if np.isnan(s[k]) else f"{s[k]:.3f}" for k in KEYS) + " |")
+        R, t = fit_rigid_2d(opt.T[:, :2, 3], T_true[:, :2, 3])
+        centroid = opt.T[:, :2, 3].mean(axis=0)
+        frames.append(f"{drive}: map frame vs the truth's: rotation {np.degrees(np.arctan2(R[1, 0], R[0, 0])):+.3f} "
+                      f"deg, offset at the drive's centroid {np.linalg.norm(R @ centroid + t - centroid):.3f} m "
+                      f"(rigid 2-D fit of the optimised positions onto the truth)")
         est_all.append(opt.T)
         true_all.append(T_true)
         t_all.append(stamps_s + 1e6 * n)  # drives apart in time: every pair across drives is a revisit
+    print("\n".join(frames))
     if len(drives) > 1:
         pairs = M.revisit_pairs(np.concatenate(true_all), np.concatenate(t_all), radius_m=args.pair_radius_m)
         first = len(est_all[0])
