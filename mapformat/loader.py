@@ -15,6 +15,8 @@ version directory (``PathEscapeError`` otherwise). Opening ``ROOT/maps/NAME`` al
 against the digest recorded outside it (LATEST, then each child's ``parent_manifest_sha256``).
 ``trust_files=True`` skips the file hashing for trusted local use (paths are still confined).
 ``marking_window`` refuses windows over MAX_WINDOW_CELLS cells (``LimitError``).
+Over 300 lines on purpose: the one reader of published maps keeps its verified reads, caches and size
+bounds in one place (docs/security.md), so no path around a check can appear in a second module.
 """
 from __future__ import annotations
 

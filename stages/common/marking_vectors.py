@@ -26,6 +26,8 @@ Method (OpenCV components + principal axes, no learned model):
    5 m long with a piece or bar parallel within 6 m; otherwise it is a stop line (its centreline) when
    at least 2.5 m long and at most 0.75 m wide, else noise.
 5. Arrows keep their simplified outline (``cv2.approxPolyDP``, 0.1 m).
+Over 300 lines on purpose: the vectorizer's steps (components, bars, chaining, typing) share their
+geometry helpers and thresholds; split, each part would need the others' internals.
 """
 from __future__ import annotations
 

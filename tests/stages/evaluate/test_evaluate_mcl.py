@@ -1,4 +1,8 @@
-"""Oracle tests of the road-feature extraction and the marking MCL (Kim, Liu & Myung s.2.2-2.3)."""
+"""Oracle tests of the road-feature extraction and the marking MCL (Kim, Liu & Myung s.2.2-2.3).
+
+Over 300 lines on purpose: road-feature extraction and the MCL share one scripted world; the oracles
+read in the order of the paper's sections.
+"""
 from __future__ import annotations
 
 from dataclasses import fields, replace
