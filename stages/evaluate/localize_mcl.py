@@ -21,8 +21,8 @@ RasterFetcher = Callable[[float, float, float, float], mcl.Raster]
 
 @dataclass(frozen=True)
 class MclConfig:
-    """Defaults tuned on the simulator's demo drives 0 and 1 (a demo map built from drive 0, 6 filter seeds each; calibration data: demo seed 1) and checked
-    on the synthetic road of the tests (issue 10, MCL pass).
+    """Defaults tuned on the simulator's demo drives 0 and 1 (a demo map built from drive 0, 6 filter seeds each;
+    calibration data: demo seed 1) and checked on the synthetic road of the tests (issue 10, MCL pass).
 
     The measurement gain ``sharpness * effective_points`` = 300 is where single scans' posteriors about the truth are
     consistent on demo drive 1 (distance field, sigma 0.2 m: NEES per axis ~1 between gains 240 and 480; the errors
