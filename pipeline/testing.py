@@ -1,6 +1,8 @@
 """In-memory stand-ins for stage tests: run a stage's compute on Arrow tables without a store."""
 from __future__ import annotations
 
+import atexit
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Mapping
@@ -62,7 +64,10 @@ def make_context(stage: str, params: Params, tables: Mapping[str, pa.Table] | No
                  settings: Mapping[str, Any] | None = None, metadata: Mapping[str, dict] | None = None,
                  input_artifacts: Mapping[str, Path] | None = None, outputs: tuple[str, ...] = (),
                  workdir: Path | None = None) -> StageContext:
-    workdir = Path(workdir or tempfile.mkdtemp(prefix=f"cornermap-{stage}-"))
+    if workdir is None:  # removed when the process exits (tests that pass no folder leave nothing in /tmp)
+        workdir = tempfile.mkdtemp(prefix=f"cornermap-{stage}-")
+        atexit.register(shutil.rmtree, workdir, True)
+    workdir = Path(workdir)
     base_settings = {"map_name": "test", "enu_origin": None, "tile_size_m": 100.0, "map_drives": [],
                      "eval_drives": [], "root": str(workdir), "references": {}}
     base_settings.update(settings or {})
