@@ -109,8 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         result = execute_workflow(wf, root=None, scheduler=args.scheduler, only=None, dry_run=False, quiet=True,
                                   workers=args.workers)
         wall = time.perf_counter() - t0
-        stages = {k: {"wall_s": v.get("wall_s"), "cpu_s": v.get("cpu_s"), "started_s": v.get("started_s"),
-                      "ended_s": v.get("ended_s")} for k, v in result["summary"].items()}
+        keep = ("wall_s", "cpu_s", "started_s", "ended_s", "peak_rss_mb")
+        stages = {k: {c: v.get(c) for c in keep} for k, v in result["summary"].items()}
     finally:
         sampler.stop()
         if not args.keep:
@@ -124,9 +124,10 @@ def main(argv: list[str] | None = None) -> int:
            "peak_rss_mb_by_process": [(name, round(rss / 2**20)) for name, rss in peaks[:8]]}
     print(f"{args.preset} seed {args.seed}, {', '.join(drives)}: {n_scans} scans, {wall:.1f} s wall, "
           f"{n_scans / wall:.1f} scans/s end to end, peak RSS {doc['peak_rss_mb_max']} MB (largest process)")
-    print("| stage | from s | to s | wall s | CPU s |\n|---|---|---|---|---|")
+    print("| stage | from s | to s | wall s | CPU s | task peak RSS MB |\n|---|---|---|---|---|---|")
     for k, v in stages.items():
-        print(f"| {k} | {v.get('started_s')} | {v.get('ended_s')} | {v['wall_s']} | {v['cpu_s']} |")
+        print(f"| {k} | {v.get('started_s')} | {v.get('ended_s')} | {v['wall_s']} | {v['cpu_s']} | "
+              f"{v.get('peak_rss_mb')} |")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(doc, indent=1))

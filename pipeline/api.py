@@ -9,6 +9,7 @@ Heavy imports happen inside the functions so ``cornermap --help`` stays instant.
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
@@ -42,6 +43,7 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
     """
     from pipeline.execute import Scheduler
     from pipeline.flow import run_plan
+    from pipeline.memory import over_budget
     from pipeline.plan import describe_plan, make_plan
     from pipeline.progress import StageProgress, print_plan
     from pipeline.workflow import load_workflow
@@ -66,6 +68,8 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
         sched.close()
     if not quiet:
         print_plan(describe_plan(plan), plan.root, summary)
+    for line in over_budget(summary, wf.spec.memory_budget_mb):
+        print(line, file=sys.stderr)
     return {"plan": plan, "summary": summary}
 
 

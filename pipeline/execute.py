@@ -84,10 +84,15 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any],
                   provisional: dict[str, list[str]] | None = None) -> dict[str, Any]:
     """One task: compute one partition, write its outputs atomically, then its part markers (commit).
     ``provisional``: input arg -> upstream partition labels to read before that stage commits (pipeline.flow).
-    The result records when it ran (``t_start``/``t_end``, epoch s) and its CPU seconds."""
+    The result records when it ran (``t_start``/``t_end``, epoch s), its CPU seconds and its process's peak RSS
+    (``peak_rss_mb``, pipeline.memory)."""
+    from pipeline.memory import PeakRss
+
     t_start, cpu0 = time.time(), _task_cpu_s()
-    result = _run_partition(spec, partition, provisional)
-    result.update(t_start=t_start, t_end=time.time(), cpu_s=round(_task_cpu_s() - cpu0, 3))
+    with PeakRss() as rss:
+        result = _run_partition(spec, partition, provisional)
+    result.update(t_start=t_start, t_end=time.time(), cpu_s=round(_task_cpu_s() - cpu0, 3),
+                  peak_rss_mb=round(rss.peak_mb, 1))
     return result
 
 

@@ -224,7 +224,8 @@ class Flow:
             "cpu_s": round(sum(p.get("cpu_s", 0.0) for p in parts), 3),
             "started_s": round(min(starts) - self.t0, 3) if starts else None,
             "ended_s": round(max(ends) - self.t0, 3) if ends else None,
-            "partitions": len(parts), "partitions_reused": st.sp.reused_partitions}
+            "partitions": len(parts), "partitions_reused": st.sp.reused_partitions,
+            "peak_rss_mb": max((p["peak_rss_mb"] for p in parts if "peak_rss_mb" in p), default=None)}
 
     # -- the loop ------------------------------------------------------------------------------------------
     def run(self) -> dict[str, Any]:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pipeline.catalog import Catalog, load_catalog
 from pipeline.declare import Params, StageDecl
@@ -50,6 +50,9 @@ class WorkflowSpec(BaseModel):
     enu_origin: EnuOriginSpec | None = None
     tile_size_m: float = 100.0
     hold_latest: bool = False  # publish the new map version without moving LATEST (a later gate moves it)
+    # peak RSS a task may reach (MB): a stage over it is named after the run (summary and one line each);
+    # null: no budget. 1536 MB is the design target of every stage (docs/performance.md).
+    memory_budget_mb: float | None = Field(1536.0, gt=0)
     drives: list[DriveEntry] = []
     stages: list[str]
     params: dict[str, dict[str, Any]] = {}

@@ -218,6 +218,7 @@ def test_downstream_partitions_start_before_the_upstream_stage_ends(tmp_path, sc
     s = out["summary"]
     assert s["squares"]["started_s"] < s["numbers"]["ended_s"] - 1.0, s
     assert s["total"]["started_s"] >= s["squares"]["ended_s"]  # a single stage waits for its producer's commit
+    assert all(10 < s[n]["peak_rss_mb"] < 4096 for n in ("numbers", "squares", "total")), s  # a Python process
     run(path, root=tmp_path / "sync", scheduler="sync")
     for ds in ("toy_numbers", "toy_squares", "toy_total"):
         assert read_output(tmp_path / "flow", ds).equals(read_output(tmp_path / "sync", ds))

@@ -1,0 +1,62 @@
+"""Peak resident memory of a task, and the workflow's memory budget check.
+
+Each task samples its process's resident set size (RSS) in a background thread while it runs: that is the
+memory a worker process needs for the partition (its libraries included), which is what a cluster's worker
+memory limit is compared against. A single-partition stage run in a thread of the calling process shares that
+process with others: its figure is the process's, an upper bound of the stage's own.
+"""
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+MB = 2**20
+
+
+class PeakRss:
+    """Context manager: ``peak_mb`` is the largest RSS of this process seen while the block ran (sampled every
+    ``interval_s``, and once at entry and exit, so a task shorter than the interval still gets a figure)."""
+
+    def __init__(self, interval_s: float = 0.1):
+        self.interval_s = interval_s
+        self.peak_mb = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _sample(self) -> None:
+        try:
+            self.peak_mb = max(self.peak_mb, self._proc.memory_info().rss / MB)
+        except Exception:  # noqa: BLE001 - a process being torn down; the figure keeps its last value
+            pass
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            self._sample()
+
+    def __enter__(self) -> "PeakRss":
+        import psutil
+
+        self._proc = psutil.Process()
+        self._sample()
+        self._thread = threading.Thread(target=self._loop, name="peak-rss", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self._sample()
+
+
+def over_budget(summary: dict[str, dict[str, Any]], budget_mb: float | None) -> list[str]:
+    """One line per stage whose task peak RSS exceeded ``budget_mb`` (None: no budget, no lines)."""
+    if not budget_mb:
+        return []
+    lines = []
+    for stage, s in summary.items():
+        peak = s.get("peak_rss_mb")
+        if peak is not None and peak > budget_mb:
+            lines.append(f"memory: stage {stage!r} peaked at {peak:.0f} MB per task, over the workflow's "
+                         f"memory_budget_mb {budget_mb:.0f}")
+    return lines
