@@ -31,11 +31,11 @@ def _columns(table: pa.Table, names: tuple[str, ...], rows: np.ndarray | None) -
     return out if rows is None else out[rows]
 
 
-def _matrices(xyz: np.ndarray, quat_xyzw) -> np.ndarray:
-    """(N,3) positions and (N,4) quaternions (a callable giving them, read only when N > 0) -> (N,4,4)."""
+def _matrices(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """(N,3) positions and (N,4) quaternions -> (N,4,4) homogeneous poses; N may be 0."""
     T = np.tile(np.eye(4), (len(xyz), 1, 1))
     if len(xyz):
-        T[:, :3, :3] = Rotation.from_quat(quat_xyzw()).as_matrix()
+        T[:, :3, :3] = Rotation.from_quat(quat_xyzw).as_matrix()
         T[:, :3, 3] = xyz
     return T
 
@@ -43,7 +43,7 @@ def _matrices(xyz: np.ndarray, quat_xyzw) -> np.ndarray:
 def pose_matrices(table: pa.Table, rows: np.ndarray | None = None, *,
                   position: tuple[str, str, str] = POSITION_COLUMNS) -> np.ndarray:
     """(N,4,4) homogeneous poses from position + quaternion columns (``rows`` selects and orders; N may be 0)."""
-    return _matrices(_columns(table, position, rows), lambda: _columns(table, QUATERNION_COLUMNS, rows))
+    return _matrices(_columns(table, position, rows), _columns(table, QUATERNION_COLUMNS, rows))
 
 
 def pose_columns(T: np.ndarray, *, position: tuple[str, str, str] = POSITION_COLUMNS) -> dict[str, np.ndarray]:
@@ -90,7 +90,7 @@ class Trajectory:
         if rows.shape[1] != 8:
             raise FormatError(f"{path}: a TUM trajectory has 8 columns (t x y z qx qy qz qw); got {rows.shape[1]}")
         return cls(drive, np.arange(len(rows), dtype=np.int64), np.round(rows[:, 0] * 1e9).astype(np.int64),
-                   _matrices(rows[:, 1:4], lambda: rows[:, 4:8]))
+                   _matrices(rows[:, 1:4], rows[:, 4:8]))
 
     @property
     def stamp_s(self) -> np.ndarray:
