@@ -118,15 +118,15 @@ def pipeline_inputs(args) -> dict:
     truth_pose_en = None
     tum = args.truth_poses or Path(args.sim) / "truth" / f"{drive0}_poses_tum.txt"
     if Path(tum).is_file():
-        from stages.common.geometry import read_tum
+        from stages.common.records import Trajectory
 
-        stamps_s, T = read_tum(tum)
-        p0 = poses.filter(pc.equal(poses["drive"], drive0)).sort_by("scan_id")
-        scan = p0["scan_id"].to_numpy()
-        if scan.max() < len(T):  # one TUM row per scan (the simulator's truth): match by scan index
-            truth_pose_en = T[scan, :2, 3]
+        truth = Trajectory.from_tum(tum)
+        stamps_s, T = truth.stamp_s, truth.T
+        p0 = Trajectory.from_table(poses, drive0)
+        if p0.scan_id.max() < len(T):  # one TUM row per scan (the simulator's truth): match by scan index
+            truth_pose_en = T[p0.scan_id, :2, 3]
         else:
-            t = p0["stamp_ns"].to_numpy() * 1e-9
+            t = p0.stamp_s
             truth_pose_en = np.column_stack([np.interp(t, stamps_s, T[:, 0, 3]), np.interp(t, stamps_s, T[:, 1, 3])])
     else:
         log.warning("no truth poses for %s at %s: the map-frame score equals the absolute one", drive0, tum)

@@ -136,11 +136,12 @@ def bench_accuracy(sim_dir: Path, drive: str, max_scans: int | None, params: Cor
 
     import yaml
 
-    from stages.common.geometry import read_tum
-    from stages.common.wheel_deskew import deskew_points
+    from stages.common.deskew import deskew_with_wheel
+    from stages.common.records import Trajectory
 
     truth = np.genfromtxt(sim_dir / "truth" / "corners.csv", delimiter=",", names=True)
-    stamps_s, T_world_vehicle = read_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
+    truth = Trajectory.from_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
+    stamps_s, T_world_vehicle = truth.stamp_s, truth.T
     spec = yaml.safe_load((sim_dir / drive / "drive.yaml").read_text())
     T_vehicle_lidar = np.asarray(spec["T_vehicle_lidar"], float)
     odo_spec = spec["odometry"]
@@ -169,9 +170,9 @@ def bench_accuracy(sim_dir: Path, drive: str, max_scans: int | None, params: Cor
         if near.size < 2:  # sparse odometry: the two samples around the scan
             k = int(np.clip(np.searchsorted(odo_t, stamps_s[scan_id]), 1, odo_t.size - 1))
             near = np.array([k - 1, k])
-        fixed = extract_corners(deskew_points(pts, t_s, odo[odo_spec["speed"]][near], odo[odo_spec["yaw_rate"]][near],
-                                              T_vehicle_lidar, odo_time_s=odo_t[near] - stamps_s[scan_id]),
-                                ring, params, layers=layers)
+        pts_start = deskew_with_wheel(pts, t_s, odo[odo_spec["speed"]][near], odo[odo_spec["yaw_rate"]][near],
+                                      T_vehicle_lidar, odo_time_s=odo_t[near] - stamps_s[scan_id])
+        fixed = extract_corners(pts_start, ring, params, layers=layers)
         T_start = T_world_vehicle[scan_id] @ T_vehicle_lidar
         for mode, c in (("start", raw), ("timed", raw), ("deskewed", fixed)):
             if not len(c):

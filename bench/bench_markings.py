@@ -204,18 +204,17 @@ def _pipeline_tiles(rasters_dir: Path) -> list[dict]:
 
 def _tile_offsets(tiles: list[dict], poses_dir: Path, sim_dir: Path, radius_m: float = 50.0) -> list[np.ndarray]:
     """Per tile: mean (optimized - true) position of drive 0's poses within ``radius_m`` of the tile centre."""
-    import pyarrow.compute as pc
     import pyarrow.dataset as ds
 
-    from stages.common.geometry import read_tum
+    from stages.common.records import Trajectory
     from stages.cornermap.metrics import local_frame_offset
 
     poses = ds.dataset(str(poses_dir), format="parquet", partitioning="hive").to_table()
     drive0 = sorted(set(poses["drive"].to_pylist()))[0]
-    p0 = poses.filter(pc.equal(poses["drive"], drive0)).sort_by("scan_id")
-    _, T_true = read_tum(sim_dir / "truth" / f"{drive0}_poses_tum.txt")
-    true_en = T_true[p0["scan_id"].to_numpy(), :2, 3]
-    opt_en = np.column_stack([p0["x_m"].to_numpy(), p0["y_m"].to_numpy()])
+    opt = Trajectory.from_table(poses, drive0)
+    T_true = Trajectory.from_tum(sim_dir / "truth" / f"{drive0}_poses_tum.txt").T
+    true_en = T_true[opt.scan_id, :2, 3]
+    opt_en = opt.T[:, :2, 3]
     centres = np.array([[t["rasters"].origin_east_m + 0.5 * t["rasters"].cell_m * t["rasters"].marking_mask.shape[1],
                          t["rasters"].origin_north_m + 0.5 * t["rasters"].cell_m * t["rasters"].marking_mask.shape[0]]
                         for t in tiles])

@@ -179,9 +179,9 @@ def report_kitti(folder: Path, threads: list[int], opts: dict) -> None:
     if truth is None:
         print(f"\nground truth: none in {folder} (its README: no poses, no GNSS) -- no absolute comparison")
     else:
-        from stages.common.geometry import read_tum
+        from stages.common.records import Trajectory
 
-        T = read_tum(truth)[1][:n]
+        T = Trajectory.from_tum(truth).T[:n]
         for r, _ in results:
             idx, (P,) = on_common_scans([r], n)
             e = errors_vs_truth(P, T[idx])

@@ -78,9 +78,10 @@ def run_odometry(tables, overrides: dict | None = None) -> tuple[pa.Table, float
 
 
 def truth_poses(sim: Path, drive, stamps_ns: np.ndarray) -> np.ndarray:
-    from stages.common.geometry import read_tum
+    from stages.common.records import Trajectory
 
-    t, T = read_tum(sim / "truth" / f"{drive}_poses_tum.txt")
+    truth = Trajectory.from_tum(sim / "truth" / f"{drive}_poses_tum.txt")
+    t, T = truth.stamp_s, truth.T
     s = stamps_ns * 1e-9
     if abs(s[0] - t[0]) > 1e5:  # different epochs (week seconds vs full GPS time): align on the first scan
         s = s - s[0] + t[0]

@@ -181,9 +181,10 @@ def errors_vs_truth(est: np.ndarray, truth: np.ndarray, segment_m: float = 100.0
 
 def truth_at_scans(path: Path, files: list[ScanFile]) -> np.ndarray:
     """Truth pose at each scan's start (nearest truth sample; refused when more than 5 ms away)."""
-    from stages.common.geometry import read_tum
+    from stages.common.records import Trajectory
 
-    t, T = read_tum(path)
+    truth = Trajectory.from_tum(path)
+    t, T = truth.stamp_s, truth.T
     s = np.array([f.stamp_ns for f in files]) * 1e-9
     i = np.clip(np.searchsorted(t, s), 1, len(t) - 1)
     i = np.where(np.abs(t[i - 1] - s) < np.abs(t[i] - s), i - 1, i)

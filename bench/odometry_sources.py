@@ -54,7 +54,7 @@ def sim_extrinsic(sim: Path) -> np.ndarray:
 
 
 def sim_track(sim: Path, drive: str):
-    from stages.common.wheel_deskew import OdometryTrack
+    from stages.common.wheel_odometry import OdometryTrack
 
     with open(sim / drive / "wheel_gyro.csv") as fh:
         rows = list(csv.DictReader(fh))

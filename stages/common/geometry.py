@@ -66,21 +66,6 @@ def poses_to_tum_rows(stamps_s: np.ndarray, T_world_body: np.ndarray) -> np.ndar
     return np.column_stack([stamps_s, T_world_body[:, :3, 3], q])
 
 
-def poses_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
-    """(N,3) translations and (N,4) quaternions (qx, qy, qz, qw) -> (N,4,4) homogeneous poses; N may be 0."""
-    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
-    T = np.tile(np.eye(4), (len(xyz), 1, 1))
-    if len(xyz):
-        T[:, :3, :3] = Rotation.from_quat(np.asarray(quat_xyzw, dtype=float).reshape(-1, 4)).as_matrix()
-        T[:, :3, 3] = xyz
-    return T
-
-
-def tum_rows_to_poses(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    rows = np.atleast_2d(np.asarray(rows, dtype=float))
-    return rows[:, 0], poses_from_xyz_quat(rows[:, 1:4], rows[:, 4:8])
-
-
 def write_tum(path, stamps_s: np.ndarray, T_world_body: np.ndarray, header: str = "") -> None:
     """Write a TUM trajectory (t x y z qx qy qz qw), atomically; ``header`` lines become '# ' comments."""
     import os
@@ -90,15 +75,6 @@ def write_tum(path, stamps_s: np.ndarray, T_world_body: np.ndarray, header: str 
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     np.savetxt(tmp, poses_to_tum_rows(stamps_s, T_world_body), fmt="%.9f", header=header, comments="# ")
     os.replace(tmp, path)
-
-
-def read_tum(path) -> tuple[np.ndarray, np.ndarray]:
-    rows = np.loadtxt(path, comments="#", ndmin=2)
-    if rows.shape[1] != 8:
-        from pipeline.errors import FormatError
-
-        raise FormatError(f"{path}: a TUM trajectory has 8 columns (t x y z qx qy qz qw); got {rows.shape[1]}")
-    return tum_rows_to_poses(rows)
 
 
 def write_kitti(path, T_world_body: np.ndarray) -> None:

@@ -2,7 +2,8 @@
 
 - Pose rows (``poses_gnss``, ``poses_odometry``, ``poses_optimized``: ``x_m, y_m, z_m, qx, qy, qz, qw``; and the
   relative ``dx_m, dy_m, dz_m`` + quaternion of ``odometry_edges``) <-> (N,4,4) homogeneous matrices:
-  ``pose_matrices`` / ``pose_columns``, the heading alone with ``yaw_rad``; a drive's trajectory as ``Trajectory``.
+  ``pose_matrices`` / ``pose_columns``, the heading alone with ``yaw_rad``; a drive's trajectory as ``Trajectory``,
+  which also reads TUM trajectory files (``t x y z qx qy qz qw`` per line, t in seconds; simulator truth, references).
 - ``drive_info.T_vehicle_lidar`` (16 floats, row-major 4x4; maps lidar points into the vehicle frame) <->
   ``Extrinsics`` (one matrix per drive), with a named error for a short or non-rigid row or a missing drive.
 
@@ -30,15 +31,19 @@ def _columns(table: pa.Table, names: tuple[str, ...], rows: np.ndarray | None) -
     return out if rows is None else out[rows]
 
 
+def _matrices(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """(N,3) positions and (N,4) quaternions -> (N,4,4) homogeneous poses; N may be 0."""
+    T = np.tile(np.eye(4), (len(xyz), 1, 1))
+    if len(xyz):
+        T[:, :3, :3] = Rotation.from_quat(quat_xyzw).as_matrix()
+        T[:, :3, 3] = xyz
+    return T
+
+
 def pose_matrices(table: pa.Table, rows: np.ndarray | None = None, *,
                   position: tuple[str, str, str] = POSITION_COLUMNS) -> np.ndarray:
     """(N,4,4) homogeneous poses from position + quaternion columns (``rows`` selects and orders; N may be 0)."""
-    xyz = _columns(table, position, rows)
-    T = np.tile(np.eye(4), (len(xyz), 1, 1))
-    if len(xyz):
-        T[:, :3, :3] = Rotation.from_quat(_columns(table, QUATERNION_COLUMNS, rows)).as_matrix()
-        T[:, :3, 3] = xyz
-    return T
+    return _matrices(_columns(table, position, rows), _columns(table, QUATERNION_COLUMNS, rows))
 
 
 def pose_columns(T: np.ndarray, *, position: tuple[str, str, str] = POSITION_COLUMNS) -> dict[str, np.ndarray]:
@@ -73,6 +78,24 @@ class Trajectory:
             table = table.filter(pc.equal(table["drive"], drive))
         table = table.sort_by("scan_id")
         return cls(drive, table["scan_id"].to_numpy(), table["stamp_ns"].to_numpy(), pose_matrices(table))
+
+    @classmethod
+    def from_tum(cls, path, drive: str = "") -> "Trajectory":
+        """A TUM file (``t x y z qx qy qz qw`` per line, t in seconds, ``#`` comments): row k is scan k, stamped
+        t rounded to the nanosecond; FormatError naming the file when a line does not hold 8 numbers."""
+        try:
+            rows = np.loadtxt(path, comments="#", ndmin=2)
+        except ValueError as exc:
+            raise FormatError(f"{path}: not a TUM trajectory (t x y z qx qy qz qw per line): {exc}") from exc
+        if rows.shape[1] != 8:
+            raise FormatError(f"{path}: a TUM trajectory has 8 columns (t x y z qx qy qz qw); got {rows.shape[1]}")
+        return cls(drive, np.arange(len(rows), dtype=np.int64), np.round(rows[:, 0] * 1e9).astype(np.int64),
+                   _matrices(rows[:, 1:4], rows[:, 4:8]))
+
+    @property
+    def stamp_s(self) -> np.ndarray:
+        """``stamp_ns`` in seconds (float64: ~0.2 us steps at GPS-epoch magnitudes)."""
+        return self.stamp_ns * 1e-9
 
     def to_columns(self) -> dict[str, np.ndarray | list]:
         """The columns ``drive, scan_id, stamp_ns, x_m, ..., qw`` (the pose-table fields every pose dataset has)."""

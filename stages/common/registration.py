@@ -1,4 +1,5 @@
-"""Scan-to-scan registration on voxel-downsampled clouds (open3d), deskewing and edge information matrices.
+"""Scan-to-scan registration on voxel-downsampled clouds (open3d) and edge information matrices (deskewing:
+``stages.common.deskew``).
 
 Pure functions: numpy arrays and open3d clouds in, numpy out. ``T_a_b`` maps points of frame b into frame a.
 Information matrices are 6x6 in gtsam's tangent order (rx ry rz tx ty tz) for a *right* (body-frame)
@@ -10,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial.transform import Rotation
 
 from stages.common.geometry import skew
 
@@ -32,21 +32,6 @@ def crop_range(points_m: np.ndarray, min_range_m: float, max_range_m: float) -> 
     """Boolean mask of points whose range from the sensor lies in [min, max]."""
     range_m = np.linalg.norm(points_m[:, :3], axis=1)
     return (range_m >= min_range_m) & (range_m <= max_range_m) & np.isfinite(range_m)
-
-
-def deskew_points(points_m: np.ndarray, time_offset_s: np.ndarray, T_start_end: np.ndarray,
-                  period_s: float) -> np.ndarray:
-    """Express points captured over a sweep in the sensor frame at the sweep start.
-
-    ``T_start_end`` is the sensor motion over ``period_s`` (constant velocity); a point taken ``t`` seconds
-    after the start is moved by the fraction ``t / period_s`` of that motion (rotation interpolated on SO(3)).
-    """
-    if period_s <= 0 or len(points_m) == 0:
-        return np.asarray(points_m, dtype=float)
-    s = np.clip(np.asarray(time_offset_s, dtype=float) / period_s, -1.0, 2.0)
-    rotvec = Rotation.from_matrix(T_start_end[:3, :3]).as_rotvec()
-    R = Rotation.from_rotvec(s[:, None] * rotvec[None, :])
-    return R.apply(points_m[:, :3]) + s[:, None] * T_start_end[:3, 3][None, :]
 
 
 MIN_COVARIANCE_EIGENVALUE_M2 = 1e-6  # (1 mm)^2: see regularize_covariances

@@ -9,7 +9,7 @@ import pyarrow as pa
 from pipeline.declare import StageContext
 from schemas.registry import schema_of
 from stages.common.records import Extrinsics
-from stages.common.wheel_deskew import OdometryTrack, track_from_table
+from stages.common.wheel_odometry import OdometryTrack, track_from_table
 from stages.corners.core import extract_corners, select_scan_layers
 from stages.corners.determine import Corners
 from stages.corners.params import CornerParams

@@ -18,7 +18,7 @@ from pipeline.errors import DataQualityError
 from stages.common.geometry import wrap_angle_rad
 from stages.common.records import Extrinsics, yaw_rad
 from stages.common.road_features import extract_road_features
-from stages.common.wheel_deskew import OdometryTrack, track_from_table
+from stages.common.wheel_odometry import OdometryTrack, track_from_table
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
 from stages.evaluate.localize_mcl import odometry_increments
 from stages.evaluate.map_access import map_inputs, open_published_map

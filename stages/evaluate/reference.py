@@ -48,20 +48,20 @@ def reference_origin(path: Path, frame) -> tuple[EnuOrigin | None, str]:
 
 def read_reference(path: Path, map_origin: EnuOrigin, frame) -> Reference:
     """A TUM trajectory as (stamps, x y yaw) in the map's ENU frame."""
-    from stages.common.geometry import read_tum
+    from stages.common.records import Trajectory
     from stages.common.trajectory_frame import T_enuB_enuA
 
     path = Path(path)
     origin, how = reference_origin(path, frame)
-    stamps_s, T = read_tum(path)
+    truth = Trajectory.from_tum(path)
     T_move = np.eye(4) if origin is None else T_enuB_enuA(origin, map_origin)
-    T = T_move @ T
+    T = T_move @ truth.T
     if origin is not None:
         log.info("reference %s: ENU about %s moved into the map's frame (shift %.3f m, tilt %.4f deg)", path.name,
                  origin, float(np.linalg.norm(T_move[:3, 3])),
                  float(np.degrees(np.arccos(np.clip(T_move[2, 2], -1.0, 1.0)))))
     q = np.column_stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])])
-    return Reference(np.round(stamps_s * 1e9).astype(np.int64), q, T_move, how)
+    return Reference(truth.stamp_ns, q, T_move, how)
 
 
 def read_truth_corners(reference_path: Path, T_map_ref: np.ndarray) -> np.ndarray | None:

@@ -14,7 +14,7 @@ from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import DataQualityError
 from schemas.registry import schema_of
 from stages.common.records import Extrinsics
-from stages.common.wheel_deskew import OdometryTrack, track_from_table, wheel_increments
+from stages.common.wheel_odometry import OdometryTrack, track_from_table, wheel_increments
 from stages.odometry.core import Edge, Scan, estimate_edges
 
 log = logging.getLogger(__name__)

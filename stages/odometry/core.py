@@ -10,12 +10,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.common.deskew import deskew_with_transform, interpolate_transform
 from stages.common.geometry import se3_inverse
 from stages.common.ground_plane import align_ground_planes
 from stages.common.registration import (
     RegistrationResult,
     adjoint_se3,
-    deskew_points,
     floor_information,
     point_to_plane_hessian,
     register_clouds,
@@ -69,11 +69,9 @@ def initial_guess(prev_pose_map: np.ndarray | None, curr_pose_map: np.ndarray | 
 
 def scale_motion(T: np.ndarray, ratio: float) -> np.ndarray:
     """Constant-velocity extrapolation of a small motion to ``ratio`` times its duration."""
-    from scipy.spatial.transform import Rotation
-
+    m = interpolate_transform(T, np.array([ratio]))
     out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(ratio * Rotation.from_matrix(T[:3, :3]).as_rotvec()).as_matrix()
-    out[:3, 3] = ratio * T[:3, 3]
+    out[:3, :3], out[:3, 3] = m.R[0], m.t_m[0]
     return out
 
 
@@ -169,7 +167,7 @@ def deskew_own_sweep(prepared: list[PreparedScan], pairs: _Pairs, results: dict[
         own = next((k for k in (i + 1, i) if k in results and results[k].converged and pairs.dt_s[k] > 0), None)
         if own is None:
             continue
-        pts = deskew_points(p.points_m, p.time_offset_s, motion[own], pairs.dt_s[own])
+        pts = deskew_with_transform(p.points_m, p.time_offset_s, motion[own], pairs.dt_s[own])
         out[i] = prepare_scan(pts, None, T_vehicle_lidar, cfg, with_cov)
     return out, motion
 

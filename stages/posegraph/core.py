@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.common.deskew import deskew_with_transform as deskew_points
 from stages.common.geometry import se3_inverse
-from stages.common.registration import deskew_points
 from stages.posegraph.gnss_factors import attitude_priors, gnss_position_priors
 from stages.posegraph.graph import Between, PosePrior, Problem
 

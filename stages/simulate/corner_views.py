@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ConfigError
-from stages.common.geometry import read_tum
+from stages.common.records import Trajectory
 from stages.simulate.core import build_city, component_rng
 from stages.simulate.mesh import Scene, build_static_soup
 from stages.simulate.presets import get_preset
@@ -46,7 +46,7 @@ def sensed_corner_truth(sim_dir: Path, drive: str, **kwargs) -> SensedCornerTrut
             f"the city rebuilt from preset {meta['preset']!r}, seed {meta['seed']} differs from the stored one "
             "(simulated by another simulator version); cannot recount corner views"])
     static = Scene(build_static_soup(city, component_rng(int(meta["seed"]), "mesh")))
-    _, T = read_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
+    T = Trajectory.from_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt").T
     corners = building_corners(city)
     own = np.radians(np.column_stack([corners["theta1_deg"], corners["theta2_deg"]]))
     en = np.column_stack([corners["east_m"], corners["north_m"]])

@@ -74,7 +74,7 @@ def plot_birdseye(sim_dir: Path, out: Path) -> None:
     import cv2
     import matplotlib.pyplot as plt
 
-    from stages.common.geometry import read_tum
+    from stages.common.records import Trajectory
 
     city = json.loads((sim_dir / "truth/city.json").read_text())
     meta = json.loads((sim_dir / "truth/markings.json").read_text())
@@ -101,7 +101,7 @@ def plot_birdseye(sim_dir: Path, out: Path) -> None:
     ax.plot([], [], color="darkorange", lw=1.0, label="street furniture")
     trees = np.array([[t["east_m"], t["north_m"]] for t in city["trees"]])
     ax.scatter(trees[:, 0], trees[:, 1], s=6, color="forestgreen", label="trees")
-    _, T = read_tum(sim_dir / "truth/drive_0_poses_tum.txt")
+    T = Trajectory.from_tum(sim_dir / "truth/drive_0_poses_tum.txt").T
     ax.plot(T[:, 0, 3], T[:, 1, 3], color="crimson", lw=1.2, label="drive 0 (truth)")
     ax.plot([], [], color="deepskyblue", lw=2.2, label="glass walls")
     ax.set_aspect("equal")
@@ -122,11 +122,11 @@ def plot_scan_top(sim_dir: Path, drive: str, scan_id: int, out: Path, half_m: fl
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from stages.common.geometry import read_tum
+    from stages.common.records import Trajectory
 
     city = json.loads((sim_dir / "truth/city.json").read_text())
     pts = read_pcd(sim_dir / drive / "scans" / f"{scan_id:06d}.pcd")
-    _, T = read_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
+    T = Trajectory.from_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt").T
     xyz = np.column_stack([pts["x"], pts["y"], pts["z"] + 1.9]).astype(float) @ T[scan_id, :3, :3].T + T[scan_id, :3, 3]
     keep = xyz[:, 2] > 0.3  # above the road: walls, vehicles, furniture, trees
     fig, ax = plt.subplots(figsize=(9, 9))
@@ -161,10 +161,11 @@ def plot_gnss(sim_dir: Path, out: Path) -> dict:
     import matplotlib.pyplot as plt
 
     from stages.common.geodesy import EnuOrigin, geodetic_to_enu
-    from stages.common.geometry import read_tum
+    from stages.common.records import Trajectory
 
     sim = json.loads((sim_dir / "simulation.json").read_text())
-    stamps, T = read_tum(sim_dir / "truth/drive_0_poses_tum.txt")
+    truth = Trajectory.from_tum(sim_dir / "truth/drive_0_poses_tum.txt")
+    stamps, T = truth.stamp_s, truth.T
     rows = list(csv.reader(open(sim_dir / "drive_0/gnss_inspva.csv")))[1:]
     g = np.array([[float(v) for v in r[1:12]] for r in rows])
     stamps = stamps - float(rows[0][0]) * 604800.0  # TUM truth is in full GPS seconds; the CSV in week seconds

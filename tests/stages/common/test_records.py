@@ -52,6 +52,29 @@ def test_trajectory_selects_the_drive_and_sorts_by_scan():
     assert np.allclose(traj.yaw_rad, Rotation.from_matrix(traj.T[:, :3, :3]).as_euler("ZYX")[:, 0])
 
 
+def test_tum_files_read_back_what_was_written_and_malformed_ones_are_named(tmp_path):
+    """``write_tum`` (9 decimals) -> ``Trajectory.from_tum``: poses within 1e-9 m / rad, GPS-epoch stamps to the
+    nanosecond, one scan per row; a wrong column count or a word in a line is a FormatError naming the file."""
+    from stages.common.geometry import write_tum
+
+    T = _poses(7, 4)
+    stamps_ns = 1_400_000_000_000_000_000 + np.arange(7, dtype=np.int64) * 100_000_123
+    path = tmp_path / "truth_tum.txt"
+    write_tum(path, stamps_ns * 1e-9, T, header="frame: ENU lat_deg=37.5 lon_deg=127.0 h_m=40.0")
+    traj = Trajectory.from_tum(path, "d0")
+    assert traj.drive == "d0" and traj.scan_id.tolist() == list(range(7))
+    assert np.abs(traj.stamp_ns - stamps_ns).max() <= 256  # float64 seconds at 1.4e9 s: 0.24 us steps
+    np.testing.assert_allclose(traj.T[:, :3, 3], T[:, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(traj.T[:, :3, :3], T[:, :3, :3], atol=1e-8)
+    bad = tmp_path / "bad.txt"
+    bad.write_text("0.0 1 2 3 0 0 0\n")
+    with pytest.raises(FormatError, match="bad.txt: a TUM trajectory has 8 columns.*got 7"):
+        Trajectory.from_tum(bad)
+    bad.write_text("0.0 1 2 3 0 0 0 one\n")
+    with pytest.raises(FormatError, match="bad.txt: not a TUM trajectory"):
+        Trajectory.from_tum(bad)
+
+
 def test_extrinsics_round_trip_and_named_errors():
     T = _poses(2, 9)
     info = pa.table({"drive": ["d0", "d1"], "T_vehicle_lidar": [Extrinsics.to_column(t) for t in T]})

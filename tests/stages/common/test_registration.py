@@ -1,4 +1,4 @@
-"""Oracles for the shared registration core: known motions on a raycast street, deskewing, information frames."""
+"""Oracles for the shared registration core: known motions on a raycast street, information frames."""
 from __future__ import annotations
 
 import gtsam
@@ -9,14 +9,12 @@ from scipy.spatial.transform import Rotation
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import (
     adjoint_se3,
-    deskew_points,
     floor_information,
     point_to_plane_hessian,
     prepare_cloud,
     register_clouds,
     regularize_covariances,
 )
-from stages.odometry.core import scale_motion
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
 
 
@@ -62,22 +60,6 @@ def test_floor_information_caps_confidence():
     H = np.diag([1e12] * 6)
     cov = np.linalg.inv(floor_information(H, 0.01, 0.001))
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), [0.001] * 3 + [0.01] * 3, rtol=1e-3)
-
-
-def test_deskew_undoes_constant_velocity_sweep():
-    rng = np.random.default_rng(5)
-    period_s = 0.1
-    T_sweep = se3_from_xyz_rpy(1.0, 0.1, 0.0, 0.0, 0.0, 0.05)  # start -> end of sweep
-    p_start = rng.uniform(-30, 30, size=(2000, 3))
-    t = rng.uniform(0, period_s, 2000)
-    # a static point seen at time t from the pose T_start_t: p_t = T_start_t^-1 p_start
-    p_t = np.empty_like(p_start)
-    for i, ti in enumerate(t):  # test oracle, not a hot path
-        T = scale_motion(T_sweep, ti / period_s)
-        p_t[i] = se3_inverse(T)[:3, :3] @ p_start[i] + se3_inverse(T)[:3, 3]
-    out = deskew_points(p_t, t, T_sweep, period_s)
-    assert np.abs(out - p_start).max() < 1e-3  # rotation/translation interpolation coupling is second order
-    assert np.abs(p_t - p_start).max() > 0.5  # the skew was real
 
 
 def _exact_plane_street(rng: np.random.Generator, n: int = 6000) -> np.ndarray:

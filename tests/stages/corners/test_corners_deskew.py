@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from fixtures.corners import Scene, box_building, cast_scan
-from stages.common.wheel_deskew import deskew_points, vehicle_motion_xy_yaw
+from stages.common.deskew import deskew_with_wheel as deskew_points
+from stages.common.deskew import integrate_odometry_xy_yaw, vehicle_motion_xy_yaw
 from stages.corners.core import extract_corners
 
 BOX = box_building((0.0, 0.0), (12.0, 8.0), yaw_rad=0.4, height_m=14.0)
@@ -60,8 +61,6 @@ def test_integrated_odometry_matches_the_closed_form_for_a_constant_twist_and_fo
     t = np.linspace(0.0, 0.1, 50)
     odo_t = np.arange(-0.05, 0.16, 0.01)
     closed = np.column_stack(vehicle_motion_xy_yaw(t, 9.0, 0.5))
-    from stages.common.wheel_deskew import integrate_odometry_xy_yaw
-
     integrated = np.column_stack(integrate_odometry_xy_yaw(t, odo_t, np.full(odo_t.size, 9.0),
                                                            np.full(odo_t.size, 0.5)))
     np.testing.assert_allclose(integrated, closed, atol=1e-6)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fixtures.evaluate import synthetic_drive
-from stages.common.geometry import read_tum
+from stages.common.records import Trajectory
 from stages.evaluate.outputs import epochs_table, write_report
 from stages.evaluate.params import EvaluateParams
 from stages.evaluate.run import evaluate_drive
@@ -60,7 +60,7 @@ def test_outputs_metrics_tum_report_and_epochs(outage_evaluation, tmp_path):
                     "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean",
                     "epochs"):
             assert key in entry and key in entry["absolute"]
-        stamps_s, T = read_tum(tmp_path / f"{m}_tum.txt")
+        T = Trajectory.from_tum(tmp_path / f"{m}_tum.txt").T
         r = ev.runs[m]
         ok = np.all(np.isfinite(r.q), axis=1)
         np.testing.assert_allclose(T[:, 0, 3], r.q[ok, 0], atol=1e-6)

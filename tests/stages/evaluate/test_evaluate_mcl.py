@@ -276,7 +276,7 @@ def test_extract_features_deskews_each_scan_with_the_wheel_odometry():
 
     from pipeline.testing import make_context
     from schemas import schema_of
-    from stages.common.wheel_deskew import OdometryTrack
+    from stages.common.wheel_odometry import OdometryTrack
     from stages.evaluate import compute as compute_mod
     from stages.evaluate.params import EvaluateParams
 

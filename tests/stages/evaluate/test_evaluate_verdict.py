@@ -9,7 +9,8 @@ import pytest
 
 from pipeline.errors import DataQualityError, ReferenceFrameError
 from stages.common.geodesy import EnuOrigin
-from stages.common.geometry import read_tum, write_tum
+from stages.common.geometry import write_tum
+from stages.common.records import Trajectory
 from stages.common.trajectory_frame import frame_header, move_poses, sidecar_path, write_sidecar
 from stages.evaluate import compute as compute_mod
 from tests.stages.evaluate import test_evaluate_compute
@@ -34,7 +35,8 @@ def test_truth_in_another_frame_gives_the_same_numbers(stage_context, tmp_path):
     the truth in the map's frame; its raw coordinates are kilometres off, so an unconverted file could not."""
     ctx, _ = stage_context
     base = _metrics(_rerun(ctx, tmp_path, params={"methods": ["ekf"]}))
-    stamps_s, T_map = read_tum(ctx.settings["references"]["drive_1"])
+    truth = Trajectory.from_tum(ctx.settings["references"]["drive_1"])
+    stamps_s, T_map = truth.stamp_s, truth.T
     T_other = move_poses(T_map, MAP_ORIGIN, OTHER_ORIGIN)
     assert np.linalg.norm(T_other[0, :2, 3] - T_map[0, :2, 3]) > 3000.0
     with_header = tmp_path / "truth_other_header.txt"
@@ -66,7 +68,8 @@ def test_truth_in_another_frame_gives_the_same_numbers(stage_context, tmp_path):
 
 def test_reference_that_states_no_frame_is_refused_unless_told(stage_context, tmp_path):
     ctx, _ = stage_context
-    stamps_s, T = read_tum(ctx.settings["references"]["drive_1"])
+    truth = Trajectory.from_tum(ctx.settings["references"]["drive_1"])
+    stamps_s, T = truth.stamp_s, truth.T
     bare = tmp_path / "bare.txt"
     write_tum(bare, stamps_s, T)
     with pytest.raises(ReferenceFrameError, match=r"bare.txt: the reference trajectory does not state its frame"):

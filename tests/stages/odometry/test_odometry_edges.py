@@ -79,7 +79,7 @@ def test_swept_scans_give_accurate_edges_without_feedback(swept_sequence, deskew
 def test_deskew_fixes_a_distorted_scan_against_an_undistorted_one(street_scene, swept_sequence):
     """A swept scan registered onto a scan from a standing sensor is biased by the sweep (the distortion is
     no longer common to both); deskewing it with the true sweep motion removes the bias."""
-    from stages.common.registration import deskew_points
+    from stages.common.deskew import deskew_with_transform
 
     scans, step = swept_sequence
     rng = np.random.default_rng(12)
@@ -88,7 +88,7 @@ def test_deskew_fixes_a_distorted_scan_against_an_undistorted_one(street_scene, 
     src = scans[1]  # taken from T0 @ step, sweeping along step
     tgt_cloud = prepare_cloud(still, 0.5, 20)
     raw = register_clouds(prepare_cloud(src.points_lidar_m, 0.5, 20), tgt_cloud, step, max_corr_m=0.7)
-    fixed = register_clouds(prepare_cloud(deskew_points(src.points_lidar_m, src.time_offset_s, step, PERIOD_S),
+    fixed = register_clouds(prepare_cloud(deskew_with_transform(src.points_lidar_m, src.time_offset_s, step, PERIOD_S),
                                           0.5, 20), tgt_cloud, step, max_corr_m=0.7)
     e_raw, e_fixed = _err(raw.T_target_source, step), _err(fixed.T_target_source, step)
     assert e_raw[0] > 0.1  # the sweep biases the edge by ~half its motion
@@ -136,7 +136,7 @@ def test_gate_rejects_edges_far_from_the_gnss_increment():
 def test_structure_only_registration_with_road_planes_and_own_sweep_deskew(swept_sequence):
     """The production path: road plane split (the extrinsic puts the vehicle origin on the road), structure-only
     GICP, both deskew routes (wheel odometry before registration; own sweep in a second pass)."""
-    from stages.common.wheel_deskew import OdometryTrack
+    from stages.common.wheel_odometry import OdometryTrack
     from stages.odometry.compute import deskew_with_wheel_odometry, wheel_guides
 
     scans, step = swept_sequence

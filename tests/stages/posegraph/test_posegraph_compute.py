@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.testing import make_context
 from schemas.registry import schema_of
-from stages.common.geometry import read_tum, se3_from_xyz_rpy, se3_inverse
+from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
+from stages.common.records import Trajectory
 from stages.posegraph.params import PosegraphParams
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
 from tests.stages.posegraph.conftest import perturb
@@ -95,7 +96,7 @@ def test_compute_map_and_reference_drive(tmp_path):
     cov = np.stack(opt["cov_xy_yaw"].to_numpy(zero_copy_only=False)).reshape(-1, 3, 3)
     assert np.all(np.linalg.eigvalsh(cov) > 0)
     report_dir = ctx.artifact_dir("report")
-    stamps, T = read_tum(report_dir / "d1_optimized_tum.txt")
+    T = Trajectory.from_tum(report_dir / "d1_optimized_tum.txt").T
     assert len(T) == 30 and (report_dir / "d0_optimized_kitti.txt").exists()
     report = json.loads((report_dir / "posegraph_report.json").read_text())
     assert report["reference_drives"] == ["d1"] and report["map_drives"] == ["d0"]

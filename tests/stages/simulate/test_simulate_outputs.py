@@ -70,10 +70,11 @@ def test_drive_yaml_and_streams(tiny_sim):
 
 def test_truth_poses_match_gnss_within_the_error_model(tiny_sim):
     from stages.common.geodesy import EnuOrigin, geodetic_to_enu
-    from stages.common.geometry import read_tum
+    from stages.common.records import Trajectory
 
     out, _ = tiny_sim
-    stamps, T = read_tum(out / "truth/drive_0_poses_tum.txt")
+    truth = Trajectory.from_tum(out / "truth/drive_0_poses_tum.txt")
+    stamps, T = truth.stamp_s, truth.T
     sim = json.loads((out / "simulation.json").read_text())
     g = np.loadtxt(out / "drive_0/gnss_inspva.csv", delimiter=",", skiprows=1, usecols=range(12))
     enu = geodetic_to_enu(g[:, 2], g[:, 3], g[:, 4], EnuOrigin.from_dict(sim["enu_origin"]))

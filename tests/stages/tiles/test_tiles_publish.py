@@ -13,7 +13,7 @@ from mapformat.loader import open_map
 from mapformat.verify import verify_map
 from pipeline.errors import DataQualityError, MapFormatError
 from pipeline.versioned import list_versions, read_latest, read_manifest
-from stages.common.geometry import read_tum
+from stages.common.records import Trajectory
 from stages.tiles.compute import compute
 from stages.tiles.decl import STAGE
 from stages.tiles.params import TilesParams
@@ -58,7 +58,8 @@ def test_publish_writes_a_complete_documented_version(city):
     assert m["inputs"]["corner_map"] == {"dataset": "corner_map", "fingerprint": "fp1-corner_map"}
     assert m["params"]["tile_size_m"] == 100.0 and m["code_version"] == STAGE.code_version
     assert m["source_drives"][0]["drive"] == "drive_a" and m["source_drives"][0]["fingerprint"]
-    stamps_s, T = read_tum(vdir / m["source_drives"][0]["trajectory"])
+    truth = Trajectory.from_tum(vdir / m["source_drives"][0]["trajectory"])
+    stamps_s, T = truth.stamp_s, truth.T
     path = drive_path()
     np.testing.assert_allclose(T[:, :2, 3], path, atol=1e-6)
     assert stamps_s[1] - stamps_s[0] == pytest.approx(0.1, abs=1e-6)
