@@ -42,7 +42,7 @@ def main() -> None:
     from pipeline.workflow import load_workflow
     from stages.common import trajectory_metrics as M
     from stages.posegraph.compute import read_drive_inputs, scan_loader
-    from stages.posegraph.core import dead_reckoning
+    from stages.posegraph.factors.drive import dead_reckoning
     from stages.posegraph.solve import LoopRecord, solve_map
 
     wf = load_workflow(args.workflow, param_overrides={"posegraph": _overrides(args.set)})

@@ -73,9 +73,9 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     from pipeline.plan import make_plan
     from pipeline.workflow import load_workflow
     from stages.posegraph.compute import read_drive_inputs, scan_loader
-    from stages.posegraph.core import base_problem
-    from stages.posegraph.graph import optimize
-    from stages.posegraph.survey_anchor import survey_anchor_callback
+    from stages.posegraph.factors.drive import base_problem
+    from stages.posegraph.factors.graph import optimize
+    from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
 
     root, _ = tiny_sync
     plan = make_plan(load_workflow(REPO / "workflows" / "tiny.yaml"), root)

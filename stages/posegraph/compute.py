@@ -12,8 +12,8 @@ import pyarrow as pa
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError
 from stages.common.geometry import write_kitti, write_tum
-from stages.posegraph.core import DriveInput, dead_reckoning
-from stages.posegraph.graph import marginal_cov_xy_yaw
+from stages.posegraph.factors.drive import DriveInput, dead_reckoning
+from stages.posegraph.factors.graph import marginal_cov_xy_yaw
 from stages.posegraph.report import write_report
 from stages.posegraph.solve import solve_map, solve_reference
 from stages.posegraph.tables import drive_input, loops_table, poses_table
@@ -89,7 +89,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     if ctx.inputs.has("survey"):
         survey = ctx.inputs.read("survey", columns=["east_m", "north_m", "up_m", "intensity"])
         if survey.num_rows:
-            from stages.posegraph.survey_anchor import survey_anchor_callback
+            from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
 
             pts = np.column_stack([survey[c].to_numpy() for c in ("east_m", "north_m", "up_m")])
             survey_cb = survey_anchor_callback(drives, load, pts, p, survey_matches,

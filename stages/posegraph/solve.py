@@ -12,9 +12,9 @@ import numpy as np
 
 from stages.common.geometry import se3_inverse
 from stages.common.registration import crop_range
-from stages.posegraph.core import DriveInput, base_problem, deskew_scan_lidar, increments
-from stages.posegraph.graph import Between, PosePrior, Problem, between_residuals, optimize
-from stages.posegraph.loops import find_candidates, keyframes_by_travel, verify_loop
+from stages.posegraph.factors.drive import DriveInput, base_problem, deskew_scan_lidar, increments
+from stages.posegraph.factors.graph import Between, PosePrior, Problem, between_residuals, optimize
+from stages.posegraph.loops.verify import find_candidates, keyframes_by_travel, verify_loop
 
 log = logging.getLogger(__name__)
 # (drive, scan_id) list -> {(drive, scan_id): (points_lidar_m (N,3), time_offset_s (N,) or None)}

@@ -12,9 +12,9 @@ from stages.common.trajectory_metrics import (
     self_consistency_errors_m,
     summarize,
 )
-from stages.posegraph.core import base_problem, calibrate_wheel, calibrated_wheel_increments, dead_reckoning
-from stages.posegraph.gnss_factors import select_epochs
-from stages.posegraph.graph import marginal_cov_xy_yaw, optimize
+from stages.posegraph.factors.drive import base_problem, calibrate_wheel, calibrated_wheel_increments, dead_reckoning
+from stages.posegraph.factors.gnss import select_epochs
+from stages.posegraph.factors.graph import marginal_cov_xy_yaw, optimize
 from stages.posegraph.params import PosegraphParams
 from stages.posegraph.solve import LoopRecord, optimize_with_loops
 from tests.stages.posegraph.conftest import circuit_truth, perturb
@@ -107,7 +107,7 @@ def test_gnss_fix_and_bias_chain_errors_match_their_formulas():
     separately), Gauss-Markov step b_1 - decay * b_0; checked against the formulas at random values."""
     import gtsam
 
-    from stages.posegraph.graph import (
+    from stages.posegraph.factors.graph import (
         BiasLink,
         PositionPrior,
         Problem,
@@ -144,7 +144,7 @@ def test_gravity_only_attitude_prior_leaves_heading_free_and_holds_roll_pitch():
     import gtsam
 
     from stages.common.geometry import se3_from_xyz_rpy
-    from stages.posegraph.graph import AttitudePrior, Problem, build_graph
+    from stages.posegraph.factors.graph import AttitudePrior, Problem, build_graph
 
     T_ins = se3_from_xyz_rpy(0, 0, 0, 0.01, -0.02, 0.3)
     for with_yaw in (False, True):
@@ -239,7 +239,7 @@ def test_span_edges_cut_a_per_edge_heading_bias_and_a_wrong_span_stays_local(two
     information does not know); span edges over 10 scans carry one registration's error each. With them the
     heading change over 100 scans is pulled back towards truth. One span edge planted 1 m wrong along-track
     under the default Huber kernel moves its own stretch by far less than 1 m."""
-    from stages.posegraph.core import SpanEdges
+    from stages.posegraph.factors.drive import SpanEdges
 
     T_true, drive = two_lap_drive
     rng = np.random.default_rng(5)

@@ -7,7 +7,7 @@ import pytest
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import register_coarse_to_fine, score_alignment
-from stages.posegraph.loops import verify_loop
+from stages.posegraph.loops.verify import verify_loop
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
 
 
@@ -51,7 +51,7 @@ def test_candidates_verified_in_parallel_processes_give_the_serial_verdicts(lane
     """The loop candidates are independent registrations: verified in a process pool (parallel_min_items
     reached) they give the verdicts of the stage's own process (transforms equal to open3d's own run-to-run
     noise: its OpenMP thread count differs between the two)."""
-    from stages.posegraph.loops import Candidate
+    from stages.posegraph.loops.verify import Candidate
     from stages.posegraph.params import PosegraphParams
     from stages.posegraph.solve import verify_candidates
 

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from stages.common.ground_plane import rotation_between
 from stages.common.registration import floor_information, prepare_cloud, register_clouds
-from stages.posegraph.graph import PosePrior
+from stages.posegraph.factors.graph import PosePrior
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +98,7 @@ def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345, yaw_sigma
     """Accepted matches as robust (Huber) absolute pose priors: the vertical part from the ground
     registration, the horizontal part from the marking match, each where accepted; with ``yaw_sigma_rad`` > 0
     also the heading at which the marking submap matched (``survey_markings.best_yaw_match``)."""
-    from stages.posegraph.survey_markings import horizontal_information_body
+    from stages.posegraph.anchors.survey_markings import horizontal_information_body
 
     out = []
     for m in matches:
@@ -137,7 +137,7 @@ def _anchor_item(item) -> SurveyMatch:
 def _use_survey_markings(survey_enu_m: np.ndarray, survey_intensity: np.ndarray, feature_load) -> None:
     """Pool/cluster worker initializer for the marking anchors: the survey's marking index and a scan loader."""
     from pipeline.parallel import set_worker_state
-    from stages.posegraph.survey_markings import build_survey_marking_index
+    from stages.posegraph.anchors.survey_markings import build_survey_marking_index
 
     set_worker_state(marking_index=build_survey_marking_index(survey_enu_m, survey_intensity),
                      feature_load=feature_load)
@@ -147,7 +147,7 @@ def _marking_block(item) -> list:
     """Marking anchors of consecutive keyframes of one drive (module level). Consecutive submaps share scans,
     so a block keeps one feature cache; blocks are independent (a cache changes speed, never a result)."""
     from pipeline.parallel import worker_state
-    from stages.posegraph.survey_markings import marking_anchor
+    from stages.posegraph.anchors.survey_markings import marking_anchor
 
     drive, poses_drive, incs_drive, keys_local, kwargs = item
     state = worker_state()
@@ -173,8 +173,8 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
     With the survey's intensities and a ``feature_load``er (scans with intensity and ring), each keyframe is
     also matched horizontally on the painted markings (``survey_markings``)."""
     from pipeline.parallel import parallel_map
-    from stages.posegraph.core import increments
-    from stages.posegraph.loops import keyframes_by_travel
+    from stages.posegraph.factors.drive import increments
+    from stages.posegraph.loops.verify import keyframes_by_travel
     from stages.posegraph.solve import vehicle_clouds
 
     survey_pts, tree = build_survey_index(survey_enu_m, p.loop_voxel_m / 2)
@@ -225,7 +225,7 @@ def checked_horizontal(matches: list[SurveyMatch], poses: np.ndarray, offsets: n
     ones, with the reason; the others unchanged."""
     from scipy.stats import chi2
 
-    from stages.posegraph.anchor_consensus import anchor_consensus
+    from stages.posegraph.anchors.anchor_consensus import anchor_consensus
 
     acc = [k for k, m in enumerate(matches) if m.horizontal is not None and m.horizontal.accepted]
     if not acc:

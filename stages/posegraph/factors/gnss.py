@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stages.posegraph.graph import AttitudePrior, BiasLink, BiasPrior, PositionPrior
+from stages.posegraph.factors.graph import AttitudePrior, BiasLink, BiasPrior, PositionPrior
 
 
 def select_epochs(stamps_ns: np.ndarray, valid: np.ndarray, every_s: float) -> np.ndarray:

@@ -9,8 +9,8 @@ import numpy as np
 
 from stages.common.geometry import se3_inverse
 from stages.common.registration import deskew_points
-from stages.posegraph.gnss_factors import attitude_priors, gnss_position_priors
-from stages.posegraph.graph import Between, PosePrior, Problem
+from stages.posegraph.factors.gnss import attitude_priors, gnss_position_priors
+from stages.posegraph.factors.graph import Between, PosePrior, Problem
 
 
 @dataclass
