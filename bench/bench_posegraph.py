@@ -100,11 +100,12 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     from stages.common import trajectory_metrics as M
+    from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
     from stages.posegraph.factors.drive import dead_reckoning
     from stages.posegraph.factors.graph import marginal_cov_xy_yaw
+    from stages.posegraph.loops.verify import LoopRecord
     from stages.posegraph.params import PosegraphParams
-    from stages.posegraph.solve import LoopRecord, solve_map, solve_reference
-    from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
+    from stages.posegraph.solve import solve_map, solve_reference
     from stages.posegraph.tables import drive_input
 
     sim = args.sim or Path(f"runs/sim-{args.preset}-{args.seed}")

@@ -43,7 +43,8 @@ def main() -> None:
     from stages.common import trajectory_metrics as M
     from stages.posegraph.compute import read_drive_inputs, scan_loader
     from stages.posegraph.factors.drive import dead_reckoning
-    from stages.posegraph.solve import LoopRecord, solve_map
+    from stages.posegraph.loops.verify import LoopRecord
+    from stages.posegraph.solve import solve_map
 
     wf = load_workflow(args.workflow, param_overrides={"posegraph": _overrides(args.set)})
     root = wf.root_dir(args.root)

@@ -72,10 +72,10 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     from pipeline.execute import _context, _task_spec
     from pipeline.plan import make_plan
     from pipeline.workflow import load_workflow
-    from stages.posegraph.compute import read_drive_inputs, scan_loader
-    from stages.posegraph.factors.drive import base_problem
-    from stages.posegraph.factors.graph import optimize
     from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
+    from stages.posegraph.compute import read_drive_inputs, scan_loader
+    from stages.posegraph.factors.base import base_problem
+    from stages.posegraph.factors.graph import optimize
 
     root, _ = tiny_sync
     plan = make_plan(load_workflow(REPO / "workflows" / "tiny.yaml"), root)

@@ -10,28 +10,14 @@ from typing import Callable
 
 import numpy as np
 
-from stages.common.geometry import se3_inverse
-from stages.common.registration import crop_range
-from stages.posegraph.factors.drive import DriveInput, base_problem, deskew_scan_lidar, increments
+from stages.posegraph.factors.base import base_problem
+from stages.posegraph.factors.drive import DriveInput
 from stages.posegraph.factors.graph import Between, PosePrior, Problem, between_residuals, optimize
-from stages.posegraph.loops.verify import find_candidates, keyframes_by_travel, verify_loop
+from stages.posegraph.loops.candidates import find_candidates, keyframes_by_travel
+from stages.posegraph.loops.clouds import ScanLoader, vehicle_clouds
+from stages.posegraph.loops.verify import LoopRecord, _workers, loop_betweens, verify_candidates
 
 log = logging.getLogger(__name__)
-# (drive, scan_id) list -> {(drive, scan_id): (points_lidar_m (N,3), time_offset_s (N,) or None)}
-ScanLoader = Callable[[list[tuple[str, int]]], dict[tuple[str, int], tuple[np.ndarray, np.ndarray | None]]]
-
-
-@dataclass
-class LoopRecord:
-    i: int
-    j: int
-    prior_distance_m: float
-    fitness: float
-    inlier_rmse_m: float
-    T_i_j: np.ndarray
-    accepted: bool
-    reason: str
-    information: np.ndarray | None = None  # 6x6 gtsam order, body frame of T_i_j
 
 
 @dataclass
@@ -40,100 +26,6 @@ class Solution:
     problem: Problem
     loops: list[LoopRecord] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
-
-
-def vehicle_clouds(drives: list[DriveInput], offsets: np.ndarray, wanted: np.ndarray, load: ScanLoader,
-                   voxel_m: float, batch: int = 64, workers: int | None = 1) -> dict[int, np.ndarray]:
-    """Deskewed, voxel-downsampled vehicle-frame points of the wanted pose indices, loaded in batches; the
-    batches run through ``parallel_map`` (each worker reads its scans from the store) when ``workers`` != 1."""
-    from pipeline.parallel import parallel_map
-
-    owner = np.searchsorted(offsets, wanted, side="right") - 1
-    items = []
-    for start in range(0, len(wanted), batch):
-        chunk = [(int(g), int(o), int(g - offsets[o])) for g, o in zip(wanted[start:start + batch],
-                                                                         owner[start:start + batch])]
-        items.append((chunk, voxel_m))
-    out: dict[int, np.ndarray] = {}
-    for part in parallel_map(_clouds_item, items, workers=workers if len(items) > 1 else 1,
-                             initializer=_use_drives, initargs=(drives, load)):
-        out.update(part)
-    return out
-
-
-def _use_drives(drives: list[DriveInput], load: ScanLoader) -> None:
-    from pipeline.parallel import set_worker_state
-
-    set_worker_state(drives=drives, load=load, increments={})
-
-
-def _clouds_item(item) -> dict[int, np.ndarray]:
-    """One batch of ``vehicle_clouds`` (module level: a pool process or a cluster worker runs it)."""
-    import open3d as o3d
-
-    from pipeline.parallel import worker_state
-
-    chunk, voxel_m = item
-    state = worker_state()
-    drives, incs = state["drives"], state["increments"]
-    got = state["load"]([(drives[o].name, int(drives[o].scan_ids[k])) for _, o, k in chunk])
-    out = {}
-    for g, o, k in chunk:
-        d = drives[o]
-        pts, toff = got[(d.name, int(d.scan_ids[k]))][:2]
-        keep = crop_range(pts, 2.0, 80.0)
-        pts = np.asarray(pts, float)[keep]
-        if toff is not None and o not in incs:
-            incs[o] = increments(d)
-        pts = deskew_scan_lidar(d, incs.get(o), k, pts, None if toff is None else np.asarray(toff, float)[keep])
-        pts = pts @ d.T_vehicle_lidar[:3, :3].T + d.T_vehicle_lidar[:3, 3]
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel_m)
-        out[g] = np.asarray(cloud.points)
-    return out
-
-
-def _workers(n_items: int, p) -> int | None:
-    """All the machine's processes (None) from ``p.parallel_min_items`` independent items on, else this one."""
-    return None if n_items >= p.parallel_min_items else 1
-
-
-def _verify_kwargs(p) -> dict:
-    return dict(voxel_m=p.loop_voxel_m, max_corr_m=p.loop_max_corr_m, min_fitness=p.loop_min_fitness,
-                max_rmse_m=p.loop_max_rmse_m, max_correction_m=p.loop_max_correction_m,
-                max_correction_rad=p.loop_max_correction_rad, consistency_m=p.loop_consistency_m,
-                min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad,
-                coarse_voxel_m=p.loop_coarse_voxel_m, coarse_corr_m=p.loop_coarse_corr_m,
-                inlier_m=p.loop_inlier_m, plane_tol_m=p.loop_plane_tol_m)
-
-
-def _verify_item(item) -> object:
-    """One candidate's ICP verification (module level: runs in a pool process or on a cluster worker)."""
-    cloud_i, cloud_j, prior, kwargs = item
-    return verify_loop(cloud_i, cloud_j, prior, **kwargs)
-
-
-def verify_candidates(candidates, poses: np.ndarray, clouds: dict[int, np.ndarray], p,
-                      fixed: dict[int, np.ndarray] | None = None, progress=None) -> list[LoopRecord]:
-    """ICP-verify each candidate from the current estimate's relative pose (``fixed`` poses override). The
-    candidates are independent: they run through ``pipeline.parallel.parallel_map`` (processes here, tasks on
-    a cluster) when there are at least ``p.parallel_min_items`` of them; the verdicts do not depend on it."""
-    from pipeline.parallel import parallel_map
-
-    fixed = fixed or {}
-    kwargs = _verify_kwargs(p)
-    items = []
-    for c in candidates:
-        Ti = fixed.get(c.i, poses[c.i] if c.i < len(poses) else None)
-        Tj = fixed.get(c.j, poses[c.j] if c.j < len(poses) else None)
-        items.append((clouds[c.i], clouds[c.j], se3_inverse(Ti) @ Tj, kwargs))
-    verdicts = parallel_map(_verify_item, items, workers=_workers(len(items), p), progress=progress)
-    return [LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted, v.reason,
-                       v.information) for c, v in zip(candidates, verdicts)]
-
-
-def loop_betweens(loops: list[LoopRecord], p) -> list[Between]:
-    robust = "none" if p.loop_kernel == "gnc" else p.loop_kernel
-    return [Between(r.i, r.j, r.T_i_j, r.information, "loop", robust, p.loop_kernel_k) for r in loops if r.accepted]
 
 
 def _lm(p) -> dict:

@@ -174,8 +174,8 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_ou
     also matched horizontally on the painted markings (``survey_markings``)."""
     from pipeline.parallel import parallel_map
     from stages.posegraph.factors.drive import increments
-    from stages.posegraph.loops.verify import keyframes_by_travel
-    from stages.posegraph.solve import vehicle_clouds
+    from stages.posegraph.loops.candidates import keyframes_by_travel
+    from stages.posegraph.loops.clouds import vehicle_clouds
 
     survey_pts, tree = build_survey_index(survey_enu_m, p.loop_voxel_m / 2)
     with_markings = p.survey_markings and survey_intensity is not None and feature_load is not None

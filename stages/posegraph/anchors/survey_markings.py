@@ -21,8 +21,8 @@ from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.common.marking_raster.settings import MarkingRasterSettings
 from stages.common.road_features import extract_road_features
-from stages.posegraph.factors.drive import deskew_scan_lidar
 from stages.posegraph.anchors.marking_match import MarkingMatch, match_markings
+from stages.posegraph.factors.drive import deskew_scan_lidar
 
 # (drive, scan_id) list -> {(drive, scan_id): (xyz_lidar (N,3), time_offset_s (N,) or None, intensity, ring)}
 FeatureLoader = Callable[[list[tuple[str, int]]], dict[tuple[str, int], tuple]]

@@ -1,22 +1,15 @@
-"""Loop-closure candidates (proximity on the current estimate, separated in time or from another drive) and
-their verification by ICP with fitness, residual, correction and two-start consistency gates.
+"""Loop-closure verification by ICP with fitness, residual, correction and two-start consistency gates, of one
+candidate (``verify_loop``) or of many in parallel (``verify_candidates``); accepted loops as graph factors.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from stages.common.geometry import se3_inverse
 from stages.common.registration import floor_information, register_coarse_to_fine, score_alignment
-
-
-@dataclass(frozen=True)
-class Candidate:
-    i: int  # the earlier (or map) pose index
-    j: int
-    prior_distance_m: float
+from stages.posegraph.factors.graph import Between
 
 
 @dataclass(frozen=True)
@@ -29,53 +22,61 @@ class Verdict:
     information: np.ndarray
 
 
-def keyframes_by_travel(positions_m: np.ndarray, group: np.ndarray, stride_m: float) -> np.ndarray:
-    """Indices spaced ``stride_m`` of travel apart within each group (drive), vectorised per group."""
-    keep = []
-    for g in np.unique(group):
-        idx = np.flatnonzero(group == g)
-        step = np.linalg.norm(np.diff(positions_m[idx, :2], axis=0), axis=1)
-        travel = np.concatenate([[0.0], np.cumsum(step)])
-        _, first = np.unique(np.floor(travel / stride_m).astype(np.int64), return_index=True)
-        keep.append(idx[first])
-    return np.sort(np.concatenate(keep)) if keep else np.zeros(0, np.int64)
+@dataclass
+class LoopRecord:
+    i: int
+    j: int
+    prior_distance_m: float
+    fitness: float
+    inlier_rmse_m: float
+    T_i_j: np.ndarray
+    accepted: bool
+    reason: str
+    information: np.ndarray | None = None  # 6x6 gtsam order, body frame of T_i_j
 
 
-def find_candidates(positions_m: np.ndarray, stamps_s: np.ndarray, group: np.ndarray, query: np.ndarray, *,
-                    radius_m: float, min_separation_s: float, max_per_scan: int,
-                    allowed_targets: np.ndarray | None = None) -> list[Candidate]:
-    """For each query pose, up to ``max_per_scan`` nearest poses of *other passes* within ``radius_m``.
+def _workers(n_items: int, p) -> int | None:
+    """All the machine's processes (None) from ``p.parallel_min_items`` independent items on, else this one."""
+    return None if n_items >= p.parallel_min_items else 1
 
-    Another pass = another group (drive), or the same group at least ``min_separation_s`` away in time.
-    Targets that are themselves within ``min_separation_s`` of an already chosen target are skipped, so two
-    candidates of one query come from two different passes. ``allowed_targets`` (bool mask) restricts the
-    targets (e.g. to map drives when localising a reference drive).
-    """
-    tree = cKDTree(positions_m[:, :2])
-    seen: set[tuple[int, int]] = set()
-    out: list[Candidate] = []
-    for q in query:
-        nbrs = np.asarray(tree.query_ball_point(positions_m[q, :2], radius_m), dtype=np.int64)
-        if allowed_targets is not None:
-            nbrs = nbrs[allowed_targets[nbrs]]
-        other = (group[nbrs] != group[q]) | (np.abs(stamps_s[nbrs] - stamps_s[q]) >= min_separation_s)
-        nbrs = nbrs[other]
-        if len(nbrs) == 0:
-            continue
-        d = np.linalg.norm(positions_m[nbrs, :2] - positions_m[q, :2], axis=1)
-        chosen: list[int] = []
-        for k in np.argsort(d):
-            t = nbrs[k]
-            if any(group[t] == group[c] and abs(stamps_s[t] - stamps_s[c]) < min_separation_s for c in chosen):
-                continue
-            chosen.append(int(t))
-            pair = (min(q, t), max(q, t))
-            if pair not in seen:
-                seen.add(pair)
-                out.append(Candidate(pair[0], pair[1], float(d[k])))
-            if len(chosen) >= max_per_scan:
-                break
-    return out
+
+def _verify_kwargs(p) -> dict:
+    return dict(voxel_m=p.loop_voxel_m, max_corr_m=p.loop_max_corr_m, min_fitness=p.loop_min_fitness,
+                max_rmse_m=p.loop_max_rmse_m, max_correction_m=p.loop_max_correction_m,
+                max_correction_rad=p.loop_max_correction_rad, consistency_m=p.loop_consistency_m,
+                min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad,
+                coarse_voxel_m=p.loop_coarse_voxel_m, coarse_corr_m=p.loop_coarse_corr_m,
+                inlier_m=p.loop_inlier_m, plane_tol_m=p.loop_plane_tol_m)
+
+
+def _verify_item(item) -> object:
+    """One candidate's ICP verification (module level: runs in a pool process or on a cluster worker)."""
+    cloud_i, cloud_j, prior, kwargs = item
+    return verify_loop(cloud_i, cloud_j, prior, **kwargs)
+
+
+def verify_candidates(candidates, poses: np.ndarray, clouds: dict[int, np.ndarray], p,
+                      fixed: dict[int, np.ndarray] | None = None, progress=None) -> list[LoopRecord]:
+    """ICP-verify each candidate from the current estimate's relative pose (``fixed`` poses override). The
+    candidates are independent: they run through ``pipeline.parallel.parallel_map`` (processes here, tasks on
+    a cluster) when there are at least ``p.parallel_min_items`` of them; the verdicts do not depend on it."""
+    from pipeline.parallel import parallel_map
+
+    fixed = fixed or {}
+    kwargs = _verify_kwargs(p)
+    items = []
+    for c in candidates:
+        Ti = fixed.get(c.i, poses[c.i] if c.i < len(poses) else None)
+        Tj = fixed.get(c.j, poses[c.j] if c.j < len(poses) else None)
+        items.append((clouds[c.i], clouds[c.j], se3_inverse(Ti) @ Tj, kwargs))
+    verdicts = parallel_map(_verify_item, items, workers=_workers(len(items), p), progress=progress)
+    return [LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted, v.reason,
+                       v.information) for c, v in zip(candidates, verdicts)]
+
+
+def loop_betweens(loops: list[LoopRecord], p) -> list[Between]:
+    robust = "none" if p.loop_kernel == "gnc" else p.loop_kernel
+    return [Between(r.i, r.j, r.T_i_j, r.information, "loop", robust, p.loop_kernel_k) for r in loops if r.accepted]
 
 
 def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_j_prior: np.ndarray, *,

@@ -12,11 +12,14 @@ from stages.common.trajectory_metrics import (
     self_consistency_errors_m,
     summarize,
 )
-from stages.posegraph.factors.drive import base_problem, calibrate_wheel, calibrated_wheel_increments, dead_reckoning
+from stages.posegraph.factors.base import base_problem
+from stages.posegraph.factors.drive import dead_reckoning
 from stages.posegraph.factors.gnss import select_epochs
 from stages.posegraph.factors.graph import marginal_cov_xy_yaw, optimize
+from stages.posegraph.factors.wheel import calibrate_wheel, calibrated_wheel_increments
+from stages.posegraph.loops.verify import LoopRecord
 from stages.posegraph.params import PosegraphParams
-from stages.posegraph.solve import LoopRecord, optimize_with_loops
+from stages.posegraph.solve import optimize_with_loops
 from tests.stages.posegraph.conftest import circuit_truth, perturb
 
 

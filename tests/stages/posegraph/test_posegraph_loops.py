@@ -51,9 +51,9 @@ def test_candidates_verified_in_parallel_processes_give_the_serial_verdicts(lane
     """The loop candidates are independent registrations: verified in a process pool (parallel_min_items
     reached) they give the verdicts of the stage's own process (transforms equal to open3d's own run-to-run
     noise: its OpenMP thread count differs between the two)."""
-    from stages.posegraph.loops.verify import Candidate
+    from stages.posegraph.loops.candidates import Candidate
+    from stages.posegraph.loops.verify import verify_candidates
     from stages.posegraph.params import PosegraphParams
-    from stages.posegraph.solve import verify_candidates
 
     pts_a, pts_b, far, T_a_b = lane_pair
     clouds = {0: pts_a, 1: pts_b, 2: far}

@@ -6,12 +6,12 @@ import numpy as np
 
 from stages.common.geometry import se3_from_xyz_rpy
 from stages.common.trajectory_metrics import horizontal_errors_m, rms
-from stages.posegraph.factors.drive import base_problem
-from stages.posegraph.factors.graph import optimize
 from stages.posegraph.anchors.marking_match import MarkingMatch
-from stages.posegraph.params import PosegraphParams
 from stages.posegraph.anchors.survey_anchor import SurveyMatch, survey_priors, vertical_information, vertical_part
 from stages.posegraph.anchors.survey_markings import horizontal_information_body, submap_scan_indices
+from stages.posegraph.factors.base import base_problem
+from stages.posegraph.factors.graph import optimize
+from stages.posegraph.params import PosegraphParams
 
 
 def test_vertical_part_keeps_the_horizontal_position_and_takes_height_and_tilt():
