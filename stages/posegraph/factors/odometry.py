@@ -4,29 +4,30 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.posegraph.config import FactorConfig
 from stages.posegraph.factors.drive import DriveInput, bridge_increment, has_wheel
 from stages.posegraph.factors.graph import Between
-from stages.posegraph.factors.wheel import WheelNoise, wheel_information
+from stages.posegraph.factors.wheel import wheel_information
 
 
-def span_betweens(drive: DriveInput, offset: int, robust: str, kernel_k: float) -> list[Between]:
-    """One factor per accepted span edge, under ``robust`` (a span over a street with few cross structures can be
-    decimetres off along-track; gangnam: 1-2 % of the 90-scan spans)."""
+def span_betweens(drive: DriveInput, offset: int, cfg: FactorConfig) -> list[Between]:
+    """One factor per accepted span edge, under ``cfg.span_edge_kernel`` (a span over a street with few cross
+    structures can be decimetres off along-track; gangnam: 1-2 % of the 90-scan spans)."""
     if drive.spans is None:
         return []
     sp = drive.spans
-    return [Between(offset + int(i), offset + int(j), T, info, "span", robust, kernel_k)
+    return [Between(offset + int(i), offset + int(j), T, info, "span", cfg.span_edge_kernel, cfg.span_edge_kernel_k)
             for i, j, T, info in zip(sp.i, sp.j, sp.T_i_j, sp.information)]
 
 
-def odometry_betweens(drive: DriveInput, offset: int, failed_sigma_m: float, failed_sigma_rad: float,
-                      wheel_noise: WheelNoise | None = None, fusion_noise: WheelNoise | None = None) -> list[Between]:
+def odometry_betweens(drive: DriveInput, offset: int, cfg: FactorConfig) -> list[Between]:
     """One factor per consecutive pair: the ICP edge where it was accepted; else a wheel-odometry increment
-    (kind "wheel", when the drive has one and ``wheel_noise`` is given); else a weak bridge (GNSS/INS
-    increment). With ``fusion_noise``, every accepted ICP edge that has a wheel increment gets it as a second
+    (kind "wheel", when the drive has one and ``cfg.wheel_bridge`` is set); else a weak bridge (GNSS/INS
+    increment). With ``cfg.wheel_fusion``, every accepted ICP edge that has a wheel increment gets it as a second
     factor (kind "wheel_fused"): the calibrated wheel is the better along-track sensor over a few scans (gangnam:
     1.2 mm per scan against ICP's 3.7 mm, which a street with few cross structures biases by 1-4 cm per edge)."""
-    bridge_info = np.diag([failed_sigma_rad ** -2] * 3 + [failed_sigma_m ** -2] * 3)
+    bridge_info = np.diag([cfg.failed_edge_sigma_rad ** -2] * 3 + [cfg.failed_edge_sigma_m ** -2] * 3)
+    wheel_noise, fusion_noise = cfg.wheel_bridge, cfg.wheel_fusion
     out = []
     for k in range(1, drive.n):
         if drive.edge_ok[k]:

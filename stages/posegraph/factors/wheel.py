@@ -7,6 +7,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from stages.posegraph.config import WheelNoise
+
 if TYPE_CHECKING:
     from stages.posegraph.factors.drive import DriveInput
 
@@ -48,19 +50,6 @@ def calibrated_wheel_increments(drive: DriveInput, cal: WheelCalibration) -> np.
     W[:, :2, :2] = np.einsum("nij,njk->nik", R, np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2))
     W[:, :2, 3] *= cal.scale
     return W
-
-
-@dataclass(frozen=True)
-class WheelNoise:
-    """Std devs of a wheel-odometry increment (vehicle frame): horizontal ``sigma_m`` plus ``scale_sigma`` of
-    the distance along track, heading ``sigma_rad``; a planar increment says little about height, roll and
-    pitch (``height_sigma_m``, ``tilt_sigma_rad``)."""
-
-    sigma_m: float
-    scale_sigma: float
-    sigma_rad: float
-    height_sigma_m: float
-    tilt_sigma_rad: float
 
 
 def wheel_information(T_prev_curr: np.ndarray, noise: WheelNoise) -> np.ndarray:
