@@ -101,11 +101,13 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     from stages.common import trajectory_metrics as M
-    from stages.posegraph.core import dead_reckoning
-    from stages.posegraph.graph import marginal_cov_xy_yaw
+    from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
+    from stages.posegraph.config import PosegraphConfig
+    from stages.posegraph.factors.drive import dead_reckoning
+    from stages.posegraph.factors.graph import marginal_cov_xy_yaw
+    from stages.posegraph.loops.verify import LoopRecord
     from stages.posegraph.params import PosegraphParams
-    from stages.posegraph.solve import LoopRecord, solve_map, solve_reference
-    from stages.posegraph.survey_anchor import survey_anchor_callback
+    from stages.posegraph.solve import solve_map, solve_reference
     from stages.posegraph.tables import drive_input
 
     sim = args.sim or Path(f"runs/sim-{args.preset}-{args.seed}")
@@ -138,13 +140,13 @@ def main() -> None:
                 out[(d, s)] = (xyz[m], toff[m] if np.any(toff[m] != 0) else None)
         return out
 
-    p = PosegraphParams(**_overrides(args.set))
+    cfg = PosegraphConfig.from_params(PosegraphParams(**_overrides(args.set)))
     map_d = [drive_input(drives[0], tables["poses_gnss"], edges, tables["drive_info"])]
     truth = truth_poses(sim, drives[0], map_d[0].stamps_ns)
     stamps_s = map_d[0].stamps_ns * 1e-9
     rows = {"RTK/INS only": map_d[0].gnss_T, "ICP only (dead reckoning)": dead_reckoning(map_d[0])}
     t0 = time.perf_counter()
-    sol = solve_map(map_d, load, p)
+    sol = solve_map(map_d, load, cfg)
     t_solve = time.perf_counter() - t0
     rows["optimised"] = sol.poses
     t0 = time.perf_counter()
@@ -155,12 +157,13 @@ def main() -> None:
     j = int(np.argmin(np.abs(np.linalg.norm(truth[:, :2, 3] - truth[i, :2, 3], axis=1) - 20.0)))
     planted = LoopRecord(i, j, 0.0, 0.95, 0.05, np.eye(4), True, "planted",
                          np.diag([0.0005 ** -2] * 3 + [0.02 ** -2] * 3))
-    sol_false = solve_map(map_d, load, p, extra_loops=[planted])
+    sol_false = solve_map(map_d, load, cfg, extra_loops=[planted])
     rows["optimised + planted false loop"] = sol_false.poses
     if "survey" in tables:
         pts = np.column_stack([tables["survey"][c].to_numpy() for c in ("east_m", "north_m", "up_m")])
         matches = []
-        sol_s = solve_map(map_d, load, p, survey_priors=survey_anchor_callback(map_d, load, pts, p, matches))
+        anchors = survey_anchor_callback(map_d, load, pts, cfg.anchors, matches)
+        sol_s = solve_map(map_d, load, cfg, survey_priors=anchors)
         rows["optimised + survey anchors"] = sol_s.poses
         print(f"survey anchors: {sum(m.accepted for m in matches)} accepted of {len(matches)}")
     print(f"map drive {drives[0]}: {len(truth)} scans; loops {sum(r.accepted for r in sol.loops)} accepted of "
@@ -175,7 +178,7 @@ def main() -> None:
         print(f"| {name} | " + " | ".join(f"{s[k]:.3f}" if isinstance(s[k], float) else str(s[k]) for k in keys) + " |")
     for d in drives[1:]:
         ref_d = drive_input(d, tables["poses_gnss"], edges, tables["drive_info"])
-        ref = solve_reference(ref_d, map_d, sol.poses, load, p)
+        ref = solve_reference(ref_d, map_d, sol.poses, load, cfg)
         T_true = truth_poses(sim, d, ref_d.stamps_ns)
         both_est = np.concatenate([sol.poses, ref.poses])
         both_true = np.concatenate([truth, T_true])

@@ -42,8 +42,10 @@ def main() -> None:
     from pipeline.workflow import load_workflow
     from stages.common import trajectory_metrics as M
     from stages.posegraph.compute import read_drive_inputs, scan_loader
-    from stages.posegraph.core import dead_reckoning
-    from stages.posegraph.solve import LoopRecord, solve_map
+    from stages.posegraph.config import PosegraphConfig
+    from stages.posegraph.factors.drive import dead_reckoning
+    from stages.posegraph.loops.verify import LoopRecord
+    from stages.posegraph.solve import solve_map
 
     wf = load_workflow(args.workflow, param_overrides={"posegraph": _overrides(args.set)})
     root = wf.root_dir(args.root)
@@ -54,7 +56,7 @@ def main() -> None:
     if missing:
         raise SystemExit(f"{root}: no committed input for posegraph: {', '.join(missing)}; run the upstream stages")
     ctx = stage_context(plan, "posegraph", Path(tempfile.mkdtemp(prefix="bench-pg-")))
-    p = ctx.params
+    cfg = PosegraphConfig.from_params(ctx.params)
     drives, _ = read_drive_inputs(ctx)
     sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"
     truth = truth_poses(sim, drives[0].name, drives[0].stamps_ns)
@@ -65,7 +67,7 @@ def main() -> None:
 
     rows = {"RTK/INS only": drives[0].gnss_T, "ICP + wheel only (dead reckoning)": dead_reckoning(drives[0])}
     t0 = time.perf_counter()
-    sol = solve_map(drives, load, p)
+    sol = solve_map(drives, load, cfg)
     print(f"solve {time.perf_counter() - t0:.0f} s (timings {({k: round(v, 1) for k, v in sol.timings_s.items()})}); "
           f"loops {sum(r.accepted for r in sol.loops)} accepted of {len(sol.loops)}")
     rows["optimised"] = sol.poses[:drives[0].n]
@@ -76,7 +78,7 @@ def main() -> None:
         planted = LoopRecord(i, j, 0.0, 0.95, 0.02, np.eye(4), True, "planted",
                              np.diag([0.0005 ** -2] * 3 + [0.02 ** -2] * 3))
         t0 = time.perf_counter()
-        sol_false = solve_map(drives, load, p, extra_loops=[planted])
+        sol_false = solve_map(drives, load, cfg, extra_loops=[planted])
         d_true = float(np.linalg.norm(truth[i, :2, 3] - truth[j, :2, 3]))
         print(f"planted loop scans {i} <-> {j} ({d_true:.1f} m apart in truth): accepted={planted.accepted} "
               f"({planted.reason}); solve {time.perf_counter() - t0:.0f} s")

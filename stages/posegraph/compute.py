@@ -12,8 +12,9 @@ import pyarrow as pa
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError
 from stages.common.geometry import write_kitti, write_tum
-from stages.posegraph.core import DriveInput, dead_reckoning
-from stages.posegraph.graph import marginal_cov_xy_yaw
+from stages.posegraph.config import PosegraphConfig
+from stages.posegraph.factors.drive import DriveInput, dead_reckoning
+from stages.posegraph.factors.graph import marginal_cov_xy_yaw
 from stages.posegraph.report import write_report
 from stages.posegraph.solve import solve_map, solve_reference
 from stages.posegraph.tables import drive_input, loops_table, poses_table
@@ -82,23 +83,23 @@ def read_drive_inputs(ctx: StageContext) -> tuple[list[DriveInput], list[DriveIn
 
 
 def compute(ctx: StageContext) -> dict[str, pa.Table]:
-    p = ctx.params
+    cfg = PosegraphConfig.from_params(ctx.params)
     drives, ref_drives = read_drive_inputs(ctx)
     load = scan_loader(ctx)
     survey_cb, survey_matches = None, []
     if ctx.inputs.has("survey"):
         survey = ctx.inputs.read("survey", columns=["east_m", "north_m", "up_m", "intensity"])
         if survey.num_rows:
-            from stages.posegraph.survey_anchor import survey_anchor_callback
+            from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
 
             pts = np.column_stack([survey[c].to_numpy() for c in ("east_m", "north_m", "up_m")])
-            survey_cb = survey_anchor_callback(drives, load, pts, p, survey_matches,
+            survey_cb = survey_anchor_callback(drives, load, pts, cfg.anchors, survey_matches,
                                                survey_intensity=survey["intensity"].to_numpy(),
                                                feature_load=scan_loader(ctx, ("intensity", "ring")),
                                                report_step=ctx.report_step)
-    sol = solve_map(drives, load, p, survey_priors=survey_cb, report_step=ctx.report_step)
+    sol = solve_map(drives, load, cfg, survey_priors=survey_cb, report_step=ctx.report_step)
     names = [(d.name, int(s)) for d in drives for s in d.scan_ids]
-    cov = marginal_cov_xy_yaw(sol.problem, sol.poses) if p.compute_marginals else np.zeros((len(names), 9))
+    cov = marginal_cov_xy_yaw(sol.problem, sol.poses) if cfg.solve.compute_marginals else np.zeros((len(names), 9))
     offsets = np.cumsum([0] + [d.n for d in drives])
     optimized = [poses_table("poses_optimized", d, sol.poses[a:b], cov[a:b])
                  for d, a, b in zip(drives, offsets[:-1], offsets[1:])]
@@ -106,9 +107,9 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     loop_rows = _loop_rows(sol.loops, names)
     refs = {}
     for d in ref_drives:
-        ref = solve_reference(d, drives, sol.poses, load, p)
+        ref = solve_reference(d, drives, sol.poses, load, cfg)
         rcov = marginal_cov_xy_yaw(ref.problem, np.concatenate(
-            [ref.poses, ref.problem.initial[d.n:]]))[:d.n] if p.compute_marginals else np.zeros((d.n, 9))
+            [ref.poses, ref.problem.initial[d.n:]]))[:d.n] if cfg.solve.compute_marginals else np.zeros((d.n, 9))
         optimized.append(poses_table("poses_optimized", d, ref.poses, rcov))
         odometry.append(poses_table("poses_odometry", d, dead_reckoning(d)))
         loop_rows += _loop_rows(ref.loops, [(d.name, int(s)) for s in d.scan_ids] + names)

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.posegraph.gnss_factors import gnss_residuals_enu
-from stages.posegraph.graph import between_residuals
+from stages.posegraph.factors.gnss import gnss_residuals_enu
+from stages.posegraph.factors.graph import between_residuals
 
 
 def _drive_of(offsets: np.ndarray, i: int) -> int:

@@ -9,7 +9,8 @@ from pipeline.errors import FormatError
 from schemas.registry import schema_of
 from stages.common.records import INCREMENT_COLUMNS, Extrinsics, pose_columns, pose_matrices
 from stages.common.wheel_odometry import track_from_table, wheel_increments
-from stages.posegraph.core import DriveInput, SpanEdges, calibrate_wheel, calibrated_wheel_increments
+from stages.posegraph.factors.drive import DriveInput, SpanEdges
+from stages.posegraph.factors.wheel import calibrate_wheel, calibrated_wheel_increments
 
 
 def _information(edges: pa.Table) -> np.ndarray:

@@ -6,7 +6,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
-from stages.posegraph.core import DriveInput
+from stages.posegraph.config import PosegraphConfig
+from stages.posegraph.factors.drive import DriveInput
+from stages.posegraph.params import PosegraphParams
+
+
+def posegraph_config(**overrides) -> PosegraphConfig:
+    """The pose graph's config sections, built from the stage's params with ``overrides`` as the stage does."""
+    return PosegraphConfig.from_params(PosegraphParams(**overrides))
 
 
 def circuit_truth(n_laps: int = 2, side_m: float = 60.0, step_m: float = 1.0, z_amp_m: float = 1.5) -> np.ndarray:

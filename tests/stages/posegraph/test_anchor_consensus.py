@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
-from stages.posegraph.anchor_consensus import anchor_consensus
+from stages.posegraph.anchors.anchor_consensus import anchor_consensus
 
 G1, G2 = chi2.ppf(0.99, 1), chi2.ppf(0.99, 2)
 KW = dict(window_m=300.0, drift_sigma_m=0.1, gate_chi2_1=G1, gate_chi2_2=G2)

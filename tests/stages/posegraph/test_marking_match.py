@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.posegraph.marking_match import match_markings
+from stages.posegraph.anchors.marking_match import match_markings
 
 CELL_M = 0.1
 SIZE_M = 40.0
@@ -144,7 +144,7 @@ def test_sign_flip_gives_negated_estimate():
 def test_turned_submap_is_matched_at_its_heading_and_its_shift_is_unbiased():
     """A submap turned by the estimate's heading error (0.4 deg about a keyframe 12 m from the paint's centre):
     the translation-only match is biased by the lever arm; the yaw search finds the turn and the true shift."""
-    from stages.posegraph.survey_markings import best_yaw_match
+    from stages.posegraph.anchors.survey_markings import best_yaw_match
 
     mask = intersection_mask()
     rng = np.random.default_rng(8)

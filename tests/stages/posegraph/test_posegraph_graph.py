@@ -12,12 +12,14 @@ from stages.common.trajectory_metrics import (
     self_consistency_errors_m,
     summarize,
 )
-from stages.posegraph.core import base_problem, calibrate_wheel, calibrated_wheel_increments, dead_reckoning
-from stages.posegraph.gnss_factors import select_epochs
-from stages.posegraph.graph import marginal_cov_xy_yaw, optimize
-from stages.posegraph.params import PosegraphParams
-from stages.posegraph.solve import LoopRecord, optimize_with_loops
-from tests.stages.posegraph.conftest import circuit_truth, perturb
+from stages.posegraph.factors.base import base_problem
+from stages.posegraph.factors.drive import dead_reckoning
+from stages.posegraph.factors.gnss import select_epochs
+from stages.posegraph.factors.graph import marginal_cov_xy_yaw, optimize
+from stages.posegraph.factors.wheel import calibrate_wheel, calibrated_wheel_increments
+from stages.posegraph.loops.verify import LoopRecord
+from stages.posegraph.solve import optimize_with_loops
+from tests.stages.posegraph.conftest import circuit_truth, perturb, posegraph_config
 
 
 def _true_loops(T_true, rng, lap_len, every=5, sigma_m=0.02, sigma_rad=0.0005):
@@ -28,6 +30,12 @@ def _true_loops(T_true, rng, lap_len, every=5, sigma_m=0.02, sigma_rad=0.0005):
         T_ij = perturb(se3_inverse(T_true[i]) @ T_true[j], sigma_rad, sigma_m, rng)
         out.append(LoopRecord(i, j, 0.5, 0.9, 0.05, T_ij, True, "accepted", info))
     return out
+
+
+def _sections(**overrides):
+    """The two sections ``base_problem`` takes: odometry factors and GNSS/INS priors."""
+    cfg = posegraph_config(**overrides)
+    return cfg.factors, cfg.gnss
 
 
 def _lap_len(T_true):
@@ -46,8 +54,8 @@ def test_select_epochs_one_per_interval_and_skips_outages():
 
 def test_gnss_and_odometry_recover_truth_better_than_gnss(two_lap_drive):
     T_true, drive = two_lap_drive
-    p = PosegraphParams()
-    problem, _ = base_problem([drive], p)
+    cfg = posegraph_config()
+    problem, _ = base_problem([drive], cfg.factors, cfg.gnss)
     poses = optimize(problem)
     gnss_rms = rms(horizontal_errors_m(drive.gnss_T, T_true))
     est_rms = rms(horizontal_errors_m(poses, T_true))
@@ -63,8 +71,8 @@ def test_gnss_and_odometry_recover_truth_better_than_gnss(two_lap_drive):
 def test_loops_make_passes_agree_and_planted_false_loop_is_rejected(two_lap_drive, kernel):
     T_true, drive = two_lap_drive
     rng = np.random.default_rng(5)
-    p = PosegraphParams(loop_kernel=kernel)  # GNC with the GNSS bias chain (built-in factors clone)
-    problem, _ = base_problem([drive], p)
+    cfg = posegraph_config(loop_kernel=kernel)  # GNC with the GNSS bias chain (built-in factors clone)
+    problem, _ = base_problem([drive], cfg.factors, cfg.gnss)
     lap = _lap_len(T_true)
     loops = _true_loops(T_true, rng, lap)
     # the planted false loop: two places 20 m apart declared the same, with a confident information
@@ -72,7 +80,7 @@ def test_loops_make_passes_agree_and_planted_false_loop_is_rejected(two_lap_driv
     j = int(np.argmin(np.abs(np.linalg.norm(T_true[:, :2, 3] - T_true[i, :2, 3], axis=1) - 20.0)
                       + 1e3 * (np.arange(len(T_true)) < lap)))
     false = LoopRecord(i, j, 0.0, 0.95, 0.05, np.eye(4), True, "planted", loops[0].information)
-    poses = optimize_with_loops(problem, loops + [false], p)
+    poses = optimize_with_loops(problem, loops + [false], cfg.loops, cfg.solve)
     assert not false.accepted and "inconsistent" in false.reason
     assert sum(r.accepted for r in loops) >= 0.9 * len(loops)
     pairs = revisit_pairs(T_true, drive.stamps_ns * 1e-9, radius_m=2.0, min_dt_s=10.0)
@@ -92,7 +100,7 @@ def test_marginal_covariances_positive_definite_and_grow_in_outage(two_lap_drive
     drive.stamps_ns = drive.stamps_ns.astype(np.int64)
     # this synthetic INS heading is white (0.1 deg, no bias), which a heading prior fits: with a 100-epoch
     # outage on a 60 m square it is what holds the trajectory's rotation
-    problem, _ = base_problem([drive], PosegraphParams(gnss_bias_tau_s=bias_tau_s, heading_prior=True))
+    problem, _ = base_problem([drive], *_sections(gnss_bias_tau_s=bias_tau_s, heading_prior=True))
     assert not any(80 <= g.i < 180 for g in problem.positions)  # outages have no factor
     poses = optimize(problem)
     cov = marginal_cov_xy_yaw(problem, poses).reshape(-1, 3, 3)
@@ -107,7 +115,7 @@ def test_gnss_fix_and_bias_chain_errors_match_their_formulas():
     separately), Gauss-Markov step b_1 - decay * b_0; checked against the formulas at random values."""
     import gtsam
 
-    from stages.posegraph.graph import (
+    from stages.posegraph.factors.graph import (
         BiasLink,
         PositionPrior,
         Problem,
@@ -144,7 +152,7 @@ def test_gravity_only_attitude_prior_leaves_heading_free_and_holds_roll_pitch():
     import gtsam
 
     from stages.common.geometry import se3_from_xyz_rpy
-    from stages.posegraph.graph import AttitudePrior, Problem, build_graph
+    from stages.posegraph.factors.graph import AttitudePrior, Problem, build_graph
 
     T_ins = se3_from_xyz_rpy(0, 0, 0, 0.01, -0.02, 0.3)
     for with_yaw in (False, True):
@@ -186,7 +194,7 @@ def test_wheel_increments_bridge_failed_icp_far_better_than_gnss_increments(two_
     errors = {}
     for use_wheel in (False, True):
         drive.wheel_T, drive.wheel_ok = (calibrated, np.ones(drive.n, bool)) if use_wheel else (None, None)
-        problem, _ = base_problem([drive], PosegraphParams())
+        problem, _ = base_problem([drive], *_sections())
         kinds = [b.kind for b in problem.betweens]
         assert kinds.count("wheel") == (len(gap) if use_wheel else 0)
         assert kinds.count("bridge") == (0 if use_wheel else len(gap))
@@ -215,7 +223,7 @@ def test_wheel_fusion_corrects_icp_edges_biased_along_track(two_lap_drive):
     drive.wheel_T = calibrated_wheel_increments(drive, calibrate_wheel(drive))
     errors = {}
     for fusion in (False, True):
-        problem, _ = base_problem([drive], PosegraphParams(wheel_fusion=fusion))
+        problem, _ = base_problem([drive], *_sections(wheel_fusion=fusion))
         kinds = [b.kind for b in problem.betweens]
         assert kinds.count("wheel_fused") == (int(drive.edge_ok.sum()) if fusion else 0)
         poses = optimize(problem)
@@ -239,7 +247,7 @@ def test_span_edges_cut_a_per_edge_heading_bias_and_a_wrong_span_stays_local(two
     information does not know); span edges over 10 scans carry one registration's error each. With them the
     heading change over 100 scans is pulled back towards truth. One span edge planted 1 m wrong along-track
     under the default Huber kernel moves its own stretch by far less than 1 m."""
-    from stages.posegraph.core import SpanEdges
+    from stages.posegraph.factors.drive import SpanEdges
 
     T_true, drive = two_lap_drive
     rng = np.random.default_rng(5)
@@ -253,7 +261,7 @@ def test_span_edges_cut_a_per_edge_heading_bias_and_a_wrong_span_stays_local(two
     drive.spans = SpanEdges(i, j, T_ij, info)
     out = {}
     for use in (False, True):
-        problem, _ = base_problem([drive], PosegraphParams(span_edges=use))
+        problem, _ = base_problem([drive], *_sections(span_edges=use))
         assert sum(b.kind == "span" for b in problem.betweens) == (len(i) if use else 0)
         assert all(b.robust == "huber" for b in problem.betweens if b.kind == "span")
         poses = optimize(problem)
@@ -266,7 +274,7 @@ def test_span_edges_cut_a_per_edge_heading_bias_and_a_wrong_span_stays_local(two
     bad = T_ij.copy()
     bad[k, 0, 3] += 1.0
     drive.spans = SpanEdges(i, j, bad, info)
-    poses = optimize(base_problem([drive], PosegraphParams())[0])
+    poses = optimize(base_problem([drive], *_sections())[0])
     a, b = i[k], j[k]
     d_est = np.linalg.norm(poses[b, :2, 3] - poses[a, :2, 3])
     d_true = np.linalg.norm(T_true[b, :2, 3] - T_true[a, :2, 3])
@@ -290,7 +298,7 @@ def test_unknown_roll_pitch_is_not_a_firm_level_prior():
             level[k][:3, :3] = se3_from_xyz_rpy(0, 0, 0, 0.0, 0.0, 0.0)[:3, :3]
         drive.gnss_T = level
         drive.gnss_roll_pitch_known = np.full(len(level), known)
-        problem, _ = base_problem([drive], PosegraphParams(gnss_every_s=0.5))
+        problem, _ = base_problem([drive], *_sections(gnss_every_s=0.5))
         poses = optimize(problem)
         est_pitch = np.arctan2(-poses[:, 2, 0], np.hypot(poses[:, 0, 0], poses[:, 1, 0]))
         errors[known] = float(np.degrees(np.abs(est_pitch - pitch).mean()))

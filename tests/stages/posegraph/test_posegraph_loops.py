@@ -7,8 +7,10 @@ import pytest
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import register_coarse_to_fine, score_alignment
-from stages.posegraph.loops import verify_loop
+from stages.posegraph.config import LoopVerifyConfig
+from stages.posegraph.loops.verify import verify_loop
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
+from tests.stages.posegraph.conftest import posegraph_config
 
 
 @pytest.fixture(scope="module")
@@ -38,12 +40,12 @@ def test_coarse_to_fine_recovers_a_pass_offset_from_a_gnss_grade_prior(lane_pair
 def test_verify_loop_accepts_true_pair_and_rejects_a_place_20_m_away(lane_pair):
     pts_a, pts_b, far, T_a_b = lane_pair
     prior = T_a_b @ se3_from_xyz_rpy(1.0, 0.6, 0.2, 0.0, 0.0, 0.01)
-    kw = dict(voxel_m=0.4, max_corr_m=1.0, min_fitness=0.5, max_rmse_m=0.05, max_correction_m=4.0,
-              max_correction_rad=0.2, consistency_m=0.1, min_sigma_m=0.02, min_sigma_rad=0.005)
-    ok = verify_loop(pts_a, pts_b, prior, **kw)
+    cfg = LoopVerifyConfig(voxel_m=0.4, max_corr_m=1.0, min_fitness=0.5, max_rmse_m=0.05, max_correction_m=4.0,
+                           max_correction_rad=0.2, consistency_m=0.1, min_sigma_m=0.02, min_sigma_rad=0.005)
+    ok = verify_loop(pts_a, pts_b, prior, cfg)
     assert ok.accepted, ok.reason
     assert np.linalg.norm((se3_inverse(T_a_b) @ ok.T_i_j)[:3, 3]) < 0.05
-    bad = verify_loop(pts_a, far, prior, **kw)
+    bad = verify_loop(pts_a, far, prior, cfg)
     assert not bad.accepted, bad.reason
 
 
@@ -51,17 +53,16 @@ def test_candidates_verified_in_parallel_processes_give_the_serial_verdicts(lane
     """The loop candidates are independent registrations: verified in a process pool (parallel_min_items
     reached) they give the verdicts of the stage's own process (transforms equal to open3d's own run-to-run
     noise: its OpenMP thread count differs between the two)."""
-    from stages.posegraph.loops import Candidate
-    from stages.posegraph.params import PosegraphParams
-    from stages.posegraph.solve import verify_candidates
+    from stages.posegraph.loops.candidates import Candidate
+    from stages.posegraph.loops.verify import verify_candidates
 
     pts_a, pts_b, far, T_a_b = lane_pair
     clouds = {0: pts_a, 1: pts_b, 2: far}
     poses = np.stack([np.eye(4), T_a_b @ se3_from_xyz_rpy(1.0, 0.6, 0.2, 0.0, 0.0, 0.01),
                       T_a_b @ se3_from_xyz_rpy(1.0, 0.6, 0.2, 0.0, 0.0, 0.01)])
     cands = [Candidate(0, 1, 1.2), Candidate(0, 2, 1.2), Candidate(1, 0, 1.2)] * 2
-    serial = verify_candidates(cands, poses, clouds, PosegraphParams(parallel_min_items=100))
-    parallel = verify_candidates(cands, poses, clouds, PosegraphParams(parallel_min_items=2))
+    serial = verify_candidates(cands, poses, clouds, posegraph_config(parallel_min_items=100).loops)
+    parallel = verify_candidates(cands, poses, clouds, posegraph_config(parallel_min_items=2).loops)
     assert [r.accepted for r in serial] == [True, False, True] * 2
     for a, b in zip(serial, parallel):
         assert (a.accepted, a.reason) == (b.accepted, b.reason)

@@ -6,12 +6,12 @@ import numpy as np
 
 from stages.common.geometry import se3_from_xyz_rpy
 from stages.common.trajectory_metrics import horizontal_errors_m, rms
-from stages.posegraph.core import base_problem
-from stages.posegraph.graph import optimize
-from stages.posegraph.marking_match import MarkingMatch
-from stages.posegraph.params import PosegraphParams
-from stages.posegraph.survey_anchor import SurveyMatch, survey_priors, vertical_information, vertical_part
-from stages.posegraph.survey_markings import horizontal_information_body, submap_scan_indices
+from stages.posegraph.anchors.marking_match import MarkingMatch
+from stages.posegraph.anchors.survey_anchor import SurveyMatch, survey_priors, vertical_information, vertical_part
+from stages.posegraph.anchors.survey_markings import horizontal_information_body, submap_scan_indices
+from stages.posegraph.factors.base import base_problem
+from stages.posegraph.factors.graph import optimize
+from tests.stages.posegraph.conftest import posegraph_config
 
 
 def test_vertical_part_keeps_the_horizontal_position_and_takes_height_and_tilt():
@@ -65,8 +65,8 @@ def test_horizontal_anchors_pull_a_gnss_biased_graph_onto_truth(two_lap_drive):
     """Biased GNSS (0.85 m) alone leaves the graph decimetres off; horizontal anchors at truth every 10 poses
     with 3 cm sigma (what an accepted marking match gives) bring it within 5 cm."""
     T_true, drive = two_lap_drive
-    p = PosegraphParams()
-    problem, _ = base_problem([drive], p)
+    cfg = posegraph_config()
+    problem, _ = base_problem([drive], cfg.factors, cfg.gnss)
     before = rms(horizontal_errors_m(optimize(problem), T_true))
     anchors = [SurveyMatch(i, T_true[i], np.zeros((6, 6)), 0.0, 0.0, False, "no ground",
                            MarkingMatch(np.zeros(2), np.eye(2) / 0.03 ** 2, 0.8, 1000, True, "accepted"))

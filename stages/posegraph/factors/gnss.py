@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stages.posegraph.graph import AttitudePrior, BiasLink, BiasPrior, PositionPrior
+from stages.posegraph.config import GnssConfig
+from stages.posegraph.factors.graph import AttitudePrior, BiasLink, BiasPrior, PositionPrior
 
 
 def select_epochs(stamps_ns: np.ndarray, valid: np.ndarray, every_s: float) -> np.ndarray:
@@ -43,15 +44,16 @@ class GnssFactors:
 
 
 def gnss_position_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_vehicle: np.ndarray,
-                         std_enu_m: np.ndarray, valid: np.ndarray, *, every_s: float, inflation: float,
-                         min_std_m: float, robust: str, kernel_k: float, lever_arm_m: np.ndarray,
-                         bias_tau_s: float = 0.0, white_sigma_m: float = 0.05, bias_offset: int = 0) -> GnssFactors:
+                         std_enu_m: np.ndarray, valid: np.ndarray, cfg: GnssConfig, *,
+                         bias_offset: int = 0) -> GnssFactors:
     """One robust position factor per selected epoch (the measured point is the antenna position), with a
-    Gauss-Markov bias chain when ``bias_tau_s`` > 0. The bias std per axis is the inflated reported std;
+    Gauss-Markov bias chain when ``cfg.bias_tau_s`` > 0. The bias std per axis is the inflated reported std;
     bias state indices start at ``bias_offset`` (one chain per drive)."""
-    lever = np.asarray(lever_arm_m, dtype=float)
+    lever = np.asarray(cfg.lever_arm_m, dtype=float)
+    inflation, min_std_m, robust, kernel_k = cfg.std_inflation, cfg.min_std_m, cfg.kernel, cfg.kernel_k
+    bias_tau_s, white_sigma_m = cfg.bias_tau_s, cfg.white_sigma_m
     out = GnssFactors()
-    epochs = select_epochs(stamps_ns, valid, every_s)
+    epochs = select_epochs(stamps_ns, valid, cfg.every_s)
     for n, k in enumerate(epochs):
         T = T_map_vehicle[k]
         antenna = T[:3, 3] + T[:3, :3] @ lever
@@ -76,18 +78,20 @@ def gnss_position_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_ve
 
 
 def attitude_priors(pose_index: np.ndarray, stamps_ns: np.ndarray, T_map_vehicle: np.ndarray,
-                    std_yaw_rad: np.ndarray, valid: np.ndarray, *, every_s: float, roll_pitch_sigma_rad: float,
-                    yaw_inflation: float, with_yaw: bool = True, roll_pitch_known: np.ndarray | None = None,
-                    unknown_roll_pitch_sigma_rad: float = 0.05) -> list[AttitudePrior]:
-    """INS roll/pitch (gravity) as a firm prior and, if ``with_yaw``, INS yaw as a weak one; same epochs as
-    the GNSS factors. An INS heading error is a slowly varying bias like the GNSS one: epoch after epoch of
-    independent yaw priors average it into the map (docs/posegraph.md, fifth pass), hence optional.
+                    std_yaw_rad: np.ndarray, valid: np.ndarray, cfg: GnssConfig, *,
+                    roll_pitch_known: np.ndarray | None = None) -> list[AttitudePrior]:
+    """INS roll/pitch (gravity) as a firm prior (``cfg.attitude_sigma_rad``) and, if ``cfg.heading_prior``, INS
+    yaw as a weak one; same epochs as the GNSS factors. An INS heading error is a slowly varying bias like the
+    GNSS one: epoch after epoch of independent yaw priors average it into the map (docs/posegraph.md), hence
+    optional.
 
     Where ``roll_pitch_known`` is false (a GNSS without roll/pitch, whose attitude holds yaw only) the stored
-    roll/pitch of 0 is not a measurement: the prior on them is ``unknown_roll_pitch_sigma_rad`` (weak: it only
+    roll/pitch of 0 is not a measurement: the prior on them is ``cfg.unknown_roll_pitch_sigma_rad`` (weak: it only
     keeps the graph determined), never the firm INS sigma."""
+    roll_pitch_sigma_rad, unknown_roll_pitch_sigma_rad = cfg.attitude_sigma_rad, cfg.unknown_roll_pitch_sigma_rad
+    yaw_inflation, with_yaw = cfg.heading_std_inflation, cfg.heading_prior
     out = []
-    for k in select_epochs(stamps_ns, valid, every_s):
+    for k in select_epochs(stamps_ns, valid, cfg.every_s):
         known = roll_pitch_known is None or bool(roll_pitch_known[k])
         sigma_rp = roll_pitch_sigma_rad if known else unknown_roll_pitch_sigma_rad
         sigma_yaw = max(float(std_yaw_rad[k]) * yaw_inflation, roll_pitch_sigma_rad)

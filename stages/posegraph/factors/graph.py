@@ -199,9 +199,9 @@ def build_graph(problem: Problem, poses: np.ndarray | None = None
                                                 gtsam.noiseModel.Isotropic.Sigma(2, float(a.sigma_rad[0])),
                                                 gtsam.Unit3(up_vehicle)))
         tags.append(("attitudes", n))
-    for n, p in enumerate(problem.pose_priors):
-        graph.add(gtsam.PriorFactorPose3(_key(p.i), gtsam.Pose3(p.T_map_vehicle),
-                                         _noise(p.information, p.robust, p.kernel_k)))
+    for n, prior in enumerate(problem.pose_priors):
+        graph.add(gtsam.PriorFactorPose3(_key(prior.i), gtsam.Pose3(prior.T_map_vehicle),
+                                         _noise(prior.information, prior.robust, prior.kernel_k)))
         tags.append(("pose_priors", n))
     _insert_biases(values, problem.n_biases)
     for n, link in enumerate(problem.bias_links):
@@ -226,19 +226,19 @@ def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = F
     than ``relative_error_tol`` of it."""
     graph, values, tags = build_graph(problem, initial)
     if gnc_loops:
-        params = gtsam.GncLMParams()
+        opts = gtsam.GncLMParams()
         inliers = [f for f, (name, n) in enumerate(tags)
                    if not (name == "betweens" and problem.betweens[n].kind == "loop")]
-        params.setKnownInliers(inliers)
-        params.setAllowNonNoiseModelFactors(True)  # the bias chain's LinearContainerFactors (known inliers)
-        params.setMaxIterations(max_iterations)
-        result = gtsam.GncLMOptimizer(graph, values, params).optimize()
+        opts.setKnownInliers(inliers)
+        opts.setAllowNonNoiseModelFactors(True)  # the bias chain's LinearContainerFactors (known inliers)
+        opts.setMaxIterations(max_iterations)
+        result = gtsam.GncLMOptimizer(graph, values, opts).optimize()
     else:
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(max_iterations)
-        params.setRelativeErrorTol(relative_error_tol)
-        params.setAbsoluteErrorTol(1e-9)
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        opts = gtsam.LevenbergMarquardtParams()
+        opts.setMaxIterations(max_iterations)
+        opts.setRelativeErrorTol(relative_error_tol)
+        opts.setAbsoluteErrorTol(1e-9)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, opts).optimize()
     return poses_from_values(result, problem.n_poses)
 
 

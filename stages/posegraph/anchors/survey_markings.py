@@ -21,8 +21,9 @@ from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.common.marking_raster.settings import MarkingRasterSettings
 from stages.common.road_features import extract_road_features
-from stages.posegraph.core import deskew_scan_lidar
-from stages.posegraph.marking_match import MarkingMatch, match_markings
+from stages.posegraph.anchors.marking_match import MarkingMatch, match_markings
+from stages.posegraph.config import MarkingAnchorConfig
+from stages.posegraph.factors.drive import deskew_scan_lidar
 
 # (drive, scan_id) list -> {(drive, scan_id): (xyz_lidar (N,3), time_offset_s (N,) or None, intensity, ring)}
 FeatureLoader = Callable[[list[tuple[str, int]]], dict[tuple[str, int], tuple]]
@@ -41,12 +42,12 @@ def build_survey_marking_index(points_enu_m: np.ndarray, intensity: np.ndarray) 
 
 
 def survey_marking_window(index: SurveyMarkingIndex, centre_en_m: np.ndarray, half_size_m: float,
-                          params: MarkingRasterSettings) -> tuple[np.ndarray, tuple[float, float]]:
+                          raster: MarkingRasterSettings) -> tuple[np.ndarray, tuple[float, float]]:
     """The survey's marking mask (rows north-first) over a square window around ``centre_en_m``, computed
     with the shared marking rasterizer (elevation grid + adaptive threshold) and the pose graph's own raster
     settings (``survey_marking_raster``); returns (mask, south-west origin)."""
-    cell = params.cell_m
-    halo_px = halo_px_for(cell, params.threshold_block_m, params.ground_window_m)
+    cell = raster.cell_m
+    halo_px = halo_px_for(cell, raster.threshold_block_m, raster.ground_window_m)
     n_px = int(round(2 * half_size_m / cell))
     e0 = float(np.floor((centre_en_m[0] - half_size_m) / cell) * cell)
     n0 = float(np.floor((centre_en_m[1] - half_size_m) / cell) * cell)
@@ -55,7 +56,7 @@ def survey_marking_window(index: SurveyMarkingIndex, centre_en_m: np.ndarray, ha
     idx = index.tree.query_ball_point(np.asarray(centre_en_m[:2], float), half_size_m * np.sqrt(2) + halo_m)
     if idx:
         acc.add(index.points_enu_m[idx], index.intensity[idx])
-    layer = rasterize_grid(acc.finish(params.min_points_per_cell), halo_px, **params.rasterize_kwargs())
+    layer = rasterize_grid(acc.finish(raster.min_points_per_cell), halo_px, **raster.rasterize_kwargs())
     return layer.marking, (e0, n0)
 
 
@@ -70,18 +71,17 @@ def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, m
 
 
 def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_drive: np.ndarray,
-                   load: FeatureLoader, index: SurveyMarkingIndex, *, half_travel_m: float, max_scans: int,
-                   search_m: float, raster: MarkingRasterSettings, window_margin_m: float = 6.0,
-                   sigma_scale: float = 1.0, min_sigma_m: float = 0.03, feature_cache: dict | None = None,
-                   yaw_search_deg: float = 0.0, yaw_step_deg: float = 0.5) -> MarkingMatch:
+                   load: FeatureLoader, index: SurveyMarkingIndex, cfg: MarkingAnchorConfig, *,
+                   window_margin_m: float = 6.0, feature_cache: dict | None = None) -> MarkingMatch:
     """Match the marking submap around scan ``k_local`` of ``drive`` (poses = current estimate) to the survey.
     ``feature_cache`` ({scan index: vehicle-frame features}) carries the scans shared with the previous
     keyframe's submap (consecutive submaps overlap); it is left holding this submap's scans only.
 
-    With ``yaw_search_deg`` > 0 the submap is also turned about the keyframe (``best_yaw_match``): the estimate's
+    With ``cfg.yaw_search_deg`` > 0 the submap is also turned about the keyframe (``best_yaw_match``): the estimate's
     heading error turns the submap, and a translation-only match of a turned submap is biased by the lever arm of
     its paint (measured on tiny: the anchors inherited about half of the estimate's 0.42 deg rotation)."""
-    ks = submap_scan_indices(poses_drive[:, :3, 3], k_local, half_travel_m, max_scans)
+    half_travel_m, raster = cfg.half_travel_m, cfg.raster
+    ks = submap_scan_indices(poses_drive[:, :3, 3], k_local, half_travel_m, cfg.max_scans)
     cache = {} if feature_cache is None else feature_cache
     for j in set(cache) - set(ks.tolist()):
         del cache[j]
@@ -100,11 +100,11 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
     def match_at(yaw_rad: float) -> MarkingMatch:
         c, s_ = np.cos(yaw_rad), np.sin(yaw_rad)
         turned = (feats - centre) @ np.array([[c, s_], [-s_, c]]) + centre
-        return match_markings(turned, mask, origin, raster.cell_m, search_m=search_m, sigma_scale=sigma_scale,
-                              min_sigma_m=min_sigma_m)
-    if yaw_search_deg <= 0 or len(feats) == 0:
+        return match_markings(turned, mask, origin, raster.cell_m, search_m=cfg.search_m,
+                              sigma_scale=cfg.sigma_scale, min_sigma_m=cfg.min_sigma_m)
+    if cfg.yaw_search_deg <= 0 or len(feats) == 0:
         return match_at(0.0)
-    return best_yaw_match(match_at, np.deg2rad(yaw_search_deg), np.deg2rad(yaw_step_deg))
+    return best_yaw_match(match_at, np.deg2rad(cfg.yaw_search_deg), np.deg2rad(cfg.yaw_step_deg))
 
 
 def best_yaw_match(match_at: Callable[[float], MarkingMatch], search_rad: float, step_rad: float) -> MarkingMatch:

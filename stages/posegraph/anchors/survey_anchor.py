@@ -14,7 +14,8 @@ from scipy.spatial import cKDTree
 
 from stages.common.ground_plane import rotation_between
 from stages.common.registration import floor_information, prepare_cloud, register_clouds
-from stages.posegraph.graph import PosePrior
+from stages.posegraph.config import AnchorConfig, GroundAnchorConfig
+from stages.posegraph.factors.graph import PosePrior
 
 log = logging.getLogger(__name__)
 
@@ -41,14 +42,14 @@ def build_survey_index(survey_enu_m: np.ndarray, voxel_m: float) -> tuple[np.nda
 
 
 def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.ndarray, survey_pts: np.ndarray,
-                survey_tree: cKDTree, *, crop_m: float, max_height_m: float, voxel_m: float,
-                min_fitness: float, max_rmse_m: float, min_sigma_m: float, min_sigma_rad: float,
-                vertical_only: bool = True) -> SurveyMatch:
-    """GICP of the scan's low points onto the survey crop around the current estimate; with ``vertical_only``
+                survey_tree: cKDTree, cfg: GroundAnchorConfig) -> SurveyMatch:
+    """GICP of the scan's low points onto the survey crop around the current estimate; with ``cfg.vertical_only``
     the anchor constrains height, roll and pitch only (see ``vertical_information``)."""
+    voxel_m, min_fitness, max_rmse_m = cfg.voxel_m, cfg.min_fitness, cfg.max_rmse_m
+    min_sigma_m, min_sigma_rad = cfg.min_sigma_m, cfg.min_sigma_rad
     origin = T_map_vehicle_init[:3, 3].copy()
-    low = points_vehicle_m[points_vehicle_m[:, 2] < max_height_m]
-    near = survey_tree.query_ball_point(origin[:2], crop_m)
+    low = points_vehicle_m[points_vehicle_m[:, 2] < cfg.max_height_m]
+    near = survey_tree.query_ball_point(origin[:2], cfg.crop_m)
     if len(low) < 100 or len(near) < 100:
         return SurveyMatch(i, T_map_vehicle_init, np.zeros((6, 6)), 0.0, float("nan"), False,
                            f"too few points (scan {len(low)}, survey {len(near)})")
@@ -65,7 +66,7 @@ def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.nda
         reason = f"fitness {res.fitness:.2f} < {min_fitness:.2f}"
     elif res.inlier_rmse_m > max_rmse_m:
         reason = f"rmse {res.inlier_rmse_m:.3f} m > {max_rmse_m:.3f} m"
-    if vertical_only:
+    if cfg.vertical_only:
         T = vertical_part(T, T_map_vehicle_init)
         info = vertical_information(min_sigma_m, min_sigma_rad)
     else:
@@ -98,7 +99,7 @@ def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345, yaw_sigma
     """Accepted matches as robust (Huber) absolute pose priors: the vertical part from the ground
     registration, the horizontal part from the marking match, each where accepted; with ``yaw_sigma_rad`` > 0
     also the heading at which the marking submap matched (``survey_markings.best_yaw_match``)."""
-    from stages.posegraph.survey_markings import horizontal_information_body
+    from stages.posegraph.anchors.survey_markings import horizontal_information_body
 
     out = []
     for m in matches:
@@ -129,15 +130,15 @@ def _anchor_item(item) -> SurveyMatch:
     """One keyframe's ground registration against the survey held by ``_use_survey`` (module level)."""
     from pipeline.parallel import worker_state
 
-    k, cloud, pose, kwargs = item
+    k, cloud, pose, cfg = item
     state = worker_state()
-    return anchor_scan(k, cloud, pose, state["survey_pts"], state["survey_tree"], **kwargs)
+    return anchor_scan(k, cloud, pose, state["survey_pts"], state["survey_tree"], cfg)
 
 
 def _use_survey_markings(survey_enu_m: np.ndarray, survey_intensity: np.ndarray, feature_load) -> None:
     """Pool/cluster worker initializer for the marking anchors: the survey's marking index and a scan loader."""
     from pipeline.parallel import set_worker_state
-    from stages.posegraph.survey_markings import build_survey_marking_index
+    from stages.posegraph.anchors.survey_markings import build_survey_marking_index
 
     set_worker_state(marking_index=build_survey_marking_index(survey_enu_m, survey_intensity),
                      feature_load=feature_load)
@@ -147,13 +148,13 @@ def _marking_block(item) -> list:
     """Marking anchors of consecutive keyframes of one drive (module level). Consecutive submaps share scans,
     so a block keeps one feature cache; blocks are independent (a cache changes speed, never a result)."""
     from pipeline.parallel import worker_state
-    from stages.posegraph.survey_markings import marking_anchor
+    from stages.posegraph.anchors.survey_markings import marking_anchor
 
-    drive, poses_drive, incs_drive, keys_local, kwargs = item
+    drive, poses_drive, incs_drive, keys_local, cfg = item
     state = worker_state()
     cache: dict = {}
-    return [marking_anchor(k, drive, poses_drive, incs_drive, state["feature_load"], state["marking_index"],
-                           feature_cache=cache, **kwargs) for k in keys_local]
+    return [marking_anchor(k, drive, poses_drive, incs_drive, state["feature_load"], state["marking_index"], cfg,
+                           feature_cache=cache) for k in keys_local]
 
 
 def marking_blocks(keys: np.ndarray, offsets: np.ndarray, block: int) -> list[tuple[int, list[int]]]:
@@ -166,66 +167,58 @@ def marking_blocks(keys: np.ndarray, offsets: np.ndarray, block: int) -> list[tu
     return out
 
 
-def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, p, matches_out: list | None = None,
+def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, cfg: AnchorConfig, matches_out: list | None = None,
                            survey_intensity: np.ndarray | None = None, feature_load=None, report_step=None):
     """A ``survey_priors(poses, offsets)`` callback for ``solve_map``: anchors keyframes every
-    ``p.survey_stride_m`` that the survey covers; every match (accepted or not) is appended to ``matches_out``.
+    ``cfg.stride_m`` that the survey covers; every match (accepted or not) is appended to ``matches_out``.
     With the survey's intensities and a ``feature_load``er (scans with intensity and ring), each keyframe is
     also matched horizontally on the painted markings (``survey_markings``)."""
     from pipeline.parallel import parallel_map
-    from stages.posegraph.core import increments
-    from stages.posegraph.loops import keyframes_by_travel
-    from stages.posegraph.solve import vehicle_clouds
+    from stages.posegraph.factors.drive import increments
+    from stages.posegraph.loops.candidates import keyframes_by_travel
+    from stages.posegraph.loops.clouds import vehicle_clouds
 
-    survey_pts, tree = build_survey_index(survey_enu_m, p.loop_voxel_m / 2)
-    with_markings = p.survey_markings and survey_intensity is not None and feature_load is not None
-    marking_kwargs = dict(half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
-                          search_m=p.survey_marking_search_m, raster=p.survey_marking_raster,
-                          sigma_scale=p.survey_marking_sigma_scale, min_sigma_m=p.survey_marking_min_sigma_m,
-                          yaw_search_deg=p.survey_marking_yaw_search_deg, yaw_step_deg=p.survey_marking_yaw_step_deg)
+    survey_pts, tree = build_survey_index(survey_enu_m, cfg.ground.voxel_m)
+    with_markings = cfg.use_markings and survey_intensity is not None and feature_load is not None
 
     def horizontal(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray) -> list:
         """The marking anchor of every keyframe, in blocks of consecutive keyframes run in parallel."""
-        blocks = marking_blocks(keys, offsets, p.survey_marking_block)
-        items = [(drives[o], poses[offsets[o]:offsets[o + 1]], increments(drives[o]), local, marking_kwargs)
+        blocks = marking_blocks(keys, offsets, cfg.block)
+        items = [(drives[o], poses[offsets[o]:offsets[o + 1]], increments(drives[o]), local, cfg.markings)
                  for o, local in blocks]
         step = (lambda done, total: report_step("survey marking anchors", done, total)) if report_step else None
-        parallel = len(keys) >= p.parallel_min_items
-        done = parallel_map(_marking_block, items, workers=None if parallel else 1, initializer=_use_survey_markings,
+        done = parallel_map(_marking_block, items, workers=cfg.workers(len(keys)), initializer=_use_survey_markings,
                             initargs=(survey_enu_m, survey_intensity, feature_load), progress=step)
         return [m for block in done for m in block]
 
     def callback(poses: np.ndarray, offsets: np.ndarray) -> list[PosePrior]:
         group = np.repeat(np.arange(len(drives)), np.diff(offsets))
-        keys = keyframes_by_travel(poses[:, :3, 3], group, p.survey_stride_m)
+        keys = keyframes_by_travel(poses[:, :3, 3], group, cfg.stride_m)
         covered = np.array([len(tree.query_ball_point(poses[k, :2, 3], 5.0)) > 0 for k in keys], bool)
         keys = keys[covered] if len(keys) else keys
-        clouds = vehicle_clouds(drives, offsets, keys, load, p.loop_voxel_m / 2,
-                                workers=None if len(keys) >= p.parallel_min_items else 1)
-        kwargs = dict(crop_m=p.survey_crop_m, max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,
-                      min_fitness=p.survey_min_fitness, max_rmse_m=p.survey_max_rmse_m,
-                      min_sigma_m=p.survey_min_sigma_m, min_sigma_rad=p.survey_min_sigma_rad,
-                      vertical_only=p.survey_vertical_only)
-        items = [(int(k), clouds[int(k)], poses[k], kwargs) for k in keys]
+        clouds = vehicle_clouds(drives, offsets, keys, load, cfg.ground.voxel_m, workers=cfg.workers(len(keys)))
+        items = [(int(k), clouds[int(k)], poses[k], cfg.ground) for k in keys]
         step = (lambda done, total: report_step("survey anchors", done, total)) if report_step else None
-        matches = parallel_map(_anchor_item, items, workers=None if len(items) >= p.parallel_min_items else 1,
+        matches = parallel_map(_anchor_item, items, workers=cfg.workers(len(items)),
                                initializer=_use_survey, initargs=(survey_pts,), progress=step)
         if with_markings:
             found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
-            matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets, p)
+            matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets,
+                                         cfg)
         if matches_out is not None:
             matches_out.extend(matches)
-        return survey_priors(matches, yaw_sigma_rad=np.deg2rad(p.survey_marking_yaw_sigma_deg))
+        return survey_priors(matches, yaw_sigma_rad=np.deg2rad(cfg.yaw_sigma_deg))
 
     return callback
 
 
-def checked_horizontal(matches: list[SurveyMatch], poses: np.ndarray, offsets: np.ndarray, p) -> list[SurveyMatch]:
+def checked_horizontal(matches: list[SurveyMatch], poses: np.ndarray, offsets: np.ndarray,
+                       cfg: AnchorConfig) -> list[SurveyMatch]:
     """Accepted marking matches that disagree with their neighbours (``anchor_consensus``) turned into rejected
     ones, with the reason; the others unchanged."""
     from scipy.stats import chi2
 
-    from stages.posegraph.anchor_consensus import anchor_consensus
+    from stages.posegraph.anchors.anchor_consensus import anchor_consensus
 
     acc = [k for k, m in enumerate(matches) if m.horizontal is not None and m.horizontal.accepted]
     if not acc:
@@ -237,10 +230,9 @@ def checked_horizontal(matches: list[SurveyMatch], poses: np.ndarray, offsets: n
     res = anchor_consensus(np.array([matches[k].horizontal.shift_en_m for k in acc]),
                            np.array([matches[k].horizontal.information_en for k in acc]),
                            np.searchsorted(offsets, idx, side="right") - 1, travel[idx],
-                           window_m=p.survey_marking_consensus_window_m,
-                           drift_sigma_m=p.survey_marking_consensus_drift_sigma_m,
-                           gate_chi2_1=float(chi2.ppf(p.survey_marking_consensus_probability, 1)),
-                           gate_chi2_2=float(chi2.ppf(p.survey_marking_consensus_probability, 2)))
+                           window_m=cfg.consensus_window_m, drift_sigma_m=cfg.consensus_drift_sigma_m,
+                           gate_chi2_1=float(chi2.ppf(cfg.consensus_probability, 1)),
+                           gate_chi2_2=float(chi2.ppf(cfg.consensus_probability, 2)))
     out = list(matches)
     for j, k in enumerate(acc):
         if not res.keep[j]:

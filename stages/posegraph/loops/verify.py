@@ -1,0 +1,101 @@
+"""Loop-closure verification by ICP with fitness, residual, correction and two-start consistency gates, of one
+candidate (``verify_loop``) or of many in parallel (``verify_candidates``); accepted loops as graph factors.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.common.geometry import se3_inverse
+from stages.common.registration import floor_information, register_coarse_to_fine, score_alignment
+from stages.posegraph.config import LoopConfig, LoopVerifyConfig
+from stages.posegraph.factors.graph import Between
+
+
+@dataclass(frozen=True)
+class Verdict:
+    accepted: bool
+    reason: str
+    T_i_j: np.ndarray
+    fitness: float
+    inlier_rmse_m: float
+    information: np.ndarray
+
+
+@dataclass
+class LoopRecord:
+    i: int
+    j: int
+    prior_distance_m: float
+    fitness: float
+    inlier_rmse_m: float
+    T_i_j: np.ndarray
+    accepted: bool
+    reason: str
+    information: np.ndarray | None = None  # 6x6 gtsam order, body frame of T_i_j
+
+
+def _verify_item(item) -> object:
+    """One candidate's ICP verification (module level: runs in a pool process or on a cluster worker)."""
+    cloud_i, cloud_j, prior, cfg = item
+    return verify_loop(cloud_i, cloud_j, prior, cfg)
+
+
+def verify_candidates(candidates, poses: np.ndarray, clouds: dict[int, np.ndarray], cfg: LoopConfig,
+                      fixed: dict[int, np.ndarray] | None = None, progress=None) -> list[LoopRecord]:
+    """ICP-verify each candidate from the current estimate's relative pose (``fixed`` poses override). The
+    candidates are independent: they run through ``pipeline.parallel.parallel_map`` (processes here, tasks on
+    a cluster) when there are at least ``cfg.parallel_min_items`` of them; the verdicts do not depend on it."""
+    from pipeline.parallel import parallel_map
+
+    fixed = fixed or {}
+    items = []
+    for c in candidates:
+        Ti = fixed.get(c.i, poses[c.i] if c.i < len(poses) else None)
+        Tj = fixed.get(c.j, poses[c.j] if c.j < len(poses) else None)
+        items.append((clouds[c.i], clouds[c.j], se3_inverse(Ti) @ Tj, cfg.verify))
+    verdicts = parallel_map(_verify_item, items, workers=cfg.workers(len(items)), progress=progress)
+    return [LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted, v.reason,
+                       v.information) for c, v in zip(candidates, verdicts)]
+
+
+def loop_betweens(loops: list[LoopRecord], cfg: LoopConfig) -> list[Between]:
+    """The accepted loops as between factors under the loop kernel (none under GNC, which weighs them itself)."""
+    robust = "none" if cfg.kernel == "gnc" else cfg.kernel
+    return [Between(r.i, r.j, r.T_i_j, r.information, "loop", robust, cfg.kernel_k) for r in loops if r.accepted]
+
+
+def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_j_prior: np.ndarray,
+                cfg: LoopVerifyConfig) -> Verdict:
+    """Coarse-to-fine GICP of scan j onto scan i from the prior relative pose (1-2 m off between passes), and
+    again from a start shifted by 1 m along and 0.7 m across; accepted only when both agree, at least
+    ``min_fitness`` of the scan lies on the other scan's surfaces (``score_alignment``) with a point-to-plane
+    RMS below ``max_rmse_m``, and the correction stays inside the prior's envelope. ``Verdict.fitness`` and
+    ``inlier_rmse_m`` are that inlier share and plane RMS."""
+    voxel_m, max_corr_m, min_sigma_m, min_sigma_rad = cfg.voxel_m, cfg.max_corr_m, cfg.min_sigma_m, cfg.min_sigma_rad
+    min_fitness, max_rmse_m = cfg.min_fitness, cfg.max_rmse_m
+    stages = ((cfg.coarse_voxel_m, cfg.coarse_corr_m), (voxel_m, max_corr_m), (voxel_m, max_corr_m / 2))
+    reg = dict(stages=stages, max_iterations=40, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad)
+    res, source, target = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, T_i_j_prior, **reg)
+    T = res.T_target_source
+    score = score_alignment(source, target, T, cfg.inlier_m, cfg.plane_tol_m)
+    correction = se3_inverse(T_i_j_prior) @ T
+    corr_m = float(np.linalg.norm(correction[:3, 3]))
+    corr_rad = float(np.arccos(np.clip((np.trace(correction[:3, :3]) - 1) / 2, -1, 1)))
+    info = floor_information(res.information, min_sigma_m, min_sigma_rad)
+    reason = "accepted"
+    if not res.converged or score.inlier_share < min_fitness:
+        reason = f"inlier share {score.inlier_share:.2f} < {min_fitness:.2f}"
+    elif score.plane_rmse_m > max_rmse_m:
+        reason = f"point-to-plane rmse {score.plane_rmse_m:.3f} m > {max_rmse_m:.3f} m"
+    elif corr_m > cfg.max_correction_m or corr_rad > cfg.max_correction_rad:
+        reason = f"correction {corr_m:.2f} m / {np.rad2deg(corr_rad):.1f} deg beyond the prior's envelope"
+    else:
+        shifted = T_i_j_prior.copy()
+        shifted[:3, 3] += T_i_j_prior[:3, :3] @ np.array([1.0, -0.7, 0.0])
+        res2, _, _ = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, shifted, **reg)
+        gap_m = float(np.linalg.norm(res2.T_target_source[:3, 3] - T[:3, 3]))
+        if gap_m > cfg.consistency_m:
+            reason = f"ambiguous: two ICP starts disagree by {gap_m:.2f} m"
+    return Verdict(reason == "accepted", reason, T, score.inlier_share, score.plane_rmse_m, info)
