@@ -8,6 +8,8 @@ Examples (2-core machine):
   add --figure docs/figures/cornermap_gangnam.png for the map with covariance ellipses over the buildings.
   add --truth-filter COLUMN=VALUE (e.g. kind=building) to score against the rows of truth/corners.csv with that
   value only: map corners on street furniture then count as false positives (precision against buildings).
+  The two real vertices of each chamfered corner (truth lists only the walls' intersection) count as building
+  corners for precision (docs/cornermap.md: a facet of 2 m or more gives two obtuse corners), not for recall.
 Every run prints "duplicates (1 m, matching walls)": pairs of map corners within 1 m whose walls agree within
 12 deg (the issue's definition), besides the map corners matched to one true corner twice.
 """
@@ -69,6 +71,29 @@ def load_truth_corners(sim: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | 
         theta = np.column_stack([cols["theta1_rad"], cols["theta2_rad"]])
     seen_cols = sorted(k for k in cols if "visible" in k or k.startswith("seen"))
     return en, theta, (cols[seen_cols[0]] if seen_cols else None)
+
+
+def chamfer_vertices(sim: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The two real vertices of every chamfered corner of DIR/truth/corners.csv (``corner_shape`` chamfered, cut
+    ``shape_size_m`` back along each wall from the listed walls' intersection), with their wall directions (the
+    continuing wall and the chamfer facet): building corners as docs/cornermap.md defines them (a facet of 2 m
+    or more gives two obtuse corners), which the truth file lists only by the intersection. (M,2), (M,2)."""
+    import csv
+
+    with open(sim / "truth" / "corners.csv", newline="") as fh:
+        rows = [r for r in csv.DictReader(line for line in fh if not line.startswith("#"))
+                if r.get("corner_shape") == "chamfered"]
+    en, theta = [], []
+    for r in rows:
+        p = np.array([float(r["east_m"]), float(r["north_m"])])
+        t = np.radians([float(r["theta1_deg"]), float(r["theta2_deg"])])
+        u = np.column_stack([np.cos(t), np.sin(t)])
+        a = p + float(r["shape_size_m"]) * u  # the cut's two ends, one on each wall
+        for i, j in ((0, 1), (1, 0)):
+            facet = a[j] - a[i]
+            en.append(a[i])
+            theta.append([t[i], np.arctan2(facet[1], facet[0])])
+    return np.reshape(en, (-1, 2)), np.reshape(theta, (-1, 2))
 
 
 def _is_number(text: str) -> bool:
@@ -143,6 +168,12 @@ def pipeline_inputs(args) -> dict:
         keep = truth_filter_mask(Path(args.sim), args.truth_filter)
         truth_en, truth_theta, seen = truth_en[keep], truth_theta[keep], seen[keep]
         views = views[keep] if views is not None else None
+    ch_en, ch_theta = chamfer_vertices(Path(args.sim))  # count for precision; not eligible for recall (no views)
+    if len(ch_en):
+        log.info("truth: %d chamfer vertices added as building corners", len(ch_en))
+        truth_en, truth_theta = np.vstack([truth_en, ch_en]), np.vstack([truth_theta, ch_theta])
+        seen = np.concatenate([seen, np.zeros(len(ch_en))])
+        views = np.concatenate([views, np.zeros(len(ch_en))]) if views is not None else None
     return {"corners": corners, "poses": poses, "drive_info": info, "truth_en": truth_en, "truth_theta": truth_theta,
             "seen": seen, "views": views, "truth_pose_en": truth_pose_en, "drive0": drive0,
             "buildings": [np.asarray(b["footprint_en"], float) for b in city["buildings"]]}
