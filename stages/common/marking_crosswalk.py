@@ -6,9 +6,10 @@ painted with the probability of its paint cover (one lidar point per cell). A cr
 cut (its stripes end at the cut, not at the paint's end) is not a rectangle: the stripes' direction is taken
 from their long edges, which a cut does not tilt, and a corner whose stripe ends fall short of the side's common
 end is placed at the observed ends there rather than extrapolated past the cells seen as paint. On synthetic
-crosswalks cut at random angles (tests/stages/common/test_marking_crosswalk.py) every corner lies on the paint
-(at most 4 cm outside it) and most on the seen part; a cut shaving under about 0.2 m off a corner is below what
-the scanlines tell from a ragged end, and leaves that corner up to 0.17 m past the cut (on the unseen paint).
+crosswalks cut at random angles (tests/stages/common/test_marking_crosswalk.py; docs/markings.md) every corner
+lies on the paint (at most 4 cm outside it) and most on the seen part; a cut shaving under about 0.2 m off a
+corner is below what the scanlines tell from a ragged end, and leaves that corner up to 0.15 m past the cut (on
+the unseen paint).
 """
 from __future__ import annotations
 
@@ -81,8 +82,9 @@ def corner_end(lines: dict[str, np.ndarray], upper: bool, x_edge: float, flat_m:
     stripe edge is neither, a cut one is both. Two estimates of the ends at ``x_edge``, each a Theil-Sen line
     (robust to a ragged end) of the ends: (a) of the scanlines within 0.45 m of the one nearest ``x_edge`` (the
     outer stripe), taken when two of them fall over 1.5 cells short of ``flat_m`` (one end scatters by about a
-    cell); (b) of every such scanline of the side, taken when it slopes by over 1.5 cells across the side (a cut
-    oblique to the whole side; about 6 sigma of its slope on whole stripes). The innermost of those taken."""
+    cell); (b) of the stripes' median ends (runs of such scanlines, at least 3), taken when it slopes by over 1.5
+    cells across the side (a cut oblique to the whole side; the ends within a stripe step with the pixel grid,
+    which a line through all scanlines would take for a slope). The innermost of those taken."""
     from scipy.stats import theilslopes
 
     far, near_end = (lines["lo"], lines["hi"]) if upper else (lines["hi"], lines["lo"])
@@ -98,9 +100,11 @@ def corner_end(lines: dict[str, np.ndarray], upper: bool, x_edge: float, flat_m:
     if abs(nearest - x_edge) <= 0.3 and keep.sum() >= 3 and (sign * (flat_m - y[keep]) > 1.5 * cell_m).sum() >= 2:
         slope, intercept, _, _ = theilslopes(y[keep], x[keep])
         found.append(intercept + slope * x_edge)
-    if len(x) >= 5:
-        slope, intercept, _, _ = theilslopes(y, x)
-        if abs(slope) * (x.max() - x.min()) > 1.5 * cell_m:
+    runs = np.split(np.arange(len(x)), np.flatnonzero(np.diff(x) > 2.5 * cell_m) + 1)  # stripes
+    if len(runs) >= 3:
+        xm, ym = np.array([np.median(x[r]) for r in runs]), np.array([np.median(y[r]) for r in runs])
+        slope, intercept, _, _ = theilslopes(ym, xm)
+        if abs(slope) * (xm.max() - xm.min()) > 1.5 * cell_m:
             found.append(intercept + slope * x_edge)
     return float(min(found) if upper else max(found))
 

@@ -6,34 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fixtures.crosswalk_cuts import CELL_M as CELL
+from fixtures.crosswalk_cuts import cut_crosswalk, random_cuts, signed_inside_m
 from stages.common.marking_crosswalk import stripe_axis
 from stages.common.marking_vectors import vectorize_markings
-
-CELL = 0.1
-LENGTH, WIDTH = 4.0, 5.5  # stripes 4 m long, six 0.5 m stripes at 1 m pitch
-
-
-def _signed_inside_m(ring: np.ndarray, p: np.ndarray) -> float:
-    import cv2
-
-    return cv2.pointPolygonTest(ring.astype(np.float32).reshape(-1, 1, 2), (float(p[0]), float(p[1])), True)
-
-
-def cut_crosswalk(angle_deg: float, cut_deg: float | None, cut_at_m: float, seed: int):
-    """Mask of a crosswalk turned by ``angle_deg``, one random point per 0.1 m cell deciding paint, and seen only
-    on one side of a straight coverage edge through (cut_at_m along the stripes, mid-crosswalk) whose normal is
-    ``cut_deg`` from the stripes (None: seen whole). Returns mask, frame (origin, u, v), edge (point, normal)."""
-    rng = np.random.default_rng(seed)
-    a = np.radians(angle_deg)
-    u, v = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
-    origin, n = np.array([10.03, 6.07]), 200
-    xy = (np.stack(np.meshgrid(np.arange(n), np.arange(n)[::-1]), -1) + rng.uniform(0, 1, (n, n, 2))) * CELL
-    s, t = (xy - origin) @ u, (xy - origin) @ v
-    paint = (s >= 0) & (s <= LENGTH) & (t >= 0) & (t <= WIDTH) & (np.mod(t, 1.0) <= 0.5)
-    p0 = origin + cut_at_m * u + WIDTH / 2 * v
-    normal = np.array([np.cos(a + np.radians(cut_deg or 0.0)), np.sin(a + np.radians(cut_deg or 0.0))])
-    seen = np.ones_like(paint) if cut_deg is None else (xy - p0) @ normal <= 0  # a cell is seen when its point is
-    return (paint & seen).astype(np.uint8) * 255, (origin, u, v), (p0, normal)
 
 
 def _crosswalks(mask):
@@ -49,11 +25,10 @@ def test_a_crosswalk_cut_obliquely_keeps_its_corners_on_the_seen_paint(angle_deg
     observe (at most 0.2 m: a cut shaving under ~0.2 m off a corner is below what the scanlines tell from a
     ragged end), with a corner at the cut, away from the paint's corners."""
     for seed in range(3):
-        mask, (origin, u, v), (p0, normal) = cut_crosswalk(angle_deg, cut_deg, cut_at_m, seed)
+        mask, paint, (p0, normal) = cut_crosswalk(angle_deg, cut_deg, cut_at_m, seed)
         [cw] = _crosswalks(mask)
         assert cw.xy_m.shape == (4, 2) and np.isfinite(cw.xy_m).all()
-        paint = origin + np.array([[0, 0], [LENGTH, 0], [LENGTH, WIDTH], [0, WIDTH]]) @ np.vstack([u, v])
-        inside = [_signed_inside_m(paint, p) for p in cw.xy_m]
+        inside = [signed_inside_m(paint, p) for p in cw.xy_m]
         past_edge = (cw.xy_m - p0) @ normal
         assert min(inside) >= -0.05, (seed, inside)
         assert past_edge.max() <= 0.2, (seed, past_edge)
@@ -65,16 +40,13 @@ def test_crosswalks_cut_at_random_angles_stay_on_the_paint():
     """40 random cuts (angle of the crosswalk, direction and place of the edge): no corner more than 5 cm outside
     the painted crosswalk; at least 80 % of corners within 5 cm of the seen side, none over 0.2 m past it (a cut
     shaving under ~0.2 m off a corner is below what the scanlines tell from a ragged end)."""
-    rng = np.random.default_rng(2026)
     inside, past, n_cw = [], [], 0
-    for k in range(40):
-        angle, cut, at = rng.uniform(0, 90), rng.uniform(-80, 260), rng.uniform(1.0, 3.8)
-        mask, (origin, u, v), (p0, normal) = cut_crosswalk(angle, cut, at, 100 + k)
-        paint = origin + np.array([[0, 0], [LENGTH, 0], [LENGTH, WIDTH], [0, WIDTH]]) @ np.vstack([u, v])
+    for angle, cut, at, seed in random_cuts(40, 2026):
+        mask, paint, (p0, normal) = cut_crosswalk(angle, cut, at, seed)
         for cw in _crosswalks(mask):
             n_cw += 1
             assert np.isfinite(cw.xy_m).all()
-            inside += [_signed_inside_m(paint, p) for p in cw.xy_m]
+            inside += [signed_inside_m(paint, p) for p in cw.xy_m]
             past += list((cw.xy_m - p0) @ normal)
     inside, past = np.array(inside), np.array(past)
     assert n_cw >= 30
@@ -90,7 +62,9 @@ def test_stripe_axis_follows_the_long_edges_of_obliquely_cut_stripes():
     principal, refined = [], []
     for angle in (0.0, 7.0, 33.0):
         for seed in range(4):
-            mask, (_, u, v), _ = cut_crosswalk(angle, 45.0, 2.5, seed)
+            mask, rect, _ = cut_crosswalk(angle, 45.0, 2.5, seed)
+            u = (rect[1] - rect[0]) / np.linalg.norm(rect[1] - rect[0])
+            v = np.array([-u[1], u[0]])
             bars = [c for c in _components(mask, 0.0, 0.0, CELL, 0.04) if c.width_m > 0.35]
             p = np.sum([len(b.pts) * (b.axis if b.axis @ u >= 0 else -b.axis) for b in bars], axis=0)
             a = stripe_axis([(b.pts, b.axis) for b in bars], CELL)
