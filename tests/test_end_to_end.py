@@ -238,8 +238,8 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
             full = np.allclose(sides, sorted(cv2.minAreaRect(outline.astype(np.float32))[1]), atol=0.3)
             if full:  # every corner within 5 cm of the paint's outline
                 assert np.abs(signed).max() <= 0.05, (nodes, signed)
-            else:  # partly seen (the raster's coverage cut its stripes): on the paint, 0.1 m slack at the cut
-                assert signed.min() >= -0.1, (nodes, signed)
+            else:  # partly seen (the raster's coverage cut its stripes): every corner on the paint
+                assert signed.min() >= -0.05, (nodes, signed)
             checked["crosswalk" if full else "crosswalk_partial"] = (
                 checked.get("crosswalk" if full else "crosswalk_partial", 0) + 1
             )

@@ -15,25 +15,25 @@ Method (OpenCV components + principal axes, no learned model):
    is noise. Long chains follow curves: the centreline is the mean of the chain's pixels per ``bin_m`` along
    the axis.
 4. Three or more parallel bars of similar length (within 2x) side by side (centres within 1.6 m across their
-   axes) form a crosswalk (bars within 20 deg, as partly seen stripes skew). Its polygon is a rectangle along
-   the stripes' mean axis whose four sides are placed on the stripes' outer pixel boundaries at sub-pixel
-   precision (``crosswalk_rectangle``: per scanline the outermost cell painted in the mask itself, not by the
-   closing, averaged over the scanlines; unbiased when a cell is painted with the probability of its paint
-   cover, as with one lidar point per cell). Any other bar is part of a lane line (a double centre line, or a line the
-   raster drew
-   wide; chained with the pieces) when collinear with a piece or another such bar (a dash of a dashed line:
-   axes within 6 deg, 0.3 m across, gap <= 6 m), when longer than 15 m (no stop line is), or when at least
-   5 m long with a piece or bar parallel within 6 m; otherwise it is a stop line (its centreline) when
-   at least 2.5 m long and at most 0.75 m wide, else noise.
+   axes) form a crosswalk (bars within 20 deg, as partly seen stripes skew). Its polygon has sides along the
+   stripes' direction (from their long edges, ``marking_crosswalk.stripe_axis``) and across it, on the stripes'
+   outer pixel boundaries at sub-pixel precision (``marking_crosswalk.crosswalk_outline``: per scanline the
+   outermost cell painted in the mask itself, not by the closing, averaged over the scanlines); a rectangle
+   when the stripes are seen whole, a corner moved in to the observed stripe ends where the raster's coverage
+   cut them. Any other bar is part of a lane line (a double centre line, or a line the raster drew wide;
+   chained with the pieces) when collinear with a piece or another such bar (a dash of a dashed line: axes
+   within 6 deg, 0.3 m across, gap <= 6 m), when longer than 15 m (no stop line is), or when at least 5 m long
+   with a piece or bar parallel within 6 m; otherwise it is a stop line (its centreline) when at least 2.5 m
+   long and at most 0.75 m wide, else noise.
 5. Arrows keep their simplified outline (``cv2.approxPolyDP``, 0.1 m).
-Over 300 lines on purpose: the vectorizer's steps (components, bars, chaining, typing) share their
-geometry helpers and thresholds; split, each part would need the others' internals.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+
+from stages.common.marking_crosswalk import crosswalk_outline, stripe_axis
 
 TYPES = ("lane_solid", "lane_dashed", "stop_line", "crosswalk", "arrow")
 LINE_TYPES = ("lane_solid", "lane_dashed", "stop_line")
@@ -188,39 +188,6 @@ def _chain_lines(pieces: list[_Comp], angle_deg: float, offset_m: float, gap_m: 
     return out
 
 
-def _side_offset(along: np.ndarray, across: np.ndarray, cell_m: float, upper: bool) -> float:
-    """Position (along ``along``) of a rectangle side through the outer pixel boundary of the pixels: per
-    scanline (pixels binned by ``across`` in cells) the extreme pixel centre moved half a cell outwards, averaged
-    over the scanlines within one cell of their median (a shorter outer stripe, a ragged end are left out). The
-    mean over scanlines of the outermost painted cell is unbiased when a cell is painted with the probability
-    of its paint cover (points sampled at random in it)."""
-    sign = 1.0 if upper else -1.0
-    bins = np.floor(across / cell_m).astype(np.int64)
-    order = np.lexsort((sign * along, bins))
-    last = np.r_[bins[order][1:] != bins[order][:-1], True]  # the outermost pixel of each scanline
-    y = along[order][last] + sign * cell_m / 2
-    return float(np.mean(y[np.abs(y - np.median(y)) <= cell_m]))
-
-
-def crosswalk_rectangle(pts_m: np.ndarray, axis: np.ndarray, cell_m: float) -> np.ndarray:
-    """Outer rectangle (4, 2) of a crosswalk's stripe pixels (centres, ENU), its sides along and across
-    ``axis`` (the stripes' direction): each side's offset from the stripes' pixel boundaries on that side
-    (``_side_offset``: the stripes' ends, the outer long edges of the first and last stripe)."""
-    u = np.asarray(axis, float) / np.linalg.norm(axis)
-    v = np.array([-u[1], u[0]])
-    c = pts_m.mean(axis=0)
-    s, t = (pts_m - c) @ u, (pts_m - c) @ v
-    s_lo, s_hi = _side_offset(s, t, cell_m, False), _side_offset(s, t, cell_m, True)  # stripe ends
-    t_lo, t_hi = _side_offset(t, s, cell_m, False), _side_offset(t, s, cell_m, True)  # outer stripes' edges
-    return np.array([c + a * u + b * v for a, b in ((s_lo, t_lo), (s_hi, t_lo), (s_hi, t_hi), (s_lo, t_hi))])
-
-
-def _stripe_axis(bars: list["_Comp"]) -> np.ndarray:
-    """Mean direction of the stripes (their principal axes, signs aligned, weighted by their pixel counts)."""
-    ref = bars[0].axis
-    return np.sum([len(b.pts) * (b.axis if b.axis @ ref >= 0 else -b.axis) for b in bars], axis=0)
-
-
 def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_m: float,
                 context_m: float, stop_min_m: float, cell_m: float) -> tuple[list[MarkingFeature], list[_Comp]]:
     """Crosswalks and stop lines from the bars; bars that are parallel to a nearby line piece (a short double
@@ -241,9 +208,8 @@ def _group_bars(bars: list[_Comp], pieces: list[_Comp], angle_deg: float, pitch_
     lone = [bars[k] for g in groups if len(g) < 3 for k in g]
     for group in groups:
         if len(group) >= 3:
-            box = crosswalk_rectangle(
-                np.vstack([bars[k].painted for k in group]), _stripe_axis([bars[k] for k in group]), cell_m
-            )
+            axis = stripe_axis([(bars[k].pts, bars[k].axis) for k in group], cell_m)
+            box = crosswalk_outline(np.vstack([bars[k].painted for k in group]), axis, cell_m)
             sides = np.linalg.norm(np.diff(box[[0, 1, 2]], axis=0), axis=1)
             out.append(MarkingFeature("crosswalk", box, float(sides.min()), float(sides.max())))
             continue
