@@ -11,7 +11,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md", ROOT / "CHANGELOG.md"]
 # pages with parameter tables (| `name` | default | ...) -> the stages whose params they document
-PARAM_PAGES = {"corners.md": ("corners",), "posegraph.md": ("odometry", "posegraph")}
+PARAM_PAGES = {"corners.md": ("corners",), "posegraph.md": ("odometry", "posegraph"), "evaluation.md": ("evaluate",)}
 ROW = re.compile(r"^\|\s*(`[a-z0-9_]+`(?:\s*/\s*`[a-z0-9_]+`)*)\s*\|\s*([^|]+?)\s*\|")
 
 
