@@ -30,7 +30,7 @@ class CornerMapParams(Params):
     min_drives: int = Field(1, ge=1)
     # 0.25 m, not 0.15: with a GNSS-level pose graph the scatter is dominated by the poses (tiny drive_0: a corner
     # seen from 8-44 m scatters 0.21 m through the optimized poses, 0.03 m through the true ones), see
-    # docs/evaluation.md "Corner map thresholds".
+    # CHANGELOG.md (evaluation measurements, the tiny diagnosis).
     max_spread_m: float = Field(0.25, gt=0.0,
                                 description="largest std of the observations' scatter about the mean")
     max_cov_trace_m2: float = Field(0.01, gt=0.0, description="trace of the stored map covariance")

@@ -32,7 +32,7 @@ class EvaluateParams(Params):
     # degenerate street's axis weighs nothing), measures it when consistent (chi-square gate below); the bias is
     # estimated while ICP holds and carried, with its random walk, when it does not. icp: the paper's ICP-only
     # motion with the wheel fallback and the angle gate above (the default: wheel_bias is overconfident at corner
-    # epochs on the tiny validation seeds, NEES 3.6-8.0; see docs/evaluation.md, issue 28).
+    # epochs on the tiny validation seeds, NEES 3.6-8.0; CHANGELOG.md, issue 28).
     ekf_motion: Literal["wheel_bias", "icp"] = Field("icp", description="EKF motion model")
     ekf_gyro_bias_sigma_deg_s: float = Field(0.115, gt=0, description="initial gyro bias std (MEMS spec, as the MCL)")
     ekf_gyro_bias_rw_deg_s_per_sqrt_s: float = Field(0.0057, ge=0, description="gyro bias random walk")
