@@ -87,8 +87,18 @@ class LoopVerifyConfig:
     plane_tol_m: float = 0.1
 
 
+class _Parallel:
+    """A step whose independent items run in parallel processes from ``parallel_min_items`` on."""
+
+    parallel_min_items: int
+
+    def workers(self, n_items: int) -> int | None:
+        """All the machine's processes (None) from ``parallel_min_items`` independent items on, else this one."""
+        return None if n_items >= self.parallel_min_items else 1
+
+
 @dataclass(frozen=True)
-class LoopConfig:
+class LoopConfig(_Parallel):
     """Loop closures: candidates (one query per ``stride_m`` of travel, other passes within ``radius_m``), their
     verification, the kernel of the accepted loops and the pass-3 gate; candidates run in parallel processes
     from ``parallel_min_items`` on."""
@@ -102,10 +112,6 @@ class LoopConfig:
     kernel_k: float
     max_whitened_residual: float
     parallel_min_items: int
-
-    def workers(self, n_items: int) -> int | None:
-        """All the machine's processes (None) from ``parallel_min_items`` independent items on, else this one."""
-        return None if n_items >= self.parallel_min_items else 1
 
 
 @dataclass(frozen=True)
@@ -139,7 +145,7 @@ class MarkingAnchorConfig:
 
 
 @dataclass(frozen=True)
-class AnchorConfig:
+class AnchorConfig(_Parallel):
     """Survey anchors: one keyframe per ``stride_m``, its ground registration, its marking match (when
     ``use_markings``; heading prior of ``yaw_sigma_deg``, 0: none), the consensus check of the horizontal anchors,
     keyframes matched in blocks of ``block``, in parallel processes from ``parallel_min_items`` on."""
@@ -154,10 +160,6 @@ class AnchorConfig:
     consensus_probability: float
     block: int
     parallel_min_items: int
-
-    def workers(self, n_items: int) -> int | None:
-        """All the machine's processes (None) from ``parallel_min_items`` independent items on, else this one."""
-        return None if n_items >= self.parallel_min_items else 1
 
 
 @dataclass(frozen=True)
