@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from stages.common.deskew import deskew_with_transform as deskew_points
+from stages.common.deskew import deskew_with_transform
 from stages.common.geometry import se3_inverse
 
 if TYPE_CHECKING:
@@ -83,7 +83,8 @@ def deskew_scan_lidar(drive: DriveInput, increments_drive: np.ndarray | None, k:
     if time_offset_s is None or k + 1 >= drive.n:
         return points_lidar_m
     T_l = se3_inverse(drive.T_vehicle_lidar) @ increments_drive[k + 1] @ drive.T_vehicle_lidar
-    return deskew_points(points_lidar_m, time_offset_s, T_l, (drive.stamps_ns[k + 1] - drive.stamps_ns[k]) * 1e-9)
+    period_s = (drive.stamps_ns[k + 1] - drive.stamps_ns[k]) * 1e-9
+    return deskew_with_transform(points_lidar_m, time_offset_s, T_l, period_s)
 
 
 def chain(start: np.ndarray, inc: np.ndarray) -> np.ndarray:

@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from fixtures.corners import Scene, box_building, cast_scan
-from stages.common.deskew import deskew_with_wheel as deskew_points
-from stages.common.deskew import integrate_odometry_xy_yaw, vehicle_motion_xy_yaw
+from stages.common.deskew import deskew_with_wheel, integrate_odometry_xy_yaw, vehicle_motion_xy_yaw
 from stages.corners.core import extract_corners
 
 BOX = box_building((0.0, 0.0), (12.0, 8.0), yaw_rad=0.4, height_m=14.0)
@@ -24,7 +23,7 @@ def test_deskew_is_the_identity_at_rest_and_inverts_a_known_motion():
     rng = np.random.default_rng(0)
     p0 = rng.uniform(-30, 30, (500, 3))
     t = rng.uniform(0, 0.1, 500)
-    np.testing.assert_allclose(deskew_points(p0, t, 0.0, 0.0), p0, atol=1e-12)
+    np.testing.assert_allclose(deskew_with_wheel(p0, t, 0.0, 0.0), p0, atol=1e-12)
     T_vl = np.eye(4)
     T_vl[:3, 3] = [0.8, 0.1, 1.7]
     # forward model: the point p0 (lidar frame at t=0) seen from the lidar at time t
@@ -34,7 +33,7 @@ def test_deskew_is_the_identity_at_rest_and_inverts_a_known_motion():
     dx, dy = pv0[:, 0] - x, pv0[:, 1] - y
     pv_t = np.column_stack([c * dx + s * dy, -s * dx + c * dy, pv0[:, 2]])
     p_t = pv_t - T_vl[:3, 3]
-    np.testing.assert_allclose(deskew_points(p_t, t, 12.0, 0.5, T_vl), p0, atol=1e-9)
+    np.testing.assert_allclose(deskew_with_wheel(p_t, t, 12.0, 0.5, T_vl), p0, atol=1e-9)
 
 
 def test_straight_line_motion_is_the_limit_of_a_turn():
@@ -49,7 +48,7 @@ def test_a_scan_rolled_while_moving_gives_accurate_corners_once_deskewed(speed_m
     pts, ring, t = cast_scan(Scene([BOX]), POSE, speed_mps=speed_mps, yaw_rate_radps=yaw_rate_radps, seed=2,
                              return_time=True)
     raw = extract_corners(pts, ring, time_offset_s=t)
-    fixed = extract_corners(deskew_points(pts, t, speed_mps, yaw_rate_radps), ring)
+    fixed = extract_corners(deskew_with_wheel(pts, t, speed_mps, yaw_rate_radps), ring)
     assert len(fixed) >= 1
     assert corner_errors_m(fixed, POSE).max() < 0.02
     if len(raw):
