@@ -43,13 +43,18 @@ def read_table(path: str) -> pa.Table:
     return ds.dataset(path, format="parquet", partitioning="hive").to_table()
 
 
-def truth_filter_mask(sim: Path, truth_filter: str) -> np.ndarray:
-    """(K,) rows of DIR/truth/corners.csv whose COLUMN equals VALUE (as text), from 'COLUMN=VALUE'."""
+def truth_rows(sim: Path) -> list[dict[str, str]]:
+    """The rows of DIR/truth/corners.csv (``#`` comment lines skipped), as text."""
     import csv
 
+    with open(sim / "truth" / "corners.csv", newline="") as fh:
+        return list(csv.DictReader(line for line in fh if not line.startswith("#")))
+
+
+def truth_filter_mask(sim: Path, truth_filter: str) -> np.ndarray:
+    """(K,) rows of DIR/truth/corners.csv whose COLUMN equals VALUE (as text), from 'COLUMN=VALUE'."""
     path = sim / "truth" / "corners.csv"
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(line for line in fh if not line.startswith("#")))
+    rows = truth_rows(sim)
     column, _, value = truth_filter.partition("=")
     if rows and column not in rows[0]:
         raise SystemExit(f"{path}: no column {column!r} for --truth-filter (columns: {sorted(rows[0])})")
@@ -58,11 +63,7 @@ def truth_filter_mask(sim: Path, truth_filter: str) -> np.ndarray:
 
 def load_truth_corners(sim: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """DIR/truth/corners.csv -> (K,2) east/north, (K,2) wall directions rad, visible-scan count of drive 0."""
-    import csv
-
-    path = sim / "truth" / "corners.csv"
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(line for line in fh if not line.startswith("#")))
+    rows = truth_rows(sim)
     cols = {k: np.array([float(r[k]) for r in rows]) for k in rows[0] if rows and _is_number(rows[0][k])}
     en = np.column_stack([cols["east_m"], cols["north_m"]])
     if "theta1_deg" in cols:
@@ -78,11 +79,7 @@ def chamfer_vertices(sim: Path) -> tuple[np.ndarray, np.ndarray]:
     ``shape_size_m`` back along each wall from the listed walls' intersection), with their wall directions (the
     continuing wall and the chamfer facet): building corners as docs/cornermap.md defines them (a facet of 2 m
     or more gives two obtuse corners), which the truth file lists only by the intersection. (M,2), (M,2)."""
-    import csv
-
-    with open(sim / "truth" / "corners.csv", newline="") as fh:
-        rows = [r for r in csv.DictReader(line for line in fh if not line.startswith("#"))
-                if r.get("corner_shape") == "chamfered"]
+    rows = [r for r in truth_rows(sim) if r.get("corner_shape") == "chamfered"]
     en, theta = [], []
     for r in rows:
         p = np.array([float(r["east_m"]), float(r["north_m"])])
