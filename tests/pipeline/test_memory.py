@@ -2,6 +2,8 @@
 workflow's memory budget names the stages over it."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from pipeline.memory import PeakRss, over_budget
@@ -14,6 +16,7 @@ def test_peak_rss_sees_a_short_lived_allocation():
     with PeakRss(interval_s=0.01) as rss:
         block = np.ones(200 * 2**20 // 8)  # 200 MB, touched
         block[::512] += 1.0
+        time.sleep(0.3)  # held for 30 sampling intervals: the sampler thread runs (numpy's fill may hold the GIL)
         del block
     assert rss.peak_mb >= before.peak_mb + 150, (before.peak_mb, rss.peak_mb)
 
