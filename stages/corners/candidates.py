@@ -30,6 +30,9 @@ class CornerCandidates:
     convex: np.ndarray  # True: the sensor lies outside the wedge between the walls (an outside building corner)
     line_a: np.ndarray  # index of the first line in the LineSegments given
     line_b: np.ndarray
+    # vertex support: the smaller of the two facing-end gaps (end point to intersection), each in point spacings of
+    # its own line (length / (points - 1)); a line that reaches a sharp vertex ends within about one spacing of it
+    vertex_gap_spacings: np.ndarray
 
     def __len__(self) -> int:
         return int(self.x_m.size)
@@ -74,9 +77,13 @@ def find_corner_candidates(lines: LineSegments, xy_m: np.ndarray, *, max_corner_
     ua = -np.sign(sa)[:, None] * ta
     ub = -np.sign(sb)[:, None] * tb
     interior = np.arccos(np.clip(np.einsum("ij,ij->i", ua, ub), -1.0, 1.0))
+    spacing_a = lines.length_m[ia] / np.maximum(lines.n_points[ia] - 1, 1)
+    spacing_b = lines.length_m[ib] / np.maximum(lines.n_points[ib] - 1, 1)
+    vertex_gap = np.minimum(gap_a / np.maximum(spacing_a, 1e-9), gap_b / np.maximum(spacing_b, 1e-9))
     keep = ((gap_a <= max_corner_gap_m) & (gap_b <= max_corner_gap_m) & (interior >= min_interior_angle_rad)
             & (interior <= max_interior_angle_rad) & (sa != 0) & (sb != 0))
     ia, ib, p, ua, ub, interior, det = ia[keep], ib[keep], p[keep], ua[keep], ub[keep], interior[keep], det[keep]
+    vertex_gap = vertex_gap[keep]
     na, nb, sa, sb = na[keep], nb[keep], sa[keep], sb[keep]
     # covariance propagated from the two TLS fits
     floor2 = line_sigma_floor_m ** 2
@@ -95,4 +102,5 @@ def find_corner_candidates(lines: LineSegments, xy_m: np.ndarray, *, max_corner_
     inside = (_cross(ua, v) * c_ab > 0) & (_cross(v, ub) * c_ab > 0)
     return CornerCandidates(x_m=p[:, 0], y_m=p[:, 1], theta1_rad=np.arctan2(ua[:, 1], ua[:, 0]),
                             theta2_rad=np.arctan2(ub[:, 1], ub[:, 0]), cov_m2=cov, layer=lines.layer[ia],
-                            interior_angle_rad=interior, convex=~inside, line_a=ia, line_b=ib)
+                            interior_angle_rad=interior, convex=~inside, line_a=ia, line_b=ib,
+                            vertex_gap_spacings=vertex_gap)

@@ -94,6 +94,20 @@ def _drop_short_walls(corners: Corners, corner_of: np.ndarray, length_a_m: np.nd
                  | (obtuse & (shorter < p.min_obtuse_wall_length_m)))
 
 
+def _drop_unsupported(corners: Corners, corner_of: np.ndarray, vertex_gap_spacings: np.ndarray, p: CornerParams
+                      ) -> tuple[Corners, np.ndarray]:
+    """Vertex support: a corner is kept when, in at least one of its layers, a line ends within
+    ``max_vertex_gap_spacings`` point spacings of the intersection. A sharp vertex is where both walls' returns
+    meet; a chord of a rounded corner meeting a straight wall, with the part of the arc between them left out, puts
+    the intersection in empty space that neither line reaches."""
+    if not len(corners) or p.max_vertex_gap_spacings <= 0:
+        return corners, corner_of
+    best = np.full(len(corners), np.inf)
+    used = corner_of >= 0
+    np.minimum.at(best, corner_of[used], vertex_gap_spacings[used])
+    return _keep(corners, corner_of, best > p.max_vertex_gap_spacings)
+
+
 def _drop_unverifiable(corners: Corners, corner_of: np.ndarray, cand_layer: np.ndarray, pts: np.ndarray,
                        xy: np.ndarray, layer: np.ndarray, az: np.ndarray, src: np.ndarray,
                        layers_used: np.ndarray, p: CornerParams) -> tuple[Corners, np.ndarray]:
@@ -152,6 +166,7 @@ def trace_corners(points_xyz: np.ndarray, ring: np.ndarray, params: CornerParams
                                            time_offset_s=cand_t, angular_sigma_rad=p.angular_sigma_mrad * 1e-3)
     corners, corner_of = _drop_short_walls(corners, corner_of, lines.length_m[cand.line_a],
                                            lines.length_m[cand.line_b], p)
+    corners, corner_of = _drop_unsupported(corners, corner_of, cand.vertex_gap_spacings, p)
     corners, corner_of = _drop_unverifiable(corners, corner_of, cand.layer, pts, xy, layer, az, src, layers_used, p)
     return CornerTrace(xy_m=xy, layer=layer, layers_used=layers_used, lines=lines, line_label=label,
                        candidates=cand, candidate_corner=corner_of, corners=corners)

@@ -68,6 +68,12 @@ class CornerParams(Params):
                                             "under 2 m that meet each other and the straight walls at obtuse "
                                             "angles, so it gives no corner; a chamfer facet shorter than this "
                                             "counts as rounded, a longer one gives two obtuse corners [m].")
+    max_vertex_gap_spacings: float = Field(1.0, ge=0.0, description="Vertex support: at least one layer must see "
+                                           "one of the two lines reach the corner, its facing end point within this "
+                                           "many of that line's point spacings of the lines' intersection. A "
+                                           "corner extrapolated into empty space (the chord of a rounded corner "
+                                           "meeting a straight wall past the part of the arc the line split left "
+                                           "out) gives none; 0 disables [spacings].")
     # 5. Corner determination
     cluster_radius_m: float = Field(0.3, gt=0.0, description="Candidates of different layers closer than this "
                                     "in the horizontal plane belong to the same corner [m].")

@@ -96,7 +96,7 @@ def _candidates(xy, layer, cov_sigma):
     z = np.zeros(m)
     return CornerCandidates(x_m=xy[:, 0], y_m=xy[:, 1], theta1_rad=z + 0.1, theta2_rad=z + 1.6, cov_m2=cov,
                             layer=np.asarray(layer), interior_angle_rad=z + 1.5, convex=np.ones(m, bool),
-                            line_a=np.arange(m), line_b=np.arange(m))
+                            line_a=np.arange(m), line_b=np.arange(m), vertex_gap_spacings=z)
 
 
 def test_redundancy_check_keeps_multi_layer_corners_and_drops_single_layer_ones():

@@ -73,3 +73,27 @@ def test_small_structures_give_no_corner(sensor, name):
     if name == "shelter":  # without the wall-length gate the shelter's corners are found
         loose = _corners_near(structure, (0.0, 0.0), SMALL_VIEWS, SENSORS[sensor], NO_GATE, radius_m=8.0)
         assert sum(len(f) for f in loose) >= 2
+
+
+# Views (radius m, distance m, bearing deg, noise seed) in which the line split leaves part of a rounded corner's
+# arc out of every line: a chord meets the straight wall at 112-119 deg, under obtuse_angle_deg, so the short-wall
+# rule does not see it, and the lines' intersection lies in front of the arc, where neither line reaches.
+CHORD_VIEWS = [(1.2, 27.0, 15.0, 14), (1.2, 27.0, 15.0, 19), (1.2, 20.0, 65.0, 12)]
+
+
+def _arc_corners(radius_m, dist, bearing_deg, seed, params):
+    target = (16.0, 12.0)
+    bearing = np.radians(bearing_deg)
+    pose = (target[0] + dist * np.cos(bearing), target[1] + dist * np.sin(bearing), bearing + np.pi)
+    pts, ring = cast_scan(Scene([rounded_box_building(target, radius_m)]), pose,
+                          elevation_deg=HDL32E_ELEVATION_DEG, seed=seed)
+    corners = extract_corners(pts, ring, params)
+    near = np.hypot(*(_world_xy(corners, pose) - target).T) < 4.0
+    return np.degrees(corners.interior_angle_rad[near])
+
+
+@pytest.mark.parametrize("view", CHORD_VIEWS)
+def test_a_chord_meeting_a_wall_past_a_left_out_arc_piece_gives_no_corner(view):
+    loose = _arc_corners(*view, CornerParams(max_vertex_gap_spacings=0.0))
+    assert len(loose) == 1 and 100.0 < loose[0] < 120.0  # the mechanism: a non-obtuse chord-to-wall corner
+    assert len(_arc_corners(*view, CornerParams())) == 0  # vertex support removes it
