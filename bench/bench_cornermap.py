@@ -12,6 +12,8 @@ Examples (2-core machine):
   corners for precision (docs/cornermap.md: a facet of 2 m or more gives two obtuse corners), not for recall.
 Every run prints "duplicates (1 m, matching walls)": pairs of map corners within 1 m whose walls agree within
 12 deg (the issue's definition), besides the map corners matched to one true corner twice.
+Over 300 lines on purpose: one command for the three input modes (built-in city, simulator truth, the
+pipeline's own output) with the readers of their truth files; the scoring itself is stages/cornermap/metrics.
 """
 from __future__ import annotations
 

@@ -140,8 +140,8 @@ def bench_accuracy(sim_dir: Path, drive: str, max_scans: int | None, params: Cor
     from stages.common.records import Trajectory
 
     truth = np.genfromtxt(sim_dir / "truth" / "corners.csv", delimiter=",", names=True)
-    truth = Trajectory.from_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
-    stamps_s, T_world_vehicle = truth.stamp_s, truth.T
+    poses = Trajectory.from_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
+    stamps_s, T_world_vehicle = poses.stamp_s, poses.T
     spec = yaml.safe_load((sim_dir / drive / "drive.yaml").read_text())
     T_vehicle_lidar = np.asarray(spec["T_vehicle_lidar"], float)
     odo_spec = spec["odometry"]

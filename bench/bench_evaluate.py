@@ -24,10 +24,10 @@ def main() -> None:
     from fixtures.evaluate import ground_ring_scan, paint_markings, synthetic_drive
     from stages.common.road_features import extract_road_features
     from stages.evaluate.localize_ekf import run_ekf
-    from stages.evaluate.localize_mcl import mcl_config_from_params, run_mcl
+    from stages.evaluate.localize_mcl import run_mcl
     from stages.evaluate.outputs import metrics_document, metrics_table_text
     from stages.evaluate.params import EvaluateParams
-    from stages.evaluate.run import ekf_config, evaluate_drive
+    from stages.evaluate.run import evaluate_drive
 
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared), "
           f"python {platform.python_version()}")
@@ -40,14 +40,14 @@ def main() -> None:
     best = np.inf
     for _ in range(3):
         t0 = time.perf_counter()
-        run_ekf(d.icp_increments, d.corners, cmap, q0, P0, 0, ekf_config(p))
+        run_ekf(d.icp_increments, d.corners, cmap, q0, P0, 0, p.ekf_config())
         best = min(best, time.perf_counter() - t0)
     print(f"EKF: {args.epochs} epochs, {n_corners} extracted corners ({n_corners / args.epochs:.1f}/epoch), "
           f"{len(cmap.en_m)} map corners: {args.epochs / best:.0f} epochs/s (best of 3; target >= 1000)")
 
     t0 = time.perf_counter()
     run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, 0, np.random.default_rng(0),
-            mcl_config_from_params(p))
+            p.mcl_config())
     dt = time.perf_counter() - t0
     print(f"MCL: {args.particles} particles, <= {p.mcl_max_features} features/epoch: {args.epochs / dt:.0f} epochs/s "
           "(features precomputed; target >= 50)")
@@ -64,7 +64,7 @@ def main() -> None:
           f"{np.mean(n_feat):.0f} features/scan")
 
     t0 = time.perf_counter()
-    ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth)}, p)
+    ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth)}, p.evaluation_config())
     print(f"accuracy on the synthetic road ({args.epochs} epochs, 30 s GNSS outage at 20 s; "
           f"{time.perf_counter() - t0:.1f} s):")
     print(metrics_table_text(metrics_document(ev, "synthetic", {})))

@@ -229,12 +229,12 @@ def compute(ctx: StageContext) -> dict:
     drive = ctx.partition.drive
     d, scan_ids = read_drive(ctx, drive, p)
     reader = open_published_map(ctx)
-    cmap, fetch = map_inputs(reader, d.gnss_q, p)
-    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p)
+    cmap, fetch = map_inputs(reader, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config())
+    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p.evaluation_config())
     ekf = ev.runs.get("ekf")
     cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
                    p.sensor_range_m, p.coverage_min_in_range, p.coverage_min_associated)
-    v = verdict(ev.metrics, cov, p)
+    v = verdict(ev.metrics, cov, p.target_config())
     comparison, prev_ev = compare_with_previous(ctx, drive, reader, d, cmap, ev, p)
     out = ctx.artifact_dir("report")
     name = reader.path.parent.name
@@ -262,9 +262,9 @@ def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays,
     prev = previous_version(reader)
     if prev is None:
         return None, None
-    prev_cmap, _ = map_inputs(prev, d.gnss_q, p)
-    p_prev = p.model_copy(update={"methods": ["ekf"]})
-    ev_prev = evaluate_drive(d, prev_cmap, None, read_references(ctx, drive, reader.origin, p, prev_cmap), p_prev)
+    prev_cmap, _ = map_inputs(prev, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config())
+    cfg_prev = p.model_copy(update={"methods": ["ekf"]}).evaluation_config()
+    ev_prev = evaluate_drive(d, prev_cmap, None, read_references(ctx, drive, reader.origin, p, prev_cmap), cfg_prev)
     ref = judged_reference(ev.metrics, "ekf")
     if ref == "truth_in_map":  # fitted on each version's own corners: compare against the common absolute truth
         ref = "truth"

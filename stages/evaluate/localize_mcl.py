@@ -85,21 +85,6 @@ class MclRun:
     injected: np.ndarray | None = None  # (E,) particles injected before the update
 
 
-def mcl_config_from_params(p) -> MclConfig:
-    """The MclConfig of an ``EvaluateParams`` (every mcl_* field; angles in degrees there, radians here)."""
-    return MclConfig(n_particles=p.n_particles, init_sigma_xy_m=p.mcl_init_sigma_xy_m,
-                     init_sigma_yaw_rad=np.deg2rad(p.mcl_init_sigma_yaw_deg), sigma_frac=p.mcl_sigma_frac,
-                     sigma_lateral_frac=p.mcl_sigma_lateral_frac, sigma_xy_m=p.mcl_sigma_xy_m,
-                     sigma_yaw_rad=np.deg2rad(p.mcl_sigma_yaw_deg), sigma_yaw_frac=p.mcl_sigma_yaw_frac,
-                     init_sigma_scale=p.mcl_init_sigma_scale, sigma_scale_per_sqrt_m=p.mcl_sigma_scale_per_sqrt_m,
-                     init_sigma_gyro_bias_radps=np.deg2rad(p.mcl_init_sigma_gyro_bias_deg_s),
-                     sigma_gyro_bias_per_sqrt_s=np.deg2rad(p.mcl_sigma_gyro_bias_deg_s_per_sqrt_s),
-                     decorrelation_m=p.mcl_decorrelation_m, sharpness=p.mcl_sharpness,
-                     effective_points=p.mcl_effective_points, max_features=p.mcl_max_features,
-                     max_inject=p.mcl_max_inject, inject_sigma_xy_m=p.mcl_inject_sigma_xy_m,
-                     feature_range_m=p.feature_max_range_m)
-
-
 def odometry_increments(odo_stamps_ns: np.ndarray, speed_mps: np.ndarray, yaw_rate_radps: np.ndarray,
                         epoch_stamps_ns: np.ndarray) -> np.ndarray:
     """Integrate wheel speed and gyro yaw rate (midpoint rule) and difference at the epochs.

@@ -14,8 +14,8 @@ import numpy as np
 from pipeline.declare import StageContext
 from pipeline.errors import DatasetIOError
 from stages.evaluate import mcl
+from stages.evaluate.config import FieldConfig
 from stages.evaluate.localize_ekf import CornerMap
-from stages.evaluate.params import EvaluateParams
 
 
 def open_published_map(ctx: StageContext):
@@ -30,17 +30,18 @@ def open_published_map(ctx: StageContext):
     return open_map(path)
 
 
-def marking_field(mask: np.ndarray, cell_m: float, p: EvaluateParams) -> np.ndarray:
-    """The MCL's likelihood field of a marking window (row 0 south): ``raster_field`` of the params."""
-    if p.raster_field == "distance":
-        return mcl.distance_likelihood_field(mask, cell_m, p.raster_sigma_m)
-    return mcl.smooth_marking_mask(mask, cell_m, p.raster_blur_m)
+def marking_field(mask: np.ndarray, cell_m: float, cfg: FieldConfig) -> np.ndarray:
+    """The MCL's likelihood field of a marking window (row 0 south), of the kind ``cfg.kind``."""
+    if cfg.kind == "distance":
+        return mcl.distance_likelihood_field(mask, cell_m, cfg.sigma_m)
+    return mcl.smooth_marking_mask(mask, cell_m, cfg.blur_m)
 
 
-def map_inputs(reader, gnss_q: np.ndarray, p: EvaluateParams):
-    """Corner map over the drive's extent, and a raster fetcher (row 0 south) when the map has markings."""
+def map_inputs(reader, gnss_q: np.ndarray, *, sensor_range_m: float, field: FieldConfig):
+    """Corner map over the drive's extent (plus ``sensor_range_m`` and 200 m), and a raster fetcher (row 0 south,
+    the likelihood field ``field``) when the map has markings."""
     xy = gnss_q[np.all(np.isfinite(gnss_q), axis=1), :2]
-    margin = p.sensor_range_m + 200.0
+    margin = sensor_range_m + 200.0
     lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
     t = reader.corners_in_bbox(lo[0], lo[1], hi[0], hi[1])
     cmap = CornerMap(np.column_stack([t["east_m"].to_numpy(), t["north_m"].to_numpy()]), reader.covariances(t),
@@ -49,5 +50,5 @@ def map_inputs(reader, gnss_q: np.ndarray, p: EvaluateParams):
     if reader.cell_m is not None:
         def fetch(e0: float, n0: float, e1: float, n1: float) -> mcl.Raster:
             mask, origin, cell = reader.marking_window(e0, n0, e1, n1)
-            return mcl.Raster(marking_field(np.flipud(mask), cell, p), origin, cell)
+            return mcl.Raster(marking_field(np.flipud(mask), cell, field), origin, cell)
     return cmap, fetch

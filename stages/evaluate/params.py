@@ -1,11 +1,16 @@
 """Parameters of the evaluate stage: the EKF (Im et al. s.4), the MCL (Kim et al. s.2.3), the report."""
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field, model_validator
 
 from pipeline.declare import Params
+
+if TYPE_CHECKING:
+    from stages.evaluate.config import EvaluationConfig, FieldConfig, TargetConfig
+    from stages.evaluate.localize_ekf import EkfConfig
+    from stages.evaluate.localize_mcl import MclConfig
 
 
 class EvaluateParams(Params):
@@ -113,6 +118,81 @@ class EvaluateParams(Params):
     target_mcl_mean_abs_y_m: float = Field(0.10, gt=0)
     target_mcl_mean_abs_heading_deg: float = Field(0.15, gt=0)
     fail_on_targets: bool = Field(False, description="a missed target fails the evaluation (exit 3)")
+
+    def evaluation_config(self) -> EvaluationConfig:
+        """``evaluate_drive``'s settings (``config.EvaluationConfig``; no algorithm sees this params object)."""
+        import numpy as np
+
+        from stages.evaluate.config import EvaluationConfig
+
+        return EvaluationConfig(ekf=self.ekf_config(), mcl=self.mcl_config(), methods=tuple(self.methods),
+                                init_sigma_xy_m=self.init_sigma_xy_m,
+                                init_sigma_yaw_rad=np.deg2rad(self.init_sigma_yaw_deg), ekf_motion=self.ekf_motion,
+                                seed=self.seed, reference_max_gap_s=self.reference_max_gap_s)
+
+    def ekf_config(self) -> EkfConfig:
+        """The EKF's ``localize_ekf.EkfConfig`` (angles in degrees here, radians there; gates as chi-square)."""
+        import numpy as np
+        from scipy.stats import chi2
+
+        from stages.evaluate.localize_ekf import EkfConfig
+
+        return EkfConfig(icp_sigma_frac=self.icp_sigma_frac, icp_sigma_xy_m=self.icp_sigma_xy_m,
+                         icp_sigma_yaw_rad=np.deg2rad(self.icp_sigma_yaw_deg),
+                         icp_sigma_yaw_frac=self.icp_sigma_yaw_frac, sensor_range_m=self.sensor_range_m,
+                         gate_chi2=float(chi2.ppf(self.gate_probability, 2)),
+                         angle_tol_rad=np.deg2rad(self.angle_gate_deg), association=self.association,
+                         range_sigma_floor_m=self.range_sigma_floor_m,
+                         bearing_sigma_floor_rad=np.deg2rad(self.bearing_sigma_floor_deg),
+                         wall_heading_sigma_rad=np.deg2rad(self.wall_heading_sigma_deg),
+                         map_consider=self.ekf_map_consider, map_cov_scale=self.ekf_map_cov_scale,
+                         gyro_bias_sigma_rad_s=np.deg2rad(self.ekf_gyro_bias_sigma_deg_s),
+                         gyro_bias_rw_rad_s_per_sqrt_s=np.deg2rad(self.ekf_gyro_bias_rw_deg_s_per_sqrt_s),
+                         wheel_scale_sigma=self.ekf_wheel_scale_sigma,
+                         wheel_scale_rw_per_sqrt_m=self.ekf_wheel_scale_rw_per_sqrt_m,
+                         wheel_sigma_frac=self.ekf_wheel_sigma_frac,
+                         wheel_sigma_lateral_frac=self.ekf_wheel_sigma_lateral_frac,
+                         gyro_sigma_yaw_rad=np.deg2rad(self.ekf_gyro_sigma_yaw_deg),
+                         gyro_sigma_yaw_frac=self.ekf_gyro_sigma_yaw_frac,
+                         icp_gate_chi2=float(chi2.ppf(self.ekf_icp_gate_probability, 3)))
+
+    def mcl_config(self) -> MclConfig:
+        """The MCL's ``localize_mcl.MclConfig`` (every mcl_* field; angles in degrees here, radians there)."""
+        import numpy as np
+
+        from stages.evaluate.localize_mcl import MclConfig
+
+        return MclConfig(n_particles=self.n_particles, init_sigma_xy_m=self.mcl_init_sigma_xy_m,
+                         init_sigma_yaw_rad=np.deg2rad(self.mcl_init_sigma_yaw_deg), sigma_frac=self.mcl_sigma_frac,
+                         sigma_lateral_frac=self.mcl_sigma_lateral_frac, sigma_xy_m=self.mcl_sigma_xy_m,
+                         sigma_yaw_rad=np.deg2rad(self.mcl_sigma_yaw_deg), sigma_yaw_frac=self.mcl_sigma_yaw_frac,
+                         init_sigma_scale=self.mcl_init_sigma_scale,
+                         sigma_scale_per_sqrt_m=self.mcl_sigma_scale_per_sqrt_m,
+                         init_sigma_gyro_bias_radps=np.deg2rad(self.mcl_init_sigma_gyro_bias_deg_s),
+                         sigma_gyro_bias_per_sqrt_s=np.deg2rad(self.mcl_sigma_gyro_bias_deg_s_per_sqrt_s),
+                         decorrelation_m=self.mcl_decorrelation_m, sharpness=self.mcl_sharpness,
+                         effective_points=self.mcl_effective_points, max_features=self.mcl_max_features,
+                         max_inject=self.mcl_max_inject, inject_sigma_xy_m=self.mcl_inject_sigma_xy_m,
+                         feature_range_m=self.feature_max_range_m)
+
+    def field_config(self) -> FieldConfig:
+        """The marking likelihood field's ``config.FieldConfig``."""
+        from stages.evaluate.config import FieldConfig
+
+        return FieldConfig(kind=self.raster_field, sigma_m=self.raster_sigma_m, blur_m=self.raster_blur_m)
+
+    def target_config(self) -> TargetConfig:
+        """The verdict's ``config.TargetConfig``: per method, metric key -> upper limit."""
+        from stages.evaluate.config import TargetConfig
+
+        return TargetConfig(
+            limits={"ekf": {"rms_2d_m": self.target_ekf_rms_2d_m, "p99_2d_m": self.target_ekf_p99_2d_m,
+                            "max_2d_m": self.target_ekf_max_2d_m,
+                            "heading_rms_deg": self.target_ekf_heading_rms_deg},
+                    "mcl": {"mean_abs_x_m": self.target_mcl_mean_abs_x_m,
+                            "mean_abs_y_m": self.target_mcl_mean_abs_y_m,
+                            "mean_abs_heading_deg": self.target_mcl_mean_abs_heading_deg}},
+            min_nees_share_below_q95=self.target_nees_share_below_q95)
 
     @model_validator(mode="after")
     def _methods(self) -> "EvaluateParams":

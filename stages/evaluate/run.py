@@ -12,10 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, dead_reckon, run_ekf
-from stages.evaluate.localize_mcl import RasterFetcher, mcl_config_from_params, run_mcl
+from stages.evaluate.config import EvaluationConfig
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, dead_reckon, run_ekf
+from stages.evaluate.localize_mcl import RasterFetcher, run_mcl
 from stages.evaluate.metrics import compute_errors, interpolate_poses, summarize
-from stages.evaluate.params import EvaluateParams
 
 log = logging.getLogger(__name__)
 
@@ -56,27 +56,6 @@ class Evaluation:
     primary: str | None  # reference the per-epoch errors and the targets use
 
 
-def ekf_config(p: EvaluateParams) -> EkfConfig:
-    from scipy.stats import chi2
-
-    return EkfConfig(icp_sigma_frac=p.icp_sigma_frac, icp_sigma_xy_m=p.icp_sigma_xy_m,
-                     icp_sigma_yaw_rad=np.deg2rad(p.icp_sigma_yaw_deg), icp_sigma_yaw_frac=p.icp_sigma_yaw_frac,
-                     sensor_range_m=p.sensor_range_m, gate_chi2=float(chi2.ppf(p.gate_probability, 2)),
-                     angle_tol_rad=np.deg2rad(p.angle_gate_deg), association=p.association,
-                     range_sigma_floor_m=p.range_sigma_floor_m,
-                     bearing_sigma_floor_rad=np.deg2rad(p.bearing_sigma_floor_deg),
-                     wall_heading_sigma_rad=np.deg2rad(p.wall_heading_sigma_deg), map_consider=p.ekf_map_consider,
-                     map_cov_scale=p.ekf_map_cov_scale,
-                     gyro_bias_sigma_rad_s=np.deg2rad(p.ekf_gyro_bias_sigma_deg_s),
-                     gyro_bias_rw_rad_s_per_sqrt_s=np.deg2rad(p.ekf_gyro_bias_rw_deg_s_per_sqrt_s),
-                     wheel_scale_sigma=p.ekf_wheel_scale_sigma,
-                     wheel_scale_rw_per_sqrt_m=p.ekf_wheel_scale_rw_per_sqrt_m,
-                     wheel_sigma_frac=p.ekf_wheel_sigma_frac, wheel_sigma_lateral_frac=p.ekf_wheel_sigma_lateral_frac,
-                     gyro_sigma_yaw_rad=np.deg2rad(p.ekf_gyro_sigma_yaw_deg),
-                     gyro_sigma_yaw_frac=p.ekf_gyro_sigma_yaw_frac,
-                     icp_gate_chi2=float(chi2.ppf(p.ekf_icp_gate_probability, 3)))
-
-
 def first_fix(d: DriveArrays) -> int:
     """Index of the first epoch with a valid, finite GNSS/INS fix (the filters start there)."""
     ok = d.gnss_valid & np.all(np.isfinite(d.gnss_q), axis=1) & np.all(np.isfinite(d.gnss_std), axis=1)
@@ -88,13 +67,11 @@ def first_fix(d: DriveArrays) -> int:
     return int(np.argmax(ok))
 
 
-def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None, p: EvaluateParams
+def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None, cfg: EvaluationConfig
                 ) -> dict[str, MethodRun]:
     k0 = first_fix(d)
     q0 = d.gnss_q[k0]
-    P0 = np.diag(
-        np.maximum(d.gnss_std[k0], [p.init_sigma_xy_m, p.init_sigma_xy_m, np.deg2rad(p.init_sigma_yaw_deg)]) ** 2
-    )
+    P0 = np.diag(np.maximum(d.gnss_std[k0], [cfg.init_sigma_xy_m, cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad]) ** 2)
     runs: dict[str, MethodRun] = {}
     n = len(d.stamps_ns)
     valid = d.gnss_valid[:, None] & np.isfinite(d.gnss_q)
@@ -102,29 +79,29 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
     rtk_P[:, [0, 1, 2], [0, 1, 2]] = d.gnss_std**2
     runs["rtk_ins"] = MethodRun(np.where(valid, d.gnss_q, np.nan), rtk_P, np.zeros(n, np.int32))
     runs["icp_dr"] = MethodRun(dead_reckon(d.icp_increments, q0, k0), None, np.zeros(n, np.int32))
-    if "ekf" in p.methods and cmap is not None:
+    if "ekf" in cfg.methods and cmap is not None:
         t0 = time.perf_counter()
-        if p.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
-            r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, ekf_config(p),
+        if cfg.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
+            r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, cfg.ekf,
                         wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov)
         else:
-            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_config(p))
+            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, cfg.ekf)
         runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx)
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
-    if "mcl" in p.methods and fetch is not None:
+    if "mcl" in cfg.methods and fetch is not None:
         t0 = time.perf_counter()
         r = run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, k0,
-                    np.random.default_rng(p.seed), mcl_config_from_params(p), stamps_ns=d.stamps_ns)
+                    np.random.default_rng(cfg.seed), cfg.mcl, stamps_ns=d.stamps_ns)
         runs["mcl"] = MethodRun(r.q, r.P, r.n_features, time.perf_counter() - t0)
         log.info("mcl: %d epochs in %.2f s", n - k0, runs["mcl"].seconds)
     return runs
 
 
 def evaluate_drive(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None,
-                   references: dict[str, tuple[np.ndarray, np.ndarray]], p: EvaluateParams) -> Evaluation:
+                   references: dict[str, tuple[np.ndarray, np.ndarray]], cfg: EvaluationConfig) -> Evaluation:
     """Run the methods and score them. ``references``: name ('map' or 'truth') -> (stamps_ns, (R,3) x y yaw)."""
-    runs = run_methods(d, cmap, fetch, p)
-    gap = int(p.reference_max_gap_s * 1e9)
+    runs = run_methods(d, cmap, fetch, cfg)
+    gap = int(cfg.reference_max_gap_s * 1e9)
     refs = {name: interpolate_poses(d.stamps_ns, st, q, gap) for name, (st, q) in references.items() if len(st)}
     metrics = {m: {name: summarize(compute_errors(r.q, ref, r.P)) for name, ref in refs.items()}
                for m, r in runs.items()}

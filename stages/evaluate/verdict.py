@@ -11,7 +11,12 @@ the verdict names the reference it used.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from stages.evaluate.config import TargetConfig
 
 JUDGE_ORDER = ("map", "truth_in_map", "truth")
 
@@ -38,14 +43,6 @@ def coverage(gnss_q: np.ndarray, gnss_valid: np.ndarray, map_en_m: np.ndarray, n
             "min_share_in_range": min_in_range, "min_share_associated": min_associated, "ok": bool(good)}
 
 
-def target_limits(p) -> dict[str, dict[str, float]]:
-    """Targets per method from the evaluate params (metric key -> upper limit)."""
-    return {"ekf": {"rms_2d_m": p.target_ekf_rms_2d_m, "p99_2d_m": p.target_ekf_p99_2d_m,
-                    "max_2d_m": p.target_ekf_max_2d_m, "heading_rms_deg": p.target_ekf_heading_rms_deg},
-            "mcl": {"mean_abs_x_m": p.target_mcl_mean_abs_x_m, "mean_abs_y_m": p.target_mcl_mean_abs_y_m,
-                    "mean_abs_heading_deg": p.target_mcl_mean_abs_heading_deg}}
-
-
 def judge_method(method: str, summary: dict, limits: dict[str, float], min_nees_share: float) -> dict:
     """Per target {target, value, ok}; for the EKF also ``nees_consistent`` (mean in its 95 % band, or at least
     ``min_nees_share`` of the epochs under the chi-square 0.95 quantile)."""
@@ -68,16 +65,16 @@ def judged_reference(metrics: dict[str, dict[str, dict]], method: str) -> str | 
     return next((r for r in JUDGE_ORDER if (by_ref.get(r) or {}).get("epochs")), None)
 
 
-def verdict(metrics: dict[str, dict[str, dict]], cov: dict, p) -> dict:
+def verdict(metrics: dict[str, dict[str, dict]], cov: dict, targets_cfg: TargetConfig) -> dict:
     """The verdict entry of metrics.json: status 'pass' | 'fail' | 'no coverage' | 'no reference'."""
-    limits = target_limits(p)
+    limits = targets_cfg.limits
     targets, missed, refs = {}, [], {}
     for m in (m for m in limits if m in metrics):
         ref = judged_reference(metrics, m)
         if ref is None:
             continue
         refs[m] = ref
-        targets[m] = judge_method(m, metrics[m][ref], limits[m], p.target_nees_share_below_q95)
+        targets[m] = judge_method(m, metrics[m][ref], limits[m], targets_cfg.min_nees_share_below_q95)
         for key, t in targets[m].items():
             if not t["ok"]:
                 missed.append(f"{m} {key} {_fmt(t['value'])} (target {_fmt(t.get('target', t.get('band95')))}, "

@@ -12,6 +12,7 @@ import pyarrow as pa
 
 from mapformat import layout
 from mapformat.changelog import write_changelog
+from mapformat.corner_ids import IdGates
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
 from pipeline.names import check_name, inside
@@ -75,8 +76,10 @@ def compute(ctx: StageContext) -> dict[str, Any]:
     origin = EnuOrigin.from_dict(fields["enu_origin"])
 
     def write(staging: Path) -> dict[str, Any]:  # runs under the map's publish lock: LATEST cannot move
-        _, doc = carry_history(map_dir, corners, origin, size_m, params, staging,
-                                  lambda table: write_map_files(staging, table, size_m, rasters, trajectories))
+        _, doc = carry_history(map_dir, corners, origin, size_m, staging,
+                               lambda table: write_map_files(staging, table, size_m, rasters, trajectories),
+                               gates=IdGates(params.id_max_dist_m, params.id_max_angle_deg),
+                               move_threshold_m=params.changelog_move_threshold_m)
         return {**fields, "n_tiles": len(doc["files"]["tiles"]), **doc["files"],
                 "next_corner_id": doc["changelog"]["corners"]["next_corner_id"],
                 "changelog": write_changelog(staging, doc["changelog"])}

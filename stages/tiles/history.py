@@ -19,12 +19,14 @@ from stages.common.geodesy import EnuOrigin
 log = logging.getLogger(__name__)
 
 
-def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: float, params: Any,
-                  staging: Path, write_files: Callable[[pa.Table], dict[str, Any]]) -> tuple[pa.Table, dict[str, Any]]:
-    """(corners with stable ids, {"files": write_files' fields, "changelog": the changelog document})."""
+def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: float, staging: Path,
+                  write_files: Callable[[pa.Table], dict[str, Any]], *, gates: IdGates,
+                  move_threshold_m: float) -> tuple[pa.Table, dict[str, Any]]:
+    """(corners with stable ids, {"files": write_files' fields, "changelog": the changelog document}). A corner
+    within ``gates`` of a parent corner keeps its id; one that kept its id but moved more than
+    ``move_threshold_m`` is listed as moved."""
     from mapformat.loader import open_map
 
-    gates = IdGates(params.id_max_dist_m, params.id_max_angle_deg)
     parent = read_latest(map_dir) if map_dir.is_dir() else None
     prev = open_map(map_dir, parent) if parent is not None else None
     frame_unchanged = None if prev is None else same_frame(prev.origin, prev.tile_size_m, origin, size_m)
@@ -41,7 +43,7 @@ def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: f
     markings = marking_changes(files["tiles"], staging, prev if frame_unchanged else None)
     doc = build_changelog(parent_version=parent, parent_manifest=prev.manifest if prev is not None else None,
                           prev_corners=prev_corners if frame_unchanged else None, corners=ided, match=match,
-                          gates=gates, move_threshold_m=params.changelog_move_threshold_m, origin=origin,
+                          gates=gates, move_threshold_m=move_threshold_m, origin=origin,
                           tile_size_m=size_m, frame_unchanged=frame_unchanged, source_drives=files["source_drives"],
                           marking_px_changed=markings, next_corner_id=next_id)
     if prev_corners is not None and not frame_unchanged:  # every old corner is gone from this frame's view

@@ -314,17 +314,16 @@ def test_extract_features_deskews_each_scan_with_the_wheel_odometry():
     assert found[False] == pytest.approx(speed * 0.05, abs=0.15)
 
 
-def test_mcl_config_from_params_maps_every_mcl_field():
-    from stages.evaluate.localize_mcl import mcl_config_from_params
+def test_mcl_config_of_the_params_maps_every_mcl_field():
     from stages.evaluate.params import EvaluateParams
 
     p = EvaluateParams(mcl_sigma_yaw_deg=0.5, mcl_init_sigma_gyro_bias_deg_s=1.0, mcl_init_sigma_scale=0.03,
                        mcl_max_inject=0.0, mcl_decorrelation_m=2.0, feature_max_range_m=25.0)
-    cfg = mcl_config_from_params(p)
+    cfg = p.mcl_config()
     assert cfg.sigma_yaw_rad == pytest.approx(np.deg2rad(0.5))
     assert cfg.init_sigma_gyro_bias_radps == pytest.approx(np.deg2rad(1.0))
     assert (cfg.init_sigma_scale, cfg.max_inject, cfg.decorrelation_m, cfg.feature_range_m) == (0.03, 0.0, 2.0, 25.0)
-    default = mcl_config_from_params(EvaluateParams())
+    default = EvaluateParams().mcl_config()
     for f in fields(MclConfig):  # the params' defaults are the config's defaults
         assert getattr(default, f.name) == pytest.approx(getattr(MclConfig(), f.name), rel=1e-9), f.name
 

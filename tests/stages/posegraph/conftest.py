@@ -16,6 +16,12 @@ def posegraph_config(**overrides) -> PosegraphConfig:
     return PosegraphConfig.from_params(PosegraphParams(**overrides))
 
 
+def base_sections(**overrides):
+    """The two sections ``base_problem`` takes: odometry factors and GNSS/INS priors."""
+    cfg = posegraph_config(**overrides)
+    return cfg.factors, cfg.gnss
+
+
 def circuit_truth(n_laps: int = 2, side_m: float = 60.0, step_m: float = 1.0, z_amp_m: float = 1.5) -> np.ndarray:
     """Vehicle poses (N,4,4) driving a rounded square ``n_laps`` times with a gentle hill."""
     per_side = int(side_m / step_m)
