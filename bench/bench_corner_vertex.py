@@ -52,18 +52,21 @@ def vertex_gaps(trace) -> np.ndarray:
     return best
 
 
-def _truth(root: Path):
-    truth_dir = Path(sorted(glob.glob(str(root / "datasets" / "raw_drives" / "*" / "artifacts" / "all")))[-1])
-    rows = truth_rows(truth_dir)
+def truth_sets(sim: Path):
+    """From DIR/truth (a simulator output): building corners (the walls' intersections of sharp and chamfered
+    corners plus both vertices of each chamfer, docs/cornermap.md), the rounded corners' intersections with their
+    radii, and the street-furniture corners."""
+    rows = truth_rows(sim)
     en = np.array([[float(r["east_m"]), float(r["north_m"])] for r in rows]).reshape(-1, 2)
     shape = np.array([r.get("corner_shape", "sharp") for r in rows])
     size = np.array([float(r.get("shape_size_m") or 0.0) for r in rows])
-    building = np.vstack([en[shape != "rounded"], chamfer_vertices(truth_dir)[0]])
-    rounded, radius = en[shape == "rounded"], size[shape == "rounded"]
-    furn_path = truth_dir / "truth" / "furniture_corners.csv"
-    with open(furn_path, newline="") as fh:
-        furniture = np.array([[float(r["east_m"]), float(r["north_m"])] for r in csv.DictReader(fh)]).reshape(-1, 2)
-    return truth_dir, building, rounded, radius, furniture
+    building = np.vstack([en[shape != "rounded"], chamfer_vertices(sim)[0]])
+    furn_path = sim / "truth" / "furniture_corners.csv"
+    furniture = np.zeros((0, 2))
+    if furn_path.exists():
+        with open(furn_path, newline="") as fh:
+            furniture = np.array([[float(r["east_m"]), float(r["north_m"])] for r in csv.DictReader(fh)]).reshape(-1, 2)
+    return building, en[shape == "rounded"], size[shape == "rounded"], furniture
 
 
 def label_corners(en: np.ndarray, building, rounded, radius, furniture) -> np.ndarray:
@@ -90,7 +93,8 @@ def main(argv=None) -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="corners params overrides")
     args = ap.parse_args(argv)
     params = CornerParams(**{k: float(v) for k, v in (s.split("=", 1) for s in args.set)})
-    truth_dir, building, rounded, radius, furniture = _truth(args.root)
+    truth_dir = Path(sorted(glob.glob(str(args.root / "datasets" / "raw_drives" / "*" / "artifacts" / "all")))[-1])
+    building, rounded, radius, furniture = truth_sets(truth_dir)
     truth = Trajectory.from_tum(truth_dir / "truth" / f"{args.drive}_poses_tum.txt")
     info = _dataset(args.root, "drive_info").to_table(columns=["drive", "T_vehicle_lidar"])
     T_vl = Extrinsics.from_table(info).of(args.drive)
