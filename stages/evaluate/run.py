@@ -74,7 +74,17 @@ def ekf_config(p: EvaluateParams) -> EkfConfig:
                      wheel_sigma_frac=p.ekf_wheel_sigma_frac, wheel_sigma_lateral_frac=p.ekf_wheel_sigma_lateral_frac,
                      gyro_sigma_yaw_rad=np.deg2rad(p.ekf_gyro_sigma_yaw_deg),
                      gyro_sigma_yaw_frac=p.ekf_gyro_sigma_yaw_frac,
-                     icp_gate_chi2=float(chi2.ppf(p.ekf_icp_gate_probability, 3)))
+                     icp_gate_chi2=float(chi2.ppf(p.ekf_icp_gate_probability, 3)),
+                     icp_gyro_bias_state=p.ekf_icp_gyro_bias_state, icp_gyro_fusion=p.ekf_icp_gyro_fusion)
+
+
+def gyro_increments(d: DriveArrays) -> np.ndarray | None:
+    """(E,) True where the ICP motion model's increment is the wheel/gyro one (ICP failed or was gated); None for
+    a drive without wheel odometry (its fallback is the GNSS/INS pose difference, which has no gyro bias)."""
+    if d.icp_raw_increments is None:
+        return None
+    with np.errstate(invalid="ignore"):
+        return np.any(d.icp_increments != d.icp_raw_increments, axis=1)
 
 
 def first_fix(d: DriveArrays) -> int:
@@ -108,7 +118,8 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
             r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, ekf_config(p),
                         wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov)
         else:
-            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_config(p))
+            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_config(p), stamps_ns=d.stamps_ns,
+                        from_gyro=gyro_increments(d), gyro_yaw_rad=d.odo_increments[:, 2])
         runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx)
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
     if "mcl" in p.methods and fetch is not None:
