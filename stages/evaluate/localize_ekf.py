@@ -73,6 +73,7 @@ class EkfConfig:
     # gated ICP ones (``run_ekf``'s ``from_gyro``), with gyro_bias_sigma_rad_s / gyro_bias_rw_rad_s_per_sqrt_s.
     icp_gyro_bias_state: bool = False
     icp_gyro_fusion: bool = False  # with the bias state: the gyro's heading change also measures ICP's increment
+    heading_rw_rad_per_sqrt_s: float = 0.0  # ICP motion model: heading random walk beside the per-step noise
 
 
 @dataclass(frozen=True)
@@ -126,16 +127,19 @@ def _motion(state: ekf.EkfState, k: int, increments: np.ndarray, wheel: np.ndarr
             gyro_yaw: np.ndarray | None = None) -> tuple[ekf.EkfState, bool, np.ndarray]:
     """One motion update; returns the state, whether an ICP increment was used and the errors' transition."""
     inc = increments[k]
-    if wheel is None and len(state.q) == 4 and np.all(np.isfinite(inc)):  # ICP motion with the gyro bias state
-        dt = float(dt_s[k])
-        g = None if gyro_yaw is None else float(gyro_yaw[k])
-        s_g = cfg.gyro_sigma_yaw_frac * abs(float(inc[2])) + cfg.gyro_sigma_yaw_rad
-        state, Phi = ekf.predict_gyro_bias(state, inc, increment_covariance(inc, cfg), dt, bool(from_gyro[k]),
-                                           cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * dt, g, s_g**2)
-        return state, not bool(from_gyro[k]), Phi
+    if wheel is None and np.all(np.isfinite(inc)):
+        Q = increment_covariance(inc, cfg)
+        if dt_s is not None:  # the heading random walk (cfg.heading_rw_rad_per_sqrt_s)
+            Q[2, 2] += cfg.heading_rw_rad_per_sqrt_s**2 * float(dt_s[k])
+        if len(state.q) == 4:  # with the gyro bias state
+            dt = float(dt_s[k])
+            g = None if gyro_yaw is None else float(gyro_yaw[k])
+            s_g = cfg.gyro_sigma_yaw_frac * abs(float(inc[2])) + cfg.gyro_sigma_yaw_rad
+            state, Phi = ekf.predict_gyro_bias(state, inc, Q, dt, bool(from_gyro[k]),
+                                               cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * dt, g, s_g**2)
+            return state, not bool(from_gyro[k]), Phi
+        return ekf.predict(state, inc, Q), True, ekf.predict_jacobian(state.q, inc)
     if wheel is None:
-        if np.all(np.isfinite(inc)):
-            return ekf.predict(state, inc, increment_covariance(inc, cfg)), True, ekf.predict_jacobian(state.q, inc)
         # no ICP edge: inflate as if standing still with a large uncertainty
         inflate = np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2, 0.0][:len(state.q)])
         return ekf.EkfState(state.q, state.P + inflate), False, np.eye(len(state.q))
@@ -193,6 +197,8 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
         P4[:3, :3] = P_init[:3, :3]
         P4[3, 3] = cfg.gyro_bias_sigma_rad_s**2
         P_init = P4
+    elif stamps_ns is not None:
+        dt_s = np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9])
     state = ekf.EkfState(q_init, P_init)
     held = consider.empty(len(q_init))
     n_icp = 0

@@ -57,13 +57,17 @@ class EvaluateParams(Params):
     ekf_map_consider: bool = Field(True, description="map-corner errors as Schmidt consider states (shared by every "
                                    "epoch using the corner, not fresh noise per epoch; evaluate/consider.py)")
     ekf_map_cov_scale: float = Field(1.0, gt=0, description="multiplies the map's stored corner covariances")
-    ekf_icp_gyro_bias_state: bool = Field(True, description="icp motion model: the gyro bias (prior "
-                                          "ekf_gyro_bias_sigma_deg_s, random walk ekf_gyro_bias_rw_deg_s_per_sqrt_s) "
-                                          "as a 4th state that the wheel/gyro increments replacing failed or gated "
-                                          "ICP ones drift with, so the heading std grows with it between corners")
-    ekf_icp_gyro_fusion: bool = Field(False, description="with ekf_icp_gyro_bias_state: the gyro's heading change "
-                                      "(noise ekf_gyro_sigma_yaw_*) also measures each accepted ICP increment's, "
-                                      "which estimates the bias while ICP holds")
+    # icp motion model, issue 28 (heading between corners): the gyro bias as a 4th state. The wheel/gyro increments
+    # that replace failed or gated ICP ones drift with it, so the heading std grows with the time spent on them
+    # (as the error does), not with the square root of their number; the gyro's heading change also measures each
+    # accepted ICP increment's, which estimates the bias while ICP holds (values: ekf_gyro_*; docs/evaluation.md).
+    ekf_icp_gyro_bias_state: bool = Field(True, description="icp motion model: gyro bias state carried by the "
+                                          "wheel/gyro fallback increments")
+    ekf_icp_gyro_fusion: bool = Field(True, description="with ekf_icp_gyro_bias_state: the gyro's heading change "
+                                      "also measures each accepted ICP increment's (estimates the bias)")
+    ekf_heading_rw_deg_per_sqrt_s: float = Field(0.0, ge=0, description="icp motion model: heading random walk "
+                                                 "beside icp_sigma_yaw_deg (0: none measured against the map "
+                                                 "reference on the tiny calibration seeds)")
     # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and
     # gyro bias; weights from the correlation of the scan's features with a distance likelihood field; low-variance
     # resampling; progressive correction and guarded injection (see localize_mcl.MclConfig for the measurements).

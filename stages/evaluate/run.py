@@ -75,7 +75,8 @@ def ekf_config(p: EvaluateParams) -> EkfConfig:
                      gyro_sigma_yaw_rad=np.deg2rad(p.ekf_gyro_sigma_yaw_deg),
                      gyro_sigma_yaw_frac=p.ekf_gyro_sigma_yaw_frac,
                      icp_gate_chi2=float(chi2.ppf(p.ekf_icp_gate_probability, 3)),
-                     icp_gyro_bias_state=p.ekf_icp_gyro_bias_state, icp_gyro_fusion=p.ekf_icp_gyro_fusion)
+                     icp_gyro_bias_state=p.ekf_icp_gyro_bias_state, icp_gyro_fusion=p.ekf_icp_gyro_fusion,
+                     heading_rw_rad_per_sqrt_s=np.deg2rad(p.ekf_heading_rw_deg_per_sqrt_s))
 
 
 def gyro_increments(d: DriveArrays) -> np.ndarray | None:
