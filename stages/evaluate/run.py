@@ -76,7 +76,8 @@ def ekf_config(p: EvaluateParams) -> EkfConfig:
                      gyro_sigma_yaw_frac=p.ekf_gyro_sigma_yaw_frac,
                      icp_gate_chi2=float(chi2.ppf(p.ekf_icp_gate_probability, 3)),
                      icp_gyro_bias_state=p.ekf_icp_gyro_bias_state, icp_gyro_fusion=p.ekf_icp_gyro_fusion,
-                     heading_rw_rad_per_sqrt_s=np.deg2rad(p.ekf_heading_rw_deg_per_sqrt_s))
+                     heading_rw_rad_per_sqrt_s=np.deg2rad(p.ekf_heading_rw_deg_per_sqrt_s),
+                     icp_gyro_gate_chi2=float(chi2.ppf(p.ekf_icp_gate_probability, 1)) if p.ekf_icp_gyro_gate else 0.0)
 
 
 def gyro_increments(d: DriveArrays) -> np.ndarray | None:
@@ -118,6 +119,11 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
         if p.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
             r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, ekf_config(p),
                         wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov)
+        elif p.ekf_icp_gyro_gate and p.ekf_icp_gyro_fusion and d.icp_raw_increments is not None:
+            failed = ~np.all(np.isfinite(d.icp_raw_increments), axis=1)  # the gate is the filter's, not the angle
+            inc = np.where(failed[:, None], d.odo_increments, d.icp_raw_increments)
+            r = run_ekf(inc, d.corners, cmap, q0, P0, k0, ekf_config(p), stamps_ns=d.stamps_ns, from_gyro=failed,
+                        gyro_yaw_rad=d.odo_increments[:, 2], wheel_fallback=d.odo_increments)
         else:
             r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_config(p), stamps_ns=d.stamps_ns,
                         from_gyro=gyro_increments(d), gyro_yaw_rad=d.odo_increments[:, 2])

@@ -284,3 +284,26 @@ def test_gyro_fused_with_icp_learns_the_bias_and_stays_consistent():
     lo, hi = chi2.ppf(0.005, 3 * runs) / runs, chi2.ppf(0.995, 3 * runs) / runs
     assert np.mean((mean_f >= lo) & (mean_f <= hi)) >= 0.9, (mean_f.min(), mean_f.max(), lo, hi)
     assert np.sqrt(np.mean(np.square(yaw_f))) < np.sqrt(np.mean(np.square(yaw_b))) / 3
+
+
+def test_icp_gated_against_the_bias_corrected_gyro():
+    """``icp_gyro_gate_chi2``: with the bias known to be 0.3 deg/s (0.03 deg per scan), a true ICP increment
+    that a fixed 0.05 deg gate around the raw gyro would keep is kept; one 0.1 deg off is replaced by the
+    wheel/gyro increment (the motion then carries the bias)."""
+    from dataclasses import replace
+
+    from stages.evaluate.localize_ekf import _motion
+
+    cfg = replace(CFG_ICP, icp_gyro_fusion=True, icp_gyro_gate_chi2=float(chi2.ppf(0.999, 1)))
+    b, dt = np.deg2rad(0.3), 0.1
+    state = ekf.EkfState(np.array([0.0, 0.0, 0.0, b]), np.diag([0.01, 0.01, 1e-6, np.deg2rad(0.001) ** 2]))
+    true_inc = np.array([0.8, 0.0, np.deg2rad(0.2)])
+    gyro = np.array([0.0, true_inc[2] + b * dt])
+    wheel = np.array([[0.0, 0.0, 0.0], [0.81, 0.0, gyro[1]]])
+    stamps = np.array([0.0, dt])
+    for icp_err_deg, used_icp in ((0.0, True), (0.1, False)):
+        inc = np.array([[0.0, 0.0, 0.0], true_inc + [0.0, 0.0, np.deg2rad(icp_err_deg)]])
+        new, used, _ = _motion(state, 1, inc, None, stamps, None, cfg, np.array([False, False]), gyro, wheel)
+        assert used == used_icp
+        assert abs(new.q[2] - true_inc[2]) < np.deg2rad(0.01)  # either way the heading change is the true one
+        assert np.isclose(new.q[0], 0.8 if used_icp else 0.81, atol=1e-3)
