@@ -119,7 +119,8 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
         if p.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
             r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, ekf_config(p),
                         wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov)
-        elif p.ekf_icp_gyro_gate and p.ekf_icp_gyro_fusion and d.icp_raw_increments is not None:
+        elif (p.ekf_icp_gyro_gate and p.ekf_icp_gyro_fusion and p.ekf_icp_gyro_bias_state
+              and d.icp_raw_increments is not None):
             failed = ~np.all(np.isfinite(d.icp_raw_increments), axis=1)  # the gate is the filter's, not the angle
             inc = np.where(failed[:, None], d.odo_increments, d.icp_raw_increments)
             r = run_ekf(inc, d.corners, cmap, q0, P0, k0, ekf_config(p), stamps_ns=d.stamps_ns, from_gyro=failed,
