@@ -55,6 +55,55 @@ def predict_jacobian(q: np.ndarray, increment: np.ndarray) -> np.ndarray:
     return np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
 
 
+def predict_gyro_bias(state: EkfState, increment: np.ndarray, Q: np.ndarray, dt_s: float, from_gyro: bool,
+                      q_bias_rad2_s2: float, gyro_yaw_rad: float | None = None, gyro_var_rad2: float = 0.0
+                      ) -> tuple[EkfState, np.ndarray]:
+    """Motion update of the 4-state filter ``(x, y, yaw, gyro_bias_rad_s)`` of the ICP motion model.
+
+    The true increment ``d`` is a latent. A wheel/gyro increment (ICP failed or was gated, ``from_gyro``) gives
+    ``d = increment - (0, 0, b dt) + w``, ``w ~ N(0, Q)``: its heading carries the gyro's bias, so the heading error
+    of a run of such increments grows with the bias's uncertainty times the time, not with the square root of the
+    number of increments as white noise would. An ICP increment gives ``d = increment + w``; when ``gyro_yaw_rad``
+    (the gyro's heading change over the step) is given it also measures ``d``: ``gyro = d_yaw + b dt + v``,
+    ``v ~ N(0, gyro_var_rad2)``, which estimates the bias while ICP holds. The pose is then composed with ``d``.
+    ``q_bias_rad2_s2`` is the bias random walk's variance over the step. Returns the state and the (4,4) transition
+    of the errors (for ``consider``)."""
+    q, P = state.q, state.P
+    inc = np.asarray(increment, dtype=float).copy()
+    if from_gyro:
+        inc[2] -= q[3] * dt_s
+    X = np.concatenate([q, inc])
+    J = np.zeros((3, 4))  # d(d)/d(state)
+    if from_gyro:
+        J[2, 3] = -dt_s
+    PA = np.zeros((7, 7))
+    PA[:4, :4] = P
+    PA[:4, 4:] = P @ J.T
+    PA[4:, :4] = J @ P
+    PA[4:, 4:] = J @ P @ J.T + np.asarray(Q, dtype=float)
+    M = np.eye(7)
+    if not from_gyro and gyro_yaw_rad is not None and np.isfinite(gyro_yaw_rad):
+        H = np.zeros(7)
+        H[3], H[6] = dt_s, 1.0
+        S = float(H @ PA @ H) + gyro_var_rad2
+        K = PA @ H / S
+        X = X + K * float(wrap_angle_rad(gyro_yaw_rad - X[6] - X[3] * dt_s))
+        M = np.eye(7) - np.outer(K, H)
+        PA = M @ PA @ M.T + np.outer(K, K) * gyro_var_rad2
+    x, y, yaw, b = X[:4]
+    dx, dy, dyaw = X[4:]
+    c, s = np.cos(yaw), np.sin(yaw)
+    A = np.zeros((4, 7))
+    A[:3, :3] = [[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]]
+    A[:3, 4:] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    A[3, 3] = 1.0
+    q_new = np.array([x + c * dx - s * dy, y + s * dx + c * dy, float(wrap_angle_rad(yaw + dyaw)), b])
+    P_new = A @ PA @ A.T
+    P_new[3, 3] += q_bias_rad2_s2
+    Phi = A @ M @ np.vstack([np.eye(4), J])
+    return EkfState(q_new, 0.5 * (P_new + P_new.T)), Phi
+
+
 def predict_wheel_icp(state: EkfState, wheel: np.ndarray, dt_s: float, Q_wheel: np.ndarray,
                       icp: np.ndarray | None, Q_icp: np.ndarray | None, Q_bias: np.ndarray,
                       gate_chi2: float) -> tuple[EkfState, float]:

@@ -69,6 +69,14 @@ class EkfConfig:
     map_consider: bool = True
     consider_forget_m: float = 120.0
     map_cov_scale: float = 1.0  # multiplies the map's stored corner covariances (see params.ekf_map_cov_scale)
+    # ICP motion model: the gyro bias as a 4th state carried by the wheel/gyro increments that replace failed or
+    # gated ICP ones (``run_ekf``'s ``from_gyro``), with gyro_bias_sigma_rad_s / gyro_bias_rw_rad_s_per_sqrt_s.
+    icp_gyro_bias_state: bool = False
+    icp_gyro_fusion: bool = False  # with the bias state: the gyro's heading change also measures ICP's increment
+    heading_rw_rad_per_sqrt_s: float = 0.0  # ICP motion model: heading random walk beside the per-step noise
+    # With the fusion and ``run_ekf``'s ``wheel_fallback``: an ICP increment whose heading change is this far
+    # (chi-square 1 dof) from the bias-corrected gyro's is replaced by the wheel/gyro increment (0 = off).
+    icp_gyro_gate_chi2: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -118,14 +126,37 @@ def icp_covariance(increment: np.ndarray, cov_info: np.ndarray | None, cfg: EkfC
 
 
 def _motion(state: ekf.EkfState, k: int, increments: np.ndarray, wheel: np.ndarray | None, dt_s: np.ndarray | None,
-            icp_cov: np.ndarray | None, cfg: EkfConfig) -> tuple[ekf.EkfState, bool, np.ndarray]:
+            icp_cov: np.ndarray | None, cfg: EkfConfig, from_gyro: np.ndarray | None = None,
+            gyro_yaw: np.ndarray | None = None, wheel_fallback: np.ndarray | None = None
+            ) -> tuple[ekf.EkfState, bool, np.ndarray]:
     """One motion update; returns the state, whether an ICP increment was used and the errors' transition."""
     inc = increments[k]
+    fg = None if from_gyro is None else bool(from_gyro[k])
+    if (len(state.q) == 4 and wheel_fallback is not None and not fg and gyro_yaw is not None
+            and cfg.icp_gyro_gate_chi2 > 0 and np.all(np.isfinite(inc))):
+        # ICP against the bias-corrected gyro, with the innovation's own variance (instead of a fixed angle)
+        dt = float(dt_s[k])
+        s_g = cfg.gyro_sigma_yaw_frac * abs(float(inc[2])) + cfg.gyro_sigma_yaw_rad
+        nu = float(wrap_angle_rad(gyro_yaw[k] - inc[2] - state.q[3] * dt))
+        S = increment_covariance(inc, cfg)[2, 2] + dt**2 * state.P[3, 3] + s_g**2
+        if nu**2 > cfg.icp_gyro_gate_chi2 * S:
+            inc, fg = wheel_fallback[k], True
+    if wheel is None and np.all(np.isfinite(inc)):
+        Q = increment_covariance(inc, cfg)
+        if dt_s is not None:  # the heading random walk (cfg.heading_rw_rad_per_sqrt_s)
+            Q[2, 2] += cfg.heading_rw_rad_per_sqrt_s**2 * float(dt_s[k])
+        if len(state.q) == 4:  # with the gyro bias state
+            dt = float(dt_s[k])
+            g = None if gyro_yaw is None else float(gyro_yaw[k])
+            s_g = cfg.gyro_sigma_yaw_frac * abs(float(inc[2])) + cfg.gyro_sigma_yaw_rad
+            state, Phi = ekf.predict_gyro_bias(state, inc, Q, dt, fg, cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * dt,
+                                               g, s_g**2)
+            return state, not fg, Phi
+        return ekf.predict(state, inc, Q), True, ekf.predict_jacobian(state.q, inc)
     if wheel is None:
-        if np.all(np.isfinite(inc)):
-            return ekf.predict(state, inc, increment_covariance(inc, cfg)), True, ekf.predict_jacobian(state.q, inc)
         # no ICP edge: inflate as if standing still with a large uncertainty
-        return ekf.EkfState(state.q, state.P + np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2])), False, np.eye(3)
+        inflate = np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2, 0.0][:len(state.q)])
+        return ekf.EkfState(state.q, state.P + inflate), False, np.eye(len(state.q))
     dt = float(dt_s[k])
     dist = float(np.hypot(wheel[k, 0], wheel[k, 1]))
     Q_bias = np.diag([cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * dt, cfg.wheel_scale_rw_per_sqrt_m**2 * dist])
@@ -138,12 +169,16 @@ def _motion(state: ekf.EkfState, k: int, increments: np.ndarray, wheel: np.ndarr
 
 def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0: np.ndarray, P0: np.ndarray,
             start_epoch: int, cfg: EkfConfig = EkfConfig(), wheel_increments: np.ndarray | None = None,
-            stamps_ns: np.ndarray | None = None, icp_cov: np.ndarray | None = None) -> EkfRun:
+            stamps_ns: np.ndarray | None = None, icp_cov: np.ndarray | None = None,
+            from_gyro: np.ndarray | None = None, gyro_yaw_rad: np.ndarray | None = None,
+            wheel_fallback: np.ndarray | None = None) -> EkfRun:
     """Run the filter from ``start_epoch`` (initialised with q0, P0 there) to the last epoch.
 
     With ``wheel_increments`` (E,3) and ``stamps_ns`` the state carries the gyro bias and the wheel scale error
     (``ekf.predict_wheel_icp``): ICP increments (NaN = failed; ``icp_cov`` (E,3,3) their registration covariance)
-    are fused with the bias-corrected wheel/gyro increments. Without them: the paper's ICP-only motion model.
+    are fused with the bias-corrected wheel/gyro increments. Without them: the paper's ICP-only motion model; with
+    ``cfg.icp_gyro_bias_state``, ``from_gyro`` (E,) (the epochs whose increment is the wheel/gyro one, ICP having
+    failed or been gated) and ``stamps_ns``, the state carries the gyro bias those increments drift with.
     """
     from scipy.spatial import cKDTree
 
@@ -168,12 +203,24 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
         P5[:3, :3] = P_init[:3, :3]
         P5[3, 3], P5[4, 4] = cfg.gyro_bias_sigma_rad_s**2, cfg.wheel_scale_sigma**2
         P_init = P5
+    elif cfg.icp_gyro_bias_state and from_gyro is not None:
+        if stamps_ns is None:
+            raise ValueError("run_ekf: from_gyro needs stamps_ns")
+        dt_s = np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9])
+        q_init = np.concatenate([q_init[:3], [0.0]])
+        P4 = np.zeros((4, 4))
+        P4[:3, :3] = P_init[:3, :3]
+        P4[3, 3] = cfg.gyro_bias_sigma_rad_s**2
+        P_init = P4
+    elif stamps_ns is not None:
+        dt_s = np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9])
     state = ekf.EkfState(q_init, P_init)
     held = consider.empty(len(q_init))
     n_icp = 0
     for k in range(start_epoch, n):
         if k > start_epoch:
-            state, used, Phi = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg)
+            state, used, Phi = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg, from_gyro,
+                                       gyro_yaw_rad if cfg.icp_gyro_fusion else None, wheel_fallback)
             held = consider.forget(consider.propagate(held, Phi), state.q, cmap.en_m, cfg.consider_forget_m)
             n_icp += used
         lo, hi = off[k], off[k + 1]

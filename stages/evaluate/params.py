@@ -62,6 +62,20 @@ class EvaluateParams(Params):
     ekf_map_consider: bool = Field(True, description="map-corner errors as Schmidt consider states (shared by every "
                                    "epoch using the corner, not fresh noise per epoch; evaluate/consider.py)")
     ekf_map_cov_scale: float = Field(1.0, gt=0, description="multiplies the map's stored corner covariances")
+    # icp motion model, issue 28 (heading between corners): the gyro bias as a 4th state. The wheel/gyro increments
+    # that replace failed or gated ICP ones drift with it, so the heading std grows with the time spent on them
+    # (as the error does), not with the square root of their number; the gyro's heading change also measures each
+    # accepted ICP increment's, which estimates the bias while ICP holds (values: ekf_gyro_*; docs/evaluation.md).
+    ekf_icp_gyro_bias_state: bool = Field(True, description="icp motion model: gyro bias state carried by the "
+                                          "wheel/gyro fallback increments")
+    ekf_icp_gyro_fusion: bool = Field(True, description="with ekf_icp_gyro_bias_state: the gyro's heading change "
+                                      "also measures each accepted ICP increment's (estimates the bias)")
+    ekf_heading_rw_deg_per_sqrt_s: float = Field(0.0, ge=0, description="icp motion model: heading random walk "
+                                                 "beside icp_sigma_yaw_deg (0: none measured against the map "
+                                                 "reference on the tiny calibration seeds)")
+    ekf_icp_gyro_gate: bool = Field(False, description="with the fusion: ICP is gated against the bias-corrected "
+                                    "gyro with the innovation's variance (chi-square 1 dof at "
+                                    "ekf_icp_gate_probability) instead of icp_wheel_gate_deg")
     # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and
     # gyro bias; weights from the correlation of the scan's features with a distance likelihood field; low-variance
     # resampling; progressive correction and guarded injection (see localize_mcl.MclConfig for the measurements).
@@ -154,7 +168,11 @@ class EvaluateParams(Params):
                          wheel_sigma_lateral_frac=self.ekf_wheel_sigma_lateral_frac,
                          gyro_sigma_yaw_rad=np.deg2rad(self.ekf_gyro_sigma_yaw_deg),
                          gyro_sigma_yaw_frac=self.ekf_gyro_sigma_yaw_frac,
-                         icp_gate_chi2=float(chi2.ppf(self.ekf_icp_gate_probability, 3)))
+                         icp_gate_chi2=float(chi2.ppf(self.ekf_icp_gate_probability, 3)),
+                         icp_gyro_bias_state=self.ekf_icp_gyro_bias_state, icp_gyro_fusion=self.ekf_icp_gyro_fusion,
+                         heading_rw_rad_per_sqrt_s=np.deg2rad(self.ekf_heading_rw_deg_per_sqrt_s),
+                         icp_gyro_gate_chi2=(float(chi2.ppf(self.ekf_icp_gate_probability, 1))
+                                             if self.ekf_icp_gyro_gate else 0.0))
 
     def mcl_config(self) -> MclConfig:
         """The MCL's ``localize_mcl.MclConfig`` (every mcl_* field; angles in degrees here, radians there)."""

@@ -56,6 +56,15 @@ class Evaluation:
     primary: str | None  # reference the per-epoch errors and the targets use
 
 
+def gyro_increments(d: DriveArrays) -> np.ndarray | None:
+    """(E,) True where the ICP motion model's increment is the wheel/gyro one (ICP failed or was gated); None for
+    a drive without wheel odometry (its fallback is the GNSS/INS pose difference, which has no gyro bias)."""
+    if d.icp_raw_increments is None:
+        return None
+    with np.errstate(invalid="ignore"):
+        return np.any(d.icp_increments != d.icp_raw_increments, axis=1)
+
+
 def first_fix(d: DriveArrays) -> int:
     """Index of the first epoch with a valid, finite GNSS/INS fix (the filters start there)."""
     ok = d.gnss_valid & np.all(np.isfinite(d.gnss_q), axis=1) & np.all(np.isfinite(d.gnss_std), axis=1)
@@ -84,8 +93,15 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
         if cfg.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
             r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, cfg.ekf,
                         wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov)
+        elif (cfg.ekf.icp_gyro_gate_chi2 > 0 and cfg.ekf.icp_gyro_fusion and cfg.ekf.icp_gyro_bias_state
+              and d.icp_raw_increments is not None):
+            failed = ~np.all(np.isfinite(d.icp_raw_increments), axis=1)  # the gate is the filter's, not the angle
+            inc = np.where(failed[:, None], d.odo_increments, d.icp_raw_increments)
+            r = run_ekf(inc, d.corners, cmap, q0, P0, k0, cfg.ekf, stamps_ns=d.stamps_ns, from_gyro=failed,
+                        gyro_yaw_rad=d.odo_increments[:, 2], wheel_fallback=d.odo_increments)
         else:
-            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, cfg.ekf)
+            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, cfg.ekf, stamps_ns=d.stamps_ns,
+                        from_gyro=gyro_increments(d), gyro_yaw_rad=d.odo_increments[:, 2])
         runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx)
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
     if "mcl" in cfg.methods and fetch is not None:
