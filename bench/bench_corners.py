@@ -3,6 +3,7 @@
     .venv/bin/python -m bench.bench_corners                 # throughput: synthetic 8 x 2250 rings, nuScenes
     .venv/bin/python -m bench.bench_corners --sim DIR       # + accuracy on DIR (cornermap simulate output)
     .venv/bin/python -m bench.bench_corners --sim DIR --drive drive_1 --max-scans 500
+    .venv/bin/python -m bench.bench_corners --no-throughput --root ROOT   # the stage's own output in a root
 
 Accuracy: each extracted corner is mapped into ENU with the true vehicle pose (DIR/truth/drive_K_poses_tum.txt,
 T_vehicle_lidar from drive.yaml) interpolated at the corner's own time (scan stamp + the mean time of its points;
@@ -146,16 +147,10 @@ def bench_accuracy(sim_dir: Path, drive: str, max_scans: int | None, params: Cor
 
     import yaml
 
-    from bench.bench_corner_vertex import truth_sets
-    from bench.bench_cornermap import chamfer_vertices
     from stages.common.deskew import deskew_with_wheel
     from stages.common.records import Trajectory
 
-    truth = np.genfromtxt(sim_dir / "truth" / "corners.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
-    building, rounded, radius, furniture = truth_sets(sim_dir)
-    chamfer_en, chamfer_theta = chamfer_vertices(sim_dir)
-    sets = {"building": building, "rounded": rounded, "radius": radius, "furniture": furniture,
-            "chamfer_en": chamfer_en, "chamfer_theta": chamfer_theta}
+    truth, sets = _truth_inputs(sim_dir)
     poses = Trajectory.from_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
     stamps_s, T_world_vehicle = poses.stamp_s, poses.T
     spec = yaml.safe_load((sim_dir / drive / "drive.yaml").read_text())
@@ -217,9 +212,58 @@ def bench_accuracy(sim_dir: Path, drive: str, max_scans: int | None, params: Cor
                 len(files), mode == primary, r[:, 5:9].reshape(-1, 2, 2))
 
 
+def _truth_inputs(sim_dir: Path) -> tuple[np.ndarray, dict]:
+    from bench.bench_corner_vertex import truth_sets
+    from bench.bench_cornermap import chamfer_vertices
+
+    truth = np.genfromtxt(sim_dir / "truth" / "corners.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    building, rounded, radius, furniture = truth_sets(sim_dir)
+    chamfer_en, chamfer_theta = chamfer_vertices(sim_dir)
+    return truth, {"building": building, "rounded": rounded, "radius": radius, "furniture": furniture,
+                   "chamfer_en": chamfer_en, "chamfer_theta": chamfer_theta}
+
+
+def bench_stage_output(root: Path, drive: str) -> None:
+    """Score the corners stage's own committed ``corners_per_scan`` of a workflow root (a simulated city) the way
+    ``bench_accuracy`` scores its extraction: each corner placed with the true pose of its scan (the stage deskews
+    to the scan start where odometry_raw exists; otherwise at the scan time plus the corner's time offset)."""
+    import glob
+
+    import pyarrow.dataset as ds
+
+    from stages.common.records import Extrinsics, Trajectory
+
+    def newest(name: str) -> ds.Dataset:
+        found = sorted(glob.glob(str(root / "datasets" / name / "*" / "data")), key=os.path.getmtime)
+        if not found:
+            raise SystemExit(f"{root}: no committed dataset {name!r}")
+        return ds.dataset(found[-1], format="parquet", partitioning="hive")
+
+    sim_dir = Path(sorted(glob.glob(str(root / "datasets" / "raw_drives" / "*" / "artifacts" / "all")))[-1])
+    truth, sets = _truth_inputs(sim_dir)
+    poses = Trajectory.from_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
+    T_vl = Extrinsics.from_table(newest("drive_info").to_table(columns=["drive", "T_vehicle_lidar"])).of(drive)
+    c = newest("corners_per_scan").to_table(filter=ds.field("drive") == drive)
+    t_s = c["stamp_ns"].to_numpy() * 1e-9 + c["time_offset_s"].to_numpy()
+    T = _interp_poses(poses.stamp_s, poses.T, t_s) @ T_vl
+    p = np.column_stack([c["x_m"].to_numpy(), c["y_m"].to_numpy(), np.zeros(c.num_rows), np.ones(c.num_rows)])
+    en = np.einsum("nij,nj->ni", T, p)[:, :2]
+    yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+    theta = np.column_stack([c["theta1_rad"].to_numpy() + yaw, c["theta2_rad"].to_numpy() + yaw])
+    cov = np.stack([np.stack([c["cov_xx_m2"].to_numpy(), c["cov_xy_m2"].to_numpy()], -1),
+                    np.stack([c["cov_xy_m2"].to_numpy(), c["cov_yy_m2"].to_numpy()], -1)], -2)
+    R2 = T[:, :2, :2]
+    n_scans = len(np.unique(c["scan_id"].to_numpy()))
+    print(f"# corners stage output of {root} {drive}: {c.num_rows} corners from {n_scans} scans with corners")
+    _report("PRIMARY stage output (corners_per_scan)", en, theta, c["range_m"].to_numpy(), truth, sets, n_scans,
+            True, np.einsum("nij,njk,nlk->nil", R2, cov, R2))
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sim", type=Path, help="a cornermap simulate output directory (accuracy vs truth)")
+    ap.add_argument("--root", type=Path, help="a workflow root of a simulated city: score the corners stage's own "
+                    "committed corners_per_scan")
     ap.add_argument("--drive", default="drive_0")
     ap.add_argument("--max-scans", type=int, default=None)
     ap.add_argument("--repeat", type=int, default=20)
@@ -235,6 +279,8 @@ def main(argv: list[str] | None = None) -> None:
 
         overrides = {k: json.loads(v) for k, v in (p.split("=", 1) for p in args.param)}
         bench_accuracy(args.sim, args.drive, args.max_scans, CornerParams(**overrides))
+    if args.root:
+        bench_stage_output(args.root, args.drive)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """Ingest throughput (scans/s on one core, PCD binary, ~70k points) and peak memory against drive length.
 
     .venv/bin/python -m bench.bench_ingest [--scans 200] [--long 2000]
+    .venv/bin/python -m bench.bench_ingest --lzf      # the LZF (binary_compressed) PCD decoder alone
 
 One synthetic 70,400-point HDL-32E PCD (x y z intensity ring time) is hard-linked N times into a drive
 folder (no disk blow-up), then the ingest compute runs and every streamed scans_raw piece is written to
@@ -71,12 +72,45 @@ def run_once(n_scans: int) -> dict:
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
 
 
+def bench_lzf(repeat: int = 3) -> None:
+    """Decode time of a binary_compressed (LZF) PCD of a real KITTI HDL-64E scan from ../shared/data (about 120 k
+    points), written by open3d, read by the ingest stage's reader (pure-Python LZF)."""
+    import numpy as np
+    import open3d as o3d
+
+    from stages.ingest.pcd import read_pcd
+
+    kitti = sorted((Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_raw_0048_city").glob("*.pcd"))
+    if not kitti:
+        raise SystemExit("bench_ingest --lzf: no KITTI scan in ../shared/data/kitti_raw_0048_city")
+    xyz = np.column_stack([read_pcd(kitti[0]).columns[c] for c in "xyz"]).astype(np.float32)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "scan.pcd"
+        pc = o3d.t.geometry.PointCloud()
+        pc.point.positions = o3d.core.Tensor(xyz)
+        if not o3d.t.io.write_point_cloud(str(path), pc, write_ascii=False, compressed=True):
+            raise SystemExit(f"bench_ingest --lzf: open3d could not write {path}")
+        times = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            cloud = read_pcd(path)
+            times.append(time.perf_counter() - t0)
+        assert cloud.header.encoding == "binary_compressed" and cloud.header.points == len(xyz)
+        print(f"LZF PCD decode ({kitti[0].name}: {len(xyz)} points, {path.stat().st_size / 1e6:.2f} MB compressed, "
+              f"{xyz.nbytes / 1e6:.2f} MB raw): best {min(times):.3f} s, median {float(np.median(times)):.3f} s "
+              f"of {repeat}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scans", type=int, default=200, help="scans for the throughput run")
     parser.add_argument("--long", type=int, default=2000, help="scans for the long-drive memory run")
     parser.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--lzf", action="store_true", help="only time the LZF (binary_compressed) PCD decoder")
     args = parser.parse_args()
+    if args.lzf:
+        bench_lzf()
+        return
     if args.child is not None:
         print(json.dumps(run_once(args.child)))
         return

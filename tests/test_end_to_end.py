@@ -227,6 +227,7 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
         "crosswalk_polygon": ("crosswalk",),
     }
     checked: dict[str, int] = {}
+    worst: dict[str, float] = {}  # printed (pytest -s): the figures of docs/map-format.md
     for way in osm.iter("way"):
         tags = {t.get("k"): t.get("v") for t in way.iter("tag")}
         lines = [g for k, g in truth if k in kinds[tags["type"]]]
@@ -240,9 +241,9 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
                 assert np.abs(signed).max() <= 0.05, (nodes, signed)
             else:  # partly seen (the raster's coverage cut its stripes): every corner on the paint
                 assert signed.min() >= -0.05, (nodes, signed)
-            checked["crosswalk" if full else "crosswalk_partial"] = (
-                checked.get("crosswalk" if full else "crosswalk_partial", 0) + 1
-            )
+            kind = "crosswalk" if full else "crosswalk_partial"
+            checked[kind] = checked.get(kind, 0) + 1
+            worst[kind] = max(worst.get(kind, 0.0), float(np.abs(signed).max() if full else max(0.0, -signed.min())))
             continue
         for p in nodes:  # on a painted line of its type: within 5 cm across it, at most 0.25 m beyond its ends
             best = np.inf
@@ -253,7 +254,9 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
                 if beyond <= 0.25:
                     best = min(best, abs((p - a) @ np.array([-u[1], u[0]])))
             assert best <= 0.05, (tags, p, best)
+            worst[tags["type"]] = max(worst.get(tags["type"], 0.0), float(best))
         checked[tags["type"]] = checked.get(tags["type"], 0) + len(nodes)
+    print("Lanelet2 nodes vs the paint, worst (m):", {k: round(v, 3) for k, v in sorted(worst.items())})
     assert checked.get("line_thin", 0) >= 10 and checked.get("stop_line", 0) >= 2, checked
     assert checked.get("crosswalk", 0) >= 2, checked
 
