@@ -76,8 +76,9 @@ def wall_lengths_m(corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np
     return out
 
 
-def _drop_short_walls(corners: Corners, corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np.ndarray,
-                      p: CornerParams) -> tuple[Corners, np.ndarray]:
+def _drop_short_walls(corners: Corners, corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np.ndarray, *,
+                      min_wall_length_m: float, min_long_wall_length_m: float, obtuse_angle_deg: float,
+                      min_obtuse_wall_length_m: float) -> tuple[Corners, np.ndarray]:
     """Small-structure check on the walls as the best of a corner's layers saw them. Dropped when
     - the shorter wall is under ``min_wall_length_m`` or the longer one under ``min_long_wall_length_m`` (bus
       shelters, kiosks): a facade corner whose side wall is seen at a grazing angle keeps a long front wall,
@@ -89,33 +90,34 @@ def _drop_short_walls(corners: Corners, corner_of: np.ndarray, length_a_m: np.nd
         return corners, corner_of
     walls = wall_lengths_m(corner_of, length_a_m, length_b_m, len(corners))
     shorter, longer = walls.min(axis=1), walls.max(axis=1)
-    obtuse = corners.interior_angle_rad > np.radians(p.obtuse_angle_deg)
-    return _keep(corners, corner_of, (shorter < p.min_wall_length_m) | (longer < p.min_long_wall_length_m)
-                 | (obtuse & (shorter < p.min_obtuse_wall_length_m)))
+    obtuse = corners.interior_angle_rad > np.radians(obtuse_angle_deg)
+    return _keep(corners, corner_of, (shorter < min_wall_length_m) | (longer < min_long_wall_length_m)
+                 | (obtuse & (shorter < min_obtuse_wall_length_m)))
 
 
-def _drop_unsupported(corners: Corners, corner_of: np.ndarray, vertex_gap_spacings: np.ndarray, p: CornerParams
-                      ) -> tuple[Corners, np.ndarray]:
+def _drop_unsupported(corners: Corners, corner_of: np.ndarray, vertex_gap_spacings: np.ndarray, *,
+                      max_vertex_gap_spacings: float) -> tuple[Corners, np.ndarray]:
     """Vertex support: a corner is kept when, in at least one of its layers, a line ends within
     ``max_vertex_gap_spacings`` point spacings of the intersection. A sharp vertex is where both walls' returns
     meet; a chord of a rounded corner meeting a straight wall, with the part of the arc between them left out, puts
     the intersection in empty space that neither line reaches."""
-    if not len(corners) or p.max_vertex_gap_spacings <= 0:
+    if not len(corners) or max_vertex_gap_spacings <= 0:
         return corners, corner_of
     best = np.full(len(corners), np.inf)
     used = corner_of >= 0
     np.minimum.at(best, corner_of[used], vertex_gap_spacings[used])
-    return _keep(corners, corner_of, best > p.max_vertex_gap_spacings)
+    return _keep(corners, corner_of, best > max_vertex_gap_spacings)
 
 
 def _drop_unverifiable(corners: Corners, corner_of: np.ndarray, cand_layer: np.ndarray, pts: np.ndarray,
                        xy: np.ndarray, layer: np.ndarray, az: np.ndarray, src: np.ndarray,
-                       layers_used: np.ndarray, p: CornerParams) -> tuple[Corners, np.ndarray]:
+                       layers_used: np.ndarray, *, min_corner_range_m: float, max_passover_height_m: float
+                       ) -> tuple[Corners, np.ndarray]:
     """Near-corner and short-object checks; returns the kept corners and the re-indexed candidate mapping."""
     if not len(corners):
         return corners, corner_of
-    drop = corners.range_m < p.min_corner_range_m
-    if p.max_passover_height_m > 0:
+    drop = corners.range_m < min_corner_range_m
+    if max_passover_height_m > 0:
         layer_ids = np.unique(layers_used)
         layer_elev = estimate_layer_elevation_rad(np.hypot(xy[:, 0], xy[:, 1]), pts[:, 2].take(src), layer,
                                                   layer_ids)
@@ -123,7 +125,7 @@ def _drop_unverifiable(corners: Corners, corner_of: np.ndarray, cand_layer: np.n
         used = corner_of >= 0
         np.maximum.at(top, corner_of[used], layer_elev[np.searchsorted(layer_ids, cand_layer[used])])
         drop |= find_passed_over(np.column_stack([corners.x_m, corners.y_m]), top, xy, az, layer, layer_ids,
-                                 layer_elev, max_height_m=p.max_passover_height_m)
+                                 layer_elev, max_height_m=max_passover_height_m)
     return _keep(corners, corner_of, drop)
 
 
@@ -164,10 +166,15 @@ def trace_corners(points_xyz: np.ndarray, ring: np.ndarray, params: CornerParams
                                            cluster_max_angle_rad=np.radians(p.cluster_max_angle_deg),
                                            min_layers=p.min_layers, min_sigma_m=p.min_sigma_m,
                                            time_offset_s=cand_t, angular_sigma_rad=p.angular_sigma_mrad * 1e-3)
-    corners, corner_of = _drop_short_walls(corners, corner_of, lines.length_m[cand.line_a],
-                                           lines.length_m[cand.line_b], p)
-    corners, corner_of = _drop_unsupported(corners, corner_of, cand.vertex_gap_spacings, p)
-    corners, corner_of = _drop_unverifiable(corners, corner_of, cand.layer, pts, xy, layer, az, src, layers_used, p)
+    corners, corner_of = _drop_short_walls(
+        corners, corner_of, lines.length_m[cand.line_a], lines.length_m[cand.line_b],
+        min_wall_length_m=p.min_wall_length_m, min_long_wall_length_m=p.min_long_wall_length_m,
+        obtuse_angle_deg=p.obtuse_angle_deg, min_obtuse_wall_length_m=p.min_obtuse_wall_length_m)
+    corners, corner_of = _drop_unsupported(corners, corner_of, cand.vertex_gap_spacings,
+                                           max_vertex_gap_spacings=p.max_vertex_gap_spacings)
+    corners, corner_of = _drop_unverifiable(corners, corner_of, cand.layer, pts, xy, layer, az, src, layers_used,
+                                            min_corner_range_m=p.min_corner_range_m,
+                                            max_passover_height_m=p.max_passover_height_m)
     return CornerTrace(xy_m=xy, layer=layer, layers_used=layers_used, lines=lines, line_label=label,
                        candidates=cand, candidate_corner=corner_of, corners=corners)
 
