@@ -73,9 +73,10 @@ class EvaluateParams(Params):
     ekf_heading_rw_deg_per_sqrt_s: float = Field(0.0, ge=0, description="icp motion model: heading random walk "
                                                  "beside icp_sigma_yaw_deg (0: none measured against the map "
                                                  "reference on the tiny calibration seeds)")
-    ekf_icp_gyro_gate: bool = Field(False, description="with the fusion: ICP is gated against the bias-corrected "
+    ekf_icp_gyro_gate: bool = Field(True, description="with the fusion: ICP is gated against the bias-corrected "
                                     "gyro with the innovation's variance (chi-square 1 dof at "
-                                    "ekf_icp_gate_probability) instead of icp_wheel_gate_deg")
+                                    "ekf_icp_gate_probability) instead of icp_wheel_gate_deg (calibrated on "
+                                    "tiny seeds 7/21/22, validated on tiny seeds 41-46)")
     # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and
     # gyro bias; weights from the correlation of the scan's features with a distance likelihood field; low-variance
     # resampling; progressive correction and guarded injection (see localize_mcl.MclConfig for the measurements).
