@@ -21,35 +21,20 @@ from __future__ import annotations
 
 import argparse
 import csv
-import glob
 from pathlib import Path
 
 import numpy as np
 import pyarrow.dataset as ds
 
 from bench.bench_cornermap import chamfer_vertices, truth_rows
+from bench.roots import dataset, simulator_dir
 from stages.common.records import Extrinsics, Trajectory
 from stages.common.wheel_odometry import track_from_table
 from stages.corners.compute import SCAN_COLUMNS, split_scans
-from stages.corners.core import select_scan_layers, trace_corners
+from stages.corners.core import select_scan_layers, trace_corners, vertex_gaps_spacings
 from stages.corners.params import CornerParams
 
 LABELS = ("building", "rounded", "furniture", "other")
-
-
-def _dataset(root: Path, name: str) -> ds.Dataset:
-    found = sorted(glob.glob(str(root / "datasets" / name / "*" / "data")))
-    if not found:
-        raise SystemExit(f"{root}: no committed dataset {name!r} (run the workflow up to the corners stage)")
-    return ds.dataset(found[-1], format="parquet", partitioning="hive")
-
-
-def vertex_gaps(trace) -> np.ndarray:
-    """Per kept corner of one trace: the smallest vertex gap (in point spacings) over its layers' candidates."""
-    best = np.full(len(trace.corners), np.inf)
-    used = trace.candidate_corner >= 0
-    np.minimum.at(best, trace.candidate_corner[used], trace.candidates.vertex_gap_spacings[used])
-    return best
 
 
 def truth_sets(sim: Path):
@@ -93,15 +78,15 @@ def main(argv=None) -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="corners params overrides")
     args = ap.parse_args(argv)
     params = CornerParams(**{k: float(v) for k, v in (s.split("=", 1) for s in args.set)})
-    truth_dir = Path(sorted(glob.glob(str(args.root / "datasets" / "raw_drives" / "*" / "artifacts" / "all")))[-1])
+    truth_dir = simulator_dir(args.root)
     building, rounded, radius, furniture = truth_sets(truth_dir)
     truth = Trajectory.from_tum(truth_dir / "truth" / f"{args.drive}_poses_tum.txt")
-    info = _dataset(args.root, "drive_info").to_table(columns=["drive", "T_vehicle_lidar"])
+    info = dataset(args.root, "drive_info").to_table(columns=["drive", "T_vehicle_lidar"])
     T_vl = Extrinsics.from_table(info).of(args.drive)
-    odo = _dataset(args.root, "odometry_raw").to_table(filter=ds.field("drive") == args.drive,
+    odo = dataset(args.root, "odometry_raw").to_table(filter=ds.field("drive") == args.drive,
                                                      columns=["stamp_ns", "speed_mps", "yaw_rate_radps"])
     track = track_from_table(odo)
-    scans = _dataset(args.root, "scans_raw")
+    scans = dataset(args.root, "scans_raw")
     ids = np.unique(scans.to_table(columns=["scan_id"], filter=ds.field("drive") == args.drive)["scan_id"]
                     .to_numpy())[:: args.every]
     table = scans.to_table(columns=SCAN_COLUMNS, filter=(ds.field("drive") == args.drive)
@@ -122,7 +107,8 @@ def main(argv=None) -> None:
         T = truth.T[k] @ T_vl
         c = trace.corners
         en = (T[:2, :2] @ np.vstack([c.x_m, c.y_m]) + T[:2, 3:4]).T
-        gap_sp = vertex_gaps(trace)
+        gap_sp = vertex_gaps_spacings(trace.candidate_corner, trace.candidates.vertex_gap_spacings,
+                                      len(trace.corners))
         rows["label"] += list(label_corners(en, building, rounded, radius, furniture))
         rows["gap_sp"] += list(gap_sp)
         rows["range_m"] += list(c.range_m)

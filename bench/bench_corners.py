@@ -227,23 +227,16 @@ def bench_stage_output(root: Path, drive: str) -> None:
     """Score the corners stage's own committed ``corners_per_scan`` of a workflow root (a simulated city) the way
     ``bench_accuracy`` scores its extraction: each corner placed with the true pose of its scan (the stage deskews
     to the scan start where odometry_raw exists; otherwise at the scan time plus the corner's time offset)."""
-    import glob
-
     import pyarrow.dataset as ds
 
+    from bench.roots import dataset, simulator_dir
     from stages.common.records import Extrinsics, Trajectory
 
-    def newest(name: str) -> ds.Dataset:
-        found = sorted(glob.glob(str(root / "datasets" / name / "*" / "data")), key=os.path.getmtime)
-        if not found:
-            raise SystemExit(f"{root}: no committed dataset {name!r}")
-        return ds.dataset(found[-1], format="parquet", partitioning="hive")
-
-    sim_dir = Path(sorted(glob.glob(str(root / "datasets" / "raw_drives" / "*" / "artifacts" / "all")))[-1])
+    sim_dir = simulator_dir(root)
     truth, sets = _truth_inputs(sim_dir)
     poses = Trajectory.from_tum(sim_dir / "truth" / f"{drive}_poses_tum.txt")
-    T_vl = Extrinsics.from_table(newest("drive_info").to_table(columns=["drive", "T_vehicle_lidar"])).of(drive)
-    c = newest("corners_per_scan").to_table(filter=ds.field("drive") == drive)
+    T_vl = Extrinsics.from_table(dataset(root, "drive_info").to_table(columns=["drive", "T_vehicle_lidar"])).of(drive)
+    c = dataset(root, "corners_per_scan").to_table(filter=ds.field("drive") == drive)
     t_s = c["stamp_ns"].to_numpy() * 1e-9 + c["time_offset_s"].to_numpy()
     T = _interp_poses(poses.stamp_s, poses.T, t_s) @ T_vl
     p = np.column_stack([c["x_m"].to_numpy(), c["y_m"].to_numpy(), np.zeros(c.num_rows), np.ones(c.num_rows)])

@@ -19,22 +19,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pyarrow.dataset as ds
 import yaml
 from scipy import ndimage
+
+from bench.roots import latest, read
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO.parent / "shared" / "data" / "kitti_raw_0048_city"
 NEAR_PATH_M = 3.0
-
-
-def latest(root: Path, dataset: str) -> Path:
-    dirs = [p for p in (root / "datasets" / dataset).iterdir() if (p / "_manifest.json").exists()]
-    return max(dirs, key=lambda p: (p / "_manifest.json").stat().st_mtime)
-
-
-def read(root: Path, dataset: str):
-    return ds.dataset(str(latest(root, dataset)), format="parquet", partitioning="hive").to_table()
 
 
 def build(work: Path) -> tuple[Path, Path]:

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.roots import latest
+
 
 def observed_fn(reader):
     """(N, 2) ENU -> bool: the cell holding the point has LiDAR points in the map."""
@@ -105,15 +107,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.rasters:
         from mapformat.vectors import tile_features as _tf
 
-        dirs = [
-            d
-            for d in sorted((args.root / "datasets" / "marking_rasters").glob("*"))
-            if (d / "_manifest.json").is_file()
-        ]
-        if not dirs:
-            raise SystemExit(f"no committed marking_rasters under {args.root}/datasets")
-        reader = RasterDirReader(max(dirs, key=lambda d: json.loads((d / "_manifest.json").read_text())
-                                     .get("committed_utc", "")))
+        reader = RasterDirReader(latest(args.root, "marking_rasters"))
     else:
         reader = open_map(map_dir_of(args.root, args.map))
     city_json = args.truth or next(iter(sorted((args.root / "datasets" / "raw_drives").glob(
