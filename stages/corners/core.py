@@ -76,6 +76,14 @@ def wall_lengths_m(corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np
     return out
 
 
+def vertex_gaps_spacings(corner_of: np.ndarray, vertex_gap_spacings: np.ndarray, n_corners: int) -> np.ndarray:
+    """(K,) each corner's vertex gap: the smallest of its layers' candidates' (in point spacings; inf: none)."""
+    out = np.full(n_corners, np.inf)
+    used = corner_of >= 0
+    np.minimum.at(out, corner_of[used], vertex_gap_spacings[used])
+    return out
+
+
 def _drop_short_walls(corners: Corners, corner_of: np.ndarray, length_a_m: np.ndarray, length_b_m: np.ndarray, *,
                       min_wall_length_m: float, min_long_wall_length_m: float, obtuse_angle_deg: float,
                       min_obtuse_wall_length_m: float) -> tuple[Corners, np.ndarray]:
@@ -103,10 +111,8 @@ def _drop_unsupported(corners: Corners, corner_of: np.ndarray, vertex_gap_spacin
     the intersection in empty space that neither line reaches."""
     if not len(corners) or max_vertex_gap_spacings <= 0:
         return corners, corner_of
-    best = np.full(len(corners), np.inf)
-    used = corner_of >= 0
-    np.minimum.at(best, corner_of[used], vertex_gap_spacings[used])
-    return _keep(corners, corner_of, best > max_vertex_gap_spacings)
+    return _keep(corners, corner_of,
+                 vertex_gaps_spacings(corner_of, vertex_gap_spacings, len(corners)) > max_vertex_gap_spacings)
 
 
 def _drop_unverifiable(corners: Corners, corner_of: np.ndarray, cand_layer: np.ndarray, pts: np.ndarray,
