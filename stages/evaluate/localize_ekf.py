@@ -107,13 +107,17 @@ def increment_covariance(increment: np.ndarray, cfg: EkfConfig) -> np.ndarray:
     return np.diag([s_xy**2, s_xy**2, s_yaw**2])
 
 
+def gyro_sigma_yaw_rad(dyaw_rad: float, cfg: EkfConfig) -> float:
+    """The gyro's heading-change std over one step beside its bias: a floor plus a scale error per radian."""
+    return cfg.gyro_sigma_yaw_frac * abs(float(dyaw_rad)) + cfg.gyro_sigma_yaw_rad
+
+
 def wheel_covariance(wheel: np.ndarray, cfg: EkfConfig) -> np.ndarray:
     """Covariance (vehicle frame) of a wheel/gyro increment beside its scale and bias (which are states)."""
     dist = float(np.hypot(wheel[0], wheel[1]))
     s_along = cfg.wheel_sigma_frac * dist + cfg.wheel_sigma_xy_m
     s_lat = cfg.wheel_sigma_lateral_frac * dist + cfg.wheel_sigma_xy_m
-    s_yaw = cfg.gyro_sigma_yaw_frac * abs(float(wheel[2])) + cfg.gyro_sigma_yaw_rad
-    return np.diag([s_along**2, s_lat**2, s_yaw**2])
+    return np.diag([s_along**2, s_lat**2, gyro_sigma_yaw_rad(wheel[2], cfg) ** 2])
 
 
 def icp_covariance(increment: np.ndarray, cov_info: np.ndarray | None, cfg: EkfConfig) -> np.ndarray:
@@ -136,9 +140,8 @@ def _motion(state: ekf.EkfState, k: int, increments: np.ndarray, wheel: np.ndarr
             and cfg.icp_gyro_gate_chi2 > 0 and np.all(np.isfinite(inc))):
         # ICP against the bias-corrected gyro, with the innovation's own variance (instead of a fixed angle)
         dt = float(dt_s[k])
-        s_g = cfg.gyro_sigma_yaw_frac * abs(float(inc[2])) + cfg.gyro_sigma_yaw_rad
         nu = float(wrap_angle_rad(gyro_yaw[k] - inc[2] - state.q[3] * dt))
-        S = increment_covariance(inc, cfg)[2, 2] + dt**2 * state.P[3, 3] + s_g**2
+        S = increment_covariance(inc, cfg)[2, 2] + dt**2 * state.P[3, 3] + gyro_sigma_yaw_rad(inc[2], cfg) ** 2
         if nu**2 > cfg.icp_gyro_gate_chi2 * S:
             inc, fg = wheel_fallback[k], True
     if wheel is None and np.all(np.isfinite(inc)):
@@ -148,9 +151,8 @@ def _motion(state: ekf.EkfState, k: int, increments: np.ndarray, wheel: np.ndarr
         if len(state.q) == 4:  # with the gyro bias state
             dt = float(dt_s[k])
             g = None if gyro_yaw is None else float(gyro_yaw[k])
-            s_g = cfg.gyro_sigma_yaw_frac * abs(float(inc[2])) + cfg.gyro_sigma_yaw_rad
             state, Phi = ekf.predict_gyro_bias(state, inc, Q, dt, fg, cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * dt,
-                                               g, s_g**2)
+                                               g, gyro_sigma_yaw_rad(inc[2], cfg) ** 2)
             return state, not fg, Phi
         return ekf.predict(state, inc, Q), True, ekf.predict_jacobian(state.q, inc)
     if wheel is None:
@@ -193,34 +195,28 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     tree = cKDTree(cmap.en_m) if len(cmap.en_m) else None
     floor = np.diag([cfg.range_sigma_floor_m**2, cfg.bearing_sigma_floor_rad**2])
     q_init, P_init = np.asarray(q0, dtype=float).copy(), np.asarray(P0, dtype=float).copy()
-    dt_s = None
+    dt_s = None if stamps_ns is None else np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, np.int64)) * 1e-9])
+    # extra states beside (x, y, yaw), with their initial variances: the gyro bias, and the wheel scale error
     if wheel_increments is not None:
-        if stamps_ns is None:
-            raise ValueError("run_ekf: wheel_increments need stamps_ns")
-        dt_s = np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9])
-        q_init = np.concatenate([q_init[:3], [0.0, 0.0]])
-        P5 = np.zeros((5, 5))
-        P5[:3, :3] = P_init[:3, :3]
-        P5[3, 3], P5[4, 4] = cfg.gyro_bias_sigma_rad_s**2, cfg.wheel_scale_sigma**2
-        P_init = P5
+        extra, needs = [cfg.gyro_bias_sigma_rad_s**2, cfg.wheel_scale_sigma**2], "wheel_increments need"
     elif cfg.icp_gyro_bias_state and from_gyro is not None:
-        if stamps_ns is None:
-            raise ValueError("run_ekf: from_gyro needs stamps_ns")
-        dt_s = np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9])
-        q_init = np.concatenate([q_init[:3], [0.0]])
-        P4 = np.zeros((4, 4))
-        P4[:3, :3] = P_init[:3, :3]
-        P4[3, 3] = cfg.gyro_bias_sigma_rad_s**2
-        P_init = P4
-    elif stamps_ns is not None:
-        dt_s = np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9])
+        extra, needs = [cfg.gyro_bias_sigma_rad_s**2], "from_gyro needs"
+    else:
+        extra, needs = [], ""
+    if extra:
+        if dt_s is None:
+            raise ValueError(f"run_ekf: {needs} stamps_ns")
+        q_init = np.concatenate([q_init[:3], np.zeros(len(extra))])
+        P_init = np.diag(np.concatenate([np.zeros(3), extra]))
+        P_init[:3, :3] = np.asarray(P0, dtype=float)[:3, :3]
     state = ekf.EkfState(q_init, P_init)
+    gyro_fused = gyro_yaw_rad if cfg.icp_gyro_fusion else None
     held = consider.empty(len(q_init))
     n_icp = 0
     for k in range(start_epoch, n):
         if k > start_epoch:
             state, used, Phi = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg, from_gyro,
-                                       gyro_yaw_rad if cfg.icp_gyro_fusion else None, wheel_fallback)
+                                       gyro_fused, wheel_fallback)
             held = consider.forget(consider.propagate(held, Phi), state.q, cmap.en_m, cfg.consider_forget_m)
             n_icp += used
         lo, hi = off[k], off[k + 1]
