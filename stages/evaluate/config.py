@@ -26,8 +26,9 @@ class FieldConfig:
 @dataclass(frozen=True)
 class EvaluationConfig:
     """``evaluate_drive``'s settings: the localizers to run (the baselines always run), the floors of the EKF's
-    initial std, its motion model ('icp' or 'wheel_bias'), the two filters' sections, the MCL's random seed and
-    the longest gap a reference is interpolated across."""
+    initial std, its motion model ('icp' or 'wheel_bias'), the two filters' sections, the MCL's random seed,
+    the longest gap a reference is interpolated across, and whether the EKF is scored from its first map-corner
+    association on (its start-up reported apart)."""
 
     ekf: EkfConfig = field(default_factory=EkfConfig)
     mcl: MclConfig = field(default_factory=MclConfig)
@@ -37,6 +38,7 @@ class EvaluationConfig:
     ekf_motion: str = "icp"
     seed: int = 0
     reference_max_gap_s: float = 1.0
+    ekf_judge_after_startup: bool = True
 
 
 @dataclass(frozen=True)

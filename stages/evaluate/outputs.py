@@ -134,9 +134,15 @@ def metrics_table_text(doc: dict) -> str:
                                   ("truth_in_map", entry.get("truth_in_map"))):
             if not summary:
                 continue
-            vals = []
-            for k in keys:
-                v = summary.get(k)
-                vals.append(f"{'-':>12}" if v is None else (f"{v:>12d}" if isinstance(v, int) else f"{v:>12.4f}"))
-            lines.append(f"{m:<8} {ref_name:<12} " + " ".join(vals))
+            for name, row in ((ref_name, summary), (f"{ref_name}+s", summary.get("all_epochs"))):
+                if not row:
+                    continue
+                vals = []
+                for k in keys:
+                    v = row.get(k)
+                    vals.append(f"{'-':>12}" if v is None else (f"{v:>12d}" if isinstance(v, int) else f"{v:>12.4f}"))
+                lines.append(f"{m:<8} {name:<12} " + " ".join(vals))
+    if any((e.get(r) or {}).get("all_epochs") for e in doc["methods"].values()
+           for r in ("map_relative", "absolute", "truth_in_map")):
+        lines.append("ekf rows: from its first map-corner association on; '+s': all epochs, start-up included")
     return "\n".join(lines)

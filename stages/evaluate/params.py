@@ -126,6 +126,12 @@ class EvaluateParams(Params):
     target_ekf_p99_2d_m: float = Field(0.28, gt=0)
     target_ekf_max_2d_m: float = Field(0.40, gt=0)
     target_ekf_heading_rms_deg: float = Field(0.15, gt=0)
+    ekf_judge_after_startup: bool = Field(True, description="the EKF's metrics and targets count the epochs from "
+                                          "its first map-corner association on (it is localized from there); the "
+                                          "start-up before it is reported apart (`startup`, `all_epochs`) and "
+                                          "judged by target_ekf_startup_s")
+    target_ekf_startup_s: float = Field(10.0, gt=0, description="seconds from the EKF's first GNSS/INS fix to its "
+                                        "first map-corner association")
     target_nees_share_below_q95: float = Field(0.95, gt=0, le=1, description="NEES is consistent when its mean "
                                               "is in the 95 % band or at least this share of epochs is under the "
                                               "chi-square 0.95 quantile (3 dof)")
@@ -143,7 +149,8 @@ class EvaluateParams(Params):
         return EvaluationConfig(ekf=self.ekf_config(), mcl=self.mcl_config(), methods=tuple(self.methods),
                                 init_sigma_xy_m=self.init_sigma_xy_m,
                                 init_sigma_yaw_rad=np.deg2rad(self.init_sigma_yaw_deg), ekf_motion=self.ekf_motion,
-                                seed=self.seed, reference_max_gap_s=self.reference_max_gap_s)
+                                seed=self.seed, reference_max_gap_s=self.reference_max_gap_s,
+                                ekf_judge_after_startup=self.ekf_judge_after_startup)
 
     def ekf_config(self) -> EkfConfig:
         """The EKF's ``localize_ekf.EkfConfig`` (angles in degrees here, radians there; gates as chi-square)."""
@@ -207,7 +214,8 @@ class EvaluateParams(Params):
         return TargetConfig(
             limits={"ekf": {"rms_2d_m": self.target_ekf_rms_2d_m, "p99_2d_m": self.target_ekf_p99_2d_m,
                             "max_2d_m": self.target_ekf_max_2d_m,
-                            "heading_rms_deg": self.target_ekf_heading_rms_deg},
+                            "heading_rms_deg": self.target_ekf_heading_rms_deg,
+                            **({"startup_s": self.target_ekf_startup_s} if self.ekf_judge_after_startup else {})},
                     "mcl": {"mean_abs_x_m": self.target_mcl_mean_abs_x_m,
                             "mean_abs_y_m": self.target_mcl_mean_abs_y_m,
                             "mean_abs_heading_deg": self.target_mcl_mean_abs_heading_deg}},

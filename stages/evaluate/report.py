@@ -144,11 +144,18 @@ def _metrics_html(doc: dict) -> str:
                             ("truth fitted on the map's corners", entry.get("truth_in_map"))):
             if not s:
                 continue
-            cells = "".join(f"<td>{'' if s.get(k) is None else (s[k] if isinstance(s[k], int) else f'{s[k]:.4f}')}</td>"
-                            for k in keys)
-            rows.append(f"<tr><th>{html.escape(m)}</th><td>{ref_name}</td>{cells}</tr>")
+            for name, row in ((ref_name, s), (f"{ref_name}, all epochs (start-up "
+                                              f"{_fmt(s.get('startup_s'))} s included)", s.get("all_epochs"))):
+                if not row:
+                    continue
+                cells = "".join(f"<td>{_cell(row.get(k))}</td>" for k in keys)
+                rows.append(f"<tr><th>{html.escape(m)}</th><td>{name}</td>{cells}</tr>")
     head = "".join(f"<th>{k}</th>" for k in keys)
     return f"<table><tr><th>method</th><th>reference</th>{head}</tr>{''.join(rows)}</table>"
+
+
+def _cell(v) -> str:
+    return "" if v is None else str(v) if isinstance(v, int) else f"{v:.4f}"
 
 
 def _fmt(v) -> str:

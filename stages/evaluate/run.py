@@ -15,7 +15,7 @@ import numpy as np
 from stages.evaluate.config import EvaluationConfig
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, dead_reckon, run_ekf
 from stages.evaluate.localize_mcl import RasterFetcher, run_mcl
-from stages.evaluate.metrics import compute_errors, interpolate_poses, summarize
+from stages.evaluate.metrics import JUDGE_ORDER, compute_errors, interpolate_poses, summarize, summarize_localized
 
 log = logging.getLogger(__name__)
 
@@ -115,11 +115,17 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
 
 def evaluate_drive(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None,
                    references: dict[str, tuple[np.ndarray, np.ndarray]], cfg: EvaluationConfig) -> Evaluation:
-    """Run the methods and score them. ``references``: name ('map' or 'truth') -> (stamps_ns, (R,3) x y yaw)."""
+    """Run the methods and score them. ``references``: name ('map', 'truth', 'truth_in_map') -> (stamps_ns, (R,3)
+    x y yaw). The primary reference (per-epoch errors, targets) is the first of ``JUDGE_ORDER`` given. With
+    ``cfg.ekf_judge_after_startup`` the EKF is scored from its first map-corner association on
+    (``metrics.summarize_localized``)."""
     runs = run_methods(d, cmap, fetch, cfg)
     gap = int(cfg.reference_max_gap_s * 1e9)
     refs = {name: interpolate_poses(d.stamps_ns, st, q, gap) for name, (st, q) in references.items() if len(st)}
-    metrics = {m: {name: summarize(compute_errors(r.q, ref, r.P)) for name, ref in refs.items()}
+    k0 = first_fix(d)
+    metrics = {m: {name: (summarize_localized(compute_errors(r.q, ref, r.P), r.n_associated, d.stamps_ns, k0)
+                          if m == "ekf" and cfg.ekf_judge_after_startup else summarize(compute_errors(r.q, ref, r.P)))
+                   for name, ref in refs.items()}
                for m, r in runs.items()}
-    primary = "map" if "map" in refs else ("truth" if "truth" in refs else None)
+    primary = next((name for name in JUDGE_ORDER if name in refs), None)
     return Evaluation(d.stamps_ns, runs, refs, metrics, primary)

@@ -5,9 +5,10 @@ the GNSS/INS position, and the share where the EKF associated at least one map c
 the verdict is "no coverage": a drive that does not overlap the map must not score (a drive 60 km away once
 evaluated with exit 0 and EKF 0.11 m, never having associated a corner).
 
-Targets are judged against the map-relative reference when there is one (``map``: the pose graph's
-co-registration, or ``truth_in_map``: the truth fitted onto the map's corners), else against the absolute truth;
-the verdict names the reference it used.
+Targets are judged against the map-relative reference when there is one (``truth_in_map``: the truth fitted onto
+the map's corners, else ``map``: the pose graph's co-registration of the drive), else against the absolute truth
+(``metrics.JUDGE_ORDER``); the verdict names the reference it used. The EKF's metrics count the epochs from its
+first map-corner association on (``metrics.summarize_localized``) and its start-up time is a target of its own.
 """
 from __future__ import annotations
 
@@ -15,10 +16,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from stages.evaluate.metrics import JUDGE_ORDER
+
 if TYPE_CHECKING:
     from stages.evaluate.config import TargetConfig
 
-JUDGE_ORDER = ("map", "truth_in_map", "truth")
 
 
 def coverage(gnss_q: np.ndarray, gnss_valid: np.ndarray, map_en_m: np.ndarray, n_associated: np.ndarray | None,
@@ -61,8 +63,11 @@ def judge_method(method: str, summary: dict, limits: dict[str, float], min_nees_
 
 
 def judged_reference(metrics: dict[str, dict[str, dict]], method: str) -> str | None:
+    """The first of ``JUDGE_ORDER`` that covers any epoch of the method's run (an EKF that never associated a map
+    corner has no scored epoch but is judged: it misses its start-up target)."""
     by_ref = metrics.get(method, {})
-    return next((r for r in JUDGE_ORDER if (by_ref.get(r) or {}).get("epochs")), None)
+    return next((r for r in JUDGE_ORDER if (by_ref.get(r) or {}).get("epochs")
+                 or ((by_ref.get(r) or {}).get("all_epochs") or {}).get("epochs")), None)
 
 
 def verdict(metrics: dict[str, dict[str, dict]], cov: dict, targets_cfg: TargetConfig) -> dict:
