@@ -167,7 +167,9 @@ def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):
     assert "Traceback" not in res.stderr
     assert "no wheel odometry; the EKF runs on ICP increments alone" in res.stderr
     doc = json.loads((tmp_path / "eval" / "metrics.json").read_text())
-    assert doc["methods"]["ekf"]["absolute"]["epochs"] == 60 and doc["methods"]["mcl"]["absolute"]["epochs"] == 60
+    ekf = doc["methods"]["ekf"]["absolute"]
+    assert ekf["all_epochs"]["epochs"] == 60 and doc["methods"]["mcl"]["absolute"]["epochs"] == 60
+    assert ekf["epochs"] == 60 - ekf["localized_from_epoch"]  # scored from its first association on
     assert doc["methods"]["ekf"]["absolute"]["rms_2d_m"] < 1.0
     assert doc["verdict"]["coverage"]["ok"]
     ambiguous = _evaluate(root, "--map", str(root / "maps" / "tiny"), "--drive", str(drive), "--out",
