@@ -8,10 +8,15 @@ Covariances (all 2x2, east/north, m^2):
 - ``cov_scatter``: the sample covariance of the observations about the mean (the spread of one observation; the
   filter judges data quality on it, as the paper's "position error covariance of the corner").
 - ``cov_map`` (what the map stores, the uncertainty of the map point that the localizer needs):
-  ``mean_i(Sigma_pose_i) / n_drives + max(Sigma_extract_info, cov_scatter / n_obs)``, where the pose part
+  ``mean_i(Sigma_pose_i) / n_drives + max(Sigma_extract_info, cov_scatter / n_ind)``, where the pose part
   does not average down within one drive (its error is correlated along the drive) but does across independent
   drives, and the extraction part is the larger (by trace) of the model, (sum_i Sigma_extract_i^-1)^-1, and the
-  empirical standard error of the mean. It is symmetric positive definite by construction.
+  empirical standard error of the mean over ``n_ind`` independent samples. With ``scatter_per_drive`` (the
+  stage's default) ``n_ind`` is the number of drives: one pass's observations of a corner share their extraction
+  error (the same walls, seen from viewpoints a few metres apart), so their scatter does not average down within
+  the pass; without it ``n_ind`` is the number of observations. It is symmetric positive definite by construction.
+- ``cov_extract_mean``: the extraction part with ``n_ind`` = the number of observations, what the quality filter
+  judges (``filtering.py``), whichever the stored covariance counts.
 """
 from __future__ import annotations
 
@@ -42,6 +47,7 @@ class ClusterSummary:
     interior_angle_rad: np.ndarray
     convex: np.ndarray  # majority vote
     cov_pose_m2: np.ndarray | None = None  # (K,2,2) the pose-graph part of cov_map (frame uncertainty)
+    cov_extract_mean_m2: np.ndarray | None = None  # (K,2,2) extraction part averaged over every observation
 
 
 def _sum2x2(labels: np.ndarray, m: np.ndarray, k: int) -> np.ndarray:
@@ -61,8 +67,10 @@ def _inv_spd(m: np.ndarray) -> np.ndarray:
 
 
 def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.ndarray, drive_names: list[str],
-                       stamp_ns: np.ndarray, interior_angle_rad: np.ndarray, convex: np.ndarray) -> ClusterSummary:
-    """Summarise observations grouped by ``labels`` (0..K-1); ``drive_code`` indexes ``drive_names``."""
+                       stamp_ns: np.ndarray, interior_angle_rad: np.ndarray, convex: np.ndarray,
+                       scatter_per_drive: bool = False) -> ClusterSummary:
+    """Summarise observations grouped by ``labels`` (0..K-1); ``drive_code`` indexes ``drive_names``;
+    ``scatter_per_drive``: the empirical extraction part counts one independent sample per drive."""
     k = int(labels.max()) + 1 if len(labels) else 0
     n_obs = np.bincount(labels, minlength=k)
 
@@ -93,9 +101,13 @@ def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.
 
     cov_pose_mean = _sum2x2(labels, obs.cov_pose_m2, k) / n_obs[:, None, None] / n_drives[:, None, None]
     extract_info = np.linalg.inv(_sum2x2(labels, _inv_spd(obs.cov_corner_m2), k))
-    standard_error = scatter / n_obs[:, None, None]
-    use_empirical = np.trace(standard_error, axis1=1, axis2=2) > np.trace(extract_info, axis1=1, axis2=2)
-    cov_map = cov_pose_mean + np.where(use_empirical[:, None, None], standard_error, extract_info)
+    def extraction_part(n_independent: np.ndarray) -> np.ndarray:
+        standard_error = scatter / n_independent[:, None, None]
+        use_empirical = np.trace(standard_error, axis1=1, axis2=2) > np.trace(extract_info, axis1=1, axis2=2)
+        return np.where(use_empirical[:, None, None], standard_error, extract_info)
+
+    extract_mean = extraction_part(n_obs)
+    cov_map = cov_pose_mean + (extraction_part(n_drives) if scatter_per_drive else extract_mean)
     cov_map = 0.5 * (cov_map + cov_map.transpose(0, 2, 1)) + _COV_FLOOR_M2 * np.eye(2)
 
     first_seen = np.full(k, np.iinfo(np.int64).max)
@@ -108,7 +120,7 @@ def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.
         en_m=en, theta_rad=theta, cov_map_m2=cov_map, cov_scatter_m2=scatter, angle_spread_rad=spread,
         n_obs=n_obs.astype(np.int64), n_drives=n_drives, drives=drives, first_seen_ns=first_seen,
         last_seen_ns=last_seen, interior_angle_rad=np.mod(interior, 2.0 * np.pi), convex=convex_share >= 0.5,
-        cov_pose_m2=cov_pose_mean,
+        cov_pose_m2=cov_pose_mean, cov_extract_mean_m2=extract_mean,
     )
 
 

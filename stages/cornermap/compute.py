@@ -109,7 +109,7 @@ def compute(ctx) -> dict[str, Any]:
 
     def summarise(lab):
         return aggregate_clusters(lab, obs, drive_code, drive_names, col("stamp_ns"), col("interior_angle_rad"),
-                                  col("convex"))
+                                  col("convex"), scatter_per_drive=p.extraction_error_per_drive)
 
     summary = summarise(labels)
     duplicate, n_merged = np.zeros(len(summary.n_obs), bool), 0

@@ -34,7 +34,12 @@ def reject_reasons(summary: ClusterSummary, th: FilterThresholds) -> list[str]:
     # The gate judges the corner itself (extraction and scatter), not the pose graph's absolute uncertainty: that
     # part is a frame error shared by every corner nearby (GNSS-anchored marginals of 0.1-0.3 m), which the map
     # still stores in cov_map but which says nothing about whether this cluster is a good landmark.
-    relative = cov - summary.cov_pose_m2 if summary.cov_pose_m2 is not None else cov
+    # Its extraction part is averaged over every observation, whether or not the stored one counts a drive's
+    # observations as one sample (aggregate.py).
+    if summary.cov_extract_mean_m2 is not None:
+        relative = summary.cov_extract_mean_m2
+    else:
+        relative = cov - summary.cov_pose_m2 if summary.cov_pose_m2 is not None else cov
     trace = np.trace(relative, axis1=1, axis2=2) if k else np.empty(0)
     rules = [
         (non_pd, lambda i: "non_positive_definite: map covariance not SPD"),

@@ -33,7 +33,12 @@ class CornerMapParams(Params):
     # CHANGELOG.md (evaluation measurements, the tiny diagnosis).
     max_spread_m: float = Field(0.25, gt=0.0,
                                 description="largest std of the observations' scatter about the mean")
-    max_cov_trace_m2: float = Field(0.01, gt=0.0, description="trace of the stored map covariance")
+    max_cov_trace_m2: float = Field(0.01, gt=0.0, description="trace of the extraction part of the map covariance, "
+                                    "averaged over every observation")
+    extraction_error_per_drive: bool = Field(True, description="the stored covariance's empirical extraction part "
+                                             "is the observations' scatter over the number of drives (one pass's "
+                                             "views share their extraction error); false: over the number of "
+                                             "observations")
     max_angle_spread_deg: float = Field(6.0, gt=0.0, description="circular std of either wall direction")
 
     @model_validator(mode="after")

@@ -92,3 +92,42 @@ def test_non_finite_covariance_is_rejected_not_stored():
     bad.cov_pose_m2[0] = np.nan
     s = _aggregate(np.zeros(20, np.int64), bad)
     assert reject_reasons(s, TH)[0].startswith("non_positive_definite")
+
+
+def _pass_errors(rng, n_clusters: int, n_per: int, sigma_m: float, rho: float) -> np.ndarray:
+    """(n_clusters, n_per, 2) extraction errors along one pass: AR(1) from scan to scan (correlation ``rho``),
+    stationary std ``sigma_m`` per axis: consecutive views of a corner share most of their error."""
+    e = np.empty((n_clusters, n_per, 2))
+    e[:, 0] = rng.normal(0, sigma_m, (n_clusters, 2))
+    for i in range(1, n_per):
+        e[:, i] = rho * e[:, i - 1] + np.sqrt(1 - rho**2) * rng.normal(0, sigma_m, (n_clusters, 2))
+    return e
+
+
+def test_scatter_counted_once_per_drive_keeps_the_map_covariance_honest_under_correlated_views():
+    """300 corners, each seen in 40 scans of one pass whose extraction errors are correlated from scan to scan
+    (AR(1), rho 0.95): the mean keeps most of the pass's error. Counting the scatter over the 40 observations
+    claims a ~10x smaller std than the mean's error (NEES ~100x its 2); counting it once per drive leaves the NEES
+    within a factor 3 of 2 (the scatter of strongly correlated views understates their error). Two independent
+    passes halve the per-drive part."""
+    rng = np.random.default_rng(31)
+    k, n_per, sigma = 300, 40, 0.03
+    truth = rng.uniform(-500, 500, (k, 2))
+    labels = np.repeat(np.arange(k), n_per)
+    en = (truth[:, None, :] + _pass_errors(rng, k, n_per, sigma, 0.95)).reshape(-1, 2)
+    theta = np.tile([0.0, np.pi / 2], (k * n_per, 1))
+    obs = _obs(en, theta, sigma_m=0.001, pose_m=0.0001)
+    code = np.zeros(k * n_per, np.int64)
+    nees = {}
+    for per_drive in (False, True):
+        s = aggregate_clusters(labels, obs, code, ["d0"], np.arange(k * n_per, dtype=np.int64),
+                               np.full(k * n_per, np.pi / 2), np.ones(k * n_per, bool), scatter_per_drive=per_drive)
+        r = s.en_m - truth
+        nees[per_drive] = float(np.mean(np.einsum("ni,ni->n", r, np.linalg.solve(s.cov_map_m2, r[..., None])[..., 0])))
+        # the quality filter judges the same quantity either way
+        np.testing.assert_allclose(s.cov_extract_mean_m2, s.cov_scatter_m2 / n_per, rtol=1e-9)
+    assert nees[False] > 100.0 and 1.0 < nees[True] < 6.0, nees
+    two = aggregate_clusters(labels, obs, np.arange(k * n_per) % 2, ["d0", "d1"], np.arange(k * n_per, dtype=np.int64),
+                             np.full(k * n_per, np.pi / 2), np.ones(k * n_per, bool), scatter_per_drive=True)
+    np.testing.assert_allclose(two.cov_map_m2 - two.cov_pose_m2,
+                               two.cov_scatter_m2 / 2 + 1e-8 * np.eye(2), rtol=1e-6)
