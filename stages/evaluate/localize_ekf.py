@@ -69,6 +69,9 @@ class EkfConfig:
     map_consider: bool = True
     consider_forget_m: float = 120.0
     map_cov_scale: float = 1.0  # multiplies the map's stored corner covariances (see params.ekf_map_cov_scale)
+    # Correlation of two map corners' errors at distance d, share * exp(-d / length) (consider.MapCorrelation)
+    map_corr_share: float = 0.0
+    map_corr_length_m: float = 50.0
     # ICP motion model: the gyro bias as a 4th state carried by the wheel/gyro increments that replace failed or
     # gated ICP ones (``run_ekf``'s ``from_gyro``), with gyro_bias_sigma_rad_s / gyro_bias_rw_rad_s_per_sqrt_s.
     icp_gyro_bias_state: bool = False
@@ -212,6 +215,7 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     state = ekf.EkfState(q_init, P_init)
     gyro_fused = gyro_yaw_rad if cfg.icp_gyro_fusion else None
     held = consider.empty(len(q_init))
+    corr = consider.MapCorrelation(cfg.map_corr_share, cfg.map_corr_length_m)
     n_icp = 0
     for k in range(start_epoch, n):
         if k > start_epoch:
@@ -234,7 +238,7 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
                     if cfg.wall_heading_sigma_rad > 0:
                         yaw_walls = wall_headings_rad(obs.dirs_vehicle_rad[lo:hi][a.meas_idx], cmap.dirs_enu_rad[idx])
                     if cfg.map_consider:
-                        held, _ = consider.add(held, idx, cmap.cov_m2[idx])
+                        held, _ = consider.add(held, idx, cmap.cov_m2[idx], cmap.en_m, corr)
                         state, held, _ = consider.update(state, held, a.z_meas, idx, cmap.en_m[idx],
                                                          a.R_blocks - a.R_map_blocks, yaw_walls,
                                                          cfg.wall_heading_sigma_rad)

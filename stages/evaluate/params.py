@@ -62,6 +62,10 @@ class EvaluateParams(Params):
     ekf_map_consider: bool = Field(True, description="map-corner errors as Schmidt consider states (shared by every "
                                    "epoch using the corner, not fresh noise per epoch; evaluate/consider.py)")
     ekf_map_cov_scale: float = Field(1.0, gt=0, description="multiplies the map's stored corner covariances")
+    ekf_map_corr_share: float = Field(0.0, ge=0, lt=1, description="with the consider states: correlation of two "
+                                      "map corners' errors at distance d is share * exp(-d / ekf_map_corr_length_m) "
+                                      "(corners seen from one stretch of the survey drive share its pose error)")
+    ekf_map_corr_length_m: float = Field(50.0, gt=0, description="length of that correlation")
     # icp motion model, issue 28 (heading between corners): the gyro bias as a 4th state. The wheel/gyro increments
     # that replace failed or gated ICP ones drift with it, so the heading std grows with the time spent on them
     # (as the error does), not with the square root of their number; the gyro's heading change also measures each
@@ -168,6 +172,7 @@ class EvaluateParams(Params):
                          bearing_sigma_floor_rad=np.deg2rad(self.bearing_sigma_floor_deg),
                          wall_heading_sigma_rad=np.deg2rad(self.wall_heading_sigma_deg),
                          map_consider=self.ekf_map_consider, map_cov_scale=self.ekf_map_cov_scale,
+                         map_corr_share=self.ekf_map_corr_share, map_corr_length_m=self.ekf_map_corr_length_m,
                          gyro_bias_sigma_rad_s=np.deg2rad(self.ekf_gyro_bias_sigma_deg_s),
                          gyro_bias_rw_rad_s_per_sqrt_s=np.deg2rad(self.ekf_gyro_bias_rw_deg_s_per_sqrt_s),
                          wheel_scale_sigma=self.ekf_wheel_scale_sigma,
