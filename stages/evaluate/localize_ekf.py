@@ -69,7 +69,7 @@ class EkfConfig:
     map_consider: bool = True
     consider_forget_m: float = 120.0
     map_cov_scale: float = 1.0  # multiplies the map's stored corner covariances (see params.ekf_map_cov_scale)
-    # Correlation of two map corners' errors at distance d, share * exp(-d / length) (consider.MapCorrelation)
+    # Correlation of two map corners' errors at distance d, share * exp(-d^2 / 2 length^2) (consider.MapCorrelation)
     map_corr_share: float = 0.0
     map_corr_length_m: float = 50.0
     # ICP motion model: the gyro bias as a 4th state carried by the wheel/gyro increments that replace failed or

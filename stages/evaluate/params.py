@@ -63,8 +63,9 @@ class EvaluateParams(Params):
                                    "epoch using the corner, not fresh noise per epoch; evaluate/consider.py)")
     ekf_map_cov_scale: float = Field(1.0, gt=0, description="multiplies the map's stored corner covariances")
     ekf_map_corr_share: float = Field(0.0, ge=0, lt=1, description="with the consider states: correlation of two "
-                                      "map corners' errors at distance d is share * exp(-d / ekf_map_corr_length_m) "
-                                      "(corners seen from one stretch of the survey drive share its pose error)")
+                                      "map corners' errors at distance d is share * exp(-d^2 / (2 L^2)), L = "
+                                      "ekf_map_corr_length_m (corners seen from one stretch of the survey drive share "
+                                      "its pose error)")
     ekf_map_corr_length_m: float = Field(50.0, gt=0, description="length of that correlation")
     # icp motion model, issue 28 (heading between corners): the gyro bias as a 4th state. The wheel/gyro increments
     # that replace failed or gated ICP ones drift with it, so the heading std grows with the time spent on them

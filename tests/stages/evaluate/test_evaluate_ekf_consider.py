@@ -20,9 +20,10 @@ N_EPOCHS, N_RUNS = 300, 30
 
 def correlated_map_errors(rng: np.random.Generator, corners: np.ndarray, share: float, length_m: float
                           ) -> np.ndarray:
-    """(K,2) map errors of std MAP_SIGMA_M per axis, correlated share * exp(-d / length_m) between corners."""
+    """(K,2) map errors of std MAP_SIGMA_M per axis, correlated share * exp(-d^2 / 2 length_m^2) between
+    corners."""
     d = np.linalg.norm(corners[:, None] - corners[None], axis=2)
-    K = share * np.exp(-d / length_m)
+    K = share * np.exp(-0.5 * (d / length_m) ** 2)
     np.fill_diagonal(K, 1.0)
     L = np.linalg.cholesky(K * MAP_SIGMA_M**2)
     return L @ rng.standard_normal((len(corners), 2))
@@ -82,7 +83,7 @@ def test_shared_map_errors_as_consider_states_keep_the_nees_in_its_band():
 
 
 def test_correlated_map_errors_need_the_correlation_in_the_consider_states():
-    """Map errors correlated 0.6 exp(-d / 50 m) between corners (what the demo maps show against the truth): the
+    """Map errors correlated 0.6 exp(-d^2 / 2 (50 m)^2) between corners (the demo maps against the truth): the
     consider states that know the correlation keep the Monte-Carlo NEES near 3; independent ones average the
     shared part away over the 2-4 corners in view and are overconfident."""
     base = dict(icp_sigma_frac=0.0, icp_sigma_xy_m=ICP_XY, icp_sigma_yaw_rad=ICP_YAW, sensor_range_m=40.0,
