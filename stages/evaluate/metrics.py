@@ -132,10 +132,16 @@ def summarize_localized(errors: Errors, n_associated: np.ndarray, stamps_ns: np.
     return out
 
 
-def align_truth_to_map(map_en_m: np.ndarray, truth_en_m: np.ndarray, max_match_m: float = 1.5,
-                       min_pairs: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def align_truth_to_map(map_en_m: np.ndarray, truth_en_m: np.ndarray, max_match_m: float = 1.5, min_pairs: int = 3,
+                       inlier_floor_m: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Rigid transform from the truth frame to the map frame, fitted on map corners matched to their nearest true
-    corner (within ``max_match_m``): (R, t, residuals_m of the matched map corners), or None (< ``min_pairs``).
+    corner: (R, t, residuals_m of the inlier map corners), or None (< ``min_pairs``).
+
+    Pairs start as mutual nearest neighbours within ``max_match_m`` (a GNSS-level offset); the fit is then repeated
+    on the pairs whose residual is under ``max(inlier_floor_m, 3 x 1.4826 x median residual)``, re-matched through
+    the current fit, until the set stops changing: a map corner that is no true corner (street furniture, a chamfer
+    vertex, a false corner) 1-1.5 m from one would otherwise pull the fit (demo seed 1: 3 such pairs gave a fit
+    residual of 0.32 m RMS against 0.025 m for the 53 true pairs).
 
     With a GNSS-level pose graph the map frame is offset from the truth by the map drive's GNSS bias; truth moved
     by this transform is the map-relative reference the localizer can be held to (``truth_in_map``)."""
@@ -147,11 +153,23 @@ def align_truth_to_map(map_en_m: np.ndarray, truth_en_m: np.ndarray, max_match_m
     )
     if len(map_en) < min_pairs or len(truth_en) == 0:
         return None
-    d, j = cKDTree(truth_en).query(map_en)
-    ok = d <= max_match_m
-    if ok.sum() < min_pairs:
-        return None
-    R, t = fit_rigid_2d(truth_en[j[ok]], map_en[ok])
+    tree_t = cKDTree(truth_en)
+    d, j = tree_t.query(map_en)
+    _, back = cKDTree(map_en).query(truth_en[j])
+    ok = (d <= max_match_m) & (back == np.arange(len(map_en)))
+    R, t = np.eye(2), np.zeros(2)
+    for _ in range(20):
+        if ok.sum() < min_pairs:
+            return None
+        R, t = fit_rigid_2d(truth_en[j[ok]], map_en[ok])
+        moved = truth_en @ R.T + t
+        d, j = cKDTree(moved).query(map_en)
+        _, back = cKDTree(map_en).query(moved[j])
+        limit = max(inlier_floor_m, 3.0 * 1.4826 * float(np.median(d[ok])))
+        new_ok = (d <= limit) & (back == np.arange(len(map_en)))
+        if np.array_equal(new_ok, ok):
+            break
+        ok = new_ok
     return R, t, np.linalg.norm(truth_en[j[ok]] @ R.T + t - map_en[ok], axis=1)
 
 

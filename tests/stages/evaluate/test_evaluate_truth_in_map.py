@@ -52,3 +52,20 @@ def test_align_truth_to_map_needs_three_matches():
     truth = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
     assert align_truth_to_map(truth[:2] + 0.1, truth) is None
     assert align_truth_to_map(truth + 5.0, truth) is None  # nothing within 1.5 m
+
+
+def test_align_truth_to_map_leaves_out_map_corners_that_are_no_true_corner():
+    """40 map corners of a known transform (2 cm noise) and 6 decoys 1.2-1.45 m from a true corner (street furniture,
+    a chamfer's other vertex): the fit recovers the transform as without the decoys and leaves them out."""
+    rng = np.random.default_rng(9)
+    truth = rng.uniform(-300, 300, (60, 2))
+    R, t = _transform(np.deg2rad(0.2), [0.4, -0.7])
+    mapped = truth[:40] @ R.T + t + rng.normal(0, 0.02, (40, 2))
+    ang = rng.uniform(0, 2 * np.pi, 6)
+    decoys = truth[40:46] @ R.T + t + rng.uniform(1.2, 1.45, (6, 1)) * np.column_stack([np.cos(ang), np.sin(ang)])
+    R_fit, t_fit, resid = align_truth_to_map(np.vstack([mapped, decoys]), truth)
+    R_ref, t_ref, _ = align_truth_to_map(mapped, truth)
+    assert len(resid) == 40 and resid.max() < 0.1
+    q = np.array([[150.0, -200.0, 0.3]])
+    assert np.allclose(transform_poses(q, R_fit, t_fit)[:, :2], transform_poses(q, R_ref, t_ref)[:, :2], atol=1e-9)
+    assert np.allclose(transform_poses(q, R_fit, t_fit)[:, :2], transform_poses(q, R, t)[:, :2], atol=0.02)
