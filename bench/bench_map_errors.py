@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 BINS_M = (0.0, 15.0, 40.0, 80.0, 150.0, 300.0, 1e9)
+MIN_FIT_PAIRS = 50  # a kernel from fewer pairs says nothing (a tiny city's 4 corners give 6)
 
 
 def residuals(root: Path, name: str | None, version: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -93,8 +94,14 @@ def main(argv: list[str] | None = None) -> None:
             print(f"  pairs {lo:.0f}-{hi:.0f} m: {n}, correlation {c:+.2f}")
         ens.append(en + 1e6 * len(ens))  # roots apart: no cross-root pairs under the fit distance
         rs.append(r / np.sqrt(np.mean(np.sum(r**2, 1))))
-    share, length = fit_kernel(np.vstack(ens), np.vstack(rs), args.fit_max_m)
-    print(f"fitted kernel (pairs under {args.fit_max_m:g} m, {len(args.root)} root(s)): share {share:.2f}, "
+    en_all = np.vstack(ens)
+    n_pairs = int(np.sum(np.linalg.norm(en_all[:, None] - en_all[None], axis=2)[np.triu_indices(len(en_all), 1)]
+                         < args.fit_max_m))
+    if n_pairs < MIN_FIT_PAIRS:
+        print(f"no kernel fitted: {n_pairs} pairs under {args.fit_max_m:g} m (fewer than {MIN_FIT_PAIRS})")
+        return
+    share, length = fit_kernel(en_all, np.vstack(rs), args.fit_max_m)
+    print(f"fitted kernel ({n_pairs} pairs under {args.fit_max_m:g} m, {len(args.root)} root(s)): share {share:.2f}, "
           f"length {length:.0f} m")
 
 
