@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if not KITTI.is_dir():
         raise SystemExit(f"{KITTI}: the KITTI samples are not there")
-    root, workflow = build(args.work)
+    root, workflow = build(args.work.resolve())  # child processes run from the repository
     result = {} if args.no_rerun else rerun_markings(root, workflow, yaml.safe_load(args.params.read_text())
                                                      if args.params else {})
     numbers, fig = measure(root)

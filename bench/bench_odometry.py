@@ -154,7 +154,8 @@ def _settings(opts: dict) -> str:
 
 
 def report_kitti(folder: Path, threads: list[int], opts: dict) -> None:
-    results = run_all({"mode": "kitti", "dir": str(folder), **opts}, _engines(kiss_available()), threads)
+    spec = {"mode": "kitti", "dir": str(Path(folder).resolve()), **opts}
+    results = run_all(spec, _engines(kiss_available()), threads)
     n = results[0][1]
     print(f"\n## KITTI {folder.name}: {n} real HDL-64E scans, no per-point time (no deskew), lidar "
           f"{KITTI_LIDAR_HEIGHT_M} m above the vehicle origin, ICP-only ({_settings(opts)})\n")
@@ -190,7 +191,7 @@ def report_kitti(folder: Path, threads: list[int], opts: dict) -> None:
 
 
 def report_sim(sim: Path, drive: str, n_max: int | None, threads: list[int], opts: dict) -> None:
-    base = {"mode": "sim", "dir": str(sim), "drive": drive, "scans": n_max, **opts}
+    base = {"mode": "sim", "dir": str(Path(sim).resolve()), "drive": drive, "scans": n_max, **opts}
     results = run_all(base, _engines(kiss_available(), ["ours lidar-only"]), threads)
     n = results[0][1]
     truth = truth_at_scans(sim / "truth" / f"{drive}_poses_tum.txt", sim_files(sim, drive, n_max))
