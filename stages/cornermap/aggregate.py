@@ -46,8 +46,8 @@ class ClusterSummary:
     last_seen_ns: np.ndarray
     interior_angle_rad: np.ndarray
     convex: np.ndarray  # majority vote
+    cov_extract_mean_m2: np.ndarray  # (K,2,2) extraction part averaged over every observation (the filter's)
     cov_pose_m2: np.ndarray | None = None  # (K,2,2) the pose-graph part of cov_map (frame uncertainty)
-    cov_extract_mean_m2: np.ndarray | None = None  # (K,2,2) extraction part averaged over every observation
 
 
 def _sum2x2(labels: np.ndarray, m: np.ndarray, k: int) -> np.ndarray:
@@ -101,6 +101,7 @@ def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.
 
     cov_pose_mean = _sum2x2(labels, obs.cov_pose_m2, k) / n_obs[:, None, None] / n_drives[:, None, None]
     extract_info = np.linalg.inv(_sum2x2(labels, _inv_spd(obs.cov_corner_m2), k))
+
     def extraction_part(n_independent: np.ndarray) -> np.ndarray:
         standard_error = scatter / n_independent[:, None, None]
         use_empirical = np.trace(standard_error, axis1=1, axis2=2) > np.trace(extract_info, axis1=1, axis2=2)

@@ -36,11 +36,7 @@ def reject_reasons(summary: ClusterSummary, th: FilterThresholds) -> list[str]:
     # still stores in cov_map but which says nothing about whether this cluster is a good landmark.
     # Its extraction part is averaged over every observation, whether or not the stored one counts a drive's
     # observations as one sample (aggregate.py).
-    if summary.cov_extract_mean_m2 is not None:
-        relative = summary.cov_extract_mean_m2
-    else:
-        relative = cov - summary.cov_pose_m2 if summary.cov_pose_m2 is not None else cov
-    trace = np.trace(relative, axis1=1, axis2=2) if k else np.empty(0)
+    trace = np.trace(summary.cov_extract_mean_m2, axis1=1, axis2=2) if k else np.empty(0)
     rules = [
         (non_pd, lambda i: "non_positive_definite: map covariance not SPD"),
         (summary.n_obs < th.min_obs, lambda i: f"few_observations: {summary.n_obs[i]} < {th.min_obs}"),
