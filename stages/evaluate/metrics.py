@@ -153,20 +153,22 @@ def align_truth_to_map(map_en_m: np.ndarray, truth_en_m: np.ndarray, max_match_m
     )
     if len(map_en) < min_pairs or len(truth_en) == 0:
         return None
-    tree_t = cKDTree(truth_en)
-    d, j = tree_t.query(map_en)
-    _, back = cKDTree(map_en).query(truth_en[j])
-    ok = (d <= max_match_m) & (back == np.arange(len(map_en)))
-    R, t = np.eye(2), np.zeros(2)
+    map_tree = cKDTree(map_en)
+
+    def match(truth_moved: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per map corner: distance to its nearest moved true corner, that corner, and whether they are mutual."""
+        d, j = cKDTree(truth_moved).query(map_en)
+        return d, j, map_tree.query(truth_moved[j])[1] == np.arange(len(map_en))
+
+    d, j, mutual = match(truth_en)
+    ok = (d <= max_match_m) & mutual
     for _ in range(20):
         if ok.sum() < min_pairs:
             return None
         R, t = fit_rigid_2d(truth_en[j[ok]], map_en[ok])
-        moved = truth_en @ R.T + t
-        d, j = cKDTree(moved).query(map_en)
-        _, back = cKDTree(map_en).query(moved[j])
+        d, j, mutual = match(truth_en @ R.T + t)
         limit = max(inlier_floor_m, 3.0 * 1.4826 * float(np.median(d[ok])))
-        new_ok = (d <= limit) & (back == np.arange(len(map_en)))
+        new_ok = (d <= limit) & mutual
         if np.array_equal(new_ok, ok):
             break
         ok = new_ok

@@ -128,7 +128,7 @@ def metrics_table_text(doc: dict) -> str:
     short = ("rms_2d", "p95_2d", "p99_2d", "max_2d", "hdg_rms_deg", "lat_rms", "lon_rms", "mean|x|", "mean|y|",
              "mean|hdg|deg", "nees_mean", "epochs")
     head = f"{'method':<8} {'ref':<14} " + " ".join(f"{k:>12}" for k in short)
-    lines = [head]
+    lines, with_startup = [head], False
     for m, entry in doc["methods"].items():
         for ref_name, summary in (("map", entry.get("map_relative")), ("truth", entry.get("absolute")),
                                   ("truth_in_map", entry.get("truth_in_map"))):
@@ -142,7 +142,7 @@ def metrics_table_text(doc: dict) -> str:
                     v = row.get(k)
                     vals.append(f"{'-':>12}" if v is None else (f"{v:>12d}" if isinstance(v, int) else f"{v:>12.4f}"))
                 lines.append(f"{m:<8} {name:<14} " + " ".join(vals))
-    if any((e.get(r) or {}).get("all_epochs") for e in doc["methods"].values()
-           for r in ("map_relative", "absolute", "truth_in_map")):
+                with_startup |= row is not summary
+    if with_startup:
         lines.append("ekf rows: from its first map-corner association on; '+s': all epochs, start-up included")
     return "\n".join(lines)

@@ -123,9 +123,13 @@ def evaluate_drive(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher 
     gap = int(cfg.reference_max_gap_s * 1e9)
     refs = {name: interpolate_poses(d.stamps_ns, st, q, gap) for name, (st, q) in references.items() if len(st)}
     k0 = first_fix(d)
-    metrics = {m: {name: (summarize_localized(compute_errors(r.q, ref, r.P), r.n_associated, d.stamps_ns, k0)
-                          if m == "ekf" and cfg.ekf_judge_after_startup else summarize(compute_errors(r.q, ref, r.P)))
-                   for name, ref in refs.items()}
-               for m, r in runs.items()}
+
+    def score(method: str, r: MethodRun, ref: np.ndarray) -> dict:
+        errors = compute_errors(r.q, ref, r.P)
+        if method == "ekf" and cfg.ekf_judge_after_startup:
+            return summarize_localized(errors, r.n_associated, d.stamps_ns, k0)
+        return summarize(errors)
+
+    metrics = {m: {name: score(m, r, ref) for name, ref in refs.items()} for m, r in runs.items()}
     primary = next((name for name in JUDGE_ORDER if name in refs), None)
     return Evaluation(d.stamps_ns, runs, refs, metrics, primary)
