@@ -148,7 +148,8 @@ class MarkingAnchorConfig:
 class AnchorConfig(_Parallel):
     """Survey anchors: one keyframe per ``stride_m``, its ground registration, its marking match (when
     ``use_markings``; heading prior of ``yaw_sigma_deg``, 0: none), the consensus check of the horizontal anchors,
-    keyframes matched in blocks of ``block``, in parallel processes from ``parallel_min_items`` on."""
+    keyframes matched in blocks of ``block``, in parallel processes from ``parallel_min_items`` on; matched again
+    from the anchored estimate (at most ``rounds`` in all) while a round moves a pose more than ``round_tol_*``."""
 
     stride_m: float
     ground: GroundAnchorConfig
@@ -160,6 +161,9 @@ class AnchorConfig(_Parallel):
     consensus_probability: float
     block: int
     parallel_min_items: int
+    rounds: int
+    round_tol_m: float
+    round_tol_deg: float
 
 
 @dataclass(frozen=True)
@@ -226,7 +230,8 @@ class PosegraphConfig:
             yaw_sigma_deg=p.survey_marking_yaw_sigma_deg, consensus_window_m=p.survey_marking_consensus_window_m,
             consensus_drift_sigma_m=p.survey_marking_consensus_drift_sigma_m,
             consensus_probability=p.survey_marking_consensus_probability, block=p.survey_marking_block,
-            parallel_min_items=p.parallel_min_items)
+            parallel_min_items=p.parallel_min_items, rounds=p.survey_rounds, round_tol_m=p.survey_round_tol_m,
+            round_tol_deg=p.survey_round_tol_deg)
         solve = SolveConfig(max_iterations=p.max_iterations, lm_relative_error_tol=p.lm_relative_error_tol,
                             fixed_prior_sigma_m=p.fixed_prior_sigma_m, compute_marginals=p.compute_marginals)
         return cls(factors, gnss, loops, anchors, solve)

@@ -121,6 +121,13 @@ class PosegraphParams(Params):
     survey_marking_consensus_drift_sigma_m: float = Field(0.10, gt=0, description="how much the pass-2 estimate's "
                                                           "error may differ between anchors of one window")
     survey_marking_consensus_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of that check")
+    survey_rounds: int = Field(3, ge=1, description="anchoring rounds at most: the anchors are matched again from the "
+                               "anchored estimate while the previous round moved a pose by more than the tolerances "
+                               "below (a match made from an estimate 1 deg off loses the anchors the consensus "
+                               "check cannot reconcile; docs/posegraph.md)")
+    survey_round_tol_m: float = Field(0.10, gt=0, description="a round that moved no pose horizontally by more than "
+                                      "this (and no heading by more than survey_round_tol_deg) is the last")
+    survey_round_tol_deg: float = Field(0.10, gt=0, description="see survey_round_tol_m")
     parallel_min_items: int = Field(32, ge=1, description="independent registrations (loop candidates, survey "
                                     "anchors) run in parallel processes (or cluster tasks) from this many on; "
                                     "fewer run in the stage's own process. Results do not depend on it")

@@ -38,7 +38,7 @@ def summarize_solution(drives, sol, top_k: int = 10) -> dict:
         "gnss_residual_horizontal_rms_m": float(np.sqrt(np.mean(h ** 2))) if h.size else None,
         "gnss_residual_horizontal_max_m": float(h.max()) if h.size else None,
         "loops_candidates": len(sol.loops), "loops_accepted": sum(r.accepted for r in sol.loops),
-        "largest_edge_residuals": edges, "timings_s": sol.timings_s,
+        "largest_edge_residuals": edges, "timings_s": sol.timings_s, "survey_rounds": sol.survey_rounds,
     }
 
 

@@ -27,6 +27,7 @@ class Solution:
     problem: Problem
     loops: list[LoopRecord] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
+    survey_rounds: list[dict] = field(default_factory=list)  # one record per anchoring round (``anchored``)
 
 
 def optimize_with_loops(problem: Problem, loops: list[LoopRecord], loop_cfg: LoopConfig, solve_cfg: SolveConfig,
@@ -123,17 +124,50 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     solve_times: list[float] = []
     poses = optimize_with_loops(problem, loops, lc, cfg.solve, solve_times_s=solve_times, initial=poses)
     t3 = time.perf_counter()
+    rounds: list[dict] = []
     if survey_priors is not None:
-        anchors = survey_priors(poses, offsets)
-        if anchors:
-            problem.pose_priors += anchors
-            poses = optimize(problem, **lm, gnc_loops=lc.kernel == "gnc", initial=poses)
+        poses = anchored(problem, poses, offsets, survey_priors, cfg.anchors, rounds,
+                         lambda initial: optimize(problem, **lm, gnc_loops=lc.kernel == "gnc", initial=initial))
     t4 = time.perf_counter()
     log.info("posegraph: %d poses, %d candidates, %d loops accepted", len(poses), len(cands),
              sum(r.accepted for r in loops))
     return Solution(poses, problem, loops, {"pass1_s": t1 - t0, "loops_s": t2 - t1, "pass23_s": t3 - t2,
                                             "survey_s": t4 - t3, "n_loop_solves": len(solve_times),
-                                            "loop_solve_max_s": max(solve_times, default=0.0)})
+                                            "loop_solve_max_s": max(solve_times, default=0.0)}, rounds)
+
+
+def pose_change(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Largest horizontal position change (m) and heading change (deg) between two (N, 4, 4) trajectories."""
+    if not len(a):
+        return 0.0, 0.0
+    moved_m = float(np.max(np.linalg.norm(b[:, :2, 3] - a[:, :2, 3], axis=1)))
+    yaw = lambda T: np.arctan2(T[:, 1, 0], T[:, 0, 0])  # noqa: E731
+    turned = np.angle(np.exp(1j * (yaw(b) - yaw(a))))
+    return moved_m, float(np.rad2deg(np.max(np.abs(turned))))
+
+
+def anchored(problem, poses: np.ndarray, offsets: np.ndarray,
+             survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]], cfg, rounds_out: list[dict],
+             solve: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """The survey anchors matched from ``poses``, solved, and matched again from the anchored estimate while a
+    round moves a pose more than ``cfg.round_tol_m`` / ``cfg.round_tol_deg`` (at most ``cfg.rounds`` rounds). Each
+    round replaces the previous round's anchors; ``rounds_out`` gets one record per round."""
+    base = list(problem.pose_priors)
+    for r in range(cfg.rounds):
+        anchors = survey_priors(poses, offsets)
+        if not anchors:
+            break
+        problem.pose_priors = base + anchors
+        new = solve(poses)
+        moved_m, turned_deg = pose_change(poses, new)
+        poses = new
+        rounds_out.append({"round": r + 1, "anchors": len(anchors), "max_moved_m": moved_m,
+                           "max_turned_deg": turned_deg})
+        log.info("survey anchors, round %d: %d anchors; poses moved up to %.3f m, %.3f deg", r + 1, len(anchors),
+                 moved_m, turned_deg)
+        if moved_m <= cfg.round_tol_m and turned_deg <= cfg.round_tol_deg:
+            break
+    return poses
 
 
 def solve_reference(drive: DriveInput, map_drives: list[DriveInput], map_poses: np.ndarray, load: ScanLoader,

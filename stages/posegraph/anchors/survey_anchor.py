@@ -170,7 +170,7 @@ def marking_blocks(keys: np.ndarray, offsets: np.ndarray, block: int) -> list[tu
 def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, cfg: AnchorConfig, matches_out: list | None = None,
                            survey_intensity: np.ndarray | None = None, feature_load=None, report_step=None):
     """A ``survey_priors(poses, offsets)`` callback for ``solve_map``: anchors keyframes every
-    ``cfg.stride_m`` that the survey covers; every match (accepted or not) is appended to ``matches_out``.
+    ``cfg.stride_m`` that the survey covers; every match of the last call (accepted or not) is left in ``matches_out``.
     With the survey's intensities and a ``feature_load``er (scans with intensity and ring), each keyframe is
     also matched horizontally on the painted markings (``survey_markings``)."""
     from pipeline.parallel import parallel_map
@@ -205,8 +205,8 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, cfg: AnchorCo
             found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
             matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets,
                                          cfg)
-        if matches_out is not None:
-            matches_out.extend(matches)
+        if matches_out is not None:  # the last round's matches
+            matches_out[:] = matches
         return survey_priors(matches, yaw_sigma_rad=np.deg2rad(cfg.yaw_sigma_deg))
 
     return callback

@@ -109,8 +109,11 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
 
 def best_yaw_match(match_at: Callable[[float], MarkingMatch], search_rad: float, step_rad: float) -> MarkingMatch:
     """The match at the submap heading that scores best: a grid of ``step_rad`` over +-``search_rad``, a parabola
-    through the best grid value and its neighbours, and the match at its vertex (kept when it scores at least
-    the grid's best). The returned match carries that heading correction in ``yaw_rad``."""
+    through the best grid value and its neighbours, and the match at its vertex. The vertex is the heading estimate
+    even where its own score comes out a little under the grid's best (the raster's sampling noise): keeping the
+    grid value instead quantizes the heading to the grid step, and a later anchoring round, started near the
+    right heading, then reads exactly 0 and holds the estimate where it is. The returned match carries that
+    heading correction in ``yaw_rad``."""
     from dataclasses import replace
 
     yaws = np.arange(-np.ceil(search_rad / step_rad), np.ceil(search_rad / step_rad) + 1) * step_rad
@@ -123,9 +126,7 @@ def best_yaw_match(match_at: Callable[[float], MarkingMatch], search_rad: float,
         den = lo - 2 * mid + hi
         if den < 0:
             y = best_yaw + float(np.clip(0.5 * (lo - hi) / den, -0.5, 0.5)) * step_rad
-            m = match_at(y)
-            if m.score >= best.score:
-                best, best_yaw = m, y
+            best, best_yaw = match_at(y), y
     return replace(best, yaw_rad=best_yaw)
 
 

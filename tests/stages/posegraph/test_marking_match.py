@@ -166,3 +166,33 @@ def test_turned_submap_is_matched_at_its_heading_and_its_shift_is_unbiased():
     err_plain = np.linalg.norm(plain.shift_en_m - true_shift)
     err_found = np.linalg.norm(found.shift_en_m - true_shift)
     assert err_found < 0.03 and err_found < 0.5 * err_plain, (err_found, err_plain)
+
+
+def test_a_turn_under_the_grid_step_is_estimated_not_rounded_to_the_grid():
+    """Turns of 0.05-0.2 deg, well under the 0.5 deg grid step (what a second anchoring round sees), with a score
+    that reads 0.01 lower off the grid (on tiny seed 11's second round 5 of 8 real anchors scored their parabola's
+    vertex under the grid's best): the heading estimate follows the turn instead of reading the grid's 0 (a 0
+    would hold the estimate where it is)."""
+    from dataclasses import replace
+
+    from stages.posegraph.anchors.survey_markings import best_yaw_match
+
+    mask = intersection_mask()
+    key = np.array([-12.0, -2.0])
+    errors = []
+    turns_deg = [0.05, -0.1, 0.15, -0.2, 0.1, -0.05]
+    for k, turn_deg in enumerate(turns_deg):
+        pts = sample_features(mask, (0.0, 0.0), np.random.default_rng(30 + k), outlier_share=0.05, noise_m=0.01)
+        t = np.deg2rad(turn_deg)
+        feats = (pts - key) @ np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]).T + key
+
+        def match_at(yaw_rad, feats=feats):
+            c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+            m = match_markings((feats - key) @ np.array([[c, s], [-s, c]]) + key, mask, ORIGIN, CELL_M)
+            on_grid = abs(np.degrees(yaw_rad) / 0.5 - round(np.degrees(yaw_rad) / 0.5)) < 1e-6
+            return m if on_grid else replace(m, score=m.score - 0.01)
+
+        found = best_yaw_match(match_at, np.deg2rad(1.5), np.deg2rad(0.5))
+        assert found.accepted, found.reason
+        errors.append(np.degrees(found.yaw_rad) + turn_deg)
+    assert np.sqrt(np.mean(np.square(errors))) < 0.5 * np.sqrt(np.mean(np.square(turns_deg))), errors

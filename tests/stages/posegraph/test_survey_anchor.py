@@ -92,3 +92,40 @@ def test_matched_heading_becomes_a_yaw_prior_only_when_asked():
     assert np.isclose(yaw(with_yaw.T_map_vehicle), 0.3 - np.deg2rad(0.4))
     assert np.allclose(with_yaw.T_map_vehicle[:3, 3], plain.T_map_vehicle[:3, 3])  # position unchanged
     assert np.isclose(with_yaw.information[2, 2], np.deg2rad(0.2) ** -2)  # level vehicle: body z = map up
+
+
+def test_anchoring_rounds_match_again_from_the_anchored_estimate(two_lap_drive):
+    """Matches that keep 40 % of the error of the estimate they start from (a submap placed with a wrong heading
+    matches short of the truth): one round leaves the graph that share off; rounds re-matched from the anchored
+    estimate converge onto the truth, and stop once a round moves no pose more than the tolerances."""
+    from stages.posegraph.solve import anchored
+
+    T_true, drive = two_lap_drive
+    keep = 0.4
+
+    def callback(poses, offsets):
+        matches = []
+        for i in range(0, len(T_true), 10):
+            shift = (1 - keep) * (T_true[i, :2, 3] - poses[i, :2, 3])
+            matches.append(SurveyMatch(i, poses[i], np.zeros((6, 6)), 0.0, 0.0, False, "no ground",
+                                       MarkingMatch(shift, np.eye(2) / 0.03 ** 2, 0.8, 1000, True, "accepted")))
+        return survey_priors(matches)
+
+    errors, records = {}, {}
+    for n_rounds in (1, 4):
+        cfg = posegraph_config(survey_rounds=n_rounds, survey_round_tol_m=0.09, survey_round_tol_deg=0.5)
+        problem, offsets = base_problem([drive], cfg.factors, cfg.gnss)
+        start = optimize(problem)
+        rounds: list[dict] = []
+        poses = anchored(problem, start, offsets, callback, cfg.anchors, rounds,
+                         lambda initial, problem=problem: optimize(problem, initial=initial))
+        errors[n_rounds], records[n_rounds] = rms(horizontal_errors_m(poses, T_true)), rounds
+        assert len(problem.pose_priors) == len(range(0, len(T_true), 10)) + len(
+            base_problem([drive], cfg.factors, cfg.gnss)[0].pose_priors)  # a round replaces the previous anchors
+    before = rms(horizontal_errors_m(start, T_true))
+    assert before > 0.15, before
+    assert errors[1] > 0.25 * before, (before, errors)
+    assert errors[4] < 0.05 and errors[4] < 0.4 * errors[1], (before, errors)
+    moved = [r["max_moved_m"] for r in records[4]]
+    assert len(records[1]) == 1 and moved == sorted(moved, reverse=True), records
+    assert len(moved) < 4 and moved[-1] <= 0.09 < moved[-2], moved  # stopped by the tolerance, not the cap
