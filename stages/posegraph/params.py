@@ -123,12 +123,17 @@ class PosegraphParams(Params):
                                                           "error may differ between anchors of one window")
     survey_marking_consensus_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of that check")
     survey_rounds: int = Field(3, ge=1, description="anchoring rounds at most: the anchors are matched again from the "
-                               "anchored estimate while the previous round moved a pose by more than the tolerances "
-                               "below (a match made from an estimate 1 deg off loses the anchors the consensus "
-                               "check cannot reconcile; docs/posegraph.md)")
-    survey_round_tol_m: float = Field(0.10, gt=0, description="a round that moved no pose horizontally by more than "
-                                      "this (and no heading by more than survey_round_tol_deg) is the last")
-    survey_round_tol_deg: float = Field(0.10, gt=0, description="see survey_round_tol_m")
+                               "anchored estimate while the previous round turned a pose by more than "
+                               "survey_round_tol_deg or moved one by more than survey_round_tol_m (a match made from "
+                               "an estimate 1 deg off loses the anchors the consensus check cannot reconcile; "
+                               "docs/posegraph.md)")
+    survey_round_tol_m: float = Field(1.0, gt=0, description="half the marking search (survey_marking_search_m): the "
+                                      "shift search is exhaustive, so an estimate that was only shifted, by less than "
+                                      "this, is matched the same again")
+    survey_round_tol_deg: float = Field(0.05, gt=0, description="a round that turned no pose by more than this (and "
+                                        "moved none by more than survey_round_tol_m) is the last: the heading error is "
+                                        "what a match inherits through its submap's lever arm. The map-frame target's "
+                                        "value (0.10 left tiny calibration seed 7 at -0.053 deg after one round)")
     parallel_min_items: int = Field(32, ge=1, description="independent registrations (loop candidates, survey "
                                     "anchors) run in parallel processes (or cluster tasks) from this many on; "
                                     "fewer run in the stage's own process. Results do not depend on it")
