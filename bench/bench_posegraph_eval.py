@@ -5,7 +5,11 @@ first: ``cornermap run WF --only posegraph`` or the whole workflow) and the simu
 prints per drive the RTK/INS-only and optimised figures of ``stages.common.trajectory_metrics.summarize`` and the
 map-vs-reference agreement (revisit pairs across the drives, within ``--pair-radius-m`` in truth).
 
-    .venv/bin/python -m bench.bench_posegraph_eval -w workflows/gangnam.yaml [--root runs/gangnam]
+    .venv/bin/python -m bench.bench_posegraph_eval -w workflows/gangnam.yaml [--root runs/gangnam] [--params P.yaml]
+
+``--params`` is the file the run was made with (``cornermap run tiny --root R --params P.yaml``): without it the plan
+is the workflow's own and finds nothing committed. The benches are not installed with the product: run them from
+the checkout, or with ``PYTHONPATH=CHECKOUT`` from elsewhere.
 """
 from __future__ import annotations
 
@@ -33,10 +37,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-w", "--workflow", type=Path, required=True)
     ap.add_argument("--root", type=Path, default=None, help="default: the workflow's root")
+    ap.add_argument("--params", type=Path, default=None, help="the --params file the run was made with")
     ap.add_argument("--pair-radius-m", type=float, default=8.0)
     args = ap.parse_args()
 
     from bench.bench_posegraph import truth_poses
+    from pipeline.api import load_param_file
     from pipeline.plan import make_plan
     from pipeline.store import dataset_dir
     from pipeline.workflow import load_workflow
@@ -44,7 +50,7 @@ def main() -> None:
     from stages.common.geometry import fit_rigid_2d
     from stages.common.records import Trajectory
 
-    wf = load_workflow(args.workflow)
+    wf = load_workflow(args.workflow, param_overrides=load_param_file(args.params))
     plan = make_plan(wf, wf.root_dir(args.root))
     sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"
     optimized = committed(plan, "posegraph", "poses", "poses_optimized").read("poses")
