@@ -178,7 +178,7 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
                     "increments (GNSS/INS pose differences where ICP failed: %d of %d epochs), features not deskewed",
                     drive, int((~np.all(np.isfinite(icp[1:]), axis=1)).sum()), len(stamps))
     corners = read_corners(_rows_of(ctx, "corners", drive), scan_ids, T_vl)
-    if "mcl" in p.methods:
+    if "mcl" in p.methods or ("ekf" in p.methods and p.ekf_markings):
         track = track_from_table(odo) if p.feature_deskew and odo is not None else None
         f_ep, f_xy = extract_features(ctx, drive, scan_ids, T_vl, p, track)
     else:
@@ -262,9 +262,10 @@ def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays,
     prev = previous_version(reader)
     if prev is None:
         return None, None
-    prev_cmap, _ = map_inputs(prev, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config())
+    prev_cmap, prev_fetch = map_inputs(prev, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config())
     cfg_prev = p.model_copy(update={"methods": ["ekf"]}).evaluation_config()
-    ev_prev = evaluate_drive(d, prev_cmap, None, read_references(ctx, drive, reader.origin, p, prev_cmap), cfg_prev)
+    ev_prev = evaluate_drive(d, prev_cmap, prev_fetch, read_references(ctx, drive, reader.origin, p, prev_cmap),
+                             cfg_prev)
     ref = judged_reference(ev.metrics, "ekf")
     if ref == "truth_in_map":  # fitted on each version's own corners: compare against the common absolute truth
         ref = "truth"

@@ -174,3 +174,25 @@ def update(state: EkfState, cs: ConsiderSet, z_meas: np.ndarray, corner_idx: np.
     P_new = A @ P @ A.T - A @ Pxc @ B.T - B @ Pxc.T @ A.T + B @ Cf @ B.T + K @ R @ K.T
     Pxc_new = A @ Pxc - K @ HcCf
     return EkfState(q, 0.5 * (P_new + P_new.T)), ConsiderSet(cs.idx, Pxc_new, cs.C, cs.Cf), nu
+
+
+def update_linear(state: EkfState, cs: ConsiderSet, H_pose: np.ndarray, innovation: np.ndarray,
+                  variance: np.ndarray) -> tuple[EkfState, ConsiderSet]:
+    """Schmidt-Kalman update with r independent linear measurements of the pose that do not involve the map
+    corners (``H_pose`` (r,3) on x, y, yaw; e.g. ``ekf_markings``): the corners' errors stay as they are, the
+    cross-covariance goes through ``I - K H``. Joseph form."""
+    H_pose = np.asarray(H_pose, dtype=float).reshape(-1, 3)
+    if len(H_pose) == 0:
+        return state, cs
+    nx = len(state.q)
+    H = np.zeros((len(H_pose), nx))
+    H[:, :3] = H_pose
+    R = np.diag(np.asarray(variance, dtype=float))
+    PHt = state.P @ H.T
+    S = H @ PHt + R
+    K = np.linalg.solve(0.5 * (S + S.T), PHt.T).T
+    q = state.q + K @ np.asarray(innovation, dtype=float)
+    q[2] = wrap_angle_rad(q[2])
+    A = np.eye(nx) - K @ H
+    P = A @ state.P @ A.T + K @ R @ K.T
+    return EkfState(q, 0.5 * (P + P.T)), ConsiderSet(cs.idx, A @ cs.P_xc, cs.C, cs.Cf)

@@ -80,6 +80,21 @@ class EkfConfig:
     # With the fusion and ``run_ekf``'s ``wheel_fallback``: an ICP increment whose heading change is this far
     # (chi-square 1 dof) from the bias-corrected gyro's is replaced by the wheel/gyro increment (0 = off).
     icp_gyro_gate_chi2: float = 0.0
+    # Road markings (``ekf_markings``): each scan's road features against the map's marking raster, with the MCL's
+    # likelihood (gain per effective point, effective points, decorrelation travel, features per scan), applied
+    # along the directions it informs beyond marking_min_info (in units of the prior's information), gated at
+    # marking_gate_probability (chi-square, as many dof as directions). Needs ``run_ekf``'s features and fetcher.
+    markings: bool = False
+    marking_sharpness: float = 5.0
+    marking_effective_points: float = 60.0
+    marking_decorrelation_m: float = 0.5
+    marking_max_features: int = 400
+    marking_min_features: int = 10
+    marking_min_info: float = 0.05
+    marking_gate_probability: float = 0.999
+    marking_grid_n: int = 7
+    marking_window_m: float = 240.0
+    marking_feature_range_m: float = 30.0
 
 
 @dataclass(frozen=True)
@@ -89,6 +104,7 @@ class EkfRun:
     n_associated: np.ndarray  # (E,) int
     assoc_epoch: np.ndarray  # (A,) epoch of every association
     assoc_map_idx: np.ndarray  # (A,) index into CornerMap rows
+    marking_rows: np.ndarray | None = None  # (E,) directions the road markings measured (-1: gated out)
 
 
 def corners_to_vehicle(T_vehicle_lidar: np.ndarray, xy_lidar_m: np.ndarray, cov_lidar_m2: np.ndarray,
@@ -176,7 +192,8 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
             start_epoch: int, cfg: EkfConfig = EkfConfig(), wheel_increments: np.ndarray | None = None,
             stamps_ns: np.ndarray | None = None, icp_cov: np.ndarray | None = None,
             from_gyro: np.ndarray | None = None, gyro_yaw_rad: np.ndarray | None = None,
-            wheel_fallback: np.ndarray | None = None) -> EkfRun:
+            wheel_fallback: np.ndarray | None = None, feature_epoch: np.ndarray | None = None,
+            features_vehicle_m: np.ndarray | None = None, fetch=None) -> EkfRun:
     """Run the filter from ``start_epoch`` (initialised with q0, P0 there) to the last epoch.
 
     With ``wheel_increments`` (E,3) and ``stamps_ns`` the state carries the gyro bias and the wheel scale error
@@ -184,6 +201,8 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     are fused with the bias-corrected wheel/gyro increments. Without them: the paper's ICP-only motion model; with
     ``cfg.icp_gyro_bias_state``, ``from_gyro`` (E,) (the epochs whose increment is the wheel/gyro one, ICP having
     failed or been gated) and ``stamps_ns``, the state carries the gyro bias those increments drift with.
+    With ``cfg.markings``, ``feature_epoch`` (F,) sorted, ``features_vehicle_m`` (F,2) and ``fetch`` (a marking
+    raster fetcher, as the MCL's), every scan's road features also measure the pose (``ekf_markings``).
     """
     from scipy.spatial import cKDTree
 
@@ -217,12 +236,15 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     held = consider.empty(len(q_init))
     corr = consider.MapCorrelation(cfg.map_corr_share, cfg.map_corr_length_m)
     n_icp = 0
+    marks = _Markings(cfg, feature_epoch, features_vehicle_m, fetch, n) if cfg.markings else None
     for k in range(start_epoch, n):
         if k > start_epoch:
             state, used, Phi = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg, from_gyro,
                                        gyro_fused, wheel_fallback)
             held = consider.forget(consider.propagate(held, Phi), state.q, cmap.en_m, cfg.consider_forget_m)
             n_icp += used
+            if marks is not None:
+                marks.travel += float(np.hypot(*state_step(increments[k])))
         lo, hi = off[k], off[k + 1]
         if hi > lo and tree is not None:
             near = np.asarray(tree.query_ball_point(state.q[:2], cfg.sensor_range_m), dtype=np.int64)
@@ -247,13 +269,73 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
                                               cfg.wall_heading_sigma_rad)
                     n_assoc[k] = len(idx)
                     a_epoch.append(np.full(len(idx), k)), a_map.append(idx)
+        if marks is not None:
+            state, held = marks.update(k, state, held)
         q_out[k], P_out[k] = state.q[:3], state.P[:3, :3]
+    if marks is not None:
+        used = marks.rows[marks.rows > 0]
+        log.info("ekf: road markings measured the pose at %d epochs (%.1f directions on average), %d gated out",
+                 len(used), float(used.mean()) if len(used) else 0.0, int((marks.rows < 0).sum()))
     if wheel_increments is not None:
         log.info("ekf: %d of %d motion updates used ICP; gyro bias at the end %.4f +- %.4f deg/s, wheel scale error "
                  "%.4f +- %.4f", n_icp, n - start_epoch - 1, np.degrees(state.q[3]), np.degrees(np.sqrt(state.P[3, 3])),
                  state.q[4], np.sqrt(state.P[4, 4]))
     cat = (lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64))
-    return EkfRun(q_out, P_out, n_assoc, cat(a_epoch), cat(a_map))
+    return EkfRun(q_out, P_out, n_assoc, cat(a_epoch), cat(a_map), None if marks is None else marks.rows)
+
+
+def state_step(increment: np.ndarray) -> np.ndarray:
+    """(2,) translation of an increment, zero where it is missing."""
+    t = np.asarray(increment, dtype=float)[:2]
+    return np.where(np.isfinite(t), t, 0.0)
+
+
+class _Markings:
+    """The EKF's road-marking measurement over a drive (``ekf_markings``): features per epoch, the raster window
+    about the vehicle, the travel since the last update (consecutive scans repeat most of their evidence: the
+    log-likelihood is tempered by ``min(1, travel / marking_decorrelation_m)``, as the MCL's)."""
+
+    def __init__(self, cfg: EkfConfig, feature_epoch, features_vehicle_m, fetch, n: int):
+        if fetch is None or feature_epoch is None or features_vehicle_m is None:
+            raise ValueError("run_ekf: cfg.markings needs feature_epoch, features_vehicle_m and fetch")
+        from scipy.stats import chi2
+
+        self.cfg, self.fetch = cfg, fetch
+        self.feats = np.asarray(features_vehicle_m, dtype=float).reshape(-1, 2)
+        self.off = np.searchsorted(np.asarray(feature_epoch), np.arange(n + 1))
+        self.raster = None
+        self.travel = np.inf  # the first scan is a full measurement
+        self.rows = np.zeros(n, dtype=np.int32)
+        self.gate = {r: float(chi2.ppf(cfg.marking_gate_probability, r)) for r in (1, 2, 3)}
+
+    def update(self, k: int, state: ekf.EkfState, held: consider.ConsiderSet
+               ) -> tuple[ekf.EkfState, consider.ConsiderSet]:
+        from stages.evaluate.ekf_markings import marking_measurement
+
+        cfg = self.cfg
+        feats = self.feats[self.off[k]:self.off[k + 1]]
+        alpha = min(1.0, self.travel / cfg.marking_decorrelation_m) if cfg.marking_decorrelation_m > 0 else 1.0
+        if len(feats) < cfg.marking_min_features or alpha <= 0:
+            return state, held
+        if len(feats) > cfg.marking_max_features:  # evenly spaced, deterministic
+            feats = feats[np.linspace(0, len(feats) - 1, cfg.marking_max_features).astype(np.int64)]
+        reach = cfg.marking_feature_range_m + 4.0 * float(np.sqrt(np.max(np.diag(state.P)[:2])))
+        if self.raster is None or not self.raster.contains(state.q[0] - reach, state.q[1] - reach,
+                                                           state.q[0] + reach, state.q[1] + reach):
+            half = 0.5 * max(cfg.marking_window_m, 2.0 * reach)
+            self.raster = self.fetch(state.q[0] - half, state.q[1] - half, state.q[0] + half, state.q[1] + half)
+        gain = alpha * cfg.marking_sharpness * min(float(len(feats)), cfg.marking_effective_points)
+        m = marking_measurement(state.q[:3], state.P[:3, :3], feats, self.raster, gain, cfg.marking_min_info,
+                                cfg.marking_grid_n)
+        self.travel = 0.0
+        r = len(m.innovation)
+        if r == 0:
+            return state, held
+        if m.chi2 > self.gate[r]:
+            self.rows[k] = -1
+            return state, held
+        self.rows[k] = r
+        return consider.update_linear(state, held, m.H, m.innovation, m.variance)
 
 
 def dead_reckon(increments: np.ndarray, q0: np.ndarray, start_epoch: int) -> np.ndarray:

@@ -47,6 +47,7 @@ class MclConfig:
     sigma_scale_per_sqrt_m: float = 1e-3  # its random walk (lets a scale that an early stretch got wrong recover)
     init_sigma_gyro_bias_radps: float = np.deg2rad(0.115)  # gyro bias std about 0 (0.002 rad/s)
     sigma_gyro_bias_per_sqrt_s: float = np.deg2rad(0.0057)  # its random walk [rad/s per sqrt(s)], 1e-4
+    init_sigma_gyro_gain: float = 0.0  # gyro gain (scale factor) std about 1 per particle (0 = not a state)
     epoch_s: float = 0.1  # scan period, used when the epoch stamps are not given
     # Measurement: log-likelihood = alpha * sharpness * min(F, effective_points) * correlation
     standstill_m: float = 1e-3  # a step shorter than this is a standstill: pose held, no update
@@ -79,7 +80,7 @@ class MclRun:
     q: np.ndarray  # (E,3), NaN before initialisation
     P: np.ndarray  # (E,3,3)
     n_features: np.ndarray  # (E,) int
-    calibration: np.ndarray | None = None  # (E,2) mean wheel scale and gyro bias [rad/s]
+    calibration: np.ndarray | None = None  # (E,2) mean wheel scale and gyro bias [rad/s] (E,3: and gyro gain)
     ess: np.ndarray | None = None  # (E,) effective sample size after the update
     score: np.ndarray | None = None  # (E,) prior-weighted mean correlation score of the scan
     injected: np.ndarray | None = None  # (E,) particles injected before the update
@@ -120,8 +121,8 @@ def _predict(particles: np.ndarray, calib: np.ndarray, increment: np.ndarray, st
     """Wheel + gyro prediction through each particle's calibration, then the calibration's own random walk."""
     particles = mcl.predict_particles(particles, increment, cfg.sigma_frac, cfg.sigma_xy_m, cfg.sigma_yaw_rad, rng,
                                       calib, dt_s, cfg.sigma_lateral_frac, cfg.sigma_yaw_frac)
-    calib = calib + rng.standard_normal(calib.shape) * [cfg.sigma_scale_per_sqrt_m * np.sqrt(step_m),
-                                                          cfg.sigma_gyro_bias_per_sqrt_s * np.sqrt(dt_s)]
+    walk = [cfg.sigma_scale_per_sqrt_m * np.sqrt(step_m), cfg.sigma_gyro_bias_per_sqrt_s * np.sqrt(dt_s)]
+    calib = calib + rng.standard_normal(calib.shape) * (walk + [0.0] * (calib.shape[1] - 2))  # the gain is constant
     return particles, calib
 
 
@@ -205,14 +206,15 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
     n = len(increments)
     q_out = np.full((n, 3), np.nan)
     P_out = np.full((n, 3, 3), np.nan)
-    cal_out = np.full((n, 2), np.nan)
+    cal_out = np.full((n, 2 + (cfg.init_sigma_gyro_gain > 0)), np.nan)
     ess_out = np.full(n, np.nan)
     score_out = np.full(n, np.nan)
     n_feat = np.zeros(n, dtype=np.int32)
     off = np.searchsorted(feature_epoch, np.arange(n + 1))
     dt = np.full(n, cfg.epoch_s) if stamps_ns is None else np.r_[cfg.epoch_s, np.diff(stamps_ns) * 1e-9]
     particles = mcl.init_particles(q0, cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad, cfg.n_particles, rng)
-    calib = mcl.init_calibration(cfg.n_particles, cfg.init_sigma_scale, cfg.init_sigma_gyro_bias_radps, rng)
+    calib = mcl.init_calibration(cfg.n_particles, cfg.init_sigma_scale, cfg.init_sigma_gyro_bias_radps, rng,
+                                 cfg.init_sigma_gyro_gain)
     weights = np.full(cfg.n_particles, 1.0 / cfg.n_particles)
     raster = _window_around(q0, fetch, cfg)
     margin = cfg.feature_range_m + 3.0 * cfg.init_sigma_xy_m

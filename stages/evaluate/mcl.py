@@ -69,10 +69,15 @@ def init_particles(q0: np.ndarray, sigma_xy_m: float, sigma_yaw_rad: float, n: i
     return particles
 
 
-def init_calibration(n: int, sigma_scale: float, sigma_gyro_bias_radps: float, rng: np.random.Generator
-                     ) -> np.ndarray:
-    """(N,2) per-particle odometry calibration: wheel-speed scale factor about 1, gyro bias [rad/s] about 0."""
-    return np.column_stack([1.0 + sigma_scale * rng.standard_normal(n), sigma_gyro_bias_radps * rng.standard_normal(n)])
+def init_calibration(n: int, sigma_scale: float, sigma_gyro_bias_radps: float, rng: np.random.Generator,
+                     sigma_gyro_gain: float = 0.0) -> np.ndarray:
+    """(N,2) per-particle odometry calibration: wheel-speed scale factor about 1, gyro bias [rad/s] about 0; with
+    ``sigma_gyro_gain`` > 0 a third column, the gyro's gain about 1 (true turn = gain * (gyro turn - bias dt): a
+    gyro's scale error is one number for a drive, so a turn's heading error is systematic, not white)."""
+    cols = [1.0 + sigma_scale * rng.standard_normal(n), sigma_gyro_bias_radps * rng.standard_normal(n)]
+    if sigma_gyro_gain > 0:
+        cols.append(1.0 + sigma_gyro_gain * rng.standard_normal(n))
+    return np.column_stack(cols)
 
 
 def predict_particles(particles: np.ndarray, increment: np.ndarray, sigma_frac: float, sigma_xy_m: float,
@@ -82,7 +87,8 @@ def predict_particles(particles: np.ndarray, increment: np.ndarray, sigma_frac: 
     """Apply an odometry increment (dx, dy, dyaw in the previous vehicle frame) with per-particle noise.
 
     With ``calibration`` (N,2) each particle scales the translation by its wheel scale and removes its gyro bias
-    times ``dt_s`` from the heading change. Noise: along track ``sigma_frac * |t| + sigma_xy_m``, across track
+    times ``dt_s`` from the heading change; a third column, when present, multiplies that heading change (the
+    gyro's gain). Noise: along track ``sigma_frac * |t| + sigma_xy_m``, across track
     ``sigma_lateral_frac * |t| + sigma_xy_m`` (default: as along track), heading
     ``sigma_yaw_rad + sigma_yaw_frac * |dyaw|``.
     """
@@ -92,6 +98,7 @@ def predict_particles(particles: np.ndarray, increment: np.ndarray, sigma_frac: 
     lat_frac = sigma_frac if sigma_lateral_frac is None else sigma_lateral_frac
     scale = 1.0 if calibration is None else calibration[:, 0]
     bias = 0.0 if calibration is None else calibration[:, 1] * dt_s
+    gain = 1.0 if calibration is None or calibration.shape[1] < 3 else calibration[:, 2]
     ux, uy = (increment[0] / dist, increment[1] / dist) if dist > 0 else (1.0, 0.0)
     along = dist * scale + (sigma_frac * dist + sigma_xy_m) * eps[:, 0]
     across = (lat_frac * dist + sigma_xy_m) * eps[:, 1]
@@ -100,7 +107,7 @@ def predict_particles(particles: np.ndarray, increment: np.ndarray, sigma_frac: 
     out = np.empty_like(particles)
     out[:, 0] = particles[:, 0] + c * dx - s * dy
     out[:, 1] = particles[:, 1] + s * dx + c * dy
-    dyaw = increment[2] - bias + (sigma_yaw_rad + sigma_yaw_frac * abs(increment[2])) * eps[:, 2]
+    dyaw = gain * (increment[2] - bias) + (sigma_yaw_rad + sigma_yaw_frac * abs(increment[2])) * eps[:, 2]
     out[:, 2] = wrap_angle_rad(particles[:, 2] + dyaw)
     return out
 

@@ -82,6 +82,13 @@ class EvaluateParams(Params):
                                     "gyro with the innovation's variance (chi-square 1 dof at "
                                     "ekf_icp_gate_probability) instead of icp_wheel_gate_deg (calibrated on "
                                     "tiny seeds 7/21/22, validated on tiny seeds 41-46)")
+    ekf_markings: bool = Field(True, description="each scan's road features also measure the EKF's pose against "
+                               "the map's marking raster, with the MCL's likelihood (mcl_sharpness, "
+                               "mcl_effective_points, mcl_decorrelation_m, mcl_max_features): the lateral position "
+                               "and heading between corners (evaluate/ekf_markings.py; on by the tiny calibration "
+                               "seeds 7 / 21 / 22: EKF p99 0.193 / 0.084 / 0.083 m -> 0.097 / 0.057 / 0.047)")
+    ekf_marking_min_info: float = Field(0.05, gt=0, description="a direction the markings inform less than this "
+                                        "share of the prior's information is not measured")
     # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and
     # gyro bias; weights from the correlation of the scan's features with a distance likelihood field; low-variance
     # resampling; progressive correction and guarded injection (see localize_mcl.MclConfig for the measurements).
@@ -98,6 +105,9 @@ class EvaluateParams(Params):
     mcl_sigma_scale_per_sqrt_m: float = Field(1e-3, ge=0, description="random walk of the wheel scale")
     mcl_init_sigma_gyro_bias_deg_s: float = Field(0.115, ge=0, description="gyro bias std per particle, deg/s")
     mcl_sigma_gyro_bias_deg_s_per_sqrt_s: float = Field(0.0057, ge=0, description="random walk of the gyro bias")
+    mcl_init_sigma_gyro_gain: float = Field(0.0, ge=0, description="gyro gain (scale factor) std about 1 per "
+                                            "particle (0 = not a state): a turn's heading error is the gain's, "
+                                            "systematic over the drive")
     mcl_decorrelation_m: float = Field(0.5, ge=0, description="travel after which a scan counts fully (0 = always)")
     mcl_sharpness: float = Field(5.0, gt=0, description="log-likelihood gain per effective feature point")
     mcl_effective_points: float = Field(60.0, gt=0)
@@ -186,7 +196,11 @@ class EvaluateParams(Params):
                          icp_gyro_bias_state=self.ekf_icp_gyro_bias_state, icp_gyro_fusion=self.ekf_icp_gyro_fusion,
                          heading_rw_rad_per_sqrt_s=np.deg2rad(self.ekf_heading_rw_deg_per_sqrt_s),
                          icp_gyro_gate_chi2=(float(chi2.ppf(self.ekf_icp_gate_probability, 1))
-                                             if self.ekf_icp_gyro_gate else 0.0))
+                                             if self.ekf_icp_gyro_gate else 0.0),
+                         markings=self.ekf_markings, marking_sharpness=self.mcl_sharpness,
+                         marking_effective_points=self.mcl_effective_points,
+                         marking_decorrelation_m=self.mcl_decorrelation_m, marking_max_features=self.mcl_max_features,
+                         marking_min_info=self.ekf_marking_min_info, marking_feature_range_m=self.feature_max_range_m)
 
     def mcl_config(self) -> MclConfig:
         """The MCL's ``localize_mcl.MclConfig`` (every mcl_* field; angles in degrees here, radians there)."""
@@ -202,6 +216,7 @@ class EvaluateParams(Params):
                          sigma_scale_per_sqrt_m=self.mcl_sigma_scale_per_sqrt_m,
                          init_sigma_gyro_bias_radps=np.deg2rad(self.mcl_init_sigma_gyro_bias_deg_s),
                          sigma_gyro_bias_per_sqrt_s=np.deg2rad(self.mcl_sigma_gyro_bias_deg_s_per_sqrt_s),
+                         init_sigma_gyro_gain=self.mcl_init_sigma_gyro_gain,
                          decorrelation_m=self.mcl_decorrelation_m, sharpness=self.mcl_sharpness,
                          effective_points=self.mcl_effective_points, max_features=self.mcl_max_features,
                          max_inject=self.mcl_max_inject, inject_sigma_xy_m=self.mcl_inject_sigma_xy_m,

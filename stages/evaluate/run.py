@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -90,18 +90,25 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
     runs["icp_dr"] = MethodRun(dead_reckon(d.icp_increments, q0, k0), None, np.zeros(n, np.int32))
     if "ekf" in cfg.methods and cmap is not None:
         t0 = time.perf_counter()
+        marks = {}
+        if cfg.ekf.markings and fetch is not None and len(d.feature_epoch):
+            marks = {"feature_epoch": d.feature_epoch, "features_vehicle_m": d.features_vehicle_m, "fetch": fetch}
+        elif cfg.ekf.markings:
+            log.warning("ekf: the road-marking measurement is on, but the %s; the EKF runs on corners alone",
+                        "map has no marking raster" if fetch is None else "drive has no road features")
+        ekf_cfg = cfg.ekf if marks or not cfg.ekf.markings else replace(cfg.ekf, markings=False)
         if cfg.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
-            r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, cfg.ekf,
-                        wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov)
+            r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, ekf_cfg,
+                        wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov, **marks)
         elif (cfg.ekf.icp_gyro_gate_chi2 > 0 and cfg.ekf.icp_gyro_fusion and cfg.ekf.icp_gyro_bias_state
               and d.icp_raw_increments is not None):
             failed = ~np.all(np.isfinite(d.icp_raw_increments), axis=1)  # the gate is the filter's, not the angle
             inc = np.where(failed[:, None], d.odo_increments, d.icp_raw_increments)
-            r = run_ekf(inc, d.corners, cmap, q0, P0, k0, cfg.ekf, stamps_ns=d.stamps_ns, from_gyro=failed,
-                        gyro_yaw_rad=d.odo_increments[:, 2], wheel_fallback=d.odo_increments)
+            r = run_ekf(inc, d.corners, cmap, q0, P0, k0, ekf_cfg, stamps_ns=d.stamps_ns, from_gyro=failed,
+                        gyro_yaw_rad=d.odo_increments[:, 2], wheel_fallback=d.odo_increments, **marks)
         else:
-            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, cfg.ekf, stamps_ns=d.stamps_ns,
-                        from_gyro=gyro_increments(d), gyro_yaw_rad=d.odo_increments[:, 2])
+            r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_cfg, stamps_ns=d.stamps_ns,
+                        from_gyro=gyro_increments(d), gyro_yaw_rad=d.odo_increments[:, 2], **marks)
         runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx)
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
     if "mcl" in cfg.methods and fetch is not None:
