@@ -22,7 +22,7 @@ Pure numpy, new arrays out.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -48,6 +48,10 @@ class ConsiderSet:
     P_xc: np.ndarray  # (n, 2m) cross-covariance of the vehicle state errors and the corners' (e, n) errors
     C: np.ndarray  # (m, 2, 2) the corners' own covariances (constant)
     Cf: np.ndarray | None = None  # (2m, 2m) their joint covariance (None: block diagonal of C)
+    # The marking raster's local offset (x, y, yaw) as a consider parameter (``update_linear``'s map_offset): the
+    # cross-covariance (n, 3) with the vehicle errors and its own covariance (3, 3); None: not held.
+    P_xm: np.ndarray | None = None
+    Cm: np.ndarray | None = None
 
     def joint(self) -> np.ndarray:
         if self.Cf is not None:
@@ -82,7 +86,7 @@ def _cross(S_a: np.ndarray, en_a: np.ndarray, S_b: np.ndarray, en_b: np.ndarray,
 
 def propagate(cs: ConsiderSet, Phi: np.ndarray) -> ConsiderSet:
     """Motion: the corners do not move, the vehicle errors go through their transition ``Phi`` (n, n)."""
-    return ConsiderSet(cs.idx, Phi @ cs.P_xc, cs.C, cs.Cf)
+    return replace(cs, P_xc=Phi @ cs.P_xc, P_xm=None if cs.P_xm is None else Phi @ cs.P_xm)
 
 
 def forget(cs: ConsiderSet, xy_m: np.ndarray, corners_en_m: np.ndarray, forget_m: float) -> ConsiderSet:
@@ -92,7 +96,7 @@ def forget(cs: ConsiderSet, xy_m: np.ndarray, corners_en_m: np.ndarray, forget_m
     keep = np.hypot(*(corners_en_m[cs.idx] - np.asarray(xy_m)[:2]).T) <= forget_m
     cols = np.repeat(keep, 2)
     Cf = None if cs.Cf is None else cs.Cf[np.ix_(cols, cols)]
-    return ConsiderSet(cs.idx[keep], cs.P_xc[:, cols], cs.C[keep], Cf)
+    return replace(cs, idx=cs.idx[keep], P_xc=cs.P_xc[:, cols], C=cs.C[keep], Cf=Cf)
 
 
 def add(cs: ConsiderSet, idx: np.ndarray, C_blocks: np.ndarray, corners_en_m: np.ndarray | None = None,
@@ -107,9 +111,9 @@ def add(cs: ConsiderSet, idx: np.ndarray, C_blocks: np.ndarray, corners_en_m: np
         n = cs.P_xc.shape[0]
         C_new = np.asarray(C_blocks, float).reshape(-1, 2, 2)[new]
         if corr is None or corr.share <= 0.0:
-            held = ConsiderSet(np.concatenate([cs.idx, idx[new]]),
-                               np.hstack([cs.P_xc, np.zeros((n, 2 * int(new.sum())))]),
-                               np.concatenate([cs.C, C_new]))
+            held = replace(cs, idx=np.concatenate([cs.idx, idx[new]]),
+                           P_xc=np.hstack([cs.P_xc, np.zeros((n, 2 * int(new.sum())))]),
+                           C=np.concatenate([cs.C, C_new]), Cf=None)
         else:
             en = np.asarray(corners_en_m, float)
             S_old, S_new = _sqrt_spd(cs.C), _sqrt_spd(C_new)
@@ -121,8 +125,8 @@ def add(cs: ConsiderSet, idx: np.ndarray, C_blocks: np.ndarray, corners_en_m: np
             else:
                 P_xn = np.zeros((n, C_nn.shape[0]))
             Cf = np.block([[C_oo, C_on], [C_on.T, C_nn]])
-            held = ConsiderSet(np.concatenate([cs.idx, idx[new]]), np.hstack([cs.P_xc, P_xn]),
-                               np.concatenate([cs.C, C_new]), 0.5 * (Cf + Cf.T))
+            held = replace(cs, idx=np.concatenate([cs.idx, idx[new]]), P_xc=np.hstack([cs.P_xc, P_xn]),
+                           C=np.concatenate([cs.C, C_new]), Cf=0.5 * (Cf + Cf.T))
     pos = {int(k): i for i, k in enumerate(held.idx)}
     return held, np.array([pos[int(k)] for k in idx], dtype=np.int64)
 
@@ -173,26 +177,64 @@ def update(state: EkfState, cs: ConsiderSet, z_meas: np.ndarray, corner_idx: np.
     B = K @ Hc
     P_new = A @ P @ A.T - A @ Pxc @ B.T - B @ Pxc.T @ A.T + B @ Cf @ B.T + K @ R @ K.T
     Pxc_new = A @ Pxc - K @ HcCf
-    return EkfState(q, 0.5 * (P_new + P_new.T)), ConsiderSet(cs.idx, Pxc_new, cs.C, cs.Cf), nu
+    P_xm = None if cs.P_xm is None else A @ cs.P_xm  # the raster offset is independent of the corners
+    return EkfState(q, 0.5 * (P_new + P_new.T)), replace(cs, P_xc=Pxc_new, P_xm=P_xm), nu
+
+
+def with_map_offset(cs: ConsiderSet, n_state: int, Cm: np.ndarray) -> ConsiderSet:
+    """Hold the marking raster's local offset (x, y, yaw) with covariance ``Cm`` (3,3), uncorrelated so far."""
+    return replace(cs, P_xm=np.zeros((n_state, 3)), Cm=np.asarray(Cm, dtype=float))
+
+
+def decay_map_offset(cs: ConsiderSet, rho: float) -> ConsiderSet:
+    """The raster offset as a first-order Gauss-Markov process along the road, ``m' = rho m + w`` with ``Cm``
+    stationary: its cross-covariance with the vehicle errors decays by ``rho`` (``exp(-travel / length)``)."""
+    return cs if cs.P_xm is None else replace(cs, P_xm=rho * cs.P_xm)
 
 
 def update_linear(state: EkfState, cs: ConsiderSet, H_pose: np.ndarray, innovation: np.ndarray,
                   variance: np.ndarray) -> tuple[EkfState, ConsiderSet]:
     """Schmidt-Kalman update with r independent linear measurements of the pose that do not involve the map
     corners (``H_pose`` (r,3) on x, y, yaw; e.g. ``ekf_markings``): the corners' errors stay as they are, the
-    cross-covariance goes through ``I - K H``. Joseph form."""
+    cross-covariance goes through ``I - K H``. When ``cs`` holds the raster offset (``with_map_offset``) the
+    measurement is of the pose plus that offset (``z = H (pose + m) + v``): an offset shared by consecutive
+    scans is not averaged away. Joseph form."""
     H_pose = np.asarray(H_pose, dtype=float).reshape(-1, 3)
     if len(H_pose) == 0:
         return state, cs
     nx = len(state.q)
-    H = np.zeros((len(H_pose), nx))
-    H[:, :3] = H_pose
-    R = np.diag(np.asarray(variance, dtype=float))
-    PHt = state.P @ H.T
-    S = H @ PHt + R
-    K = np.linalg.solve(0.5 * (S + S.T), PHt.T).T
+    H, R, Pxm, Cm, Hm, PHt, S = _linear_parts(state, cs, H_pose, variance)
+    P = state.P
+    K = np.linalg.solve(S, PHt.T).T
     q = state.q + K @ np.asarray(innovation, dtype=float)
     q[2] = wrap_angle_rad(q[2])
     A = np.eye(nx) - K @ H
-    P = A @ state.P @ A.T + K @ R @ K.T
-    return EkfState(q, 0.5 * (P + P.T)), ConsiderSet(cs.idx, A @ cs.P_xc, cs.C, cs.Cf)
+    B = K @ Hm
+    P_new = A @ P @ A.T - A @ Pxm @ B.T - B @ Pxm.T @ A.T + B @ Cm @ B.T + K @ R @ K.T
+    P_xm = None if cs.P_xm is None else A @ Pxm - K @ Hm @ Cm
+    return EkfState(q, 0.5 * (P_new + P_new.T)), replace(cs, P_xc=A @ cs.P_xc, P_xm=P_xm)
+
+
+def _linear_parts(state: EkfState, cs: ConsiderSet, H_pose: np.ndarray, variance: np.ndarray):
+    nx = len(state.q)
+    H = np.zeros((len(H_pose), nx))
+    H[:, :3] = H_pose
+    R = np.diag(np.asarray(variance, dtype=float))
+    if cs.P_xm is None:
+        Pxm, Cm, Hm = np.zeros((nx, 3)), np.zeros((3, 3)), np.zeros_like(H_pose)
+    else:
+        Pxm, Cm, Hm = cs.P_xm, cs.Cm, H_pose
+    PHt = state.P @ H.T + Pxm @ Hm.T  # cov(x, innovation)
+    S = H @ PHt + Hm @ Pxm.T @ H.T + Hm @ Cm @ Hm.T + R
+    return H, R, Pxm, Cm, Hm, PHt, 0.5 * (S + S.T)
+
+
+def linear_chi2(state: EkfState, cs: ConsiderSet, H_pose: np.ndarray, innovation: np.ndarray,
+                variance: np.ndarray) -> float:
+    """Mahalanobis distance of ``update_linear``'s innovation under its full covariance (raster offset included)."""
+    H_pose = np.asarray(H_pose, dtype=float).reshape(-1, 3)
+    if len(H_pose) == 0:
+        return 0.0
+    S = _linear_parts(state, cs, H_pose, variance)[-1]
+    nu = np.asarray(innovation, dtype=float)
+    return float(nu @ np.linalg.solve(S, nu))

@@ -95,6 +95,11 @@ class EkfConfig:
     marking_grid_n: int = 7
     marking_window_m: float = 240.0
     marking_feature_range_m: float = 30.0
+    # The raster's own local error (the mapping drive's pose error where it painted), a Gauss-Markov offset along
+    # the road held as a consider parameter (``consider.with_map_offset``); 0 = the raster is taken as exact.
+    marking_map_sigma_m: float = 0.0
+    marking_map_sigma_yaw_rad: float = 0.0
+    marking_map_length_m: float = 50.0
 
 
 @dataclass(frozen=True)
@@ -237,6 +242,10 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     corr = consider.MapCorrelation(cfg.map_corr_share, cfg.map_corr_length_m)
     n_icp = 0
     marks = _Markings(cfg, feature_epoch, features_vehicle_m, fetch, n) if cfg.markings else None
+    if marks is not None and (cfg.marking_map_sigma_m > 0 or cfg.marking_map_sigma_yaw_rad > 0):
+        held = consider.with_map_offset(held, len(q_init), np.diag([cfg.marking_map_sigma_m**2,
+                                                                   cfg.marking_map_sigma_m**2,
+                                                                   cfg.marking_map_sigma_yaw_rad**2]))
     for k in range(start_epoch, n):
         if k > start_epoch:
             state, used, Phi = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg, from_gyro,
@@ -244,7 +253,9 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
             held = consider.forget(consider.propagate(held, Phi), state.q, cmap.en_m, cfg.consider_forget_m)
             n_icp += used
             if marks is not None:
-                marks.travel += float(np.hypot(*state_step(increments[k])))
+                step = float(np.hypot(*state_step(increments[k])))
+                marks.travel += step
+                held = consider.decay_map_offset(held, float(np.exp(-step / cfg.marking_map_length_m)))
         lo, hi = off[k], off[k + 1]
         if hi > lo and tree is not None:
             near = np.asarray(tree.query_ball_point(state.q[:2], cfg.sensor_range_m), dtype=np.int64)
@@ -331,7 +342,7 @@ class _Markings:
         r = len(m.innovation)
         if r == 0:
             return state, held
-        if m.chi2 > self.gate[r]:
+        if consider.linear_chi2(state, held, m.H, m.innovation, m.variance) > self.gate[r]:
             self.rows[k] = -1
             return state, held
         self.rows[k] = r

@@ -47,7 +47,7 @@ class MclConfig:
     sigma_scale_per_sqrt_m: float = 1e-3  # its random walk (lets a scale that an early stretch got wrong recover)
     init_sigma_gyro_bias_radps: float = np.deg2rad(0.115)  # gyro bias std about 0 (0.002 rad/s)
     sigma_gyro_bias_per_sqrt_s: float = np.deg2rad(0.0057)  # its random walk [rad/s per sqrt(s)], 1e-4
-    init_sigma_gyro_gain: float = 0.0  # gyro gain (scale factor) std about 1 per particle (0 = not a state)
+    init_sigma_gyro_gain: float = 0.005  # gyro gain (scale factor) std about 1 per particle (0 = not a state)
     epoch_s: float = 0.1  # scan period, used when the epoch stamps are not given
     # Measurement: log-likelihood = alpha * sharpness * min(F, effective_points) * correlation
     standstill_m: float = 1e-3  # a step shorter than this is a standstill: pose held, no update

@@ -89,6 +89,13 @@ class EvaluateParams(Params):
                                "seeds 7 / 21 / 22: EKF p99 0.193 / 0.084 / 0.083 m -> 0.097 / 0.057 / 0.047)")
     ekf_marking_min_info: float = Field(0.05, gt=0, description="a direction the markings inform less than this "
                                         "share of the prior's information is not measured")
+    ekf_marking_map_sigma_m: float = Field(0.036, ge=0, description="the marking raster's own local error per axis "
+                                           "(a Gauss-Markov offset along the road, a consider parameter): the "
+                                           "mapping drive's optimised poses vs the truth on the worst tiny "
+                                           "calibration seed (7: 0.051 m horizontal RMS; bench_posegraph_eval)")
+    ekf_marking_map_sigma_deg: float = Field(0.092, ge=0, description="its heading part (seed 7: 0.092 deg RMS)")
+    ekf_marking_map_length_m: float = Field(50.0, gt=0, description="its correlation length along the road (as "
+                                            "ekf_map_corr_length_m)")
     # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and
     # gyro bias; weights from the correlation of the scan's features with a distance likelihood field; low-variance
     # resampling; progressive correction and guarded injection (see localize_mcl.MclConfig for the measurements).
@@ -105,9 +112,11 @@ class EvaluateParams(Params):
     mcl_sigma_scale_per_sqrt_m: float = Field(1e-3, ge=0, description="random walk of the wheel scale")
     mcl_init_sigma_gyro_bias_deg_s: float = Field(0.115, ge=0, description="gyro bias std per particle, deg/s")
     mcl_sigma_gyro_bias_deg_s_per_sqrt_s: float = Field(0.0057, ge=0, description="random walk of the gyro bias")
-    mcl_init_sigma_gyro_gain: float = Field(0.0, ge=0, description="gyro gain (scale factor) std about 1 per "
+    mcl_init_sigma_gyro_gain: float = Field(0.005, ge=0, description="gyro gain (scale factor) std about 1 per "
                                             "particle (0 = not a state): a turn's heading error is the gain's, "
-                                            "systematic over the drive")
+                                            "systematic over the drive (0.5 %, a MEMS gyro's; tiny calibration "
+                                            "seeds 7 / 21 / 22, mean |heading| over filter seeds 0-2: 0.213 / "
+                                            "0.049 / 0.128 deg without, 0.171 / 0.045 / 0.137 with)")
     mcl_decorrelation_m: float = Field(0.5, ge=0, description="travel after which a scan counts fully (0 = always)")
     mcl_sharpness: float = Field(5.0, gt=0, description="log-likelihood gain per effective feature point")
     mcl_effective_points: float = Field(60.0, gt=0)
@@ -200,7 +209,10 @@ class EvaluateParams(Params):
                          markings=self.ekf_markings, marking_sharpness=self.mcl_sharpness,
                          marking_effective_points=self.mcl_effective_points,
                          marking_decorrelation_m=self.mcl_decorrelation_m, marking_max_features=self.mcl_max_features,
-                         marking_min_info=self.ekf_marking_min_info, marking_feature_range_m=self.feature_max_range_m)
+                         marking_min_info=self.ekf_marking_min_info, marking_feature_range_m=self.feature_max_range_m,
+                         marking_map_sigma_m=self.ekf_marking_map_sigma_m,
+                         marking_map_sigma_yaw_rad=np.deg2rad(self.ekf_marking_map_sigma_deg),
+                         marking_map_length_m=self.ekf_marking_map_length_m)
 
     def mcl_config(self) -> MclConfig:
         """The MCL's ``localize_mcl.MclConfig`` (every mcl_* field; angles in degrees here, radians there)."""
