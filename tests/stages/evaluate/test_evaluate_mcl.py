@@ -174,7 +174,7 @@ def test_distance_field_is_a_gaussian_of_the_distance_to_paint():
     assert not mcl.distance_likelihood_field(np.zeros((4, 4)), 0.1, 0.2).any()
 
 
-def test_prediction_applies_each_particles_wheel_scale_and_gyro_bias():
+def test_prediction_applies_each_particles_wheel_scale_gyro_bias_and_gyro_gain():
     rng = np.random.default_rng(0)
     particles = np.array([[0.0, 0.0, 0.0], [10.0, 5.0, np.pi / 2]])
     calib = np.array([[1.02, 0.0], [0.98, np.deg2rad(1.0)]])  # scale, gyro bias rad/s
@@ -182,6 +182,13 @@ def test_prediction_applies_each_particles_wheel_scale_and_gyro_bias():
                                 dt_s=0.5)
     np.testing.assert_allclose(out[0], [1.02, 0.0, np.deg2rad(2.0)], atol=1e-12)
     np.testing.assert_allclose(out[1], [10.0, 5.98, np.pi / 2 + np.deg2rad(2.0 - 0.5)], atol=1e-12)
+    # a third column is the gyro's gain: true turn = gain * (gyro turn - bias dt)
+    gained = np.column_stack([calib, [1.01, 0.99]])
+    out = mcl.predict_particles(particles, np.array([1.0, 0.0, np.deg2rad(2.0)]), 0.0, 0.0, 0.0, rng, gained,
+                                dt_s=0.5)
+    np.testing.assert_allclose(out[:, 2], [np.deg2rad(2.0 * 1.01), np.pi / 2 + np.deg2rad(1.5 * 0.99)], atol=1e-12)
+    assert mcl.init_calibration(5, 0.01, 0.001, rng).shape == (5, 2)
+    assert mcl.init_calibration(5, 0.01, 0.001, rng, sigma_gyro_gain=0.005).shape == (5, 3)
     # noise: along track sigma_frac * d + floor, across track its own fraction (vehicle frame, not the axes)
     many = np.zeros((20000, 3))
     out = mcl.predict_particles(many, np.array([2.0, 0.0, 0.0]), 0.01, 0.005, 0.0, rng, sigma_lateral_frac=0.0)
