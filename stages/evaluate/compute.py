@@ -183,8 +183,9 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
         f_ep, f_xy = extract_features(ctx, drive, scan_ids, T_vl, p, track)
     else:
         f_ep, f_xy = np.zeros(0, np.int64), np.zeros((0, 2))
+    deskewed = bool(p.feature_deskew and odo is not None)
     return DriveArrays(stamps, icp, odo_inc, gnss_q, gnss_std, poses["valid"].to_numpy(zero_copy_only=False),
-                       corners, f_ep, f_xy, icp_raw, read_icp_covariances(edges, scan_ids)), scan_ids
+                       corners, f_ep, f_xy, icp_raw, read_icp_covariances(edges, scan_ids), deskewed), scan_ids
 
 
 def read_references(ctx: StageContext, drive: str, map_origin, p: EvaluateParams, cmap: CornerMap | None = None

@@ -114,3 +114,13 @@ def test_road_markings_localize_the_ekf_before_its_first_corner(late_start):
     assert np.hypot(*(d.gnss_q[0, :2] - refs["truth_in_map"][1][0, :2])) > 1.4  # where the filter starts
     assert np.max(err[10:30]) < 0.15  # epochs 10-29: markings only, no corner yet
     assert int(np.flatnonzero(r.n_associated)[0]) >= 30
+
+
+def test_features_that_are_not_deskewed_do_not_measure_the_ekf(late_start):
+    """Without wheel odometry a scan's road features are not motion-compensated (up to 0.8 m late at 8 m/s): the EKF
+    then runs on its corners alone, exactly as with the markings off."""
+    d, cmap, fetch, refs, _ = late_start
+    raw = dataclasses.replace(d, features_deskewed=False)
+    on = evaluate_drive(raw, cmap, fetch, refs, EvaluateParams(methods=["ekf"]).evaluation_config())
+    off = evaluate_drive(d, cmap, fetch, refs, EvaluateParams(methods=["ekf"], ekf_markings=False).evaluation_config())
+    np.testing.assert_array_equal(on.runs["ekf"].q, off.runs["ekf"].q)
