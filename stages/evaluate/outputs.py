@@ -77,6 +77,10 @@ def metrics_document(ev: Evaluation, drive: str | None, map_info: dict, verdict:
                       "seconds": round(r.seconds, 4),
                       "epochs_per_s": round(n_run / r.seconds, 1) if r.seconds > 0 else None,
                       "targets": (verdict or {}).get("targets", {}).get(m)}
+        if r.marking_rows is not None:  # the EKF's road-marking measurement: how often it measured, how often gated
+            ran = np.all(np.isfinite(r.q), axis=1)
+            methods[m]["markings"] = {"share_measured": round(float(np.mean(r.marking_rows[ran] > 0)), 3) if ran.any()
+                                      else 0.0, "gated_out": int(np.sum(r.marking_rows < 0))}
     doc = {"drive": drive, "map": map_info, "primary_reference": ev.primary,
            "references": sorted(ev.references), "methods": methods}
     if verdict is not None:

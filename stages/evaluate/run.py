@@ -46,6 +46,7 @@ class MethodRun:
     seconds: float = 0.0
     assoc_epoch: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     assoc_map_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    marking_rows: np.ndarray | None = None  # (E,) EKF: directions the road markings measured (-1: gated out)
 
 
 @dataclass
@@ -113,7 +114,8 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
         else:
             r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_cfg, stamps_ns=d.stamps_ns,
                         from_gyro=gyro_increments(d), gyro_yaw_rad=d.odo_increments[:, 2], **marks)
-        runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx)
+        runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx,
+                                r.marking_rows)
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
     if "mcl" in cfg.methods and fetch is not None:
         t0 = time.perf_counter()

@@ -66,6 +66,13 @@ def test_outputs_metrics_tum_report_and_epochs(outage_evaluation, tmp_path):
         np.testing.assert_allclose(T[:, 0, 3], r.q[ok, 0], atol=1e-6)
     assert on_disk["primary_reference"] == "map"
     assert on_disk["methods"]["ekf"]["targets"]["rms_2d_m"]["target"] == 0.10
+    # the EKF's road-marking measurement: the share of its epochs it measured, as the run's own rows say
+    rows = ev.runs["ekf"].marking_rows
+    ran = np.all(np.isfinite(ev.runs["ekf"].q), axis=1)
+    assert on_disk["methods"]["ekf"]["markings"] == {"share_measured": round(float(np.mean(rows[ran] > 0)), 3),
+                                                     "gated_out": int(np.sum(rows < 0))}
+    assert on_disk["methods"]["ekf"]["markings"]["share_measured"] > 0.5
+    assert "markings" not in on_disk["methods"]["mcl"]
     assert on_disk["verdict"]["judged_against"] == {"ekf": "map", "mcl": "map"}
     assert on_disk["verdict"]["coverage"]["ok"] and on_disk["verdict"]["status"] in ("pass", "fail")
     for m, targets in on_disk["verdict"]["targets"].items():  # every verdict is the comparison it claims
