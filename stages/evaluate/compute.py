@@ -178,12 +178,12 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
                     "increments (GNSS/INS pose differences where ICP failed: %d of %d epochs), features not deskewed",
                     drive, int((~np.all(np.isfinite(icp[1:]), axis=1)).sum()), len(stamps))
     corners = read_corners(_rows_of(ctx, "corners", drive), scan_ids, T_vl)
-    if "mcl" in p.methods or ("ekf" in p.methods and p.ekf_markings):
-        track = track_from_table(odo) if p.feature_deskew and odo is not None else None
+    deskewed = bool(p.feature_deskew and odo is not None)  # the EKF uses road features only deskewed
+    if "mcl" in p.methods or ("ekf" in p.methods and p.ekf_markings and deskewed):
+        track = track_from_table(odo) if deskewed else None
         f_ep, f_xy = extract_features(ctx, drive, scan_ids, T_vl, p, track)
     else:
         f_ep, f_xy = np.zeros(0, np.int64), np.zeros((0, 2))
-    deskewed = bool(p.feature_deskew and odo is not None)
     return DriveArrays(stamps, icp, odo_inc, gnss_q, gnss_std, poses["valid"].to_numpy(zero_copy_only=False),
                        corners, f_ep, f_xy, icp_raw, read_icp_covariances(edges, scan_ids), deskewed), scan_ids
 

@@ -48,8 +48,9 @@ class ConsiderSet:
     P_xc: np.ndarray  # (n, 2m) cross-covariance of the vehicle state errors and the corners' (e, n) errors
     C: np.ndarray  # (m, 2, 2) the corners' own covariances (constant)
     Cf: np.ndarray | None = None  # (2m, 2m) their joint covariance (None: block diagonal of C)
-    # The marking raster's local offset (x, y, yaw) as a consider parameter (``update_linear``'s map_offset): the
-    # cross-covariance (n, 3) with the vehicle errors and its own covariance (3, 3); None: not held.
+    # The marking raster's local offset (x, y, yaw) as a consider parameter (``with_map_offset``; measured through
+    # ``update_linear``): the cross-covariance (n, 3) with the vehicle errors and its own covariance (3, 3); None:
+    # not held.
     P_xm: np.ndarray | None = None
     Cm: np.ndarray | None = None
 
@@ -193,29 +194,16 @@ def decay_map_offset(cs: ConsiderSet, rho: float) -> ConsiderSet:
 
 
 def update_linear(state: EkfState, cs: ConsiderSet, H_pose: np.ndarray, innovation: np.ndarray,
-                  variance: np.ndarray) -> tuple[EkfState, ConsiderSet]:
+                  variance: np.ndarray, gate_chi2: float = np.inf) -> tuple[EkfState, ConsiderSet, float]:
     """Schmidt-Kalman update with r independent linear measurements of the pose that do not involve the map
     corners (``H_pose`` (r,3) on x, y, yaw; e.g. ``ekf_markings``): the corners' errors stay as they are, the
     cross-covariance goes through ``I - K H``. When ``cs`` holds the raster offset (``with_map_offset``) the
     measurement is of the pose plus that offset (``z = H (pose + m) + v``): an offset shared by consecutive
-    scans is not averaged away. Joseph form."""
+    scans is not averaged away. Joseph form. Returns the state, the set and the innovation's Mahalanobis distance
+    under its full covariance (raster offset included); above ``gate_chi2`` nothing is updated."""
     H_pose = np.asarray(H_pose, dtype=float).reshape(-1, 3)
     if len(H_pose) == 0:
-        return state, cs
-    nx = len(state.q)
-    H, R, Pxm, Cm, Hm, PHt, S = _linear_parts(state, cs, H_pose, variance)
-    P = state.P
-    K = np.linalg.solve(S, PHt.T).T
-    q = state.q + K @ np.asarray(innovation, dtype=float)
-    q[2] = wrap_angle_rad(q[2])
-    A = np.eye(nx) - K @ H
-    B = K @ Hm
-    P_new = A @ P @ A.T - A @ Pxm @ B.T - B @ Pxm.T @ A.T + B @ Cm @ B.T + K @ R @ K.T
-    P_xm = None if cs.P_xm is None else A @ Pxm - K @ Hm @ Cm
-    return EkfState(q, 0.5 * (P_new + P_new.T)), replace(cs, P_xc=A @ cs.P_xc, P_xm=P_xm)
-
-
-def _linear_parts(state: EkfState, cs: ConsiderSet, H_pose: np.ndarray, variance: np.ndarray):
+        return state, cs, 0.0
     nx = len(state.q)
     H = np.zeros((len(H_pose), nx))
     H[:, :3] = H_pose
@@ -224,17 +212,19 @@ def _linear_parts(state: EkfState, cs: ConsiderSet, H_pose: np.ndarray, variance
         Pxm, Cm, Hm = np.zeros((nx, 3)), np.zeros((3, 3)), np.zeros_like(H_pose)
     else:
         Pxm, Cm, Hm = cs.P_xm, cs.Cm, H_pose
-    PHt = state.P @ H.T + Pxm @ Hm.T  # cov(x, innovation)
+    P = state.P
+    PHt = P @ H.T + Pxm @ Hm.T  # cov(x, innovation)
     S = H @ PHt + Hm @ Pxm.T @ H.T + Hm @ Cm @ Hm.T + R
-    return H, R, Pxm, Cm, Hm, PHt, 0.5 * (S + S.T)
-
-
-def linear_chi2(state: EkfState, cs: ConsiderSet, H_pose: np.ndarray, innovation: np.ndarray,
-                variance: np.ndarray) -> float:
-    """Mahalanobis distance of ``update_linear``'s innovation under its full covariance (raster offset included)."""
-    H_pose = np.asarray(H_pose, dtype=float).reshape(-1, 3)
-    if len(H_pose) == 0:
-        return 0.0
-    S = _linear_parts(state, cs, H_pose, variance)[-1]
+    S = 0.5 * (S + S.T)
     nu = np.asarray(innovation, dtype=float)
-    return float(nu @ np.linalg.solve(S, nu))
+    chi2 = float(nu @ np.linalg.solve(S, nu))
+    if chi2 > gate_chi2:
+        return state, cs, chi2
+    K = np.linalg.solve(S, PHt.T).T
+    q = state.q + K @ nu
+    q[2] = wrap_angle_rad(q[2])
+    A = np.eye(nx) - K @ H
+    B = K @ Hm
+    P_new = A @ P @ A.T - A @ Pxm @ B.T - B @ Pxm.T @ A.T + B @ Cm @ B.T + K @ R @ K.T
+    P_xm = None if cs.P_xm is None else A @ Pxm - K @ Hm @ Cm
+    return EkfState(q, 0.5 * (P_new + P_new.T)), replace(cs, P_xc=A @ cs.P_xc, P_xm=P_xm), chi2

@@ -31,7 +31,6 @@ class MarkingMeasurement:
     H: np.ndarray  # (r, 3) rows on (x_m, y_m, yaw_rad)
     innovation: np.ndarray  # (r,)
     variance: np.ndarray  # (r,)
-    chi2: float  # the innovation's Mahalanobis distance (r dof)
     score: float  # posterior-weighted correlation of the scan with the raster
 
 
@@ -65,6 +64,7 @@ def grid_posterior(q: np.ndarray, P: np.ndarray, features_vehicle_m: np.ndarray,
     base = unit_grid(n, half_width)
     mu, C = np.zeros(3), np.eye(3)
     score = float("nan")
+    h = 2.0 * half_width / (n - 1)  # the grid's spacing along each axis of the Gaussian it spans
     for _ in range(passes):
         Lc = np.linalg.cholesky(C)
         u = mu + base @ Lc.T
@@ -73,27 +73,24 @@ def grid_posterior(q: np.ndarray, P: np.ndarray, features_vehicle_m: np.ndarray,
         log_w = -0.5 * np.einsum("ij,ij->i", u, u) + gain * s
         mu, C, w = _moments(u, log_w)
         score = float(w @ s)
-        h = 2.0 * half_width / (n - 1)  # the grid's spacing along each of C's axes
         C = 0.5 * (C + C.T) + (h * h / 12.0) * (Lc @ Lc.T)
     return mu, C, L, score
 
 
 def equivalent_measurement(mu_u: np.ndarray, Sigma_u: np.ndarray, L: np.ndarray, min_info: float
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The linear measurement of the pose whose Kalman update turns the prior ``N(0, I)`` (whitened) into
     ``N(mu_u, Sigma_u)``, in the directions where its information exceeds ``min_info`` (in units of the prior's).
-    Returns ``(H (r,3), innovation (r,), variance (r,), chi2)`` on the unwhitened pose."""
+    Returns ``(H (r,3), innovation (r,), variance (r,))`` on the unwhitened pose (its gate is the filter's:
+    ``consider.update_linear``)."""
     Lam = np.linalg.inv(0.5 * (Sigma_u + Sigma_u.T))
     g, E = np.linalg.eigh(Lam - np.eye(3))
     keep = g > min_info
     g, E = g[keep], E[:, keep]
     if len(g) == 0:
-        return np.zeros((0, 3)), np.zeros(0), np.zeros(0), 0.0
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0)
     nu = (E.T @ (Lam @ mu_u)) / g
-    H = E.T @ np.linalg.inv(L)
-    var = 1.0 / g
-    chi2 = float(np.sum(nu**2 / (1.0 + var)))  # S = H P H^T + R = I + diag(var) in these rows
-    return H, nu, var, chi2
+    return E.T @ np.linalg.inv(L), nu, 1.0 / g
 
 
 def marking_measurement(q: np.ndarray, P: np.ndarray, features_vehicle_m: np.ndarray, raster: mcl.Raster,
@@ -101,5 +98,5 @@ def marking_measurement(q: np.ndarray, P: np.ndarray, features_vehicle_m: np.nda
                         ) -> MarkingMeasurement:
     """One scan's marking measurement of the pose at prior ``N(q, P)`` (see the module doc)."""
     mu, C, L, score = grid_posterior(q, P, features_vehicle_m, raster, gain, n, half_width)
-    H, nu, var, chi2 = equivalent_measurement(mu, C, L, min_info)
-    return MarkingMeasurement(H, nu, var, chi2, score)
+    H, nu, var = equivalent_measurement(mu, C, L, min_info)
+    return MarkingMeasurement(H, nu, var, score)

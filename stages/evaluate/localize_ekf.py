@@ -253,7 +253,7 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
             held = consider.forget(consider.propagate(held, Phi), state.q, cmap.en_m, cfg.consider_forget_m)
             n_icp += used
             if marks is not None:
-                step = float(np.hypot(*state_step(increments[k])))
+                step = _travel_m(increments[k])
                 marks.travel += step
                 held = consider.decay_map_offset(held, float(np.exp(-step / cfg.marking_map_length_m)))
         lo, hi = off[k], off[k + 1]
@@ -295,10 +295,10 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     return EkfRun(q_out, P_out, n_assoc, cat(a_epoch), cat(a_map), None if marks is None else marks.rows)
 
 
-def state_step(increment: np.ndarray) -> np.ndarray:
-    """(2,) translation of an increment, zero where it is missing."""
+def _travel_m(increment: np.ndarray) -> float:
+    """Length of an increment's translation, zero where it is missing."""
     t = np.asarray(increment, dtype=float)[:2]
-    return np.where(np.isfinite(t), t, 0.0)
+    return float(np.hypot(*np.where(np.isfinite(t), t, 0.0)))
 
 
 class _Markings:
@@ -342,11 +342,9 @@ class _Markings:
         r = len(m.innovation)
         if r == 0:
             return state, held
-        if consider.linear_chi2(state, held, m.H, m.innovation, m.variance) > self.gate[r]:
-            self.rows[k] = -1
-            return state, held
-        self.rows[k] = r
-        return consider.update_linear(state, held, m.H, m.innovation, m.variance)
+        state, held, chi2 = consider.update_linear(state, held, m.H, m.innovation, m.variance, self.gate[r])
+        self.rows[k] = r if chi2 <= self.gate[r] else -1
+        return state, held
 
 
 def dead_reckon(increments: np.ndarray, q0: np.ndarray, start_epoch: int) -> np.ndarray:

@@ -58,9 +58,9 @@ def test_equivalent_measurement_reproduces_a_gaussian_posterior():
     L = np.linalg.cholesky(P)
     Li = np.linalg.inv(L)
     mu_u, Sigma_u = Li @ (mean - q), Li @ cov @ Li.T
-    Hm, nu, var, _ = equivalent_measurement(mu_u, Sigma_u, L, 1e-6)
+    Hm, nu, var = equivalent_measurement(mu_u, Sigma_u, L, 1e-6)
     assert len(nu) == 2  # two directions measured, the third untouched
-    state, _ = consider.update_linear(ekf.EkfState(q.copy(), P), consider.empty(3), Hm, nu, var)
+    state, _, _ = consider.update_linear(ekf.EkfState(q.copy(), P), consider.empty(3), Hm, nu, var)
     np.testing.assert_allclose(state.q, mean, atol=1e-9)
     np.testing.assert_allclose(state.P, cov, atol=1e-9)
 
@@ -75,7 +75,7 @@ def test_solid_lines_measure_lateral_position_and_heading_not_along_track():
     q = truth + np.array([0.25, 0.2, np.deg2rad(0.4)])
     m = marking_measurement(q, P, feats, raster, GAIN, 0.05)
     assert len(m.innovation) == 2
-    state, _ = consider.update_linear(ekf.EkfState(q, P), consider.empty(3), m.H, m.innovation, m.variance)
+    state, _, _ = consider.update_linear(ekf.EkfState(q, P), consider.empty(3), m.H, m.innovation, m.variance)
     err = state.q - truth
     assert abs(err[1]) < 0.03 and abs(np.degrees(err[2])) < 0.05
     assert err[0] == pytest.approx(0.25, abs=0.02)  # along track: the prior's error, kept
@@ -94,7 +94,7 @@ def test_crosswalk_measures_along_track_too():
     q = truth + np.array([-0.3, 0.15, np.deg2rad(-0.3)])
     m = marking_measurement(q, P, feats, raster, GAIN, 0.05)
     assert len(m.innovation) == 3
-    state, _ = consider.update_linear(ekf.EkfState(q, P), consider.empty(3), m.H, m.innovation, m.variance)
+    state, _, _ = consider.update_linear(ekf.EkfState(q, P), consider.empty(3), m.H, m.innovation, m.variance)
     err = state.q - truth
     sd = np.sqrt(np.diag(state.P))
     assert abs(err[1]) < 0.03 and abs(np.degrees(err[2])) < 0.05
@@ -132,7 +132,7 @@ def test_posterior_covers_the_truth_over_random_priors():
         feats = features_seen_from(truth, mask, origin, rng)
         q = truth + rng.multivariate_normal(np.zeros(3), P)
         m = marking_measurement(q, P, feats, raster, GAIN, 0.05)
-        s, _ = consider.update_linear(ekf.EkfState(q, P), consider.empty(3), m.H, m.innovation, m.variance)
+        s, _, _ = consider.update_linear(ekf.EkfState(q, P), consider.empty(3), m.H, m.innovation, m.variance)
         e = s.q - truth
         e[2] = wrap_angle_rad(e[2])
         e2 = e[1:]
