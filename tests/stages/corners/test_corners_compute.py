@@ -63,6 +63,36 @@ def test_compute_matches_per_scan_extraction_and_the_schema(tmp_path):
         assert np.linalg.eigvalsh(cov).min() >= 0.01 ** 2 * 0.999
 
 
+def test_only_the_upper_layers_rows_are_read_with_every_column(tmp_path):
+    """Memory: the chunk is read whole only for the layer choice (x, y, z, ring); the rows read with every column
+    are the chosen layers' alone, and the corners are those of the per-scan extraction on all rows."""
+    table = scans_table()
+    ctx = make_context("corners", CornerParams(), {"scans": table}, partition=PartitionKey("drive_0", 3),
+                       outputs=("corners",), workdir=tmp_path)
+    served = []
+    read = ctx.inputs.read
+
+    def spy(arg, **kw):
+        out = read(arg, **kw)
+        served.append((tuple(kw.get("columns") or ()), out))
+        return out
+
+    ctx.inputs.read = spy
+    out = compute(ctx)["corners"]
+    full = [t for cols, t in served if "time_offset_s" in cols]
+    assert len(full) == 1
+    pts, ring = cast_scan(SCENE, POSES[0], seed=0, max_range_m=60.0)
+    upper = set(np.flatnonzero(np.bincount(ring))[::-1][:CornerParams().n_upper_layers].tolist())
+    assert set(full[0]["ring"].to_numpy().tolist()) <= upper
+    assert full[0].num_rows < 0.5 * table.num_rows
+    for i, sid in enumerate((100, 101)):
+        pts, ring = cast_scan(SCENE, POSES[i], seed=i, max_range_m=60.0)
+        ref = extract_corners(pts, ring)
+        rows = out.filter(pa.compute.equal(out["scan_id"], sid))
+        np.testing.assert_allclose(rows["x_m"].to_numpy(), ref.x_m, atol=1e-9)
+        np.testing.assert_allclose(rows["y_m"].to_numpy(), ref.y_m, atol=1e-9)
+
+
 def test_compute_on_an_empty_partition_returns_an_empty_table(tmp_path):
     table = scans_table().slice(0, 0)
     ctx = make_context("corners", CornerParams(), {"scans": table}, partition=PartitionKey("drive_0", 0),
