@@ -86,11 +86,14 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any],
     ``provisional``: input arg -> upstream partition labels to read before that stage commits (pipeline.flow).
     The result records when it ran (``t_start``/``t_end``, epoch s), its CPU seconds and its process's peak RSS
     (``peak_rss_mb``, pipeline.memory)."""
-    from pipeline.memory import PeakRss
+    from pipeline.memory import PeakRss, release_memory
 
     t_start, cpu0 = time.time(), _task_cpu_s()
-    with PeakRss() as rss:
-        result = _run_partition(spec, partition, provisional)
+    try:
+        with PeakRss() as rss:
+            result = _run_partition(spec, partition, provisional)
+    finally:
+        release_memory()
     result.update(t_start=t_start, t_end=time.time(), cpu_s=round(_task_cpu_s() - cpu0, 3),
                   peak_rss_mb=round(rss.peak_mb, 1))
     return result
