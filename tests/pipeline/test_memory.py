@@ -2,10 +2,10 @@
 workflow's memory budget names the stages over it."""
 from __future__ import annotations
 
-import pytest
 import time
 
 import numpy as np
+import pytest
 
 from pipeline.memory import PeakRss, over_budget
 from tests.pipeline.test_engine import run, toy_stages, write_toy  # noqa: F401 - toy_stages: the toy registry
