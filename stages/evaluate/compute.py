@@ -27,6 +27,10 @@ from stages.evaluate.run import DriveArrays, evaluate_drive
 
 log = logging.getLogger(__name__)
 
+# Road-feature points are read up to feature_max_range_m plus the extrinsic's lever arm plus this: a scan's own
+# motion while it is deskewed (0.1 s at up to 50 m/s).
+FEATURE_READ_MARGIN_M = 5.0
+
 
 def _rows_of(ctx: StageContext, arg: str, drive: str, columns: list[str] | None = None) -> pa.Table:
     table = ctx.inputs.read(arg, partition=PartitionKey(drive=drive), columns=columns)
@@ -109,6 +113,38 @@ def read_corners(corners: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar:
     return CornerObservations(k[order], xy, cov_v, dirs)
 
 
+def _chunk_features(t: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar: np.ndarray, p: EvaluateParams,
+                    track: OdometryTrack | None, epochs: list, points: list) -> int:
+    """Road features of the scans of one chunk's rows; returns how many scans were not deskewed. A function of its
+    own so that the chunk's arrays are freed before the next chunk is read."""
+    sid = t["scan_id"].to_numpy()
+    order = None if np.all(sid[1:] >= sid[:-1]) else np.argsort(sid, kind="stable")
+
+    def col(name: str) -> np.ndarray:
+        a = t[name].to_numpy()
+        return a if order is None else a[order]
+
+    sid = col("scan_id")
+    xyz = np.column_stack([col(c) for c in ("x_m", "y_m", "z_m")])
+    inten, ring, stamp = col("intensity"), col("ring"), col("stamp_ns")
+    t_s = col("time_offset_s").astype(np.float64)
+    bounds = np.flatnonzero(np.diff(sid)) + 1
+    n_raw = 0
+    for lo, hi in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(sid)]])):
+        k = epoch_index(sid[lo:lo + 1], epoch_scan_ids)[0]
+        if k < 0:
+            continue
+        pts = None if track is None else track.deskew_scan(xyz[lo:hi], t_s[lo:hi], int(stamp[lo]), T_vehicle_lidar)
+        if pts is None:
+            pts, n_raw = xyz[lo:hi], n_raw + 1
+        f = extract_road_features(pts, inten[lo:hi], ring[lo:hi], T_vehicle_lidar,
+                                  voxel_m=p.feature_voxel_m, window_m=p.feature_window_m,
+                                  offset_sigma=p.feature_offset_sigma, ground_band_m=p.feature_ground_band_m,
+                                  max_range_m=p.feature_max_range_m)
+        epochs.append(np.full(len(f), k)), points.append(f)
+    return n_raw
+
+
 def extract_features(ctx: StageContext, drive: str, epoch_scan_ids: np.ndarray, T_vehicle_lidar: np.ndarray,
                      p: EvaluateParams, track: OdometryTrack | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Road features of every scan of the drive, chunk by chunk (memory bounded by one chunk).
@@ -117,33 +153,20 @@ def extract_features(ctx: StageContext, drive: str, epoch_scan_ids: np.ndarray, 
     a raw revolution is 0.1 s long, so at 8 m/s its points sit up to 0.8 m (0.4 m on average) behind and, at
     30 deg/s, 1.5 deg rotated from where the scan-start pose puts them (measured on the demo drive: the MCL
     carried a +0.3 m along-track and -yaw_rate * 0.05 s heading bias without it).
+    Points far beyond the features' range are not read: the filter, in the lidar frame, keeps a margin for the
+    extrinsic's lever arm and a scan's motion, and ``extract_road_features`` applies the exact range.
     """
     epochs, points = [], []
     cols = ["scan_id", "x_m", "y_m", "z_m", "intensity", "ring", "time_offset_s", "stamp_ns"]
+    reach = p.feature_max_range_m + float(np.hypot(*np.asarray(T_vehicle_lidar)[:2, 3])) + FEATURE_READ_MARGIN_M
+    near = pc.field("x_m") * pc.field("x_m") + pc.field("y_m") * pc.field("y_m") <= reach * reach
     n_raw = 0
     for part in ctx.inputs.partitions("scans"):
         if part.drive != drive:
             continue
-        t = ctx.inputs.read("scans", partition=part, columns=cols)
-        sid = t["scan_id"].to_numpy()
-        order = np.argsort(sid, kind="stable")
-        sid = sid[order]
-        xyz = np.column_stack([t[c].to_numpy()[order] for c in ("x_m", "y_m", "z_m")])
-        inten, ring = t["intensity"].to_numpy()[order], t["ring"].to_numpy()[order]
-        t_s, stamp = t["time_offset_s"].to_numpy()[order].astype(np.float64), t["stamp_ns"].to_numpy()[order]
-        bounds = np.flatnonzero(np.diff(sid)) + 1
-        for lo, hi in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(sid)]])):
-            k = epoch_index(sid[lo:lo + 1], epoch_scan_ids)[0]
-            if k < 0:
-                continue
-            pts = None if track is None else track.deskew_scan(xyz[lo:hi], t_s[lo:hi], int(stamp[lo]), T_vehicle_lidar)
-            if pts is None:
-                pts, n_raw = xyz[lo:hi], n_raw + 1
-            f = extract_road_features(pts, inten[lo:hi], ring[lo:hi], T_vehicle_lidar,
-                                      voxel_m=p.feature_voxel_m, window_m=p.feature_window_m,
-                                      offset_sigma=p.feature_offset_sigma, ground_band_m=p.feature_ground_band_m,
-                                      max_range_m=p.feature_max_range_m)
-            epochs.append(np.full(len(f), k)), points.append(f)
+        t = ctx.inputs.read("scans", partition=part, columns=cols, filters=near)
+        n_raw += _chunk_features(t, epoch_scan_ids, T_vehicle_lidar, p, track, epochs, points)
+        del t
     if track is not None and n_raw:
         log.warning("evaluate %s: the odometry does not cover %d scans; their road features are not deskewed",
                     drive, n_raw)
