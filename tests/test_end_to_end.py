@@ -63,6 +63,28 @@ def test_distributed_local_cluster_gives_equal_tables(tiny_sync, tmp_path):
     assert (tmp_path / "maps" / "tiny" / "LATEST").is_file()
 
 
+def test_a_survey_named_by_both_drives_is_read_once(tiny_sync):
+    """Both tiny drive files name the city's survey.las; ingest writes it per drive and records its content hash,
+    and the pose graph reads the cloud once (the points of one drive's partition, not of both)."""
+    from pipeline.declare import PartitionKey
+    from pipeline.execute import _context, _task_spec
+    from pipeline.plan import make_plan
+    from pipeline.workflow import load_workflow
+    from stages.posegraph.compute import read_survey
+
+    root, _ = tiny_sync
+    [manifest] = list((root / "datasets" / "survey_enu").glob("*/_manifest.json"))
+    parts = json.loads(manifest.read_text())["extra"]["partitions"]
+    hashes = {label: extra.get("survey_sha256") for label, extra in parts.items()}
+    assert len(hashes) == 2 and len(set(hashes.values())) == 1 and None not in hashes.values(), hashes
+    plan = make_plan(load_workflow(REPO / "workflows" / "tiny.yaml"), root)
+    ctx = _context(_task_spec(plan, plan.stages["posegraph"]), PartitionKey(), root / "tmp" / "test-survey", {})
+    pts, intensity = read_survey(ctx)
+    per_drive = ctx.inputs.read("survey", partition=PartitionKey(drive="drive_0"), columns=["east_m"]).num_rows
+    assert len(pts) == len(intensity) == per_drive > 0
+    assert ctx.inputs.read("survey", columns=["east_m"]).num_rows == 2 * per_drive
+
+
 def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     """The pose graph's survey anchors (ground GICP and marking matches) of the tiny map drive, computed in the
     stage's process and in a process pool in blocks of 3 keyframes: the same matches."""

@@ -232,6 +232,19 @@ class DriveIngest:
                                         "north_m": enu[:, 1], "up_m": enu[:, 2], "intensity": intensity})
 
 
+def _survey_source(spec) -> str | None:
+    """The survey cloud's content hash (stages/common/survey_parts.py: readers read each distinct cloud once), or
+    None without a survey or when the file cannot be read (ingest's own survey reader names that error)."""
+    if spec.survey is None:
+        return None
+    from stages.common.survey_parts import file_sha256
+
+    try:
+        return file_sha256(spec.path(spec.survey.file))
+    except OSError:
+        return None
+
+
 def _names(dataset: str) -> list[str]:
     from schemas import SCHEMAS
 
@@ -259,5 +272,6 @@ def compute(ctx: StageContext) -> dict:
         "survey": ingest.iter_survey_tables(),
         "report": _Deferred(lambda: [ingest.report.to_table(drive)]),
         "_extra": {"enu_origin": origin.as_dict() if origin else None, "drive": drive,
-                   "time_base": spec.gnss.time.base if spec.gnss else None},
+                   "time_base": spec.gnss.time.base if spec.gnss else None,
+                   "survey_sha256": _survey_source(spec)},
     }

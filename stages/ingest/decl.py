@@ -6,7 +6,7 @@ STAGE = StageDecl(
     name="ingest",
     summary="Read a recorded drive (PCD / KITTI / nuScenes / LAS scans, GNSS/INS CSV, odometry, survey) into "
             "Parquet in the map's ENU frame",
-    code_version="2",
+    code_version="3",
     inputs={},
     outputs={"scans": "scans_raw", "scan_index": "scan_index", "gnss": "gnss_enu", "odometry": "odometry_raw",
              "poses_gnss": "poses_gnss", "drive_info": "drive_info", "survey": "survey_enu",

@@ -21,6 +21,7 @@ from stages.common.drive_tables import select_drives
 from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.common.records import Extrinsics, pose_matrices
+from stages.common.survey_parts import distinct_survey_partitions
 from stages.common.tiling import tile_bounds, tile_key_of, tile_shape_px, tiles_touching
 from stages.markings.accumulate import scans_to_enu
 from stages.markings.params import MarkingParams
@@ -41,7 +42,7 @@ def survey_available(inputs) -> bool:
     if not inputs.has("survey"):
         return False
     return any(inputs.read("survey", partition=key, columns=["east_m"]).num_rows > 0
-               for key in inputs.partitions("survey"))
+               for key in distinct_survey_partitions(inputs))
 
 
 def cloud_source(ctx) -> str:
@@ -62,7 +63,7 @@ def plan_tiles(ctx) -> list[PartitionKey]:
     keys: set[tuple[int, int]] = set()
     source = cloud_source(ctx)
     if source == "survey":
-        for part in ctx.inputs.partitions("survey"):
+        for part in distinct_survey_partitions(ctx.inputs):
             table = ctx.inputs.read("survey", partition=part, columns=["east_m", "north_m"])
             i, j = tile_key_of(table["east_m"].to_numpy(), table["north_m"].to_numpy(), size_m)
             packed = np.unique((i << 32) | (j & 0xFFFFFFFF))  # one 1-D sort instead of a row-wise unique
@@ -81,7 +82,7 @@ def plan_tiles(ctx) -> list[PartitionKey]:
 def _survey_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     window = ((pc.field("east_m") >= e0) & (pc.field("east_m") < e1)
               & (pc.field("north_m") >= n0) & (pc.field("north_m") < n1))
-    for part in ctx.inputs.partitions("survey"):
+    for part in distinct_survey_partitions(ctx.inputs):
         table = ctx.inputs.read("survey", partition=part, columns=["east_m", "north_m", "up_m", "intensity"],
                                 filters=window)
         if table.num_rows:

@@ -82,19 +82,33 @@ def read_drive_inputs(ctx: StageContext) -> tuple[list[DriveInput], list[DriveIn
             [drive_input(d, gnss, edges, info, wheel, spans) for d in eval_names])
 
 
+def read_survey(ctx: StageContext) -> tuple[np.ndarray, np.ndarray]:
+    """The survey cloud's (N,3) ENU points and (N,) intensity, each distinct cloud once (drives that name the same
+    survey file each ingest it; stages/common/survey_parts.py)."""
+    from stages.common.survey_parts import distinct_survey_partitions
+
+    pts, intensity = [], []
+    for key in distinct_survey_partitions(ctx.inputs):
+        t = ctx.inputs.read("survey", partition=key, columns=["east_m", "north_m", "up_m", "intensity"])
+        pts.append(np.column_stack([t[c].to_numpy() for c in ("east_m", "north_m", "up_m")]))
+        intensity.append(t["intensity"].to_numpy())
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, np.float32)
+    return np.concatenate(pts), np.concatenate(intensity)
+
+
 def compute(ctx: StageContext) -> dict[str, pa.Table]:
     cfg = PosegraphConfig.from_params(ctx.params)
     drives, ref_drives = read_drive_inputs(ctx)
     load = scan_loader(ctx)
     survey_cb, survey_matches = None, []
     if ctx.inputs.has("survey"):
-        survey = ctx.inputs.read("survey", columns=["east_m", "north_m", "up_m", "intensity"])
-        if survey.num_rows:
+        pts, intensity = read_survey(ctx)
+        if len(pts):
             from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
 
-            pts = np.column_stack([survey[c].to_numpy() for c in ("east_m", "north_m", "up_m")])
             survey_cb = survey_anchor_callback(drives, load, pts, cfg.anchors, survey_matches,
-                                               survey_intensity=survey["intensity"].to_numpy(),
+                                               survey_intensity=intensity,
                                                feature_load=scan_loader(ctx, ("intensity", "ring")),
                                                report_step=ctx.report_step)
     sol = solve_map(drives, load, cfg, survey_priors=survey_cb, report_step=ctx.report_step)
