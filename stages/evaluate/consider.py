@@ -133,13 +133,14 @@ def add(cs: ConsiderSet, idx: np.ndarray, C_blocks: np.ndarray, corners_en_m: np
 
 
 def update(state: EkfState, cs: ConsiderSet, z_meas: np.ndarray, corner_idx: np.ndarray, corners_en_m: np.ndarray,
-           R_extraction: np.ndarray, yaw_meas_rad: np.ndarray | None = None, yaw_sigma_rad: float = 0.0
+           R_extraction: np.ndarray, yaw_meas_rad: np.ndarray | None = None, yaw_sigma_rad: float | np.ndarray = 0.0
            ) -> tuple[EkfState, ConsiderSet, np.ndarray]:
     """Schmidt-Kalman update with N associated corners (rows ``corner_idx`` of the map, positions
     ``corners_en_m`` (N,2), covariances already in ``cs`` or added here from ``cs``'s caller via ``add``).
 
     ``R_extraction`` (N,2,2): the extracted corners' range/bearing noise only (the map part is the consider
-    states'). Optional direct heading measurements (M,) with std ``yaw_sigma_rad``, as ``ekf.update``.
+    states'). Optional direct heading measurements (M,) with std ``yaw_sigma_rad`` (one for all, or (M,) one
+    each), as ``ekf.update``.
     Full-matrix Joseph form with the consider rows of the gain at zero. Returns (state, set, innovation).
     """
     z_meas = np.asarray(z_meas, dtype=float).reshape(-1, 2)

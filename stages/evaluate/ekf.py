@@ -192,12 +192,14 @@ def map_corner_jacobian(H: np.ndarray) -> np.ndarray:
 
 
 def update(state: EkfState, z_meas: np.ndarray, corners_en_m: np.ndarray, R_blocks: np.ndarray,
-           yaw_meas_rad: np.ndarray | None = None, yaw_sigma_rad: float = 0.0) -> tuple[EkfState, np.ndarray]:
+           yaw_meas_rad: np.ndarray | None = None, yaw_sigma_rad: float | np.ndarray = 0.0
+           ) -> tuple[EkfState, np.ndarray]:
     """Measurement update with N associated corners (eqs. 3-5), Joseph form.
 
     ``z_meas`` (N,2) measured range/bearing; ``corners_en_m`` (N,2) associated map corners; ``R_blocks``
     (N,2,2) the total measurement noise per corner (extraction + map-corner covariance in range/bearing).
-    Optional direct heading measurements ``yaw_meas_rad`` (M,) with std ``yaw_sigma_rad`` are stacked below.
+    Optional direct heading measurements ``yaw_meas_rad`` (M,) with std ``yaw_sigma_rad`` (one for all, or (M,)
+    one each) are stacked below.
     Returns the updated state and the stacked innovation (2N+M,).
     """
     z_meas = np.asarray(z_meas, dtype=float).reshape(-1, 2)
