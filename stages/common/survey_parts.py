@@ -2,28 +2,14 @@
 
 Every drive file may name the workflow's survey cloud (a drive folder is self-contained), so ingest writes one
 ``survey_enu`` partition per drive, and drives that share a cloud write the same points again. Ingest records each
-partition's source (``survey_sha256``, the cloud file's content hash, in the partition's manifest extra); readers
-take the first partition of each source, so a map built from N drives sharing one survey reads it once, not N times
-(memory, time, and per-cell point counts that do not depend on how many drives named the cloud). Partitions
-committed without the record (older roots) are all read, as before.
+partition's source (``survey_sha256``: the cloud file's content hash, ``pipeline.fingerprint.file_sha256``, in the
+partition's manifest extra); readers take the first partition of each source, so a map built from N drives sharing
+one survey reads it once, not N times (memory, time, and per-cell point counts that do not depend on how many drives
+named the cloud). Partitions committed without the record (older roots) are all read, as before.
 """
 from __future__ import annotations
 
-import hashlib
-from pathlib import Path
-
 from pipeline.declare import InputReader, PartitionKey
-
-HASH_BLOCK_BYTES = 1 << 20
-
-
-def file_sha256(path: Path) -> str:
-    """Content hash of a file, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(HASH_BLOCK_BYTES), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def distinct_survey_partitions(inputs: InputReader, arg: str = "survey") -> list[PartitionKey]:

@@ -237,7 +237,7 @@ def _survey_source(spec) -> str | None:
     None without a survey or when the file cannot be read (ingest's own survey reader names that error)."""
     if spec.survey is None:
         return None
-    from stages.common.survey_parts import file_sha256
+    from pipeline.fingerprint import file_sha256
 
     try:
         return file_sha256(spec.path(spec.survey.file))

@@ -7,9 +7,10 @@ import numpy as np
 import pyarrow as pa
 
 from pipeline.declare import PartitionKey
+from pipeline.fingerprint import file_sha256
 from pipeline.testing import MemoryInputReader
 from schemas import SCHEMAS
-from stages.common.survey_parts import distinct_survey_partitions, file_sha256
+from stages.common.survey_parts import distinct_survey_partitions
 
 
 def survey(drives: list[str]) -> pa.Table:
