@@ -255,13 +255,13 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     odometer_m = 0.0
     for k in range(start_epoch, n):
         if k > start_epoch:
-            odometer_m += _travel_m(increments[k])
+            step = _travel_m(increments[k])
+            odometer_m += step
             state, used, Phi = _motion(state, k, increments, wheel_increments, dt_s, icp_cov, cfg, from_gyro,
                                        gyro_fused, wheel_fallback)
             held = consider.forget(consider.propagate(held, Phi), state.q, cmap.en_m, cfg.consider_forget_m)
             n_icp += used
             if marks is not None:
-                step = _travel_m(increments[k])
                 marks.travel += step
                 held = consider.decay_map_offset(held, float(np.exp(-step / cfg.marking_map_length_m)))
         lo, hi = off[k], off[k + 1]
