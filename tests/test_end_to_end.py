@@ -95,7 +95,7 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     from pipeline.plan import make_plan
     from pipeline.workflow import load_workflow
     from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
-    from stages.posegraph.compute import read_drive_inputs, scan_loader
+    from stages.posegraph.compute import read_drive_inputs, read_survey, scan_loader
     from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.factors.base import base_problem
     from stages.posegraph.factors.graph import optimize
@@ -105,8 +105,7 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     sp = plan.stages["posegraph"]
     ctx = _context(_task_spec(plan, sp), PartitionKey(), root / "tmp" / "test-anchors", {})
     drives, _ = read_drive_inputs(ctx)
-    survey = ctx.inputs.read("survey", columns=["east_m", "north_m", "up_m", "intensity"])
-    pts = np.column_stack([survey[c].to_numpy() for c in ("east_m", "north_m", "up_m")])
+    pts, intensity = read_survey(ctx)
     cfg = PosegraphConfig.from_params(ctx.params)
     problem, offsets = base_problem(drives, cfg.factors, cfg.gnss)
     poses = optimize(problem)
@@ -115,7 +114,7 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
                    ctx.params.model_copy(update={"parallel_min_items": 2, "survey_marking_block": 3})):
         matches: list = []
         survey_anchor_callback(drives, scan_loader(ctx), pts, PosegraphConfig.from_params(params).anchors, matches,
-                               survey_intensity=survey["intensity"].to_numpy(),
+                               survey_intensity=intensity,
                                feature_load=scan_loader(ctx, ("intensity", "ring")))(poses, offsets)
         results.append(matches)
     serial, parallel = results
