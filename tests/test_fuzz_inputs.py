@@ -15,7 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.errors import CornermapError
+from pipeline.errors import CornermapError, FormatError
 
 FUZZ = settings(max_examples=int(os.environ.get("CORNERMAP_FUZZ_EXAMPLES", 40)), deadline=10_000,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -103,6 +103,30 @@ def test_las_reader(las_bytes, tmp_path, data):
         except CornermapError:
             return
     assert len(points.x_m) == len(points.z_m)
+
+
+@pytest.mark.parametrize("version", ["1.2", "1.4"])
+def test_las_with_a_corrupt_record_count_is_a_format_error(tmp_path, version):
+    """A header announcing 4 billion (extended) variable-length records: named, with bounded memory (laspy read
+    them one by one from the in-memory stream and grew without bound; the fuzz target above found it)."""
+    import struct
+
+    import laspy
+
+    from stages.ingest.scan_formats import read_las_points
+
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version=version))
+    las.x, las.y, las.z = np.arange(5.0), np.arange(5.0), np.arange(5.0)
+    path = tmp_path / "a.las"
+    las.write(path)
+    raw = bytearray(path.read_bytes())
+    fields = [(100, "<I")] + ([(243, "<I")] if version == "1.4" else [])
+    for at, fmt in fields:
+        bad = bytearray(raw)
+        struct.pack_into(fmt, bad, at, 0xFFFFFFFF)
+        path.write_bytes(bytes(bad))
+        with bounded_memory(), pytest.raises(FormatError, match="variable-length records"):
+            read_las_points(path)
 
 
 # -- CSV --------------------------------------------------------------------------------------------------

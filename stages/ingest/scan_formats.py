@@ -6,6 +6,7 @@ Formats: PCD v0.7 (see ``pcd.py``), KITTI ``.bin`` (float32 x y z reflectance), 
 from __future__ import annotations
 
 import io
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,6 +111,28 @@ def read_nuscenes_bin(path: Path) -> ScanPoints:
                       _rings_checked(a[:, 4], str(path), "column 5 (ring)"), None)
 
 
+VLR_HEADER_BYTES, EVLR_HEADER_BYTES = 54, 60  # ASPRS LAS 1.4 s.2.5 and s.2.6
+
+
+def _check_las_record_counts(path: Path, raw: bytes) -> None:
+    """The header's (extended) variable-length record counts against the file size, before laspy reads them: laspy
+    reads as many records as the header announces, and from an in-memory stream a corrupt count (4 billion) made it
+    build empty records until 18 GB were resident (found by tests/test_fuzz_inputs.py). Offsets from ASPRS LAS 1.4,
+    table 3; a file too short for a header is left to laspy, which names it."""
+    if len(raw) < 104 or raw[:4] != b"LASF":
+        return
+    header_size, = struct.unpack_from("<H", raw, 94)
+    n_vlrs, = struct.unpack_from("<I", raw, 100)
+    if header_size + n_vlrs * VLR_HEADER_BYTES > len(raw):
+        raise FormatError(f"{path}: header announces {n_vlrs} variable-length records after a {header_size}-byte "
+                          f"header, but the file has {len(raw)} bytes. Hint: corrupt header")
+    if raw[25] >= 4 and header_size >= 247 and len(raw) >= 247:
+        start, n_evlrs = struct.unpack_from("<QI", raw, 235)
+        if n_evlrs and start + n_evlrs * EVLR_HEADER_BYTES > len(raw):
+            raise FormatError(f"{path}: header announces {n_evlrs} extended variable-length records from byte "
+                              f"{start}, but the file has {len(raw)} bytes. Hint: truncated file or a corrupt header")
+
+
 def _check_las_sizes(path: Path, size: int, reader) -> None:  # noqa: ANN001 - a laspy.LasReader
     """Declared point count and record size against the file size, before laspy allocates the points."""
     with reader as fh:
@@ -135,6 +158,7 @@ def read_las_points(path: Path) -> ScanPoints:
         if path.stat().st_size > MAX_POINTS * 64:
             raise FormatError(f"{path}: {path.stat().st_size} bytes, more than a scan file may hold")
         raw = path.read_bytes()
+        _check_las_record_counts(path, raw)
         _check_las_sizes(path, len(raw), laspy.open(io.BytesIO(raw)))
         las = laspy.read(io.BytesIO(raw))
     except FormatError:
