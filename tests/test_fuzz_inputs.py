@@ -129,6 +129,34 @@ def test_las_with_a_corrupt_record_count_is_a_format_error(tmp_path, version):
             read_las_points(path)
 
 
+@pytest.mark.parametrize("version", ["1.2", "1.4"])
+def test_survey_with_a_corrupt_record_count_is_a_format_error(tmp_path, version):
+    """The same corrupt counts in a survey cloud, which is streamed from its file (not read into memory): laspy read
+    4 billion records for 65 s and 2.4 GB before the points; now a named error from the header alone."""
+    import struct
+
+    import laspy
+
+    from stages.common.geodesy import EnuOrigin
+    from stages.ingest.survey import iter_survey_enu
+
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version=version))
+    las.header.offsets = np.array([500000.0, 4000000.0, 0.0])
+    las.x, las.y, las.z = 500000.0 + np.arange(5.0), 4000000.0 + np.arange(5.0), np.arange(5.0)
+    path = tmp_path / "survey.las"
+    las.write(path)
+    raw = bytearray(path.read_bytes())
+    origin = EnuOrigin(36.1, 129.0, 0.0)
+    assert sum(len(e) for e, _ in iter_survey_enu(path, "EPSG:32652", origin)) == 5  # the intact file reads
+    fields = [(100, "<I")] + ([(243, "<I")] if version == "1.4" else [])
+    for at, fmt in fields:
+        bad = bytearray(raw)
+        struct.pack_into(fmt, bad, at, 0xFFFFFFFF)
+        path.write_bytes(bytes(bad))
+        with bounded_memory(), pytest.raises(FormatError, match=r"survey.las: header announces 4294967295"):
+            list(iter_survey_enu(path, "EPSG:32652", origin))
+
+
 # -- CSV --------------------------------------------------------------------------------------------------
 CSV = ("gps_week,gps_seconds,latitude_deg,longitude_deg\n"
        + "".join(f"2200,{345600 + k * 0.01:.2f},37.5{k:03d},127.0{k:03d}\n" for k in range(20)))

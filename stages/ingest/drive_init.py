@@ -167,9 +167,9 @@ def _draft_scans(folder: Path, d: Draft) -> str | None:
 def _georeferenced(path: Path) -> bool:
     """A LAS/LAZ whose coordinates are far from its sensor (projected or geographic CRS, not a sensor frame)."""
     try:
-        import laspy
+        from stages.ingest.scan_formats import open_las_checked
 
-        with laspy.open(path) as reader:
+        with open_las_checked(path) as reader:
             h = reader.header
             return bool(max(abs(h.mins[0]), abs(h.mins[1])) > 1000.0 or h.parse_crs() is not None)
     except Exception:  # noqa: BLE001 - treated as sensor-frame scans; check reports unreadable files
@@ -185,9 +185,9 @@ def _draft_survey(folder: Path, d: Draft, scan_format: str | None) -> None:
     path = clouds[0]
     crs = None
     try:
-        import laspy
+        from stages.ingest.scan_formats import open_las_checked
 
-        with laspy.open(path) as reader:
+        with open_las_checked(path) as reader:
             parsed = reader.header.parse_crs()
             crs = parsed.to_string() if parsed is not None else None
     except Exception:  # noqa: BLE001 - a draft notes it, check validates

@@ -114,23 +114,40 @@ def read_nuscenes_bin(path: Path) -> ScanPoints:
 VLR_HEADER_BYTES, EVLR_HEADER_BYTES = 54, 60  # ASPRS LAS 1.4 s.2.5 and s.2.6
 
 
-def _check_las_record_counts(path: Path, raw: bytes) -> None:
-    """The header's (extended) variable-length record counts against the file size, before laspy reads them: laspy
-    reads as many records as the header announces, and from an in-memory stream a corrupt count (4 billion) made it
-    build empty records until 18 GB were resident (found by tests/test_fuzz_inputs.py). Offsets from ASPRS LAS 1.4,
-    table 3; a file too short for a header is left to laspy, which names it."""
-    if len(raw) < 104 or raw[:4] != b"LASF":
+LAS_HEADER_MAX_BYTES = 375  # the LAS 1.4 public header block; earlier versions' are shorter
+
+
+def check_las_record_counts(path: Path, head: bytes, size: int) -> None:
+    """The header's (extended) variable-length record counts against the file size, before laspy reads them.
+
+    ``head``: the file's first bytes (at least ``LAS_HEADER_MAX_BYTES`` when the file is that long), ``size``: its
+    length. laspy reads as many records as the header announces: from an in-memory stream a corrupt count (4
+    billion) made it build empty records until 18 GB were resident (found by tests/test_fuzz_inputs.py); from a
+    file, 4 billion took 65 s and 2.4 GB before the points. Offsets from ASPRS LAS 1.4, table 3; a file too short
+    for a header is left to laspy, which names it."""
+    if len(head) < 104 or head[:4] != b"LASF":
         return
-    header_size, = struct.unpack_from("<H", raw, 94)
-    n_vlrs, = struct.unpack_from("<I", raw, 100)
-    if header_size + n_vlrs * VLR_HEADER_BYTES > len(raw):
+    header_size, = struct.unpack_from("<H", head, 94)
+    n_vlrs, = struct.unpack_from("<I", head, 100)
+    if header_size + n_vlrs * VLR_HEADER_BYTES > size:
         raise FormatError(f"{path}: header announces {n_vlrs} variable-length records after a {header_size}-byte "
-                          f"header, but the file has {len(raw)} bytes. Hint: corrupt header")
-    if raw[25] >= 4 and header_size >= 247 and len(raw) >= 247:
-        start, n_evlrs = struct.unpack_from("<QI", raw, 235)
-        if n_evlrs and start + n_evlrs * EVLR_HEADER_BYTES > len(raw):
+                          f"header, but the file has {size} bytes. Hint: corrupt header")
+    if head[25] >= 4 and header_size >= 247 and len(head) >= 247:
+        start, n_evlrs = struct.unpack_from("<QI", head, 235)
+        if n_evlrs and start + n_evlrs * EVLR_HEADER_BYTES > size:
             raise FormatError(f"{path}: header announces {n_evlrs} extended variable-length records from byte "
-                              f"{start}, but the file has {len(raw)} bytes. Hint: truncated file or a corrupt header")
+                              f"{start}, but the file has {size} bytes. Hint: truncated file or a corrupt header")
+
+
+def open_las_checked(path: Path):  # noqa: ANN201 - a laspy.LasReader
+    """``laspy.open(path)`` after the header's record counts were checked against the file's size (a large survey
+    is streamed from the file, never read whole)."""
+    import laspy
+
+    path = Path(path)
+    with open(path, "rb") as fh:
+        check_las_record_counts(path, fh.read(LAS_HEADER_MAX_BYTES), path.stat().st_size)
+    return laspy.open(path)
 
 
 def _check_las_sizes(path: Path, size: int, reader) -> None:  # noqa: ANN001 - a laspy.LasReader
@@ -158,7 +175,7 @@ def read_las_points(path: Path) -> ScanPoints:
         if path.stat().st_size > MAX_POINTS * 64:
             raise FormatError(f"{path}: {path.stat().st_size} bytes, more than a scan file may hold")
         raw = path.read_bytes()
-        _check_las_record_counts(path, raw)
+        check_las_record_counts(path, raw, len(raw))
         _check_las_sizes(path, len(raw), laspy.open(io.BytesIO(raw)))
         las = laspy.read(io.BytesIO(raw))
     except FormatError:

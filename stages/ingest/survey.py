@@ -19,12 +19,14 @@ def crs_to_enu(x: np.ndarray, y: np.ndarray, z: np.ndarray, crs: str, origin: En
 def iter_survey_enu(path: Path, crs: str, origin: EnuOrigin, chunk_points: int = 1_000_000
                     ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Yield ((N,3) ENU float64, (N,) intensity float32) per chunk of at most ``chunk_points`` points."""
-    import laspy
+    from stages.ingest.scan_formats import open_las_checked
 
     try:
-        reader = laspy.open(path)
+        reader = open_las_checked(path)
     except FileNotFoundError as exc:
         raise DatasetIOError(f"{path}: survey file not found") from exc
+    except FormatError:
+        raise
     except Exception as exc:  # noqa: BLE001 - laspy raises several types for a corrupt header
         raise FormatError(f"{path}: not a readable LAS/LAZ survey: {type(exc).__name__}: {exc}") from exc
     with reader:
