@@ -3,6 +3,7 @@ every process (pool workers and spawned processes included), scans per second en
 
     .venv/bin/python -m bench.bench_build --preset demo [--seed 1] [--scheduler local] [--json out.json]
     .venv/bin/python -m bench.bench_build --preset gangnam --drives drive_0
+    .venv/bin/python -m bench.bench_build --preset gangnam --drives drive_0 --max-scans 1000   # memory vs length
 
 The simulation is made once per preset and seed and cached (``--cache``, default ``~/.cache/cornermap-bench``);
 simulate and evaluation are not timed. Every run builds into a fresh root (deleted afterwards unless ``--keep``).
@@ -59,13 +60,16 @@ class RssSampler(threading.Thread):
         self.join()
 
 
-def simulated(cache: Path, preset: str, seed: int) -> Path:
-    out = cache / f"sim-{preset}-seed{seed}"
+def simulated(cache: Path, preset: str, seed: int, max_scans: int | None = None) -> Path:
+    """The simulated drives of (preset, seed), the first ``max_scans`` scans of each drive if given (a shorter drive
+    of the same city: the memory-against-length comparison)."""
+    out = cache / (f"sim-{preset}-seed{seed}" + (f"-max{max_scans}" if max_scans else ""))
     if not (out / "simulation.json").is_file():
         tmp = out.with_name(out.name + ".tmp")
         shutil.rmtree(tmp, ignore_errors=True)
+        cap = ["--max-scans", str(max_scans)] if max_scans else []
         subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--preset", preset, "--seed", str(seed),
-                        "--out", str(tmp), "--quiet"], check=True)
+                        "--out", str(tmp), "--quiet", *cap], check=True)
         tmp.replace(out)
     return out
 
@@ -91,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--drives", nargs="+", default=None, help="drives to build (default: drive_0 drive_1)")
     ap.add_argument("--scheduler", default="local", help="local | sync | tcp://HOST:PORT")
     ap.add_argument("--workers", type=int, default=None, help="local pool size (default: the machine's cores)")
+    ap.add_argument("--max-scans", type=int, default=None,
+                    help="build only the first N scans of each drive (peak memory against drive length)")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cornermap-bench")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here")
     ap.add_argument("--keep", action="store_true", help="keep the build root")
@@ -98,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from pipeline.api import execute_workflow
 
-    sim = simulated(args.cache, args.preset, args.seed)
+    sim = simulated(args.cache, args.preset, args.seed, args.max_scans)
     drives = args.drives or ["drive_0", "drive_1"]
     work = Path(tempfile.mkdtemp(prefix="bench-build-"))
     wf = write_workflow(work, sim, drives, work / "root", args.scheduler)
@@ -117,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(work, ignore_errors=True)
     n_scans = count_scans(sim, drives)
     peaks = sorted(sampler.peaks.values(), key=lambda x: -x[1])
-    doc = {"preset": args.preset, "seed": args.seed, "drives": drives, "scans": n_scans, "scheduler": args.scheduler,
+    doc = {"preset": args.preset, "seed": args.seed, "max_scans": args.max_scans, "drives": drives, "scans": n_scans,
+           "scheduler": args.scheduler,
            "workers": args.workers,
            "wall_s": round(wall, 1), "scans_per_s": round(n_scans / wall, 1), "stages": stages,
            "peak_rss_mb_max": round(peaks[0][1] / 2**20) if peaks else None,

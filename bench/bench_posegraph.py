@@ -101,7 +101,7 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     from stages.common import trajectory_metrics as M
-    from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
+    from stages.posegraph.anchors.survey_anchor import SurveyArrays, survey_anchor_callback
     from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.factors.drive import dead_reckoning
     from stages.posegraph.factors.graph import marginal_cov_xy_yaw
@@ -162,7 +162,7 @@ def main() -> None:
     if "survey" in tables:
         pts = np.column_stack([tables["survey"][c].to_numpy() for c in ("east_m", "north_m", "up_m")])
         matches = []
-        anchors = survey_anchor_callback(map_d, load, pts, cfg.anchors, matches)
+        anchors = survey_anchor_callback(map_d, load, SurveyArrays(pts), cfg.anchors, matches)
         sol_s = solve_map(map_d, load, cfg, survey_priors=anchors)
         rows["optimised + survey anchors"] = sol_s.poses
         print(f"survey anchors: {sum(m.accepted for m in matches)} accepted of {len(matches)}")

@@ -85,6 +85,51 @@ def test_a_survey_named_by_both_drives_is_read_once(tiny_sync):
     assert ctx.inputs.read("survey", columns=["east_m"]).num_rows == 2 * per_drive
 
 
+def test_loops_verified_from_the_store_in_blocks_equal_those_on_preloaded_clouds(tiny_sync):
+    """Loop candidates of the tiny map drive verified as the stage does (each worker reads the clouds of its block of
+    candidates itself, so the stage's process never holds them all) give the verdicts of the candidates verified on
+    every cloud loaded beforehand (``vehicle_clouds``), in this process and in a pool with blocks of 2."""
+    import numpy as np
+
+    from pipeline.declare import PartitionKey
+    from pipeline.execute import _context, _task_spec
+    from pipeline.plan import make_plan
+    from pipeline.workflow import load_workflow
+    from stages.posegraph.compute import read_drive_inputs, scan_loader
+    from stages.posegraph.config import PosegraphConfig
+    from stages.posegraph.factors.base import base_problem
+    from stages.posegraph.factors.graph import optimize
+    from stages.posegraph.loops.candidates import Candidate, keyframes_by_travel
+    from stages.posegraph.loops.clouds import vehicle_clouds
+    from stages.posegraph.loops.verify import verify_candidates, verify_from_store
+
+    root, _ = tiny_sync
+    plan = make_plan(load_workflow(REPO / "workflows" / "tiny.yaml"), root)
+    ctx = _context(_task_spec(plan, plan.stages["posegraph"]), PartitionKey(), root / "tmp" / "test-loops", {})
+    drives, _ = read_drive_inputs(ctx)
+    cfg = PosegraphConfig.from_params(ctx.params.model_copy(update={"parallel_min_items": 10_000}))
+    problem, offsets = base_problem(drives, cfg.factors, cfg.gnss)
+    poses = optimize(problem)
+    keys = keyframes_by_travel(poses[:, :3, 3], np.zeros(len(poses), int), 5.0)
+    # consecutive keyframes as stand-in candidates (the tiny drive has too few revisits): some pairs overlap,
+    # some do not, and scans recur across candidates and blocks
+    cands = [Candidate(int(a), int(b), 5.0) for a, b in zip(keys[:-2], keys[2:])][:9] + \
+            [Candidate(int(keys[1]), int(keys[0]), 5.0)]
+    load = scan_loader(ctx)
+    wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
+    clouds = vehicle_clouds(drives, offsets, wanted, load, cfg.loops.verify.voxel_m)
+    reference = verify_candidates(cands, poses, clouds, cfg.loops)
+    pooled = PosegraphConfig.from_params(ctx.params.model_copy(update={"parallel_min_items": 2})).loops
+    for got in (verify_from_store(cands, poses, drives, offsets, load, cfg.loops),
+                verify_from_store(cands, poses, drives, offsets, load, pooled, block=2)):
+        assert [(r.i, r.j) for r in got] == [(c.i, c.j) for c in cands]
+        for a, b in zip(reference, got):
+            assert (a.accepted, a.reason) == (b.accepted, b.reason)
+            assert a.fitness == pytest.approx(b.fitness, abs=1e-6)
+            np.testing.assert_allclose(a.T_i_j, b.T_i_j, atol=1e-6)
+    assert any(r.accepted for r in reference)
+
+
 def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     """The pose graph's survey anchors (ground GICP and marking matches) of the tiny map drive, computed in the
     stage's process and in a process pool in blocks of 3 keyframes: the same matches."""
@@ -95,7 +140,7 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     from pipeline.plan import make_plan
     from pipeline.workflow import load_workflow
     from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
-    from stages.posegraph.compute import read_drive_inputs, read_survey, scan_loader
+    from stages.posegraph.compute import SurveySource, read_drive_inputs, scan_loader
     from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.factors.base import base_problem
     from stages.posegraph.factors.graph import optimize
@@ -105,7 +150,6 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     sp = plan.stages["posegraph"]
     ctx = _context(_task_spec(plan, sp), PartitionKey(), root / "tmp" / "test-anchors", {})
     drives, _ = read_drive_inputs(ctx)
-    pts, intensity = read_survey(ctx)
     cfg = PosegraphConfig.from_params(ctx.params)
     problem, offsets = base_problem(drives, cfg.factors, cfg.gnss)
     poses = optimize(problem)
@@ -113,8 +157,8 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     for params in (ctx.params.model_copy(update={"parallel_min_items": 10_000}),
                    ctx.params.model_copy(update={"parallel_min_items": 2, "survey_marking_block": 3})):
         matches: list = []
-        survey_anchor_callback(drives, scan_loader(ctx), pts, PosegraphConfig.from_params(params).anchors, matches,
-                               survey_intensity=intensity,
+        survey_anchor_callback(drives, scan_loader(ctx), SurveySource(ctx.inputs),
+                               PosegraphConfig.from_params(params).anchors, matches,
                                feature_load=scan_loader(ctx, ("intensity", "ring")))(poses, offsets)
         results.append(matches)
     serial, parallel = results

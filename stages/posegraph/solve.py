@@ -15,8 +15,8 @@ from stages.posegraph.factors.base import base_problem
 from stages.posegraph.factors.drive import DriveInput
 from stages.posegraph.factors.graph import Between, PosePrior, Problem, between_residuals, optimize
 from stages.posegraph.loops.candidates import find_candidates, keyframes_by_travel
-from stages.posegraph.loops.clouds import ScanLoader, vehicle_clouds
-from stages.posegraph.loops.verify import LoopRecord, loop_betweens, verify_candidates
+from stages.posegraph.loops.clouds import ScanLoader
+from stages.posegraph.loops.verify import LoopRecord, loop_betweens, verify_from_store
 
 log = logging.getLogger(__name__)
 
@@ -116,10 +116,8 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     query = keyframes_by_travel(poses[:, :3, 3], group, lc.stride_m)
     cands = find_candidates(poses[:, :3, 3], stamps_s, group, query, radius_m=lc.radius_m,
                             min_separation_s=lc.min_separation_s, max_per_scan=lc.max_per_scan)
-    wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
-    clouds = vehicle_clouds(drives, offsets, wanted, load, lc.verify.voxel_m, workers=lc.workers(len(wanted)))
     step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
-    loops = verify_candidates(cands, poses, clouds, lc, progress=step) + list(extra_loops)
+    loops = verify_from_store(cands, poses, drives, offsets, load, lc, progress=step) + list(extra_loops)
     t2 = time.perf_counter()
     solve_times: list[float] = []
     poses = optimize_with_loops(problem, loops, lc, cfg.solve, solve_times_s=solve_times, initial=poses)
@@ -187,9 +185,8 @@ def solve_reference(drive: DriveInput, map_drives: list[DriveInput], map_poses: 
     all_drives = [drive] + list(map_drives)
     offsets = np.cumsum([0] + [d.n for d in all_drives])
     wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
-    clouds = vehicle_clouds(all_drives, offsets, wanted, load, lc.verify.voxel_m, workers=lc.workers(len(wanted)))
     fixed = {g: map_poses[g - n] for g in wanted if g >= n}
-    loops = verify_candidates(cands, poses, clouds, lc, fixed=fixed)
+    loops = verify_from_store(cands, poses, all_drives, offsets, load, lc, fixed=fixed)
     # map poses in loops become extra variables held by tight priors
     extra = sorted({g for r in loops if r.accepted for g in (r.i, r.j) if g >= n})
     remap = {g: n + m for m, g in enumerate(extra)}

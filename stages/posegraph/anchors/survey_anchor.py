@@ -126,22 +126,57 @@ def _use_survey(survey_pts: np.ndarray) -> None:
     set_worker_state(survey_pts=survey_pts, survey_tree=cKDTree(survey_pts[:, :2]))
 
 
-def _anchor_item(item) -> SurveyMatch:
-    """One keyframe's ground registration against the survey held by ``_use_survey`` (module level)."""
+def _use_survey_and_drives(survey_pts: np.ndarray, drives, load) -> None:
+    """Worker initializer of the ground anchors: the downsampled survey, and the drives and scan loader with which
+    the worker reads its keyframes' scans itself."""
+    from stages.posegraph.loops.clouds import _use_drives
+
+    _use_survey(survey_pts)
+    _use_drives(drives, load)
+
+
+def _anchor_block(item) -> list[SurveyMatch]:
+    """Ground registrations of a block of keyframes against the survey held by ``_use_survey`` (module level):
+    the block's clouds are read and prepared here (``clouds._clouds_item``) and dropped with the block."""
     from pipeline.parallel import worker_state
+    from stages.posegraph.loops.clouds import _clouds_item
 
-    k, cloud, pose, cfg = item
+    chunk, voxel_m, keyed_poses, cfg = item
     state = worker_state()
-    return anchor_scan(k, cloud, pose, state["survey_pts"], state["survey_tree"], cfg)
+    clouds = _clouds_item((chunk, voxel_m))
+    return [anchor_scan(k, clouds[k], pose, state["survey_pts"], state["survey_tree"], cfg) for k, pose in keyed_poses]
 
 
-def _use_survey_markings(survey_enu_m: np.ndarray, survey_intensity: np.ndarray, feature_load) -> None:
-    """Pool/cluster worker initializer for the marking anchors: the survey's marking index and a scan loader."""
+def ground_blocks(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray, voxel_m: float, cfg, block: int) -> list:
+    """Items of ``_anchor_block``: consecutive keyframes (global pose indices) in blocks of at most ``block``."""
+    items = []
+    for start in range(0, len(keys), block):
+        sel = np.asarray(keys[start:start + block], np.int64)
+        owner = np.searchsorted(offsets, sel, side="right") - 1
+        chunk = [(int(g), int(o), int(g - offsets[o])) for g, o in zip(sel, owner)]
+        items.append((chunk, voxel_m, [(int(k), poses[k]) for k in sel], cfg))
+    return items
+
+
+class SurveyArrays:
+    """A survey source over arrays already in memory (benches, tests); the stage passes
+    ``stages.posegraph.compute.SurveySource``, which reads the store where it is called."""
+
+    def __init__(self, points_enu_m: np.ndarray, intensity: np.ndarray | None = None):
+        self.points_enu_m, self.intensity = points_enu_m, intensity
+        self.has_intensity = intensity is not None
+
+    def read(self) -> tuple[np.ndarray, np.ndarray | None]:
+        return self.points_enu_m, self.intensity
+
+
+def _use_survey_markings(survey, feature_load) -> None:
+    """Pool/cluster worker initializer for the marking anchors: the survey's marking index (the worker reads the
+    survey from its source) and a scan loader."""
     from pipeline.parallel import set_worker_state
     from stages.posegraph.anchors.survey_markings import build_survey_marking_index
 
-    set_worker_state(marking_index=build_survey_marking_index(survey_enu_m, survey_intensity),
-                     feature_load=feature_load)
+    set_worker_state(marking_index=build_survey_marking_index(*survey.read()), feature_load=feature_load)
 
 
 def _marking_block(item) -> list:
@@ -167,19 +202,28 @@ def marking_blocks(keys: np.ndarray, offsets: np.ndarray, block: int) -> list[tu
     return out
 
 
-def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, cfg: AnchorConfig, matches_out: list | None = None,
-                           survey_intensity: np.ndarray | None = None, feature_load=None, report_step=None):
+def survey_anchor_callback(drives, load, survey, cfg: AnchorConfig, matches_out: list | None = None,
+                           feature_load=None, report_step=None):
     """A ``survey_priors(poses, offsets)`` callback for ``solve_map``: anchors keyframes every
     ``cfg.stride_m`` that the survey covers; every match of the last call (accepted or not) is left in ``matches_out``.
-    With the survey's intensities and a ``feature_load``er (scans with intensity and ring), each keyframe is
-    also matched horizontally on the painted markings (``survey_markings``)."""
+    ``survey``: a picklable source with ``read() -> (points, intensity or None)`` and ``has_intensity``
+    (``compute.SurveySource``, ``SurveyArrays``). The raw cloud is read at the first call, downsampled, and dropped;
+    the marking workers read it themselves. With the survey's intensities and a ``feature_load``er (scans with
+    intensity and ring), each keyframe is also matched horizontally on the painted markings (``survey_markings``)."""
     from pipeline.parallel import parallel_map
     from stages.posegraph.factors.drive import increments
     from stages.posegraph.loops.candidates import keyframes_by_travel
-    from stages.posegraph.loops.clouds import vehicle_clouds
 
-    survey_pts, tree = build_survey_index(survey_enu_m, cfg.ground.voxel_m)
-    with_markings = cfg.use_markings and survey_intensity is not None and feature_load is not None
+    with_markings = cfg.use_markings and survey.has_intensity and feature_load is not None
+    index: dict = {}
+
+    def ground_index() -> tuple[np.ndarray, cKDTree | None]:
+        if not index:
+            points = survey.read()[0]
+            index["pts"], index["tree"] = build_survey_index(points, cfg.ground.voxel_m) if len(points) \
+                else (np.zeros((0, 3)), None)
+            del points
+        return index["pts"], index["tree"]
 
     def horizontal(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray) -> list:
         """The marking anchor of every keyframe, in blocks of consecutive keyframes run in parallel."""
@@ -188,19 +232,25 @@ def survey_anchor_callback(drives, load, survey_enu_m: np.ndarray, cfg: AnchorCo
                  for o, local in blocks]
         step = (lambda done, total: report_step("survey marking anchors", done, total)) if report_step else None
         done = parallel_map(_marking_block, items, workers=cfg.workers(len(keys)), initializer=_use_survey_markings,
-                            initargs=(survey_enu_m, survey_intensity, feature_load), progress=step)
+                            initargs=(survey, feature_load), progress=step)
         return [m for block in done for m in block]
 
     def callback(poses: np.ndarray, offsets: np.ndarray) -> list[PosePrior]:
+        survey_pts, tree = ground_index()
+        if tree is None:  # an empty survey anchors nothing
+            return []
         group = np.repeat(np.arange(len(drives)), np.diff(offsets))
         keys = keyframes_by_travel(poses[:, :3, 3], group, cfg.stride_m)
         covered = np.array([len(tree.query_ball_point(poses[k, :2, 3], 5.0)) > 0 for k in keys], bool)
         keys = keys[covered] if len(keys) else keys
-        clouds = vehicle_clouds(drives, offsets, keys, load, cfg.ground.voxel_m, workers=cfg.workers(len(keys)))
-        items = [(int(k), clouds[int(k)], poses[k], cfg.ground) for k in keys]
-        step = (lambda done, total: report_step("survey anchors", done, total)) if report_step else None
-        matches = parallel_map(_anchor_item, items, workers=cfg.workers(len(items)),
-                               initializer=_use_survey, initargs=(survey_pts,), progress=step)
+        # each worker reads and prepares its block's scans: the stage's process never holds every keyframe's cloud
+        items = ground_blocks(keys, poses, offsets, cfg.ground.voxel_m, cfg.ground, cfg.block)
+        n = len(keys)
+        step = (lambda done, total: report_step("survey anchors", min(done * cfg.block, n), n)) if report_step \
+            else None
+        blocks = parallel_map(_anchor_block, items, workers=cfg.workers(n), initializer=_use_survey_and_drives,
+                              initargs=(survey_pts, drives, load), progress=step)
+        matches = [m for got in blocks for m in got]
         if with_markings:
             found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
             matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets,

@@ -36,10 +36,63 @@ class LoopRecord:
     information: np.ndarray | None = None  # 6x6 gtsam order, body frame of T_i_j
 
 
+VERIFY_BLOCK = 32  # candidates per task of verify_from_store: the clouds of one block are resident at a time
+
+
 def _verify_item(item) -> object:
     """One candidate's ICP verification (module level: runs in a pool process or on a cluster worker)."""
     cloud_i, cloud_j, prior, cfg = item
     return verify_loop(cloud_i, cloud_j, prior, cfg)
+
+
+def _verify_block(item) -> list[Verdict]:
+    """A block of candidates: this process loads the clouds they use (``clouds._clouds_item``, from the drives and
+    loader ``clouds._use_drives`` left in its state) and verifies each; the clouds are dropped with the block."""
+    from stages.posegraph.loops.clouds import _clouds_item
+
+    chunk, voxel_m, pairs, cfg = item
+    clouds = _clouds_item((chunk, voxel_m))
+    return [verify_loop(clouds[i], clouds[j], prior, cfg) for i, j, prior in pairs]
+
+
+def verify_from_store(candidates, poses: np.ndarray, drives, offsets: np.ndarray, load, cfg: LoopConfig,
+                      fixed: dict[int, np.ndarray] | None = None, progress=None,
+                      block: int = VERIFY_BLOCK) -> list[LoopRecord]:
+    """``verify_candidates`` without the clouds in this process: the candidates, ordered by their first pose, go in
+    blocks of ``block`` to the workers (``pipeline.parallel.parallel_map``), each of which reads and prepares the
+    clouds of its block itself. Memory is one block's clouds per worker, not every candidate's cloud at once (on
+    gangnam 889 candidates: the clouds of ~1,500 scans were held by the stage's process through the whole solve).
+    The verdicts equal ``verify_candidates``' on ``vehicle_clouds``' clouds (each cloud is computed alone)."""
+    from pipeline.parallel import parallel_map
+    from stages.posegraph.loops.clouds import _use_drives
+
+    fixed = fixed or {}
+    n = len(candidates)
+    order = sorted(range(n), key=lambda m: (min(candidates[m].i, candidates[m].j), max(candidates[m].i,
+                                                                                        candidates[m].j), m))
+    items, members = [], []
+    for start in range(0, n, block):
+        sel = order[start:start + block]
+        wanted = np.unique([candidates[m].i for m in sel] + [candidates[m].j for m in sel]).astype(np.int64)
+        owner = np.searchsorted(offsets, wanted, side="right") - 1
+        chunk = [(int(g), int(o), int(g - offsets[o])) for g, o in zip(wanted, owner)]
+        pairs = []
+        for m in sel:
+            c = candidates[m]
+            Ti = fixed.get(c.i, poses[c.i] if c.i < len(poses) else None)
+            Tj = fixed.get(c.j, poses[c.j] if c.j < len(poses) else None)
+            pairs.append((c.i, c.j, se3_inverse(Ti) @ Tj))
+        items.append((chunk, cfg.verify.voxel_m, pairs, cfg.verify))
+        members.append(sel)
+    step = (lambda done, total: progress(min(done * block, n), n)) if progress else None
+    blocks = parallel_map(_verify_block, items, workers=cfg.workers(n), initializer=_use_drives,
+                          initargs=(drives, load), progress=step)
+    verdicts: list = [None] * n
+    for sel, got in zip(members, blocks):
+        for m, v in zip(sel, got):
+            verdicts[m] = v
+    return [LoopRecord(c.i, c.j, c.prior_distance_m, v.fitness, v.inlier_rmse_m, v.T_i_j, v.accepted, v.reason,
+                       v.information) for c, v in zip(candidates, verdicts)]
 
 
 def verify_candidates(candidates, poses: np.ndarray, clouds: dict[int, np.ndarray], cfg: LoopConfig,
