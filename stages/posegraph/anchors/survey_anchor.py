@@ -119,32 +119,38 @@ def survey_priors(matches: list[SurveyMatch], kernel_k: float = 1.345, yaw_sigma
     return out
 
 
-def _use_survey(survey_pts: np.ndarray) -> None:
-    """Pool/cluster worker initializer: the downsampled survey and its 2-D index, once per process."""
+COVERAGE_RADIUS_M = 5.0  # a keyframe is anchored when the downsampled survey has a point this close to it
+
+
+def _use_survey_and_drives(survey, voxel_m: float, drives, load) -> None:
+    """Worker initializer of the ground anchors: the survey read from its source and downsampled here (the stage's
+    process never holds it), its 2-D index, and the drives and scan loader with which the worker reads its
+    keyframes' scans itself."""
     from pipeline.parallel import set_worker_state
-
-    set_worker_state(survey_pts=survey_pts, survey_tree=cKDTree(survey_pts[:, :2]))
-
-
-def _use_survey_and_drives(survey_pts: np.ndarray, drives, load) -> None:
-    """Worker initializer of the ground anchors: the downsampled survey, and the drives and scan loader with which
-    the worker reads its keyframes' scans itself."""
     from stages.posegraph.loops.clouds import _use_drives
 
-    _use_survey(survey_pts)
+    points = survey.read()[0]
+    pts, tree = build_survey_index(points, voxel_m) if len(points) else (np.zeros((0, 3)), None)
+    del points
+    set_worker_state(survey_pts=pts, survey_tree=tree)
     _use_drives(drives, load)
 
 
-def _anchor_block(item) -> list[SurveyMatch]:
-    """Ground registrations of a block of keyframes against the survey held by ``_use_survey`` (module level):
-    the block's clouds are read and prepared here (``clouds._clouds_item``) and dropped with the block."""
+def _anchor_block(item) -> list[SurveyMatch | None]:
+    """Ground registrations of a block of keyframes against the survey held by ``_use_survey_and_drives`` (module
+    level); ``None`` for a keyframe the survey does not cover. The covered keyframes' clouds are read and prepared
+    here (``clouds._clouds_item``) and dropped with the block."""
     from pipeline.parallel import worker_state
     from stages.posegraph.loops.clouds import _clouds_item
 
     chunk, voxel_m, keyed_poses, cfg = item
     state = worker_state()
-    clouds = _clouds_item((chunk, voxel_m))
-    return [anchor_scan(k, clouds[k], pose, state["survey_pts"], state["survey_tree"], cfg) for k, pose in keyed_poses]
+    tree = state["survey_tree"]
+    covered = [tree is not None and len(tree.query_ball_point(pose[:2, 3], COVERAGE_RADIUS_M)) > 0
+               for _, pose in keyed_poses]
+    clouds = _clouds_item(([c for c, ok in zip(chunk, covered) if ok], voxel_m)) if any(covered) else {}
+    return [anchor_scan(k, clouds[k], pose, state["survey_pts"], tree, cfg) if ok else None
+            for (k, pose), ok in zip(keyed_poses, covered)]
 
 
 def ground_blocks(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray, voxel_m: float, cfg, block: int) -> list:
@@ -215,15 +221,6 @@ def survey_anchor_callback(drives, load, survey, cfg: AnchorConfig, matches_out:
     from stages.posegraph.loops.candidates import keyframes_by_travel
 
     with_markings = cfg.use_markings and survey.has_intensity and feature_load is not None
-    index: dict = {}
-
-    def ground_index() -> tuple[np.ndarray, cKDTree | None]:
-        if not index:
-            points = survey.read()[0]
-            index["pts"], index["tree"] = build_survey_index(points, cfg.ground.voxel_m) if len(points) \
-                else (np.zeros((0, 3)), None)
-            del points
-        return index["pts"], index["tree"]
 
     def horizontal(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray) -> list:
         """The marking anchor of every keyframe, in blocks of consecutive keyframes run in parallel."""
@@ -236,21 +233,17 @@ def survey_anchor_callback(drives, load, survey, cfg: AnchorConfig, matches_out:
         return [m for block in done for m in block]
 
     def callback(poses: np.ndarray, offsets: np.ndarray) -> list[PosePrior]:
-        survey_pts, tree = ground_index()
-        if tree is None:  # an empty survey anchors nothing
-            return []
         group = np.repeat(np.arange(len(drives)), np.diff(offsets))
         keys = keyframes_by_travel(poses[:, :3, 3], group, cfg.stride_m)
-        covered = np.array([len(tree.query_ball_point(poses[k, :2, 3], 5.0)) > 0 for k in keys], bool)
-        keys = keys[covered] if len(keys) else keys
-        # each worker reads and prepares its block's scans: the stage's process never holds every keyframe's cloud
+        # the workers hold the survey and read their block's scans: the stage's process holds neither; a keyframe
+        # the survey does not cover comes back as None
         items = ground_blocks(keys, poses, offsets, cfg.ground.voxel_m, cfg.ground, cfg.block)
         n = len(keys)
         step = (lambda done, total: report_step("survey anchors", min(done * cfg.block, n), n)) if report_step \
             else None
         blocks = parallel_map(_anchor_block, items, workers=cfg.workers(n), initializer=_use_survey_and_drives,
-                              initargs=(survey_pts, drives, load), progress=step)
-        matches = [m for got in blocks for m in got]
+                              initargs=(survey, cfg.ground.voxel_m, drives, load), progress=step)
+        matches = [m for got in blocks for m in got if m is not None]
         if with_markings:
             found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
             matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets,
