@@ -103,11 +103,14 @@ class SurveySource:
             pts.append(np.column_stack([t[c].to_numpy() for c in ("east_m", "north_m", "up_m")]))
             intensity.append(t["intensity"].to_numpy())
             del t
+        from pipeline.memory import release_memory
+
         if not pts:
             return np.zeros((0, 3)), np.zeros(0, np.float32)
-        if len(pts) == 1:
-            return pts[0], intensity[0]
-        return np.concatenate(pts), np.concatenate(intensity)
+        out = (pts[0], intensity[0]) if len(pts) == 1 else (np.concatenate(pts), np.concatenate(intensity))
+        del pts, intensity
+        release_memory()  # the Arrow tables' pages (gangnam's 8.3 M points: 730 -> 435 MB resident)
+        return out
 
 
 def read_survey(ctx: StageContext) -> tuple[np.ndarray, np.ndarray]:
