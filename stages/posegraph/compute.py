@@ -95,6 +95,7 @@ class SurveySource:
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """(N,3) ENU points and (N,) intensity, each distinct cloud once (drives that name the same survey file each
         ingest it; stages/common/survey_parts.py)."""
+        from pipeline.memory import release_memory
         from stages.common.survey_parts import distinct_survey_partitions
 
         pts, intensity = [], []
@@ -103,8 +104,6 @@ class SurveySource:
             pts.append(np.column_stack([t[c].to_numpy() for c in ("east_m", "north_m", "up_m")]))
             intensity.append(t["intensity"].to_numpy())
             del t
-        from pipeline.memory import release_memory
-
         if not pts:
             return np.zeros((0, 3)), np.zeros(0, np.float32)
         out = (pts[0], intensity[0]) if len(pts) == 1 else (np.concatenate(pts), np.concatenate(intensity))

@@ -157,13 +157,11 @@ def _anchor_block(item) -> list[SurveyMatch | None]:
 
 def ground_blocks(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray, voxel_m: float, cfg, block: int) -> list:
     """Items of ``_anchor_block``: consecutive keyframes (global pose indices) in blocks of at most ``block``."""
-    items = []
-    for start in range(0, len(keys), block):
-        sel = np.asarray(keys[start:start + block], np.int64)
-        owner = np.searchsorted(offsets, sel, side="right") - 1
-        chunk = [(int(g), int(o), int(g - offsets[o])) for g, o in zip(sel, owner)]
-        items.append((chunk, voxel_m, [(int(k), poses[k]) for k in sel], cfg))
-    return items
+    from stages.posegraph.loops.clouds import cloud_requests
+
+    requests = cloud_requests(offsets, keys)
+    return [(chunk, voxel_m, [(g, poses[g]) for g, _, _ in chunk], cfg)
+            for chunk in (requests[start:start + block] for start in range(0, len(requests), block))]
 
 
 class SurveyArrays:

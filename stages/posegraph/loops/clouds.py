@@ -13,18 +13,22 @@ from stages.posegraph.factors.drive import DriveInput, deskew_scan_lidar, increm
 ScanLoader = Callable[[list[tuple[str, int]]], dict[tuple[str, int], tuple[np.ndarray, np.ndarray | None]]]
 
 
+def cloud_requests(offsets: np.ndarray, wanted) -> list[tuple[int, int, int]]:
+    """Global pose indices -> the ``(global index, drive index, scan index within the drive)`` triples that
+    ``_clouds_item`` loads (``offsets``: each drive's first global index, then the total)."""
+    wanted = np.asarray(wanted, np.int64)
+    owner = np.searchsorted(offsets, wanted, side="right") - 1
+    return [(int(g), int(o), int(g - offsets[o])) for g, o in zip(wanted, owner)]
+
+
 def vehicle_clouds(drives: list[DriveInput], offsets: np.ndarray, wanted: np.ndarray, load: ScanLoader,
                    voxel_m: float, batch: int = 64, workers: int | None = 1) -> dict[int, np.ndarray]:
     """Deskewed, voxel-downsampled vehicle-frame points of the wanted pose indices, loaded in batches; the
     batches run through ``parallel_map`` (each worker reads its scans from the store) when ``workers`` != 1."""
     from pipeline.parallel import parallel_map
 
-    owner = np.searchsorted(offsets, wanted, side="right") - 1
-    items = []
-    for start in range(0, len(wanted), batch):
-        chunk = [(int(g), int(o), int(g - offsets[o])) for g, o in zip(wanted[start:start + batch],
-                                                                         owner[start:start + batch])]
-        items.append((chunk, voxel_m))
+    requests = cloud_requests(offsets, wanted)
+    items = [(requests[start:start + batch], voxel_m) for start in range(0, len(requests), batch)]
     out: dict[int, np.ndarray] = {}
     for part in parallel_map(_clouds_item, items, workers=workers if len(items) > 1 else 1,
                              initializer=_use_drives, initargs=(drives, load)):

@@ -64,7 +64,7 @@ def verify_from_store(candidates, poses: np.ndarray, drives, offsets: np.ndarray
     gangnam 889 candidates: the clouds of ~1,500 scans were held by the stage's process through the whole solve).
     The verdicts equal ``verify_candidates``' on ``vehicle_clouds``' clouds (each cloud is computed alone)."""
     from pipeline.parallel import parallel_map
-    from stages.posegraph.loops.clouds import _use_drives
+    from stages.posegraph.loops.clouds import _use_drives, cloud_requests
 
     fixed = fixed or {}
     n = len(candidates)
@@ -73,9 +73,7 @@ def verify_from_store(candidates, poses: np.ndarray, drives, offsets: np.ndarray
     items, members = [], []
     for start in range(0, n, block):
         sel = order[start:start + block]
-        wanted = np.unique([candidates[m].i for m in sel] + [candidates[m].j for m in sel]).astype(np.int64)
-        owner = np.searchsorted(offsets, wanted, side="right") - 1
-        chunk = [(int(g), int(o), int(g - offsets[o])) for g, o in zip(wanted, owner)]
+        chunk = cloud_requests(offsets, np.unique([candidates[m].i for m in sel] + [candidates[m].j for m in sel]))
         pairs = []
         for m in sel:
             c = candidates[m]
