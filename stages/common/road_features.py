@@ -2,8 +2,11 @@
 
 1. A voxel grid per layer (ring) makes every layer geometrically uniform: one averaged point per
    (ring, voxel), so dense near rings do not dominate.
-2. Ground points are kept (height band about the ground level, estimated per scan as the mode of the
-   heights of near points unless given).
+2. Ground points are kept: a height band about the road surface. The paper finds the traversable area of its
+   survey cloud by height differences on an elevation grid; on one scan the road surface is estimated as the
+   plane (tilt and height) that holds the most near points (``estimate_ground_plane``), so the band follows the
+   body's roll in a turn, its pitch under braking and the road's grade, and a sidewalk one curb above the road
+   (its concrete brighter than asphalt along a ring) falls outside it.
 3. A ring-based 1D adaptive threshold: along each ring sorted by azimuth, the intensity minus its moving
    average over a window of ``window_m`` metres of arc; a point is a feature when that residual exceeds
    ``offset_sigma`` times the ring's robust spread (median absolute deviation). Each ring is thresholded
@@ -46,6 +49,47 @@ def estimate_ground_z(xyz_m: np.ndarray, near_m: float = 15.0, bin_m: float = 0.
     return float((np.argmax(counts) + lo + 0.5) * bin_m)
 
 
+def estimate_ground_plane(xyz_m: np.ndarray, near_m: float = 20.0, max_tilt_rad: float = 0.05,
+                          tilt_step_rad: float = 0.004, window_m: float = 0.04, max_points: int = 2500
+                          ) -> np.ndarray:
+    """Road surface of one scan as the plane ``z = a + b x + c y`` (returns ``[a, b, c]``) that holds the most points
+    within ``near_m`` (horizontal) of the sensor in a slab ``window_m`` thick: a deterministic exhaustive search
+    over tilts up to ``max_tilt_rad`` in steps of ``tilt_step_rad`` (a histogram of the detilted heights per
+    tilt), then two least-squares refits on the points within 0.05 and 0.03 m of it. The most populated slab
+    near the sensor is the road the vehicle stands on; a sidewalk, a curb above it, holds fewer points. With too
+    few points the plane is level at the heights' mode (``estimate_ground_z``)."""
+    xyz = np.asarray(xyz_m, dtype=np.float64)
+    near = xyz[np.hypot(xyz[:, 0], xyz[:, 1]) <= near_m]
+    z0 = estimate_ground_z(xyz, near_m=min(near_m, 15.0))
+    if len(near) < 50 or not np.isfinite(z0):
+        return np.array([z0, 0.0, 0.0])
+    reach = 1.5 * near_m * max_tilt_rad + 0.5  # heights a tilted road can reach within near_m of the mode
+    near = near[np.abs(near[:, 2] - z0) <= reach]
+    if len(near) < 50:
+        return np.array([z0, 0.0, 0.0])
+    if len(near) > max_points:
+        near = near[np.linspace(0, len(near) - 1, max_points).astype(np.int64)]
+    tilts = np.arange(-max_tilt_rad, max_tilt_rad + 0.5 * tilt_step_rad, tilt_step_rad)
+    bx, cy = (g.ravel() for g in np.meshgrid(tilts, tilts, indexing="ij"))
+    h = near[None, :, 2] - bx[:, None] * near[None, :, 0] - cy[:, None] * near[None, :, 1]  # (T, N)
+    half = 0.5 * window_m
+    lo = h.min()
+    nbins = int(np.ceil((h.max() - lo) / half)) + 2
+    b = np.floor((h - lo) / half).astype(np.int64)
+    counts = np.bincount((np.arange(len(bx))[:, None] * nbins + b).ravel(), minlength=len(bx) * nbins)
+    counts = counts.reshape(len(bx), nbins)
+    slab = counts[:, :-1] + counts[:, 1:]  # every window of two half-bins
+    t, k = np.unravel_index(int(np.argmax(slab)), slab.shape)
+    plane = np.array([lo + (k + 1) * half, bx[t], cy[t]])
+    A = np.column_stack([np.ones(len(near)), near[:, 0], near[:, 1]])
+    for tol in (0.05, 0.03):
+        inl = np.abs(near[:, 2] - A @ plane) <= tol
+        if inl.sum() < 3:
+            break
+        plane = np.linalg.lstsq(A[inl], near[inl, 2], rcond=None)[0]
+    return plane
+
+
 def ring_adaptive_threshold(xyz_m: np.ndarray, intensity: np.ndarray, ring: np.ndarray, window_m: float,
                             offset_sigma: float, min_residual: float = 0.0) -> np.ndarray:
     """Boolean mask of points brighter than their ring's local moving average (see the module doc)."""
@@ -82,8 +126,11 @@ def ring_adaptive_threshold(xyz_m: np.ndarray, intensity: np.ndarray, ring: np.n
 def extract_road_features(xyz_lidar_m: np.ndarray, intensity: np.ndarray, ring: np.ndarray,
                           T_vehicle_lidar: np.ndarray, *, voxel_m: float = 0.1, window_m: float = 3.0,
                           offset_sigma: float = 3.0, ground_band_m: float = 0.15, max_range_m: float = 30.0,
-                          ground_z_vehicle_m: float | None = None) -> np.ndarray:
-    """One scan -> (F,2) road-marking feature points in the vehicle frame (x forward, y left)."""
+                          ground_z_vehicle_m: float | None = None, ground_model: str = "level") -> np.ndarray:
+    """One scan -> (F,2) road-marking feature points in the vehicle frame (x forward, y left).
+
+    ``ground_model``: ``level`` (the heights' mode, a level band), ``plane`` (``estimate_ground_plane``: the band
+    about the fitted road plane). ``ground_z_vehicle_m``, when given, is the level road height and wins."""
     xyz = np.asarray(xyz_lidar_m, dtype=np.float64)
     T = np.asarray(T_vehicle_lidar, dtype=np.float64)
     xyz_v = xyz @ T[:3, :3].T + T[:3, 3]
@@ -92,8 +139,16 @@ def extract_road_features(xyz_lidar_m: np.ndarray, intensity: np.ndarray, ring: 
                                               voxel_m)
     if len(pts) == 0:
         return np.zeros((0, 2))
-    ground_z = estimate_ground_z(pts) if ground_z_vehicle_m is None else ground_z_vehicle_m
-    on_ground = np.abs(pts[:, 2] - ground_z) <= ground_band_m
+    if ground_z_vehicle_m is not None:
+        surface = np.full(len(pts), float(ground_z_vehicle_m))
+    elif ground_model == "plane":
+        a, b, c = estimate_ground_plane(pts)
+        surface = a + b * pts[:, 0] + c * pts[:, 1]
+    elif ground_model == "level":
+        surface = np.full(len(pts), estimate_ground_z(pts))
+    else:
+        raise ValueError(f"ground_model must be 'level' or 'plane', got {ground_model!r}")
+    on_ground = np.abs(pts[:, 2] - surface) <= ground_band_m
     pts, inten, rings = pts[on_ground], inten[on_ground], rings[on_ground]
     mask = ring_adaptive_threshold(pts, inten, rings, window_m, offset_sigma)
     return pts[mask, :2]

@@ -140,6 +140,7 @@ def _chunk_features(t: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar: np
         f = extract_road_features(pts, inten[lo:hi], ring[lo:hi], T_vehicle_lidar,
                                   voxel_m=p.feature_voxel_m, window_m=p.feature_window_m,
                                   offset_sigma=p.feature_offset_sigma, ground_band_m=p.feature_ground_band_m,
+                                  ground_model=p.feature_ground_model,
                                   max_range_m=p.feature_max_range_m)
         epochs.append(np.full(len(f), k)), points.append(f)
     return n_raw

@@ -138,7 +138,11 @@ class EvaluateParams(Params):
     feature_voxel_m: float = Field(0.1, gt=0)
     feature_window_m: float = Field(3.0, gt=0, description="moving-average window along a ring, metres of arc")
     feature_offset_sigma: float = Field(3.0, gt=0, description="threshold in robust std of the ring residual")
-    feature_ground_band_m: float = Field(0.15, gt=0)
+    feature_ground_model: Literal["level", "plane"] = Field(
+        "plane", description="road surface the feature band is about: 'plane' (the scan's fitted road plane, "
+        "follows roll, pitch and grade), 'level' (the mode of the near heights)")
+    feature_ground_band_m: float = Field(0.15, gt=0, description="half-height of the band about the road surface "
+                                         "a feature point must lie in")
     feature_max_range_m: float = Field(30.0, gt=0)
     # References
     reference_max_gap_s: float = Field(1.0, gt=0, description="no reference across gaps longer than this")
