@@ -5,7 +5,7 @@ from stages.evaluate.params import EvaluateParams
 STAGE = StageDecl(
     name="evaluate",
     summary="Localize evaluation drives on a published map: corner EKF, marking MCL, RTK/INS and ICP baselines.",
-    code_version="10",
+    code_version="11",
     inputs={"map": "map_tiles", "corners": "corners_per_scan", "edges": "odometry_edges", "poses_gnss": "poses_gnss",
             "gnss": "gnss_enu", "odometry": "odometry_raw", "scans": "scans_raw", "drive_info": "drive_info",
             "reference": "poses_optimized"},
