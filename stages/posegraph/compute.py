@@ -10,7 +10,7 @@ import numpy as np
 import pyarrow as pa
 
 from pipeline.declare import PartitionKey, StageContext
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, DataQualityError
 from stages.common.geometry import write_kitti, write_tum
 from stages.posegraph.config import PosegraphConfig
 from stages.posegraph.factors.drive import DriveInput, dead_reckoning
@@ -20,6 +20,15 @@ from stages.posegraph.solve import solve_map, solve_reference
 from stages.posegraph.tables import drive_input, loops_table, poses_table
 
 log = logging.getLogger(__name__)
+
+
+def _marginals(problem, poses: np.ndarray, what: str) -> np.ndarray:
+    """``marginal_cov_xy_yaw``, its undetermined graph a data-quality error naming the drives."""
+    try:
+        return marginal_cov_xy_yaw(problem, poses)
+    except ValueError as err:
+        raise DataQualityError(f"posegraph, {what}: {err}; hint: a stretch without ICP edges, GNSS fixes or "
+                               "loops leaves poses free (see the posegraph report's edge counts)") from err
 
 
 class ScanLoader:
@@ -130,7 +139,8 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
                                            report_step=ctx.report_step)
     sol = solve_map(drives, load, cfg, survey_priors=survey_cb, report_step=ctx.report_step)
     names = [(d.name, int(s)) for d in drives for s in d.scan_ids]
-    cov = marginal_cov_xy_yaw(sol.problem, sol.poses) if cfg.solve.compute_marginals else np.zeros((len(names), 9))
+    cov = _marginals(sol.problem, sol.poses, "the map drives") if cfg.solve.compute_marginals \
+        else np.zeros((len(names), 9))
     offsets = np.cumsum([0] + [d.n for d in drives])
     optimized = [poses_table("poses_optimized", d, sol.poses[a:b], cov[a:b])
                  for d, a, b in zip(drives, offsets[:-1], offsets[1:])]
@@ -139,8 +149,8 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     refs = {}
     for d in ref_drives:
         ref = solve_reference(d, drives, sol.poses, load, cfg)
-        rcov = marginal_cov_xy_yaw(ref.problem, np.concatenate(
-            [ref.poses, ref.problem.initial[d.n:]]))[:d.n] if cfg.solve.compute_marginals else np.zeros((d.n, 9))
+        rcov = _marginals(ref.problem, np.concatenate([ref.poses, ref.problem.initial[d.n:]]), f"drive {d.name!r}"
+                          )[:d.n] if cfg.solve.compute_marginals else np.zeros((d.n, 9))
         optimized.append(poses_table("poses_optimized", d, ref.poses, rcov))
         odometry.append(poses_table("poses_odometry", d, dead_reckoning(d)))
         loop_rows += _loop_rows(ref.loops, [(d.name, int(s)) for s in d.scan_ids] + names)
