@@ -4,6 +4,7 @@ every process (pool workers and spawned processes included), scans per second en
     .venv/bin/python -m bench.bench_build --preset demo [--seed 1] [--scheduler local] [--json out.json]
     .venv/bin/python -m bench.bench_build --preset gangnam --drives drive_0
     .venv/bin/python -m bench.bench_build --preset gangnam --drives drive_0 --max-scans 1000   # memory vs length
+    .venv/bin/python -m bench.bench_build --preset kitti --max-scans 154                       # real HDL-64E scans
 
 The simulation is made once per preset and seed and cached (``--cache``, default ``~/.cache/cornermap-bench``);
 simulate and evaluation are not timed. Every run builds into a fresh root (deleted afterwards unless ``--keep``).
@@ -74,6 +75,42 @@ def simulated(cache: Path, preset: str, seed: int, max_scans: int | None = None)
     return out
 
 
+KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_raw_0048_city"
+
+
+def kitti_drive(cache: Path, n_scans: int | None) -> Path:
+    """A folder holding ``drive_0/drive.yaml``: ``n_scans`` links to the shared KITTI scans (cyclically), an
+    OXTS-style CSV along a straight path at 8.5 m/s (the scans' own ICP speed), the drive file drafted from them."""
+    import numpy as np
+    import pymap3d
+
+    from stages.ingest.drive_init import draft_drive_file
+
+    files = sorted(KITTI.glob("*.pcd"))
+    if not files:
+        raise SystemExit(f"no KITTI scans under {KITTI}: the shared data must sit beside the checkout")
+    n = n_scans or len(files)
+    out = cache / f"kitti-hdl64e-{n}"
+    if (out / "drive_0" / "drive.yaml").is_file():
+        return out
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    folder = tmp / "drive_0"
+    (folder / "velodyne_points").mkdir(parents=True)
+    for i in range(n):
+        (folder / "velodyne_points" / f"{i:010d}.pcd").symlink_to(files[i % len(files)])
+    yaw = np.radians(30.0)
+    rows = ["time,lat,lon,alt,yaw"]
+    for i in range(n):
+        lat, lon, h = pymap3d.enu2geodetic(0.85 * i * np.cos(yaw), 0.85 * i * np.sin(yaw), 0.0,
+                                           ORIGIN["lat_deg"], ORIGIN["lon_deg"], ORIGIN["h_m"])
+        rows.append(f"{1317380000.0 + 0.1 * i:.3f},{lat:.9f},{lon:.9f},{h:.3f},{yaw:.6f}")
+    (folder / "oxts.csv").write_text("\n".join(rows) + "\n")
+    (folder / "drive.yaml").write_text("\n".join(draft_drive_file(folder).lines) + "\n")
+    tmp.replace(out)
+    return out
+
+
 def write_workflow(folder: Path, sim: Path, drives: list[str], root: Path, scheduler: str) -> Path:
     entries = [{"name": d, "path": str(sim / d / "drive.yaml"), "role": "map" if n == 0 else "eval"}
                for n, d in enumerate(drives)]
@@ -85,12 +122,12 @@ def write_workflow(folder: Path, sim: Path, drives: list[str], root: Path, sched
 
 
 def count_scans(sim: Path, drives: list[str]) -> int:
-    return sum(sum(1 for _ in (sim / d / "scans").glob("*.pcd")) for d in drives)
+    return sum(sum(1 for _ in (sim / d).glob("*/*.pcd")) for d in drives)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="demo", choices=["tiny", "demo", "gangnam"])
+    ap.add_argument("--preset", default="demo", choices=["tiny", "demo", "gangnam", "kitti"])
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--drives", nargs="+", default=None, help="drives to build (default: drive_0 drive_1)")
     ap.add_argument("--scheduler", default="local", help="local | sync | tcp://HOST:PORT")
@@ -104,8 +141,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from pipeline.api import execute_workflow
 
-    sim = simulated(args.cache, args.preset, args.seed, args.max_scans)
-    drives = args.drives or ["drive_0", "drive_1"]
+    if args.preset == "kitti":
+        sim, drives = kitti_drive(args.cache, args.max_scans), ["drive_0"]
+    else:
+        sim = simulated(args.cache, args.preset, args.seed, args.max_scans)
+        drives = args.drives or ["drive_0", "drive_1"]
     work = Path(tempfile.mkdtemp(prefix="bench-build-"))
     wf = write_workflow(work, sim, drives, work / "root", args.scheduler)
     sampler = RssSampler()
