@@ -7,6 +7,7 @@ in gtsam order (rx ry rz tx ty tz) for a body-frame perturbation. ``T_a_b`` maps
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 
 import gtsam
@@ -264,13 +265,16 @@ def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_po
     except RuntimeError as err:
         if "Indeterminate" not in str(err):
             raise
-        log.warning("pose graph: Cholesky marginals failed on an ill-conditioned graph (%s); "
-                    "computing them by QR", str(err).strip().splitlines()[0])
+        near = re.search(r"Symbol: (\w+)", str(err))
+        log.warning("pose graph: gtsam's Cholesky marginals gave up on an ill-conditioned graph (near %s); "
+                    "computing them by QR", near.group(1) if near else "an unnamed variable")
     try:
         tree = graph.linearize(values).eliminateMultifrontal(gtsam.Ordering.OrderingType.COLAMD, gtsam.EliminateQR)
         out = [tree.marginalCovariance(_key(i)) for i in range(n_poses)]
     except RuntimeError as err:
-        raise ValueError(f"the pose graph is not determined: {str(err).strip().splitlines()[0]}") from err
+        near = re.search(r"Symbol: (\w+)", str(err))
+        raise ValueError(f"the pose graph is not determined near {near.group(1) if near else 'a variable'} "
+                         "(gtsam's QR elimination failed)") from err
     bad = [i for i, c in enumerate(out) if not np.all(np.isfinite(c))]
     if bad:
         raise ValueError(f"the pose graph is not determined: pose {bad[0]} has a non-finite marginal covariance")
