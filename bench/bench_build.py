@@ -79,33 +79,20 @@ KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_
 
 
 def kitti_drive(cache: Path, n_scans: int | None) -> Path:
-    """A folder holding ``drive_0/drive.yaml``: ``n_scans`` links to the shared KITTI scans (cyclically), an
-    OXTS-style CSV along a straight path at 8.5 m/s (the scans' own ICP speed), the drive file drafted from them."""
-    import numpy as np
-    import pymap3d
-
+    """A folder holding ``drive_0/drive.yaml``: ``n_scans`` links to the shared KITTI scans (cyclically) and an
+    OXTS-style CSV along a straight path without noise (``fixtures.kitti``), the drive file drafted from them."""
+    from fixtures.kitti import kitti_drive_folder
     from stages.ingest.drive_init import draft_drive_file
 
     files = sorted(KITTI.glob("*.pcd"))
     if not files:
         raise SystemExit(f"no KITTI scans under {KITTI}: the shared data must sit beside the checkout")
-    n = n_scans or len(files)
-    out = cache / f"kitti-hdl64e-{n}"
+    out = cache / f"kitti-hdl64e-{n_scans or len(files)}"
     if (out / "drive_0" / "drive.yaml").is_file():
         return out
     tmp = out.with_name(out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    folder = tmp / "drive_0"
-    (folder / "velodyne_points").mkdir(parents=True)
-    for i in range(n):
-        (folder / "velodyne_points" / f"{i:010d}.pcd").symlink_to(files[i % len(files)])
-    yaw = np.radians(30.0)
-    rows = ["time,lat,lon,alt,yaw"]
-    for i in range(n):
-        lat, lon, h = pymap3d.enu2geodetic(0.85 * i * np.cos(yaw), 0.85 * i * np.sin(yaw), 0.0,
-                                           ORIGIN["lat_deg"], ORIGIN["lon_deg"], ORIGIN["h_m"])
-        rows.append(f"{1317380000.0 + 0.1 * i:.3f},{lat:.9f},{lon:.9f},{h:.3f},{yaw:.6f}")
-    (folder / "oxts.csv").write_text("\n".join(rows) + "\n")
+    folder = kitti_drive_folder(tmp / "drive_0", KITTI, ORIGIN, n_scans=n_scans, noise_m=0.0)
     (folder / "drive.yaml").write_text("\n".join(draft_drive_file(folder).lines) + "\n")
     tmp.replace(out)
     return out

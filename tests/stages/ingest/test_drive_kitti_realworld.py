@@ -13,30 +13,16 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from fixtures.kitti import kitti_drive_folder
+
 pytestmark = pytest.mark.realdata
 ORIGIN = {"lat_deg": 49.0111, "lon_deg": 8.4164, "h_m": 115.0}
 
 
 def make_drive(folder: Path, kitti: Path, skip: set[int] = frozenset()) -> Path:
-    """Scans as symbolic links to the shared files; an OXTS-style CSV along a plausible straight path (8.5 m/s,
-    heading 30 deg from east, the speed the scans' own ICP shows; they carry no truth)."""
-    import pymap3d
-
-    scans = folder / "velodyne_points"
-    scans.mkdir(parents=True)
-    files = sorted(kitti.glob("*.pcd"))
-    for i, f in enumerate(files):
-        if i not in skip:
-            (scans / f.name).symlink_to(f)
-    rng = np.random.default_rng(0)
-    yaw = np.radians(30.0)
-    rows = ["time,lat,lon,alt,yaw"]
-    for i in range(len(files)):
-        e, n = 0.85 * i * np.cos(yaw) + rng.normal(0, 0.02), 0.85 * i * np.sin(yaw) + rng.normal(0, 0.02)
-        lat, lon, h = pymap3d.enu2geodetic(e, n, 0.0, ORIGIN["lat_deg"], ORIGIN["lon_deg"], ORIGIN["h_m"])
-        rows.append(f"{1317380000.0 + 0.1 * i:.3f},{lat:.9f},{lon:.9f},{h:.3f},{yaw:.6f}")
-    (folder / "oxts.csv").write_text("\n".join(rows) + "\n")
-    return folder
+    """Scans as symbolic links to the shared files; an OXTS-style CSV along a plausible straight path
+    (``fixtures.kitti``)."""
+    return kitti_drive_folder(folder, kitti, ORIGIN, skip)
 
 
 def init_check_build(folder: Path, root: Path) -> Path:
