@@ -250,6 +250,12 @@ def poses_from_values(values: gtsam.Values, n: int) -> np.ndarray:
     return np.array([values.atPose3(_key(i)).matrix() for i in range(n)])
 
 
+def _variable_named(err: Exception) -> str:
+    """The variable a gtsam elimination error names (``Symbol: x130``), for a one-line message."""
+    near = re.search(r"Symbol: (\w+)", str(err))
+    return near.group(1) if near else "an unnamed variable"
+
+
 def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_poses: int) -> list[np.ndarray]:
     """Marginal covariance (6x6, body frame, rotation then translation) of poses 0..n_poses-1.
 
@@ -265,15 +271,13 @@ def pose_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_po
     except RuntimeError as err:
         if "Indeterminate" not in str(err):
             raise
-        near = re.search(r"Symbol: (\w+)", str(err))
         log.warning("pose graph: gtsam's Cholesky marginals gave up on an ill-conditioned graph (near %s); "
-                    "computing them by QR", near.group(1) if near else "an unnamed variable")
+                    "computing them by QR", _variable_named(err))
     try:
         tree = graph.linearize(values).eliminateMultifrontal(gtsam.Ordering.OrderingType.COLAMD, gtsam.EliminateQR)
         out = [tree.marginalCovariance(_key(i)) for i in range(n_poses)]
     except RuntimeError as err:
-        near = re.search(r"Symbol: (\w+)", str(err))
-        raise ValueError(f"the pose graph is not determined near {near.group(1) if near else 'a variable'} "
+        raise ValueError(f"the pose graph is not determined near {_variable_named(err)} "
                          "(gtsam's QR elimination failed)") from err
     bad = [i for i, c in enumerate(out) if not np.all(np.isfinite(c))]
     if bad:
