@@ -3,7 +3,9 @@
 Reads ``poses_optimized`` and ``poses_gnss`` of the workflow's plan (the fingerprints the plan picks; run the stage
 first: ``cornermap run WF --only posegraph`` or the whole workflow) and the simulator's truth trajectories, then
 prints per drive the RTK/INS-only and optimised figures of ``stages.common.trajectory_metrics.summarize`` and the
-map-vs-reference agreement (revisit pairs across the drives, within ``--pair-radius-m`` in truth).
+map-vs-reference agreement (revisit pairs across the drives, within ``--pair-radius-m`` in truth), and per drive
+whether the marginal covariances the poses carry hold their errors (stated vs true RMS, NEES of the horizontal
+position: ``trajectory_metrics.horizontal_covariance_consistency``; the map's corner covariance carries them).
 
     .venv/bin/python -m bench.bench_posegraph_eval -w workflows/gangnam.yaml [--root runs/gangnam] [--params P.yaml]
 
@@ -33,6 +35,15 @@ def committed(plan, stage: str, key: str, dataset: str):
     return StoreInputReader(plan.root, {key: (dataset, sp.fingerprint)}, {key: None})
 
 
+def marginals_xy(table, drive: str) -> np.ndarray:
+    """(N,2,2) horizontal block of ``cov_xy_yaw`` of ``drive``'s rows, in scan order (``Trajectory.from_table``'s)."""
+    import pyarrow.compute as pc
+
+    rows = table.filter(pc.equal(table["drive"], drive)).sort_by("scan_id")
+    cov = np.asarray(rows["cov_xy_yaw"].combine_chunks().flatten().to_numpy(), dtype=float).reshape(-1, 3, 3)
+    return cov[:, :2, :2]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-w", "--workflow", type=Path, required=True)
@@ -59,7 +70,7 @@ def main() -> None:
     print(f"root {plan.root}; drives {drives}")
     print("| drive | trajectory | " + " | ".join(KEYS) + " |")
     print("|---" * (len(KEYS) + 2) + "|")
-    est_all, true_all, t_all, frames = [], [], [], []
+    est_all, true_all, t_all, frames, stated = [], [], [], [], []
     for n, drive in enumerate(drives):
         opt = Trajectory.from_table(optimized, drive)
         T_true = truth_poses(sim, drive, opt.stamp_ns)
@@ -69,6 +80,11 @@ def main() -> None:
         for name, T in (("RTK/INS only", g.T[on_opt]), ("optimised", opt.T)):
             s = M.summarize(T, T_true, stamps_s)
             print(f"| {drive} | {name} | " + " | ".join("-" if np.isnan(s[k]) else f"{s[k]:.3f}" for k in KEYS) + " |")
+        c = M.horizontal_covariance_consistency(opt.T, T_true, marginals_xy(optimized, drive))
+        stated.append(f"{drive}: stated vs true (the pose graph's marginals, which the map's corner covariance "
+                      f"carries): stated {c['stated_rms_m']:.4f} m RMS, true {c['true_rms_m']:.4f} m; NEES (2 dof) "
+                      f"mean {c['nees_mean']:.2f} (2 when honest), {c['nees_share_q95']:.2f} under its 95 % "
+                      f"quantile")
         R, t = fit_rigid_2d(opt.T[:, :2, 3], T_true[:, :2, 3])
         centroid = opt.T[:, :2, 3].mean(axis=0)
         frames.append(f"{drive}: map frame vs the truth's: rotation {np.degrees(np.arctan2(R[1, 0], R[0, 0])):+.3f} "
@@ -77,7 +93,7 @@ def main() -> None:
         est_all.append(opt.T)
         true_all.append(T_true)
         t_all.append(stamps_s + 1e6 * n)  # drives apart in time: every pair across drives is a revisit
-    print("\n".join(frames))
+    print("\n".join(frames + stated))
     if len(drives) > 1:
         pairs = M.revisit_pairs(np.concatenate(true_all), np.concatenate(t_all), radius_m=args.pair_radius_m)
         first = len(est_all[0])

@@ -149,3 +149,20 @@ def edge_yaw_calibration(T_edges: np.ndarray, information: np.ndarray, T_true: n
                     "model_sigma_median_deg": float(np.rad2deg(np.median(sigma_rad[m]))),
                     "nees": float(np.mean((e_rad[m] / sigma_rad[m]) ** 2))})
     return out
+
+
+def horizontal_covariance_consistency(T_est: np.ndarray, T_true: np.ndarray, cov_xy_m2: np.ndarray
+                                      ) -> dict[str, float]:
+    """Does a trajectory's stated horizontal covariance (N,2,2) hold its errors against the truth? The RMS the
+    covariance states (sqrt of the mean trace), the true horizontal RMS, the mean NEES (2 dof: 2 when the
+    covariance is honest) and the share of poses under the chi-square 2-dof 95 % quantile (0.95 when honest). A
+    pose graph's marginals feed the map's stored covariance, so this is where an overconfident graph shows."""
+    e = T_est[:, :2, 3] - T_true[:, :2, 3]
+    cov = np.asarray(cov_xy_m2, dtype=float).reshape(-1, 2, 2)
+    if not len(e):
+        return {"stated_rms_m": float("nan"), "true_rms_m": float("nan"), "nees_mean": float("nan"),
+                "nees_share_q95": float("nan")}
+    nees = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[:, :, None])[:, :, 0])
+    return {"stated_rms_m": float(np.sqrt(np.mean(np.trace(cov, axis1=1, axis2=2)))),
+            "true_rms_m": rms(np.linalg.norm(e, axis=1)), "nees_mean": float(np.mean(nees)),
+            "nees_share_q95": float(np.mean(nees <= -2.0 * np.log(0.05)))}

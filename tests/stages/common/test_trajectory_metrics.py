@@ -6,6 +6,7 @@ import pytest
 
 from stages.common.geometry import se3_from_xyz_rpy
 from stages.common.trajectory_metrics import (
+    horizontal_covariance_consistency,
     relative_errors_m,
     revisit_pairs,
     rms,
@@ -71,3 +72,29 @@ def test_edge_yaw_calibration_nees_is_one_for_a_true_model_and_exposes_a_pessimi
     assert all(0.008 < r["nees"] < 0.012 for r in pessimistic)
 
 
+
+
+def test_covariance_consistency_is_honest_for_drawn_errors_and_exposes_an_overconfident_one():
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(5)
+    n = 20000
+    angle = rng.uniform(0, np.pi, n)
+    sig = np.column_stack([rng.uniform(0.005, 0.05, n), rng.uniform(0.005, 0.05, n)])
+    R = np.stack([np.stack([np.cos(angle), -np.sin(angle)], -1), np.stack([np.sin(angle), np.cos(angle)], -1)], -2)
+    cov = np.einsum("nij,nj,nkj->nik", R, sig**2, R)
+    e = np.einsum("nij,nj->ni", R, sig * rng.standard_normal((n, 2)))
+    T_true = np.tile(np.eye(4), (n, 1, 1))
+    T_true[:, :2, 3] = rng.uniform(-100, 100, (n, 2))
+    T_est = T_true.copy()
+    T_est[:, :2, 3] += e
+    honest = horizontal_covariance_consistency(T_est, T_true, cov)
+    assert abs(honest["nees_mean"] - 2.0) < 0.06
+    assert abs(honest["nees_share_q95"] - 0.95) < 0.005
+    assert np.mean(np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[:, :, None])[:, :, 0]) <= chi2.ppf(0.95, 2)) \
+        == pytest.approx(honest["nees_share_q95"])
+    assert honest["true_rms_m"] == pytest.approx(honest["stated_rms_m"], rel=0.03)
+    T_est[:, :2, 3] = T_true[:, :2, 3] + 3.0 * e  # the errors three times what the covariance says
+    over = horizontal_covariance_consistency(T_est, T_true, cov)
+    assert over["nees_mean"] == pytest.approx(18.0, rel=0.05)
+    assert over["nees_share_q95"] < 0.6
