@@ -103,6 +103,23 @@ def check_manifest_format(manifest: dict[str, Any], where: Path) -> None:
             f"versions {sorted(layout.SUPPORTED_FORMAT_VERSIONS)}); hint: upgrade cornermap or open an older version")
 
 
+def _error_correlation(doc: Any, where: Path) -> tuple[float, float] | None:
+    """The map's ``corner_error_correlation`` entry as ``(share, length_m)``: two corners' errors correlate
+    ``share * exp(-d^2 / (2 length_m^2))`` at distance d (the pose graph's own figure; docs/map-format.md). None
+    when the map states none (maps published before it, or a pose graph that could not compute it)."""
+    if doc is None:
+        return None
+    try:
+        share, length = float(doc["share"]), float(doc["length_m"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise MapFormatError(f"{where}: corner_error_correlation is malformed ({type(exc).__name__}: {exc}); "
+                             "expected share and length_m numbers") from exc
+    if not (0.0 <= share < 1.0 and length > 0.0 and np.isfinite(length)):
+        raise MapFormatError(f"{where}: corner_error_correlation share {share} / length_m {length}: expected a "
+                             "share in [0, 1) and a positive length")
+    return share, length
+
+
 class MapReader:
     """A pinned, read-only view of one map version."""
 
@@ -138,6 +155,8 @@ class MapReader:
         if len(cells) > 1:
             raise MapFormatError(f"{self.path}: marking rasters use several cell sizes {sorted(cells)} m")
         self.cell_m: float | None = cells.pop() if cells else None
+        self.corner_error_correlation = _error_correlation(self.manifest.get("corner_error_correlation"),
+                                                           self.path / MANIFEST_NAME)
         self._schema = _corner_schema()
         self._empty = self._schema.empty_table()
         self._corners = _Lru(cache_tiles, self._load_corners)

@@ -41,8 +41,12 @@ def test_whole_workflow_publishes_a_map_and_evaluates_it(tiny_sync):
     manifest = json.loads((map_dir / latest / "manifest.json").read_text())
     assert manifest["n_corners"] > 0 and manifest["n_tiles"] > 0
     assert set(manifest["enu_origin"]) >= {"lat_deg", "lon_deg", "h_m"}
+    kernel = manifest["corner_error_correlation"]  # the pose graph's own figure, which the EKF then uses
+    assert 0.0 <= kernel["share"] < 1.0 and kernel["length_m"] > 0 and kernel["n_pairs"] > 0
     [metrics] = list((root / "datasets" / "eval_report").glob("*/artifacts/*/metrics.json"))
     doc = json.loads(metrics.read_text())
+    used = doc["map"]["corner_error_correlation"]
+    assert used["from"] == "map" and (used["share"], used["length_m"]) == (kernel["share"], kernel["length_m"])
     assert {"ekf", "mcl", "rtk_ins", "icp_dr"} <= set(doc["methods"])
     assert (metrics.parent / "report.html").stat().st_size > 10_000
 

@@ -254,8 +254,9 @@ def compute(ctx: StageContext) -> dict:
     drive = ctx.partition.drive
     d, scan_ids = read_drive(ctx, drive, p)
     reader = open_published_map(ctx)
+    p_map = with_map_correlation(p, reader)
     cmap, fetch = map_inputs(reader, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config())
-    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p.evaluation_config())
+    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p_map.evaluation_config())
     ekf = ev.runs.get("ekf")
     cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
                    p.sensor_range_m, p.coverage_min_in_range, p.coverage_min_associated)
@@ -264,7 +265,10 @@ def compute(ctx: StageContext) -> dict:
     out = ctx.artifact_dir("report")
     name = reader.path.parent.name
     write_report(out, ev, cmap, fetch, drive=drive, verdict=v, comparison=comparison, previous=prev_ev,
-                 map_info={"name": name, "path": str(reader.path), "version": reader.version})
+                 map_info={"name": name, "path": str(reader.path), "version": reader.version,
+                           "corner_error_correlation": {"share": p_map.ekf_map_corr_share,
+                                                        "length_m": p_map.ekf_map_corr_length_m,
+                                                        "from": "map" if p_map is not p else "params"}})
     table = epochs_table(ev, drive)
     pq.write_table(table, out / "epochs.parquet")  # the per-epoch table beside the report, for DIR users
     log.info("evaluate %s on %s v%04d: %s", drive, name, reader.version, verdict_line(v))
@@ -278,6 +282,16 @@ def compute(ctx: StageContext) -> dict:
     return {"epochs": table, "_extra": {"outcome": outcome}}
 
 
+def with_map_correlation(p: EvaluateParams, reader) -> EvaluateParams:
+    """The params with the map's own corner-error correlation (``MapReader.corner_error_correlation``) when
+    ``ekf_map_corr_source`` is ``map`` and the map states one; else ``p`` itself."""
+    stated = getattr(reader, "corner_error_correlation", None)
+    if p.ekf_map_corr_source != "map" or stated is None:
+        return p
+    log.info("evaluate: the map states its corners' errors correlate %.2f exp(-d^2 / 2 (%.0f m)^2)", *stated)
+    return p.model_copy(update={"ekf_map_corr_share": stated[0], "ekf_map_corr_length_m": stated[1]})
+
+
 def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays, cmap: CornerMap, ev, p):
     """The EKF on the map's previous version (same drive, same references): (comparison entry, Evaluation) or
     (None, None) when the version has no parent."""
@@ -288,7 +302,7 @@ def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays,
     if prev is None:
         return None, None
     prev_cmap, prev_fetch = map_inputs(prev, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config())
-    cfg_prev = p.model_copy(update={"methods": ["ekf"]}).evaluation_config()
+    cfg_prev = with_map_correlation(p, prev).model_copy(update={"methods": ["ekf"]}).evaluation_config()
     ev_prev = evaluate_drive(d, prev_cmap, prev_fetch, read_references(ctx, drive, reader.origin, p, prev_cmap),
                              cfg_prev)
     ref = judged_reference(ev.metrics, "ekf")

@@ -67,6 +67,10 @@ class EvaluateParams(Params):
                                       "ekf_map_corr_length_m (corners seen from one stretch of the survey drive share "
                                       "its pose error)")
     ekf_map_corr_length_m: float = Field(50.0, gt=0, description="length of that correlation")
+    ekf_map_corr_source: Literal["map", "params"] = Field(
+        "map", description="map: the correlation the published map states (its pose graph's joint marginals, "
+        "manifest corner_error_correlation) replaces ekf_map_corr_share / ekf_map_corr_length_m when it states one; "
+        "params: those two values always")
     # icp motion model, issue 28 (heading between corners): the gyro bias as a 4th state. The wheel/gyro increments
     # that replace failed or gated ICP ones drift with it, so the heading std grows with the time spent on them
     # (as the error does), not with the square root of their number; the gyro's heading change also measures each

@@ -163,6 +163,24 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     for name, (d, ref) in refs.items():
         write_tum(out_dir / f"{name}_optimized_tum.txt", d.stamps_ns * 1e-9, ref.poses)
         write_kitti(out_dir / f"{name}_optimized_kitti.txt", ref.poses)
-    write_report(out_dir, drives, sol, refs, loop_rows, survey_matches)
+    kernel = _error_kernel(sol, ctx.params.error_kernel_pairs_per_bin) if cfg.solve.compute_marginals else None
+    write_report(out_dir, drives, sol, refs, loop_rows, survey_matches, kernel)
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
-            "loop_closures": loops_table(loop_rows)}
+            "loop_closures": loops_table(loop_rows), "_extra": {"pose_error_correlation": kernel}}
+
+
+def _error_kernel(sol, per_bin: int) -> dict | None:
+    """The map drives' pose-error correlation kernel (``error_correlation``) for the map's metadata; None when
+    off (``per_bin`` 0) or when gtsam's Cholesky marginals give up."""
+    from stages.posegraph.error_correlation import pose_error_kernel
+    from stages.posegraph.factors.graph import build_graph
+
+    if per_bin <= 0:
+        return None
+    graph, values, _ = build_graph(sol.problem, sol.poses)
+    kernel = pose_error_kernel(graph, values, sol.poses, sol.problem.n_poses, per_bin=per_bin)
+    if kernel is None:
+        return None
+    log.info("posegraph: pose errors correlate %.2f exp(-d^2 / 2 (%.0f m)^2) (%d pose pairs of the map drives)",
+             kernel.share, kernel.length_m, kernel.n_pairs)
+    return kernel.as_dict()

@@ -149,3 +149,7 @@ class PosegraphParams(Params):
                                          "-> 15 iterations, 1e-5 -> 9, error 4889.71 vs 4889.73, docs/posegraph.md)")
     fixed_prior_sigma_m: float = Field(1e-3, gt=0, description="map poses held fixed for reference drives")
     compute_marginals: bool = True
+    error_kernel_pairs_per_bin: int = Field(60, ge=0, description="pose pairs per distance bin (0-15, 15-40, 40-80, "
+                                            "80-150 m) whose joint marginals give the map's error-correlation "
+                                            "kernel (error_correlation.py; the map publishes it for localizers); "
+                                            "0: none")

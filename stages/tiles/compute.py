@@ -70,7 +70,10 @@ def compute(ctx: StageContext) -> dict[str, Any]:
               "enu_origin": _enu_origin(ctx, drive_info).as_dict(), "tile_size_m": size_m,
               "n_corners": corners.num_rows, "corner_columns": list(layout.CORNER_COLUMNS),
               "stage": STAGE.name, "code_version": STAGE.code_version, "params": resolved, "inputs": inputs,
-              "quality": measured}
+              "quality": measured,
+              # how the corners' errors correlate with distance: the pose graph's figure (posegraph
+              # error_correlation.py) for localizers that hold several corners at once; None: not stated
+              "corner_error_correlation": ctx.inputs.metadata("poses").get("pose_error_correlation")}
 
     map_dir = inside(Path(ctx.settings["root"]) / "maps", check_name(name, "map", "tiles: settings.map_name"))
     origin = EnuOrigin.from_dict(fields["enu_origin"])

@@ -168,3 +168,16 @@ def test_icp_increments_fall_back_on_wheel_when_failed_or_off_in_heading():
     np.testing.assert_array_equal(only_failed[[0, 1, 2, 4]], icp[[0, 1, 2, 4]])
     np.testing.assert_array_equal(only_failed[3], wheel[3])
     assert np.isnan(icp[3]).all()  # the input is not modified
+
+
+def test_the_ekf_uses_the_correlation_the_map_states_unless_told_otherwise():
+    from types import SimpleNamespace
+
+    p = EvaluateParams(ekf_map_corr_share=0.1, ekf_map_corr_length_m=20.0)
+    stated = SimpleNamespace(corner_error_correlation=(0.73, 47.7))
+    used = compute_mod.with_map_correlation(p, stated)
+    assert (used.ekf_map_corr_share, used.ekf_map_corr_length_m) == (0.73, 47.7)
+    assert used.ekf_config().map_corr_share == 0.73 and used.ekf_config().map_corr_length_m == 47.7
+    assert compute_mod.with_map_correlation(p, SimpleNamespace(corner_error_correlation=None)) is p
+    own = p.model_copy(update={"ekf_map_corr_source": "params"})
+    assert compute_mod.with_map_correlation(own, stated) is own

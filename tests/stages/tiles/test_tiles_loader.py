@@ -103,3 +103,22 @@ def test_reader_pinned_while_a_new_version_is_published(published, tmp_path):
     reader.clear_cache()
     assert reader.corners_in_bbox(0, 0, 300, 300).num_rows == before
     assert open_map(map_dir).all_corners().num_rows == 100
+
+
+def test_the_map_states_the_pose_graphs_error_correlation(tmp_path):
+    """The pose graph's kernel (metadata of its poses) is published in the manifest and read back by the loader;
+    a map without it states none; a malformed entry is a named format error."""
+    from mapformat.loader import _error_correlation
+    from pipeline.errors import MapFormatError
+
+    xy, dirs, _ = building_corners(buildings())
+    corners = corner_table(xy, dirs, seed=2, noise_m=0.0)
+    compute(city_context(tmp_path / "a", corners, poses_metadata={
+        "pose_error_correlation": {"share": 0.73, "length_m": 47.7, "n_pairs": 240}}))
+    assert open_map(tmp_path / "a" / "maps" / "city").corner_error_correlation == (0.73, 47.7)
+    compute(city_context(tmp_path / "b", corners))
+    assert open_map(tmp_path / "b" / "maps" / "city").corner_error_correlation is None
+    for bad in ({"share": 1.2, "length_m": 40.0}, {"share": 0.5}, {"share": "x", "length_m": 3.0},
+                {"share": 0.5, "length_m": -1.0}):
+        with pytest.raises(MapFormatError, match="corner_error_correlation"):
+            _error_correlation(bad, tmp_path / "manifest.json")

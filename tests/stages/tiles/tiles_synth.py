@@ -135,7 +135,7 @@ def write_rasters(directory: Path, cell_m: float = CELL_M, tile_m: float = TILE_
 
 
 def city_context(root: Path, corners: pa.Table, *, params=None, fingerprint: str = "fp1", rasters: bool = True,
-                 map_name: str = "city", flat_rasters: bool = False):
+                 map_name: str = "city", flat_rasters: bool = False, poses_metadata: dict | None = None):
     from stages.tiles.params import TilesParams
 
     tables = {"corner_map": corners, "poses": poses_table(drive_path()), "drive_info": drive_info_table()}
@@ -146,6 +146,7 @@ def city_context(root: Path, corners: pa.Table, *, params=None, fingerprint: str
         artifacts["raster" if flat_rasters else "rasters"] = base
     meta = {arg: {"fingerprint": f"{fingerprint}-{arg}"} for arg in [*tables, *artifacts]}
     meta["drive_info"]["enu_origin"] = ORIGIN.as_dict()
+    meta["poses"].update(poses_metadata or {})  # what the pose graph states beside its poses (error correlation)
     ctx = make_context("tiles", params or TilesParams(), tables, metadata=meta, input_artifacts=artifacts,
                         settings={"map_name": map_name, "root": str(root), "tile_size_m": TILE_M,
                                   "enu_origin": ORIGIN.as_dict()},
