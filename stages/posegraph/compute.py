@@ -163,7 +163,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     for name, (d, ref) in refs.items():
         write_tum(out_dir / f"{name}_optimized_tum.txt", d.stamps_ns * 1e-9, ref.poses)
         write_kitti(out_dir / f"{name}_optimized_kitti.txt", ref.poses)
-    kernel = _error_kernel(sol, ctx.params.error_kernel_pairs_per_bin) if cfg.solve.compute_marginals else None
+    kernel = _error_kernel(sol, cfg.solve.error_kernel_pairs_per_bin) if cfg.solve.compute_marginals else None
     write_report(out_dir, drives, sol, refs, loop_rows, survey_matches, kernel)
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
             "loop_closures": loops_table(loop_rows), "_extra": {"pose_error_correlation": kernel}}

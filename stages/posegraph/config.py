@@ -168,13 +168,15 @@ class AnchorConfig(_Parallel):
 
 @dataclass(frozen=True)
 class SolveConfig:
-    """Levenberg-Marquardt stopping rules, the tight prior on map poses held fixed for a reference drive, and
-    whether the marginal covariances are computed."""
+    """Levenberg-Marquardt stopping rules, the tight prior on map poses held fixed for a reference drive,
+    whether the marginal covariances are computed, and how many pose pairs per distance bin give the map's
+    error-correlation kernel (0: none; ``error_correlation.py``)."""
 
     max_iterations: int
     lm_relative_error_tol: float
     fixed_prior_sigma_m: float
     compute_marginals: bool
+    error_kernel_pairs_per_bin: int = 60
 
     def lm_kwargs(self) -> dict:
         """The keywords of ``factors.graph.optimize``."""
@@ -233,5 +235,6 @@ class PosegraphConfig:
             parallel_min_items=p.parallel_min_items, rounds=p.survey_rounds, round_tol_m=p.survey_round_tol_m,
             round_tol_deg=p.survey_round_tol_deg)
         solve = SolveConfig(max_iterations=p.max_iterations, lm_relative_error_tol=p.lm_relative_error_tol,
-                            fixed_prior_sigma_m=p.fixed_prior_sigma_m, compute_marginals=p.compute_marginals)
+                            fixed_prior_sigma_m=p.fixed_prior_sigma_m, compute_marginals=p.compute_marginals,
+                            error_kernel_pairs_per_bin=p.error_kernel_pairs_per_bin)
         return cls(factors, gnss, loops, anchors, solve)

@@ -13,7 +13,8 @@ CHANGED = {"span_edge_kernel": "cauchy", "gnss_kernel": "cauchy", "loop_kernel":
 SECTION = [("wheel_", "factors"), ("failed_edge_", "factors"), ("span_edge", "factors"), ("gnss_", "gnss"),
            ("attitude_", "gnss"), ("unknown_roll_pitch", "gnss"), ("heading_", "gnss"), ("loop_", "loops"),
            ("survey_", "anchors"), ("parallel_min_items", "loops"), ("max_iterations", "solve"),
-           ("lm_", "solve"), ("fixed_prior", "solve"), ("compute_marginals", "solve")]
+           ("lm_", "solve"), ("fixed_prior", "solve"), ("compute_marginals", "solve"),
+           ("error_kernel", "solve")]
 
 
 def _changed(name: str, default):
