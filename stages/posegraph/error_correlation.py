@@ -91,7 +91,7 @@ def pose_error_kernel(graph, values, poses: np.ndarray, n_poses: int, per_bin: i
     rotations into ENU of gtsam's body-frame marginals); None when gtsam's Cholesky marginals give up."""
     import gtsam
 
-    from stages.posegraph.factors.graph import _key
+    from stages.posegraph.factors.graph import _key, _variable_named
 
     i_idx, j_idx = sample_pairs(poses[:n_poses, :2, 3], per_bin=per_bin, seed=seed)
     if not len(i_idx):
@@ -99,7 +99,8 @@ def pose_error_kernel(graph, values, poses: np.ndarray, n_poses: int, per_bin: i
     try:
         marginals = gtsam.Marginals(graph, values)
     except RuntimeError as err:
-        log.warning("pose graph: no error-correlation kernel (gtsam's marginals: %s)", str(err).splitlines()[0])
+        log.warning("pose graph: the map states no error correlation (gtsam's Cholesky marginals gave up near %s)",
+                    _variable_named(err))
         return None
     rho = np.empty(len(i_idx))
     for n, (i, j) in enumerate(zip(i_idx.tolist(), j_idx.tolist())):

@@ -72,3 +72,14 @@ def test_horizontal_correlation_of_identical_and_independent_errors():
     C = np.diag([0.01, 0.04, 1.0])
     assert horizontal_correlation(C, C, C) == pytest.approx(1.0)
     assert horizontal_correlation(C, C, np.zeros((3, 3))) == 0.0
+
+
+def test_a_graph_whose_cholesky_marginals_give_up_states_no_kernel_and_says_where(caplog):
+    from stages.posegraph.factors.graph import build_graph
+    from tests.stages.posegraph.test_posegraph_marginals import _straight_drive
+
+    problem = _straight_drive(154, icp_sigma_rad=1.1e-4, icp_sigma_m=1.1e-4, bridge_every=22)
+    graph, values, _ = build_graph(problem, problem.initial)
+    with caplog.at_level("WARNING"):
+        assert pose_error_kernel(graph, values, problem.initial, problem.n_poses) is None
+    assert any("the map states no error correlation" in r.message and "near x" in r.message for r in caplog.records)
