@@ -5,6 +5,7 @@ its section, never the params object. Tests and benches build them the same way 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -28,6 +29,16 @@ class WheelNoise:
 
 
 @dataclass(frozen=True)
+class RegistrationNoise:
+    """Std added (in quadrature) to every ICP registration's own covariance: its along-track, cross-track and yaw
+    error beyond what its point-to-plane Hessian states (the Hessian counts every point as independent)."""
+
+    along_m: float
+    cross_m: float
+    yaw_rad: float
+
+
+@dataclass(frozen=True)
 class FactorConfig:
     """Between factors along a drive: a weak bridge of ``failed_edge_sigma_*`` over a missing or rejected ICP
     edge, the wheel increment as the bridge where the drive has one (``wheel_bridge``) and beside every accepted
@@ -40,6 +51,7 @@ class FactorConfig:
     span_edges: bool
     span_edge_kernel: str
     span_edge_kernel_k: float
+    registration_sigma: RegistrationNoise | None = None  # None: the odometry's own information alone
 
     @property
     def uses_wheel(self) -> bool:
@@ -201,7 +213,9 @@ class PosegraphConfig:
         factors = FactorConfig(
             failed_edge_sigma_m=p.failed_edge_sigma_m, failed_edge_sigma_rad=p.failed_edge_sigma_rad,
             wheel_bridge=wheel_bridge, wheel_fusion=wheel_fusion, span_edges=p.span_edges,
-            span_edge_kernel=p.span_edge_kernel, span_edge_kernel_k=p.span_edge_kernel_k)
+            span_edge_kernel=p.span_edge_kernel, span_edge_kernel_k=p.span_edge_kernel_k,
+            registration_sigma=RegistrationNoise(p.icp_edge_sigma_along_m, p.icp_edge_sigma_cross_m,
+                                                 math.radians(p.icp_edge_sigma_yaw_deg)))
         gnss = GnssConfig(
             every_s=p.gnss_every_s, std_inflation=p.gnss_std_inflation, min_std_m=p.gnss_min_std_m,
             kernel=p.gnss_kernel, kernel_k=p.gnss_kernel_k, lever_arm_m=tuple(p.gnss_lever_arm_m),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.posegraph.config import FactorConfig
+from stages.posegraph.config import FactorConfig, RegistrationNoise
 from stages.posegraph.factors.drive import DriveInput, bridge_increment, has_wheel
 from stages.posegraph.factors.graph import Between
 from stages.posegraph.factors.wheel import wheel_information
@@ -16,8 +16,21 @@ def span_betweens(drive: DriveInput, offset: int, cfg: FactorConfig) -> list[Bet
     if drive.spans is None:
         return []
     sp = drive.spans
-    return [Between(offset + int(i), offset + int(j), T, info, "span", cfg.span_edge_kernel, cfg.span_edge_kernel_k)
+    noise = cfg.registration_sigma
+    return [Between(offset + int(i), offset + int(j), T, registration_information(info, noise),
+                    "span", cfg.span_edge_kernel, cfg.span_edge_kernel_k)
             for i, j, T, info in zip(sp.i, sp.j, sp.T_i_j, sp.information)]
+
+
+def registration_information(information: np.ndarray, extra: RegistrationNoise | None) -> np.ndarray:
+    """A registration's 6x6 information (gtsam order rx ry rz tx ty tz, body frame of the edge) with ``extra``'s
+    along-track (tx), cross-track (ty) and yaw (rz) stds added to its covariance; unchanged without ``extra``."""
+    if extra is None or (extra.along_m == 0 and extra.cross_m == 0 and extra.yaw_rad == 0):
+        return information
+    cov = np.linalg.inv(information)
+    cov[[2, 3, 4], [2, 3, 4]] += np.array([extra.yaw_rad, extra.along_m, extra.cross_m]) ** 2
+    out = np.linalg.inv(cov)
+    return 0.5 * (out + out.T)
 
 
 def odometry_betweens(drive: DriveInput, offset: int, cfg: FactorConfig) -> list[Between]:
@@ -28,10 +41,12 @@ def odometry_betweens(drive: DriveInput, offset: int, cfg: FactorConfig) -> list
     1.2 mm per scan against ICP's 3.7 mm, which a street with few cross structures biases by 1-4 cm per edge)."""
     bridge_info = np.diag([cfg.failed_edge_sigma_rad ** -2] * 3 + [cfg.failed_edge_sigma_m ** -2] * 3)
     wheel_noise, fusion_noise = cfg.wheel_bridge, cfg.wheel_fusion
+    noise = cfg.registration_sigma
     out = []
     for k in range(1, drive.n):
         if drive.edge_ok[k]:
-            out.append(Between(offset + k - 1, offset + k, drive.edge_T[k], drive.edge_info[k], "odometry"))
+            out.append(Between(offset + k - 1, offset + k, drive.edge_T[k],
+                               registration_information(drive.edge_info[k], noise), "odometry"))
             if fusion_noise is not None and has_wheel(drive, k):
                 out.append(Between(offset + k - 1, offset + k, drive.wheel_T[k],
                                    wheel_information(drive.wheel_T[k], fusion_noise), "wheel_fused"))
