@@ -51,7 +51,7 @@ class FactorConfig:
     span_edges: bool
     span_edge_kernel: str
     span_edge_kernel_k: float
-    registration_sigma: RegistrationNoise | None = None  # None: the odometry's own information alone
+    registration_sigma: RegistrationNoise | None  # None: the odometry's own information alone
 
     @property
     def uses_wheel(self) -> bool:
@@ -188,7 +188,7 @@ class SolveConfig:
     lm_relative_error_tol: float
     fixed_prior_sigma_m: float
     compute_marginals: bool
-    error_kernel_pairs_per_bin: int = 60
+    error_kernel_pairs_per_bin: int
 
     def lm_kwargs(self) -> dict:
         """The keywords of ``factors.graph.optimize``."""

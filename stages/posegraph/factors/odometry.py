@@ -16,8 +16,7 @@ def span_betweens(drive: DriveInput, offset: int, cfg: FactorConfig) -> list[Bet
     if drive.spans is None:
         return []
     sp = drive.spans
-    noise = cfg.registration_sigma
-    return [Between(offset + int(i), offset + int(j), T, registration_information(info, noise),
+    return [Between(offset + int(i), offset + int(j), T, registration_information(info, cfg.registration_sigma),
                     "span", cfg.span_edge_kernel, cfg.span_edge_kernel_k)
             for i, j, T, info in zip(sp.i, sp.j, sp.T_i_j, sp.information)]
 
@@ -41,12 +40,11 @@ def odometry_betweens(drive: DriveInput, offset: int, cfg: FactorConfig) -> list
     1.2 mm per scan against ICP's 3.7 mm, which a street with few cross structures biases by 1-4 cm per edge)."""
     bridge_info = np.diag([cfg.failed_edge_sigma_rad ** -2] * 3 + [cfg.failed_edge_sigma_m ** -2] * 3)
     wheel_noise, fusion_noise = cfg.wheel_bridge, cfg.wheel_fusion
-    noise = cfg.registration_sigma
     out = []
     for k in range(1, drive.n):
         if drive.edge_ok[k]:
             out.append(Between(offset + k - 1, offset + k, drive.edge_T[k],
-                               registration_information(drive.edge_info[k], noise), "odometry"))
+                               registration_information(drive.edge_info[k], cfg.registration_sigma), "odometry"))
             if fusion_noise is not None and has_wheel(drive, k):
                 out.append(Between(offset + k - 1, offset + k, drive.wheel_T[k],
                                    wheel_information(drive.wheel_T[k], fusion_noise), "wheel_fused"))
