@@ -34,12 +34,13 @@ class PosegraphParams(Params):
                                             "(residual of the per-drive scale calibration)")
     wheel_fusion_sigma_rad: float = Field(0.003, gt=0, description="fused: heading std, loose on purpose (the gyro "
                                           "bias drifts, and ICP's 0.005 deg per edge is better)")
-    icp_edge_sigma_along_m: float = Field(0.0, ge=0, description="added in quadrature to every ICP registration's "
+    icp_edge_sigma_along_m: float = Field(0.006, ge=0, description="added in quadrature to every ICP registration's "
                                           "own along-track std (consecutive and span edges; the point-to-plane "
                                           "Hessian counts every point as independent evidence; docs/posegraph.md "
-                                          "Known limits: tiny calibration seed 7 needs 0.006, demo seed 1 0.003)")
-    icp_edge_sigma_cross_m: float = Field(0.0, ge=0, description="same, cross-track")
-    icp_edge_sigma_yaw_deg: float = Field(0.0, ge=0, description="same, heading (tiny seed 7 0.019, demo seed 1 "
+                                          "Known limits: the worst calibration seed, tiny 7, needs 0.006, demo seed "
+                                          "1 0.003)")
+    icp_edge_sigma_cross_m: float = Field(0.0, ge=0, description="same, cross-track (no calibration seed needs it)")
+    icp_edge_sigma_yaw_deg: float = Field(0.02, ge=0, description="same, heading (tiny seed 7 0.019, demo seed 1 "
                                           "0.003; 0: the registration's information alone)")
     span_edges: bool = Field(True, description="put the odometry's accepted span edges (scans N apart) into the "
                              "graph beside the consecutive ones")

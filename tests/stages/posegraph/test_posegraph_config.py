@@ -9,7 +9,7 @@ from stages.posegraph.params import PosegraphParams
 
 CHANGED = {"span_edge_kernel": "cauchy", "gnss_kernel": "cauchy", "loop_kernel": "gnc",
            "gnss_lever_arm_m": (0.1, -0.2, 1.5), "icp_edge_sigma_along_m": 0.005,
-           "icp_edge_sigma_cross_m": 0.005, "icp_edge_sigma_yaw_deg": 0.02}
+           "icp_edge_sigma_cross_m": 0.005, "icp_edge_sigma_yaw_deg": 0.03}
 # the section each param's prefix belongs to (the first match wins)
 SECTION = [("wheel_", "factors"), ("failed_edge_", "factors"), ("span_edge", "factors"), ("gnss_", "gnss"),
            ("attitude_", "gnss"), ("unknown_roll_pitch", "gnss"), ("heading_", "gnss"), ("loop_", "loops"),
