@@ -161,6 +161,7 @@ class MapReader:
         self._empty = self._schema.empty_table()
         self._corners = _Lru(cache_tiles, self._load_corners)
         self._markings = _Lru(cache_tiles, self._load_marking)
+        self._observed = _Lru(cache_tiles, self._load_observed)
 
     # -- tiles -------------------------------------------------------------------------------------------
     def tile_keys(self) -> list[tuple[int, int]]:
@@ -269,6 +270,29 @@ class MapReader:
         Row 0 is the north edge. Cells outside every published raster are 0. The window covers the box,
         extended outwards to whole cells.
         """
+        return self._mosaic(e0, n0, e1, n1, self._markings.get)
+
+    def observed_window(
+        self, e0: float, n0: float, e1: float, n1: float
+    ) -> tuple[np.ndarray, tuple[float, float], float]:
+        """Where the map saw the ground, on ``marking_window``'s lattice: 1 where a raster cell holds survey points
+        (``point_count`` > 0), 0 elsewhere and outside every published raster. A 0 in ``marking_window`` means "no
+        paint" only where this is 1; beyond the surveyed area it means "not known". A tile written without a
+        ``point_count`` layer counts as observed over its whole raster."""
+        return self._mosaic(e0, n0, e1, n1, self._observed.get)
+
+    def _load_observed(self, key: tuple[int, int]) -> np.ndarray:
+        from mapformat.layers import sidecar_layers
+
+        marking = self._tiles[key]["marking"]
+        if "point_count" not in sidecar_layers(self.path / self._tiles[key]["dir"], marking):
+            mask = self._markings.get(key)
+            return np.ones(mask.shape[:2], np.uint8)
+        return (self.tile_layer(key[0], key[1], "point_count") > 0).astype(np.uint8)
+
+    def _mosaic(self, e0: float, n0: float, e1: float, n1: float,
+                image_of: Callable[[tuple[int, int]], np.ndarray]) -> tuple[np.ndarray, tuple[float, float], float]:
+        """One layer of the tiles' rasters (``image_of(key)``, row 0 north) over the box, on the cell lattice."""
         if self.cell_m is None:
             raise UnknownNameError(f"{self.path}: this map has no marking rasters")
         cell = self.cell_m
@@ -285,7 +309,7 @@ class MapReader:
             meta = self._tiles[key].get("marking")
             if not meta or not meta.get("mask_file"):
                 continue
-            img = self._markings.get(key)
+            img = image_of(key)
             if img.ndim == 3:
                 img = img[..., 0]
             tc0 = int(round(meta["origin_east_m"] / cell))
@@ -309,6 +333,7 @@ class MapReader:
     def clear_cache(self) -> None:
         self._corners.clear()
         self._markings.clear()
+        self._observed.clear()
 
 
 def _corner_schema() -> pa.Schema:

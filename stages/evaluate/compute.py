@@ -255,7 +255,8 @@ def compute(ctx: StageContext) -> dict:
     d, scan_ids = read_drive(ctx, drive, p)
     reader = open_published_map(ctx)
     p_map = with_map_correlation(p, reader)
-    cmap, fetch = map_inputs(reader, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config())
+    cmap, fetch = map_inputs(reader, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config(),
+                            coverage_margin_m=p.coverage_margin_m())
     ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p_map.evaluation_config())
     ekf = ev.runs.get("ekf")
     cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
@@ -301,7 +302,8 @@ def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays,
     prev = previous_version(reader)
     if prev is None:
         return None, None
-    prev_cmap, prev_fetch = map_inputs(prev, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config())
+    prev_cmap, prev_fetch = map_inputs(prev, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config(),
+                                      coverage_margin_m=p.coverage_margin_m())
     cfg_prev = with_map_correlation(p, prev).model_copy(update={"methods": ["ekf"]}).evaluation_config()
     ev_prev = evaluate_drive(d, prev_cmap, prev_fetch, read_references(ctx, drive, reader.origin, p, prev_cmap),
                              cfg_prev)

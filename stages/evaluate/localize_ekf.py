@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.common.geometry import wrap_angle_rad
-from stages.evaluate import consider, ekf
+from stages.evaluate import consider, ekf, mcl
 from stages.evaluate.association import associate, wall_headings_rad
 
 log = logging.getLogger(__name__)
@@ -372,6 +372,10 @@ class _Markings:
                                                            state.q[0] + reach, state.q[1] + reach):
             half = 0.5 * max(cfg.marking_window_m, 2.0 * reach)
             self.raster = self.fetch(state.q[0] - half, state.q[1] - half, state.q[0] + half, state.q[1] + half)
+        if self.raster.observed is not None:
+            feats = feats[mcl.observed_features(feats, state.q[:3], self.raster)]
+            if len(feats) < cfg.marking_min_features:
+                return state, held
         gain = alpha * cfg.marking_sharpness * min(float(len(feats)), cfg.marking_effective_points)
         m = marking_measurement(state.q[:3], state.P[:3, :3], feats, self.raster, gain, cfg.marking_min_info,
                                 cfg.marking_grid_n)

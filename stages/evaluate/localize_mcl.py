@@ -227,14 +227,17 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
             particles, calib = _predict(particles, calib, increments[k], step, float(dt[k]), cfg, rng)
             travel += step
         feats = features_vehicle_m[off[k]:off[k + 1]]
-        if len(feats) > cfg.max_features:
-            feats = feats[rng.choice(len(feats), cfg.max_features, replace=False)]
-        n_feat[k] = len(feats)
         alpha = min(1.0, travel / cfg.decorrelation_m) if cfg.decorrelation_m > 0 else 1.0
         if len(feats) >= cfg.min_features and alpha > 0:
             lo, hi = particles[:, :2].min(axis=0) - margin, particles[:, :2].max(axis=0) + margin
             if not raster.contains(lo[0], lo[1], hi[0], hi[1]):
                 raster = _window_around(np.average(particles, axis=0, weights=weights), fetch, cfg)
+            if raster.observed is not None:
+                feats = feats[mcl.observed_features(feats, mcl.estimate(particles, weights)[0], raster)]
+        if len(feats) > cfg.max_features:
+            feats = feats[rng.choice(len(feats), cfg.max_features, replace=False)]
+        n_feat[k] = len(feats)
+        if len(feats) >= cfg.min_features and alpha > 0:
             if np.isfinite(s_slow) and s_fast < cfg.inject_ratio * s_slow:
                 share = min(cfg.max_inject, 1.0 - s_fast / (cfg.inject_ratio * s_slow) + 1.0 / cfg.n_particles)
                 particles, calib, weights, injected[k] = _inject(particles, calib, weights, share, feats, raster,

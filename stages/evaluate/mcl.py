@@ -24,11 +24,30 @@ class Raster:
     values: np.ndarray
     origin_en_m: tuple[float, float]
     cell_m: float
+    observed: np.ndarray | None = None  # bool, same lattice: where the map saw the ground (None: everywhere)
 
     def contains(self, e0: float, n0: float, e1: float, n1: float) -> bool:
         h, w = self.values.shape
         oe, on = self.origin_en_m
         return oe <= e0 and on <= n0 and e1 <= oe + w * self.cell_m and n1 <= on + h * self.cell_m
+
+
+def observed_features(features_vehicle_m: np.ndarray, q: np.ndarray, raster: Raster) -> np.ndarray:
+    """Boolean mask of the features that, placed by the pose ``q`` (x, y, yaw), fall where the map saw the ground
+    (``raster.observed``; all of them when the raster carries no coverage). Beyond the surveyed area the raster's 0
+    means "not known", not "no paint": a feature there would pull every pose towards the mapped half of a crosswalk
+    the survey cut. One pose decides for every particle, so their scores stay comparable."""
+    f = np.asarray(features_vehicle_m, dtype=np.float64).reshape(-1, 2)
+    if raster.observed is None or len(f) == 0:
+        return np.ones(len(f), dtype=bool)
+    c, s = np.cos(q[2]), np.sin(q[2])
+    col = np.floor((q[0] + c * f[:, 0] - s * f[:, 1] - raster.origin_en_m[0]) / raster.cell_m).astype(np.int64)
+    row = np.floor((q[1] + s * f[:, 0] + c * f[:, 1] - raster.origin_en_m[1]) / raster.cell_m).astype(np.int64)
+    h, w = raster.observed.shape
+    inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    out = np.zeros(len(f), dtype=bool)
+    out[inside] = raster.observed[row[inside], col[inside]]
+    return out
 
 
 def smooth_marking_mask(mask: np.ndarray, cell_m: float, blur_m: float) -> np.ndarray:

@@ -60,6 +60,9 @@ class FakeMap:
     def marking_window(self, e0, n0, e1, n1):
         return np.flipud(self.mask), self.raster_origin, CELL  # the loader's convention: row 0 = north edge
 
+    def observed_window(self, e0, n0, e1, n1):  # the survey saw the whole raster
+        return np.ones_like(self.mask), self.raster_origin, CELL
+
 
 @pytest.fixture()
 def stage_context(tmp_path, monkeypatch):

@@ -9,7 +9,16 @@ from mapformat.loader import open_map
 from pipeline.errors import UnknownNameError
 from stages.tiles.compute import compute
 from stages.tiles.params import TilesParams
-from tests.stages.tiles.tiles_synth import CELL_M, LINE_EAST_M, building_corners, buildings, city_context, corner_table
+from tests.stages.tiles.tiles_synth import (
+    CELL_M,
+    LINE_EAST_M,
+    TILE_M,
+    UNSURVEYED_EAST_M,
+    building_corners,
+    buildings,
+    city_context,
+    corner_table,
+)
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +84,22 @@ def test_marking_window_places_the_painted_line(published):
     assert mask2.shape == (20, 40) and not mask2.any()
     tile = reader.tile_marking(0, 2)
     assert tile.shape == (200, 200) and reader.tile_marking(2, 2) is None
+
+
+def test_observed_window_is_where_the_tiles_saw_ground(published):
+    """The coverage mosaic on the marking lattice: 1 where a tile's point_count is positive, 0 in tile (0, 2)'s
+    unsurveyed east strip and outside every raster; the mosaic of one tile equals its own layer."""
+    reader = open_map(published[0])
+    e0, n0, e1, n1 = 60.0, 150.0, 100.0, 250.0  # tiles (0, 1) and (0, 2), across the strip's edge, and beyond j = 2
+    obs, origin, cell = reader.observed_window(e0, n0, e1, n1)
+    mask, origin_m, _ = reader.marking_window(e0, n0, e1, n1)
+    assert obs.shape == mask.shape and origin == origin_m and cell == CELL_M and obs.dtype == np.uint8
+    north = origin[1] + (obs.shape[0] - np.arange(obs.shape[0]) - 0.5) * cell  # row 0 = north edge
+    east = origin[0] + (np.arange(obs.shape[1]) + 0.5) * cell
+    expected = (north[:, None] < 3 * TILE_M) & ((north[:, None] < 2 * TILE_M) | (east[None] < UNSURVEYED_EAST_M))
+    np.testing.assert_array_equal(obs.astype(bool), expected)
+    tile, _, _ = reader.observed_window(0.0, 2 * TILE_M, TILE_M, 3 * TILE_M)
+    np.testing.assert_array_equal(tile, (reader.tile_layer(0, 2, "point_count") > 0).astype(np.uint8))
 
 
 def test_lazy_lru_and_pinned_version(published):

@@ -96,6 +96,16 @@ def line_mask(cell_m: float = CELL_M, tile_m: float = TILE_M) -> np.ndarray:
     return mask
 
 
+UNSURVEYED_EAST_M = 80.0  # tile (0, 2) saw no ground east of this (its point_count is 0 there)
+
+
+def _point_count(shape: tuple[int, int], tile_j: int, cell_m: float) -> np.ndarray:
+    count = np.full(shape, 3, np.int64)
+    if tile_j == 2:
+        count[:, int(round(UNSURVEYED_EAST_M / cell_m)):] = 0
+    return count
+
+
 def write_rasters(directory: Path, cell_m: float = CELL_M, tile_m: float = TILE_M, seed: int = 5,
                   flat: bool = False) -> pa.Table:
     """Marking artifacts for tiles (0, 0..2) and their marking_raster rows.
@@ -125,7 +135,7 @@ def write_rasters(directory: Path, cell_m: float = CELL_M, tile_m: float = TILE_
             write_tile_rasters(directory / PartitionKey(tile_i=0, tile_j=j).label, TileRasters(
                 marking_mask=mask > 0, traversable_mask=np.ones(mask.shape, bool), intensity=intensity,
                 min_up_m=np.zeros(mask.shape), mean_up_m=np.zeros(mask.shape),
-                count=np.full(mask.shape, 3, np.int64), origin_east_m=0.0, origin_north_m=j * tile_m,
+                count=_point_count(mask.shape, j, cell_m), origin_east_m=0.0, origin_north_m=j * tile_m,
                 cell_m=cell_m, meta={"tile_i": 0, "tile_j": j}))
         rows.append({"tile_i": 0, "tile_j": j, "origin_east_m": 0.0, "origin_north_m": j * tile_m,
                      "cell_m": cell_m, "width_px": mask.shape[1], "height_px": mask.shape[0],
