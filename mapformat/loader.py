@@ -270,7 +270,7 @@ class MapReader:
         Row 0 is the north edge. Cells outside every published raster are 0. The window covers the box,
         extended outwards to whole cells.
         """
-        return self._mosaic(e0, n0, e1, n1, self._markings.get)
+        return self._mosaic("marking_window", e0, n0, e1, n1, self._markings.get)
 
     def observed_window(
         self, e0: float, n0: float, e1: float, n1: float
@@ -279,7 +279,7 @@ class MapReader:
         (``point_count`` > 0), 0 elsewhere and outside every published raster. A 0 in ``marking_window`` means "no
         paint" only where this is 1; beyond the surveyed area it means "not known". A tile written without a
         ``point_count`` layer counts as observed over its whole raster."""
-        return self._mosaic(e0, n0, e1, n1, self._observed.get)
+        return self._mosaic("observed_window", e0, n0, e1, n1, self._observed.get)
 
     def _load_observed(self, key: tuple[int, int]) -> np.ndarray:
         from mapformat.layers import sidecar_layers
@@ -290,19 +290,20 @@ class MapReader:
             return np.ones(mask.shape[:2], np.uint8)
         return (self.tile_layer(key[0], key[1], "point_count") > 0).astype(np.uint8)
 
-    def _mosaic(self, e0: float, n0: float, e1: float, n1: float,
+    def _mosaic(self, query: str, e0: float, n0: float, e1: float, n1: float,
                 image_of: Callable[[tuple[int, int]], np.ndarray]) -> tuple[np.ndarray, tuple[float, float], float]:
-        """One layer of the tiles' rasters (``image_of(key)``, row 0 north) over the box, on the cell lattice."""
+        """One layer of the tiles' rasters (``image_of(key)``, row 0 north) over the box, on the cell lattice;
+        ``query`` names the public method in the errors."""
         if self.cell_m is None:
             raise UnknownNameError(f"{self.path}: this map has no marking rasters")
         cell = self.cell_m
         if not all(np.isfinite(v) for v in (e0, n0, e1, n1)):
-            raise LimitError(f"marking_window: box ({e0}, {n0}, {e1}, {n1}) m is not finite")
+            raise LimitError(f"{query}: box ({e0}, {n0}, {e1}, {n1}) m is not finite")
         c0, c1 = int(np.floor(e0 / cell + 1e-9)), int(np.ceil(e1 / cell - 1e-9))
         s0, s1 = int(np.floor(n0 / cell + 1e-9)), int(np.ceil(n1 / cell - 1e-9))
         cells = max(0, s1 - s0) * max(0, c1 - c0)
         if cells > MAX_WINDOW_CELLS:
-            raise LimitError(f"marking_window: {c1 - c0} x {s1 - s0} cells of {cell} m = {cells} cells, more than the "
+            raise LimitError(f"{query}: {c1 - c0} x {s1 - s0} cells of {cell} m = {cells} cells, more than the "
                              f"limit of {MAX_WINDOW_CELLS}; hint: query smaller windows")
         out = np.zeros((max(0, s1 - s0), max(0, c1 - c0)), np.uint8)
         for key in self._keys_in_box(e0, n0, e1, n1):
