@@ -6,7 +6,7 @@ STAGE = StageDecl(
     name="odometry",
     summary="Deskewed structure-only GICP between consecutive scans, road planes for height/roll/pitch: vehicle-frame "
             "edges with fitness, RMSE, information; span edges over N scans.",
-    code_version="8",
+    code_version="9",
     inputs={"scans": "scans_raw", "poses_gnss": "poses_gnss", "drive_info": "drive_info", "odometry": "odometry_raw"},
     optional_inputs=frozenset({"odometry"}),
     outputs={"edges": "odometry_edges", "span_edges": "odometry_span_edges"},

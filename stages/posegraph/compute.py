@@ -46,12 +46,17 @@ class ScanLoader:
             tab = self.inputs.read_in("scans", "scan_id", ids, partition=PartitionKey(drive=drive),
                                       columns=["scan_id", "x_m", "y_m", "z_m", "time_offset_s", *extra])
             sid = tab["scan_id"].to_numpy()
-            xyz = np.column_stack([tab[c].to_numpy().astype(np.float64) for c in ("x_m", "y_m", "z_m")])
-            toff = tab["time_offset_s"].to_numpy().astype(np.float64)
-            for s in ids:
-                m = sid == s
-                t = toff[m]
-                out[(drive, s)] = (xyz[m], t if np.any(t != 0) else None, *(tab[c].to_numpy()[m] for c in extra))
+            order = np.argsort(sid, kind="stable")  # one pass, not one mask over the table per scan
+            sid = sid[order]
+            xyz = np.column_stack([tab[c].to_numpy()[order].astype(np.float64) for c in ("x_m", "y_m", "z_m")])
+            toff = tab["time_offset_s"].to_numpy()[order].astype(np.float64)
+            cols = [tab[c].to_numpy()[order] for c in extra]
+            del tab
+            wanted = np.asarray(ids)
+            for s, a, b in zip(ids, np.searchsorted(sid, wanted, "left"), np.searchsorted(sid, wanted, "right")):
+                t = toff[a:b]
+                out[(drive, s)] = (xyz[a:b].copy(), t.copy() if np.any(t != 0) else None,
+                                   *(c[a:b].copy() for c in cols))
         return out
 
 

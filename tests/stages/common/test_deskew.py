@@ -11,9 +11,11 @@ from stages.common.deskew import (
     SweepMotion,
     deskew_points,
     deskew_with_transform,
+    deskew_with_wheel,
     interpolate_transform,
     motion_from_transform,
     motion_from_wheel,
+    rotate_about_axis,
     vehicle_motion_xy_yaw,
 )
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
@@ -122,3 +124,25 @@ def test_deskewing_a_swept_scan_recovers_the_scene_within_the_sagitta():
     out = deskew_with_transform(p_t, t, gtsam.Pose3.Expmap(xi).matrix(), PERIOD_S)
     assert np.abs(out - p_start).max() <= np.linalg.norm(np.cross(xi[:3], xi[3:])) / 8 * 1.0001
     assert np.abs(p_t - p_start).max() > 0.5
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_point_by_point_appliers_equal_the_per_point_matrices(seed):
+    """``deskew_with_wheel`` and ``deskew_with_transform`` apply their motion without an (N,3,3) matrix per point;
+    they equal ``deskew_points`` of ``motion_from_wheel`` / ``motion_from_transform`` (sampled odometry, constant
+    twist, any transform, times past the period that the transform source clips)."""
+    rng = np.random.default_rng(seed)
+    T_vl = se3_from_xyz_rpy(*rng.normal(0, 1.0, 3), *rng.normal(0, 0.05, 3))
+    p = rng.uniform(-60, 60, (5000, 3))
+    t = rng.uniform(-0.01, 2.5 * PERIOD_S, 5000)
+    odo_t = np.linspace(-0.05, 0.4, 46)
+    speed, rate = rng.uniform(0, 20, 46), rng.normal(0, 0.5, 46)
+    np.testing.assert_allclose(deskew_with_wheel(p, t.clip(0), speed, rate, T_vl, odo_time_s=odo_t),
+                               deskew_points(p, motion_from_wheel(t.clip(0), speed, rate, T_vl, odo_time_s=odo_t)),
+                               atol=1e-9)
+    np.testing.assert_allclose(deskew_with_wheel(p, t, 13.0, -0.7, T_vl),
+                               deskew_points(p, motion_from_wheel(t, 13.0, -0.7, T_vl)), atol=1e-9)
+    T = gtsam.Pose3.Expmap(np.r_[rng.normal(0, 0.1, 3), rng.normal(0, 1.5, 3)]).matrix()
+    np.testing.assert_allclose(deskew_with_transform(p, t, T, PERIOD_S),
+                               deskew_points(p, motion_from_transform(t, T, PERIOD_S)), atol=1e-9)
+    np.testing.assert_array_equal(rotate_about_axis(p, np.zeros(3), t), p)  # no rotation: the points
