@@ -8,6 +8,7 @@ whether the marginal covariances the poses carry hold their errors (stated vs tr
 position: ``trajectory_metrics.horizontal_covariance_consistency``; the map's corner covariance carries them).
 
     .venv/bin/python -m bench.bench_posegraph_eval -w workflows/gangnam.yaml [--root runs/gangnam] [--params P.yaml]
+    .venv/bin/python -m bench.bench_posegraph_eval -w BUILD/bench_build.yaml --sim SIM   # a bench_build --keep root
 
 ``--params`` is the file the run was made with (``cornermap run tiny --root R --params P.yaml``): without it the plan
 is the workflow's own and finds nothing committed. The benches are not installed with the product: run them from
@@ -50,6 +51,8 @@ def main() -> None:
     ap.add_argument("--root", type=Path, default=None, help="default: the workflow's root")
     ap.add_argument("--params", type=Path, default=None, help="the --params file the run was made with")
     ap.add_argument("--pair-radius-m", type=float, default=8.0)
+    ap.add_argument("--sim", type=Path, default=None, help="the simulated folder (with truth/) when the workflow "
+                    "reads drives simulated apart, e.g. bench_build's (keep its root with --keep)")
     args = ap.parse_args()
 
     from bench.bench_posegraph import truth_poses
@@ -63,7 +66,12 @@ def main() -> None:
 
     wf = load_workflow(args.workflow, param_overrides=load_param_file(args.params))
     plan = make_plan(wf, wf.root_dir(args.root))
-    sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"
+    if args.sim is not None:
+        sim = args.sim
+    elif "simulate" in plan.stages:
+        sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"
+    else:
+        raise SystemExit("the workflow has no simulate stage: name the simulated folder with --sim DIR")
     optimized = committed(plan, "posegraph", "poses", "poses_optimized").read("poses")
     gnss = committed(plan, "ingest", "gnss", "poses_gnss").read("gnss")
     drives = sorted(set(optimized["drive"].to_pylist()))

@@ -174,6 +174,57 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
         np.testing.assert_allclose(a.horizontal.shift_en_m, b.horizontal.shift_en_m, atol=1e-6)
 
 
+class _CountingLoader:
+    """A scan loader that counts the scans asked of it (the stage's process only: serial anchors)."""
+
+    def __init__(self, load):
+        self.load, self.scans = load, 0
+
+    def __call__(self, requests):
+        self.scans += len(requests)
+        return self.load(requests)
+
+
+def test_a_second_anchoring_round_reuses_what_does_not_depend_on_the_estimate(tiny_sync):
+    """An anchoring round from an estimate moved 0.36 m: no scan is read again. The marking matches equal a fresh
+    first round's from there exactly (a scan's road features do not depend on the estimate); the vertical ground
+    anchors are the previous registrations under the new estimate, within half their stated std (1 cm, 0.03 deg)
+    of fresh ones."""
+    import numpy as np
+
+    from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
+    from stages.posegraph.compute import SurveySource, scan_loader
+    from tests.stages.posegraph.tiny_setup import pass1_on_tiny
+
+    ctx, drives, cfg, offsets, poses = pass1_on_tiny(tiny_sync[0], REPO / "workflows" / "tiny.yaml", "test-rounds",
+                                                     parallel_min_items=10_000)
+    moved = poses.copy()
+    moved[:, :2, 3] += [0.3, -0.2]  # what an anchoring round does to a GNSS-level estimate
+    ground, features = _CountingLoader(scan_loader(ctx)), _CountingLoader(scan_loader(ctx, ("intensity", "ring")))
+    rounds: list = []
+    callback = survey_anchor_callback(drives, ground, SurveySource(ctx.inputs), cfg.anchors, rounds,
+                                      feature_load=features)
+    callback(poses, offsets)
+    first = (ground.scans, features.scans)
+    callback(moved, offsets)
+    assert first[0] > 0 and first[1] > 0
+    assert (ground.scans, features.scans) == first  # the second round read no scan
+    fresh: list = []
+    survey_anchor_callback(drives, scan_loader(ctx), SurveySource(ctx.inputs), cfg.anchors, fresh,
+                           feature_load=scan_loader(ctx, ("intensity", "ring")))(moved, offsets)
+    assert [m.i for m in rounds] == [m.i for m in fresh] and len(fresh) > 3
+    assert sum(m.horizontal.accepted for m in fresh) > 0
+    for a, b in zip(rounds, fresh):
+        assert (a.accepted, a.horizontal.accepted, a.horizontal.reason) == \
+            (b.accepted, b.horizontal.accepted, b.horizontal.reason)
+        np.testing.assert_allclose(a.horizontal.shift_en_m, b.horizontal.shift_en_m, atol=1e-9)
+        assert a.horizontal.yaw_rad == pytest.approx(b.horizontal.yaw_rad, abs=1e-12)
+        if b.accepted:  # a registration's own start dependence, well inside the anchor's stated std
+            assert abs(a.T_map_vehicle[2, 3] - b.T_map_vehicle[2, 3]) < 0.5 * cfg.anchors.ground.min_sigma_m
+            tilt = np.arccos(np.clip(a.T_map_vehicle[:3, 2] @ b.T_map_vehicle[:3, 2], -1.0, 1.0))
+            assert tilt < 0.5 * cfg.anchors.ground.min_sigma_rad
+
+
 def _short_drive(sim: Path, dest: Path, n_scans: int, *, lat_shift_deg: float = 0.0, odometry: bool = True) -> Path:
     """The first ``n_scans`` of the simulated drive_1 as a drive of its own, its GNSS moved north by
     ``lat_shift_deg`` (0.54 deg = 60 km) and, with ``odometry=False``, no wheel odometry in its drive file."""

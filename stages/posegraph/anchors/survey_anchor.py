@@ -30,6 +30,8 @@ class SurveyMatch:
     accepted: bool
     reason: str
     horizontal: object | None = None  # marking_match.MarkingMatch when markings were tried
+    T_registered: np.ndarray | None = None  # the registration's own result (T_map_vehicle is its vertical part)
+    T_init: np.ndarray | None = None  # the estimate it was matched from
 
 
 def build_survey_index(survey_enu_m: np.ndarray, voxel_m: float) -> tuple[np.ndarray, cKDTree]:
@@ -52,7 +54,7 @@ def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.nda
     near = survey_tree.query_ball_point(origin[:2], cfg.crop_m)
     if len(low) < 100 or len(near) < 100:
         return SurveyMatch(i, T_map_vehicle_init, np.zeros((6, 6)), 0.0, float("nan"), False,
-                           f"too few points (scan {len(low)}, survey {len(near)})")
+                           f"too few points (scan {len(low)}, survey {len(near)})", T_init=T_map_vehicle_init)
     target = prepare_cloud(survey_pts[near] - origin, voxel_m)
     source = prepare_cloud(low, voxel_m)
     T_local_init = T_map_vehicle_init.copy()
@@ -66,12 +68,27 @@ def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.nda
         reason = f"fitness {res.fitness:.2f} < {min_fitness:.2f}"
     elif res.inlier_rmse_m > max_rmse_m:
         reason = f"rmse {res.inlier_rmse_m:.3f} m > {max_rmse_m:.3f} m"
+    registered = T
     if cfg.vertical_only:
         T = vertical_part(T, T_map_vehicle_init)
         info = vertical_information(min_sigma_m, min_sigma_rad)
     else:
         info = floor_information(res.information, min_sigma_m, min_sigma_rad)
-    return SurveyMatch(i, T, info, res.fitness, res.inlier_rmse_m, reason == "accepted", reason)
+    return SurveyMatch(i, T, info, res.fitness, res.inlier_rmse_m, reason == "accepted", reason,
+                       T_registered=registered, T_init=T_map_vehicle_init)
+
+
+def rematched_vertical(match: SurveyMatch, T_map_vehicle: np.ndarray, max_shift_m: float) -> SurveyMatch | None:
+    """A vertical-only ground match carried to a new estimate of its keyframe: the registered ground (height and
+    tilt) again, under the new estimate's position and heading (``vertical_part``). The ground registration
+    fixes height, roll and pitch only and slides horizontally, so a start moved within ``max_shift_m`` finds the
+    same ground: matching it again would only repeat the registration. None when the estimate moved further
+    (match again) or the match was not a registration."""
+    if match.T_init is None or np.linalg.norm(T_map_vehicle[:2, 3] - match.T_init[:2, 3]) > max_shift_m:
+        return None
+    if match.T_registered is None:  # too few points: the same scan and survey again
+        return replace(match, T_map_vehicle=T_map_vehicle, T_init=T_map_vehicle)
+    return replace(match, T_map_vehicle=vertical_part(match.T_registered, T_map_vehicle), T_init=T_map_vehicle)
 
 
 def vertical_part(T_registered: np.ndarray, T_init: np.ndarray) -> np.ndarray:
@@ -185,17 +202,24 @@ def _use_survey_markings(survey, feature_load) -> None:
     set_worker_state(marking_index=build_survey_marking_index(*survey.read()), feature_load=feature_load)
 
 
-def _marking_block(item) -> list:
-    """Marking anchors of consecutive keyframes of one drive (module level). Consecutive submaps share scans,
-    so a block keeps one feature cache; blocks are independent (a cache changes speed, never a result)."""
+def _marking_block(item) -> tuple[list, dict]:
+    """Marking anchors of consecutive keyframes of one drive (module level), and the road features of every scan
+    their submaps used ({scan index: features}). Consecutive submaps share scans, so a block keeps one feature
+    cache, started with the features the item brings from a previous round; blocks are independent (a cache
+    changes speed, never a result)."""
     from pipeline.parallel import worker_state
     from stages.posegraph.anchors.survey_markings import marking_anchor
 
-    drive, poses_drive, incs_drive, keys_local, cfg = item
+    drive, poses_drive, incs_drive, keys_local, cfg, known = item
     state = worker_state()
     cache: dict = {}
-    return [marking_anchor(k, drive, poses_drive, incs_drive, state["feature_load"], state["marking_index"], cfg,
-                           feature_cache=cache) for k in keys_local]
+    used: dict = {}
+    out = []
+    for k in keys_local:
+        out.append(marking_anchor(k, drive, poses_drive, incs_drive, state["feature_load"], state["marking_index"],
+                                  cfg, feature_cache=cache, known_features=known))
+        used.update(cache)
+    return out, used
 
 
 def marking_blocks(keys: np.ndarray, offsets: np.ndarray, block: int) -> list[tuple[int, list[int]]]:
@@ -221,29 +245,62 @@ def survey_anchor_callback(drives, load, survey, cfg: AnchorConfig, matches_out:
     from stages.posegraph.loops.candidates import keyframes_by_travel
 
     with_markings = cfg.use_markings and survey.has_intensity and feature_load is not None
+    features_before: dict[tuple[int, int], np.ndarray] = {}  # (drive index, scan index): road features
 
     def horizontal(keys: np.ndarray, poses: np.ndarray, offsets: np.ndarray) -> list:
-        """The marking anchor of every keyframe, in blocks of consecutive keyframes run in parallel."""
-        blocks = marking_blocks(keys, offsets, cfg.block)
-        items = [(drives[o], poses[offsets[o]:offsets[o + 1]], increments(drives[o]), local, cfg.markings)
-                 for o, local in blocks]
+        """The marking anchor of every keyframe, in blocks of consecutive keyframes run in parallel. A later
+        round's blocks bring the road features the previous round extracted for their scans (exact: features do
+        not depend on the estimate), so each scan is read and extracted once per stage, not once per round."""
+        from stages.posegraph.anchors.survey_markings import submap_scan_indices
+
+        mk = cfg.markings
+        items = []
+        for o, local in marking_blocks(keys, offsets, cfg.block):
+            poses_o = poses[offsets[o]:offsets[o + 1]]
+            lo = submap_scan_indices(poses_o[:, :3, 3], local[0], mk.half_travel_m, mk.max_scans)[0]
+            hi = submap_scan_indices(poses_o[:, :3, 3], local[-1], mk.half_travel_m, mk.max_scans)[-1]
+            known = {j: features_before[(o, j)] for j in range(int(lo), int(hi) + 1) if (o, j) in features_before}
+            items.append((drives[o], poses_o, increments(drives[o]), local, mk, known))
         step = (lambda done, total: report_step("survey marking anchors", done, total)) if report_step else None
         done = parallel_map(_marking_block, items, workers=cfg.workers(len(keys)), initializer=_use_survey_markings,
                             initargs=(survey, feature_load), progress=step)
-        return [m for block in done for m in block]
+        for (o, _), (_, used) in zip(marking_blocks(keys, offsets, cfg.block), done):
+            features_before.update({(o, j): f for j, f in used.items()})
+        return [m for block, _ in done for m in block]
+
+    ground_before: dict[int, SurveyMatch | None] = {}  # the previous round's ground match per keyframe
 
     def callback(poses: np.ndarray, offsets: np.ndarray) -> list[PosePrior]:
         group = np.repeat(np.arange(len(drives)), np.diff(offsets))
         keys = keyframes_by_travel(poses[:, :3, 3], group, cfg.stride_m)
+        # a later round: a vertical-only ground match whose keyframe moved less than round_tol_m is carried over
+        # (rematched_vertical); an uncovered keyframe stays uncovered
+        carried: dict[int, SurveyMatch | None] = {}
+        if cfg.ground.vertical_only:
+            for g in keys.tolist():
+                if g in ground_before:
+                    before = ground_before[g]
+                    if before is None:
+                        carried[g] = None
+                    elif (m := rematched_vertical(before, poses[g], cfg.round_tol_m)) is not None:
+                        carried[g] = m
+        todo = np.asarray([g for g in keys.tolist() if g not in carried], np.int64)
         # the workers hold the survey and read their block's scans: the stage's process holds neither; a keyframe
         # the survey does not cover comes back as None
-        items = ground_blocks(keys, poses, offsets, cfg.ground.voxel_m, cfg.ground, cfg.block)
-        n = len(keys)
+        items = ground_blocks(todo, poses, offsets, cfg.ground.voxel_m, cfg.ground, cfg.block)
+        n = len(todo)
         step = (lambda done, total: report_step("survey anchors", min(done * cfg.block, n), n)) if report_step \
             else None
         blocks = parallel_map(_anchor_block, items, workers=cfg.workers(n), initializer=_use_survey_and_drives,
                               initargs=(survey, cfg.ground.voxel_m, drives, load), progress=step)
-        matches = [m for got in blocks for m in got if m is not None]
+        found = dict(zip(todo.tolist(), [m for got in blocks for m in got]))
+        found.update(carried)
+        ground_before.clear()
+        ground_before.update(found)
+        if carried:
+            log.info("survey anchors: %d of %d ground matches carried over from the previous round", len(carried),
+                     len(keys))
+        matches = [found[g] for g in keys.tolist() if found[g] is not None]
         if with_markings:
             found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
             matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets,

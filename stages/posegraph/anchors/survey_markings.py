@@ -72,10 +72,13 @@ def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, m
 
 def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_drive: np.ndarray,
                    load: FeatureLoader, index: SurveyMarkingIndex, cfg: MarkingAnchorConfig, *,
-                   window_margin_m: float = 6.0, feature_cache: dict | None = None) -> MarkingMatch:
+                   window_margin_m: float = 6.0, feature_cache: dict | None = None,
+                   known_features: dict | None = None) -> MarkingMatch:
     """Match the marking submap around scan ``k_local`` of ``drive`` (poses = current estimate) to the survey.
     ``feature_cache`` ({scan index: vehicle-frame features}) carries the scans shared with the previous
     keyframe's submap (consecutive submaps overlap); it is left holding this submap's scans only.
+    ``known_features`` ({scan index: features}, read only) are scans' features from an earlier call (a previous
+    anchoring round): a scan's features depend on its points and the drive's increments, not on the estimate.
 
     With ``cfg.yaw_search_deg`` > 0 the submap is also turned about the keyframe (``best_yaw_match``): the estimate's
     heading error turns the submap, and a translation-only match of a turned submap is biased by the lever arm of
@@ -85,6 +88,10 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
     cache = {} if feature_cache is None else feature_cache
     for j in set(cache) - set(ks.tolist()):
         del cache[j]
+    known = known_features or {}
+    for j in ks.tolist():
+        if j not in cache and j in known:
+            cache[j] = known[j]
     todo = [j for j in ks.tolist() if j not in cache]
     got = load([(drive.name, int(drive.scan_ids[j])) for j in todo]) if todo else {}
     for j in todo:

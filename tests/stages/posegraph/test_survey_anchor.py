@@ -7,7 +7,15 @@ import numpy as np
 from stages.common.geometry import se3_from_xyz_rpy
 from stages.common.trajectory_metrics import horizontal_errors_m, rms
 from stages.posegraph.anchors.marking_match import MarkingMatch
-from stages.posegraph.anchors.survey_anchor import SurveyMatch, survey_priors, vertical_information, vertical_part
+from stages.posegraph.anchors.survey_anchor import (
+    SurveyMatch,
+    anchor_scan,
+    build_survey_index,
+    rematched_vertical,
+    survey_priors,
+    vertical_information,
+    vertical_part,
+)
 from stages.posegraph.anchors.survey_markings import horizontal_information_body, submap_scan_indices
 from stages.posegraph.factors.base import base_problem
 from stages.posegraph.factors.graph import optimize
@@ -129,3 +137,46 @@ def test_anchoring_rounds_match_again_from_the_anchored_estimate(two_lap_drive):
     moved = [r["max_moved_m"] for r in records[4]]
     assert len(records[1]) == 1 and moved == sorted(moved, reverse=True), records
     assert len(moved) < 4 and moved[-1] <= 0.09 < moved[-2], moved  # stopped by the tolerance, not the cap
+
+
+def _ground_m(e: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """A sloped street (2 % east, 1 % north, a 3 cm crown across) with 15 cm kerbs at |north| > 6 m."""
+    return 0.02 * e + 0.01 * n - 0.03 * (n / 6.0) ** 2 + 0.15 * (np.abs(n) > 6.0)
+
+
+def test_a_ground_match_carried_to_a_moved_estimate_equals_matching_again():
+    """The vertical anchor of a keyframe whose estimate moved 0.7 m (an anchoring round) is the previous round's
+    registered ground under the new estimate: height within 5 mm and tilt within half the anchor's stated std of a
+    fresh registration from there, and within 1 cm / 0.05 deg of the truth. An estimate moved beyond the tolerance
+    is matched again."""
+    cfg = posegraph_config().anchors.ground
+    rng = np.random.default_rng(4)
+    e, n = np.meshgrid(np.arange(-60, 60, 0.1), np.arange(-20, 20, 0.1))
+    survey = np.column_stack([e.ravel(), n.ravel(), _ground_m(e.ravel(), n.ravel())])
+    pts, tree = build_survey_index(survey, cfg.voxel_m)
+    T_true = se3_from_xyz_rpy(3.0, 1.0, float(_ground_m(np.array(3.0), np.array(1.0))), 0.0, 0.0, 0.2)
+    up = np.array([-0.02, -0.01 + 0.06 * 1.0 / 36.0, 1.0])  # the street's normal under the vehicle
+    up /= np.linalg.norm(up)
+    x = np.array([np.cos(0.2), np.sin(0.2), 0.0])
+    x -= up * (x @ up)
+    x /= np.linalg.norm(x)
+    T_true[:3, :3] = np.column_stack([x, np.cross(up, x), up])  # standing on the slope, heading 0.2 rad
+    near = survey[np.hypot(survey[:, 0] - 3.0, survey[:, 1] - 1.0) < 25.0]
+    near = near[::3] + rng.normal(0, 0.01, near[::3].shape)
+    scan = (near - T_true[:3, 3]) @ T_true[:3, :3]  # the vehicle's view of the ground
+    T_a = T_true.copy()
+    T_a[:3, 3] += [0.4, -0.3, 0.1]
+    T_b = T_true.copy()
+    T_b[:3, 3] += [-0.1, 0.2, -0.05]  # the next round's estimate: 0.71 m from T_a
+    first = anchor_scan(0, scan, T_a, pts, tree, cfg)
+    fresh = anchor_scan(0, scan, T_b, pts, tree, cfg)
+    carried = rematched_vertical(first, T_b, max_shift_m=1.0)
+    assert first.accepted and fresh.accepted and carried is not None and carried.accepted
+    tilt_deg = lambda A, B: np.rad2deg(np.arccos(np.clip(A[:3, 2] @ B[:3, 2], -1, 1)))  # noqa: E731
+    assert abs(carried.T_map_vehicle[2, 3] - fresh.T_map_vehicle[2, 3]) < 0.005
+    assert tilt_deg(carried.T_map_vehicle, fresh.T_map_vehicle) < 0.5 * np.rad2deg(cfg.min_sigma_rad)  # its std
+    np.testing.assert_allclose(carried.T_map_vehicle[:2, 3], fresh.T_map_vehicle[:2, 3], atol=1e-3)  # T_b's, slid
+    assert np.linalg.norm(carried.T_map_vehicle[:2, 3] - T_b[:2, 3]) < 0.005  # along the up axis onto the ground
+    assert abs(carried.T_map_vehicle[2, 3] - _ground_m(T_b[0, 3], T_b[1, 3])) < 0.01
+    assert tilt_deg(carried.T_map_vehicle, T_true) < 0.05
+    assert rematched_vertical(first, T_b, max_shift_m=0.5) is None  # moved 0.71 m: match again
