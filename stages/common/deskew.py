@@ -125,8 +125,8 @@ def deskew_with_transform(points_m: np.ndarray, time_offset_s: np.ndarray, T_sta
 
 def rotate_about_axis(points_m: np.ndarray, rotvec: np.ndarray, fraction: np.ndarray) -> np.ndarray:
     """Each point (N,3) turned by its ``fraction`` (N,) of the rotation vector ``rotvec`` (Rodrigues' formula,
-    without an (N,3,3) matrix per point: ``deskew_points(p, interpolate_transform(...))`` to 1e-12 m, 5-10x
-    faster on a 30k-point sweep)."""
+    without an (N,3,3) matrix per point; equal to ``deskew_points(p, interpolate_transform(...))`` to 1e-9 m,
+    tests/stages/common/test_deskew.py)."""
     theta = float(np.linalg.norm(rotvec))
     if theta < 1e-15:
         return points_m.copy()
@@ -141,8 +141,8 @@ def deskew_with_wheel(points_m: np.ndarray, time_offset_s: np.ndarray, speed_mps
                       ) -> np.ndarray:
     """``deskew_points`` with ``motion_from_wheel`` (the same arguments), applied point by point without an (N,3,3)
     rotation per point: into the vehicle frame, turned by the yaw and moved by the planar travel at the point's
-    time, back into the lidar frame (equal to the ``SweepMotion`` form to 1e-12 m; it was a third of an odometry
-    task's time)."""
+    time, back into the lidar frame (equal to the ``SweepMotion`` form to 1e-9 m; that form took a third of an
+    odometry task's time)."""
     if odo_time_s is None:
         x, y, yaw = vehicle_motion_xy_yaw(time_offset_s, float(speed_mps), float(yaw_rate_radps))
     else:

@@ -82,13 +82,15 @@ def rematched_vertical(match: SurveyMatch, T_map_vehicle: np.ndarray, max_shift_
     """A vertical-only ground match carried to a new estimate of its keyframe: the registered ground (height and
     tilt) again, under the new estimate's position and heading (``vertical_part``). The ground registration
     fixes height, roll and pitch only and slides horizontally, so a start moved within ``max_shift_m`` finds the
-    same ground: matching it again would only repeat the registration. None when the estimate moved further
-    (match again) or the match was not a registration."""
+    same ground: matching it again would only repeat the registration. The shift is measured from the estimate the
+    registration started from (``match.T_init``, kept through any number of carries), so rounds cannot walk a match
+    further than ``max_shift_m`` step by step. None when the estimate moved further (match again) or the match
+    has no start."""
     if match.T_init is None or np.linalg.norm(T_map_vehicle[:2, 3] - match.T_init[:2, 3]) > max_shift_m:
         return None
     if match.T_registered is None:  # too few points: the same scan and survey again
-        return replace(match, T_map_vehicle=T_map_vehicle, T_init=T_map_vehicle)
-    return replace(match, T_map_vehicle=vertical_part(match.T_registered, T_map_vehicle), T_init=T_map_vehicle)
+        return replace(match, T_map_vehicle=T_map_vehicle)
+    return replace(match, T_map_vehicle=vertical_part(match.T_registered, T_map_vehicle))
 
 
 def vertical_part(T_registered: np.ndarray, T_init: np.ndarray) -> np.ndarray:

@@ -180,3 +180,8 @@ def test_a_ground_match_carried_to_a_moved_estimate_equals_matching_again():
     assert abs(carried.T_map_vehicle[2, 3] - _ground_m(T_b[0, 3], T_b[1, 3])) < 0.01
     assert tilt_deg(carried.T_map_vehicle, T_true) < 0.05
     assert rematched_vertical(first, T_b, max_shift_m=0.5) is None  # moved 0.71 m: match again
+    T_mid, T_c = T_a.copy(), T_a.copy()
+    T_mid[0, 3] += 0.6
+    T_c[0, 3] += 1.2  # carried twice, 0.6 m each time: 1.2 m from where it was registered
+    assert rematched_vertical(first, T_mid, 1.0) is not None
+    assert rematched_vertical(rematched_vertical(first, T_mid, 1.0), T_c, 1.0) is None
