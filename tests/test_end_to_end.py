@@ -95,25 +95,15 @@ def test_loops_verified_from_the_store_in_blocks_equal_those_on_preloaded_clouds
     every cloud loaded beforehand (``vehicle_clouds``), in this process and in a pool with blocks of 2."""
     import numpy as np
 
-    from pipeline.declare import PartitionKey
-    from pipeline.execute import _context, _task_spec
-    from pipeline.plan import make_plan
-    from pipeline.workflow import load_workflow
-    from stages.posegraph.compute import read_drive_inputs, scan_loader
+    from stages.posegraph.compute import scan_loader
     from stages.posegraph.config import PosegraphConfig
-    from stages.posegraph.factors.base import base_problem
-    from stages.posegraph.factors.graph import optimize
     from stages.posegraph.loops.candidates import Candidate, keyframes_by_travel
     from stages.posegraph.loops.clouds import vehicle_clouds
     from stages.posegraph.loops.verify import verify_candidates, verify_from_store
+    from tests.stages.posegraph.tiny_setup import pass1_on_tiny
 
-    root, _ = tiny_sync
-    plan = make_plan(load_workflow(REPO / "workflows" / "tiny.yaml"), root)
-    ctx = _context(_task_spec(plan, plan.stages["posegraph"]), PartitionKey(), root / "tmp" / "test-loops", {})
-    drives, _ = read_drive_inputs(ctx)
-    cfg = PosegraphConfig.from_params(ctx.params.model_copy(update={"parallel_min_items": 10_000}))
-    problem, offsets = base_problem(drives, cfg.factors, cfg.gnss)
-    poses = optimize(problem)
+    ctx, drives, cfg, offsets, poses = pass1_on_tiny(tiny_sync[0], REPO / "workflows" / "tiny.yaml", "test-loops",
+                                                     parallel_min_items=10_000)
     keys = keyframes_by_travel(poses[:, :3, 3], np.zeros(len(poses), int), 5.0)
     # consecutive keyframes as stand-in candidates (the tiny drive has too few revisits): some pairs overlap,
     # some do not, and scans recur across candidates and blocks
@@ -139,24 +129,12 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
     stage's process and in a process pool in blocks of 3 keyframes: the same matches."""
     import numpy as np
 
-    from pipeline.declare import PartitionKey
-    from pipeline.execute import _context, _task_spec
-    from pipeline.plan import make_plan
-    from pipeline.workflow import load_workflow
     from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
-    from stages.posegraph.compute import SurveySource, read_drive_inputs, scan_loader
+    from stages.posegraph.compute import SurveySource, scan_loader
     from stages.posegraph.config import PosegraphConfig
-    from stages.posegraph.factors.base import base_problem
-    from stages.posegraph.factors.graph import optimize
+    from tests.stages.posegraph.tiny_setup import pass1_on_tiny
 
-    root, _ = tiny_sync
-    plan = make_plan(load_workflow(REPO / "workflows" / "tiny.yaml"), root)
-    sp = plan.stages["posegraph"]
-    ctx = _context(_task_spec(plan, sp), PartitionKey(), root / "tmp" / "test-anchors", {})
-    drives, _ = read_drive_inputs(ctx)
-    cfg = PosegraphConfig.from_params(ctx.params)
-    problem, offsets = base_problem(drives, cfg.factors, cfg.gnss)
-    poses = optimize(problem)
+    ctx, drives, _, offsets, poses = pass1_on_tiny(tiny_sync[0], REPO / "workflows" / "tiny.yaml", "test-anchors")
     results = []
     for params in (ctx.params.model_copy(update={"parallel_min_items": 10_000}),
                    ctx.params.model_copy(update={"parallel_min_items": 2, "survey_marking_block": 3})):

@@ -51,11 +51,15 @@ def interpolate_transform(T_start_end: np.ndarray, fraction: np.ndarray) -> Swee
     return SweepMotion(R, s[:, None] * np.asarray(T_start_end, np.float64)[:3, 3][None, :])
 
 
+def _sweep_fraction(time_offset_s: np.ndarray, period_s: float) -> np.ndarray:
+    """(N,) share of the sweep's motion at each point's time: ``t / period_s`` clipped to [-1, 2]."""
+    return np.clip(np.asarray(time_offset_s, np.float64).reshape(-1) / period_s, -1.0, 2.0)
+
+
 def motion_from_transform(time_offset_s: np.ndarray, T_start_end: np.ndarray, period_s: float) -> SweepMotion:
     """Motion source 1: ``T_start_end`` is the sensor motion over ``period_s``; a point taken ``t`` seconds after
     the start gets the fraction ``t / period_s`` of it (clipped to [-1, 2])."""
-    s = np.clip(np.asarray(time_offset_s, np.float64) / period_s, -1.0, 2.0)
-    return interpolate_transform(T_start_end, s)
+    return interpolate_transform(T_start_end, _sweep_fraction(time_offset_s, period_s))
 
 
 def vehicle_motion_xy_yaw(time_s: np.ndarray, speed_mps: float, yaw_rate_radps: float) -> tuple[np.ndarray, ...]:
@@ -88,6 +92,17 @@ def integrate_odometry_xy_yaw(time_s: np.ndarray, odo_time_s: np.ndarray, speed_
     return np.interp(t, grid, x), np.interp(t, grid, y), np.interp(t, grid, yaw)
 
 
+def _wheel_xy_yaw(time_offset_s: np.ndarray, speed_mps, yaw_rate_radps, odo_time_s: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vehicle's planar pose (x, y, yaw; each (N,)) at each point's time in its pose at the sweep start: the arc
+    of a constant twist (scalars) or the integral of sampled odometry (arrays at ``odo_time_s``)."""
+    if odo_time_s is None:
+        x, y, yaw = vehicle_motion_xy_yaw(time_offset_s, float(speed_mps), float(yaw_rate_radps))
+    else:
+        x, y, yaw = integrate_odometry_xy_yaw(time_offset_s, odo_time_s, speed_mps, yaw_rate_radps)
+    return tuple(np.asarray(a, np.float64).reshape(-1) for a in (x, y, yaw))
+
+
 def motion_from_wheel(time_offset_s: np.ndarray, speed_mps, yaw_rate_radps,
                       T_vehicle_lidar: np.ndarray | None = None, *, odo_time_s: np.ndarray | None = None
                       ) -> SweepMotion:
@@ -96,11 +111,7 @@ def motion_from_wheel(time_offset_s: np.ndarray, speed_mps, yaw_rate_radps,
     seconds relative to the sweep start) seen through ``T_vehicle_lidar`` (identity when None)."""
     T = np.eye(4) if T_vehicle_lidar is None else np.asarray(T_vehicle_lidar, np.float64)
     R_vl, t_vl = T[:3, :3], T[:3, 3]
-    if odo_time_s is None:
-        x, y, yaw = vehicle_motion_xy_yaw(time_offset_s, float(speed_mps), float(yaw_rate_radps))
-    else:
-        x, y, yaw = integrate_odometry_xy_yaw(time_offset_s, odo_time_s, speed_mps, yaw_rate_radps)
-    x, y, yaw = (np.asarray(a, np.float64).reshape(-1) for a in (x, y, yaw))
+    x, y, yaw = _wheel_xy_yaw(time_offset_s, speed_mps, yaw_rate_radps, odo_time_s)
     c, s = np.cos(yaw), np.sin(yaw)
     R_v = np.zeros((len(yaw), 3, 3))
     R_v[:, 0, 0], R_v[:, 0, 1], R_v[:, 1, 0], R_v[:, 1, 1], R_v[:, 2, 2] = c, -s, s, c, 1.0
@@ -117,7 +128,7 @@ def deskew_with_transform(points_m: np.ndarray, time_offset_s: np.ndarray, T_sta
     non-positive period."""
     if period_s <= 0 or len(points_m) == 0:
         return np.asarray(points_m, dtype=float)
-    s = np.clip(np.asarray(time_offset_s, np.float64).reshape(-1) / period_s, -1.0, 2.0)
+    s = _sweep_fraction(time_offset_s, period_s)
     p = np.asarray(points_m, np.float64)[:, :3]
     T = np.asarray(T_start_end, np.float64)
     return rotate_about_axis(p, Rotation.from_matrix(T[:3, :3]).as_rotvec(), s) + s[:, None] * T[:3, 3][None, :]
@@ -143,11 +154,7 @@ def deskew_with_wheel(points_m: np.ndarray, time_offset_s: np.ndarray, speed_mps
     rotation per point: into the vehicle frame, turned by the yaw and moved by the planar travel at the point's
     time, back into the lidar frame (equal to the ``SweepMotion`` form to 1e-9 m; that form took a third of an
     odometry task's time)."""
-    if odo_time_s is None:
-        x, y, yaw = vehicle_motion_xy_yaw(time_offset_s, float(speed_mps), float(yaw_rate_radps))
-    else:
-        x, y, yaw = integrate_odometry_xy_yaw(time_offset_s, odo_time_s, speed_mps, yaw_rate_radps)
-    x, y, yaw = (np.asarray(a, np.float64).reshape(-1) for a in (x, y, yaw))
+    x, y, yaw = _wheel_xy_yaw(time_offset_s, speed_mps, yaw_rate_radps, odo_time_s)
     T = np.eye(4) if T_vehicle_lidar is None else np.asarray(T_vehicle_lidar, np.float64)
     q = np.asarray(points_m, np.float64)[:, :3] @ T[:3, :3].T + T[:3, 3]  # vehicle frame at the firing time
     c, s = np.cos(yaw), np.sin(yaw)

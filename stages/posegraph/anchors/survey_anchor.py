@@ -256,8 +256,9 @@ def survey_anchor_callback(drives, load, survey, cfg: AnchorConfig, matches_out:
         from stages.posegraph.anchors.survey_markings import submap_scan_indices
 
         mk = cfg.markings
+        blocks = marking_blocks(keys, offsets, cfg.block)
         items = []
-        for o, local in marking_blocks(keys, offsets, cfg.block):
+        for o, local in blocks:
             poses_o = poses[offsets[o]:offsets[o + 1]]
             lo = submap_scan_indices(poses_o[:, :3, 3], local[0], mk.half_travel_m, mk.max_scans)[0]
             hi = submap_scan_indices(poses_o[:, :3, 3], local[-1], mk.half_travel_m, mk.max_scans)[-1]
@@ -266,7 +267,7 @@ def survey_anchor_callback(drives, load, survey, cfg: AnchorConfig, matches_out:
         step = (lambda done, total: report_step("survey marking anchors", done, total)) if report_step else None
         done = parallel_map(_marking_block, items, workers=cfg.workers(len(keys)), initializer=_use_survey_markings,
                             initargs=(survey, feature_load), progress=step)
-        for (o, _), (_, used) in zip(marking_blocks(keys, offsets, cfg.block), done):
+        for (o, _), (_, used) in zip(blocks, done):
             features_before.update({(o, j): f for j, f in used.items()})
         return [m for block, _ in done for m in block]
 
@@ -295,14 +296,14 @@ def survey_anchor_callback(drives, load, survey, cfg: AnchorConfig, matches_out:
             else None
         blocks = parallel_map(_anchor_block, items, workers=cfg.workers(n), initializer=_use_survey_and_drives,
                               initargs=(survey, cfg.ground.voxel_m, drives, load), progress=step)
-        found = dict(zip(todo.tolist(), [m for got in blocks for m in got]))
-        found.update(carried)
+        by_key = dict(zip(todo.tolist(), [m for got in blocks for m in got]))
+        by_key.update(carried)
         ground_before.clear()
-        ground_before.update(found)
+        ground_before.update(by_key)
         if carried:
             log.info("survey anchors: %d of %d ground matches carried over from the previous round", len(carried),
                      len(keys))
-        matches = [found[g] for g in keys.tolist() if found[g] is not None]
+        matches = [by_key[g] for g in keys.tolist() if by_key[g] is not None]
         if with_markings:
             found = horizontal(np.asarray([m.i for m in matches], np.int64), poses, offsets)
             matches = checked_horizontal([replace(m, horizontal=h) for m, h in zip(matches, found)], poses, offsets,
