@@ -185,3 +185,7 @@ def test_a_ground_match_carried_to_a_moved_estimate_equals_matching_again():
     T_c[0, 3] += 1.2  # carried twice, 0.6 m each time: 1.2 m from where it was registered
     assert rematched_vertical(first, T_mid, 1.0) is not None
     assert rematched_vertical(rematched_vertical(first, T_mid, 1.0), T_c, 1.0) is None
+    from dataclasses import replace
+
+    rejected = replace(first, accepted=False, reason="fitness 0.31 < 0.50")  # its start failed the gates
+    assert rematched_vertical(rejected, T_b, max_shift_m=1.0) is None  # matched again from the new estimate
