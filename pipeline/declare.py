@@ -60,7 +60,9 @@ class PartitionKey:
 class StageDecl:
     name: str
     summary: str
-    code_version: str
+    # a string, or a function giving it (a digest of the stage's code: computed at the first read, not at import,
+    # so ``--help`` and worker processes that never fingerprint do not pay for it)
+    code_version: str | Callable[[], str]
     inputs: Mapping[str, str]  # argument -> dataset name
     outputs: Mapping[str, str]  # output key -> dataset name
     params: type[Params]
@@ -83,25 +85,99 @@ class StageDecl:
     def load_compute(self) -> Callable[["StageContext"], Mapping[str, Any]]:
         return resolve(self.compute)
 
+    def __getattribute__(self, name: str) -> Any:
+        value = object.__getattribute__(self, name)
+        if name == "code_version" and callable(value):
+            value = str(value())
+            object.__setattr__(self, "code_version", value)  # once: the code does not change under a process
+        return value
 
-def source_digest(*modules: str) -> str:
-    """The first 12 hex digits of the sha256 of the source files of ``modules`` (a package: every ``.py`` file
-    below it), found without importing them. A stage whose code_version includes the digest of the shared code
-    it runs re-runs when that code changes, whoever changes it."""
+
+def source_digest(*modules: str, follow: tuple[str, ...] = ()) -> str:
+    """The first 12 hex digits of the sha256 of the code of ``modules`` (a package: every ``.py`` file below it),
+    found without importing them. ``follow``: module prefixes (``"stages.common"``) whose modules are digested too
+    wherever a digested file imports one, and so on through what those import. A stage whose code_version includes
+    the digest of its own package with ``follow`` on the shared code re-runs when any code it runs changes, whoever
+    changes it, and only then (the reuse of per-drive work across rebuilds, ``pipeline.reuse``, holds while the code
+    does). Each file counts by its syntax tree without docstrings: an edit of prose or comments re-runs nothing."""
     import hashlib
-    import importlib.util
 
     h = hashlib.sha256()
-    for name in modules:
-        spec = importlib.util.find_spec(name)
-        if spec is None or spec.origin is None:
-            raise ImportError(f"source_digest: no module {name!r}")
-        origin = Path(spec.origin)
-        files = sorted(origin.parent.rglob("*.py")) if origin.name == "__init__.py" else [origin]
-        for f in files:
-            h.update(str(f.relative_to(origin.parent)).encode())
-            h.update(f.read_bytes())
+    for name, path in sorted(_code_files(modules, follow).items()):
+        h.update(name.encode())
+        h.update(_parsed(path)[1])
     return h.hexdigest()[:12]
+
+
+def _module_files(name: str) -> dict[str, Path]:
+    """{qualified name: file} of module ``name`` (a package: every ``.py`` file below it); ImportError if none.
+    Found on disk below its top-level package, so no parent package's ``__init__`` is run."""
+    import importlib.util
+
+    top, *rest = name.split(".")
+    spec = importlib.util.find_spec(top)
+    if spec is None or spec.origin is None:
+        raise ImportError(f"source_digest: no module {name!r}")
+    base = Path(spec.origin).parent if Path(spec.origin).name == "__init__.py" else None
+    if base is None:
+        if rest:
+            raise ImportError(f"source_digest: no module {name!r}")
+        return {name: Path(spec.origin)}
+    folder = base.joinpath(*rest)
+    if (folder / "__init__.py").is_file():
+        return {".".join([name, *f.relative_to(folder).with_suffix("").parts]): f for f in sorted(folder.rglob("*.py"))}
+    if rest and folder.with_suffix(".py").is_file():
+        return {name: folder.with_suffix(".py")}
+    raise ImportError(f"source_digest: no module {name!r}")
+
+
+_PARSED: dict[Path, tuple[set[str], bytes]] = {}  # file -> (absolute modules it imports, code without docstrings)
+
+
+def _parsed(path: Path) -> tuple[set[str], bytes]:
+    """The absolute module names a file imports (``from a.b import c`` gives ``a.b`` and ``a.b.c``) and its syntax
+    tree without docstrings (line numbers and comments are not in it); parsed once per process."""
+    import ast
+
+    if path not in _PARSED:
+        tree = ast.parse(path.read_bytes(), filename=str(path))
+        imports: set[str] = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                imports.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                imports.add(node.module)
+                imports.update(f"{node.module}.{a.name}" for a in node.names)
+            body = getattr(node, "body", None)
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body \
+                    and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
+                    and isinstance(body[0].value.value, str):
+                node.body = body[1:] or [ast.Pass()]
+        _PARSED[path] = (imports, ast.dump(tree).encode())
+    return _PARSED[path]
+
+
+def _code_files(modules: tuple[str, ...], follow: tuple[str, ...]) -> dict[str, Path]:
+    files: dict[str, Path] = {}
+    todo = list(modules)
+    seen: set[str] = set()
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        try:
+            found = _module_files(name)
+        except ImportError:
+            if name in modules:
+                raise
+            continue  # ``from a.b import c`` where c is a function of a.b, not a module
+        for qual, path in found.items():
+            if qual in files:
+                continue
+            files[qual] = path
+            todo += [m for m in _parsed(path)[0] if any(m == p or m.startswith(p + ".") for p in follow)]
+    return files
 
 
 def resolve(ref: str) -> Any:

@@ -1,12 +1,13 @@
 """Declaration of the ingest stage (imports nothing heavy)."""
 from pipeline.declare import Partitioning, StageDecl
+from stages import code_version
 from stages.ingest.params import IngestParams
 
 STAGE = StageDecl(
     name="ingest",
     summary="Read a recorded drive (PCD / KITTI / nuScenes / LAS scans, GNSS/INS CSV, odometry, survey) into "
             "Parquet in the map's ENU frame",
-    code_version="3",
+    code_version=code_version("3", "ingest"),
     inputs={},
     outputs={"scans": "scans_raw", "scan_index": "scan_index", "gnss": "gnss_enu", "odometry": "odometry_raw",
              "poses_gnss": "poses_gnss", "drive_info": "drive_info", "survey": "survey_enu",

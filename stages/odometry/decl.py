@@ -1,12 +1,13 @@
 """Declaration of the odometry stage (imports nothing heavy)."""
 from pipeline.declare import Partitioning, StageDecl
+from stages import code_version
 from stages.odometry.params import OdometryParams
 
 STAGE = StageDecl(
     name="odometry",
     summary="Deskewed structure-only GICP between consecutive scans, road planes for height/roll/pitch: vehicle-frame "
             "edges with fitness, RMSE, information; span edges over N scans.",
-    code_version="9",
+    code_version=code_version("9", "odometry"),
     inputs={"scans": "scans_raw", "poses_gnss": "poses_gnss", "drive_info": "drive_info", "odometry": "odometry_raw"},
     optional_inputs=frozenset({"odometry"}),
     outputs={"edges": "odometry_edges", "span_edges": "odometry_span_edges"},

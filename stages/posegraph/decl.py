@@ -1,12 +1,13 @@
 """Declaration of the posegraph stage (imports nothing heavy)."""
-from pipeline.declare import Partitioning, StageDecl, source_digest
+from pipeline.declare import Partitioning, StageDecl
+from stages import code_version
 from stages.posegraph.params import PosegraphParams
 
 STAGE = StageDecl(
     name="posegraph",
     summary="GTSAM pose graph: ICP odometry and span edges, verified robust loop closures, robust GNSS priors, "
             "survey anchors.",
-    code_version="19+" + source_digest("stages.common.marking_raster"),
+    code_version=code_version("19", "posegraph"),
     inputs={"edges": "odometry_edges", "span_edges": "odometry_span_edges", "poses_gnss": "poses_gnss",
             "scans": "scans_raw", "drive_info": "drive_info", "survey": "survey_enu", "odometry": "odometry_raw"},
     outputs={"poses_odometry": "poses_odometry", "poses_optimized": "poses_optimized",

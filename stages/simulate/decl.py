@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Literal
 
 from pipeline.declare import Params, Partitioning, StageDecl
+from stages import code_version
 
 
 class SimulateParams(Params):
@@ -20,7 +21,7 @@ class SimulateParams(Params):
 STAGE = StageDecl(
     name="simulate",
     summary="Synthetic city and drives (HDL-32E scans, urban RTK/INS, odometry, survey LAS, ground truth).",
-    code_version="5",
+    code_version=code_version("5", "simulate"),
     inputs={},
     outputs={"drives": "raw_drives"},
     params=SimulateParams,

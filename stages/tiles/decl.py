@@ -1,13 +1,13 @@
 """Declaration of the tiles stage (imports nothing heavy)."""
-from pipeline.declare import Partitioning, StageDecl, source_digest
+from pipeline.declare import Partitioning, StageDecl
+from stages import code_version
 from stages.tiles.params import TilesParams
 
 STAGE = StageDecl(
     name="tiles",
     summary="Publish the corner map and marking rasters as an immutable, checksummed map version (vNNNN + LATEST).",
     # the published layout and the vectorizer it runs are part of what it writes
-    code_version="2+" + source_digest("mapformat", "stages.common.marking_vectors",
-                                      "stages.common.marking_crosswalk"),
+    code_version=code_version("2", "tiles", "mapformat"),
     inputs={"corner_map": "corner_map", "raster": "marking_raster", "rasters": "marking_rasters",
             "poses": "poses_optimized", "drive_info": "drive_info"},
     optional_inputs=frozenset({"raster", "rasters"}),
