@@ -185,18 +185,24 @@ def score_alignment(source: o3d.geometry.PointCloud, target: o3d.geometry.PointC
 def register_coarse_to_fine(source_points_m: np.ndarray, target_points_m: np.ndarray, T_init: np.ndarray, *,
                             stages: tuple[tuple[float, float], ...] = ((1.0, 3.0), (0.4, 1.0), (0.4, 0.5)),
                             max_iterations: int = 40, point_sigma_m: float = 0.05, min_sigma_m: float = 0.005,
-                            min_sigma_rad: float = 0.0002) -> tuple[RegistrationResult, o3d.geometry.PointCloud,
-                                                                    o3d.geometry.PointCloud]:
+                            min_sigma_rad: float = 0.0002, prepared: dict | None = None,
+                            keys: tuple = ("source", "target")) -> tuple[RegistrationResult, o3d.geometry.PointCloud,
+                                                                         o3d.geometry.PointCloud]:
     """GICP in stages of (voxel_m, max_corr_m), each starting from the previous result, so that an initial
     guess 1-2 m off (two GNSS epochs of different passes) is first pulled in on coarse voxels with a wide
-    correspondence distance, then refined. Returns the last stage's result and its (source, target) clouds."""
+    correspondence distance, then refined. Returns the last stage's result and its (source, target) clouds.
+
+    ``prepared``: a dict that keeps the prepared clouds under ``(key, voxel_m)`` (``keys`` name the source and the
+    target), so that registering the same points again (another start, another pair with the same scan) does not
+    prepare them again; the result is the same (preparation is deterministic and GICP does not change the clouds)."""
     T = np.asarray(T_init, float)
-    clouds: dict[float, tuple] = {}
+    cache = {} if prepared is None else prepared
     res = None
     for voxel_m, corr_m in stages:
-        if voxel_m not in clouds:
-            clouds[voxel_m] = (prepare_cloud(source_points_m, voxel_m), prepare_cloud(target_points_m, voxel_m))
-        src, tgt = clouds[voxel_m]
+        for key, pts in zip(keys, (source_points_m, target_points_m)):
+            if (key, voxel_m) not in cache:
+                cache[(key, voxel_m)] = prepare_cloud(pts, voxel_m)
+        src, tgt = cache[(keys[0], voxel_m)], cache[(keys[1], voxel_m)]
         res = register_clouds(src, tgt, T, method="gicp", max_corr_m=corr_m, max_iterations=max_iterations,
                               point_sigma_m=point_sigma_m, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad)
         if not res.converged:

@@ -52,7 +52,8 @@ def _verify_block(item) -> list[Verdict]:
 
     chunk, voxel_m, pairs, cfg = item
     clouds = _clouds_item((chunk, voxel_m))
-    return [verify_loop(clouds[i], clouds[j], prior, cfg) for i, j, prior in pairs]
+    prepared: dict = {}  # a scan in several candidates of the block is prepared once per voxel size
+    return [verify_loop(clouds[i], clouds[j], prior, cfg, prepared=prepared, keys=(j, i)) for i, j, prior in pairs]
 
 
 def verify_from_store(candidates, poses: np.ndarray, drives, offsets: np.ndarray, load, cfg: LoopConfig,
@@ -118,16 +119,18 @@ def loop_betweens(loops: list[LoopRecord], cfg: LoopConfig) -> list[Between]:
 
 
 def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_j_prior: np.ndarray,
-                cfg: LoopVerifyConfig) -> Verdict:
+                cfg: LoopVerifyConfig, prepared: dict | None = None, keys: tuple = ("j", "i")) -> Verdict:
     """Coarse-to-fine GICP of scan j onto scan i from the prior relative pose (1-2 m off between passes), and
     again from a start shifted by 1 m along and 0.7 m across; accepted only when both agree, at least
     ``min_fitness`` of the scan lies on the other scan's surfaces (``score_alignment``) with a point-to-plane
     RMS below ``max_rmse_m``, and the correction stays inside the prior's envelope. ``Verdict.fitness`` and
-    ``inlier_rmse_m`` are that inlier share and plane RMS."""
+    ``inlier_rmse_m`` are that inlier share and plane RMS. Both starts use the same prepared clouds (``prepared``, keyed
+    by ``keys`` = (scan j's key, scan i's key); a caller's dict shares them across candidates)."""
     voxel_m, max_corr_m, min_sigma_m, min_sigma_rad = cfg.voxel_m, cfg.max_corr_m, cfg.min_sigma_m, cfg.min_sigma_rad
     min_fitness, max_rmse_m = cfg.min_fitness, cfg.max_rmse_m
     stages = ((cfg.coarse_voxel_m, cfg.coarse_corr_m), (voxel_m, max_corr_m), (voxel_m, max_corr_m / 2))
-    reg = dict(stages=stages, max_iterations=40, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad)
+    reg = dict(stages=stages, max_iterations=40, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad,
+               prepared={} if prepared is None else prepared, keys=keys)
     res, source, target = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, T_i_j_prior, **reg)
     T = res.T_target_source
     score = score_alignment(source, target, T, cfg.inlier_m, cfg.plane_tol_m)
