@@ -10,15 +10,23 @@
 - else (one usable core): in this process, in order.
 ``fn`` must be importable by name (a module-level function) and its items and results picklable and small.
 Results are identical whichever way it ran (each item is computed alone). Progress: ``progress(done, total)``.
+
+Inside ``with shared_pool():`` the calls that would start a process pool share one instead: its processes start
+(spawn, imports) once for the block, each call's initializer runs once per process and call (its state replaces the
+previous call's), and what an initializer keeps with ``worker_cache`` stays for the later calls (a survey's index
+across the pose graph's anchoring rounds).
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 log = logging.getLogger(__name__)
 _INIT_STATE: dict[str, Any] = {}
+_CACHE: dict[Any, Any] = {}  # this process's worker_cache
+_SHARED: list[dict[str, Any]] = []  # the open shared_pool blocks, innermost last
 
 
 def worker_state() -> dict[str, Any]:
@@ -29,6 +37,37 @@ def worker_state() -> dict[str, Any]:
 
 def set_worker_state(**values: Any) -> None:
     _INIT_STATE.update(values)
+
+
+def worker_cache(key: Any, build: Callable[[], Any]) -> Any:
+    """``build()``, kept under ``key`` (hashable, the same in every process: not an ``id``) for the later calls of a
+    ``shared_pool`` block, whose processes end with the block. Elsewhere (this process, a pool of one call, a
+    long-lived cluster worker) it is built every time and nothing is kept."""
+    if not _CACHE.get("_shared_pool_process"):
+        return build()
+    if key not in _CACHE:
+        _CACHE[key] = build()
+    return _CACHE[key]
+
+
+@contextlib.contextmanager
+def shared_pool(workers: int | None = None) -> Iterator[None]:
+    """The ``parallel_map`` calls of this thread's block that would each start a process pool share one of
+    ``workers`` processes (default: the usable cores), started at the first such call and shut at the end."""
+    import tempfile
+
+    holder: dict[str, Any] = {"pool": None, "workers": workers or default_workers(), "dir": None}
+    _SHARED.append(holder)
+    try:
+        with tempfile.TemporaryDirectory(prefix="cornermap-pool-") as folder:
+            holder["dir"] = folder
+            try:
+                yield
+            finally:
+                if holder["pool"] is not None:
+                    holder["pool"].shutdown(wait=True, cancel_futures=True)
+    finally:
+        _SHARED.remove(holder)
 
 
 def default_workers() -> int:
@@ -65,6 +104,9 @@ def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], *, workers: int
     if _in_distributed_worker():
         log.debug("parallel_map %s: %d items as cluster tasks", getattr(fn, "__name__", fn), total)
         return _on_cluster(fn, items, initializer, initargs, progress)
+    if _SHARED:
+        log.debug("parallel_map %s: %d items on the shared pool", getattr(fn, "__name__", fn), total)
+        return _on_shared_pool(_SHARED[-1], fn, items, initializer, initargs, progress)
     workers = default_workers() if workers is None else int(workers)
     if workers <= 1:
         return parallel_map(fn, items, workers=1, initializer=initializer, initargs=initargs, progress=progress)
@@ -113,3 +155,51 @@ def _on_cluster(fn, items, initializer, initargs, progress) -> list[Any]:
             if progress:
                 progress(done, len(items))
         return client.gather(futures)
+
+
+def _pooled_call(fn, x, token: str, init_path: str | None):
+    """In a shared pool's process: this call's initializer (read from its file) once per process and call, then
+    ``fn(x)``. The previous call's state is dropped first; ``worker_cache`` is kept."""
+    _CACHE["_shared_pool_process"] = True
+    if _INIT_STATE.get("_token") != token:
+        _INIT_STATE.clear()
+        if init_path is not None:
+            import pickle
+
+            with open(init_path, "rb") as f:
+                initializer, initargs = pickle.load(f)
+            initializer(*initargs)
+        _INIT_STATE["_token"] = token
+    return fn(x)
+
+
+def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, progress) -> list[Any]:
+    import multiprocessing as mp
+    import pickle
+    import uuid
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from pathlib import Path
+
+    from pipeline.execute import one_thread_per_process
+
+    token = uuid.uuid4().hex
+    init_path = None
+    if initializer is not None:  # sent once as a file, not with every item
+        init_path = Path(holder["dir"]) / f"{token}.pickle"
+        with open(init_path, "wb") as f:
+            pickle.dump((initializer, initargs), f, protocol=pickle.HIGHEST_PROTOCOL)
+    try:
+        with one_thread_per_process():  # processes start at a submit and inherit the environment then
+            if holder["pool"] is None:
+                holder["pool"] = ProcessPoolExecutor(max_workers=holder["workers"], mp_context=mp.get_context("spawn"))
+            futures = {holder["pool"].submit(_pooled_call, fn, x, token, None if init_path is None else str(init_path)):
+                       n for n, x in enumerate(items)}
+        out: list[Any] = [None] * len(items)
+        for done, fut in enumerate(as_completed(futures), 1):
+            out[futures[fut]] = fut.result()
+            if progress:
+                progress(done, len(items))
+        return out
+    finally:
+        if init_path is not None:
+            init_path.unlink(missing_ok=True)

@@ -104,7 +104,10 @@ class SurveySource:
     has_intensity = True
 
     def __init__(self, inputs):
+        import uuid
+
         self.inputs = inputs
+        self.key = uuid.uuid4().hex  # the same in every process it is sent to (``worker_cache`` keys)
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """(N,3) ENU points and (N,) intensity, each distinct cloud once (drives that name the same survey file each
@@ -132,6 +135,16 @@ def read_survey(ctx: StageContext) -> tuple[np.ndarray, np.ndarray]:
 
 
 def compute(ctx: StageContext) -> dict[str, pa.Table]:
+    """The stage: its independent inner work (loop verification, anchors) runs on one process pool for the whole
+    run (``pipeline.parallel.shared_pool``): its processes start once, and keep the survey's indices between the
+    anchoring rounds."""
+    from pipeline.parallel import shared_pool
+
+    with shared_pool():
+        return _compute(ctx)
+
+
+def _compute(ctx: StageContext) -> dict[str, pa.Table]:
     cfg = PosegraphConfig.from_params(ctx.params)
     drives, ref_drives = read_drive_inputs(ctx)
     load = scan_loader(ctx)

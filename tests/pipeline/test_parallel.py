@@ -52,3 +52,43 @@ def test_a_serial_request_inside_a_cluster_task_stays_in_process(monkeypatch):
     monkeypatch.setattr(par, "_on_cluster", no_cluster)
     out = parallel_map(shifted_square, ITEMS, workers=1, initializer=remember, initargs=(0.5,))
     assert [v for v, _ in out] == EXPECTED and {pid for _, pid in out} == {os.getpid()}
+
+
+def test_calls_in_a_shared_pool_reuse_its_processes_and_the_worker_cache():
+    """Three calls in one shared_pool block: the same (spawned) processes serve all of them, each call's initializer
+    state is its own, and a worker_cache value is built once per process, not once per call."""
+    from pipeline.parallel import shared_pool
+    from tests.pipeline.toy_parallel import remember_cached, shifted_square_with_builds, state_keys
+
+    with shared_pool(workers=2):
+        first = parallel_map(shifted_square_with_builds, ITEMS, initializer=remember_cached, initargs=(0.5,))
+        second = parallel_map(shifted_square_with_builds, ITEMS, initializer=remember_cached, initargs=(0.5,))
+        other = parallel_map(shifted_square, ITEMS, initializer=remember, initargs=(2.0,))
+        keys = parallel_map(state_keys, ITEMS)  # no initializer: the previous call's state is gone
+    assert [v for v, *_ in first] == EXPECTED and [v for v, *_ in second] == EXPECTED
+    assert [v for v, _ in other] == [x * x + 2.0 for x in ITEMS]
+    pids = {p for _, p, *_ in first}
+    assert os.getpid() not in pids and {p for _, p, *_ in second} <= pids and {p for _, p in other} <= pids
+    assert all(builds == 1 for *_, builds, _ in second)  # built at the first call, kept for the second
+    assert all(big == 5.0 for *_, big in first + second)
+    assert all(k == ("_token",) for k in keys)
+
+
+def test_a_failing_item_in_a_shared_pool_raises_and_the_block_still_closes():
+    from pipeline.parallel import shared_pool
+    from tests.pipeline.toy_parallel import shifted_square as needs_state
+
+    with pytest.raises(KeyError):
+        with shared_pool(workers=2):
+            parallel_map(needs_state, ITEMS)  # no initializer: worker_state() has no "offset"
+    assert parallel_map(shifted_square, ITEMS, workers=1, initializer=remember, initargs=(0.5,))[0][0] == 0.5
+
+
+def test_outside_a_shared_pool_the_worker_cache_keeps_nothing():
+    """In this process (or a long-lived cluster worker) a cached value would outlive the stage: it is built anew."""
+    from pipeline.parallel import worker_cache
+
+    built = []
+    for _ in range(2):
+        worker_cache("k", lambda: built.append(1))
+    assert len(built) == 2

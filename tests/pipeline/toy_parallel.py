@@ -12,3 +12,26 @@ def remember(offset: float) -> None:
 
 def shifted_square(x: float) -> tuple[float, int]:
     return x * x + worker_state()["offset"], os.getpid()
+
+
+BUILDS: list[int] = []  # in each process: how many times the cached value was built
+
+
+def remember_cached(offset: float) -> None:
+    """An initializer whose expensive part is kept across calls (``worker_cache``)."""
+    from pipeline.parallel import worker_cache
+
+    def build() -> float:
+        BUILDS.append(1)
+        return 10.0 * offset
+
+    set_worker_state(offset=offset, big=worker_cache(("big", offset), build))
+
+
+def shifted_square_with_builds(x: float) -> tuple[float, int, int, float]:
+    state = worker_state()
+    return x * x + state["offset"], os.getpid(), len(BUILDS), state["big"]
+
+
+def state_keys(_x: float) -> tuple[str, ...]:
+    return tuple(sorted(worker_state()))

@@ -170,16 +170,22 @@ def _use_survey_and_drives(survey, voxel_m: float, drives, load) -> None:
     """Worker initializer of the ground anchors: the survey read from its source and downsampled here (the stage's
     process never holds it), its 2-D index, and the drives and scan loader with which the worker reads its
     keyframes' scans itself."""
-    from pipeline.memory import release_memory
-    from pipeline.parallel import set_worker_state
+    from pipeline.parallel import set_worker_state, worker_cache
     from stages.posegraph.loops.clouds import _use_drives
 
-    points = survey.read()[0]
-    pts, tree = build_survey_index(points, voxel_m) if len(points) else (np.zeros((0, 3)), None)
-    del points
-    release_memory()  # gangnam: the raw cloud and open3d's copy, 835 -> 350 MB resident with the 0.2 m index
+    pts, tree = worker_cache(("survey ground index", survey.key, voxel_m), lambda: _ground_index(survey, voxel_m))
     set_worker_state(survey_pts=pts, survey_tree=tree)
     _use_drives(drives, load)
+
+
+def _ground_index(survey, voxel_m: float):
+    from pipeline.memory import release_memory
+
+    points = survey.read()[0]
+    out = build_survey_index(points, voxel_m) if len(points) else (np.zeros((0, 3)), None)
+    del points
+    release_memory()  # gangnam: the raw cloud and open3d's copy, 835 -> 350 MB resident with the 0.2 m index
+    return out
 
 
 def _anchor_block(item) -> list[SurveyMatch | None]:
@@ -213,8 +219,11 @@ class SurveyArrays:
     ``stages.posegraph.compute.SurveySource``, which reads the store where it is called."""
 
     def __init__(self, points_enu_m: np.ndarray, intensity: np.ndarray | None = None):
+        import uuid
+
         self.points_enu_m, self.intensity = points_enu_m, intensity
         self.has_intensity = intensity is not None
+        self.key = uuid.uuid4().hex  # ``worker_cache`` keys
 
     def read(self) -> tuple[np.ndarray, np.ndarray | None]:
         return self.points_enu_m, self.intensity
@@ -223,10 +232,11 @@ class SurveyArrays:
 def _use_survey_markings(survey, feature_load) -> None:
     """Pool/cluster worker initializer for the marking anchors: the survey's marking index (the worker reads the
     survey from its source) and a scan loader."""
-    from pipeline.parallel import set_worker_state
+    from pipeline.parallel import set_worker_state, worker_cache
     from stages.posegraph.anchors.survey_markings import build_survey_marking_index
 
-    set_worker_state(marking_index=build_survey_marking_index(*survey.read()), feature_load=feature_load)
+    index = worker_cache(("survey marking index", survey.key), lambda: build_survey_marking_index(*survey.read()))
+    set_worker_state(marking_index=index, feature_load=feature_load)
 
 
 def _marking_block(item) -> tuple[list, dict]:
@@ -263,7 +273,8 @@ def survey_anchor_callback(drives, load, survey, cfg: AnchorConfig, matches_out:
                            feature_load=None, report_step=None):
     """A ``survey_priors(poses, offsets)`` callback for ``solve_map``: anchors keyframes every
     ``cfg.stride_m`` that the survey covers; every match of the last call (accepted or not) is left in ``matches_out``.
-    ``survey``: a picklable source with ``read() -> (points, intensity or None)`` and ``has_intensity``
+    ``survey``: a picklable source with ``read() -> (points, intensity or None)``, ``has_intensity`` and a ``key`` (the
+    same in every process; the workers keep its indices under it)
     (``compute.SurveySource``, ``SurveyArrays``). The raw cloud is read at the first call, downsampled, and dropped;
     the marking workers read it themselves. With the survey's intensities and a ``feature_load``er (scans with
     intensity and ring), each keyframe is also matched horizontally on the painted markings (``survey_markings``)."""
