@@ -36,7 +36,14 @@ class LoopRecord:
     information: np.ndarray | None = None  # 6x6 gtsam order, body frame of T_i_j
 
 
-VERIFY_BLOCK = 32  # candidates per task of verify_from_store: the clouds of one block are resident at a time
+VERIFY_BLOCK = 32  # at most this many candidates per task of verify_from_store (one block's clouds are resident)
+
+
+def block_size(n_candidates: int, workers: int) -> int:
+    """Candidates per block: about four blocks per worker, so that the last block to finish leaves the others idle
+    for an eighth of the work or less (demo's 193 reference-drive candidates went in 7 blocks of 32 to 2 workers:
+    the last one ran alone), between 4 and ``VERIFY_BLOCK``."""
+    return int(min(VERIFY_BLOCK, max(4, -(-n_candidates // (4 * max(1, workers))))))
 
 
 def _verify_item(item) -> object:
@@ -58,17 +65,19 @@ def _verify_block(item) -> list[Verdict]:
 
 def verify_from_store(candidates, poses: np.ndarray, drives, offsets: np.ndarray, load, cfg: LoopConfig,
                       fixed: dict[int, np.ndarray] | None = None, progress=None,
-                      block: int = VERIFY_BLOCK) -> list[LoopRecord]:
+                      block: int | None = None) -> list[LoopRecord]:
     """``verify_candidates`` without the clouds in this process: the candidates, ordered by their first pose, go in
-    blocks of ``block`` to the workers (``pipeline.parallel.parallel_map``), each of which reads and prepares the
-    clouds of its block itself. Memory is one block's clouds per worker, not every candidate's cloud at once (on
-    gangnam 889 candidates: the clouds of ~1,500 scans were held by the stage's process through the whole solve).
-    The verdicts equal ``verify_candidates``' on ``vehicle_clouds``' clouds (each cloud is computed alone)."""
-    from pipeline.parallel import parallel_map
+    blocks of ``block`` (default ``block_size``) to the workers (``pipeline.parallel.parallel_map``), each of which
+    reads and prepares the clouds of its block itself. Memory is one block's clouds per worker, not every candidate's
+    cloud at once (on gangnam 889 candidates: the clouds of ~1,500 scans were held by the stage's process through the
+    whole solve). The verdicts equal ``verify_candidates``' on ``vehicle_clouds``' clouds (each cloud is computed
+    alone)."""
+    from pipeline.parallel import default_workers, parallel_map
     from stages.posegraph.loops.clouds import _use_drives, cloud_requests
 
     fixed = fixed or {}
     n = len(candidates)
+    block = block or block_size(n, default_workers())
     order = sorted(range(n), key=lambda m: (min(candidates[m].i, candidates[m].j), max(candidates[m].i,
                                                                                         candidates[m].j), m))
     items, members = [], []

@@ -89,3 +89,11 @@ def test_clouds_prepared_once_for_both_starts_and_shared_candidates_give_the_sam
         np.testing.assert_allclose([x.fitness, x.inlier_rmse_m], [y.fitness, y.inlier_rmse_m], rtol=1e-9)
     voxels = {cfg.coarse_voxel_m, cfg.voxel_m}
     assert set(shared) == {(k, v) for k in ("a", "b", "far") for v in voxels}
+
+
+def test_loop_blocks_are_about_four_per_worker_within_bounds():
+    from stages.posegraph.loops.verify import VERIFY_BLOCK, block_size
+
+    assert block_size(193, 2) == 25  # 8 blocks: 4 per worker (demo's reference drive; was 7 blocks of 32)
+    assert block_size(889, 2) == VERIFY_BLOCK  # gangnam: capped, one block's clouds resident per worker
+    assert block_size(5, 2) == 4 and block_size(0, 2) == 4
