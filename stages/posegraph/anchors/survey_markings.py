@@ -11,7 +11,8 @@ Pure functions on arrays; the scans come through the caller's loader.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -29,11 +30,16 @@ from stages.posegraph.factors.drive import deskew_scan_lidar
 FeatureLoader = Callable[[list[tuple[str, int]]], dict[tuple[str, int], tuple]]
 
 
+TILE_M = 100.0  # the survey's marking mask is computed once per tile of this size and windows are cut from it
+MAX_TILES = 64  # tiles a worker keeps (1 MB each at 0.1 m cells)
+
+
 @dataclass
 class SurveyMarkingIndex:
     points_enu_m: np.ndarray  # (N,3)
     intensity: np.ndarray  # (N,)
     tree: cKDTree  # 2-D, east/north
+    tiles: OrderedDict = field(default_factory=OrderedDict)  # (settings, tile east, tile north) -> mask, newest last
 
 
 def build_survey_marking_index(points_enu_m: np.ndarray, intensity: np.ndarray) -> SurveyMarkingIndex:
@@ -43,21 +49,55 @@ def build_survey_marking_index(points_enu_m: np.ndarray, intensity: np.ndarray) 
 
 def survey_marking_window(index: SurveyMarkingIndex, centre_en_m: np.ndarray, half_size_m: float,
                           raster: MarkingRasterSettings) -> tuple[np.ndarray, tuple[float, float]]:
-    """The survey's marking mask (rows north-first) over a square window around ``centre_en_m``, computed
-    with the shared marking rasterizer (elevation grid + adaptive threshold) and the pose graph's own raster
-    settings (``survey_marking_raster``); returns (mask, south-west origin)."""
+    """The survey's marking mask (rows north-first) over a square window around ``centre_en_m``; returns (mask,
+    south-west origin). The mask is the survey's, not the window's: it is computed with the shared marking rasterizer
+    (elevation grid + adaptive threshold) and the pose graph's own raster settings (``survey_marking_raster``) once
+    per ``TILE_M`` tile of a fixed grid (each with the rasterizer's halo, so that tiles agree at their borders), kept
+    in the index (the ``MAX_TILES`` last used), and cut out here. Every keyframe and every anchoring round sees the
+    same mask where their windows overlap (windows of 96 m every 10 m of travel: each place was rasterized about 10
+    times a round)."""
+    cell = raster.cell_m
+    tile_px = int(round(TILE_M / cell))
+    n_px = int(round(2 * half_size_m / cell))
+    i0 = int(np.floor((centre_en_m[0] - half_size_m) / cell))
+    j0 = int(np.floor((centre_en_m[1] - half_size_m) / cell))
+    out = np.zeros((n_px, n_px), bool)  # rows south-up here, flipped at the end
+    settings = raster.model_dump_json()
+    for ty in range(j0 // tile_px, (j0 + n_px - 1) // tile_px + 1):
+        for tx in range(i0 // tile_px, (i0 + n_px - 1) // tile_px + 1):
+            tile = _tile(index, settings, tx, ty, tile_px, raster)[::-1]
+            ja, jb = max(j0, ty * tile_px), min(j0 + n_px, (ty + 1) * tile_px)
+            ia, ib = max(i0, tx * tile_px), min(i0 + n_px, (tx + 1) * tile_px)
+            out[ja - j0:jb - j0, ia - i0:ib - i0] = tile[ja - ty * tile_px:jb - ty * tile_px,
+                                                         ia - tx * tile_px:ib - tx * tile_px]
+    return out[::-1], (i0 * cell, j0 * cell)
+
+
+def _tile(index: SurveyMarkingIndex, settings: str, tx: int, ty: int, tile_px: int,
+          raster: MarkingRasterSettings) -> np.ndarray:
+    key = (settings, tx, ty)
+    if key in index.tiles:
+        index.tiles.move_to_end(key)
+        return index.tiles[key]
+    mask = marking_mask(index, tx * tile_px, ty * tile_px, tile_px, raster)
+    index.tiles[key] = mask
+    while len(index.tiles) > MAX_TILES:
+        index.tiles.popitem(last=False)
+    return mask
+
+
+def marking_mask(index: SurveyMarkingIndex, i0: int, j0: int, n_px: int, raster: MarkingRasterSettings
+                 ) -> np.ndarray:
+    """The marking mask (rows north-first) of the ``n_px`` square cells whose south-west cell is (``i0``, ``j0``)
+    (cell indices: east = i * cell_m), from the survey points within it and the rasterizer's halo around it."""
     cell = raster.cell_m
     halo_px = halo_px_for(cell, raster.threshold_block_m, raster.ground_window_m)
-    n_px = int(round(2 * half_size_m / cell))
-    e0 = float(np.floor((centre_en_m[0] - half_size_m) / cell) * cell)
-    n0 = float(np.floor((centre_en_m[1] - half_size_m) / cell) * cell)
-    halo_m = halo_px * cell
-    acc = GridAccumulator(e0 - halo_m, n0 - halo_m, cell, (n_px + 2 * halo_px, n_px + 2 * halo_px))
-    idx = index.tree.query_ball_point(np.asarray(centre_en_m[:2], float), half_size_m * np.sqrt(2) + halo_m)
+    acc = GridAccumulator((i0 - halo_px) * cell, (j0 - halo_px) * cell, cell, (n_px + 2 * halo_px, n_px + 2 * halo_px))
+    centre = (np.array([i0, j0]) + n_px / 2.0) * cell
+    idx = index.tree.query_ball_point(centre, (n_px / 2.0 + halo_px) * cell * np.sqrt(2))
     if idx:
         acc.add(index.points_enu_m[idx], index.intensity[idx])
-    layer = rasterize_grid(acc.finish(raster.min_points_per_cell), halo_px, **raster.rasterize_kwargs())
-    return layer.marking, (e0, n0)
+    return rasterize_grid(acc.finish(raster.min_points_per_cell), halo_px, **raster.rasterize_kwargs()).marking
 
 
 def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, max_scans: int) -> np.ndarray:
