@@ -116,19 +116,25 @@ def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], *, workers: int
 
 def _on_pool(fn, items, workers, initializer, initargs, progress) -> list[Any]:
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import ProcessPoolExecutor
 
     from pipeline.execute import one_thread_per_process
 
     with one_thread_per_process():  # the spawned processes inherit the environment at start
         with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
                                  initializer=initializer, initargs=initargs) as pool:
-            futures = {pool.submit(fn, x): n for n, x in enumerate(items)}
-            out: list[Any] = [None] * len(items)
-            for done, fut in enumerate(as_completed(futures), 1):
-                out[futures[fut]] = fut.result()
-                if progress:
-                    progress(done, len(items))
+            return _gathered({pool.submit(fn, x): n for n, x in enumerate(items)}, progress)
+
+
+def _gathered(futures: dict, progress) -> list[Any]:
+    """The results of ``{future: item index}`` in item order, with ``progress(done, total)`` as they finish."""
+    from concurrent.futures import as_completed
+
+    out: list[Any] = [None] * len(futures)
+    for done, fut in enumerate(as_completed(futures), 1):
+        out[futures[fut]] = fut.result()
+        if progress:
+            progress(done, len(futures))
     return out
 
 
@@ -177,7 +183,7 @@ def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, pr
     import multiprocessing as mp
     import pickle
     import uuid
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import ProcessPoolExecutor
     from pathlib import Path
 
     from pipeline.execute import one_thread_per_process
@@ -194,12 +200,7 @@ def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, pr
                 holder["pool"] = ProcessPoolExecutor(max_workers=holder["workers"], mp_context=mp.get_context("spawn"))
             futures = {holder["pool"].submit(_pooled_call, fn, x, token, None if init_path is None else str(init_path)):
                        n for n, x in enumerate(items)}
-        out: list[Any] = [None] * len(items)
-        for done, fut in enumerate(as_completed(futures), 1):
-            out[futures[fut]] = fut.result()
-            if progress:
-                progress(done, len(items))
-        return out
+        return _gathered(futures, progress)
     finally:
         if init_path is not None:
             init_path.unlink(missing_ok=True)
