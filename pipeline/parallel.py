@@ -26,6 +26,7 @@ from typing import Any, Callable, Iterator, Sequence
 log = logging.getLogger(__name__)
 _INIT_STATE: dict[str, Any] = {}
 _CACHE: dict[Any, Any] = {}  # this process's worker_cache
+_IN_SHARED_POOL = False  # this process is a shared_pool worker (it ends with the block)
 _SHARED: list[dict[str, Any]] = []  # the open shared_pool blocks, innermost last
 
 
@@ -43,7 +44,7 @@ def worker_cache(key: Any, build: Callable[[], Any]) -> Any:
     """``build()``, kept under ``key`` (hashable, the same in every process: not an ``id``) for the later calls of a
     ``shared_pool`` block, whose processes end with the block. Elsewhere (this process, a pool of one call, a
     long-lived cluster worker) it is built every time and nothing is kept."""
-    if not _CACHE.get("_shared_pool_process"):
+    if not _IN_SHARED_POOL:
         return build()
     if key not in _CACHE:
         _CACHE[key] = build()
@@ -166,7 +167,8 @@ def _on_cluster(fn, items, initializer, initargs, progress) -> list[Any]:
 def _pooled_call(fn, x, token: str, init_path: str | None):
     """In a shared pool's process: this call's initializer (read from its file) once per process and call, then
     ``fn(x)``. The previous call's state is dropped first; ``worker_cache`` is kept."""
-    _CACHE["_shared_pool_process"] = True
+    global _IN_SHARED_POOL
+    _IN_SHARED_POOL = True
     if _INIT_STATE.get("_token") != token:
         _INIT_STATE.clear()
         if init_path is not None:

@@ -11,10 +11,10 @@ measures the ground under the estimate and converges in a few Gauss-Newton steps
 Method (pure numpy / scipy): the scan's ground points are placed with the estimate; each is paired with the
 survey point nearest to it horizontally (a height field: one surface per place), whose normal comes from the
 survey's local plane. The height is started at the median vertical offset of the pairs (robust to any start
-height, where a registration bounded by a correspondence distance fails: tiny seed 89's first estimate was
-1.4 m off), then (droll, dpitch, dz) about the keyframe minimise the point-to-plane residuals by iteratively
-reweighted least squares with Tukey's biweight of decreasing widths (kerbs, bumpers and a sidewalk seen
-through a horizontal error weigh nothing; as ``stages.common.ground_plane`` does for a scan's own plane).
+height, where a registration bounded by its correspondence distance finds nothing to pair beyond it), then
+(droll, dpitch, dz) about the keyframe minimise the point-to-plane residuals by iteratively reweighted least
+squares with Tukey's biweight of decreasing widths (kerbs, bumpers and a sidewalk seen through a horizontal
+error weigh nothing; as ``stages.common.ground_plane`` does for a scan's own plane).
 """
 from __future__ import annotations
 
@@ -31,17 +31,15 @@ class VerticalFit:
     T_target_source: np.ndarray  # (4,4) the start with its height, roll and pitch corrected about its origin
     fitness: float  # share of source points with a survey point within max_corr_m (3-D) at the result
     inlier_rmse_m: float  # RMS 3-D distance of those pairs (open3d's definition, for the same gates)
-    n_weighted: int  # points that carried weight in the last step
     converged: bool  # False when too few points carried weight
 
 
 def plane_normals(points_m: np.ndarray, knn: int = 20) -> np.ndarray:
-    """(N,3) unit normals of the local planes (open3d, ``knn`` neighbours), turned to point up (+z)."""
-    import open3d as o3d
+    """(N,3) unit normals of the local planes (``registration.prepare_cloud``'s, ``knn`` neighbours, no
+    downsampling), turned to point up (+z)."""
+    from stages.common.registration import prepare_cloud
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_m, np.float64)))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn))
-    n = np.asarray(cloud.normals).copy()
+    n = np.asarray(prepare_cloud(points_m, 0.0, knn=knn, with_covariances=False).normals).copy()
     n[n[:, 2] < 0] *= -1.0
     return n
 
@@ -56,16 +54,15 @@ def _rotation_xy(a: float, b: float) -> np.ndarray:
 
 def register_vertical(source_m: np.ndarray, target_m: np.ndarray, target_normals: np.ndarray,
                       T_init: np.ndarray, *, max_corr_m: float = 1.0, widths_m: tuple[float, ...] = TUKEY_WIDTHS_M,
-                      min_points: int = 100, target_tree: cKDTree | None = None) -> VerticalFit:
+                      min_points: int = 100) -> VerticalFit:
     """Correct ``T_init`` (target <- source, in a frame whose origin is near the keyframe) in height, roll and
     pitch only, rotating about the frame's origin: the source's x, y and heading stay the start's to second order.
 
-    ``source_m`` (N,3) source-frame points; ``target_m`` (M,3) with up-pointing ``target_normals``; ``target_tree``
-    a 2-D cKDTree of the target's x, y (built when not given). Pairs are horizontal nearest neighbours within
-    ``max_corr_m``."""
+    ``source_m`` (N,3) source-frame points; ``target_m`` (M,3) with up-pointing ``target_normals``. Pairs are
+    horizontal nearest neighbours within ``max_corr_m``."""
     src = np.asarray(source_m, np.float64)[:, :3]
     tgt = np.asarray(target_m, np.float64)
-    tree = target_tree if target_tree is not None else cKDTree(tgt[:, :2])
+    tree = cKDTree(tgt[:, :2])
     R0, t0 = np.asarray(T_init, float)[:3, :3], np.asarray(T_init, float)[:3, 3]
     placed = src @ R0.T + t0
     R_corr, dz = np.eye(3), 0.0
@@ -75,7 +72,7 @@ def register_vertical(source_m: np.ndarray, target_m: np.ndarray, target_normals
         ok = np.isfinite(dist)
         return ok, idx[ok]
 
-    n_weighted, converged = 0, False
+    converged = False
     if len(src) >= min_points and len(tgt) >= 3:
         ok, idx = pairs(placed)
         if ok.sum() >= min_points:
@@ -90,8 +87,7 @@ def register_vertical(source_m: np.ndarray, target_m: np.ndarray, target_normals
                 q, n = tgt[idx], target_normals[idx]
                 r = np.einsum("ij,ij->i", p[ok] - q, n)
                 w = np.where(np.abs(r) < width, (1.0 - (r / width) ** 2) ** 2, 0.0)
-                n_weighted = int(np.count_nonzero(w))
-                if n_weighted < min_points:
+                if np.count_nonzero(w) < min_points:
                     converged = False
                     break
                 # model p = R_corr placed + dz e_z; d r / d(rotation about x, y) = ((R_corr placed) x n)_x, _y
@@ -109,7 +105,7 @@ def register_vertical(source_m: np.ndarray, target_m: np.ndarray, target_normals
     T[:3, :3] = R_corr @ R0
     T[:3, 3] = R_corr @ t0 + [0.0, 0.0, dz]
     fitness, rmse = _fit_quality(src @ T[:3, :3].T + T[:3, 3], tgt, max_corr_m)
-    return VerticalFit(T, fitness, rmse, n_weighted, converged)
+    return VerticalFit(T, fitness, rmse, converged)
 
 
 def _fit_quality(points_m: np.ndarray, target_m: np.ndarray, max_corr_m: float) -> tuple[float, float]:

@@ -69,8 +69,8 @@ def test_height_and_tilt_recovered_from_far_off_starts(start):
 
 
 def test_a_start_beyond_the_correspondence_distance_is_anchored():
-    """The keyframe anchor from an estimate 1.4 m too high (tiny seed 89's first round): accepted and on the ground,
-    where a registration bounded by its 1 m correspondence distance found nothing to pair."""
+    """The keyframe anchor from an estimate 1.4 m too high: accepted and on the ground, where a registration bounded
+    by its 1 m correspondence distance found nothing to pair."""
     rng = np.random.default_rng(5)
     survey, scan, T_true = _street(rng)
     cfg = posegraph_config().anchors.ground
