@@ -16,6 +16,7 @@ register(
     f("intensity", pa.float32(), "raw", doc="uncalibrated return intensity as recorded"),
     f("ring", pa.int16(), doc="laser index, 0 = lowest beam"),
     f("time_offset_s", pa.float32(), "s", doc="point time minus scan stamp"),
+    row_group_key="scan_id",
 )
 
 register(

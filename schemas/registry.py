@@ -12,8 +12,13 @@ def field(name: str, type_: pa.DataType, unit: str = "", frame: str = "", doc: s
     return pa.field(name, type_, nullable=nullable, metadata=meta or None)
 
 
-def register(name: str, doc: str, *fields: pa.Field) -> pa.Schema:
-    schema = pa.schema(list(fields), metadata={"dataset": name, "doc": doc})
+def register(name: str, doc: str, *fields: pa.Field, row_group_key: str | None = None) -> pa.Schema:
+    """``row_group_key``: a column whose rows are read a few values at a time (scans by ``scan_id``); the store
+    ends its files' row groups where that column changes (``pipeline.store.row_group_bounds``)."""
+    meta = {"dataset": name, "doc": doc, **({"row_group_key": row_group_key} if row_group_key else {})}
+    if row_group_key and row_group_key not in [f.name for f in fields]:
+        raise ValueError(f"schema {name!r}: row_group_key {row_group_key!r} is not one of its fields")
+    schema = pa.schema(list(fields), metadata=meta)
     SCHEMAS[name] = schema
     return schema
 

@@ -66,3 +66,61 @@ def test_read_in_names_a_missing_column(tmp_path):
     reader = _write_dataset(tmp_path)
     with pytest.raises(DatasetIOError, match="no column 'ring'"):
         reader.read_in("scans", "ring", [1])
+
+
+@pytest.mark.parametrize("run_lengths,min_rows,max_rows", [
+    ([5, 5, 5], 4, 100), ([3, 3, 3, 3, 3], 7, 100), ([1] * 40, 8, 100), ([250, 3, 3], 10, 100), ([7], 50, 100),
+])
+def test_row_group_bounds_end_on_key_changes_and_respect_the_sizes(run_lengths, min_rows, max_rows):
+    from pipeline.store import row_group_bounds
+
+    keys = np.repeat(np.arange(len(run_lengths)), run_lengths)
+    bounds = row_group_bounds(keys, min_rows, max_rows)
+    n = len(keys)
+    assert bounds[0] == 0 and bounds[-1] == n and all(b > a for a, b in zip(bounds[:-1], bounds[1:]))
+    changes = set(np.flatnonzero(keys[1:] != keys[:-1]) + 1) | {n}
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        assert b - a <= max_rows
+        if b - a < max_rows:  # a group not cut by the maximum ends where the key changes
+            assert b in changes
+        if b != n and b in changes:
+            assert b - a >= min_rows
+
+
+def test_a_keyed_schema_is_written_in_row_groups_that_read_in_can_skip(tmp_path, monkeypatch):
+    """Written by the store with ``row_group_key``: the file round-trips exactly, each row group holds whole
+    scans, and a lookup of one scan decodes only groups that hold it."""
+    import json
+
+    from pipeline import store
+    from pipeline.store import write_pieces
+
+    monkeypatch.setattr(store, "ROW_GROUP_MIN_ROWS", 20)
+    schema = pa.schema([("drive", pa.string()), ("scan_id", pa.int64()), ("x_m", pa.float32()),
+                        ("info", pa.list_(pa.float64(), 2))], metadata={"row_group_key": "scan_id"})
+    rng = np.random.default_rng(3)
+    sid = np.repeat(np.arange(12), rng.integers(5, 30, 12))
+    n = len(sid)
+    table = pa.table({"drive": ["d0"] * n, "scan_id": pa.array(sid, pa.int64()),
+                      "x_m": pa.array(rng.normal(size=n).astype(np.float32)),
+                      "info": pa.FixedSizeListArray.from_arrays(pa.array(rng.normal(size=2 * n)), 2)}, schema=schema)
+    base = tmp_path / "datasets" / "scans" / "fp1"
+    files = write_pieces(table, out_dir=base, label="p0", schema=schema, partitioning=("drive",), where="test")
+    (base / "_manifest.json").write_text(json.dumps({"fingerprint": "fp1", "files": files}))
+    path = base / files[0]["path"]
+    assert pq.read_table(path).equals(table)
+    meta = pq.ParquetFile(path).metadata
+    groups = pq.ParquetFile(path)
+    for g in range(meta.num_row_groups):
+        ids = groups.read_row_group(g, columns=["scan_id"])["scan_id"].to_numpy()
+        assert meta.row_group(g).num_rows >= 20 or g == meta.num_row_groups - 1
+        for s in np.unique(ids):  # every scan of the group lies wholly inside it
+            assert np.count_nonzero(ids == s) == np.count_nonzero(sid == s)
+    assert meta.num_row_groups > 3
+    reader = StoreInputReader(tmp_path, {"scans": ("scans", "fp1")}, {"scans": schema})
+    calls = []
+    real = pq.ParquetFile.read_row_group
+    monkeypatch.setattr(pq.ParquetFile, "read_row_group", lambda self, i, *a, **kw: calls.append(i) or
+                        real(self, i, *a, **kw))
+    got = reader.read_in("scans", "scan_id", [7])
+    assert got.num_rows == np.count_nonzero(sid == 7) and len(calls) == 1
