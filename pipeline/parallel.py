@@ -14,13 +14,16 @@ Results are identical whichever way it ran (each item is computed alone). Progre
 Inside ``with shared_pool():`` the calls that would start a process pool share one instead: its processes start
 (spawn, imports) once for the block, each call's initializer runs once per process and call (its state replaces the
 previous call's), and what an initializer keeps with ``worker_cache`` stays for the later calls (a survey's index
-across the pose graph's anchoring rounds).
+across the pose graph's anchoring rounds). A block opened inside a cluster task keeps the cluster's workers instead:
+their ``worker_cache`` values are kept under the block's token for its later calls, and dropped on every worker when
+the block ends (a long-lived worker does not keep a stage's indices after the stage).
 """
 from __future__ import annotations
 
 import contextlib
 import logging
 import os
+from contextvars import ContextVar
 from typing import Any, Callable, Iterator, Sequence
 
 log = logging.getLogger(__name__)
@@ -28,6 +31,7 @@ _INIT_STATE: dict[str, Any] = {}
 _CACHE: dict[Any, Any] = {}  # this process's worker_cache
 _IN_SHARED_POOL = False  # this process is a shared_pool worker (it ends with the block)
 _SHARED: list[dict[str, Any]] = []  # the open shared_pool blocks, innermost last
+_BLOCK: ContextVar[str | None] = ContextVar("cornermap_parallel_block", default=None)  # a cluster task's block
 
 
 def worker_state() -> dict[str, Any]:
@@ -42,13 +46,27 @@ def set_worker_state(**values: Any) -> None:
 
 def worker_cache(key: Any, build: Callable[[], Any]) -> Any:
     """``build()``, kept under ``key`` (hashable, the same in every process: not an ``id``) for the later calls of a
-    ``shared_pool`` block, whose processes end with the block. Elsewhere (this process, a pool of one call, a
-    long-lived cluster worker) it is built every time and nothing is kept."""
-    if not _IN_SHARED_POOL:
+    ``shared_pool`` block: in the block's processes, which end with it, or on a cluster worker running one of the
+    block's tasks, until the block ends (``_forget_block``). Elsewhere (this process, a pool of one call, a cluster
+    task outside a block) it is built every time and nothing is kept."""
+    block = _BLOCK.get()
+    if not _IN_SHARED_POOL and block is None:
         return build()
-    if key not in _CACHE:
-        _CACHE[key] = build()
-    return _CACHE[key]
+    if (block, key) not in _CACHE:
+        _CACHE[(block, key)] = build()
+    return _CACHE[(block, key)]
+
+
+def _forget_block(block: str) -> int:
+    """On a cluster worker (``Client.run``): drop the ``worker_cache`` values of a block that ended."""
+    stale = [k for k in _CACHE if k[0] == block]
+    for k in stale:
+        del _CACHE[k]
+    if stale:
+        from pipeline.memory import release_memory
+
+        release_memory()
+    return len(stale)
 
 
 @contextlib.contextmanager
@@ -56,8 +74,10 @@ def shared_pool(workers: int | None = None) -> Iterator[None]:
     """The ``parallel_map`` calls of this thread's block that would each start a process pool share one of
     ``workers`` processes (default: the usable cores), started at the first such call and shut at the end."""
     import tempfile
+    import uuid
 
-    holder: dict[str, Any] = {"pool": None, "workers": workers or default_workers(), "dir": None}
+    holder: dict[str, Any] = {"pool": None, "workers": workers or default_workers(), "dir": None,
+                              "block": uuid.uuid4().hex, "cluster": False}
     _SHARED.append(holder)
     try:
         with tempfile.TemporaryDirectory(prefix="cornermap-pool-") as folder:
@@ -67,8 +87,20 @@ def shared_pool(workers: int | None = None) -> Iterator[None]:
             finally:
                 if holder["pool"] is not None:
                     holder["pool"].shutdown(wait=True, cancel_futures=True)
+                if holder["cluster"]:
+                    _forget_on_cluster(holder["block"])
     finally:
         _SHARED.remove(holder)
+
+
+def _forget_on_cluster(block: str) -> None:
+    from distributed import worker_client
+
+    try:
+        with worker_client() as client:
+            client.run(_forget_block, block)
+    except Exception as exc:  # noqa: BLE001 - a worker gone; its cache went with it
+        log.warning("parallel_map: could not drop a block's cached values on every worker (%s)", exc)
 
 
 def default_workers() -> int:
@@ -139,12 +171,17 @@ def _gathered(futures: dict, progress) -> list[Any]:
     return out
 
 
-def _call_with_init(fn, x, initializer, token, *initargs):
-    """On a cluster worker: run ``initializer`` once per call of parallel_map (``token``) and process."""
-    if initializer is not None and _INIT_STATE.get("_token") != token:
-        initializer(*initargs)
-        _INIT_STATE["_token"] = token
-    return fn(x)
+def _call_with_init(fn, x, initializer, token, block, *initargs):
+    """On a cluster worker: run ``initializer`` once per call of parallel_map (``token``) and process, with the
+    ``worker_cache`` of ``block`` (a ``shared_pool`` block's token, or None)."""
+    reset = _BLOCK.set(block)
+    try:
+        if initializer is not None and _INIT_STATE.get("_token") != token:
+            initializer(*initargs)
+            _INIT_STATE["_token"] = token
+        return fn(x)
+    finally:
+        _BLOCK.reset(reset)
 
 
 def _on_cluster(fn, items, initializer, initargs, progress) -> list[Any]:
@@ -153,9 +190,16 @@ def _on_cluster(fn, items, initializer, initargs, progress) -> list[Any]:
     from distributed import as_completed, worker_client
 
     token = uuid.uuid4().hex
+    block = None
+    if _SHARED:
+        _SHARED[-1]["cluster"] = True
+        block = _SHARED[-1]["block"]
     with worker_client() as client:
-        shared = client.scatter(list(initargs), broadcast=True) if initargs else []  # sent once per worker
-        futures = [client.submit(_call_with_init, fn, x, initializer, token, *shared, pure=False) for x in items]
+        # sent once per worker; keys of their own (a content-hashed key of an earlier call's equal initargs can be
+        # released under this call's tasks: 'lost dependencies')
+        shared = client.scatter(list(initargs), broadcast=True, hash=False) if initargs else []
+        futures = [client.submit(_call_with_init, fn, x, initializer, token, block, *shared, pure=False)
+                   for x in items]
         done = 0
         for _ in as_completed(futures):
             done += 1

@@ -92,3 +92,31 @@ def test_outside_a_shared_pool_the_worker_cache_keeps_nothing():
     for _ in range(2):
         worker_cache("k", lambda: built.append(1))
     assert len(built) == 2
+
+
+def test_a_shared_pool_block_in_a_cluster_task_keeps_the_worker_cache_until_it_ends():
+    """Inside a cluster task, the calls of a shared_pool block run as cluster tasks; a worker_cache value built in the
+    first call is used by the second (no new builds), and every worker drops it when the block ends."""
+    distributed = pytest.importorskip("distributed")
+    import pipeline.parallel as par
+    from tests.pipeline import toy_parallel
+
+    def outer(_):
+        from pipeline.parallel import shared_pool
+        from tests.pipeline.toy_parallel import BUILDS, remember_cached, shifted_square_with_builds
+
+        with shared_pool():
+            first = parallel_map(shifted_square_with_builds, ITEMS, initializer=remember_cached, initargs=(0.5,))
+            built = len(BUILDS)
+            second = parallel_map(shifted_square_with_builds, ITEMS, initializer=remember_cached, initargs=(0.5,))
+            kept = sum(1 for k in par._CACHE if k[0] is not None)
+        return first, second, built, kept
+
+    toy_parallel.BUILDS.clear()
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        first, second, built, kept = client.submit(outer, 0).result()
+    assert [v for v, *_ in first] == EXPECTED and [v for v, *_ in second] == EXPECTED
+    assert 1 <= built <= 2 and all(b == built for _, _, b, _ in second)  # the second call built nothing
+    assert kept >= 1  # held while the block was open
+    assert not [k for k in par._CACHE if k[0] is not None]  # and dropped when it ended
