@@ -21,7 +21,7 @@ import shutil
 import threading
 import uuid
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -186,15 +186,69 @@ def _split_by_partition(table: pa.Table, partitioning: tuple[str, ...]) -> list[
     return out
 
 
+def prefetched(pieces: Iterable[Any], depth: int = 1) -> Iterator[Any]:
+    """``pieces`` in order, the next ones (at most ``depth`` waiting) produced in a background thread while the caller
+    works on this one: a stage that streams its output (ingest decoding scan files) computes the next piece while
+    the store compresses and writes the last (both release the GIL for most of their time). An exception of the
+    producer is raised here, at the piece it failed on; when the caller stops early the producer stops after its
+    current piece and its generator is closed. Measured on gangnam drive_0 (9,554 scans): decoding 28.6 s and writing
+    42.9 s one after the other."""
+    import queue
+
+    q: queue.Queue = queue.Queue(maxsize=max(1, depth))
+    stop = threading.Event()
+    end = object()
+
+    def put(entry) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(entry, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        it = iter(pieces)
+        try:
+            for item in it:
+                if not put((True, item)):
+                    break
+            else:
+                put((True, end))
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, raised there
+            put((False, exc))
+        finally:
+            if stop.is_set() and hasattr(it, "close"):
+                it.close()
+
+    thread = threading.Thread(target=produce, name="prefetch-pieces", daemon=True)
+    thread.start()
+    try:
+        while True:
+            ok, item = q.get()
+            if not ok:
+                raise item
+            if item is end:
+                return
+            yield item
+    finally:
+        stop.set()
+        thread.join()
+
+
 def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path, label: str,
                  schema: pa.Schema, partitioning: tuple[str, ...], where: str) -> list[dict[str, Any]]:
-    """Write one output of one partition task; returns the file records for its part manifest."""
+    """Write one output of one partition task; returns the file records for its part manifest. A streamed output
+    (an iterator of tables) is produced one piece ahead of the writes (``prefetched``)."""
     for stale in (out_dir / "data").glob(f"**/part-{label}-*.parquet"):
         stale.unlink()  # left by a killed attempt; never listed in a manifest
     if pieces is None:
         return []
     if isinstance(pieces, pa.Table):
         pieces = [pieces]
+    elif not isinstance(pieces, (list, tuple)):
+        pieces = prefetched(pieces)
     records = []
     seq = 0
     for table in pieces:
