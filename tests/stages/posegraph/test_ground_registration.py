@@ -68,19 +68,28 @@ def test_height_and_tilt_recovered_from_far_off_starts(start):
     assert abs(yaw(T) - yaw(T0)) < 5e-4  # second order in the 0.5 deg tilt step (vertical_part keeps it exactly)
 
 
-def test_a_start_beyond_the_correspondence_distance_is_anchored():
+@pytest.mark.parametrize("survey_normals", ["per crop", "whole survey"])
+def test_a_start_beyond_the_correspondence_distance_is_anchored(survey_normals):
     """The keyframe anchor from an estimate 1.4 m too high: accepted and on the ground, where a registration bounded
-    by its 1 m correspondence distance found nothing to pair."""
+    by its 1 m correspondence distance found nothing to pair; the same with the survey's normals computed once for
+    the whole survey (the stage's workers) as with each crop's."""
+    from stages.posegraph.anchors.survey_anchor import survey_plane_normals
+
     rng = np.random.default_rng(5)
     survey, scan, T_true = _street(rng)
     cfg = posegraph_config().anchors.ground
     pts, tree = build_survey_index(survey, cfg.voxel_m)
     T0 = T_true.copy()
     T0[:3, 3] += [0.3, 0.3, 1.4]
-    m = anchor_scan(0, scan, T0, pts, tree, cfg)
+    normals = survey_plane_normals(pts) if survey_normals == "whole survey" else None
+    m = anchor_scan(0, scan, T0, pts, tree, cfg, normals)
     assert m.accepted, m.reason
     assert abs(m.T_map_vehicle[2, 3] - _ground_m(np.array(T0[0, 3]), np.array(T0[1, 3]))) < 0.01
     assert _tilt_deg(m.T_map_vehicle, T_true) < 0.05
+    if normals is not None:  # within a tenth of a millimetre / thousandth of a degree of the per-crop result
+        per_crop = anchor_scan(0, scan, T0, pts, tree, cfg)
+        assert abs(m.T_map_vehicle[2, 3] - per_crop.T_map_vehicle[2, 3]) < 1e-4
+        assert _tilt_deg(m.T_map_vehicle, per_crop.T_map_vehicle) < 1e-3
 
 
 def test_no_ground_is_not_converged():
