@@ -185,9 +185,9 @@ def score_alignment(source: o3d.geometry.PointCloud, target: o3d.geometry.PointC
 def register_coarse_to_fine(source_points_m: np.ndarray, target_points_m: np.ndarray, T_init: np.ndarray, *,
                             stages: tuple[tuple[float, float], ...] = ((1.0, 3.0), (0.4, 1.0), (0.4, 0.5)),
                             max_iterations: int = 40, point_sigma_m: float = 0.05, min_sigma_m: float = 0.005,
-                            min_sigma_rad: float = 0.0002, prepared: dict | None = None,
-                            keys: tuple = ("source", "target")) -> tuple[RegistrationResult, o3d.geometry.PointCloud,
-                                                                         o3d.geometry.PointCloud]:
+                            min_sigma_rad: float = 0.0002, relative_tolerance: float = 1e-6,
+                            prepared: dict | None = None, keys: tuple = ("source", "target")
+                            ) -> tuple[RegistrationResult, o3d.geometry.PointCloud, o3d.geometry.PointCloud]:
     """GICP in stages of (voxel_m, max_corr_m), each starting from the previous result, so that an initial
     guess 1-2 m off (two GNSS epochs of different passes) is first pulled in on coarse voxels with a wide
     correspondence distance, then refined. Returns the last stage's result and its (source, target) clouds.
@@ -204,7 +204,8 @@ def register_coarse_to_fine(source_points_m: np.ndarray, target_points_m: np.nda
                 cache[(key, voxel_m)] = prepare_cloud(pts, voxel_m)
         src, tgt = cache[(keys[0], voxel_m)], cache[(keys[1], voxel_m)]
         res = register_clouds(src, tgt, T, method="gicp", max_corr_m=corr_m, max_iterations=max_iterations,
-                              point_sigma_m=point_sigma_m, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad)
+                              point_sigma_m=point_sigma_m, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad,
+                              relative_tolerance=relative_tolerance)
         if not res.converged:
             return res, src, tgt
         T = res.T_target_source

@@ -97,6 +97,7 @@ class LoopVerifyConfig:
     coarse_corr_m: float = 3.0
     inlier_m: float = 1.0
     plane_tol_m: float = 0.1
+    relative_tolerance: float = 1e-4  # each GICP stage's convergence criterion (open3d's relative fitness and RMSE)
 
 
 class _Parallel:
@@ -227,7 +228,8 @@ class PosegraphConfig:
             max_rmse_m=p.loop_max_rmse_m, max_correction_m=p.loop_max_correction_m,
             max_correction_rad=p.loop_max_correction_rad, consistency_m=p.loop_consistency_m,
             min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad, coarse_voxel_m=p.loop_coarse_voxel_m,
-            coarse_corr_m=p.loop_coarse_corr_m, inlier_m=p.loop_inlier_m, plane_tol_m=p.loop_plane_tol_m)
+            coarse_corr_m=p.loop_coarse_corr_m, inlier_m=p.loop_inlier_m, plane_tol_m=p.loop_plane_tol_m,
+            relative_tolerance=p.loop_relative_tolerance)
         loops = LoopConfig(
             radius_m=p.loop_radius_m, min_separation_s=p.loop_min_separation_s, stride_m=p.loop_stride_m,
             max_per_scan=p.loop_max_per_scan, verify=verify, kernel=p.loop_kernel, kernel_k=p.loop_kernel_k,

@@ -78,6 +78,9 @@ class PosegraphParams(Params):
     loop_coarse_corr_m: float = Field(3.0, gt=0)
     loop_voxel_m: float = Field(0.4, gt=0, description="fine GICP stages (max_corr, then max_corr / 2)")
     loop_max_corr_m: float = Field(1.0, gt=0)
+    loop_relative_tolerance: float = Field(1e-4, gt=0, lt=1, description=(
+        "each GICP stage stops when an iteration changes its fitness and inlier RMSE by less than this share "
+        "(open3d's default 1e-6: 22 % slower on gangnam loops, results within 3 mm, no verdict changed)"))
     loop_inlier_m: float = Field(1.0, gt=0, description="scoring: nearest target point searched within this")
     loop_plane_tol_m: float = Field(0.1, gt=0, description="scoring: inlier if its point-to-plane distance is below")
     loop_min_fitness: float = Field(0.5, ge=0, le=1, description="share of inliers (true loops 0.53-0.73, scans "

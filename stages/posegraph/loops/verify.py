@@ -139,7 +139,7 @@ def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     min_fitness, max_rmse_m = cfg.min_fitness, cfg.max_rmse_m
     stages = ((cfg.coarse_voxel_m, cfg.coarse_corr_m), (voxel_m, max_corr_m), (voxel_m, max_corr_m / 2))
     reg = dict(stages=stages, max_iterations=40, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad,
-               prepared={} if prepared is None else prepared, keys=keys)
+               relative_tolerance=cfg.relative_tolerance, prepared={} if prepared is None else prepared, keys=keys)
     res, source, target = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, T_i_j_prior, **reg)
     T = res.T_target_source
     score = score_alignment(source, target, T, cfg.inlier_m, cfg.plane_tol_m)
