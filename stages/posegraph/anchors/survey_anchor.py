@@ -191,9 +191,12 @@ def survey_plane_normals(survey_pts: np.ndarray) -> np.ndarray | None:
     """The plane normals of the downsampled survey, once for every anchor and round: each vertical anchor computed
     those of its 40 m crop, 65 ms of its ~0.2 s on gangnam (66,700 points a crop; 5.2 s for the whole 1.9 M-point
     survey, 45 MB)."""
+    from pipeline.memory import release_memory
     from stages.posegraph.anchors.ground_registration import plane_normals
 
-    return plane_normals(survey_pts) if len(survey_pts) >= 3 else None
+    normals = plane_normals(survey_pts) if len(survey_pts) >= 3 else None
+    release_memory()  # open3d's per-point covariances behind the normals (135 MB on gangnam), freed but kept by malloc
+    return normals
 
 
 def _ground_index(survey, voxel_m: float):
