@@ -28,10 +28,9 @@ from typing import Any, Callable, Iterator, Sequence
 
 log = logging.getLogger(__name__)
 _INIT_STATE: dict[str, Any] = {}
-_CACHE: dict[Any, Any] = {}  # this process's worker_cache
-_IN_SHARED_POOL = False  # this process is a shared_pool worker (it ends with the block)
+_CACHE: dict[Any, Any] = {}  # this process's worker_cache, by (block, key)
 _SHARED: list[dict[str, Any]] = []  # the open shared_pool blocks, innermost last
-_BLOCK: ContextVar[str | None] = ContextVar("cornermap_parallel_block", default=None)  # a cluster task's block
+_BLOCK: ContextVar[str | None] = ContextVar("cornermap_parallel_block", default=None)  # the running item's block
 
 
 def worker_state() -> dict[str, Any]:
@@ -46,11 +45,11 @@ def set_worker_state(**values: Any) -> None:
 
 def worker_cache(key: Any, build: Callable[[], Any]) -> Any:
     """``build()``, kept under ``key`` (hashable, the same in every process: not an ``id``) for the later calls of a
-    ``shared_pool`` block: in the block's processes, which end with it, or on a cluster worker running one of the
-    block's tasks, until the block ends (``_forget_block``). Elsewhere (this process, a pool of one call, a cluster
+    ``shared_pool`` block, while an item of one of its calls runs: in the block's processes, which end with it, or on
+    a cluster worker, until the block ends (``_forget_block``). Elsewhere (this process, a pool of one call, a cluster
     task outside a block) it is built every time and nothing is kept."""
     block = _BLOCK.get()
-    if not _IN_SHARED_POOL and block is None:
+    if block is None:
         return build()
     if (block, key) not in _CACHE:
         _CACHE[(block, key)] = build()
@@ -208,21 +207,24 @@ def _on_cluster(fn, items, initializer, initargs, progress) -> list[Any]:
         return client.gather(futures)
 
 
-def _pooled_call(fn, x, token: str, init_path: str | None):
+def _pooled_call(fn, x, token: str, block: str, init_path: str | None):
     """In a shared pool's process: this call's initializer (read from its file) once per process and call, then
-    ``fn(x)``. The previous call's state is dropped first; ``worker_cache`` is kept."""
-    global _IN_SHARED_POOL
-    _IN_SHARED_POOL = True
-    if _INIT_STATE.get("_token") != token:
-        _INIT_STATE.clear()
-        if init_path is not None:
-            import pickle
+    ``fn(x)``, both with the ``worker_cache`` of ``block``. The previous call's state is dropped first; the cache is
+    kept."""
+    reset = _BLOCK.set(block)
+    try:
+        if _INIT_STATE.get("_token") != token:
+            _INIT_STATE.clear()
+            if init_path is not None:
+                import pickle
 
-            with open(init_path, "rb") as f:
-                initializer, initargs = pickle.load(f)
-            initializer(*initargs)
-        _INIT_STATE["_token"] = token
-    return fn(x)
+                with open(init_path, "rb") as f:
+                    initializer, initargs = pickle.load(f)
+                initializer(*initargs)
+            _INIT_STATE["_token"] = token
+        return fn(x)
+    finally:
+        _BLOCK.reset(reset)
 
 
 def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, progress) -> list[Any]:
@@ -244,8 +246,9 @@ def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, pr
         with one_thread_per_process():  # processes start at a submit and inherit the environment then
             if holder["pool"] is None:
                 holder["pool"] = ProcessPoolExecutor(max_workers=holder["workers"], mp_context=mp.get_context("spawn"))
-            futures = {holder["pool"].submit(_pooled_call, fn, x, token, None if init_path is None else str(init_path)):
-                       n for n, x in enumerate(items)}
+            futures = {holder["pool"].submit(_pooled_call, fn, x, token, holder["block"],
+                                             None if init_path is None else str(init_path)): n
+                       for n, x in enumerate(items)}
         return _gathered(futures, progress)
     finally:
         if init_path is not None:
