@@ -45,8 +45,8 @@ def _sorted_runs(ids: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray] | None:
 def scans_from_table(table: pa.Table) -> list[Scan]:
     """Split a scans_raw table into per-scan arrays (sorted by scan_id). Ingest writes each chunk sorted by scan_id
     (an unsorted table is sorted first, stably). Each scan's columns are converted alone: no chunk-wide float64
-    copy is made (those copies, 0.3 GB for a demo chunk of 5 M points, were fresh pages for the kernel to zero:
-    10% of an odometry task's samples were in ``clear_page``)."""
+    copy is made (0.3 GB for a demo chunk of 5 M points). Measured on demo chunks: peak 70-90 MB lower, time
+    unchanged (the kernel still zeroes the per-scan arrays' fresh pages)."""
     if table.num_rows == 0:
         return []
     runs = _sorted_runs(table["scan_id"])
