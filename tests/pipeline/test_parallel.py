@@ -67,8 +67,10 @@ def test_calls_in_a_shared_pool_reuse_its_processes_and_the_worker_cache():
         keys = parallel_map(state_keys, ITEMS)  # no initializer: the previous call's state is gone
     assert [v for v, *_ in first] == EXPECTED and [v for v, *_ in second] == EXPECTED
     assert [v for v, _ in other] == [x * x + 2.0 for x in ITEMS]
-    pids = {p for _, p, *_ in first}
-    assert os.getpid() not in pids and {p for _, p, *_ in second} <= pids and {p for _, p in other} <= pids
+    # the pool's two processes served every call: a pool per call would have started at least one new process for
+    # each of the three (a process may take no item of a call, so a later call can be the first to use the second)
+    pids = {p for _, p, *_ in first} | {p for _, p, *_ in second} | {p for _, p in other}
+    assert os.getpid() not in pids and len(pids) <= 2
     assert all(builds == 1 for *_, builds, _ in second)  # built at the first call, kept for the second
     assert all(big == 5.0 for *_, big in first + second)
     assert all(k == ("_token",) for k in keys)
