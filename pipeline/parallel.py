@@ -17,6 +17,9 @@ previous call's), and what an initializer keeps with ``worker_cache`` stays for 
 across the pose graph's anchoring rounds). A block opened inside a cluster task keeps the cluster's workers instead:
 their ``worker_cache`` values are kept under the block's token for its later calls, and dropped on every worker when
 the block ends (a long-lived worker does not keep a stage's indices after the stage).
+
+``build_once(folder, name, ...)`` shares a value between the processes instead of building it in each: the first
+to need it builds it and writes it under ``folder`` (a stage's scratch directory), the others load it.
 """
 from __future__ import annotations
 
@@ -54,6 +57,56 @@ def worker_cache(key: Any, build: Callable[[], Any]) -> Any:
     if (block, key) not in _CACHE:
         _CACHE[(block, key)] = build()
     return _CACHE[(block, key)]
+
+
+def build_once(folder: "os.PathLike | str | None", name: str, build: Callable[[], Any],
+               save: Callable[[Any, Any], None], load: Callable[[str], Any]) -> Any:
+    """``build()`` computed once among the processes that share ``folder`` (a stage's scratch directory: a pool's
+    processes, or the workers of a cluster that see the stage's root): the first to need ``name`` holds its lock
+    (``fcntl.flock``, released by the kernel if the holder dies), builds it and writes it with ``save(value, binary
+    file)`` to a temporary file renamed into place; the others wait for the lock and ``load(path)`` it. The value
+    must be a pure function of what ``name`` says: whoever builds it, every process gets the same value. A file
+    that cannot be loaded is built again here (a warning); ``folder`` None builds in this process, nothing kept."""
+    import uuid
+    from pathlib import Path
+
+    if folder is None:
+        return build()
+    folder = Path(folder)
+    path = folder / name
+
+    def loaded() -> tuple[bool, Any]:
+        if not path.exists():
+            return False, None
+        try:
+            return True, load(str(path))
+        except (OSError, ValueError, EOFError) as exc:
+            log.warning("build_once: cannot load %s (%s); building it again in this process", path, exc)
+            return True, build()
+
+    found, value = loaded()
+    if found:
+        return value
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / f".{name}.lock", "a+b") as lock:
+        try:
+            import fcntl
+
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+        except ImportError:  # no advisory locks here: processes may build it twice, with the same result
+            pass
+        found, value = loaded()
+        if found:
+            return value
+        value = build()
+        tmp = folder / f".{name}.tmp-{uuid.uuid4().hex[:8]}"
+        try:
+            with open(tmp, "wb") as fh:
+                save(value, fh)
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return value  # the lock is released when its file closes
 
 
 def _forget_block(block: str) -> int:

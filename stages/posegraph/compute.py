@@ -103,11 +103,14 @@ class SurveySource:
 
     has_intensity = True
 
-    def __init__(self, inputs):
+    def __init__(self, inputs, cache_dir=None):
         import uuid
 
         self.inputs = inputs
         self.key = uuid.uuid4().hex  # the same in every process it is sent to (``worker_cache`` keys)
+        # where the processes that use it share what they derive from it once (``pipeline.parallel.build_once``:
+        # the downsampled survey, its normals, its marking tiles); None: each process derives its own
+        self.cache_dir = cache_dir
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         """(N,3) ENU points and (N,) intensity, each distinct cloud once (drives that name the same survey file each
@@ -152,7 +155,8 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
     if ctx.inputs.has("survey"):
         from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
 
-        survey_cb = survey_anchor_callback(drives, load, SurveySource(ctx.inputs), cfg.anchors, survey_matches,
+        survey_cb = survey_anchor_callback(drives, load, SurveySource(ctx.inputs, ctx.scratch_dir / "survey"),
+                                           cfg.anchors, survey_matches,
                                            feature_load=scan_loader(ctx, ("intensity", "ring")),
                                            report_step=ctx.report_step)
     sol = solve_map(drives, load, cfg, survey_priors=survey_cb, report_step=ctx.report_step)

@@ -35,3 +35,22 @@ def shifted_square_with_builds(x: float) -> tuple[float, int, int, float]:
 
 def state_keys(_x: float) -> tuple[str, ...]:
     return tuple(sorted(worker_state()))
+
+
+def built_once_value(item: tuple[str, str]) -> tuple[list[float], int]:
+    """``build_once`` of a slow value in ``folder``; every build appends this process's pid to ``log``."""
+    import time
+
+    from pipeline.parallel import build_once
+
+    folder, log = item
+
+    def build() -> list[float]:
+        with open(log, "a") as fh:
+            fh.write(f"{os.getpid()}\n")
+        time.sleep(0.3)  # long enough for the other processes to ask while it is being built
+        return [1.5, 2.5, 3.5]
+
+    value = build_once(folder, "value.npy", build, lambda v, fh: fh.write(repr(v).encode()),
+                       lambda path: eval(open(path).read()))  # noqa: S307 - the test's own file
+    return value, os.getpid()

@@ -36,12 +36,17 @@ class SurveyMatch:
     T_init: np.ndarray | None = None  # the estimate it was matched from
 
 
-def build_survey_index(survey_enu_m: np.ndarray, voxel_m: float) -> tuple[np.ndarray, cKDTree]:
-    """Voxel-downsample the survey cloud once and index it in 2-D for cropping."""
+def downsample_survey(survey_enu_m: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The survey cloud voxel-downsampled (open3d: the mean point per voxel)."""
     import open3d as o3d
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(survey_enu_m, float)))
-    pts = np.asarray(cloud.voxel_down_sample(voxel_m).points)
+    return np.asarray(cloud.voxel_down_sample(voxel_m).points)
+
+
+def build_survey_index(survey_enu_m: np.ndarray, voxel_m: float) -> tuple[np.ndarray, cKDTree]:
+    """Voxel-downsample the survey cloud once and index it in 2-D for cropping."""
+    pts = downsample_survey(survey_enu_m, voxel_m)
     return pts, cKDTree(pts[:, :2])
 
 
@@ -174,17 +179,55 @@ COVERAGE_RADIUS_M = 5.0  # a keyframe is anchored when the downsampled survey ha
 
 
 def _use_survey_and_drives(survey, voxel_m: float, drives, load, with_normals: bool = False) -> None:
-    """Worker initializer of the ground anchors: the survey read from its source and downsampled here (the stage's
-    process never holds it), its 2-D index (and with ``with_normals`` its plane normals: vertical anchors), and the
-    drives and scan loader with which the worker reads its keyframes' scans itself."""
+    """Worker initializer of the ground anchors: the downsampled survey (``survey_ground_points``), its 2-D index
+    (and with ``with_normals`` its plane normals: vertical anchors), and the drives and scan loader with which the
+    worker reads its keyframes' scans itself. The stage's process never holds the survey."""
     from pipeline.parallel import set_worker_state, worker_cache
     from stages.posegraph.loops.clouds import _use_drives
 
     pts, tree = worker_cache(("survey ground index", survey.key, voxel_m), lambda: _ground_index(survey, voxel_m))
-    normals = worker_cache(("survey ground normals", survey.key, voxel_m), lambda: survey_plane_normals(pts)) \
-        if with_normals else None
+    normals = worker_cache(("survey ground normals", survey.key, voxel_m),
+                           lambda: _shared_normals(survey, voxel_m, pts)) if with_normals else None
     set_worker_state(survey_pts=pts, survey_tree=tree, survey_normals=normals)
     _use_drives(drives, load)
+
+
+def _save_npy(value: np.ndarray, fh) -> None:
+    np.save(fh, value, allow_pickle=False)
+
+
+def _load_npy(path: str) -> np.ndarray:
+    return np.load(path, allow_pickle=False)
+
+
+def survey_ground_points(survey, voxel_m: float) -> np.ndarray:
+    """The survey downsampled to ``voxel_m`` (``downsample_survey``), built once among the processes that
+    share the source's ``cache_dir`` (``pipeline.parallel.build_once``; each process built its own: on demo 2.2 s
+    of reading and downsampling per process)."""
+    from pipeline.memory import release_memory
+
+    def build() -> np.ndarray:
+        points = survey.read()[0]
+        out = downsample_survey(points, voxel_m) if len(points) else np.zeros((0, 3))
+        del points
+        release_memory()  # gangnam: the raw cloud and open3d's copy, 835 -> 350 MB resident with the 0.2 m index
+        return out
+
+    from pipeline.parallel import build_once
+
+    return build_once(getattr(survey, "cache_dir", None), f"survey-{survey.key}-ground-{voxel_m!r}.npy", build,
+                      _save_npy, _load_npy)
+
+
+def _shared_normals(survey, voxel_m: float, pts: np.ndarray) -> np.ndarray | None:
+    """``survey_plane_normals`` of ``survey_ground_points``, once among the processes sharing the source's
+    ``cache_dir`` (3.0 s per process on demo)."""
+    from pipeline.parallel import build_once
+
+    if len(pts) < 3:
+        return None
+    return build_once(getattr(survey, "cache_dir", None), f"survey-{survey.key}-normals-{voxel_m!r}.npy",
+                      lambda: survey_plane_normals(pts), _save_npy, _load_npy)
 
 
 def survey_plane_normals(survey_pts: np.ndarray) -> np.ndarray | None:
@@ -200,13 +243,8 @@ def survey_plane_normals(survey_pts: np.ndarray) -> np.ndarray | None:
 
 
 def _ground_index(survey, voxel_m: float):
-    from pipeline.memory import release_memory
-
-    points = survey.read()[0]
-    out = build_survey_index(points, voxel_m) if len(points) else (np.zeros((0, 3)), None)
-    del points
-    release_memory()  # gangnam: the raw cloud and open3d's copy, 835 -> 350 MB resident with the 0.2 m index
-    return out
+    pts = survey_ground_points(survey, voxel_m)
+    return (pts, cKDTree(pts[:, :2])) if len(pts) else (np.zeros((0, 3)), None)
 
 
 def _anchor_block(item) -> list[SurveyMatch | None]:
@@ -245,18 +283,19 @@ class SurveyArrays:
         self.points_enu_m, self.intensity = points_enu_m, intensity
         self.has_intensity = intensity is not None
         self.key = uuid.uuid4().hex  # ``worker_cache`` keys
+        self.cache_dir = None  # nothing shared between processes through files (``build_once``)
 
     def read(self) -> tuple[np.ndarray, np.ndarray | None]:
         return self.points_enu_m, self.intensity
 
 
 def _use_survey_markings(survey, feature_load) -> None:
-    """Pool/cluster worker initializer for the marking anchors: the survey's marking index (the worker reads the
-    survey from its source) and a scan loader."""
+    """Pool/cluster worker initializer for the marking anchors: the survey's marking index (lazy: the worker reads the
+    survey from its source only to compute a tile no other process has) and a scan loader."""
     from pipeline.parallel import set_worker_state, worker_cache
-    from stages.posegraph.anchors.survey_markings import build_survey_marking_index
+    from stages.posegraph.anchors.survey_markings import survey_marking_index
 
-    index = worker_cache(("survey marking index", survey.key), lambda: build_survey_marking_index(*survey.read()))
+    index = worker_cache(("survey marking index", survey.key), lambda: survey_marking_index(survey))
     set_worker_state(marking_index=index, feature_load=feature_load)
 
 

@@ -191,3 +191,32 @@ def test_a_ground_match_carried_to_a_moved_estimate_equals_matching_again():
 
     rejected = replace(first, accepted=False, reason="fitness 0.31 < 0.50")  # its start failed the gates
     assert rematched_vertical(rejected, T_b, max_shift_m=1.0) is None  # matched again from the new estimate
+
+
+def test_the_worker_initializer_shares_the_downsampled_survey_and_its_normals_through_the_cache_dir(tmp_path):
+    """Two processes' ground-anchor state from one survey source with a ``cache_dir``: the second reads no survey
+    and gets the first's arrays, which equal the unshared ones (``build_survey_index``, ``survey_plane_normals``)."""
+    from pipeline.parallel import worker_state
+    from stages.posegraph.anchors.survey_anchor import (
+        SurveyArrays,
+        _use_survey_and_drives,
+        survey_plane_normals,
+    )
+
+    rng = np.random.default_rng(5)
+    survey = np.column_stack([rng.uniform(0, 40, 20000), rng.uniform(0, 40, 20000), rng.normal(0, 0.02, 20000)])
+    source = SurveyArrays(survey)
+    source.cache_dir = tmp_path
+    reads = []
+    real_read = source.read
+    source.read = lambda: reads.append(1) or real_read()
+    states = []
+    for _ in range(2):  # as two processes: worker_cache keeps nothing outside a shared pool
+        _use_survey_and_drives(source, 0.2, [], None, True)
+        states.append(dict(worker_state()))
+    assert len(reads) == 1
+    pts, tree = build_survey_index(survey, 0.2)
+    for st in states:
+        np.testing.assert_array_equal(st["survey_pts"], pts)
+        np.testing.assert_array_equal(st["survey_tree"].data, tree.data)
+        np.testing.assert_array_equal(st["survey_normals"], survey_plane_normals(pts))

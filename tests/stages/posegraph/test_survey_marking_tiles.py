@@ -13,14 +13,19 @@ LINES_N_M = np.arange(62.0, 140.0, 3.5)  # east-west lane lines, 0.15 m wide, at
 
 
 @pytest.fixture(scope="module")
-def survey_index():
+def survey_cloud():
     rng = np.random.default_rng(11)
     e, n = np.meshgrid(np.arange(40.0, 160.0, 0.08), np.arange(40.0, 160.0, 0.08))
     e, n = e.ravel() + rng.uniform(-0.03, 0.03, e.size), n.ravel() + rng.uniform(-0.03, 0.03, n.size)
     paint = np.min(np.abs(n[:, None] - LINES_N_M[None, :]), axis=1) < 0.075
     intensity = np.where(paint, 70.0, 20.0) + rng.normal(0.0, 2.0, e.size)
     up = 0.005 * rng.standard_normal(e.size)
-    return sm.build_survey_marking_index(np.column_stack([e, n, up]), intensity)
+    return np.column_stack([e, n, up]), intensity
+
+
+@pytest.fixture(scope="module")
+def survey_index(survey_cloud):
+    return sm.build_survey_marking_index(*survey_cloud)
 
 
 def test_windows_across_tiles_show_the_paint_where_it_is_and_agree_on_their_overlap(survey_index, monkeypatch):
@@ -54,3 +59,31 @@ def test_the_tile_cache_is_bounded(survey_index, monkeypatch):
     survey_index.tiles.clear()
     sm.survey_marking_window(survey_index, np.array([100.0, 100.0]), 30.0, raster)
     assert len(survey_index.tiles) == 2
+
+
+def test_indexes_sharing_a_cache_dir_compute_each_tile_once_and_agree(survey_cloud, survey_index, tmp_path,
+                                                                      monkeypatch):
+    """Two processes' lazy indexes of one survey source (``survey_marking_index``): the second computes no tile and
+    never reads the survey; its windows equal the first's and an unshared index's."""
+    from stages.posegraph.anchors.survey_anchor import SurveyArrays
+
+    raster = posegraph_config().anchors.markings.raster
+    source = SurveyArrays(*survey_cloud)
+    source.cache_dir = tmp_path
+    reads = []
+    real_read = source.read
+    monkeypatch.setattr(source, "read", lambda: reads.append(1) or real_read())
+    computed = []
+    real = sm.marking_mask
+    monkeypatch.setattr(sm, "marking_mask", lambda *a, **k: computed.append(a[1:3]) or real(*a, **k))
+    first, second = sm.survey_marking_index(source), sm.survey_marking_index(source)
+    centre = np.array([100.0, 100.0])
+    mask_a, origin_a = sm.survey_marking_window(first, centre, 30.0, raster)
+    assert len(computed) == 4 and len(reads) == 1
+    mask_b, origin_b = sm.survey_marking_window(second, centre, 30.0, raster)
+    assert len(computed) == 4 and len(reads) == 1 and second.tree is None  # loaded from the shared files
+    survey_index.tiles.clear()
+    mask_c, origin_c = sm.survey_marking_window(survey_index, centre, 30.0, raster)
+    np.testing.assert_array_equal(mask_a, mask_b)
+    np.testing.assert_array_equal(mask_a, mask_c)
+    assert origin_a == origin_b == origin_c
