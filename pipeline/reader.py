@@ -19,6 +19,9 @@ from pipeline.names import inside
 from pipeline.store import dataset_dir, read_manifest, verify_file
 
 
+OPEN_FILES = 32  # a reader keeps at most this many Parquet files open (``StoreInputReader._parquet_file``)
+
+
 def merge_part_extras(parts: list[dict[str, Any]]) -> dict[str, Any]:
     """A stage's metadata from its partitions' ``extra``: the first (by label) value of each key, and every
     partition's own under ``partitions``."""
@@ -69,11 +72,12 @@ class StoreInputReader(InputReader):
         self._provisional = dict(provisional or {})
         self._manifests: dict[str, dict | None] = {}
         self._row_groups: dict[tuple[str, str], list[tuple[str, int, Any, Any]]] = {}
+        self._parquet_files: dict[str, pq.ParquetFile] = {}  # read_in's open files: each footer parsed once
 
     def __getstate__(self) -> dict:
         """Picklable (a stage may hand its reader to worker processes): caches are rebuilt where it lands."""
         return {"root": self.root, "_inputs": self._inputs, "_schemas": self._schemas,
-                "_provisional": self._provisional, "_manifests": {}, "_row_groups": {}}
+                "_provisional": self._provisional, "_manifests": {}, "_row_groups": {}, "_parquet_files": {}}
 
     def _manifest(self, arg: str) -> dict | None:
         if arg not in self._manifests:
@@ -131,7 +135,7 @@ class StoreInputReader(InputReader):
             index = []
             for path in self._files(arg):
                 try:
-                    meta = pq.ParquetFile(path).metadata
+                    meta = self._parquet_file(path).metadata
                 except (OSError, pa.ArrowInvalid) as exc:
                     raise DatasetIOError(f"cannot read the footer of {path} (dataset {dataset!r}): {exc}") from exc
                 col = meta.schema.to_arrow_schema().get_field_index(column)
@@ -144,10 +148,23 @@ class StoreInputReader(InputReader):
             self._row_groups[key] = index
         return self._row_groups[key]
 
+    def _parquet_file(self, path: str) -> pq.ParquetFile:
+        """The open file (its footer parsed once per reader: a one-scan read parsed it again for every row group,
+        0.45 ms a scan on demo)."""
+        files = self._parquet_files
+        if path in files:
+            files[path] = files.pop(path)  # the most recently used last
+            return files[path]
+        files[path] = pq.ParquetFile(path)
+        while len(files) > OPEN_FILES:  # each holds a file descriptor
+            files.pop(next(iter(files))).close()
+        return files[path]
+
     def read_in(self, arg, column, values, *, partition=None, columns=None) -> pa.Table:
         """Reads only the row groups whose ``column`` statistics can hold one of ``values`` (pyarrow's dataset
         filter prunes row groups on ranges but not on ``is_in``, so a scattered key lookup read every row group:
-        measured 26 s vs 2.9 s for 62 scans of a 9500-scan drive)."""
+        measured 26 s vs 2.9 s for 62 scans of a 9500-scan drive). Rows come in file and row-group order; a group
+        whose statistics hold a single wanted value is taken whole (no filter)."""
         schema = self._schemas[arg]
         names = list(columns) if columns else None
         keys = sorted(set(values))
@@ -163,10 +180,11 @@ class StoreInputReader(InputReader):
             if lo is not None and (first == len(keys) or keys[first] > hi):
                 continue
             try:
-                tab = pq.ParquetFile(path).read_row_group(g, columns=read_cols)
+                tab = self._parquet_file(path).read_row_group(g, columns=read_cols)
             except (OSError, pa.ArrowInvalid) as exc:
                 raise DatasetIOError(f"cannot read row group {g} of {path}: {exc}") from exc
-            tab = tab.filter(pc.is_in(tab[column], value_set=pa.array(keys, tab.schema.field(column).type)))
+            if lo is None or lo != hi or tab[column].null_count:  # a group of one key that is wanted: all its rows
+                tab = tab.filter(pc.is_in(tab[column], value_set=pa.array(keys, tab.schema.field(column).type)))
             if tab.num_rows:
                 parts.append(tab.select(names) if names else tab)
         if schema is not None:

@@ -46,17 +46,19 @@ class ScanLoader:
             tab = self.inputs.read_in("scans", "scan_id", ids, partition=PartitionKey(drive=drive),
                                       columns=["scan_id", "x_m", "y_m", "z_m", "time_offset_s", *extra])
             sid = tab["scan_id"].to_numpy()
-            order = np.argsort(sid, kind="stable")  # one pass, not one mask over the table per scan
-            sid = sid[order]
-            xyz = np.column_stack([tab[c].to_numpy()[order].astype(np.float64) for c in ("x_m", "y_m", "z_m")])
-            toff = tab["time_offset_s"].to_numpy()[order].astype(np.float64)
-            cols = [tab[c].to_numpy()[order] for c in extra]
+            columns = {c: tab[c].to_numpy() for c in ("x_m", "y_m", "z_m", "time_offset_s", *extra)}
             del tab
+            if np.any(sid[1:] < sid[:-1]):  # the store's row groups come in scan order; sort once otherwise
+                order = np.argsort(sid, kind="stable")
+                sid = sid[order]
+                columns = {c: v[order] for c, v in columns.items()}
             wanted = np.asarray(ids)
             for s, a, b in zip(ids, np.searchsorted(sid, wanted, "left"), np.searchsorted(sid, wanted, "right")):
-                t = toff[a:b]
-                out[(drive, s)] = (xyz[a:b].copy(), t.copy() if np.any(t != 0) else None,
-                                   *(c[a:b].copy() for c in cols))
+                xyz = np.empty((b - a, 3), np.float64)  # each scan's own arrays, float64
+                for j, c in enumerate(("x_m", "y_m", "z_m")):
+                    xyz[:, j] = columns[c][a:b]
+                t = columns["time_offset_s"][a:b].astype(np.float64)
+                out[(drive, s)] = (xyz, t if np.any(t != 0) else None, *(columns[c][a:b].copy() for c in extra))
         return out
 
 

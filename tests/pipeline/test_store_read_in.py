@@ -30,9 +30,10 @@ def _write_dataset(root, n_files=3, scans_per_file=10, rows_per_scan=7, row_grou
     return StoreInputReader(root, {"scans": ("scans", "fp1")}, {"scans": schema})
 
 
+@pytest.mark.parametrize("row_group_rows", [21, 7])  # 7: one scan a group, taken whole without a filter
 @pytest.mark.parametrize("keys", [[3], [0, 9, 10, 29], list(range(0, 30, 4)), [100], []])
-def test_read_in_equals_filtered_full_read(tmp_path, keys):
-    reader = _write_dataset(tmp_path)
+def test_read_in_equals_filtered_full_read(tmp_path, keys, row_group_rows):
+    reader = _write_dataset(tmp_path, row_group_rows=row_group_rows)
     full = reader.read("scans")
     want = full.filter(pc.is_in(full["scan_id"], value_set=pa.array(keys, pa.int64()))).sort_by("x_m")
     got = reader.read_in("scans", "scan_id", keys).sort_by("x_m")
@@ -124,3 +125,27 @@ def test_a_keyed_schema_is_written_in_row_groups_that_read_in_can_skip(tmp_path,
                         real(self, i, *a, **kw))
     got = reader.read_in("scans", "scan_id", [7])
     assert got.num_rows == np.count_nonzero(sid == 7) and len(calls) == 1
+
+
+def test_read_in_keeps_few_files_open_and_reads_the_same(tmp_path, monkeypatch):
+    from pipeline import reader as reader_module
+
+    monkeypatch.setattr(reader_module, "OPEN_FILES", 1)
+    reader = _write_dataset(tmp_path, row_group_rows=7)
+    full = reader.read("scans")
+    for keys in ([1, 12, 25], [25, 1], [12]):
+        got = reader.read_in("scans", "scan_id", keys).sort_by("x_m")
+        want = full.filter(pc.is_in(full["scan_id"], value_set=pa.array(keys, pa.int64()))).sort_by("x_m")
+        assert got.equals(want)
+        assert len(reader._parquet_files) == 1
+
+
+def test_a_one_key_group_with_null_keys_is_still_filtered(tmp_path):
+    base = tmp_path / "datasets" / "scans" / "fp1"
+    (base / "data").mkdir(parents=True)
+    tab = pa.table({"scan_id": pa.array([4, None, 4], pa.int64()), "x_m": pa.array([1.0, 2.0, 3.0], pa.float32())})
+    pq.write_table(tab, base / "data" / "part.parquet")
+    (base / "_manifest.json").write_text(__import__("json").dumps(
+        {"fingerprint": "fp1", "files": [{"path": "data/part.parquet", "partition": {}}]}))
+    reader = StoreInputReader(tmp_path, {"scans": ("scans", "fp1")}, {"scans": tab.schema})
+    assert reader.read_in("scans", "scan_id", [4])["x_m"].to_pylist() == [1.0, 3.0]
