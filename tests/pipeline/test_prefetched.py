@@ -77,3 +77,56 @@ def test_write_pieces_of_a_generator_equal_those_of_a_list(tmp_path):
         [(r["path"], r["rows"], r["partition"]) for r in from_gen]
     for a, b in zip(from_list, from_gen):
         assert pq.read_table(tmp_path / "a" / a["path"]).equals(pq.read_table(tmp_path / "b" / b["path"]))
+
+
+def test_pieces_written_at_once_keep_their_order_and_a_failed_write_leaves_no_file(tmp_path, monkeypatch):
+    """Several pieces in the write threads at once: the records come in piece order with each file's own rows
+    and checksum; a write that fails raises its error after the others end, and no data file is left of it."""
+    import threading
+    import time
+
+    import pyarrow.parquet as pq
+
+    from pipeline import store
+    from pipeline.errors import DatasetIOError
+    from pipeline.fingerprint import file_sha256
+
+    monkeypatch.setattr("pipeline.parallel.default_workers", lambda: 4)
+    monkeypatch.setattr(store, "WRITE_THREADS", 3)
+    schema = pa.schema([("drive", pa.string()), ("scan_id", pa.int64()), ("x_m", pa.float32())])
+    tables = [pa.table({"drive": ["d0"] * (k + 1), "scan_id": list(range(k + 1)),
+                        "x_m": pa.array([float(k)] * (k + 1), pa.float32())}, schema=schema) for k in range(8)]
+    real = store.write_parquet_atomic
+    active, most = [0], [0]
+    lock = threading.Lock()
+
+    def slow(table, path):
+        with lock:
+            active[0] += 1
+            most[0] = max(most[0], active[0])
+        time.sleep(0.05 * (8 - table.num_rows))  # the first pieces finish last
+        try:
+            return real(table, path)
+        finally:
+            with lock:
+                active[0] -= 1
+
+    monkeypatch.setattr(store, "write_parquet_atomic", slow)
+    kw = dict(label="p0", schema=schema, partitioning=("drive",), where="test")
+    recs = store.write_pieces((t for t in tables), out_dir=tmp_path / "a", **kw)
+    assert most[0] > 1  # written at once
+    assert [r["rows"] for r in recs] == list(range(1, 9))
+    for r in recs:
+        path = tmp_path / "a" / r["path"]
+        assert pq.read_table(path)["x_m"][0].as_py() == r["rows"] - 1 and r["sha256"] == file_sha256(path)
+
+    def failing(table, path):
+        if table.num_rows == 3:
+            raise DatasetIOError(f"cannot write {path}: disk full")
+        return slow(table, path)
+
+    monkeypatch.setattr(store, "write_parquet_atomic", failing)
+    with pytest.raises(DatasetIOError, match="disk full"):
+        store.write_pieces((t for t in tables), out_dir=tmp_path / "b", **kw)
+    assert active[0] == 0  # the other writes ended before the error left
+    assert "part-p0-00002.parquet" not in {p.name for p in (tmp_path / "b").rglob("*.parquet")}
