@@ -42,6 +42,20 @@ def test_finding3_a_flipped_bit_in_an_intermediate_is_refused_on_read(tmp_path):
             read()
 
 
+def test_a_file_altered_between_two_reads_of_one_reader_is_refused_at_the_second(tmp_path):
+    """The reader keeps its files' resolved paths between reads, not their verification."""
+    reader, files = _dataset(tmp_path)
+    assert reader.read_in("toy", "scan_id", [3]).num_rows == 1
+    path = tmp_path / "datasets" / "toy" / "fp1" / files[0]["path"]
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 3] ^= 0x04
+    time.sleep(0.01)  # a new mtime
+    path.write_bytes(bytes(raw))
+    for read in (lambda: reader.read("toy"), lambda: reader.read_in("toy", "scan_id", [3])):
+        with pytest.raises(IntegrityError, match="sha256"):
+            read()
+
+
 def test_finding4_partition_values_and_manifest_paths_cannot_escape(tmp_path):
     with pytest.raises(PathEscapeError):
         _dataset(tmp_path, drive="../../../../escaped")
