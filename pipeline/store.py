@@ -237,20 +237,10 @@ def prefetched(pieces: Iterable[Any], depth: int = 1) -> Iterator[Any]:
         thread.join()
 
 
-WRITE_THREADS = 2  # pieces of one streamed output compressed and written at once (``write_pieces``)
-
-
 def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path, label: str,
                  schema: pa.Schema, partitioning: tuple[str, ...], where: str) -> list[dict[str, Any]]:
-    """Write one output of one partition task; returns the file records for its part manifest (in piece order). A
-    streamed output (an iterator of tables) is produced one piece ahead of the writes (``prefetched``), and up to
-    ``WRITE_THREADS`` pieces (at most the usable cores) are compressed and written at once (Parquet encoding and
-    zstd release the GIL): gangnam's ingest, one task for one drive, wrote its 9,554 scans on one core while the
-    other waited for it."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from pipeline.parallel import default_workers
-
+    """Write one output of one partition task; returns the file records for its part manifest. A streamed output
+    (an iterator of tables) is produced one piece ahead of the writes (``prefetched``)."""
     for stale in (out_dir / "data").glob(f"**/part-{label}-*.parquet"):
         stale.unlink()  # left by a killed attempt; never listed in a manifest
     if pieces is None:
@@ -259,36 +249,20 @@ def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path,
         pieces = [pieces]
     elif not isinstance(pieces, (list, tuple)):
         pieces = prefetched(pieces)
-    base = Path(out_dir).resolve()
-    threads = max(1, min(WRITE_THREADS, default_workers()))
-    records: list[dict[str, Any]] = []
-    pending: list[tuple[Any, Path, dict[str, Any]]] = []  # (future, path, partition values), in piece order
-
-    def finish(upto: int) -> None:
-        while len(pending) > upto:
-            fut, path, parts = pending.pop(0)
-            rec = fut.result()
-            rec.update(path=str(path.relative_to(base)), partition=parts)
-            records.append(rec)
-
+    records = []
     seq = 0
-    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="write-pieces") as pool:
-        try:
-            for table in pieces:
-                if table is None:
-                    continue
-                table = conform_table(table, schema, where)
-                if table.num_rows == 0:
-                    continue
-                for sub, parts, piece in _split_by_partition(table, partitioning):
-                    path = inside(out_dir, "data", sub, f"part-{label}-{seq:05d}.parquet")
-                    seq += 1
-                    finish(threads - 1)  # at most ``threads`` pieces held for writing
-                    pending.append((pool.submit(write_parquet_atomic, piece, path), path, parts))
-            finish(0)
-        finally:
-            for fut, _, _ in pending:  # an error: the writes under way end before the exception leaves
-                fut.cancel()
+    for table in pieces:
+        if table is None:
+            continue
+        table = conform_table(table, schema, where)
+        if table.num_rows == 0:
+            continue
+        for sub, parts, piece in _split_by_partition(table, partitioning):
+            path = inside(out_dir, "data", sub, f"part-{label}-{seq:05d}.parquet")
+            seq += 1
+            rec = write_parquet_atomic(piece, path)
+            rec.update(path=str(path.relative_to(Path(out_dir).resolve())), partition=parts)
+            records.append(rec)
     return records
 
 
