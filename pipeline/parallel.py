@@ -66,7 +66,9 @@ def build_once(folder: "os.PathLike | str | None", name: str, build: Callable[[]
     (``fcntl.flock``, released by the kernel if the holder dies), builds it and writes it with ``save(value, binary
     file)`` to a temporary file renamed into place; the others wait for the lock and ``load(path)`` it. The value
     must be a pure function of what ``name`` says: whoever builds it, every process gets the same value. A file
-    that cannot be loaded is built again here (a warning); ``folder`` None builds in this process, nothing kept."""
+    that cannot be loaded is built again here (a warning); without advisory locks (a file system that refuses
+    them) processes may build it at once, each renaming its own complete file into place; ``folder`` None builds in
+    this process, nothing kept."""
     import uuid
     from pathlib import Path
 
@@ -93,8 +95,8 @@ def build_once(folder: "os.PathLike | str | None", name: str, build: Callable[[]
             import fcntl
 
             fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
-        except ImportError:  # no advisory locks here: processes may build it twice, with the same result
-            pass
+        except (ImportError, OSError) as exc:  # no advisory locks (platform, file system): the processes may each
+            log.debug("build_once: no lock on %s (%s)", folder, exc)  # build it, with the same result
         found, value = loaded()
         if found:
             return value

@@ -71,3 +71,17 @@ def test_without_a_folder_it_builds_every_time(tmp_path):
     for _ in range(2):
         build_once(None, "a.npy", lambda: calls.append(1) or np.zeros(1), _save, _load)
     assert len(calls) == 2 and not any(Path(tmp_path).iterdir())
+
+
+def test_a_folder_without_advisory_locks_still_builds_and_shares(tmp_path, monkeypatch):
+    import errno
+    import fcntl
+
+    def no_locks(*_a):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    a = build_once(tmp_path, "a.npy", lambda: np.arange(3.0), _save, _load)
+    b = build_once(tmp_path, "a.npy", lambda: np.zeros(3), _save, _load)  # loaded, not built again
+    np.testing.assert_array_equal(a, np.arange(3.0))
+    np.testing.assert_array_equal(b, np.arange(3.0))
