@@ -59,12 +59,25 @@ def worker_cache(key: Any, build: Callable[[], Any]) -> Any:
     return _CACHE[(block, key)]
 
 
+def _save_array(value: Any, fh) -> None:
+    import numpy as np
+
+    np.save(fh, value, allow_pickle=False)
+
+
+def _load_array(path: str) -> Any:
+    import numpy as np
+
+    return np.load(path, allow_pickle=False)
+
+
 def build_once(folder: "os.PathLike | str | None", name: str, build: Callable[[], Any],
-               save: Callable[[Any, Any], None], load: Callable[[str], Any]) -> Any:
+               save: Callable[[Any, Any], None] = _save_array, load: Callable[[str], Any] = _load_array) -> Any:
     """``build()`` computed once among the processes that share ``folder`` (a stage's scratch directory: a pool's
     processes, or the workers of a cluster that see the stage's root): the first to need ``name`` holds its lock
     (``fcntl.flock``, released by the kernel if the holder dies), builds it and writes it with ``save(value, binary
-    file)`` to a temporary file renamed into place; the others wait for the lock and ``load(path)`` it. The value
+    file)`` to a temporary file renamed into place; the others wait for the lock and ``load(path)`` it (default: a
+    numpy array as ``.npy``, no pickle). The value
     must be a pure function of what ``name`` says: whoever builds it, every process gets the same value. A file
     that cannot be loaded is built again here (a warning); without advisory locks (a file system that refuses
     them) processes may build it at once, each renaming its own complete file into place; ``folder`` None builds in

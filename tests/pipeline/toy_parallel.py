@@ -39,6 +39,7 @@ def state_keys(_x: float) -> tuple[str, ...]:
 
 def built_once_value(item: tuple[str, str]) -> tuple[list[float], int]:
     """``build_once`` of a slow value in ``folder``; every build appends this process's pid to ``log``."""
+    import json
     import time
 
     from pipeline.parallel import build_once
@@ -51,6 +52,6 @@ def built_once_value(item: tuple[str, str]) -> tuple[list[float], int]:
         time.sleep(0.3)  # long enough for the other processes to ask while it is being built
         return [1.5, 2.5, 3.5]
 
-    value = build_once(folder, "value.npy", build, lambda v, fh: fh.write(repr(v).encode()),
-                       lambda path: eval(open(path).read()))  # noqa: S307 - the test's own file
+    value = build_once(folder, "value.json", build, lambda v, fh: fh.write(json.dumps(v).encode()),
+                       lambda path: json.loads(open(path).read()))  # a save/load pair of its own
     return value, os.getpid()

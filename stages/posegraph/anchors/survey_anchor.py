@@ -192,14 +192,6 @@ def _use_survey_and_drives(survey, voxel_m: float, drives, load, with_normals: b
     _use_drives(drives, load)
 
 
-def _save_npy(value: np.ndarray, fh) -> None:
-    np.save(fh, value, allow_pickle=False)
-
-
-def _load_npy(path: str) -> np.ndarray:
-    return np.load(path, allow_pickle=False)
-
-
 def survey_ground_points(survey, voxel_m: float) -> np.ndarray:
     """The survey downsampled to ``voxel_m`` (``downsample_survey``), built once among the processes that
     share the source's ``cache_dir`` (``pipeline.parallel.build_once``; each process built its own: on demo 2.2 s
@@ -215,8 +207,7 @@ def survey_ground_points(survey, voxel_m: float) -> np.ndarray:
 
     from pipeline.parallel import build_once
 
-    return build_once(getattr(survey, "cache_dir", None), f"survey-{survey.key}-ground-{voxel_m!r}.npy", build,
-                      _save_npy, _load_npy)
+    return build_once(getattr(survey, "cache_dir", None), f"survey-{survey.key}-ground-{voxel_m!r}.npy", build)
 
 
 def _shared_normals(survey, voxel_m: float, pts: np.ndarray) -> np.ndarray | None:
@@ -227,7 +218,7 @@ def _shared_normals(survey, voxel_m: float, pts: np.ndarray) -> np.ndarray | Non
     if len(pts) < 3:
         return None
     return build_once(getattr(survey, "cache_dir", None), f"survey-{survey.key}-normals-{voxel_m!r}.npy",
-                      lambda: survey_plane_normals(pts), _save_npy, _load_npy)
+                      lambda: survey_plane_normals(pts))
 
 
 def survey_plane_normals(survey_pts: np.ndarray) -> np.ndarray | None:
