@@ -49,14 +49,17 @@ class SurveyMarkingIndex:
     def load(self) -> None:
         """Read the survey from ``source`` and index it (a lazy index does so for the first tile it computes)."""
         if self.tree is None:
-            pts, intensity = self.source.read()
-            self.points_enu_m, self.intensity = np.asarray(pts, float), np.asarray(intensity, float)
-            self.tree = cKDTree(self.points_enu_m[:, :2])
+            self._index(*self.source.read())
+
+    def _index(self, points_enu_m: np.ndarray, intensity: np.ndarray) -> None:
+        self.points_enu_m, self.intensity = np.asarray(points_enu_m, float), np.asarray(intensity, float)
+        self.tree = cKDTree(self.points_enu_m[:, :2])
 
 
 def build_survey_marking_index(points_enu_m: np.ndarray, intensity: np.ndarray) -> SurveyMarkingIndex:
-    pts = np.asarray(points_enu_m, float)
-    return SurveyMarkingIndex(pts, np.asarray(intensity, float), cKDTree(pts[:, :2]))
+    index = SurveyMarkingIndex(None, None, None)
+    index._index(points_enu_m, intensity)
+    return index
 
 
 def survey_marking_index(source) -> SurveyMarkingIndex:
