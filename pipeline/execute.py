@@ -86,8 +86,9 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any],
     ``provisional``: input arg -> upstream partition labels to read before that stage commits (pipeline.flow).
     The result records when it ran (``t_start``/``t_end``, epoch s), its CPU seconds and its process's peak RSS
     (``peak_rss_mb``, pipeline.memory)."""
-    from pipeline.memory import PeakRss, release_memory
+    from pipeline.memory import PeakRss, relax_malloc_trim, release_memory
 
+    relax_malloc_trim()  # a dask worker's allocator trims so eagerly that numpy work takes 1.5x the CPU
     t_start, cpu0 = time.time(), _task_cpu_s()
     try:
         with PeakRss() as rss:

@@ -74,6 +74,57 @@ def release_memory() -> None:
             pass
 
 
+# glibc's mallopt parameters (malloc.h) and the values a task process runs with when its environment asks for an
+# aggressive trim (``relax_malloc_trim``)
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+TASK_MMAP_THRESHOLD_BYTES = 8 * MB
+TASK_TRIM_THRESHOLD_BYTES = 16 * MB
+_RELAXED: list[bool] = []  # this process's decision, once
+
+
+def malloc_needs_relaxing(environ) -> bool:
+    """Whether a process started with ``environ`` runs glibc's allocator with a trim threshold that makes every
+    large temporary array a fresh ``mmap``: ``MALLOC_TRIM_THRESHOLD_`` set below ``TASK_TRIM_THRESHOLD_BYTES`` and
+    ``MALLOC_MMAP_THRESHOLD_`` not set. dask's nanny starts every worker so (``distributed.nanny.pre-spawn-environ``:
+    65536 bytes), and setting any threshold turns off glibc's dynamic mmap threshold, which would otherwise rise to
+    the size of the arrays a task frees."""
+    trim = environ.get("MALLOC_TRIM_THRESHOLD_")
+    if trim is None or "MALLOC_MMAP_THRESHOLD_" in environ:
+        return False
+    try:
+        return int(trim) < TASK_TRIM_THRESHOLD_BYTES
+    except ValueError:
+        return False
+
+
+def relax_malloc_trim() -> bool:
+    """Once per process, where ``malloc_needs_relaxing`` says so (a dask worker): let glibc keep freed blocks up to
+    ``TASK_MMAP_THRESHOLD_BYTES`` in its heap and trim the heap top only above ``TASK_TRIM_THRESHOLD_BYTES``
+    (``mallopt``). Memory still goes back to the system after every task (``release_memory``). Returns whether the
+    settings were changed. Measured on this project's 2-core machine, 300 demo scans through the odometry in one
+    process: 4.98 s with glibc's defaults, 7.98 s with dask's ``MALLOC_TRIM_THRESHOLD_=65536``, 4.72 s with it and
+    these settings; the whole demo build on a 2-worker LocalCluster spent 170 CPU s in the odometry against 117 on
+    the local pool. A user who sets ``MALLOC_MMAP_THRESHOLD_`` keeps their settings."""
+    import ctypes
+    import ctypes.util
+    import os
+
+    if _RELAXED:
+        return _RELAXED[0]
+    done = False
+    libc = ctypes.util.find_library("c") if malloc_needs_relaxing(os.environ) else None
+    if libc:
+        try:
+            mallopt = ctypes.CDLL(libc).mallopt
+            done = bool(mallopt(_M_MMAP_THRESHOLD, TASK_MMAP_THRESHOLD_BYTES)
+                        and mallopt(_M_TRIM_THRESHOLD, TASK_TRIM_THRESHOLD_BYTES))
+        except (OSError, AttributeError):  # not glibc
+            done = False
+    _RELAXED.append(done)
+    return done
+
+
 def over_budget(summary: dict[str, dict[str, Any]], budget_mb: float | None) -> list[str]:
     """One line per stage whose task peak RSS exceeded ``budget_mb`` (None: no budget, no lines)."""
     if not budget_mb:

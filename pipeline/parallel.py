@@ -241,6 +241,9 @@ def _gathered(futures: dict, progress) -> list[Any]:
 def _call_with_init(fn, x, initializer, token, block, *initargs):
     """On a cluster worker: run ``initializer`` once per call of parallel_map (``token``) and process, with the
     ``worker_cache`` of ``block`` (a ``shared_pool`` block's token, or None)."""
+    from pipeline.memory import relax_malloc_trim
+
+    relax_malloc_trim()  # once per process: dask's worker environment (pipeline.memory)
     reset = _BLOCK.set(block)
     try:
         if initializer is not None and _INIT_STATE.get("_token") != token:
@@ -279,6 +282,9 @@ def _pooled_call(fn, x, token: str, block: str, init_path: str | None):
     """In a shared pool's process: this call's initializer (read from its file) once per process and call, then
     ``fn(x)``, both with the ``worker_cache`` of ``block``. The previous call's state is dropped first; the cache is
     kept."""
+    from pipeline.memory import relax_malloc_trim
+
+    relax_malloc_trim()
     reset = _BLOCK.set(block)
     try:
         if _INIT_STATE.get("_token") != token:
