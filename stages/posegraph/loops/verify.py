@@ -134,13 +134,24 @@ def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     ``min_fitness`` of the scan lies on the other scan's surfaces (``score_alignment``) with a point-to-plane
     RMS below ``max_rmse_m``, and the correction stays inside the prior's envelope. ``Verdict.fitness`` and
     ``inlier_rmse_m`` are that inlier share and plane RMS. Both starts use the same prepared clouds (``prepared``, keyed
-    by ``keys`` = (scan j's key, scan i's key); a caller's dict shares them across candidates)."""
+    by ``keys`` = (scan j's key, scan i's key); a caller's dict shares them across candidates).
+
+    The second start runs its coarse stage first: when that lands within ``consistency_m`` of the first start's
+    coarse result, the two agree (the fine stages go on from the same place), and its fine stages are not run; else
+    they are, and the two final results are compared as before. The fine stages are four fifths of a start's
+    GICP time (demo seed 1: 33 of 40 ms)."""
     voxel_m, max_corr_m, min_sigma_m, min_sigma_rad = cfg.voxel_m, cfg.max_corr_m, cfg.min_sigma_m, cfg.min_sigma_rad
     min_fitness, max_rmse_m = cfg.min_fitness, cfg.max_rmse_m
-    stages = ((cfg.coarse_voxel_m, cfg.coarse_corr_m), (voxel_m, max_corr_m), (voxel_m, max_corr_m / 2))
-    reg = dict(stages=stages, max_iterations=40, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad,
+    coarse = ((cfg.coarse_voxel_m, cfg.coarse_corr_m),)
+    fine = ((voxel_m, max_corr_m), (voxel_m, max_corr_m / 2))
+    reg = dict(max_iterations=40, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad,
                relative_tolerance=cfg.relative_tolerance, prepared={} if prepared is None else prepared, keys=keys)
-    res, source, target = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, T_i_j_prior, **reg)
+    res_coarse, source, target = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, T_i_j_prior,
+                                                          stages=coarse, **reg)
+    res = res_coarse
+    if res_coarse.converged:
+        res, source, target = register_coarse_to_fine(points_j_vehicle, points_i_vehicle,
+                                                      res_coarse.T_target_source, stages=fine, **reg)
     T = res.T_target_source
     score = score_alignment(source, target, T, cfg.inlier_m, cfg.plane_tol_m)
     correction = se3_inverse(T_i_j_prior) @ T
@@ -157,8 +168,19 @@ def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     else:
         shifted = T_i_j_prior.copy()
         shifted[:3, 3] += T_i_j_prior[:3, :3] @ np.array([1.0, -0.7, 0.0])
-        res2, _, _ = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, shifted, **reg)
-        gap_m = float(np.linalg.norm(res2.T_target_source[:3, 3] - T[:3, 3]))
+        res2, _, _ = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, shifted, stages=coarse, **reg)
+        gap_m = _gap_m(res2, res_coarse)
+        if gap_m > cfg.consistency_m and res2.converged:
+            res2, _, _ = register_coarse_to_fine(points_j_vehicle, points_i_vehicle, res2.T_target_source,
+                                                 stages=fine, **reg)
+            gap_m = _gap_m(res2, res)
         if gap_m > cfg.consistency_m:
             reason = f"ambiguous: two ICP starts disagree by {gap_m:.2f} m"
     return Verdict(reason == "accepted", reason, T, score.inlier_share, score.plane_rmse_m, info)
+
+
+def _gap_m(a, b) -> float:
+    """Distance between two registrations' translations (inf when either did not converge)."""
+    if not (a.converged and b.converged):
+        return float("inf")
+    return float(np.linalg.norm(a.T_target_source[:3, 3] - b.T_target_source[:3, 3]))

@@ -100,3 +100,36 @@ def test_loop_blocks_are_about_four_per_worker_within_bounds():
     assert block_size(193, 2) == 25  # 8 blocks: 4 per worker (demo's reference drive; was 7 blocks of 32)
     assert block_size(889, 2) == VERIFY_BLOCK  # gangnam: capped, one block's clouds resident per worker
     assert block_size(5, 2) == 4 and block_size(0, 2) == 4
+
+
+def _corridor(rng, x0_m: float) -> np.ndarray:
+    """Two long parallel walls 10 m apart and the road between them, seen from x = ``x0_m``: nothing fixes the
+    position along the corridor."""
+    n = 6000
+    x = rng.uniform(-40, 40, 3 * n)
+    walls = np.column_stack([x[:2 * n], np.repeat([-5.0, 5.0], n), rng.uniform(0.0, 6.0, 2 * n)])
+    road = np.column_stack([x[2 * n:], rng.uniform(-5.0, 5.0, n), np.zeros(n)])
+    pts = np.vstack([walls, road]) + rng.normal(0.0, 0.01, (3 * n, 3))
+    return pts - [x0_m, 0.0, 1.8]
+
+
+def test_the_second_start_stops_after_its_coarse_stage_only_when_it_agrees_there(lane_pair, monkeypatch):
+    """A well-constrained pair: the second start's coarse stage lands on the first's, so its two fine stages are not
+    run (4 registrations, not 6), and the verdict is the one of the full second start. A corridor that fixes nothing
+    along its axis: the two starts stay apart at the coarse stage, the fine stages run, and the pair is rejected as
+    ambiguous."""
+    import stages.common.registration as registration
+
+    calls = []
+    real = registration.register_clouds
+    monkeypatch.setattr(registration, "register_clouds", lambda *a, **k: calls.append(1) or real(*a, **k))
+    pts_a, pts_b, _, T_a_b = lane_pair
+    cfg = posegraph_config().loops.verify
+    ok = verify_loop(pts_a, pts_b, T_a_b @ se3_from_xyz_rpy(1.0, 0.6, 0.2, 0.0, 0.0, 0.01), cfg)
+    assert ok.accepted, ok.reason
+    assert len(calls) == 4
+    rng = np.random.default_rng(11)
+    calls.clear()
+    corridor = verify_loop(_corridor(rng, 0.0), _corridor(rng, 3.0), se3_from_xyz_rpy(3.4, 0.3, 0.0, 0, 0, 0.0), cfg)
+    assert not corridor.accepted and corridor.reason.startswith("ambiguous"), corridor.reason
+    assert len(calls) == 6
