@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import sys
 from contextvars import ContextVar
 from typing import Any, Callable, Iterator, Sequence
 
@@ -172,6 +173,20 @@ def _forget_on_cluster(block: str) -> None:
 
 def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+
+
+def task_threads() -> int | None:
+    """The threads of the dask worker running the current task (its ``nthreads``: the cores the cluster counts it
+    for), or None outside a cluster task. A library whose thread pool ignores ``OMP_NUM_THREADS`` is bounded to
+    this by its caller (Open3D's oneTBB: ``stages.common.registration``)."""
+    if "distributed" not in sys.modules:  # not a dask worker process; do not import dask for the answer
+        return None
+    try:
+        from distributed import get_worker
+
+        return int(get_worker().state.nthreads)
+    except (ValueError, AttributeError):  # no task of a worker in this context
+        return None
 
 
 def _in_distributed_worker() -> bool:

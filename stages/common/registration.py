@@ -16,6 +16,23 @@ from stages.common.geometry import skew
 
 _REG = o3d.pipelines.registration
 METHODS = ("gicp", "point_to_plane")
+_THREADS_BOUND: list[int | None] = []  # this process's decision, taken at its first preparation or registration
+
+
+def bound_open3d_threads() -> int | None:
+    """On a dask worker, bound Open3D to the worker's threads, once per process: Open3D 0.20 runs on oneTBB, which
+    ignores the ``OMP_NUM_THREADS=1`` a dask nanny sets, so a "single-threaded" worker ran its registrations on
+    every core of the machine (``pipeline.parallel.task_threads``). Measured on demo seed 1, a LocalCluster of
+    single-threaded workers: 1 worker 254.2 s unbounded, 289.3 s bounded; 2 workers 168.6 / 160.7 s. Elsewhere
+    (the local pool, a script) Open3D keeps its own default. Returns the bound (None: none set)."""
+    if not _THREADS_BOUND:
+        from pipeline.parallel import task_threads
+
+        n = task_threads()
+        if n and hasattr(o3d.utility, "set_max_threads"):
+            o3d.utility.set_max_threads(n)
+        _THREADS_BOUND.append(n)
+    return _THREADS_BOUND[0]
 
 
 @dataclass(frozen=True)
@@ -56,6 +73,7 @@ def prepare_cloud(points_m: np.ndarray, voxel_m: float, knn: int = 20, with_cova
                   min_cov_eigenvalue_m2: float = MIN_COVARIANCE_EIGENVALUE_M2) -> o3d.geometry.PointCloud:
     """Voxel-downsample and attach per-point covariances (GICP; regularised, see ``regularize_covariances``)
     or normals (point-to-plane)."""
+    bound_open3d_threads()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_m[:, :3], dtype=np.float64)))
     if voxel_m > 0:
         cloud = cloud.voxel_down_sample(voxel_m)
@@ -131,6 +149,7 @@ def register_clouds(source: o3d.geometry.PointCloud, target: o3d.geometry.PointC
                     point_sigma_m: float = 0.05, min_sigma_m: float = 0.005,
                     min_sigma_rad: float = 0.0002, relative_tolerance: float = 1e-6) -> RegistrationResult:
     """Align ``source`` onto ``target`` starting from ``T_init`` (T_target_source)."""
+    bound_open3d_threads()
     criteria = _REG.ICPConvergenceCriteria(relative_fitness=relative_tolerance,
                                            relative_rmse=relative_tolerance, max_iteration=max_iterations)
     if method == "gicp":

@@ -122,3 +122,15 @@ def test_a_shared_pool_block_in_a_cluster_task_keeps_the_worker_cache_until_it_e
     assert 1 <= built <= 2 and all(b == built for _, _, b, _ in second)  # the second call built nothing
     assert kept >= 1  # held while the block was open
     assert not [k for k in par._CACHE if k[0] is not None]  # and dropped when it ended
+
+
+def test_task_threads_is_the_workers_thread_count_inside_a_cluster_task_and_none_elsewhere():
+    distributed = pytest.importorskip("distributed")
+    from pipeline.parallel import task_threads
+    from tests.pipeline.toy_parallel import threads_of_this_task
+
+    assert task_threads() is None
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=3, processes=False,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        assert client.submit(threads_of_this_task, 0).result() == 3
+        assert task_threads() is None  # the client's own thread is no task

@@ -55,3 +55,9 @@ def built_once_value(item: tuple[str, str]) -> tuple[list[float], int]:
     value = build_once(folder, "value.json", build, lambda v, fh: fh.write(json.dumps(v).encode()),
                        lambda path: json.loads(open(path).read()))  # a save/load pair of its own
     return value, os.getpid()
+
+
+def threads_of_this_task(_x=None) -> int | None:
+    from pipeline.parallel import task_threads
+
+    return task_threads()

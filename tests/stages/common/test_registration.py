@@ -99,3 +99,25 @@ def test_regularize_covariances_floors_eigenvalues_and_keeps_eigenvectors():
     np.testing.assert_allclose(w_out, np.sort(w + 1e-6, axis=1), rtol=1e-6, atol=1e-12)
     # the smallest axis stays the plane normal
     np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", V_out[:, :, 0], R[:, :, 0])), 1.0, atol=1e-6)
+
+
+def _open3d_threads_after_a_registration(_x=None) -> tuple[int, int | None]:
+    import open3d as o3d
+
+    from stages.common.registration import bound_open3d_threads, prepare_cloud
+
+    prepare_cloud(np.random.default_rng(0).normal(size=(200, 3)), 0.0)
+    return o3d.utility.get_max_threads(), bound_open3d_threads()
+
+
+def test_open3d_runs_on_the_threads_a_dask_worker_was_given():
+    """Open3D's oneTBB ignores the OMP_NUM_THREADS=1 of a dask worker: the first preparation or registration in a
+    worker process bounds it to the worker's thread count (a process worker, so this process is not bounded)."""
+    import os
+
+    distributed = pytest.importorskip("distributed")
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one core: Open3D's default is already one thread")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        assert client.submit(_open3d_threads_after_a_registration, 0).result() == (1, 1)
