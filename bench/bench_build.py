@@ -5,16 +5,23 @@ every process (pool workers and spawned processes included), scans per second en
     .venv/bin/python -m bench.bench_build --preset gangnam --drives drive_0
     .venv/bin/python -m bench.bench_build --preset gangnam --drives drive_0 --max-scans 1000   # memory vs length
     .venv/bin/python -m bench.bench_build --preset kitti --max-scans 154                       # real HDL-64E scans
+    .venv/bin/python -m bench.bench_build --preset demo --cluster-workers 2    # on a dask LocalCluster of 2 workers
 
 The simulation is made once per preset and seed and cached (``--cache``, default ``~/.cache/cornermap-bench``);
 simulate and evaluation are not timed. Every run builds into a fresh root (deleted afterwards unless ``--keep``).
 Stage figures come from the run summary: when its first partition started and its last ended (seconds from the
 run's start; stages overlap), wall from first submit to commit, and CPU of its partition tasks (their threads and
 the pools they started). RSS is sampled every 0.2 s over the process tree.
+
+``--cluster-workers N`` starts a dask ``LocalCluster`` of N single-threaded worker processes (as a user's cluster:
+nannies, their environment) before the clock starts and builds on it (``--scheduler`` its address); its workers are
+children of this process, so their memory is in the RSS figures. The speed-up of 2 workers against 1 is the ratio of
+two such runs' walls.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import shutil
 import subprocess
@@ -124,7 +131,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "cornermap-bench")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here")
     ap.add_argument("--keep", action="store_true", help="keep the build root")
+    ap.add_argument("--cluster-workers", type=int, default=None,
+                    help="build on a dask LocalCluster of this many single-threaded worker processes")
     args = ap.parse_args(argv)
+    with local_cluster(args.cluster_workers) as address:
+        if address:
+            args.scheduler = address
+        return _bench(args)
+
+
+@contextlib.contextmanager
+def local_cluster(n_workers: int | None):
+    """A LocalCluster of ``n_workers`` single-threaded worker processes for the block (its address), or None."""
+    if not n_workers:
+        yield None
+        return
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        yield cluster.scheduler_address
+
+
+def _bench(args) -> int:
 
     from pipeline.api import execute_workflow
 
@@ -152,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     peaks = sorted(sampler.peaks.values(), key=lambda x: -x[1])
     doc = {"preset": args.preset, "seed": args.seed, "max_scans": args.max_scans, "drives": drives, "scans": n_scans,
            "scheduler": args.scheduler,
-           "workers": args.workers,
+           "workers": args.workers, "cluster_workers": args.cluster_workers,
            "wall_s": round(wall, 1), "scans_per_s": round(n_scans / wall, 1), "stages": stages,
            "peak_rss_mb_max": round(peaks[0][1] / 2**20) if peaks else None,
            "peak_rss_mb_by_process": [(name, round(rss / 2**20)) for name, rss in peaks[:8]]}
