@@ -174,6 +174,7 @@ def _serve_cluster(n_workers: int, address, stop) -> None:
 def _bench(args) -> int:
 
     from pipeline.api import execute_workflow
+    from pipeline.errors import CornermapError
 
     if args.preset == "kitti":
         sim, drives = kitti_drive(args.cache, args.max_scans), ["drive_0"]
@@ -186,8 +187,12 @@ def _bench(args) -> int:
     sampler.start()
     t0 = time.perf_counter()
     try:
-        result = execute_workflow(wf, root=None, scheduler=args.scheduler, only=None, dry_run=False, quiet=True,
-                                  workers=args.workers)
+        try:
+            result = execute_workflow(wf, root=None, scheduler=args.scheduler, only=None, dry_run=False, quiet=True,
+                                      workers=args.workers)
+        except CornermapError as exc:  # a quality gate or a bad input: the product's one-line message and exit code
+            print(f"error: {exc}", file=sys.stderr)
+            return exc.exit_code
         wall = time.perf_counter() - t0
         keep = ("wall_s", "cpu_s", "started_s", "ended_s", "peak_rss_mb")
         stages = {k: {c: v.get(c) for c in keep} for k, v in result["summary"].items()}
