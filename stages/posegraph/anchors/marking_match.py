@@ -87,17 +87,26 @@ def _subcell_peak(patch: np.ndarray) -> np.ndarray:
     return out
 
 
+BLUR_M = 0.15  # the kernel's blur (``match_markings``'s default)
+
+
 def match_markings(features_en_m: np.ndarray, survey_mask: np.ndarray, origin_en_m: tuple[float, float],
-                   cell_m: float, *, search_m: float = 1.5, blur_m: float = 0.15, min_features: int = 200,
+                   cell_m: float, *, search_m: float = 1.5, blur_m: float = BLUR_M, min_features: int = 200,
                    min_score: float = 0.4, min_sigma_m: float = 0.03, max_sigma_m: float = 0.5,
-                   min_peak_contrast: float = 0.25, sigma_scale: float = 1.0) -> MarkingMatch:
+                   min_peak_contrast: float = 0.25, sigma_scale: float = 1.0,
+                   kernel_image: np.ndarray | None = None) -> MarkingMatch:
     """Best 2-D shift of the submap features onto the survey markings (north-up grid, row 0 = north edge,
     origin = south-west corner), with a 2x2 information matrix from the peak shape and accept/reject gates.
 
     The peak's width per direction (second moment above ``1 - min_peak_contrast`` of the peak) says which
     directions the markings fix (gate: ``max_sigma_m``); the position's standard deviation is that width times
     ``sigma_scale`` (the peak of many features is located far better than its width), floored at
-    ``min_sigma_m``."""
+    ``min_sigma_m``.
+
+    ``kernel_image``: ``marking_kernel(survey_mask, cell_m, blur_m)`` of the whole mask, when several matches share
+    one mask (a keyframe's yaw search: 8 matches); the kernel is then cut from it instead of computed on a crop padded
+    by 4 ``blur_m``. The two differ only where the nearest paint lies beyond that pad: by at most exp(-8) = 3.4e-4 of
+    a painted cell's value."""
     feats = np.asarray(features_en_m, dtype=np.float64).reshape(-1, 2)
     mask = np.asarray(survey_mask, dtype=bool)
     H, W = mask.shape
@@ -124,12 +133,15 @@ def match_markings(features_en_m: np.ndarray, survey_mask: np.ndarray, origin_en
     # its distance transform runs on a crop padded by 4 blur_m so that paint just outside still counts.
     Q = 2 * R
     ia, ib, ja, jb = r0 - Q - 1, r1 + Q + 2, c0 - Q - 1, c1 + Q + 2
-    pad = int(np.ceil(4 * blur_m / cell_m))
-    pa, pb, qa, qb = max(ia - pad, 0), min(ib + pad, H), max(ja - pad, 0), min(jb + pad, W)
-    big = marking_kernel(mask[pa:pb, qa:qb], cell_m, blur_m)
     kernel = np.zeros((ib - ia, jb - ja), np.float32)
     ya, yb, xa, xb = max(ia, 0), min(ib, H), max(ja, 0), min(jb, W)
-    kernel[ya - ia:yb - ia, xa - ja:xb - ja] = big[ya - pa:yb - pa, xa - qa:xb - qa]
+    if kernel_image is not None:
+        kernel[ya - ia:yb - ia, xa - ja:xb - ja] = kernel_image[ya:yb, xa:xb]
+    else:
+        pad = int(np.ceil(4 * blur_m / cell_m))
+        pa, pb, qa, qb = max(ia - pad, 0), min(ib + pad, H), max(ja - pad, 0), min(jb + pad, W)
+        big = marking_kernel(mask[pa:pb, qa:qb], cell_m, blur_m)
+        kernel[ya - ia:yb - ia, xa - ja:xb - ja] = big[ya - pa:yb - pa, xa - qa:xb - qa]
     corr = cv2.matchTemplate(kernel, counts, cv2.TM_CCORR) / np.float32(n)   # (2Q+3)^2, shifts -Q-1..Q+1
     outer = corr[1:-1, 1:-1].astype(np.float64)                               # shifts -Q..Q (rows, cols)
     inner = outer[Q - R:Q + R + 1, Q - R:Q + R + 1]                           # shifts -R..R

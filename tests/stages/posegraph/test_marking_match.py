@@ -196,3 +196,26 @@ def test_a_turn_under_the_grid_step_is_estimated_not_rounded_to_the_grid():
         assert found.accepted, found.reason
         errors.append(np.degrees(found.yaw_rad) + turn_deg)
     assert np.sqrt(np.mean(np.square(errors))) < 0.5 * np.sqrt(np.mean(np.square(turns_deg))), errors
+
+
+@pytest.mark.parametrize("mask_of", [intersection_mask, lane_lines_mask])
+def test_a_shared_kernel_image_gives_the_match_of_a_kernel_per_match(mask_of):
+    """A keyframe's yaw search matches 8 turned copies of its features to one mask; the kernel of the whole mask,
+    computed once, gives each match what a kernel computed on its own padded crop gives: the same shift, gates and
+    information, the score within exp(-8) (paint beyond the crop's 4-blur pad). The features cover a quarter of
+    the window, so the crop is smaller than the mask."""
+    from stages.posegraph.anchors.marking_match import BLUR_M, marking_kernel
+
+    mask = mask_of()
+    feats = sample_features(mask, (0.21, -0.34), np.random.default_rng(5))
+    feats = feats[(np.abs(feats[:, 0]) < 10.0) & (np.abs(feats[:, 1]) < 10.0)]
+    image = marking_kernel(mask, CELL_M, BLUR_M)
+    for turn_deg in (-1.0, 0.0, 0.5):
+        c, s = np.cos(np.deg2rad(turn_deg)), np.sin(np.deg2rad(turn_deg))
+        turned = feats @ np.array([[c, s], [-s, c]])
+        own = match_markings(turned, mask, ORIGIN, CELL_M)
+        shared = match_markings(turned, mask, ORIGIN, CELL_M, kernel_image=image)
+        assert (own.accepted, own.reason.split(" (")[0][:20]) == (shared.accepted, shared.reason.split(" (")[0][:20])
+        assert shared.score == pytest.approx(own.score, abs=np.exp(-8.0))
+        np.testing.assert_allclose(shared.shift_en_m, own.shift_en_m, atol=1e-3)
+        np.testing.assert_allclose(shared.information_en, own.information_en, rtol=1e-2, atol=1e-6)
