@@ -190,13 +190,7 @@ def task_threads() -> int | None:
 
 
 def _in_distributed_worker() -> bool:
-    try:
-        from distributed import get_worker
-
-        get_worker()
-        return True
-    except (ImportError, ValueError):
-        return False
+    return task_threads() is not None
 
 
 def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], *, workers: int | None = None,
