@@ -7,6 +7,7 @@ process with others: its figure is the process's, an upper bound of the stage's 
 """
 from __future__ import annotations
 
+import functools
 import threading
 from typing import Any
 
@@ -55,8 +56,6 @@ def release_memory() -> None:
     pool's unused pages, and glibc's free heap top and arenas (``malloc_trim``; skipped where there is no glibc).
     Measured on demo seed 1: six corners partitions run one after another in one process kept 300-630 MB resident
     between tasks, 190-270 MB with this call after each."""
-    import ctypes
-    import ctypes.util
     import gc
 
     gc.collect()
@@ -66,12 +65,24 @@ def release_memory() -> None:
         pa.default_memory_pool().release_unused()
     except Exception:  # noqa: BLE001 - a pool without the call; nothing to release
         pass
+    malloc_trim = _glibc("malloc_trim")
+    if malloc_trim is not None:
+        malloc_trim(0)
+
+
+@functools.cache
+def _glibc(name: str):
+    """The C library's function ``name`` (glibc's ``malloc_trim``, ``mallopt``), or None where there is none."""
+    import ctypes
+    import ctypes.util
+
     libc = ctypes.util.find_library("c")
-    if libc:
-        try:
-            ctypes.CDLL(libc).malloc_trim(0)
-        except (OSError, AttributeError):  # not glibc
-            pass
+    if not libc:
+        return None
+    try:
+        return getattr(ctypes.CDLL(libc), name)
+    except (OSError, AttributeError):  # not glibc
+        return None
 
 
 # glibc's mallopt parameters (malloc.h) and the values a task process runs with when its environment asks for an
@@ -80,7 +91,6 @@ _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 TASK_MMAP_THRESHOLD_BYTES = 8 * MB
 TASK_TRIM_THRESHOLD_BYTES = 16 * MB
-_RELAXED: list[bool] = []  # this process's decision, once
 
 
 def malloc_needs_relaxing(environ) -> bool:
@@ -98,6 +108,7 @@ def malloc_needs_relaxing(environ) -> bool:
         return False
 
 
+@functools.cache  # once per process
 def relax_malloc_trim() -> bool:
     """Once per process, where ``malloc_needs_relaxing`` says so (a dask worker): let glibc keep freed blocks up to
     ``TASK_MMAP_THRESHOLD_BYTES`` in its heap and trim the heap top only above ``TASK_TRIM_THRESHOLD_BYTES``
@@ -106,23 +117,11 @@ def relax_malloc_trim() -> bool:
     process: 4.98 s with glibc's defaults, 7.98 s with dask's ``MALLOC_TRIM_THRESHOLD_=65536``, 4.72 s with it and
     these settings; the whole demo build on a 2-worker LocalCluster spent 170 CPU s in the odometry against 117 on
     the local pool. A user who sets ``MALLOC_MMAP_THRESHOLD_`` keeps their settings."""
-    import ctypes
-    import ctypes.util
     import os
 
-    if _RELAXED:
-        return _RELAXED[0]
-    done = False
-    libc = ctypes.util.find_library("c") if malloc_needs_relaxing(os.environ) else None
-    if libc:
-        try:
-            mallopt = ctypes.CDLL(libc).mallopt
-            done = bool(mallopt(_M_MMAP_THRESHOLD, TASK_MMAP_THRESHOLD_BYTES)
-                        and mallopt(_M_TRIM_THRESHOLD, TASK_TRIM_THRESHOLD_BYTES))
-        except (OSError, AttributeError):  # not glibc
-            done = False
-    _RELAXED.append(done)
-    return done
+    mallopt = _glibc("mallopt") if malloc_needs_relaxing(os.environ) else None
+    return bool(mallopt is not None and mallopt(_M_MMAP_THRESHOLD, TASK_MMAP_THRESHOLD_BYTES)
+                and mallopt(_M_TRIM_THRESHOLD, TASK_TRIM_THRESHOLD_BYTES))
 
 
 def over_budget(summary: dict[str, dict[str, Any]], budget_mb: float | None) -> list[str]:
