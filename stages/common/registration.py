@@ -7,6 +7,7 @@ perturbation of the returned transform, i.e. directly usable by ``gtsam.BetweenF
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,23 +17,21 @@ from stages.common.geometry import skew
 
 _REG = o3d.pipelines.registration
 METHODS = ("gicp", "point_to_plane")
-_THREADS_BOUND: list[int | None] = []  # this process's decision, taken at its first preparation or registration
 
 
+@functools.cache  # once per process, at its first preparation or registration
 def bound_open3d_threads() -> int | None:
     """On a dask worker, bound Open3D to the worker's threads, once per process: Open3D 0.20 runs on oneTBB, which
     ignores the ``OMP_NUM_THREADS=1`` a dask nanny sets, so a "single-threaded" worker ran its registrations on
     every core of the machine (``pipeline.parallel.task_threads``). Measured on demo seed 1, a LocalCluster of
     single-threaded workers: 1 worker 254.2 s unbounded, 289.3 s bounded; 2 workers 168.6 / 160.7 s. Elsewhere
     (the local pool, a script) Open3D keeps its own default. Returns the bound (None: none set)."""
-    if not _THREADS_BOUND:
-        from pipeline.parallel import task_threads
+    from pipeline.parallel import task_threads
 
-        n = task_threads()
-        if n and hasattr(o3d.utility, "set_max_threads"):
-            o3d.utility.set_max_threads(n)
-        _THREADS_BOUND.append(n)
-    return _THREADS_BOUND[0]
+    n = task_threads()
+    if n and hasattr(o3d.utility, "set_max_threads"):
+        o3d.utility.set_max_threads(n)
+    return n
 
 
 @dataclass(frozen=True)

@@ -174,15 +174,13 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
     centre = poses_drive[k_local, :2, 3]
     half = half_travel_m + 30.0 + window_margin_m  # features reach ~30 m from their scan
     mask, origin = survey_marking_window(index, centre, half, raster)
-    kernel: list[np.ndarray] = []  # the window's kernel, computed at the first match that needs it
+    kernel = marking_kernel(mask, raster.cell_m, BLUR_M) if len(feats) else None  # shared by every heading
 
     def match_at(yaw_rad: float) -> MarkingMatch:
         c, s_ = np.cos(yaw_rad), np.sin(yaw_rad)
         turned = (feats - centre) @ np.array([[c, s_], [-s_, c]]) + centre
-        if not kernel:
-            kernel.append(marking_kernel(mask, raster.cell_m, BLUR_M))
         return match_markings(turned, mask, origin, raster.cell_m, search_m=cfg.search_m, blur_m=BLUR_M,
-                              sigma_scale=cfg.sigma_scale, min_sigma_m=cfg.min_sigma_m, kernel_image=kernel[0])
+                              sigma_scale=cfg.sigma_scale, min_sigma_m=cfg.min_sigma_m, kernel_image=kernel)
     if cfg.yaw_search_deg <= 0 or len(feats) == 0:
         return match_at(0.0)
     return best_yaw_match(match_at, np.deg2rad(cfg.yaw_search_deg), np.deg2rad(cfg.yaw_step_deg))
