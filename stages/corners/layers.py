@@ -15,30 +15,63 @@ def _ring_index(ring: np.ndarray) -> np.ndarray:
     return ring.astype(np.intp, copy=False)
 
 
+ELEVATION_SAMPLE_POINTS = 400_000  # points a ring elevation estimate uses at most (drawn at random, seed 0)
+MIN_RING_SAMPLE_POINTS = 50  # a ring with fewer sampled points beyond min_range_m is estimated from all of its points
+
+
+def _robust_tan_elevation(tan_el: np.ndarray, ring: np.ndarray, size: int) -> np.ndarray:
+    """Per ring id (0..size-1): two-pass mean of tan(elevation) (all points, then those within 1 deg of the first
+    mean); NaN for a ring without points, and the number of points each mean used."""
+    count = np.bincount(ring, minlength=size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        first = np.bincount(ring, tan_el, minlength=size) / count
+        near = np.abs(tan_el - first[ring]) < np.tan(np.radians(1.0))
+        count2 = np.bincount(ring[near], minlength=size)
+        second = np.bincount(ring[near], tan_el[near], minlength=size) / count2
+    return np.where(count2 > 0, second, first), count
+
+
 def estimate_ring_elevation_deg(points_xyz: np.ndarray, ring: np.ndarray, *, min_range_m: float = 2.0,
-                                ) -> tuple[np.ndarray, np.ndarray]:
+                                max_points: int = ELEVATION_SAMPLE_POINTS) -> tuple[np.ndarray, np.ndarray]:
     """Per ring: its elevation atan2(z, hypot(x, y)) [deg] in the sensor frame, a robust mean of its points.
 
     A beam's elevation is a constant of the sensor, so a two-pass mean (all points, then those within 1 deg of
-    the first mean) is as good as a median here and is computed with bincount (no sort).
+    the first mean) is as good as a median here and is computed with bincount (no sort). Above ``max_points``
+    points (a 100-scan chunk holds ~5 M) the means use ``max_points`` drawn at random (seed 0: the same points
+    every run; a stride could alias with the rings' firing order and miss rings), and a ring with fewer than
+    ``MIN_RING_SAMPLE_POINTS`` sampled points beyond ``min_range_m`` is estimated from all of its points.
+    Measured on 15 of demo seed 1's scans_raw files (1-2 M points): 0.03-0.21 s -> 0.015 s a file, elevations
+    within 3e-8 deg of all points' (the simulator's beams are exact), the same rings.
     Returns (ring ids present, elevation_deg); rings with no point beyond ``min_range_m`` get NaN.
     """
     pts = np.asarray(points_xyz)
     r = _ring_index(ring)
+    size = int(r.max()) + 1 if r.size else 0
+    ids = np.flatnonzero(np.bincount(r, minlength=size))
+    sample = None
+    if max_points and len(r) > max_points:
+        sample = np.sort(np.random.default_rng(0).integers(0, len(r), max_points))
+    tan_el, count = _tan_elevation(pts, r, size, min_range_m, sample)
+    if sample is not None:
+        few = ids[count[ids] < MIN_RING_SAMPLE_POINTS]
+        if few.size:
+            lut = np.zeros(size, bool)
+            lut[few] = True
+            rows = np.flatnonzero(lut[r])
+            full, _ = _tan_elevation(pts, r, size, min_range_m, rows)
+            tan_el[few] = full[few]
+    return ids, np.degrees(np.arctan(tan_el[ids]))
+
+
+def _tan_elevation(pts: np.ndarray, r: np.ndarray, size: int, min_range_m: float, rows: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``_robust_tan_elevation`` of the points ``rows`` (None: all) beyond ``min_range_m`` horizontally."""
+    if rows is not None:
+        pts, r = pts[rows], r[rows]
     x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
     horiz = np.sqrt(x * x + y * y)
     keep = horiz > min_range_m
-    tan_el = z[keep] / horiz[keep]  # work in tan(elevation): no per-point arctan
-    r_keep = r[keep]
-    size = int(r.max()) + 1 if r.size else 0
-    ids = np.flatnonzero(np.bincount(r, minlength=size))
-    count = np.bincount(r_keep, minlength=size)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        first = np.bincount(r_keep, tan_el, minlength=size) / count
-        near = np.abs(tan_el - first[r_keep]) < np.tan(np.radians(1.0))
-        count2 = np.bincount(r_keep[near], minlength=size)
-        second = np.bincount(r_keep[near], tan_el[near], minlength=size) / count2
-    return ids, np.degrees(np.arctan(np.where(count2 > 0, second, first)[ids]))
+    return _robust_tan_elevation(z[keep] / horiz[keep], r[keep], size)  # tan(elevation): no per-point arctan
 
 
 def select_layers(points_xyz: np.ndarray, ring: np.ndarray, *, mode: str = "elevation", n_upper_layers: int = 8,

@@ -90,6 +90,24 @@ def test_layer_selection_by_elevation_and_by_index():
         select_layers(pts, ring, mode="median")
 
 
+def test_ring_elevation_from_a_sample_equals_the_full_estimate_and_keeps_sparse_rings():
+    pts, ring = cast_scan(Scene([box_building((15, 0), (30, 60), 0.0, 40.0)]), (0, 0, 0), seed=1)
+    order = np.argsort(np.arange(len(ring)) % 7, kind="stable")  # another point order than the firing order
+    pts, ring = pts[order], ring[order]
+    sparse = np.flatnonzero(ring == 30)[:20]  # ring 30 keeps 20 points: too few to be sampled reliably
+    keep = np.ones(len(ring), bool)
+    keep[np.flatnonzero(ring == 30)] = False
+    keep[sparse] = True
+    pts, ring = pts[keep], ring[keep]
+    ids_full, elev_full = estimate_ring_elevation_deg(pts, ring, max_points=0)
+    ids, elev = estimate_ring_elevation_deg(pts, ring, max_points=3000)
+    np.testing.assert_array_equal(ids, ids_full)
+    np.testing.assert_allclose(elev, elev_full, atol=0.05)
+    np.testing.assert_allclose(elev[ids == 30], elev_full[ids_full == 30], atol=1e-12)  # from all of its points
+    np.testing.assert_allclose(elev, HDL32E_ELEVATION_DEG[ids], atol=0.1)
+    np.testing.assert_array_equal(select_layers(pts, ring), np.arange(31, 23, -1))
+
+
 def _candidates(xy, layer, cov_sigma):
     m = len(xy)
     cov = np.repeat(np.eye(2)[None], m, axis=0) * np.asarray(cov_sigma, float)[:, None, None] ** 2
