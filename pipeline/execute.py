@@ -52,11 +52,17 @@ def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
              artifact_dirs: dict[str, Path], provisional: dict[str, list[str]] | None = None) -> StageContext:
     decl = get_stage(spec["stage"])
     reader = StoreInputReader(Path(spec["root"]), {a: tuple(v) for a, v in spec["inputs"].items()},
-                              {a: resolve_schema(r) for a, r in spec["input_schemas"].items()}, provisional)
+                              {a: resolve_schema(r) for a, r in spec["input_schemas"].items()}, provisional,
+                              _ledger(spec))
     return StageContext(stage=spec["stage"], partition=partition, params=decl.params.model_validate(spec["params"]),
                         inputs=reader, drives={k: Path(v) for k, v in spec["drives"].items()},
                         settings=spec["settings"], scratch_dir=scratch, artifact_dirs=artifact_dirs,
                         step_progress=_STEP_PROGRESS.get(spec["stage"]))
+
+
+def _ledger(spec: dict[str, Any]) -> Path | None:
+    """The run's verification ledger (``pipeline.store.verify_file``), None outside a run."""
+    return Path(spec["verified_ledger"]) if spec.get("verified_ledger") else None
 
 
 def _ensure_extra_stages(spec: dict[str, Any]) -> None:
@@ -86,15 +92,12 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any],
     ``provisional``: input arg -> upstream partition labels to read before that stage commits (pipeline.flow).
     The result records when it ran (``t_start``/``t_end``, epoch s), its CPU seconds and its process's peak RSS
     (``peak_rss_mb``, pipeline.memory)."""
-    from pipeline.memory import PeakRss, relax_malloc_trim, release_memory
+    from pipeline.memory import PeakRss, relax_malloc_trim, task_scope
 
     relax_malloc_trim()  # a dask worker's allocator trims so eagerly that numpy work takes 1.5x the CPU
     t_start, cpu0 = time.time(), _task_cpu_s()
-    try:
-        with PeakRss() as rss:
-            result = _run_partition(spec, partition, provisional)
-    finally:
-        release_memory()
+    with task_scope(), PeakRss() as rss:
+        result = _run_partition(spec, partition, provisional)
     result.update(t_start=t_start, t_end=time.time(), cpu_s=round(_task_cpu_s() - cpu0, 3),
                   peak_rss_mb=round(rss.peak_mb, 1))
     return result
@@ -141,7 +144,8 @@ def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
                 else:
                     files = write_pieces(result.get(key), out_dir=ds_dir, label=label,
                                          schema=resolve_schema(out["schema"]),
-                                         partitioning=tuple(out["partitioning"]), where=where)
+                                         partitioning=tuple(out["partitioning"]), where=where,
+                                         ledger=_ledger(spec))
                     outputs[key] = {"files": files, "artifacts": None}
         except CornermapError:
             raise

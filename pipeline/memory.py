@@ -7,9 +7,10 @@ process with others: its figure is the process's, an upper bound of the stage's 
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import threading
-from typing import Any
+from typing import Any, Iterator
 
 MB = 2**20
 
@@ -68,6 +69,32 @@ def release_memory() -> None:
     malloc_trim = _glibc("malloc_trim")
     if malloc_trim is not None:
         malloc_trim(0)
+
+
+_ACTIVE_TASKS = [0]  # tasks running in this process (a thread scheduler runs several at once)
+_ACTIVE_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def task_scope() -> Iterator[None]:
+    """Around one task: at its end, its garbage is collected and returned (``release_memory``), and when no other
+    task of this process is running, every object still tracked by Python's cycle collector (the modules, the
+    libraries' state, the caches kept between tasks) moves to the collector's permanent generation (``gc.freeze``),
+    so that the next tasks' collections scan only the objects those tasks make. Frozen objects are still freed when
+    their last reference goes; only a reference cycle among them would stay. Measured with py-spy on a demo build:
+    the pool processes' ``gc.collect`` after each task took ~8 CPU s of the build (~80 ms a task)."""
+    import gc
+
+    with _ACTIVE_LOCK:
+        _ACTIVE_TASKS[0] += 1
+    try:
+        yield
+    finally:
+        release_memory()
+        with _ACTIVE_LOCK:
+            _ACTIVE_TASKS[0] -= 1
+            if _ACTIVE_TASKS[0] == 0:  # another task's live objects would otherwise never be scanned again
+                gc.freeze()
 
 
 @functools.cache

@@ -120,3 +120,34 @@ def test_relaxed_malloc_reuses_a_freed_array_instead_of_faulting_in_fresh_pages(
     assert (relaxed, eager) == ("True", "False")  # the user's own pair of thresholds is kept
     assert eager_faults > 40 * 512 * 0.9
     assert relaxed_faults < 0.05 * eager_faults
+
+
+def test_a_task_scope_collects_its_cycles_then_freezes_the_survivors_only_when_no_other_task_runs():
+    import gc
+    import weakref
+
+    from pipeline.memory import task_scope
+
+    class Node:
+        pass
+
+    gc.unfreeze()
+    try:
+        with task_scope():
+            a = Node()
+            a.self = a  # a reference cycle the task leaves behind
+            first = weakref.ref(a)
+            del a
+            with task_scope():  # another task of this process (a thread scheduler) ends while the first still runs
+                pass
+            assert gc.get_freeze_count() == 0
+        assert first() is None  # collected at the end of its task
+        assert gc.get_freeze_count() > 0  # the survivors: frozen once no task runs
+        with task_scope():
+            b = Node()
+            b.self = b
+            later = weakref.ref(b)
+            del b
+        assert later() is None  # a later task's cycle is still collected
+    finally:
+        gc.unfreeze()
