@@ -24,7 +24,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing as mp
+import shutil
 import time
+import uuid
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -232,6 +234,10 @@ class Flow:
         self.t0 = time.time()
         with contextlib.ExitStack() as stack:
             stack.enter_context(one_thread_per_process())
+            ledger = self.plan.root / "tmp" / f"verified-{uuid.uuid4().hex[:12]}"
+            stack.callback(shutil.rmtree, ledger, ignore_errors=True)
+            for st in self.stages.values():  # a file is verified once per run (pipeline.store.verify_file)
+                st.spec["verified_ledger"] = str(ledger)
             self.pool = TaskPool(self.scheduler)
             failed = True
             try:

@@ -63,8 +63,9 @@ class StoreInputReader(InputReader):
     """Reads committed datasets through their manifests (never by listing directories)."""
 
     def __init__(self, root: Path, inputs: dict[str, tuple[str, str]], schemas: dict[str, pa.Schema | None],
-                 provisional: dict[str, list[str]] | None = None):
+                 provisional: dict[str, list[str]] | None = None, ledger: Path | None = None):
         self.root = Path(root)
+        self._ledger = None if ledger is None else Path(ledger)  # the run's verification ledger (verify_file)
         self._inputs = inputs  # arg -> (dataset, fingerprint) ; fingerprint "" = absent optional input
         self._schemas = schemas
         # arg -> labels of the committed partitions to read while the producing stage still runs (see
@@ -78,8 +79,8 @@ class StoreInputReader(InputReader):
     def __getstate__(self) -> dict:
         """Picklable (a stage may hand its reader to worker processes): caches are rebuilt where it lands."""
         return {"root": self.root, "_inputs": self._inputs, "_schemas": self._schemas,
-                "_provisional": self._provisional, "_manifests": {}, "_row_groups": {}, "_parquet_files": {},
-                "_paths": {}}
+                "_provisional": self._provisional, "_ledger": self._ledger, "_manifests": {}, "_row_groups": {},
+                "_parquet_files": {}, "_paths": {}}
 
     def _manifest(self, arg: str) -> dict | None:
         if arg not in self._manifests:
@@ -104,7 +105,8 @@ class StoreInputReader(InputReader):
 
     def _files(self, arg: str, partition: PartitionKey | None = None) -> list[str]:
         """Paths of the dataset's files (of ``partition``), each confined to the dataset and sha256-verified at every
-        call (``verify_file`` hashes a file once per process while it is unchanged). The confined paths are resolved
+        call (``verify_file`` hashes a file once per process, or once per run with the run's ledger, while it is
+        unchanged). The confined paths are resolved
         once per reader: resolving them took an ``lstat`` per path component of every file at every call (22 ms a
         one-scan lookup on gangnam's 290 files)."""
         m = self._require(arg)
@@ -115,7 +117,7 @@ class StoreInputReader(InputReader):
             self._paths[key] = [(str(inside(base, r["path"])), r.get("sha256")) for r in m["files"]
                                 if _matches(r.get("partition", {}), partition)]
         for path, sha256 in self._paths[key]:
-            verify_file(Path(path), sha256, dataset)
+            verify_file(Path(path), sha256, dataset, self._ledger)
         return [path for path, _ in self._paths[key]]
 
     def read(self, arg, *, partition=None, columns=None, filters=None) -> pa.Table:
@@ -214,5 +216,5 @@ class StoreInputReader(InputReader):
             raise DatasetIOError(f"dataset {dataset!r} has no committed artifacts for partition {label!r}; "
                                  f"has {sorted(m.get('artifacts', {}))}")
         for rec in m["artifacts"][label] or []:
-            verify_file(inside(path, rec["path"]), rec.get("sha256"), dataset)
+            verify_file(inside(path, rec["path"]), rec.get("sha256"), dataset, self._ledger)
         return path

@@ -15,6 +15,7 @@ from pipeline.names import check_name, inside, name_problem
 from pipeline.reader import StoreInputReader
 from pipeline.safe_yaml import load_yaml, load_yaml_file
 from pipeline.store import write_pieces
+from tests.pipeline.test_engine import toy_stages  # noqa: F401 - the toy registry fixture
 
 REPO = Path(__file__).resolve().parents[2]
 SCHEMA = pa.schema([("drive", pa.string()), ("scan_id", pa.int64()), ("x_m", pa.float64())])
@@ -159,3 +160,70 @@ def test_catalog_schema_references_cannot_import_arbitrary_modules(tmp_path):
     import sys
 
     assert "antigravity" not in sys.modules
+
+
+def _hash_calls(monkeypatch) -> list:
+    import pipeline.store as store
+
+    calls, real = [], store.file_sha256
+    monkeypatch.setattr(store, "file_sha256", lambda path, *a: calls.append(Path(path).name) or real(path, *a))
+    return calls
+
+
+def _another_process(monkeypatch) -> None:
+    """What a fresh process of the same run sees: no file verified by itself yet."""
+    import pipeline.store as store
+
+    monkeypatch.setattr(store, "_VERIFIED", {})
+
+
+def test_a_file_written_or_verified_in_a_run_is_hashed_once_in_that_run_whatever_the_process(tmp_path, monkeypatch):
+    calls = _hash_calls(monkeypatch)
+    ledger = tmp_path / "root" / "tmp" / "verified-run1"
+    out = tmp_path / "root" / "datasets" / "toy" / "fp1"
+    table = pa.table({"drive": ["d0"] * 5, "scan_id": list(range(5)), "x_m": [0.0] * 5}, schema=SCHEMA)
+    files = write_pieces(table, out_dir=out, label="p0", schema=SCHEMA, partitioning=("drive",), where="test",
+                         ledger=ledger)
+    (out / "_manifest.json").write_text(json.dumps({"fingerprint": "fp1", "files": files}))
+    assert len(calls) == 1  # the writer's own hash
+    _another_process(monkeypatch)
+    reader = StoreInputReader(tmp_path / "root", {"toy": ("toy", "fp1")}, {"toy": SCHEMA}, ledger=ledger)
+    assert reader.read("toy").num_rows == 5 and len(calls) == 1  # trusted: the writer hashed it in this run
+    _another_process(monkeypatch)
+    unledgered = StoreInputReader(tmp_path / "root", {"toy": ("toy", "fp1")}, {"toy": SCHEMA})
+    assert unledgered.read("toy").num_rows == 5 and len(calls) == 2  # no run's ledger: hashed
+    _another_process(monkeypatch)
+    next_run = StoreInputReader(tmp_path / "root", {"toy": ("toy", "fp1")}, {"toy": SCHEMA},
+                                ledger=tmp_path / "root" / "tmp" / "verified-run2")
+    assert next_run.read("toy").num_rows == 5 and len(calls) == 3  # another run verifies again ...
+    _another_process(monkeypatch)
+    import pickle
+
+    shipped = pickle.loads(pickle.dumps(next_run))  # ... once: a reader handed to a worker process keeps the ledger
+    assert shipped.read("toy").num_rows == 5 and len(calls) == 3
+
+
+def test_a_file_altered_after_its_ledger_entry_is_hashed_again_and_refused(tmp_path, monkeypatch):
+    ledger = tmp_path / "tmp" / "verified-run1"
+    _, files = _dataset(tmp_path)
+    _another_process(monkeypatch)
+    reader = StoreInputReader(tmp_path, {"toy": ("toy", "fp1")}, {"toy": SCHEMA}, ledger=ledger)
+    assert reader.read("toy").num_rows == 50 and any(ledger.iterdir())  # verified by this process: entered
+    path = tmp_path / "datasets" / "toy" / "fp1" / files[0]["path"]
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 3] ^= 0x04
+    time.sleep(0.01)  # a new mtime
+    path.write_bytes(bytes(raw))
+    _another_process(monkeypatch)
+    fresh = StoreInputReader(tmp_path, {"toy": ("toy", "fp1")}, {"toy": SCHEMA}, ledger=ledger)
+    with pytest.raises(IntegrityError, match="sha256"):
+        fresh.read("toy")
+
+
+def test_a_run_verifies_through_its_own_ledger_and_removes_it(tmp_path, toy_stages):  # noqa: F811 - the fixture
+    from tests.pipeline.test_engine import read_output, run, write_toy
+
+    path = write_toy(tmp_path)
+    run(path, root=tmp_path / "r", scheduler="local", workers=2)
+    assert read_output(tmp_path / "r", "toy_total").num_rows > 0
+    assert not list((tmp_path / "r" / "tmp").glob("verified-*"))
