@@ -40,29 +40,32 @@ def fit_ground_plane(points_lidar_m: np.ndarray, T_vehicle_lidar: np.ndarray, *,
     compromise tilted 0.5 deg and 6 cm low in most gangnam scans; the corridor is road, and from its plane the
     sidewalk is out of the biweight's reach (measured: normal 0.41 -> 0.012 deg, offset 42 -> 0.7 mm RMS).
     Falls back to every candidate when the corridor has too few points; None when fewer than ``min_points``
-    carry weight (a scan without visible ground)."""
+    carry weight (a scan without visible ground). Each iteration weighs every candidate (zero beyond the width)
+    instead of gathering those inside: 2.8 -> 1.8 ms a demo scan, planes equal to 4e-14 (200 scans)."""
     p = np.asarray(points_lidar_m, np.float64)[:, :3]
     R, t = T_vehicle_lidar[:3, :3], T_vehicle_lidar[:3, 3]
     z_v = p @ R[2] + t[2]  # vehicle-frame height; x, y only for the points in the band
     band = np.flatnonzero(np.abs(z_v) < band_m)
-    xy_v = p[band] @ R[:2].T + t[:2]
-    keep = np.hypot(xy_v[:, 0], xy_v[:, 1]) < radius_m
+    x_v, y_v = (p @ R[0] + t[0])[band], (p @ R[1] + t[1])[band]  # (N,3) @ (3,) of all: faster than a row gather
+    keep = np.flatnonzero(x_v * x_v + y_v * y_v < radius_m * radius_m)
     cand = p[band[keep]]
-    lane = cand[np.abs(xy_v[keep, 1]) < lane_half_width_m]
+    lane = cand[np.abs(y_v[keep]) < lane_half_width_m]
     if len(lane) < min_points:
         lane = cand
     up = R[2, :]  # vehicle z axis in the lidar frame (R^T e_z)
     normal, offset = up.copy(), float(t[2])  # the vehicle's ground: z_vehicle = up . p + t_z = 0
     for it, width in enumerate(widths_m):
         use = lane if it < lane_iterations else cand
-        d = use @ normal + offset
-        inside = np.flatnonzero(np.abs(d) < width)
-        if len(inside) < min_points:
+        r = (use @ normal + offset) / width
+        w = 1.0 - r * r
+        np.maximum(w, 0.0, out=w)
+        w *= w  # the biweight; 0 beyond the width (no gather of the points inside: most are)
+        if np.count_nonzero(w) < min_points:
             return None
-        u, w = use[inside], (1.0 - (d[inside] / width) ** 2) ** 2
-        centroid = w @ u / w.sum()
-        du = u - centroid
-        _, V = np.linalg.eigh((du * w[:, None]).T @ du)  # weighted scatter; smallest eigenvector = normal
+        centroid = w @ use / w.sum()
+        du = use - centroid
+        du_w = du * w[:, None]
+        _, V = np.linalg.eigh(du_w.T @ du)  # weighted scatter; smallest eigenvector = normal
         normal = V[:, 0] if V[:, 0] @ up > 0 else -V[:, 0]
         offset = float(-normal @ centroid)
     d = cand @ normal + offset

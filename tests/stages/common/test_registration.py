@@ -121,3 +121,17 @@ def test_open3d_runs_on_the_threads_a_dask_worker_was_given():
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         assert client.submit(_open3d_threads_after_a_registration, 0).result() == (1, 1)
+
+
+def test_crop_range_keeps_the_band_inclusive_and_drops_non_finite_points():
+    from stages.common.registration import crop_range
+
+    rng = np.random.default_rng(4)
+    pts = rng.normal(0.0, 30.0, (20000, 3))
+    pts[:3] = [[2.0, 0.0, 0.0], [0.0, 0.0, -80.0], [np.nan, 1.0, 1.0]]
+    pts[3:5] = [[np.inf, 0.0, 0.0], [0.0, -np.inf, 5.0]]
+    norm_m = np.linalg.norm(pts, axis=1)
+    expected = (norm_m >= 2.0) & (norm_m <= 80.0) & np.isfinite(norm_m)
+    got = crop_range(pts, 2.0, 80.0)
+    np.testing.assert_array_equal(got, expected)
+    assert got[:2].all() and not got[2:5].any()
