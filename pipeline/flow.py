@@ -22,12 +22,14 @@ graph, which cannot grow the partitions an upstream partition reveals; the clust
 from __future__ import annotations
 
 import contextlib
+import heapq
 import logging
 import multiprocessing as mp
 import shutil
+import threading
 import time
 import uuid
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -52,24 +54,60 @@ log = logging.getLogger(__name__)
 STREAMING = (Partitioning.PER_DRIVE, Partitioning.PER_SCAN_CHUNK)
 
 
+def stage_ranks(plan: Plan) -> dict[str, int]:
+    """Each stage's rank: how many stages the longest chain that reads its outputs holds (0 for a stage nothing in
+    the plan reads). The local pool starts the tasks of a higher rank first (``TaskPool``): the odometry (read by
+    the pose graph, then the map, markings and tiles) before the corners (read by the map only)."""
+    made_by = {(ds, sp.fingerprint): name for name, sp in plan.stages.items() for ds in sp.outputs.values()}
+    readers: dict[str, set[str]] = {name: set() for name in plan.stages}
+    for name, sp in plan.stages.items():
+        for key in list(sp.inputs.values()) + list(sp.path_inputs):
+            if tuple(key) in made_by and made_by[tuple(key)] != name:
+                readers[made_by[tuple(key)]].add(name)
+    ranks: dict[str, int] = {}
+
+    def rank(name: str, seen: frozenset = frozenset()) -> int:
+        if name not in ranks:
+            below = [rank(r, seen | {name}) for r in readers[name] if r not in seen]
+            ranks[name] = 1 + max(below) if below else 0
+        return ranks[name]
+
+    for name in plan.stages:
+        rank(name)
+    return ranks
+
+
 class TaskPool:
-    """Submits engine tasks where the scheduler says; ``here=True`` keeps a task in this process."""
+    """Submits engine tasks where the scheduler says; ``here=True`` keeps a task in this process.
+
+    A local pool (``processes``, ``threads``) runs at most ``workers`` tasks at once and starts the waiting task of
+    the highest ``priority`` first (then the earliest submitted): a stage the longer chain of stages waits on goes
+    before one beside it (``stage_ranks``). On demo seed 1 the corners' partitions, queued between the odometry's,
+    delayed the pose graph's start by the corners' CPU while the pose graph then left a core idle. A cluster gets the
+    priority as dask's ``priority``."""
 
     def __init__(self, scheduler: Scheduler):
         self.kind = scheduler.kind
         self._client = scheduler._client
         self._pool = None
         self._here = None
+        self._slots = 0
+        self._waiting: list = []  # heap of (-priority, seq, fn, args, outer future)
+        self._running = 0
+        self._seq = 0
+        self._lock = threading.Lock()  # _running: the executor's callback thread frees a slot
         workers = scheduler.workers
         if self.kind == "threads":
             self._pool = ThreadPoolExecutor(max_workers=workers)
         elif self.kind == "processes":
             self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
             self._here = ThreadPoolExecutor(max_workers=2)
+        if self._pool is not None:
+            self._slots = max(1, int(workers))
 
-    def submit(self, fn: Callable, *args: Any, key: str, here: bool = False):
+    def submit(self, fn: Callable, *args: Any, key: str, here: bool = False, priority: int = 0):
         if self._client is not None:
-            return self._client.submit(fn, *args, key=key, pure=False)
+            return self._client.submit(fn, *args, key=key, pure=False, priority=priority)
         if self._pool is None:  # sync: run now, in order
             fut: Future = Future()
             try:
@@ -77,16 +115,54 @@ class TaskPool:
             except BaseException as exc:  # noqa: BLE001 - handed to the caller through the future
                 fut.set_exception(exc)
             return fut
-        return (self._here if here and self._here is not None else self._pool).submit(fn, *args)
+        if here and self._here is not None:
+            return self._here.submit(fn, *args)
+        outer: Future = Future()
+        with self._lock:
+            self._seq += 1
+            heapq.heappush(self._waiting, (-priority, self._seq, fn, args, outer))
+        self._drain()
+        return outer
+
+    def _drain(self) -> None:
+        """Start waiting tasks, highest priority first, while a worker is free."""
+        while True:
+            with self._lock:
+                if not self._waiting or self._running >= self._slots:
+                    return
+                _, _, fn, args, outer = heapq.heappop(self._waiting)
+                if not outer.set_running_or_notify_cancel():
+                    continue
+                self._running += 1
+            inner = self._pool.submit(fn, *args)
+            inner.add_done_callback(lambda f, o=outer: self._finished(f, o))
+
+    def _finished(self, inner: Future, outer: Future) -> None:
+        with self._lock:
+            self._running -= 1
+        if inner.cancelled():  # the pool shut down under it: the outer future already runs, so it cannot cancel
+            outer.set_exception(CancelledError())
+            return
+        exc = inner.exception()
+        if exc is not None:
+            outer.set_exception(exc)
+        else:
+            outer.set_result(inner.result())
 
     def wait_any(self, futures: list) -> list:
         if self._client is not None:
             from distributed import wait as dwait
 
             return list(dwait(futures, return_when="FIRST_COMPLETED").done)
-        return list(wait(futures, return_when=FIRST_COMPLETED).done)
+        done = list(wait(futures, return_when=FIRST_COMPLETED).done)
+        self._drain()
+        return done
 
     def close(self, cancel: bool) -> None:
+        with self._lock:
+            for *_, outer in self._waiting:  # never started
+                outer.cancel()
+            self._waiting.clear()
         for pool in (self._here, self._pool):
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=cancel)
@@ -125,6 +201,7 @@ class Flow:
         self.stages: dict[str, _Stage] = {}
         self.pending: dict[Any, tuple[str, str]] = {}  # future -> (stage, label)
         self.summary: dict[str, Any] = {}
+        self.ranks = stage_ranks(plan)  # task priorities of the local pool (TaskPool)
         producers = {(ds, sp.fingerprint): sp.name for sp in plan.stages.values()
                      if sp.selected and not sp.committed for ds in sp.outputs.values()}
         for name, sp in plan.stages.items():
@@ -202,7 +279,7 @@ class Flow:
                 continue
             st.keys[pk.label] = pk
             fut = self.pool.submit(run_partition, st.spec, pk.as_dict(), provisional, key=task_key(st.sp, pk),
-                                   here=here)
+                                   here=here, priority=self.ranks.get(st.name, 0))
             self.pending[fut] = (st.name, pk.label)
         self._show(st)
 
