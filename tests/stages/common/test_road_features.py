@@ -57,9 +57,25 @@ def _threshold_reference(xyz, intensity, ring, window_m, offset_sigma):
     return mask
 
 
+def _rings(seed: int, n_rings: int = 12, per_ring: int = 500):
+    """Ground rings: circles of growing radius, points at jittered azimuths, gamma intensities with bright paint."""
+    rng = np.random.default_rng(seed)
+    xyz, inten, ring = [], [], []
+    for r in range(n_rings):
+        az = np.sort(rng.uniform(-np.pi, np.pi, per_ring))
+        radius = 4.0 + 1.5 * r + rng.normal(0, 0.02, per_ring)
+        xyz.append(np.column_stack([radius * np.cos(az), radius * np.sin(az), np.full(per_ring, -1.9)]))
+        value = rng.gamma(4.0, 3.0, per_ring) * (1.0 + 0.3 * r)  # a gain per ring
+        value[np.abs(az - 0.5) < 0.05] += 40.0  # a painted stripe
+        inten.append(value)
+        ring.append(np.full(per_ring, r))
+    order = rng.permutation(n_rings * per_ring)
+    return np.concatenate(xyz)[order], np.concatenate(inten)[order], np.concatenate(ring)[order]
+
+
 def test_adaptive_threshold_equals_a_point_by_point_reference():
     for seed in (3, 4, 5):
-        xyz, inten, ring = _scan(seed)
+        xyz, inten, ring = _rings(seed)
         ring[:2] = 30  # a ring of two points: never a feature
         got = ring_adaptive_threshold(xyz, inten, ring, window_m=3.0, offset_sigma=2.0)
         np.testing.assert_array_equal(got, _threshold_reference(xyz, inten, ring, 3.0, 2.0))
