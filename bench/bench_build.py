@@ -33,6 +33,9 @@ from pathlib import Path
 
 import yaml
 
+if __package__ in (None, ""):  # run by its path from another folder: the checkout's bench and fixtures modules
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 ORIGIN = {"lat_deg": 37.4979, "lon_deg": 127.0276, "h_m": 57.0}  # the simulator's origin (workflows/demo.yaml)
 BUILD_STAGES = ["ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "tiles"]
 
