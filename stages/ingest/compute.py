@@ -7,7 +7,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from pipeline.declare import StageContext
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, DataQualityError
 from stages.common.geodesy import EnuOrigin, geodetic_to_enu
 from stages.common.records import Extrinsics
 from stages.ingest.drive_file import DriveSpec, load_drive_file
@@ -121,6 +121,7 @@ class DriveIngest:
         if not already_counted:
             self._index_rows = rows
             self._report_untimed()
+            self._require_a_scan(rows)
 
     def index_rows(self) -> list[dict]:
         if self._index_rows is None:  # scans not streamed (yet): a counting pass without tables
@@ -129,7 +130,19 @@ class DriveIngest:
                 self._record(rows, result)
             self._index_rows = rows
             self._report_untimed()
+            self._require_a_scan(rows)
         return self._index_rows
+
+    def _require_a_scan(self, rows: list[dict]) -> None:
+        """A drive whose scan files were all quarantined has no map to give: a data-quality error naming the folder
+        and the first file's reason (downstream it only showed as "no poses_gnss rows" in the pose graph)."""
+        if rows and not any(r["status"] == "ok" for r in rows):
+            first = rows[0]
+            raise DataQualityError(
+                f"ingest {self.drive}: none of the {len(rows)} scans in {self.spec.path(self.spec.scans.folder)} "
+                f"could be read; first: {first['source_file'] or first['scan_id']}: {first['reason']}; hint: check "
+                "that the files exist (a symbolic link whose target is gone counts as missing) and the drive file's "
+                "scans.format")
 
     def _report_untimed(self) -> None:
         if self._untimed:

@@ -38,8 +38,11 @@ class ScanResult:
 
 
 def list_scan_files(folder: Path, fmt: str) -> list[Path]:
+    """The folder's scan files by name; a symbolic link whose target is gone is listed too, so that it is read,
+    quarantined ("No such file") and reported like any unreadable scan instead of silently skipped."""
     suffixes = SCAN_SUFFIXES[fmt]
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.name.lower().endswith(suffixes))
+    return sorted(p for p in folder.iterdir()
+                  if (p.is_file() or (p.is_symlink() and not p.exists())) and p.name.lower().endswith(suffixes))
 
 
 MAX_SCAN_ID = 100_000_000  # ten days at 100 Hz: anything larger is a broken file name or stamps row

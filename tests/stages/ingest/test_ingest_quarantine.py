@@ -112,3 +112,30 @@ def test_literal_lzf_of_a_normal_scan_is_not_mistaken_for_a_bomb():
     cloud = decode_pcd(encode_pcd(cols, "binary_compressed"))
     np.testing.assert_array_equal(cloud.columns["x"], cols["x"])
     assert compress_literal_lzf(b"") == b""
+
+
+def test_a_scan_link_whose_target_is_gone_is_quarantined_not_skipped(tmp_path):
+    drive = write_synthetic_drive(tmp_path, n_scans=3, n_per_ring=5)
+    scans = drive.drive_file.parent / "scans"
+    gone = tmp_path / "elsewhere" / "000001.pcd"
+    (scans / "000001.pcd").unlink()
+    (scans / "000001.pcd").symlink_to(gone)  # e.g. links into a data folder that was moved
+    tables, _ = _run(drive, drive.origin)
+    by_id = {r["scan_id"]: r for r in tables["scan_index"][1].to_pylist()}
+    assert by_id[1]["status"] == "quarantined" and "No such file" in by_id[1]["reason"], by_id[1]
+    assert by_id[0]["status"] == by_id[2]["status"] == "ok"
+    report = tables["report"][1].to_pylist()
+    assert any(r["kind"] == "quarantined_file" and r["record"] == 1 for r in report)
+
+
+def test_a_drive_whose_scans_all_fail_is_refused_with_the_folder_and_the_first_reason(tmp_path):
+    from pipeline.errors import DataQualityError
+
+    drive = write_synthetic_drive(tmp_path, n_scans=3, n_per_ring=5)
+    scans = drive.drive_file.parent / "scans"
+    for path in sorted(scans.glob("*.pcd")):
+        path.unlink()
+        path.symlink_to(tmp_path / "gone" / path.name)
+    refused = r"none of the 3 scans in .*scans could be read; first: .*000000\.pcd.*No such"
+    with pytest.raises(DataQualityError, match=refused):
+        _run(drive, drive.origin)
