@@ -98,11 +98,13 @@ def kitti_drive(cache: Path, n_scans: int | None) -> Path:
     if not files:
         raise SystemExit(f"no KITTI scans under {KITTI}: the shared data must sit beside the checkout")
     out = cache / f"kitti-hdl64e-{n_scans or len(files)}"
-    if (out / "drive_0" / "drive.yaml").is_file():
+    links = sorted((out / "drive_0" / "velodyne_points").glob("*.pcd"))
+    if (out / "drive_0" / "drive.yaml").is_file() and links and all(p.exists() for p in links):
         return out
+    shutil.rmtree(out, ignore_errors=True)  # links into a checkout's ../shared that is gone: made again
     tmp = out.with_name(out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    folder = kitti_drive_folder(tmp / "drive_0", KITTI, ORIGIN, n_scans=n_scans, noise_m=0.0)
+    folder = kitti_drive_folder(tmp / "drive_0", KITTI.resolve(), ORIGIN, n_scans=n_scans, noise_m=0.0)
     (folder / "drive.yaml").write_text("\n".join(draft_drive_file(folder).lines) + "\n")
     tmp.replace(out)
     return out
