@@ -96,7 +96,7 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any],
 
     relax_malloc_trim()  # a dask worker's allocator trims so eagerly that numpy work takes 1.5x the CPU
     t_start, cpu0 = time.time(), _task_cpu_s()
-    with task_scope(), PeakRss() as rss:
+    with task_scope(spec.get("trim_above_mb")), PeakRss() as rss:
         result = _run_partition(spec, partition, provisional)
     result.update(t_start=t_start, t_end=time.time(), cpu_s=round(_task_cpu_s() - cpu0, 3),
                   peak_rss_mb=round(rss.peak_mb, 1))

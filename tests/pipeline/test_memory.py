@@ -151,3 +151,28 @@ def test_a_task_scope_collects_its_cycles_then_freezes_the_survivors_only_when_n
         assert later() is None  # a later task's cycle is still collected
     finally:
         gc.unfreeze()
+
+
+def test_release_memory_keeps_the_freed_heap_below_its_threshold_and_trims_above():
+    import ctypes.util
+
+    import psutil
+
+    from pipeline.memory import release_memory
+
+    if not ctypes.util.find_library("c"):
+        pytest.skip("no C library to trim")
+    proc = psutil.Process()
+    release_memory()
+    before = proc.memory_info().rss
+    blobs = [bytes(900) for _ in range(300_000)]  # ~300 MB in heap-sized pieces
+    pin = [bytes(900) for _ in range(100)]  # allocated last: the heap's top stays in use, only a trim frees below it
+    grown = proc.memory_info().rss - before
+    del blobs
+    release_memory(trim_above_mb=proc.memory_info().rss / 2**20 + 1000)  # far below the threshold: kept
+    kept = proc.memory_info().rss - before
+    release_memory(trim_above_mb=(before / 2**20) * 0.5)  # above it: trimmed
+    left = proc.memory_info().rss - before
+    del pin
+    assert grown > 200 * 2**20
+    assert kept > 0.7 * grown and left < 0.3 * grown, (grown, kept, left)
