@@ -45,9 +45,9 @@ def test_a_run_over_the_workflows_memory_budget_names_its_stages(tmp_path, capsy
     assert "peaked at" not in capsys.readouterr().err
 
 
-def test_release_memory_returns_a_finished_tasks_freed_heap_to_the_system():
-    """Many small objects live on the C heap; freed, they stay resident until the heap is trimmed. A worker that ran
-    a heavy task must not carry that into the next one (pipeline.execute.run_partition calls this after each)."""
+@pytest.fixture
+def trimmed_process():
+    """This process, its heap just trimmed, and its resident bytes then (skipped where there is no C library)."""
     import ctypes.util
 
     import psutil
@@ -58,7 +58,15 @@ def test_release_memory_returns_a_finished_tasks_freed_heap_to_the_system():
         pytest.skip("no C library to trim")
     proc = psutil.Process()
     release_memory()
-    before = proc.memory_info().rss
+    return proc, proc.memory_info().rss
+
+
+def test_release_memory_returns_a_finished_tasks_freed_heap_to_the_system(trimmed_process):
+    """Many small objects live on the C heap; freed, they stay resident until the heap is trimmed. A worker that ran
+    a heavy task must not carry that into the next one (pipeline.execute.run_partition calls this after each)."""
+    from pipeline.memory import release_memory
+
+    proc, before = trimmed_process
     blobs = [bytes(900) for _ in range(300_000)]  # ~300 MB in heap-sized pieces
     grown = proc.memory_info().rss - before
     del blobs
@@ -153,18 +161,10 @@ def test_a_task_scope_collects_its_cycles_then_freezes_the_survivors_only_when_n
         gc.unfreeze()
 
 
-def test_release_memory_keeps_the_freed_heap_below_its_threshold_and_trims_above():
-    import ctypes.util
-
-    import psutil
-
+def test_release_memory_keeps_the_freed_heap_below_its_threshold_and_trims_above(trimmed_process):
     from pipeline.memory import release_memory
 
-    if not ctypes.util.find_library("c"):
-        pytest.skip("no C library to trim")
-    proc = psutil.Process()
-    release_memory()
-    before = proc.memory_info().rss
+    proc, before = trimmed_process
     blobs = [bytes(900) for _ in range(300_000)]  # ~300 MB in heap-sized pieces
     pin = [bytes(900) for _ in range(100)]  # allocated last: the heap's top stays in use, only a trim frees below it
     grown = proc.memory_info().rss - before
