@@ -18,6 +18,7 @@ from typing import Any, Callable
 from pipeline.catalog import resolve_schema
 from pipeline.declare import Partitioning, PartitionKey, StageContext
 from pipeline.errors import CornermapError, StageError
+from pipeline.memory import trim_threshold_mb
 from pipeline.plan import Plan, StagePlan
 from pipeline.reader import StoreInputReader, merge_part_extras
 from pipeline.registry import get_stage
@@ -42,6 +43,7 @@ def _task_spec(plan: Plan, sp: StagePlan) -> dict[str, Any]:
         "settings": sp.settings,
         "extra_stages": os.environ.get("CORNERMAP_EXTRA_STAGES", ""),
         "drive_scope": dict(sp.drive_scope),
+        "trim_above_mb": trim_threshold_mb(plan.workflow.spec.memory_budget_mb),  # release_memory keeps the heap below
     }
 
 

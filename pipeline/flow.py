@@ -313,12 +313,8 @@ class Flow:
             stack.enter_context(one_thread_per_process())
             ledger = self.plan.root / "tmp" / f"verified-{uuid.uuid4().hex[:12]}"
             stack.callback(shutil.rmtree, ledger, ignore_errors=True)
-            from pipeline.memory import trim_threshold_mb
-
-            trim_above_mb = trim_threshold_mb(self.plan.workflow.spec.memory_budget_mb)
             for st in self.stages.values():  # a file is verified once per run (pipeline.store.verify_file)
                 st.spec["verified_ledger"] = str(ledger)
-                st.spec["trim_above_mb"] = trim_above_mb  # a task's freed heap is kept below it (release_memory)
             self.pool = TaskPool(self.scheduler)
             failed = True
             try:

@@ -21,7 +21,7 @@ MIN_RING_SAMPLE_POINTS = 50  # a ring with fewer sampled points beyond min_range
 
 def _robust_tan_elevation(tan_el: np.ndarray, ring: np.ndarray, size: int) -> np.ndarray:
     """Per ring id (0..size-1): two-pass mean of tan(elevation) (all points, then those within 1 deg of the first
-    mean); NaN for a ring without points, and the number of points each mean used."""
+    mean; NaN for a ring without points), and each ring's number of points."""
     count = np.bincount(ring, minlength=size)
     with np.errstate(invalid="ignore", divide="ignore"):
         first = np.bincount(ring, tan_el, minlength=size) / count

@@ -119,23 +119,25 @@ class DriveIngest:
         if pending:
             yield points_table(self.drive, pending[0].index_row["chunk"], pending)
         if not already_counted:
-            self._index_rows = rows
-            self._report_untimed()
-            self._require_a_scan(rows)
+            self._scan_pass_done(rows)
 
     def index_rows(self) -> list[dict]:
         if self._index_rows is None:  # scans not streamed (yet): a counting pass without tables
             rows: list[dict] = []
             for result in self._results():
                 self._record(rows, result)
-            self._index_rows = rows
-            self._report_untimed()
-            self._require_a_scan(rows)
+            self._scan_pass_done(rows)
         return self._index_rows
 
-    def _require_a_scan(self, rows: list[dict]) -> None:
-        """A drive whose scan files were all quarantined has no map to give: a data-quality error naming the folder
-        and the first file's reason (downstream it only showed as "no poses_gnss rows" in the pose graph)."""
+    def _scan_pass_done(self, rows: list[dict]) -> None:
+        """The scan pass's index rows kept, the untimed scans reported, and a drive whose scan files were all
+        quarantined refused: it has no map to give, so a data-quality error names the folder and the first file's
+        reason (downstream it only showed as "no poses_gnss rows" in the pose graph)."""
+        self._index_rows = rows
+        if self._untimed:
+            self.report.add("deskew", self.spec.scans.folder, None, self._untimed,
+                            "no per-point time in these scans: time_offset_s is 0, so they are not deskewed (the "
+                            "motion during one sweep stays in the cloud)")
         if rows and not any(r["status"] == "ok" for r in rows):
             first = rows[0]
             raise DataQualityError(
@@ -143,12 +145,6 @@ class DriveIngest:
                 f"could be read; first: {first['source_file'] or first['scan_id']}: {first['reason']}; hint: check "
                 "that the files exist (a symbolic link whose target is gone counts as missing) and the drive file's "
                 "scans.format")
-
-    def _report_untimed(self) -> None:
-        if self._untimed:
-            self.report.add("deskew", self.spec.scans.folder, None, self._untimed,
-                            "no per-point time in these scans: time_offset_s is 0, so they are not deskewed (the "
-                            "motion during one sweep stays in the cloud)")
 
     # ---- tables -----------------------------------------------------------------------------------------
     def scan_index_table(self):
