@@ -114,13 +114,16 @@ class _Parallel:
 class LoopConfig(_Parallel):
     """Loop closures: candidates (one query per ``stride_m`` of travel, other passes within ``radius_m``), their
     verification, the kernel of the accepted loops and the pass-3 gate; candidates run in parallel processes
-    from ``parallel_min_items`` on."""
+    from ``parallel_min_items`` on. With survey anchors, only query poses that the anchors within ``survey_window_m``
+    of travel hold to less than ``survey_sigma_m`` in one direction or none look for loops (window 0: all)."""
 
     radius_m: float
     min_separation_s: float
     stride_m: float
     max_per_scan: int
     verify: LoopVerifyConfig
+    survey_window_m: float
+    survey_sigma_m: float
     kernel: str
     kernel_k: float
     max_whitened_residual: float
@@ -232,7 +235,8 @@ class PosegraphConfig:
             relative_tolerance=p.loop_relative_tolerance)
         loops = LoopConfig(
             radius_m=p.loop_radius_m, min_separation_s=p.loop_min_separation_s, stride_m=p.loop_stride_m,
-            max_per_scan=p.loop_max_per_scan, verify=verify, kernel=p.loop_kernel, kernel_k=p.loop_kernel_k,
+            max_per_scan=p.loop_max_per_scan, verify=verify, survey_window_m=p.loop_survey_window_m,
+            survey_sigma_m=p.loop_survey_sigma_m, kernel=p.loop_kernel, kernel_k=p.loop_kernel_k,
             max_whitened_residual=p.loop_max_whitened_residual, parallel_min_items=p.parallel_min_items)
         ground = GroundAnchorConfig(
             crop_m=p.survey_crop_m, max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,

@@ -74,6 +74,14 @@ class PosegraphParams(Params):
     loop_min_separation_s: float = Field(30.0, ge=0, description="same drive: minimum time between scans")
     loop_stride_m: float = Field(5.0, gt=0, description="one loop query scan per this much travel")
     loop_max_per_scan: int = Field(2, ge=1)
+    loop_survey_window_m: float = Field(50.0, ge=0, description=(
+        "with survey anchors, loop candidates are sought only at query scans that the accepted horizontal anchors of "
+        "their drive within this much travel do not hold (loop_survey_sigma_m): where the anchors hold each pass, "
+        "they tie the passes to each other through the survey (docs/posegraph.md, 'Loops where the survey leaves a "
+        "drive free'). 0: loops at every query scan (after the anchors)"))
+    loop_survey_sigma_m: float = Field(0.05, gt=0, description=(
+        "a query scan is held when those anchors' summed horizontal information gives a std below this in its "
+        "weaker direction (lane lines alone fix the position across the road, not along it)"))
     loop_coarse_voxel_m: float = Field(1.0, gt=0, description="first GICP stage (pulls in a 1-2 m prior)")
     loop_coarse_corr_m: float = Field(3.0, gt=0)
     loop_voxel_m: float = Field(0.4, gt=0, description="fine GICP stages (max_corr, then max_corr / 2)")
@@ -112,7 +120,7 @@ class PosegraphParams(Params):
                                   "points (a few scans) to the survey's marking mask")
     survey_marking_half_travel_m: float = Field(8.0, gt=0, description="submap: scans within this travel")
     survey_marking_max_scans: int = Field(10, ge=0, description="submap: at most this many scans each side")
-    survey_marking_search_m: float = Field(2.0, gt=0, description="horizontal search (the pass-2 estimate is "
+    survey_marking_search_m: float = Field(2.0, gt=0, description="horizontal search (the pass-1 estimate is "
                                            "GNSS-level: RMS 0.6 m, max 1.6 m on the simulator)")
     survey_marking_sigma_scale: float = Field(0.2, gt=0, description="anchor std = the correlation peak's width "
                                               "x this (demo, 112 fixed directions vs truth: errors 0.010 m RMS "
@@ -130,7 +138,7 @@ class PosegraphParams(Params):
     survey_marking_consensus_window_m: float = Field(300.0, gt=0, description="horizontal anchors are checked "
                                                      "against the other anchors of their drive within this travel "
                                                      "(anchor_consensus.py)")
-    survey_marking_consensus_drift_sigma_m: float = Field(0.10, gt=0, description="how much the pass-2 estimate's "
+    survey_marking_consensus_drift_sigma_m: float = Field(0.10, gt=0, description="how much the pass-1 estimate's "
                                                           "error may differ between anchors of one window")
     survey_marking_consensus_probability: float = Field(0.99, gt=0, lt=1, description="chi-square gate of that check")
     survey_rounds: int = Field(3, ge=1, description="anchoring rounds at most: the anchors are matched again from the "

@@ -1,5 +1,6 @@
-"""The pose-graph passes: (1) odometry + GNSS, (2) verified loops under a robust kernel (or GNC), (3) loops
-inconsistent with the result removed; optional survey anchors; reference drives localised in a fixed map.
+"""The pose-graph passes: (1) odometry + GNSS; optional survey anchors; (2) verified loops under a robust kernel (or
+GNC), where the anchors leave a drive free; (3) loops inconsistent with the result removed; reference drives localised
+in a fixed map.
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from stages.posegraph.config import LoopConfig, PosegraphConfig, SolveConfig
 from stages.posegraph.factors.base import base_problem
 from stages.posegraph.factors.drive import DriveInput
 from stages.posegraph.factors.graph import Between, PosePrior, Problem, between_residuals, optimize
-from stages.posegraph.loops.candidates import find_candidates, keyframes_by_travel
+from stages.posegraph.loops.candidates import find_candidates, keyframes_by_travel, loosely_anchored, travel_m
 from stages.posegraph.loops.clouds import ScanLoader
 from stages.posegraph.loops.verify import LoopRecord, loop_betweens, verify_from_store
 
@@ -102,8 +103,13 @@ def _as_accepted(r: LoopRecord) -> LoopRecord:
 def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, *, extra_loops: list[LoopRecord] = (),
               survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None = None,
               report_step: Callable[[str, int, int], None] | None = None) -> Solution:
-    """All map drives in one graph. ``extra_loops`` enter as accepted (tests/bench plant false loops here);
-    ``survey_priors(poses, offsets)`` returns absolute anchors computed on the pass-2 estimate."""
+    """All map drives in one graph: pass 1 (odometry + GNSS); with ``survey_priors(poses, offsets)`` (absolute
+    anchors of the keyframes, matched on the current estimate) the anchoring rounds (``anchored``); then loops,
+    verified and solved (passes 2 and 3) where the anchors leave a drive free: with anchors, only the query poses
+    whose drive's anchors within ``cfg.loops.survey_window_m`` of travel hold them to less than
+    ``cfg.loops.survey_sigma_m`` in one horizontal direction or none look for loops (``loosely_anchored``; where the
+    anchors hold each pass, they tie the passes to each other through the survey). ``extra_loops`` enter as
+    accepted (tests/bench plant false loops here)."""
     import time
 
     t0 = time.perf_counter()
@@ -113,25 +119,43 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     t1 = time.perf_counter()
     group = np.repeat(np.arange(len(drives)), [d.n for d in drives])
     stamps_s = np.concatenate([d.stamps_ns for d in drives]) * 1e-9
-    query = keyframes_by_travel(poses[:, :3, 3], group, lc.stride_m)
-    cands = find_candidates(poses[:, :3, 3], stamps_s, group, query, radius_m=lc.radius_m,
-                            min_separation_s=lc.min_separation_s, max_per_scan=lc.max_per_scan)
-    step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
-    loops = verify_from_store(cands, poses, drives, offsets, load, lc, progress=step) + list(extra_loops)
-    t2 = time.perf_counter()
-    solve_times: list[float] = []
-    poses = optimize_with_loops(problem, loops, lc, cfg.solve, solve_times_s=solve_times, initial=poses)
-    t3 = time.perf_counter()
     rounds: list[dict] = []
     if survey_priors is not None:
         poses = anchored(problem, poses, offsets, survey_priors, cfg.anchors, rounds,
                          lambda initial: optimize(problem, **lm, gnc_loops=lc.kernel == "gnc", initial=initial))
+    query = keyframes_by_travel(poses[:, :3, 3], group, lc.stride_m)
+    if survey_priors is not None:
+        held, info_en = horizontal_anchors(problem.pose_priors)
+        query = loosely_anchored(query, held, info_en, travel_m(poses[:, :3, 3], group), group,
+                                 lc.survey_window_m, lc.survey_sigma_m)
+    t2 = time.perf_counter()
+    cands = find_candidates(poses[:, :3, 3], stamps_s, group, query, radius_m=lc.radius_m,
+                            min_separation_s=lc.min_separation_s, max_per_scan=lc.max_per_scan)
+    step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
+    loops = (verify_from_store(cands, poses, drives, offsets, load, lc, progress=step) if cands else []) \
+        + list(extra_loops)
+    t3 = time.perf_counter()
+    solve_times: list[float] = []
+    if loops or survey_priors is None:
+        poses = optimize_with_loops(problem, loops, lc, cfg.solve, solve_times_s=solve_times, initial=poses)
     t4 = time.perf_counter()
-    log.info("posegraph: %d poses, %d candidates, %d loops accepted", len(poses), len(cands),
-             sum(r.accepted for r in loops))
-    return Solution(poses, problem, loops, {"pass1_s": t1 - t0, "loops_s": t2 - t1, "pass23_s": t3 - t2,
-                                            "survey_s": t4 - t3, "n_loop_solves": len(solve_times),
+    log.info("posegraph: %d poses, %d loop query poses, %d candidates, %d loops accepted", len(poses), len(query),
+             len(cands), sum(r.accepted for r in loops))
+    return Solution(poses, problem, loops, {"pass1_s": t1 - t0, "survey_s": t2 - t1, "loops_s": t3 - t2,
+                                            "pass23_s": t4 - t3, "n_loop_solves": len(solve_times),
                                             "loop_solve_max_s": max(solve_times, default=0.0)}, rounds)
+
+
+def horizontal_anchors(priors: list[PosePrior]) -> tuple[np.ndarray, np.ndarray]:
+    """The survey priors' poses and their horizontal information in east/north ((K,2,2), 1/m^2: a marking anchor's;
+    a vertical-only ground anchor's is ~0)."""
+    survey = [p for p in priors if p.kind == "survey"]
+    idx = np.asarray([p.i for p in survey], np.int64)
+    info = np.zeros((len(survey), 2, 2))
+    for k, p in enumerate(survey):
+        R = p.T_map_vehicle[:2, :2]  # the body-frame block turned into east/north (the vehicle is near level)
+        info[k] = R @ p.information[3:5, 3:5] @ R.T
+    return idx, info
 
 
 def pose_change(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:

@@ -1,7 +1,8 @@
 """Horizontal survey anchors checked against each other before they enter the pose graph.
 
-Each accepted marking match claims the pass-2 estimate's horizontal error at its keyframe: ``shift = e(t) + n``
-with ``n ~ N(0, information^+)`` along the directions the markings fix. The pass-2 error ``e`` comes from the
+Each accepted marking match claims the horizontal error of the estimate it was matched on (pass 1, before the loops)
+at its keyframe: ``shift = e(t) + n`` with ``n ~ N(0, information^+)`` along the directions the markings fix. That
+error ``e`` comes from the
 GNSS/INS and varies slowly along a drive (its bias is a slow process), so anchors near each other in travel must
 agree on it. A match that locked onto a wrong repetition of the paint (a lane 3.5 m over, a crosswalk stripe 1 m
 over) or onto a distorted submap is accepted alone with a narrow peak; it is caught here: leave-one-out, each

@@ -133,3 +133,39 @@ def test_the_second_start_stops_after_its_coarse_stage_only_when_it_agrees_there
     corridor = verify_loop(_corridor(rng, 0.0), _corridor(rng, 3.0), se3_from_xyz_rpy(3.4, 0.3, 0.0, 0, 0, 0.0), cfg)
     assert not corridor.accepted and corridor.reason.startswith("ambiguous"), corridor.reason
     assert len(calls) == 6
+
+
+def test_loop_queries_only_where_the_anchors_of_the_drive_do_not_hold_both_directions():
+    """Two drives along a straight east-west line, 1 m a pose, heading east. Drive 0: anchors every 10 m over 0-100 m
+    of travel, each fixing the position across the road (north) to 0.05 m, and one crosswalk anchor at 50 m fixing
+    it along (east) too; drive 1: one anchor of both directions at its start, and a vertical-only one. With a 30 m
+    window and 0.05 m, drive 0 is held only where the crosswalk is within 30 m (queries at 20-80 m), drive 1 within
+    30 m of its start; the anchors of one drive never hold the other; window 0 keeps every query; the information
+    is turned from the body frame into east/north."""
+    from stages.posegraph.factors.graph import PosePrior
+    from stages.posegraph.loops.candidates import loosely_anchored, travel_m
+    from stages.posegraph.solve import horizontal_anchors
+
+    n = 300
+    positions = np.column_stack([np.r_[np.arange(n), np.arange(n)], np.zeros(2 * n), np.zeros(2 * n)]).astype(float)
+    group = np.repeat([0, 1], n)
+    travel = travel_m(positions, group)
+    assert travel[n - 1] == n - 1 and travel[n + 10] - travel[n] == 10  # no jump counted between the drives
+    query = np.arange(0, 2 * n, 10)
+    vertical = np.diag([1e4, 1e4, 1e-12, 1e-12, 1e-12, 1e4])
+    across = vertical + np.diag([0, 0, 0, 1e-12, 0.05 ** -2, 0])  # body y (north, heading east): a lane line
+    both = vertical + np.diag([0, 0, 0, 0.03 ** -2, 0.03 ** -2, 0])
+    priors = [PosePrior(i, np.eye(4), both if i == 50 else across, "survey") for i in range(0, 101, 10)]
+    priors += [PosePrior(n, np.eye(4), both, "survey"), PosePrior(n + 200, np.eye(4), vertical, "survey"),
+               PosePrior(n + 250, np.eye(4), both, "fixed")]
+    held, info = horizontal_anchors(priors)
+    assert held.tolist() == list(range(0, 101, 10)) + [n, n + 200]
+    assert info[5][0, 0] == pytest.approx(0.03 ** -2) and info[0][0, 0] < 1e-6 and info[-1].max() < 1e-6
+    kept = loosely_anchored(query, held, info, travel, group, 30.0, 0.05)
+    assert kept.tolist() == [q for q in query if (q < n and not 20 <= q <= 80) or q > n + 30]
+    turned = np.eye(4)
+    turned[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]  # heading north: the body's across-track is east
+    _, info_north = horizontal_anchors([PosePrior(0, turned, across, "survey")])
+    assert info_north[0][0, 0] == pytest.approx(0.05 ** -2) and info_north[0][1, 1] < 1e-6
+    assert loosely_anchored(query, held, info, travel, group, 0.0, 0.05).tolist() == query.tolist()
+    assert loosely_anchored(query, held[:0], info[:0], travel, group, 30.0, 0.05).tolist() == query.tolist()
