@@ -77,3 +77,41 @@ def test_write_pieces_of_a_generator_equal_those_of_a_list(tmp_path):
         [(r["path"], r["rows"], r["partition"]) for r in from_gen]
     for a, b in zip(from_list, from_gen):
         assert pq.read_table(tmp_path / "a" / a["path"]).equals(pq.read_table(tmp_path / "b" / b["path"]))
+
+
+def test_pieces_written_by_several_threads_keep_their_order_and_at_most_that_many_wait(tmp_path, monkeypatch):
+    """Writes slowed down so that they overlap: the records come in the pieces' order with their own rows, at most
+    ``WRITE_THREADS`` writes run at once, and a failing write raises its error once the earlier ones are in."""
+    import time
+
+    import pyarrow.parquet as pq
+
+    import pipeline.store as store
+
+    schema = pa.schema([("drive", pa.string()), ("scan_id", pa.int64())])
+    tables = [pa.table({"drive": ["d0"] * (k + 1), "scan_id": list(range(k + 1))}, schema=schema) for k in range(9)]
+    real = store.write_parquet_atomic
+    running, most = [0], [0]
+    lock = threading.Lock()
+
+    def slow(table, path):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.05 if table.num_rows % 2 else 0.01)  # odd pieces finish after the even ones started later
+        try:
+            if table.num_rows == 7:
+                raise store.DatasetIOError(f"cannot write {path}: disk full")
+            return real(table, path)
+        finally:
+            with lock:
+                running[0] -= 1
+
+    monkeypatch.setattr(store, "write_parquet_atomic", slow)
+    kw = dict(label="p0", schema=schema, partitioning=(), where="test")
+    records = write_pieces((t for t in tables[:6]), out_dir=tmp_path / "a", **kw)
+    assert [r["rows"] for r in records] == [1, 2, 3, 4, 5, 6]
+    assert [pq.read_table(tmp_path / "a" / r["path"]).num_rows for r in records] == [1, 2, 3, 4, 5, 6]
+    assert 2 <= most[0] <= store.WRITE_THREADS
+    with pytest.raises(store.DatasetIOError, match="disk full"):
+        write_pieces((t for t in tables), out_dir=tmp_path / "b", **kw)
