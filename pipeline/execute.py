@@ -80,27 +80,37 @@ def _part_marker(spec: dict[str, Any], key: str, label: str) -> Path:
     return dataset_dir(Path(spec["root"]), out["dataset"], spec["fingerprint"]) / "_parts" / f"{label}.json"
 
 
-def _task_cpu_s() -> float:
-    """CPU seconds of the calling thread and of this process's finished children (the pools a task starts)."""
+def _cpu_s() -> tuple[float, float]:
+    """CPU seconds (this thread's, this process's), each with this process's finished children (the pools a task
+    starts)."""
     import resource
 
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.thread_time() + children.ru_utime + children.ru_stime
+    kids = children.ru_utime + children.ru_stime
+    return time.thread_time() + kids, time.process_time() + kids
 
 
 def run_partition(spec: dict[str, Any], partition: dict[str, Any],
                   provisional: dict[str, list[str]] | None = None) -> dict[str, Any]:
     """One task: compute one partition, write its outputs atomically, then its part markers (commit).
     ``provisional``: input arg -> upstream partition labels to read before that stage commits (pipeline.flow).
-    The result records when it ran (``t_start``/``t_end``, epoch s), its CPU seconds and its process's peak RSS
-    (``peak_rss_mb``, pipeline.memory)."""
+    The result records when it ran (``t_start``/``t_end``, epoch s), its CPU seconds (``cpu_s``: its process's,
+    helper threads included, when it ran alone in a process of a pool or cluster worker; else its own thread's) and
+    its process's peak RSS (``peak_rss_mb``, pipeline.memory)."""
+    import multiprocessing as mp
+
     from pipeline.memory import PeakRss, relax_malloc_trim, task_scope
 
     relax_malloc_trim()  # a dask worker's allocator trims so eagerly that numpy work takes 1.5x the CPU
-    t_start, cpu0 = time.time(), _task_cpu_s()
-    with task_scope(spec.get("trim_above_mb")), PeakRss() as rss:
+    t_start, (thread0, process0) = time.time(), _cpu_s()
+    with task_scope(spec.get("trim_above_mb")) as scope, PeakRss() as rss:
         result = _run_partition(spec, partition, provisional)
-    result.update(t_start=t_start, t_end=time.time(), cpu_s=round(_task_cpu_s() - cpu0, 3),
+    thread1, process1 = _cpu_s()
+    # a worker process's threads (a stream's reader and writers, a library's own pool) are the task's when it ran
+    # alone there; the run's own process also runs the flow and the single-partition stages' threads
+    whole_process = scope.alone and mp.parent_process() is not None
+    result.update(t_start=t_start, t_end=time.time(),
+                  cpu_s=round(process1 - process0 if whole_process else thread1 - thread0, 3),
                   peak_rss_mb=round(rss.peak_mb, 1))
     return result
 

@@ -8,6 +8,7 @@ process with others: its figure is the process's, an upper bound of the stage's 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import threading
 from typing import Any, Iterator
@@ -92,26 +93,37 @@ def _rss_mb() -> float:
 
 
 _ACTIVE_TASKS = [0]  # tasks running in this process (a thread scheduler runs several at once)
+_STARTED_TASKS = [0]  # tasks started in this process so far
 _ACTIVE_LOCK = threading.Lock()
 
 
+@dataclasses.dataclass
+class TaskScope:
+    alone: bool = False  # set at the task's end: no other task of this process ran at any moment of it
+
+
 @contextlib.contextmanager
-def task_scope(trim_above_mb: float | None = None) -> Iterator[None]:
+def task_scope(trim_above_mb: float | None = None) -> Iterator[TaskScope]:
     """Around one task: at its end, its garbage is collected and returned (``release_memory``), and when no other
     task of this process is running, every object still tracked by Python's cycle collector (the modules, the
     libraries' state, the caches kept between tasks) moves to the collector's permanent generation (``gc.freeze``),
     so that the next tasks' collections scan only the objects those tasks make. Frozen objects are still freed when
     their last reference goes; only a reference cycle among them would stay. Measured with py-spy on a demo build:
-    the pool processes' ``gc.collect`` after each task took ~8 CPU s of the build (~80 ms a task)."""
+    the pool processes' ``gc.collect`` after each task took ~8 CPU s of the build (~80 ms a task). The scope says at
+    the end whether the task ran alone in its process (``TaskScope.alone``: its CPU is then the process's)."""
     import gc
 
+    scope = TaskScope()
     with _ACTIVE_LOCK:
         _ACTIVE_TASKS[0] += 1
+        _STARTED_TASKS[0] += 1
+        first, started = _ACTIVE_TASKS[0] == 1, _STARTED_TASKS[0]
     try:
-        yield
+        yield scope
     finally:
         release_memory(trim_above_mb)
         with _ACTIVE_LOCK:
+            scope.alone = first and _STARTED_TASKS[0] == started
             _ACTIVE_TASKS[0] -= 1
             if _ACTIVE_TASKS[0] == 0:  # another task's live objects would otherwise never be scanned again
                 gc.freeze()

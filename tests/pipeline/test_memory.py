@@ -176,3 +176,31 @@ def test_release_memory_keeps_the_freed_heap_below_its_threshold_and_trims_above
     del pin
     assert grown > 200 * 2**20
     assert kept > 0.7 * grown and left < 0.3 * grown, (grown, kept, left)
+
+
+def test_a_task_knows_whether_it_ran_alone_in_its_process():
+    """Alone: no other task running when it started, none started before it ended; a task overlapped by another
+    (a thread scheduler) is not, and neither is the other."""
+    import threading
+
+    from pipeline.memory import task_scope
+
+    with task_scope() as alone:
+        pass
+    assert alone.alone
+    inner_started, outer_may_end = threading.Event(), threading.Event()
+    scopes = {}
+
+    def other():
+        with task_scope() as s:
+            scopes["inner"] = s
+            inner_started.set()
+            outer_may_end.wait(5)
+
+    with task_scope() as outer:
+        t = threading.Thread(target=other)
+        t.start()
+        assert inner_started.wait(5)
+    outer_may_end.set()
+    t.join()
+    assert not outer.alone and not scopes["inner"].alone
