@@ -187,21 +187,38 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
 
 
 def best_yaw_match(match_at: Callable[[float], MarkingMatch], search_rad: float, step_rad: float) -> MarkingMatch:
-    """The match at the submap heading that scores best: a grid of ``step_rad`` over +-``search_rad``, a parabola
-    through the best grid value and its neighbours, and the match at its vertex. The vertex is the heading estimate
-    even where its own score comes out a little under the grid's best (the raster's sampling noise): keeping the
-    grid value instead quantizes the heading to the grid step, and a later anchoring round, started near the
-    right heading, then reads exactly 0 and holds the estimate where it is. The returned match carries that
-    heading correction in ``yaw_rad``."""
+    """The match at the submap heading that scores best: on a grid of ``step_rad`` over +-``search_rad``, climbed from
+    the estimate's heading (0) to the neighbouring grid value that scores more until none does, then a parabola
+    through that grid value and its neighbours, and the match at its vertex. Where the scores over the grid rise to
+    one peak and fall (a submap turned by a fraction of a degree), that is the grid's best value, found with 3 to 5
+    matches instead of all 7; where a second, lower peak lies beyond a dip, the climb keeps the one nearer the
+    estimate. The vertex is the heading estimate even where its own score comes out a little under the grid's best
+    (the raster's sampling noise): keeping the grid value instead quantizes the heading to the grid step, and a later
+    anchoring round, started near the right heading, then reads exactly 0 and holds the estimate where it is. The
+    returned match carries that heading correction in ``yaw_rad``."""
     from dataclasses import replace
 
-    yaws = np.arange(-np.ceil(search_rad / step_rad), np.ceil(search_rad / step_rad) + 1) * step_rad
-    found = [match_at(float(y)) for y in yaws]
-    scores = np.array([m.score for m in found])
-    b = int(np.argmax(scores))
+    n = int(np.ceil(search_rad / step_rad))
+    yaws = np.arange(-n, n + 1) * step_rad
+    found: dict[int, MarkingMatch] = {}
+
+    def score(k: int) -> float:
+        if not 0 <= k <= 2 * n:
+            return -np.inf
+        if k not in found:
+            found[k] = match_at(float(yaws[k]))
+        return found[k].score
+
+    b = n
+    while True:
+        here, lo, hi = score(b), score(b - 1), score(b + 1)
+        step = -1 if lo > here and lo >= hi else (1 if hi > here else 0)
+        if step == 0:
+            break
+        b += step
     best, best_yaw = found[b], float(yaws[b])
-    if 0 < b < len(yaws) - 1:
-        lo, mid, hi = scores[b - 1], scores[b], scores[b + 1]
+    if 0 < b < 2 * n:
+        lo, mid, hi = score(b - 1), score(b), score(b + 1)
         den = lo - 2 * mid + hi
         if den < 0:
             y = best_yaw + float(np.clip(0.5 * (lo - hi) / den, -0.5, 0.5)) * step_rad

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.posegraph.anchors.marking_match import match_markings
+from stages.posegraph.anchors.marking_match import MarkingMatch, match_markings
 
 CELL_M = 0.1
 SIZE_M = 40.0
@@ -219,3 +219,39 @@ def test_a_shared_kernel_image_gives_the_match_of_a_kernel_per_match(mask_of):
         assert shared.score == pytest.approx(own.score, abs=np.exp(-8.0))
         np.testing.assert_allclose(shared.shift_en_m, own.shift_en_m, atol=1e-3)
         np.testing.assert_allclose(shared.information_en, own.information_en, rtol=1e-2, atol=1e-6)
+
+
+@pytest.mark.parametrize("peak_deg, calls", [(0.1, 4), (-0.6, 5), (1.3, 5), (-1.5, 5)])
+def test_the_yaw_climb_finds_the_grid_best_of_a_single_peak_with_fewer_matches(peak_deg, calls):
+    """Scores that rise to one peak and fall: the climb from 0 lands on the grid's best value and its vertex, as the
+    whole grid does, with ``calls`` matches (3 around the start, one per further step, one at the vertex inside the grid; at its edge none)."""
+    from stages.posegraph.anchors.survey_markings import best_yaw_match
+
+    seen = []
+
+    def match_at(yaw_rad):
+        seen.append(yaw_rad)
+        score = 1.0 - (np.degrees(yaw_rad) - peak_deg) ** 2
+        return MarkingMatch(np.zeros(2), np.eye(2), score, 500, True, "accepted")
+
+    found = best_yaw_match(match_at, np.deg2rad(1.5), np.deg2rad(0.5))
+    grid = np.arange(-3, 4) * 0.5
+    best = grid[np.argmax(1.0 - (grid - peak_deg) ** 2)]
+    expected = peak_deg if -1.5 < best < 1.5 else best  # a parabola's vertex is exact; the edge keeps the grid value
+    assert np.degrees(found.yaw_rad) == pytest.approx(expected, abs=1e-9)
+    assert len(seen) == calls
+
+
+def test_the_yaw_climb_keeps_the_peak_nearer_the_estimate():
+    """Two peaks, the higher one beyond a dip: the climb stops at the one next to the estimate's heading."""
+    from stages.posegraph.anchors.survey_markings import best_yaw_match
+
+    scores = {-3: 0.2, -2: 0.3, -1: 0.5, 0: 0.6, 1: 0.55, 2: 0.4, 3: 0.9}
+
+    def match_at(yaw_rad):
+        k = round(np.degrees(yaw_rad) / 0.5)
+        s = scores.get(k, 0.6) if abs(np.degrees(yaw_rad) - 0.5 * k) < 1e-9 else 0.6
+        return MarkingMatch(np.zeros(2), np.eye(2), s, 500, True, "accepted")
+
+    found = best_yaw_match(match_at, np.deg2rad(1.5), np.deg2rad(0.5))
+    assert abs(np.degrees(found.yaw_rad)) < 0.25
