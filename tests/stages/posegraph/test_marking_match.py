@@ -224,7 +224,8 @@ def test_a_shared_kernel_image_gives_the_match_of_a_kernel_per_match(mask_of):
 @pytest.mark.parametrize("peak_deg, calls", [(0.1, 4), (-0.6, 5), (1.3, 5), (-1.5, 5)])
 def test_the_yaw_climb_finds_the_grid_best_of_a_single_peak_with_fewer_matches(peak_deg, calls):
     """Scores that rise to one peak and fall: the climb from 0 lands on the grid's best value and its vertex, as the
-    whole grid does, with ``calls`` matches (3 around the start, one per further step, one at the vertex inside the grid; at its edge none)."""
+    whole grid does, with ``calls`` matches (3 around the start, one per further step, one at the vertex inside the
+    grid; at its edge none)."""
     from stages.posegraph.anchors.survey_markings import best_yaw_match
 
     seen = []
