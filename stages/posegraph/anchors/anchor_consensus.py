@@ -2,17 +2,14 @@
 
 Each accepted marking match claims the horizontal error of the estimate it was matched on (pass 1, before the loops)
 at its keyframe: ``shift = e(t) + n`` with ``n ~ N(0, information^+)`` along the directions the markings fix. That
-error ``e`` comes from the
-GNSS/INS and varies slowly along a drive (its bias is a slow process), so anchors near each other in travel must
-agree on it. A match that locked onto a wrong repetition of the paint (a lane 3.5 m over, a crosswalk stripe 1 m
-over) or onto a distorted submap is accepted alone with a narrow peak; it is caught here: leave-one-out, each
-anchor is compared, in the directions it fixes, with the information-weighted mean of the other kept anchors of
-its drive within ``window_m`` of travel (covariance: that mean's own plus ``drift_sigma_m``^2 per axis for the
-variation of ``e`` between them), and the worst whitened residual above the chi-square gate is dropped, again
-until none is left. An anchor with no neighbour that fixes its directions cannot be checked and is dropped too
-(``min_neighbours``): one lone anchor cannot be told from a wrong one.
-Pure functions on arrays.
-"""
+error ``e`` comes from the GNSS/INS and varies slowly along a drive (its bias is a slow process), so anchors near
+each other in travel must agree on it. A match that locked onto a wrong repetition of the paint (a lane 3.5 m over,
+a crosswalk stripe 1 m over) or onto a distorted submap is accepted alone with a narrow peak; it is caught here:
+leave-one-out, each anchor is compared, in the directions it fixes, with the information-weighted mean of the other
+kept anchors of its drive within ``window_m`` of travel (covariance: that mean's own plus ``drift_sigma_m``^2 per
+axis for the variation of ``e`` between them), and the worst whitened residual above the chi-square gate is dropped,
+again until none is left. An anchor with no neighbour that fixes its directions cannot be checked and is dropped too
+(``min_neighbours``): one lone anchor cannot be told from a wrong one. Pure functions on arrays."""
 from __future__ import annotations
 
 from dataclasses import dataclass

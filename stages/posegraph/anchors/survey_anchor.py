@@ -407,13 +407,12 @@ def checked_horizontal(matches: list[SurveyMatch], poses: np.ndarray, offsets: n
     from scipy.stats import chi2
 
     from stages.posegraph.anchors.anchor_consensus import anchor_consensus
+    from stages.posegraph.loops.candidates import travel_m
 
     acc = [k for k, m in enumerate(matches) if m.horizontal is not None and m.horizontal.accepted]
     if not acc:
         return matches
-    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2, 3], axis=0), axis=1)]
-    step[np.asarray(offsets[:-1], np.int64)] = 0.0  # travel restarts with each drive
-    travel = np.cumsum(step)
+    travel = travel_m(poses[:, :3, 3], np.repeat(np.arange(len(offsets) - 1), np.diff(offsets)))
     idx = np.asarray([matches[k].i for k in acc], np.int64)
     res = anchor_consensus(np.array([matches[k].horizontal.shift_en_m for k in acc]),
                            np.array([matches[k].horizontal.information_en for k in acc]),
