@@ -310,7 +310,8 @@ class Flow:
     def run(self) -> dict[str, Any]:
         self.t0 = time.time()
         with contextlib.ExitStack() as stack:
-            stack.enter_context(one_thread_per_process())
+            stack.enter_context(one_thread_per_process(
+                self.scheduler.workers if self.scheduler.kind == "processes" else None))
             ledger = self.plan.root / "tmp" / f"verified-{uuid.uuid4().hex[:12]}"
             stack.callback(shutil.rmtree, ledger, ignore_errors=True)
             for st in self.stages.values():  # a file is verified once per run (pipeline.store.verify_file)

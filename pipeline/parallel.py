@@ -176,9 +176,23 @@ def default_workers() -> int:
 
 
 def task_threads() -> int | None:
-    """The threads of the dask worker running the current task (its ``nthreads``: the cores the cluster counts it
-    for), or None outside a cluster task. A library whose thread pool ignores ``OMP_NUM_THREADS`` is bounded to
-    this by its caller (Open3D's oneTBB: ``stages.common.registration``)."""
+    """The cores the current task may use: the threads of the dask worker running it (its ``nthreads``: the cores
+    the cluster counts it for); in a process of a local pool (the engine's, ``parallel_map``'s), its share of the
+    usable cores (``pipeline.execute.one_thread_per_process``); None elsewhere (this process decides). A library
+    whose thread pool ignores ``OMP_NUM_THREADS`` is bounded to this by its caller (Open3D's oneTBB:
+    ``stages.common.registration``). Measured on demo seed 1's odometry, 2 pool processes on 2 cores: 62.5-63.4 s
+    with each process's oneTBB on both cores, 59.9-60.6 s bounded to one."""
+    cluster = _cluster_task_threads()
+    if cluster is not None:
+        return cluster
+    from pipeline.execute import TASK_THREADS_VARIABLE
+
+    share = os.environ.get(TASK_THREADS_VARIABLE, "")
+    return int(share) if share.isdigit() and int(share) > 0 else None
+
+
+def _cluster_task_threads() -> int | None:
+    """The ``nthreads`` of the dask worker running the current task, or None outside a cluster task."""
     if "distributed" not in sys.modules:  # not a dask worker process; do not import dask for the answer
         return None
     try:
@@ -190,7 +204,7 @@ def task_threads() -> int | None:
 
 
 def _in_distributed_worker() -> bool:
-    return task_threads() is not None
+    return _cluster_task_threads() is not None
 
 
 def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], *, workers: int | None = None,
@@ -229,7 +243,7 @@ def _on_pool(fn, items, workers, initializer, initargs, progress) -> list[Any]:
 
     from pipeline.execute import one_thread_per_process
 
-    with one_thread_per_process():  # the spawned processes inherit the environment at start
+    with one_thread_per_process(workers):  # the spawned processes inherit the environment at start
         with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
                                  initializer=initializer, initargs=initargs) as pool:
             return _gathered({pool.submit(fn, x): n for n, x in enumerate(items)}, progress)
@@ -326,7 +340,7 @@ def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, pr
         with open(init_path, "wb") as f:
             pickle.dump((initializer, initargs), f, protocol=pickle.HIGHEST_PROTOCOL)
     try:
-        with one_thread_per_process():  # processes start at a submit and inherit the environment then
+        with one_thread_per_process(holder["workers"]):  # processes start at a submit, inherit the environment then
             if holder["pool"] is None:
                 holder["pool"] = ProcessPoolExecutor(max_workers=holder["workers"], mp_context=mp.get_context("spawn"))
             futures = {holder["pool"].submit(_pooled_call, fn, x, token, holder["block"],

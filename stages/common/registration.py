@@ -21,11 +21,13 @@ METHODS = ("gicp", "point_to_plane")
 
 @functools.cache  # once per process, at its first preparation or registration
 def bound_open3d_threads() -> int | None:
-    """On a dask worker, bound Open3D to the worker's threads, once per process: Open3D 0.20 runs on oneTBB, which
-    ignores the ``OMP_NUM_THREADS=1`` a dask nanny sets, so a "single-threaded" worker ran its registrations on
-    every core of the machine (``pipeline.parallel.task_threads``). Measured on demo seed 1, a LocalCluster of
-    single-threaded workers: 1 worker 254.2 s unbounded, 289.3 s bounded; 2 workers 168.6 / 160.7 s. Elsewhere
-    (the local pool, a script) Open3D keeps its own default. Returns the bound (None: none set)."""
+    """On a dask worker or in a process of a local pool, bound Open3D to the cores the task may use
+    (``pipeline.parallel.task_threads``), once per process: Open3D 0.20 runs on oneTBB, which ignores the
+    ``OMP_NUM_THREADS=1`` a dask nanny or a pool sets, so a "single-threaded" worker ran its registrations on every
+    core of the machine. Measured on demo seed 1, a LocalCluster of single-threaded workers: 1 worker 254.2 s
+    unbounded, 289.3 s bounded; 2 workers 168.6 / 160.7 s; the odometry on a local pool of 2 processes: 62.5-63.4 s
+    unbounded, 59.9-60.6 s bounded. Elsewhere (a sync run, a script) Open3D keeps its own default. Returns the bound
+    (None: none set)."""
     from pipeline.parallel import task_threads
 
     n = task_threads()

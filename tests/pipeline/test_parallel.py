@@ -134,3 +134,34 @@ def test_task_threads_is_the_workers_thread_count_inside_a_cluster_task_and_none
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         assert client.submit(threads_of_this_task, 0).result() == 3
         assert task_threads() is None  # the client's own thread is no task
+
+
+def test_task_threads_in_a_local_pool_is_each_process_share_of_the_cores(monkeypatch):
+    """A pool's processes are told their share of the usable cores (Open3D's oneTBB ignores OMP_NUM_THREADS and
+    is bounded to it); the calling process is not, and its environment is restored after the pool."""
+    from pipeline.execute import TASK_THREADS_VARIABLE
+    from pipeline.parallel import default_workers, shared_pool, task_threads
+    from tests.pipeline.toy_parallel import threads_of_this_task
+
+    monkeypatch.delenv(TASK_THREADS_VARIABLE, raising=False)
+    assert task_threads() is None
+    assert parallel_map(threads_of_this_task, [0, 1, 2], workers=2) == [max(1, default_workers() // 2)] * 3
+    assert parallel_map(threads_of_this_task, [0, 1], workers=1) == [None, None]  # in this process
+    with shared_pool(workers=3):
+        assert parallel_map(threads_of_this_task, [0, 1, 2]) == [max(1, default_workers() // 3)] * 3
+    assert TASK_THREADS_VARIABLE not in os.environ and task_threads() is None
+
+
+def test_one_thread_per_process_sets_the_share_for_the_block_and_restores_a_callers_value(monkeypatch):
+    from pipeline.execute import TASK_THREADS_VARIABLE, one_thread_per_process
+    from pipeline.parallel import default_workers
+
+    monkeypatch.setenv(TASK_THREADS_VARIABLE, "7")
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    with one_thread_per_process(processes=64):
+        assert os.environ[TASK_THREADS_VARIABLE] == "1" and os.environ["OMP_NUM_THREADS"] == "1"
+    assert os.environ[TASK_THREADS_VARIABLE] == "7" and "OMP_NUM_THREADS" not in os.environ
+    with one_thread_per_process(processes=1):
+        assert os.environ[TASK_THREADS_VARIABLE] == str(default_workers())
+    with one_thread_per_process():  # no pool size: the variable as the caller left it
+        assert os.environ[TASK_THREADS_VARIABLE] == "7"
