@@ -17,7 +17,7 @@ from stages.common.registration import (
     RegistrationResult,
     adjoint_se3,
     floor_information,
-    point_to_plane_hessian,
+    plane_hessian,
     register_clouds,
 )
 from stages.odometry.config import EdgeConfig, PrepareConfig
@@ -175,12 +175,14 @@ def deskew_own_sweep(prepared: list[PreparedScan], pairs: _Pairs, results: dict[
 def vehicle_edge(src: PreparedScan, tgt: PreparedScan, res: RegistrationResult, T_vehicle_lidar: np.ndarray,
                  cfg: EdgeConfig) -> tuple[np.ndarray, np.ndarray]:
     """Vehicle-frame increment (road planes applied) and its information: the structure's point-to-plane
-    Hessian, plus the ground's where the road planes were used; floored; a rotation term in turns."""
+    Hessian, plus the ground's on the target's road plane where the road planes were used (height, roll, pitch;
+    ``registration.plane_hessian``); floored; a rotation term in turns."""
     info = cfg.information
     H = res.hessian  # the structure's, computed by register_clouds with the same max_corr_m / point_sigma_m
     T_l = with_road(src, tgt, res)
-    if T_l is not res.T_target_source and src.ground is not None and tgt.ground is not None:
-        H = H + point_to_plane_hessian(src.ground, tgt.ground, T_l, cfg.icp.max_corr_m, info.point_sigma_m)
+    if T_l is not res.T_target_source and src.ground_points_m is not None and tgt.ground_points_m is not None:
+        H = H + plane_hessian(src.ground_voxels_m, tgt.ground_voxels_m, tgt.plane.normal, T_l, cfg.icp.max_corr_m,
+                              info.point_sigma_m)
     T_v, info_v = lidar_to_vehicle_edge(T_l, floor_information(H, info.min_sigma_m, info.min_sigma_rad),
                                         T_vehicle_lidar)
     if info.rot_sigma_per_rad > 0:  # turns: residual rotation error grows with the edge's rotation
@@ -243,9 +245,9 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
     the deviation gate). Scans whose ``time_offset_s`` is None are taken as already motion-compensated (e.g.
     with wheel odometry by the stage). With ``ground_split`` the road plane is fitted per scan, the structure
     above it is registered (GICP) and the ground planes then fix height, roll and pitch; the information sums
-    the point-to-plane Hessians of structure and ground. With ``deskew`` and per-point times, a first pass
-    estimates every edge, each scan is then deskewed with the motion over its own sweep and registered again
-    (deskewing both scans of a pair with the pair's motion cancels nothing in turns).
+    the point-to-plane Hessians of structure and ground (the latter on the road plane). With ``deskew`` and
+    per-point times, a first pass estimates every edge, each scan is then deskewed with the motion over its own
+    sweep and registered again (deskewing both scans of a pair with the pair's motion cancels nothing in turns).
     ``guide_increments`` (scan_id -> vehicle increment from the previous scan, e.g. wheel odometry) replace the
     GNSS/INS increments as initial guess and gate reference where given: a multipath jump makes a GNSS
     increment tens of centimetres wrong, which rejected correct ICP edges (measured on the simulator). Edges

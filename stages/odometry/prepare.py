@@ -28,15 +28,16 @@ class PreparedScan:
     plane: GroundPlane | None
     ground_points_m: np.ndarray | None
     voxel_m: float
-    knn: int
 
     @cached_property
-    def ground(self) -> o3d.geometry.PointCloud | None:
-        """Ground cloud with normals, built on first use (only the final edges' information needs it; scans
-        deskewed after a first pass are prepared again)."""
+    def ground_voxels_m(self) -> np.ndarray | None:
+        """The ground points voxel-downsampled like the structure, computed on first use (only the final edges'
+        information needs them, against the road plane: ``registration.plane_hessian``; scans deskewed after a
+        first pass are prepared again)."""
         if self.ground_points_m is None:
             return None
-        return prepare_cloud(self.ground_points_m, self.voxel_m, self.knn, with_covariances=False)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(self.ground_points_m, np.float64)))
+        return np.asarray((cloud.voxel_down_sample(self.voxel_m) if self.voxel_m > 0 else cloud).points)
 
 
 def prepare_scan(points_m: np.ndarray, time_offset_s: np.ndarray | None, T_vehicle_lidar: np.ndarray,
@@ -45,11 +46,11 @@ def prepare_scan(points_m: np.ndarray, time_offset_s: np.ndarray | None, T_vehic
     if plane is None:
         return PreparedScan(points_m, time_offset_s,
                             prepare_cloud(points_m, cfg.voxel_m, cfg.knn, with_covariances=with_cov),
-                            None, None, cfg.voxel_m, cfg.knn)
+                            None, None, cfg.voxel_m)
     on_ground = ground_mask(points_m, plane, cfg.ground_tolerance_m)
     return PreparedScan(points_m, time_offset_s,
                         prepare_cloud(points_m[~on_ground], cfg.voxel_m, cfg.knn, with_covariances=with_cov), plane,
-                        points_m[on_ground], cfg.voxel_m, cfg.knn)
+                        points_m[on_ground], cfg.voxel_m)
 
 
 def prepare_scans(scans: list[Scan], T_vehicle_lidar: np.ndarray, cfg: PrepareConfig, with_cov: bool

@@ -10,6 +10,7 @@ from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import (
     adjoint_se3,
     floor_information,
+    plane_hessian,
     point_to_plane_hessian,
     prepare_cloud,
     register_clouds,
@@ -48,6 +49,37 @@ def test_register_recovers_known_motion_within_mm(street_scene, method, tol_m, t
     H_search = point_to_plane_hessian(curr, prev, res.T_target_source, 1.5, 0.05)
     np.testing.assert_allclose(res.hessian, H_search, rtol=1e-9, atol=1e-9 * np.abs(H_search).max())
     np.testing.assert_allclose(res.information, floor_information(H_search, 0.005, 0.0002), rtol=1e-9)
+
+
+def test_plane_hessian_equals_the_estimated_normals_on_an_exact_plane_and_holds_no_in_plane_information():
+    """On a noise-free tilted plane the neighbours' normals are the plane's: ``plane_hessian`` equals
+    ``point_to_plane_hessian`` there; only the height and the two tilts are constrained (target frame at T = I:
+    no information along the plane or about its normal); a source point with no target point within max_corr_m
+    adds nothing."""
+    rng = np.random.default_rng(3)
+    R = Rotation.from_rotvec([0.02, -0.03, 0.0]).as_matrix()
+    n = R[:, 2]
+
+    def on_plane(k, half_m):
+        uv = rng.uniform(-half_m, half_m, (k, 2))
+        return uv @ R[:, :2].T + 0.4 * R[:, :2].sum(axis=1) - 1.8 * n
+
+    tgt_m, src_m = on_plane(3000, 15.0), on_plane(800, 14.0)
+    T = se3_from_xyz_rpy(0.8, 0.1, 0.0, 0.0, 0.0, 0.01)
+    src_moved_back = (src_m - T[:3, 3]) @ T[:3, :3]  # source points in the source frame: T maps them onto tgt's
+    H_plane = plane_hessian(src_moved_back, tgt_m, n, T, 1.0, 0.05)
+    H_knn = point_to_plane_hessian(prepare_cloud(src_moved_back, 0.0, with_covariances=False),
+                                   prepare_cloud(tgt_m, 0.0, with_covariances=False), T, 1.0, 0.05)
+    np.testing.assert_allclose(H_plane, H_knn, rtol=1e-6, atol=1e-6 * np.abs(H_knn).max())
+    H0 = plane_hessian(tgt_m, tgt_m, n, np.eye(4), 1.0, 0.05)
+    scale = np.abs(H0).max()
+    for xi in (np.r_[n, 0, 0, 0], np.r_[0, 0, 0, R[:, 0]], np.r_[0, 0, 0, R[:, 1]]):
+        assert np.linalg.norm(H0 @ xi) < 1e-9 * scale
+    assert np.linalg.matrix_rank(H0, tol=1e-9 * scale) == 3
+    far = np.vstack([tgt_m[:10], tgt_m[:10] + 40.0 * R[:, 0]])  # 10 points on the target, 10 far beyond its edge
+    np.testing.assert_allclose(plane_hessian(far, tgt_m, n, np.eye(4), 1.0, 0.05),
+                               plane_hessian(far[:10], tgt_m, n, np.eye(4), 1.0, 0.05), rtol=1e-12)
+    assert not plane_hessian(np.zeros((0, 3)), tgt_m, n, np.eye(4), 1.0, 0.05).any()
 
 
 def test_information_body_frame_matches_gtsam_adjoint():
