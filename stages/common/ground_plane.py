@@ -41,7 +41,12 @@ def fit_ground_plane(points_lidar_m: np.ndarray, T_vehicle_lidar: np.ndarray, *,
     sidewalk is out of the biweight's reach (measured: normal 0.41 -> 0.012 deg, offset 42 -> 0.7 mm RMS).
     Falls back to every candidate when the corridor has too few points; None when fewer than ``min_points``
     carry weight (a scan without visible ground). Each iteration weighs every candidate (zero beyond the width)
-    instead of gathering those inside: 2.8 -> 1.8 ms a demo scan, planes equal to 4e-14 (200 scans)."""
+    instead of gathering those inside, and takes the weighted centroid and scatter from the candidates' first and
+    second moments (``_moments``, built once per point set: one product with the weights an iteration instead of
+    two (N,3) temporaries): 3.7 -> 1.0 ms a demo seed 2 scan (26k candidates), normals equal to 5e-16 and offsets to
+    2e-14 m against the centred form (50 scans). The candidates lie within ``radius_m`` of the sensor, so the
+    moments' cancellation costs nothing visible (the scatter's smallest eigenvalue, cm^2, against moments of
+    (20 m)^2: ~1e-10 of its digits)."""
     p = np.asarray(points_lidar_m, np.float64)[:, :3]
     R, t = T_vehicle_lidar[:3, :3], T_vehicle_lidar[:3, 3]
     z_v = p @ R[2] + t[2]  # vehicle-frame height; x, y only for the points in the band
@@ -54,23 +59,42 @@ def fit_ground_plane(points_lidar_m: np.ndarray, T_vehicle_lidar: np.ndarray, *,
         lane = cand
     up = R[2, :]  # vehicle z axis in the lidar frame (R^T e_z)
     normal, offset = up.copy(), float(t[2])  # the vehicle's ground: z_vehicle = up . p + t_z = 0
+    moments: dict[bool, np.ndarray] = {}
     for it, width in enumerate(widths_m):
-        use = lane if it < lane_iterations else cand
-        r = (use @ normal + offset) / width
-        w = 1.0 - r * r
+        on_lane = it < lane_iterations
+        use = lane if on_lane else cand
+        if on_lane not in moments:
+            moments[on_lane] = _moments(use)
+        w = use @ normal
+        w += offset
+        w *= 1.0 / width
+        np.multiply(w, w, out=w)
+        np.subtract(1.0, w, out=w)
         np.maximum(w, 0.0, out=w)
-        w *= w  # the biweight; 0 beyond the width (no gather of the points inside: most are)
+        np.multiply(w, w, out=w)  # the biweight; 0 beyond the width (no gather of the points inside: most are)
         if np.count_nonzero(w) < min_points:
             return None
-        centroid = w @ use / w.sum()
-        du = use - centroid
-        du_w = du * w[:, None]
-        _, V = np.linalg.eigh(du_w.T @ du)  # weighted scatter; smallest eigenvector = normal
+        total = w.sum()
+        s = moments[on_lane] @ w  # sums of w x, w y, w z, w xx, w xy, w xz, w yy, w yz, w zz
+        centroid = s[:3] / total
+        second = np.array([[s[3], s[4], s[5]], [s[4], s[6], s[7]], [s[5], s[7], s[8]]])
+        _, V = np.linalg.eigh(second - total * np.outer(centroid, centroid))  # weighted scatter; smallest: normal
         normal = V[:, 0] if V[:, 0] @ up > 0 else -V[:, 0]
         offset = float(-normal @ centroid)
     d = cand @ normal + offset
     inl = np.abs(d) < widths_m[-1]
     return GroundPlane(normal, offset, int(inl.sum()), float(np.sqrt(np.mean(d[inl] ** 2))))
+
+
+def _moments(points_m: np.ndarray) -> np.ndarray:
+    """(9, N): x, y, z, xx, xy, xz, yy, yz, zz of each point; its product with weights gives their weighted first and
+    second moments."""
+    x, y, z = points_m[:, 0], points_m[:, 1], points_m[:, 2]
+    out = np.empty((9, len(points_m)))
+    out[0], out[1], out[2] = x, y, z
+    for row, (a, b) in enumerate(((x, x), (x, y), (x, z), (y, y), (y, z), (z, z)), start=3):
+        np.multiply(a, b, out=out[row])
+    return out
 
 
 def ground_mask(points_lidar_m: np.ndarray, plane: GroundPlane, tolerance_m: float) -> np.ndarray:
