@@ -46,6 +46,16 @@ class RegistrationResult:
     hessian: np.ndarray  # the unfloored point-to-plane Hessian behind ``information`` (6x6)
 
 
+def one_batch_tree(points_m: np.ndarray):
+    """A scipy ``cKDTree`` for a tree built, queried once or a few times and dropped (a crop, a scan): split at the
+    midpoint and not compacted, which builds it ~2x faster than the default balanced, compacted tree for slightly
+    slower queries; the nearest neighbours are the same. A survey crop of 56k points with seven 2-D queries and one
+    3-D query of 6k points: 38.2 -> 25.2 ms."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points_m, balanced_tree=False, compact_nodes=False)
+
+
 def crop_range(points_m: np.ndarray, min_range_m: float, max_range_m: float) -> np.ndarray:
     """Boolean mask of points whose range from the sensor lies in [min, max] (a NaN or infinite coordinate: out).
     Squared ranges against squared bounds: 0.54 -> 0.10 ms a 39k-point scan against ``np.linalg.norm``, the same
@@ -120,9 +130,7 @@ def point_to_plane_hessian(source: o3d.geometry.PointCloud, target: o3d.geometry
     if len(src) == 0 or len(tgt) == 0 or len(normals) != len(tgt):
         return np.zeros((6, 6))
     if correspondences is None:
-        from scipy.spatial import cKDTree
-
-        dist_m, idx = cKDTree(tgt).query(src, distance_upper_bound=max_corr_m)
+        dist_m, idx = one_batch_tree(tgt).query(src, distance_upper_bound=max_corr_m)
         ok = np.isfinite(dist_m)
         p, n = src[ok], normals[idx[ok]]
     else:
@@ -149,13 +157,11 @@ def plane_hessian(source_m: np.ndarray, target_m: np.ndarray, normal: np.ndarray
     the estimated normals of a noisy road tilt at random and credited the edge with horizontal information the
     road does not hold. Needs no normal estimation (Open3D's KNN normals of the ground were 9 % of a single-threaded
     odometry on demo seed 1)."""
-    from scipy.spatial import cKDTree
-
     src = np.asarray(source_m, np.float64) @ T_target_source[:3, :3].T + T_target_source[:3, 3]
     tgt = np.asarray(target_m, np.float64)
     if len(src) == 0 or len(tgt) == 0:
         return np.zeros((6, 6))
-    dist_m, _ = cKDTree(tgt).query(src, distance_upper_bound=max_corr_m)
+    dist_m, _ = one_batch_tree(tgt).query(src, distance_upper_bound=max_corr_m)
     return _body_hessian(src[np.isfinite(dist_m)], np.asarray(normal, np.float64), T_target_source, point_sigma_m)
 
 
@@ -214,14 +220,12 @@ def score_alignment(source: o3d.geometry.PointCloud, target: o3d.geometry.PointC
     when its nearest target point lies within ``search_m`` and its distance to that point's tangent plane is
     below ``plane_tol_m``. (open3d's inlier RMSE is point-to-point between sparse rings, ~0.5 m on 0.4 m
     voxels whatever the pose; two scans of one place taken 3 m apart rarely share ring positions.)"""
-    from scipy.spatial import cKDTree
-
     src = np.asarray(source.points) @ T_target_source[:3, :3].T + T_target_source[:3, 3]
     tgt = np.asarray(target.points)
     normals = np.asarray(target.normals)
     if len(src) == 0 or len(tgt) == 0 or len(normals) != len(tgt) or not np.isfinite(src).all():
         return AlignmentScore(0.0, float("inf"))
-    dist_m, idx = cKDTree(tgt).query(src, distance_upper_bound=search_m)
+    dist_m, idx = one_batch_tree(tgt).query(src, distance_upper_bound=search_m)
     ok = np.isfinite(dist_m)
     plane_m = np.abs(np.einsum("ij,ij->i", src[ok] - tgt[idx[ok]], normals[idx[ok]]))
     inl = plane_m < plane_tol_m

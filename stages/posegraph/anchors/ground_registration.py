@@ -21,7 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from stages.common.registration import one_batch_tree
 
 TUKEY_WIDTHS_M = (0.3, 0.15, 0.08, 0.05, 0.05, 0.05)  # the first after the median start, decreasing
 
@@ -62,7 +63,7 @@ def register_vertical(source_m: np.ndarray, target_m: np.ndarray, target_normals
     horizontal nearest neighbours within ``max_corr_m``."""
     src = np.asarray(source_m, np.float64)[:, :3]
     tgt = np.asarray(target_m, np.float64)
-    tree = cKDTree(tgt[:, :2])
+    tree = one_batch_tree(tgt[:, :2])
     R0, t0 = np.asarray(T_init, float)[:3, :3], np.asarray(T_init, float)[:3, 3]
     placed = src @ R0.T + t0
     R_corr, dz = np.eye(3), 0.0
@@ -113,7 +114,7 @@ def _fit_quality(points_m: np.ndarray, target_m: np.ndarray, max_corr_m: float) 
     the RMS of those distances."""
     if len(points_m) == 0 or len(target_m) == 0:
         return 0.0, float("inf")
-    dist, _ = cKDTree(target_m).query(points_m, distance_upper_bound=max_corr_m)
+    dist, _ = one_batch_tree(target_m).query(points_m, distance_upper_bound=max_corr_m)
     ok = np.isfinite(dist)
     if not ok.any():
         return 0.0, float("inf")
