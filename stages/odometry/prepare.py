@@ -10,7 +10,7 @@ import numpy as np
 import open3d as o3d
 
 from stages.common.ground_plane import GroundPlane, fit_ground_plane, ground_mask
-from stages.common.registration import crop_range, prepare_cloud
+from stages.common.registration import crop_range, prepare_cloud, voxel_downsample
 from stages.odometry.config import PrepareConfig
 
 if TYPE_CHECKING:
@@ -36,8 +36,7 @@ class PreparedScan:
         first pass are prepared again)."""
         if self.ground_points_m is None:
             return None
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(self.ground_points_m, np.float64)))
-        return np.asarray((cloud.voxel_down_sample(self.voxel_m) if self.voxel_m > 0 else cloud).points)
+        return voxel_downsample(self.ground_points_m, self.voxel_m)
 
 
 def prepare_scan(points_m: np.ndarray, time_offset_s: np.ndarray | None, T_vehicle_lidar: np.ndarray,

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.common.ground_plane import rotation_between
-from stages.common.registration import floor_information, prepare_cloud, register_clouds
+from stages.common.registration import floor_information, prepare_cloud, register_clouds, voxel_downsample
 from stages.posegraph.config import AnchorConfig, GroundAnchorConfig
 from stages.posegraph.factors.graph import PosePrior
 
@@ -36,17 +36,9 @@ class SurveyMatch:
     T_init: np.ndarray | None = None  # the estimate it was matched from
 
 
-def downsample_survey(survey_enu_m: np.ndarray, voxel_m: float) -> np.ndarray:
-    """The survey cloud voxel-downsampled (open3d: the mean point per voxel)."""
-    import open3d as o3d
-
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(survey_enu_m, float)))
-    return np.asarray(cloud.voxel_down_sample(voxel_m).points)
-
-
 def build_survey_index(survey_enu_m: np.ndarray, voxel_m: float) -> tuple[np.ndarray, cKDTree]:
     """Voxel-downsample the survey cloud once and index it in 2-D for cropping."""
-    pts = downsample_survey(survey_enu_m, voxel_m)
+    pts = voxel_downsample(survey_enu_m, voxel_m)
     return pts, cKDTree(pts[:, :2])
 
 
@@ -102,12 +94,9 @@ def _register_vertical(low_vehicle_m: np.ndarray, survey_local_m: np.ndarray, T_
     """``register_vertical`` of the scan's low points (voxel-downsampled as the survey is) onto the survey crop (with
     its plane normals, computed here when not given): (T, fitness, inlier RMSE, whether enough points carried
     weight)."""
-    import open3d as o3d
-
     from stages.posegraph.anchors.ground_registration import plane_normals, register_vertical
 
-    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(low_vehicle_m, np.float64)))
-    source = np.asarray(source.voxel_down_sample(voxel_m).points)
+    source = voxel_downsample(low_vehicle_m, voxel_m)
     normals = plane_normals(survey_local_m) if survey_normals is None else survey_normals
     fit = register_vertical(source, survey_local_m, normals, T_local_init, max_corr_m=1.0)
     return fit.T_target_source.copy(), fit.fitness, fit.inlier_rmse_m, fit.converged
@@ -193,14 +182,14 @@ def _use_survey_and_drives(survey, voxel_m: float, drives, load, with_normals: b
 
 
 def survey_ground_points(survey, voxel_m: float) -> np.ndarray:
-    """The survey downsampled to ``voxel_m`` (``downsample_survey``), built once among the processes that
+    """The survey downsampled to ``voxel_m`` (``registration.voxel_downsample``), built once among the processes that
     share the source's ``cache_dir`` (``pipeline.parallel.build_once``; each process built its own: on demo 2.2 s
     of reading and downsampling per process)."""
     from pipeline.memory import release_memory
 
     def build() -> np.ndarray:
         points = survey.read()[0]
-        out = downsample_survey(points, voxel_m) if len(points) else np.zeros((0, 3))
+        out = voxel_downsample(points, voxel_m) if len(points) else np.zeros((0, 3))
         del points
         release_memory()  # gangnam: the raw cloud and open3d's copy, 835 -> 350 MB resident with the 0.2 m index
         return out

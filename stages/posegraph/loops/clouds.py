@@ -6,7 +6,7 @@ from typing import Callable
 
 import numpy as np
 
-from stages.common.registration import crop_range
+from stages.common.registration import crop_range, voxel_downsample
 from stages.posegraph.factors.drive import DriveInput, deskew_scan_lidar, increments
 
 # (drive, scan_id) list -> {(drive, scan_id): (points_lidar_m (N,3), time_offset_s (N,) or None)}
@@ -44,8 +44,6 @@ def _use_drives(drives: list[DriveInput], load: ScanLoader) -> None:
 
 def _clouds_item(item) -> dict[int, np.ndarray]:
     """One batch of ``vehicle_clouds`` (module level: a pool process or a cluster worker runs it)."""
-    import open3d as o3d
-
     from pipeline.parallel import worker_state
 
     chunk, voxel_m = item
@@ -62,6 +60,5 @@ def _clouds_item(item) -> dict[int, np.ndarray]:
             incs[o] = increments(d)
         pts = deskew_scan_lidar(d, incs.get(o), k, pts, None if toff is None else np.asarray(toff, float)[keep])
         pts = pts @ d.T_vehicle_lidar[:3, :3].T + d.T_vehicle_lidar[:3, 3]
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel_m)
-        out[g] = np.asarray(cloud.points)
+        out[g] = voxel_downsample(pts, voxel_m)
     return out

@@ -15,6 +15,7 @@ from stages.common.registration import (
     prepare_cloud,
     register_clouds,
     regularize_covariances,
+    voxel_downsample,
 )
 from tests.stages.odometry.conftest import build_street_scene, raycast_scan
 
@@ -80,6 +81,15 @@ def test_plane_hessian_equals_the_estimated_normals_on_an_exact_plane_and_holds_
     np.testing.assert_allclose(plane_hessian(far, tgt_m, n, np.eye(4), 1.0, 0.05),
                                plane_hessian(far[:10], tgt_m, n, np.eye(4), 1.0, 0.05), rtol=1e-12)
     assert not plane_hessian(np.zeros((0, 3)), tgt_m, n, np.eye(4), 1.0, 0.05).any()
+
+
+def test_voxel_downsample_keeps_each_occupied_voxels_mean_point():
+    pts = np.array([[0.0, 0.0, 0.0], [0.2, 0.2, 0.2], [3.0, 0.0, 0.0], [3.2, 0.2, 0.2]], np.float32)  # two voxels
+    got = voxel_downsample(pts, 1.0)
+    assert got.dtype == np.float64
+    np.testing.assert_allclose(got[np.argsort(got[:, 0])], [[0.1, 0.1, 0.1], [3.1, 0.1, 0.1]], atol=1e-6)
+    np.testing.assert_array_equal(voxel_downsample(pts, 0.0), pts.astype(np.float64))  # no voxel: unchanged
+    assert voxel_downsample(np.zeros((0, 3)), 1.0).shape == (0, 3)
 
 
 def test_information_body_frame_matches_gtsam_adjoint():
