@@ -181,7 +181,7 @@ def task_threads() -> int | None:
     usable cores (``pipeline.execute.one_thread_per_process``); None elsewhere (this process decides). A library
     whose thread pool ignores ``OMP_NUM_THREADS`` is bounded to this by its caller (Open3D's oneTBB:
     ``stages.common.registration``). Measured on demo seed 1's odometry, 2 pool processes on 2 cores: 62.5-63.4 s
-    with each process's oneTBB on both cores, 59.9-60.6 s bounded to one."""
+    with each process's oneTBB on both cores, 59.9-60.7 s bounded to one."""
     cluster = _cluster_task_threads()
     if cluster is not None:
         return cluster
