@@ -9,9 +9,11 @@ the stage run):
   2. upstream: every input fingerprint a kept dataset's manifest records, transitively;
   3. downstream: a committed dataset all of whose inputs are kept (e.g. evaluations of a kept map).
 A directory without ``_manifest.json`` (a run in progress or a killed one) is removed only when older than
-``min_age_h``. Every map's rebuild lock is held while deleting (exit 75 if a rebuild runs). Files are
-hard-linked between dataset directories by drive-scoped reuse (pipeline/reuse.py), so the bytes freed are
-counted per inode: a removed directory whose files live on in a kept one frees nothing.
+``min_age_h``; so is an entry of ``ROOT/tmp`` (a task's scratch folder, a run's verified-files ledger, a stage's
+planning folder: a run removes its own, a killed one leaves them) when nothing in it changed for ``min_age_h``.
+Every map's rebuild lock is held while deleting (exit 75 if a rebuild runs). Files are hard-linked between dataset
+directories by drive-scoped reuse (pipeline/reuse.py), so the bytes freed are counted per inode: a removed directory
+whose files live on in a kept one frees nothing.
 """
 from __future__ import annotations
 
@@ -35,6 +37,8 @@ class GcPlan:
     remove_bytes: int = 0  # bytes freed (inodes with no link left in a kept directory)
     keep_bytes: int = 0
     young_uncommitted: list[Path] = field(default_factory=list)
+    stale_scratch: list[Path] = field(default_factory=list)  # ROOT/tmp entries of killed runs
+    scratch_bytes: int = 0
 
 
 def _manifest(d: Path) -> dict | None:
@@ -107,6 +111,33 @@ def _drive_set_roots(root: Path) -> set[str]:
     return out
 
 
+def _newest_mtime(path: Path) -> float:
+    """The newest modification time of ``path`` and everything below it (a live run writes somewhere inside)."""
+    newest = path.lstat().st_mtime
+    if path.is_dir() and not path.is_symlink():
+        for p in path.rglob("*"):
+            try:
+                newest = max(newest, p.lstat().st_mtime)
+            except OSError:  # removed while we looked: its run is alive
+                return time.time()
+    return newest
+
+
+def _stale_scratch(root: Path, min_age_h: float) -> tuple[list[Path], int]:
+    tmp = root / "tmp"
+    stale, size, now = [], 0, time.time()
+    for entry in sorted(tmp.iterdir()) if tmp.is_dir() else []:
+        try:
+            if now - _newest_mtime(entry) < min_age_h * 3600:
+                continue
+            files = [entry] if not entry.is_dir() else [p for p in entry.rglob("*") if p.is_file()]
+            size += sum(p.lstat().st_size for p in files)
+        except OSError:  # gone while we looked
+            continue
+        stale.append(entry)
+    return stale, size
+
+
 def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
     root = Path(root)
     dirs = sorted(d for d in (root / "datasets").glob("*/*") if d.is_dir())
@@ -148,6 +179,7 @@ def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
                     seen.add(key)
                     plan.remove_bytes += st.st_size
     plan.keep_bytes = sum(kept_sizes.values())  # per inode: hard-linked files once
+    plan.stale_scratch, plan.scratch_bytes = _stale_scratch(root, min_age_h)
     return plan
 
 
@@ -165,3 +197,9 @@ def apply_gc(root: Path, plan: GcPlan) -> None:
             d.rename(trash)  # the dataset vanishes atomically, then its files go
             shutil.rmtree(trash)
             log.info("gc: removed %s", d)
+        for entry in plan.stale_scratch:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+            log.info("gc: removed %s", entry)

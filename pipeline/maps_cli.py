@@ -111,8 +111,9 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
 
 def gc_cmd(root: Path = ROOT_REQ,
            apply: bool = typer.Option(False, "--apply", help="Delete (default: a dry run that only prints)."),
-           min_age_h: float = typer.Option(24.0, "--min-age-h", help="Uncommitted dataset folders younger than "
-                                           "this (runs in progress) are kept.")) -> None:
+           min_age_h: float = typer.Option(24.0, "--min-age-h", help="Uncommitted dataset folders and "
+                                           "scratch (ROOT/tmp) entries younger than this (runs in progress) are "
+                                           "kept.")) -> None:
     """Remove intermediates no kept map version and no current drive set references (dry run by default).
 
     Example: [b]cornermap gc --root runs/maps[/b] (a dry run; add --apply to delete)
@@ -125,10 +126,14 @@ def gc_cmd(root: Path = ROOT_REQ,
         typer.echo(f"{'remove' if apply else 'would remove'} {d.relative_to(root)}")
     for d in plan.young_uncommitted:
         typer.echo(f"keep (uncommitted, younger than {min_age_h} h) {d.relative_to(root)}")
+    for entry in plan.stale_scratch:
+        typer.echo(f"{'remove' if apply else 'would remove'} {entry.relative_to(root)} (scratch of a killed run)")
     if apply:
         apply_gc(root, plan)
+    scratch = (f"; {len(plan.stale_scratch)} scratch folder(s) of killed runs, {gib(plan.scratch_bytes)}"
+               if plan.stale_scratch else "")
     typer.echo(f"{len(plan.remove)} dataset folder(s), {gib(plan.remove_bytes)} "
-               f"{'freed' if apply else 'to free'}; {len(plan.keep)} kept ({gib(plan.keep_bytes)})")
+               f"{'freed' if apply else 'to free'}; {len(plan.keep)} kept ({gib(plan.keep_bytes)}){scratch}")
 
 
 def register(app: typer.Typer) -> None:

@@ -226,6 +226,38 @@ def test_gc_keeps_what_kept_versions_reference_and_counts_links_once(tmp_path):
     assert scans.exists() and (scans / "data/part.parquet").read_bytes() == b"x" * 1000 and running.exists()
 
 
+def test_gc_removes_the_scratch_of_killed_runs_and_keeps_a_live_runs(tmp_path):
+    """ROOT/tmp entries a killed run left (a ledger, a task's scratch) go once nothing in them changed for
+    --min-age-h; one with a recent file inside (a run in progress) stays, and so does its folder."""
+    from pipeline.gc import apply_gc, plan_gc
+
+    tmp = tmp_path / "tmp"
+    ledger = tmp / "verified-0123456789ab"
+    ledger.mkdir(parents=True)
+    (ledger / "a.ok").write_bytes(b"z" * 300)
+    scratch = tmp / "corners-drive0-chunk0001-feedbeef"
+    (scratch / "sub").mkdir(parents=True)
+    (scratch / "sub" / "old.bin").write_bytes(b"w" * 700)
+    live = tmp / "verified-live0000000"
+    live.mkdir()
+    (live / "old.ok").write_bytes(b"o")
+    stray = tmp / "stray.txt"
+    stray.write_bytes(b"s" * 20)
+    for p in (ledger / "a.ok", ledger, scratch / "sub" / "old.bin", scratch / "sub", scratch, live / "old.ok", live,
+              stray):
+        os.utime(p, (0, 0))
+    (live / "new.ok").write_bytes(b"n")  # written now: the run is alive
+    plan = plan_gc(tmp_path, min_age_h=24)
+    assert plan.stale_scratch == sorted([ledger, scratch, stray]) and plan.scratch_bytes == 1020
+    res = cornermap("gc", "--root", str(tmp_path))
+    assert res.returncode == 0 and "3 scratch folder(s) of killed runs, 0.0 MiB" in res.stdout
+    assert ledger.exists()  # a dry run deletes nothing
+    apply_gc(tmp_path, plan)
+    assert not ledger.exists() and not scratch.exists() and not stray.exists()
+    assert (live / "old.ok").exists() and (live / "new.ok").exists()
+    assert plan_gc(tmp_path, min_age_h=0).stale_scratch == [live]  # --min-age-h 0: everything
+
+
 def test_rebuild_quarantines_a_bad_drive_with_its_reason_and_goes_on(tmp_path):
     create_map(tmp_path, "city", ORIGIN)
     inbox = tmp_path / "inbox"
