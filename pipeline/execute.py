@@ -100,11 +100,10 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any],
     import multiprocessing as mp
 
     from pipeline.memory import PeakRss, relax_malloc_trim, task_scope
-    from pipeline.parallel import task_priority
 
     relax_malloc_trim()  # a dask worker's allocator trims so eagerly that numpy work takes 1.5x the CPU
     t_start, (thread0, process0) = time.time(), _cpu_s()
-    with task_scope(spec.get("trim_above_mb")) as scope, PeakRss() as rss, task_priority(spec.get("priority", 0)):
+    with task_scope(spec.get("trim_above_mb")) as scope, PeakRss() as rss:
         result = _run_partition(spec, partition, provisional)
     thread1, process1 = _cpu_s()
     # a worker process's threads (a stream's reader and writers, a library's own pool) are the task's when it ran

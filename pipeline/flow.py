@@ -212,7 +212,6 @@ class Flow:
                 self.summary[name] = {"decision": "skipped", "fingerprint": sp.fingerprint[:16]}
                 continue
             st = _Stage(sp, _task_spec(plan, sp))
-            st.spec["priority"] = self.ranks.get(name, 0)  # its tasks' and their parallel_map items' (run_partition)
             for arg, (ds, fp) in sp.inputs.items():
                 if (ds, fp) in producers:
                     st.producers[arg] = producers[(ds, fp)]
@@ -280,7 +279,7 @@ class Flow:
                 continue
             st.keys[pk.label] = pk
             fut = self.pool.submit(run_partition, st.spec, pk.as_dict(), provisional, key=task_key(st.sp, pk),
-                                   here=here, priority=st.spec["priority"])
+                                   here=here, priority=self.ranks.get(st.name, 0))
             self.pending[fut] = (st.name, pk.label)
         self._show(st)
 

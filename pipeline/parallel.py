@@ -35,22 +35,6 @@ _INIT_STATE: dict[str, Any] = {}
 _CACHE: dict[Any, Any] = {}  # this process's worker_cache, by (block, key)
 _SHARED: list[dict[str, Any]] = []  # the open shared_pool blocks, innermost last
 _BLOCK: ContextVar[str | None] = ContextVar("cornermap_parallel_block", default=None)  # the running item's block
-_PRIORITY: ContextVar[int] = ContextVar("cornermap_task_priority", default=0)  # the running engine task's priority
-
-
-@contextlib.contextmanager
-def task_priority(priority: int) -> Iterator[None]:
-    """The dask ``priority`` of the engine task running in this block (pipeline.flow.stage_ranks): the items a
-    ``parallel_map`` inside it sends to a cluster get it too. Without it they had dask's default 0, below every
-    queued partition of every stage, even of stages that wait on the task's output. (In the build workflow the
-    pose graph and the corners share rank 2; at equal priority dask runs the earlier submitted first, so the
-    corners' queued partitions still go before the pose graph's blocks: demo on a LocalCluster of 2 workers,
-    123.9 s against 114.5 s before, one pair, the machine's spread ~10 %.)"""
-    reset = _PRIORITY.set(int(priority))
-    try:
-        yield
-    finally:
-        _PRIORITY.reset(reset)
 
 
 def worker_state() -> dict[str, Any]:
@@ -277,20 +261,18 @@ def _gathered(futures: dict, progress) -> list[Any]:
     return out
 
 
-def _call_with_init(fn, x, initializer, token, block, priority, *initargs):
+def _call_with_init(fn, x, initializer, token, block, *initargs):
     """On a cluster worker: run ``initializer`` once per call of parallel_map (``token``) and process, with the
-    ``worker_cache`` of ``block`` (a ``shared_pool`` block's token, or None) and the calling task's ``priority``
-    (for a ``parallel_map`` inside ``fn``)."""
+    ``worker_cache`` of ``block`` (a ``shared_pool`` block's token, or None)."""
     from pipeline.memory import relax_malloc_trim
 
     relax_malloc_trim()  # once per process: dask's worker environment (pipeline.memory)
     reset = _BLOCK.set(block)
     try:
-        with task_priority(priority):
-            if initializer is not None and _INIT_STATE.get("_token") != token:
-                initializer(*initargs)
-                _INIT_STATE["_token"] = token
-            return fn(x)
+        if initializer is not None and _INIT_STATE.get("_token") != token:
+            initializer(*initargs)
+            _INIT_STATE["_token"] = token
+        return fn(x)
     finally:
         _BLOCK.reset(reset)
 
@@ -309,9 +291,8 @@ def _on_cluster(fn, items, initializer, initargs, progress) -> list[Any]:
         # sent once per worker; keys of their own (a content-hashed key of an earlier call's equal initargs can be
         # released under this call's tasks: 'lost dependencies')
         shared = client.scatter(list(initargs), broadcast=True, hash=False) if initargs else []
-        priority = _PRIORITY.get()
-        futures = [client.submit(_call_with_init, fn, x, initializer, token, block, priority, *shared, pure=False,
-                                 priority=priority) for x in items]
+        futures = [client.submit(_call_with_init, fn, x, initializer, token, block, *shared, pure=False)
+                   for x in items]
         done = 0
         for _ in as_completed(futures):
             done += 1

@@ -36,30 +36,6 @@ def test_inside_a_cluster_task_the_items_run_as_cluster_tasks():
     assert [v for v, _ in out] == EXPECTED
 
 
-def _my_dask_priority(_x) -> int:
-    """The user priority the scheduler gave the cluster task running this (its priority tuple starts with minus it)."""
-    from distributed import get_worker
-    from distributed.worker import thread_state
-
-    return -get_worker().state.tasks[thread_state.key].priority[0]
-
-
-def test_inside_a_cluster_task_the_items_get_the_engine_tasks_priority():
-    """A stage task's parallel_map items carry its priority (run_partition's task_priority): not dask's default 0,
-    which put them behind every queued partition of a lower-ranked stage."""
-    distributed = pytest.importorskip("distributed")
-    from pipeline.parallel import task_priority
-
-    def outer(priority):
-        with task_priority(priority):
-            return parallel_map(_my_dask_priority, range(6))
-
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        assert client.submit(outer, 3, priority=3).result() == [3] * 6
-        assert client.submit(parallel_map, _my_dask_priority, range(4)).result() == [0] * 4
-
-
 def test_empty_and_single_item_run_in_process():
     assert parallel_map(shifted_square, [], workers=4) == []
     assert parallel_map(shifted_square, [2.0], workers=4, initializer=remember, initargs=(1.0,))[0][0] == 5.0
