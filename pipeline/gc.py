@@ -6,7 +6,8 @@ the stage run):
      (kept versions, LATEST or not), the ``map_tiles`` rows naming such a version, and every stage of the
      newest build workflow (``ROOT/workflows/build-NAME-*.yaml``) of each map whose identity lists the same
      drives (the current drive set: the next rebuild reuses its per-drive work);
-  2. upstream: every input fingerprint a kept dataset's manifest records, transitively;
+  2. upstream: every input fingerprint a kept dataset's manifest records, and every dataset folder holding a file
+     it read by path (its drive files, reference trajectories: the simulator's drives), transitively;
   3. downstream: a committed dataset all of whose inputs are kept (e.g. evaluations of a kept map).
 A directory without ``_manifest.json`` (a run in progress or a killed one) is removed only when older than
 ``min_age_h``; so is an entry of ``ROOT/tmp`` (a task's scratch folder, a run's verified-files ledger, a stage's
@@ -138,6 +139,26 @@ def _stale_scratch(root: Path, min_age_h: float) -> tuple[list[Path], int]:
     return stale, size
 
 
+def _read_by_path(manifest: dict, root: Path) -> set[str]:
+    """Fingerprints of the dataset folders under ``root`` that a stage read by path: its drive files (``drives``,
+    e.g. the simulator's drives read by the ingest) and reference trajectories (``settings.references``). They are
+    no manifest input, but a kept dataset was made from them."""
+    paths = list((manifest.get("drives") or {}).values())
+    paths += list(((manifest.get("settings") or {}).get("references") or {}).values())
+    base = (Path(root) / "datasets").resolve()
+    out = set()
+    for p in paths:
+        if not isinstance(p, str) or not p:
+            continue
+        try:
+            rel = Path(p).resolve().relative_to(base)
+        except (ValueError, OSError):
+            continue
+        if len(rel.parts) >= 2:
+            out.add(rel.parts[1][:FP_LEN])
+    return out
+
+
 def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
     root = Path(root)
     dirs = sorted(d for d in (root / "datasets").glob("*/*") if d.is_dir())
@@ -151,6 +172,9 @@ def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
             if m is None:
                 continue
             ins = {str(v.get("fingerprint"))[:FP_LEN] for v in (m.get("inputs") or {}).values() if v.get("fingerprint")}
+            if d.name in kept and not _read_by_path(m, root) <= kept:
+                kept |= _read_by_path(m, root)
+                changed = True
             if d.name in kept and not ins <= kept:
                 kept |= ins
                 changed = True

@@ -226,6 +226,32 @@ def test_gc_keeps_what_kept_versions_reference_and_counts_links_once(tmp_path):
     assert scans.exists() and (scans / "data/part.parquet").read_bytes() == b"x" * 1000 and running.exists()
 
 
+def test_gc_keeps_the_dataset_a_kept_one_read_by_path(tmp_path):
+    """The simulator's drives are read by the ingest through drive.yaml paths, not as a manifest input: a kept
+    scans dataset keeps them (and a reference trajectory's folder), an unreferenced raw drive folder goes."""
+    from pipeline.gc import plan_gc
+
+    raw = _dataset(tmp_path, "raw_drives", "7" * 16, {})
+    (raw / "artifacts/all/drive_0").mkdir(parents=True)
+    (raw / "artifacts/all/drive_0/drive.yaml").write_text("name: drive_0\n")
+    truth = _dataset(tmp_path, "truth_tracks", "8" * 16, {})
+    old_raw = _dataset(tmp_path, "raw_drives", "9" * 16, {})
+    scans = _dataset(tmp_path, "scans_raw", "a" * 16, {})
+    doc = json.loads((scans / "_manifest.json").read_text())
+    doc["drives"] = {"drive_0": str(raw / "artifacts/all/drive_0/drive.yaml"), "drive_9": "/elsewhere/drive.yaml"}
+    doc["settings"] = {"references": {"drive_0": str(truth / "data/part.parquet"), "drive_9": None}}
+    (scans / "_manifest.json").write_text(json.dumps(doc))
+    corners = _dataset(tmp_path, "corner_map", "b" * 16, {"scans": "a" * 16})
+
+    def write(staging: Path) -> dict:
+        (staging / "t").write_bytes(b"t")
+        return {"inputs": {"corner_map": {"dataset": "corner_map", "fingerprint": "b" * 64}}}
+
+    publish_version(tmp_path / "maps/city", write, durable=False)
+    plan = plan_gc(tmp_path, min_age_h=24)
+    assert sorted(plan.keep) == sorted([raw, truth, scans, corners]) and plan.remove == [old_raw]
+
+
 def test_gc_removes_the_scratch_of_killed_runs_and_keeps_a_live_runs(tmp_path):
     """ROOT/tmp entries a killed run left (a ledger, a task's scratch) go once nothing in them changed for
     --min-age-h; one with a recent file inside (a run in progress) stays, and so does its folder."""
