@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import stat
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -112,16 +113,20 @@ def _drive_set_roots(root: Path) -> set[str]:
     return out
 
 
-def _newest_mtime(path: Path) -> float:
-    """The newest modification time of ``path`` and everything below it (a live run writes somewhere inside)."""
-    newest = path.lstat().st_mtime
-    if path.is_dir() and not path.is_symlink():
+def _newest_mtime_and_bytes(path: Path) -> tuple[float, int]:
+    """The newest modification time of ``path`` and everything below it (a live run writes somewhere inside), and the
+    bytes of its files, in one walk. A file removed while we looked: its run is alive (now, 0)."""
+    st = path.lstat()
+    newest, size = st.st_mtime, 0 if stat.S_ISDIR(st.st_mode) else st.st_size
+    if stat.S_ISDIR(st.st_mode):
         for p in path.rglob("*"):
             try:
-                newest = max(newest, p.lstat().st_mtime)
-            except OSError:  # removed while we looked: its run is alive
-                return time.time()
-    return newest
+                st = p.lstat()
+            except OSError:
+                return time.time(), 0
+            newest = max(newest, st.st_mtime)
+            size += st.st_size if stat.S_ISREG(st.st_mode) else 0
+    return newest, size
 
 
 def _stale_scratch(root: Path, min_age_h: float) -> tuple[list[Path], int]:
@@ -129,13 +134,12 @@ def _stale_scratch(root: Path, min_age_h: float) -> tuple[list[Path], int]:
     stale, size, now = [], 0, time.time()
     for entry in sorted(tmp.iterdir()) if tmp.is_dir() else []:
         try:
-            if now - _newest_mtime(entry) < min_age_h * 3600:
-                continue
-            files = [entry] if not entry.is_dir() else [p for p in entry.rglob("*") if p.is_file()]
-            size += sum(p.lstat().st_size for p in files)
+            newest, entry_bytes = _newest_mtime_and_bytes(entry)
         except OSError:  # gone while we looked
             continue
-        stale.append(entry)
+        if now - newest >= min_age_h * 3600:
+            stale.append(entry)
+            size += entry_bytes
     return stale, size
 
 
@@ -165,15 +169,16 @@ def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
     manifests = {d: _manifest(d) for d in dirs}
     roots, versions = _version_roots(root)
     kept = roots | _map_tiles_roots(root, versions) | _drive_set_roots(root)
+    # each committed dataset's manifest inputs, and the folders it read by path (upstream only), taken once
+    inputs = {d: {str(v.get("fingerprint"))[:FP_LEN] for v in (m.get("inputs") or {}).values() if v.get("fingerprint")}
+              for d, m in manifests.items() if m is not None}
+    read_by_path = {d: _read_by_path(m, root) for d, m in manifests.items() if m is not None}
     changed = True
     while changed:  # upstream and downstream closure
         changed = False
-        for d, m in manifests.items():
-            if m is None:
-                continue
-            ins = {str(v.get("fingerprint"))[:FP_LEN] for v in (m.get("inputs") or {}).values() if v.get("fingerprint")}
-            if d.name in kept and not _read_by_path(m, root) <= kept:
-                kept |= _read_by_path(m, root)
+        for d, ins in inputs.items():
+            if d.name in kept and not read_by_path[d] <= kept:
+                kept |= read_by_path[d]
                 changed = True
             if d.name in kept and not ins <= kept:
                 kept |= ins
