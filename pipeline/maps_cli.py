@@ -118,8 +118,11 @@ def gc_cmd(root: Path = ROOT_REQ,
 
     Example: [b]cornermap gc --root runs/maps[/b] (a dry run; add --apply to delete)
     """
+    from pipeline.errors import ConfigError
     from pipeline.gc import apply_gc, plan_gc
 
+    if not any((root / sub).is_dir() for sub in ("datasets", "maps", "tmp")):  # a typo: "nothing to free", exit 0
+        raise ConfigError("--root", [f"{root} holds no datasets/, maps/ or tmp/ folder: not an output root"])
     plan = plan_gc(root, min_age_h)
     gib = lambda b: f"{b / 2**20:.1f} MiB"  # noqa: E731
     for d in plan.remove:

@@ -226,6 +226,17 @@ def test_gc_keeps_what_kept_versions_reference_and_counts_links_once(tmp_path):
     assert scans.exists() and (scans / "data/part.parquet").read_bytes() == b"x" * 1000 and running.exists()
 
 
+def test_gc_refuses_a_folder_that_is_no_output_root(tmp_path):
+    """A mistyped --root must not report "nothing to free" and exit 0 (a scheduled gc would never notice)."""
+    (tmp_path / "notes").mkdir()
+    for root in (tmp_path / "typo", tmp_path):
+        res = cornermap("gc", "--root", str(root))
+        assert res.returncode == 1 and "--root" in res.stderr and "not an output root" in res.stderr
+        assert "Traceback" not in res.stderr
+    (tmp_path / "maps").mkdir()  # a root made by `cornermap maps create`, nothing built yet
+    assert cornermap("gc", "--root", str(tmp_path)).returncode == 0
+
+
 def test_gc_keeps_the_dataset_a_kept_one_read_by_path(tmp_path):
     """The simulator's drives are read by the ingest through drive.yaml paths, not as a manifest input: a kept
     scans dataset keeps them (and a reference trajectory's folder), an unreferenced raw drive folder goes."""
