@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import tracemalloc
+import warnings
 from contextlib import contextmanager
 
 import numpy as np
@@ -127,6 +128,29 @@ def test_las_with_a_corrupt_record_count_is_a_format_error(tmp_path, version):
         path.write_bytes(bytes(bad))
         with bounded_memory(), pytest.raises(FormatError, match="variable-length records"):
             read_las_points(path)
+
+
+def test_las_scan_with_a_broken_gps_time_keeps_its_points_without_times(tmp_path):
+    """A LAS scan whose gps_time holds 1e233 s for one point (the fuzz target above found it: the float32 cast
+    overflowed to inf with a RuntimeWarning and the point would have been deskewed to infinity): its points are kept
+    without times, and the reason names the point; absolute GPS times of a sweep become offsets from its first point."""
+    import laspy
+
+    from stages.ingest.scan_formats import read_las_points
+
+    las = laspy.LasData(laspy.LasHeader(point_format=1, version="1.2"))
+    las.x, las.y, las.z = np.arange(5.0), np.arange(5.0), np.arange(5.0)
+    las.gps_time = 3.1e5 + np.array([0.0, 0.025, 0.05, 0.075, 0.1])
+    path = tmp_path / "a.las"
+    las.write(path)
+    np.testing.assert_allclose(read_las_points(path).time_offset_s, [0.0, 0.025, 0.05, 0.075, 0.1], atol=1e-6)
+    las.gps_time = np.array([3.1e5, 3.1e5, 1e233, 3.1e5, 3.1e5])
+    las.write(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        points = read_las_points(path)
+    assert points.time_offset_s is None and len(points) == 5
+    assert points.time_unused.startswith("gps_time of point 2 lies 1e+233 s from the scan start")
 
 
 @pytest.mark.parametrize("version", ["1.2", "1.4"])

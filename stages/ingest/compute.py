@@ -90,9 +90,11 @@ class DriveIngest:
         if row["status"] != "ok":
             self.report.add("quarantined_file", file, row["scan_id"], 1, row["reason"])
             return
-        if result.points.time_offset_s is None:
+        if result.points.time_unused:  # the file has times, but not within one sweep: named per scan
+            self.report.add("deskew", file, row["scan_id"], len(result.points), result.points.time_unused)
+        elif result.points.time_offset_s is None:
             self._untimed += 1
-        reasons = {"nonfinite": "non-finite coordinate", "zero": "zero point (0, 0, 0)",
+        reasons = {"nonfinite": "non-finite coordinate or time", "zero": "zero point (0, 0, 0)",
                    "near": f"closer than min_range_m {self.params.min_range_m} m"}
         for key, count in result.drops.items():
             if count:

@@ -29,6 +29,7 @@ class ScanPoints:
     intensity: np.ndarray  # float32, raw as recorded
     ring: np.ndarray | None  # int16 from the file, or None
     time_offset_s: np.ndarray | None  # float32 seconds since scan start, or None
+    time_unused: str | None = None  # why the file's per-point times were not used (``relative_time_s``), or None
 
     def __len__(self) -> int:
         return len(self.x_m)
@@ -36,7 +37,7 @@ class ScanPoints:
     def select(self, mask: np.ndarray) -> "ScanPoints":
         return ScanPoints(self.x_m[mask], self.y_m[mask], self.z_m[mask], self.intensity[mask],
                           None if self.ring is None else self.ring[mask],
-                          None if self.time_offset_s is None else self.time_offset_s[mask])
+                          None if self.time_offset_s is None else self.time_offset_s[mask], self.time_unused)
 
 
 def _first(columns: dict[str, np.ndarray], names: tuple[str, ...]) -> tuple[str, np.ndarray] | tuple[None, None]:
@@ -59,11 +60,28 @@ def _rings_checked(values: np.ndarray, source: str, field: str) -> np.ndarray:
     return values.astype(np.int16)
 
 
-def _relative_time_s(values: np.ndarray) -> np.ndarray:
+MAX_TIME_OFFSET_S = 10.0  # a sweep lasts 0.05-1 s: a point time further from the scan's first is no time within it
+
+
+def relative_time_s(values: np.ndarray, field: str) -> tuple[np.ndarray | None, str | None]:
+    """Per-point times -> (float32 seconds since the scan's first point, None), or (None, why) when they are no times
+    within one sweep. Float values are seconds, integers nanoseconds; absolute times (e.g. GPS seconds) are made
+    relative to the earliest. A non-finite time stays NaN (``drop_invalid_points`` drops its point). When a finite time
+    lies further than ``MAX_TIME_OFFSET_S`` from the scan start the times are not used, and the reason names the
+    field, the first such point and its offset: a mobile-mapping tile read as one scan spans hours (the Amsterdam LAZ
+    sample: 25 h), microseconds written as float seconds span 1e5 s, and a broken field (a fuzzed LAS file: 1e233 s,
+    which overflowed float32 to inf) would have deskewed the points by kilometres. The points themselves are kept."""
     t = values.astype(np.float64) * (1e-9 if values.dtype.kind in "iu" else 1.0)
-    if t.size and np.nanmin(t) > 1e5:  # absolute times (e.g. GPS seconds): make them relative to the first
-        t = t - np.nanmin(t)
-    return t.astype(np.float32)
+    finite = np.isfinite(t)
+    if finite.any() and t[finite].min() > 1e5:  # absolute times (e.g. GPS seconds): relative to the first
+        t = t - t[finite].min()
+    wild = finite & (np.abs(t) > MAX_TIME_OFFSET_S)
+    if wild.any():
+        bad = int(np.flatnonzero(wild)[0])
+        return None, (f"{field} of point {bad} lies {t[bad]:.6g} s from the scan start ({int(wild.sum())} points "
+                      f"beyond +-{MAX_TIME_OFFSET_S:g} s): no times within one sweep (another unit, a tile of many "
+                      "passes, or a broken field), so the scan is not deskewed")
+    return np.where(finite, t, np.nan).astype(np.float32), None
 
 
 def points_from_pcd(cloud: PcdCloud, source: str = "<pcd>") -> ScanPoints:
@@ -77,11 +95,11 @@ def points_from_pcd(cloud: PcdCloud, source: str = "<pcd>") -> ScanPoints:
     n = cloud.header.points
     _, intensity = _first(cols, _INTENSITY)
     ring_name, ring = _first(cols, _RING)
-    _, time = _first(cols, _TIME)
+    time_name, time = _first(cols, _TIME)
     return ScanPoints(cols["x"].astype(np.float32), cols["y"].astype(np.float32), cols["z"].astype(np.float32),
                       np.zeros(n, np.float32) if intensity is None else intensity.astype(np.float32),
                       None if ring is None else _rings_checked(ring, source, ring_name),
-                      None if time is None else _relative_time_s(time))
+                      *((None, None) if time is None else relative_time_s(time, time_name)))
 
 
 def _read_float32_records(path: Path, width: int, what: str) -> np.ndarray:
@@ -185,9 +203,9 @@ def read_las_points(path: Path) -> ScanPoints:
     except Exception as exc:  # laspy/lazrs raise many types for corrupt files  # noqa: BLE001
         raise FormatError(f"{path}: not a readable LAS/LAZ file: {type(exc).__name__}: {exc}") from exc
     names = set(las.point_format.dimension_names)
-    time = _relative_time_s(np.asarray(las.gps_time)) if "gps_time" in names else None
+    time = relative_time_s(np.asarray(las.gps_time), "gps_time") if "gps_time" in names else (None, None)
     return ScanPoints(np.asarray(las.x, np.float32), np.asarray(las.y, np.float32), np.asarray(las.z, np.float32),
-                      np.asarray(las.intensity, np.float32), None, time)
+                      np.asarray(las.intensity, np.float32), None, *time)
 
 
 def read_scan(path: str | Path, fmt: str) -> ScanPoints:
@@ -202,9 +220,12 @@ def read_scan(path: str | Path, fmt: str) -> ScanPoints:
 
 
 def drop_invalid_points(points: ScanPoints, min_range_m: float = 0.0) -> tuple[ScanPoints, dict[str, int]]:
-    """Drop non-finite points, exact (0,0,0) points and points closer than ``min_range_m``; count each."""
+    """Drop non-finite points (a coordinate or the time), exact (0,0,0) points and points closer than ``min_range_m``;
+    count each."""
     x, y, z = points.x_m, points.y_m, points.z_m
     finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    if points.time_offset_s is not None:  # a point without a time cannot be deskewed: dropped with the non-finite
+        finite &= np.isfinite(points.time_offset_s)
     zero = finite & (x == 0) & (y == 0) & (z == 0)
     keep = finite & ~zero
     counts = {"nonfinite": int((~finite).sum()), "zero": int(zero.sum()), "near": 0}

@@ -1,6 +1,8 @@
 """PCD reader: round trips, open3d cross-check, malformed files -> FormatError, random corruption fuzz."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -119,3 +121,40 @@ def test_random_corruptions_raise_format_error_or_decode_consistently(encoding, 
         return
     n = cloud.header.points
     assert all(len(v) == n for v in cloud.columns.values())
+
+
+def _timed_cloud(time: np.ndarray):
+    n = len(time)
+    rng = np.random.default_rng(3)
+    return decode_pcd(encode_pcd({"x": rng.normal(size=n).astype(np.float32) + 5.0,
+                                  "y": rng.normal(size=n).astype(np.float32),
+                                  "z": rng.normal(size=n).astype(np.float32), "time": time}, "binary"))
+
+
+def test_point_times_that_are_no_sweep_offsets_are_not_used_and_say_why():
+    """Microseconds written as float seconds (0 .. 99,000 for one sweep) would deskew points by kilometres: the points
+    are kept without times, and the reason names the field, the first such point and the expected range."""
+    micro = np.linspace(0.0, 99_000.0, 40).astype(np.float32)
+    points = points_from_pcd(_timed_cloud(micro), "scan.pcd")
+    assert points.time_offset_s is None and len(points) == 40
+    assert re.search(r"time of point 1 lies 2538\.46 s from the scan start \(39 points beyond \+-10 s\).*not deskewed",
+                     points.time_unused)
+    assert points.select(np.arange(40) < 5).time_unused == points.time_unused
+
+
+def test_absolute_and_integer_times_become_seconds_since_the_scan_start():
+    gps_s = 1.4e9 + np.linspace(0.0, 0.1, 40)  # absolute GPS seconds (float64)
+    np.testing.assert_allclose(points_from_pcd(_timed_cloud(gps_s)).time_offset_s, gps_s - gps_s[0], atol=1e-6)
+    ns = np.arange(40, dtype=np.int64) * 2_500_000  # integer nanoseconds
+    np.testing.assert_allclose(points_from_pcd(_timed_cloud(ns)).time_offset_s, ns * 1e-9, atol=1e-9)
+
+
+def test_a_point_without_a_finite_time_is_dropped_and_counted():
+    from stages.ingest.scan_formats import drop_invalid_points
+
+    time = np.linspace(0.0, 0.1, 40).astype(np.float32)
+    time[[3, 17]] = [np.nan, np.inf]
+    points = points_from_pcd(_timed_cloud(time))
+    kept, drops = drop_invalid_points(points)
+    assert drops["nonfinite"] == 2 and len(kept) == 38
+    assert np.isfinite(kept.time_offset_s).all()

@@ -1,6 +1,8 @@
 """The real samples in ../shared/data: KITTI PCD (rings from point order), nuScenes HDL-32E, Amsterdam LAZ."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
@@ -94,3 +96,8 @@ def test_amsterdam_laz_survey_to_enu(shared_data, tmp_path):
     assert np.all(np.abs(e) < 26.5) and np.all(np.abs(n) < 26.5)
     assert e.max() - e.min() > 30 and np.all(np.isfinite(survey["up_m"].to_numpy()))
     assert out["scan_index"].num_rows == 1 and out["scan_index"]["n_points"].to_pylist() == [44566]
+    # the tile's gps_time spans many passes (hours), no sweep: its points are kept untimed, and the report says why
+    assert np.all(out["scans"]["time_offset_s"].to_numpy() == 0)
+    deskew = out["report"].filter(pc.equal(out["report"]["kind"], "deskew")).to_pylist()
+    assert len(deskew) == 1 and deskew[0]["count"] == 44566
+    assert re.match(r"gps_time of point \d+ lies \d+(\.\d+)? s from the scan start .*not deskewed", deskew[0]["reason"])
