@@ -72,16 +72,23 @@ def relative_time_s(values: np.ndarray, field: str) -> tuple[np.ndarray | None, 
     sample: 25 h), microseconds written as float seconds span 1e5 s, and a broken field (a fuzzed LAS file: 1e233 s,
     which overflowed float32 to inf) would have deskewed the points by kilometres. The points themselves are kept."""
     t = values.astype(np.float64) * (1e-9 if values.dtype.kind in "iu" else 1.0)
-    finite = np.isfinite(t)
-    if finite.any() and t[finite].min() > 1e5:  # absolute times (e.g. GPS seconds): relative to the first
-        t = t - t[finite].min()
-    wild = finite & (np.abs(t) > MAX_TIME_OFFSET_S)
-    if wild.any():
+    if not t.size:
+        return t.astype(np.float32), None
+    lo, hi = float(t.min()), float(t.max())  # NaN when a time is NaN: two reductions in the common case
+    if not (np.isfinite(lo) and np.isfinite(hi)):  # a time is not finite: NaN, and the bounds of the finite ones
+        finite = np.isfinite(t)
+        t = np.where(finite, t, np.nan)
+        lo, hi = (float(t[finite].min()), float(t[finite].max())) if finite.any() else (0.0, 0.0)
+    if lo > 1e5:  # absolute times (e.g. GPS seconds): relative to the first
+        t -= lo
+        lo, hi = 0.0, hi - lo
+    if max(-lo, hi) > MAX_TIME_OFFSET_S:
+        wild = np.abs(t) > MAX_TIME_OFFSET_S  # False for NaN
         bad = int(np.flatnonzero(wild)[0])
         return None, (f"{field} of point {bad} lies {t[bad]:.6g} s from the scan start ({int(wild.sum())} points "
                       f"beyond +-{MAX_TIME_OFFSET_S:g} s): no times within one sweep (another unit, a tile of many "
                       "passes, or a broken field), so the scan is not deskewed")
-    return np.where(finite, t, np.nan).astype(np.float32), None
+    return t.astype(np.float32), None
 
 
 def points_from_pcd(cloud: PcdCloud, source: str = "<pcd>") -> ScanPoints:
@@ -204,8 +211,9 @@ def read_las_points(path: Path) -> ScanPoints:
         raise FormatError(f"{path}: not a readable LAS/LAZ file: {type(exc).__name__}: {exc}") from exc
     names = set(las.point_format.dimension_names)
     time = relative_time_s(np.asarray(las.gps_time), "gps_time") if "gps_time" in names else (None, None)
-    return ScanPoints(np.asarray(las.x, np.float32), np.asarray(las.y, np.float32), np.asarray(las.z, np.float32),
-                      np.asarray(las.intensity, np.float32), None, *time)
+    with np.errstate(over="ignore"):  # a coordinate beyond float32 becomes inf: dropped as non-finite, counted
+        xyz = [np.asarray(c, np.float32) for c in (las.x, las.y, las.z)]
+    return ScanPoints(*xyz, np.asarray(las.intensity, np.float32), None, *time)
 
 
 def read_scan(path: str | Path, fmt: str) -> ScanPoints:
