@@ -9,9 +9,11 @@ every process (pool workers and spawned processes included), scans per second en
 
 The simulation is made once per preset and seed and cached (``--cache``, default ``~/.cache/cornermap-bench``);
 simulate and evaluation are not timed. Every run builds into a fresh root (deleted afterwards unless ``--keep``).
-Stage figures come from the run summary: when its first partition started and its last ended (seconds from the
-run's start; stages overlap), wall from first submit to commit, and CPU of its partition tasks (their threads and
-the pools they started). RSS is sampled every 0.2 s over the process tree.
+The CPU line sums user + system time over the whole process tree (the engine, its pools, a LocalCluster's processes)
+during the build; divided by the usable cores it is the floor no schedule can beat with this CPU: a wall target below
+it needs less CPU, not more overlap. Stage figures come from the run summary: when its first partition started and
+its last ended (seconds from the run's start; stages overlap), wall from first submit to commit, and CPU of its
+partition tasks (their threads and the pools they started). RSS is sampled every 0.2 s over the process tree.
 
 ``--cluster-workers N`` starts a dask ``LocalCluster`` of N single-threaded worker processes (as a user's cluster:
 nannies, their environment, a scheduler in a process of its own) before the clock starts and builds on it
@@ -69,6 +71,29 @@ class RssSampler(threading.Thread):
     def stop(self) -> None:
         self._halt.set()
         self.join()
+
+
+def tree_cpu_s() -> float:
+    """CPU seconds (user + system) used so far by this process, its live descendants, and every descendant that one
+    of them reaped (psutil's ``children_*`` times of each): pool processes, spawned workers and a LocalCluster's
+    processes included. A live process's ``children_*`` hold only reaped ones, so nothing counts twice."""
+    import psutil
+
+    root = psutil.Process()
+    total = 0.0
+    for proc in [root] + root.children(recursive=True):
+        try:
+            t = proc.cpu_times()
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+        total += t.user + t.system + t.children_user + t.children_system
+    return total
+
+
+def usable_cores() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def simulated(cache: Path, preset: str, seed: int, max_scans: int | None = None) -> Path:
@@ -190,6 +215,7 @@ def _bench(args) -> int:
     wf = write_workflow(work, sim, drives, work / "root", args.scheduler)
     sampler = RssSampler()
     sampler.start()
+    cpu0 = tree_cpu_s()
     t0 = time.perf_counter()
     try:
         try:
@@ -199,6 +225,7 @@ def _bench(args) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return exc.exit_code
         wall = time.perf_counter() - t0
+        cpu = tree_cpu_s() - cpu0
         keep = ("wall_s", "cpu_s", "started_s", "ended_s", "peak_rss_mb")
         stages = {k: {c: v.get(c) for c in keep} for k, v in result["summary"].items()}
     finally:
@@ -206,15 +233,20 @@ def _bench(args) -> int:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
     n_scans = count_scans(sim, drives)
+    cores = usable_cores()
     peaks = sorted(sampler.peaks.values(), key=lambda x: -x[1])
     doc = {"preset": args.preset, "seed": args.seed, "max_scans": args.max_scans, "drives": drives, "scans": n_scans,
            "scheduler": args.scheduler,
            "workers": args.workers, "cluster_workers": args.cluster_workers,
-           "wall_s": round(wall, 1), "scans_per_s": round(n_scans / wall, 1), "stages": stages,
+           "wall_s": round(wall, 1), "scans_per_s": round(n_scans / wall, 1),
+           "cpu_s": round(cpu, 1), "cores": cores, "cpu_floor_s": round(cpu / cores, 1),
+           "busy_share": round(cpu / (cores * wall), 3), "stages": stages,
            "peak_rss_mb_max": round(peaks[0][1] / 2**20) if peaks else None,
            "peak_rss_mb_by_process": [(name, round(rss / 2**20)) for name, rss in peaks[:8]]}
     print(f"{args.preset} seed {args.seed}, {', '.join(drives)}: {n_scans} scans, {wall:.1f} s wall, "
           f"{n_scans / wall:.1f} scans/s end to end, peak RSS {doc['peak_rss_mb_max']} MB (largest process)")
+    print(f"CPU {cpu:.1f} s over the process tree on {cores} cores: floor {cpu / cores:.1f} s (the wall of this CPU "
+          f"with every core busy), cores busy {100 * doc['busy_share']:.0f} % of the wall")
     print("| stage | from s | to s | wall s | CPU s | task peak RSS MB |\n|---|---|---|---|---|---|")
     for k, v in stages.items():
         print(f"| {k} | {v.get('started_s')} | {v.get('ended_s')} | {v['wall_s']} | {v['cpu_s']} | "
