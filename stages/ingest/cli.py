@@ -43,6 +43,13 @@ def register(app: typer.Typer) -> None:
                        f"counts {h.counts}, {h.points} points, {cloud.trailing_bytes} trailing bytes")
         points, drops = drop_invalid_points(read_scan(path, kind))
         typer.echo(f"{len(points)} valid points; dropped {drops['nonfinite']} non-finite, {drops['zero']} zero")
+        t = points.time_offset_s
+        if points.time_unused:
+            typer.echo(f"per-point time not used: {points.time_unused}")
+        elif t is None or not len(t):
+            typer.echo("no per-point time: the scan is not deskewed")
+        else:
+            typer.echo(f"per-point time {float(t.min()):.6f} .. {float(t.max()):.6f} s from the scan start (deskewed)")
         model = SENSORS[sensor]
         if points.ring is not None:
             ring, source = points.ring, "file"
