@@ -98,6 +98,8 @@ class LoopVerifyConfig:
     inlier_m: float = 1.0
     plane_tol_m: float = 0.1
     relative_tolerance: float = 1e-4  # each GICP stage's convergence criterion (open3d's relative fitness and RMSE)
+    ground_split: bool = False  # GICP on the structure, height/roll/pitch from the road planes (``verify_loop``)
+    ground_tolerance_m: float = 0.25  # points this near a scan's road plane are road (the odometry's default)
 
 
 class _Parallel:
@@ -232,7 +234,7 @@ class PosegraphConfig:
             max_correction_rad=p.loop_max_correction_rad, consistency_m=p.loop_consistency_m,
             min_sigma_m=p.loop_min_sigma_m, min_sigma_rad=p.loop_min_sigma_rad, coarse_voxel_m=p.loop_coarse_voxel_m,
             coarse_corr_m=p.loop_coarse_corr_m, inlier_m=p.loop_inlier_m, plane_tol_m=p.loop_plane_tol_m,
-            relative_tolerance=p.loop_relative_tolerance)
+            relative_tolerance=p.loop_relative_tolerance, ground_split=p.loop_ground_split)
         loops = LoopConfig(
             radius_m=p.loop_radius_m, min_separation_s=p.loop_min_separation_s, stride_m=p.loop_stride_m,
             max_per_scan=p.loop_max_per_scan, verify=verify, survey_window_m=p.loop_survey_window_m,
