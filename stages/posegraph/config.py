@@ -98,7 +98,8 @@ class LoopVerifyConfig:
     inlier_m: float = 1.0
     plane_tol_m: float = 0.1
     relative_tolerance: float = 1e-4  # each GICP stage's convergence criterion (open3d's relative fitness and RMSE)
-    ground_split: bool = False  # GICP on the structure, height/roll/pitch from the road planes (``verify_loop``)
+    ground_split: bool = False  # an accepted loop refined on the structure, height/roll/pitch from the road planes
+    ground_split_max_shift_m: float = 0.3  # the refinement replaces the loop when it moves it less (``verify_loop``)
     ground_tolerance_m: float = 0.25  # points this near a scan's road plane are road (the odometry's default)
 
 

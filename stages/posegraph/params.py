@@ -90,9 +90,10 @@ class PosegraphParams(Params):
         "each GICP stage stops when an iteration changes its fitness and inlier RMSE by less than this share "
         "(open3d's default 1e-6: 22 % slower on gangnam loops, results within 3 mm, no verdict changed)"))
     loop_ground_split: bool = Field(False, description=(
-        "experiment: register a loop's structure above the two scans' road planes, height/roll/pitch from the "
-        "planes (the road pulled scans a few metres apart towards zero offset: demo seed 2, 0.12-0.14 m; on, demo "
-        "seed 2's self-consistency 0.088 -> 0.013 m but seed 1's 0.043 -> 0.060 m: off; docs/posegraph.md)"))
+        "an accepted loop is verified again on the structure above the two scans' road planes (height/roll/pitch "
+        "from the planes), from its result, and replaced when that moves it less than 0.3 m: the road pulled scans a "
+        "few metres apart towards zero offset (demo seed 2: 0.12-0.14 m); off by default until measured on more "
+        "seeds (docs/posegraph.md)"))
     loop_inlier_m: float = Field(1.0, gt=0, description="scoring: nearest target point searched within this")
     loop_plane_tol_m: float = Field(0.1, gt=0, description="scoring: inlier if its point-to-plane distance is below")
     loop_min_fitness: float = Field(0.5, ge=0, le=1, description="share of inliers (true loops 0.53-0.73, scans "

@@ -162,6 +162,23 @@ def split_road(points_vehicle_m: np.ndarray, tolerance_m: float) -> _Split:
 def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_j_prior: np.ndarray,
                 cfg: LoopVerifyConfig, prepared: dict | None = None, keys: tuple = ("j", "i"),
                 splits: dict | None = None) -> Verdict:
+    """``verify_once`` of the whole clouds; with ``cfg.ground_split`` an accepted loop is verified again on the
+    structure above the road planes, started from the first result, and that result replaces it when it is accepted
+    and moves the loop less than ``cfg.ground_split_max_shift_m`` (the road pulls close scans towards zero offset by
+    centimetres; in a street without cross structure the structure alone slides metres, and the whole clouds' result
+    stands)."""
+    whole = verify_once(points_i_vehicle, points_j_vehicle, T_i_j_prior, cfg, False, prepared, keys, splits)
+    if not (cfg.ground_split and whole.accepted):
+        return whole
+    split = verify_once(points_i_vehicle, points_j_vehicle, whole.T_i_j, cfg, True, prepared, keys, splits)
+    if split.accepted and np.linalg.norm(split.T_i_j[:3, 3] - whole.T_i_j[:3, 3]) < cfg.ground_split_max_shift_m:
+        return split
+    return whole
+
+
+def verify_once(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_j_prior: np.ndarray,
+                cfg: LoopVerifyConfig, ground_split: bool = False, prepared: dict | None = None,
+                keys: tuple = ("j", "i"), splits: dict | None = None) -> Verdict:
     """Coarse-to-fine GICP of scan j onto scan i from the prior relative pose (1-2 m off between passes), and
     again from a start shifted by 1 m along and 0.7 m across; accepted only when both agree, at least
     ``min_fitness`` of the scan lies on the other scan's surfaces (``score_alignment``) with a point-to-plane
@@ -174,7 +191,7 @@ def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     they are, and the two final results are compared as before. The fine stages are four fifths of a start's
     GICP time (demo seed 1: 33 of 40 ms).
 
-    With ``cfg.ground_split`` (``loop_ground_split``, off by default: an experiment, docs/posegraph.md) the GICP
+    With ``ground_split`` (``verify_loop`` with ``loop_ground_split``, off by default: docs/posegraph.md) the GICP
     registers the structure above each scan's road plane only, and the two road planes give height, roll and pitch
     (``ground_plane.align_ground_planes``, as the odometry's edges). The road's noise is centred on each sensor (a
     divergent beam spreads its range along the ray on oblique ground), and it pulled a registration of two scans a
@@ -189,7 +206,7 @@ def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     reg = dict(max_iterations=40, point_sigma_m=POINT_SIGMA_M, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad,
                relative_tolerance=cfg.relative_tolerance, prepared={} if prepared is None else prepared, keys=keys)
     src_m, tgt_m, road = points_j_vehicle, points_i_vehicle, None
-    if cfg.ground_split:
+    if ground_split:
         cache = {} if splits is None else splits
         for key, pts in zip(keys, (points_j_vehicle, points_i_vehicle)):
             if key not in cache:
@@ -217,7 +234,8 @@ def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     if road is not None and res.converged:
         H = res.hessian + plane_hessian(road[0].ground_m, road[1].ground_m, road[1].plane.normal, T, max_corr_m,
                                         POINT_SIGMA_M)
-        info = floor_information(H, min_sigma_m, min_sigma_rad)
+        # floored twice, as the whole clouds' (``register_clouds`` floors its Hessian, and the line below again)
+        info = floor_information(floor_information(H, min_sigma_m, min_sigma_rad), min_sigma_m, min_sigma_rad)
     else:
         info = floor_information(res.information, min_sigma_m, min_sigma_rad)
     reason = "accepted"
