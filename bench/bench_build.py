@@ -90,12 +90,6 @@ def tree_cpu_s() -> float:
     return total
 
 
-def usable_cores() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 def simulated(cache: Path, preset: str, seed: int, max_scans: int | None = None) -> Path:
     """The simulated drives of (preset, seed), the first ``max_scans`` scans of each drive if given (a shorter drive
     of the same city: the memory-against-length comparison)."""
@@ -233,7 +227,9 @@ def _bench(args) -> int:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)
     n_scans = count_scans(sim, drives)
-    cores = usable_cores()
+    from pipeline.parallel import default_workers
+
+    cores = default_workers()  # the usable cores
     peaks = sorted(sampler.peaks.values(), key=lambda x: -x[1])
     doc = {"preset": args.preset, "seed": args.seed, "max_scans": args.max_scans, "drives": drives, "scans": n_scans,
            "scheduler": args.scheduler,

@@ -13,7 +13,6 @@ product: run them from the checkout, or with ``PYTHONPATH=CHECKOUT`` from elsewh
 from __future__ import annotations
 
 import argparse
-import glob
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -33,21 +32,19 @@ def main() -> int:
     ap.add_argument("--max-loops", type=int, default=60, help="the first N loops of the drive onto itself")
     args = ap.parse_args()
 
-    import pyarrow.parquet as pq
+    from types import SimpleNamespace
 
     from bench.bench_posegraph import truth_poses
     from pipeline.api import load_param_file
     from pipeline.plan import make_plan
     from pipeline.reader import StoreInputReader
-    from pipeline.store import dataset_dir
     from pipeline.workflow import load_workflow
     from stages.common.geometry import se3_inverse
     from stages.common.records import Trajectory
-    from stages.posegraph.compute import ScanLoader
+    from stages.posegraph.compute import ScanLoader, read_drive_inputs
     from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.loops.clouds import vehicle_clouds
     from stages.posegraph.loops.verify import verify_loop, verify_once
-    from stages.posegraph.tables import drive_input
 
     wf = load_workflow(args.workflow, param_overrides=load_param_file(args.params))
     plan = make_plan(wf, wf.root_dir(None))
@@ -59,19 +56,19 @@ def main() -> int:
     ins = StoreInputReader(plan.root, dict(sp.inputs), {k: None for k in sp.inputs})
     opt = Trajectory.from_table(out.read("poses_optimized"), args.drive)
     T_est, T_true = opt.T, truth_poses(args.sim, args.drive, opt.stamp_ns)
-    wheel = ins.read("odometry", columns=["drive", "stamp_ns", "speed_mps", "yaw_rate_radps"]) \
-        if ins.has("odometry") else None
-    spans = ins.read("span_edges") if ins.has("span_edges") else None
-    d = drive_input(args.drive, ins.read("poses_gnss"), ins.read("edges"), ins.read("drive_info"), wheel, spans)
-    files = glob.glob(str(dataset_dir(plan.root, "loop_closures", sp.fingerprint) / "data" / "**" / "*.parquet"),
-                      recursive=True)
-    rows = [r for f in files for r in pq.ParquetFile(f).read().to_pylist()
+    params = sp.decl.params(**sp.params)
+    # the drive as the stage read it (its wheel odometry and span edges only where its params use them)
+    map_drives, ref_drives = read_drive_inputs(SimpleNamespace(inputs=ins, params=params, settings=sp.settings))
+    d = next((x for x in map_drives + ref_drives if x.name == args.drive), None)
+    if d is None:
+        raise SystemExit(f"no drive {args.drive!r} in this run's pose graph")
+    rows = [r for r in out.read("loop_closures").to_pylist()
             if r["drive_a"] == r["drive_b"] == args.drive][:args.max_loops]
     if not rows:
         raise SystemExit(f"no loop of {args.drive} onto itself in this run")
     index = {int(s): k for k, s in enumerate(opt.scan_id)}
     pairs = [(index[r["scan_a"]], index[r["scan_b"]]) for r in rows]
-    cfg = PosegraphConfig.from_params(sp.decl.params(**sp.params)).loops.verify
+    cfg = PosegraphConfig.from_params(params).loops.verify
     clouds = vehicle_clouds([d], np.array([0, d.n]), np.array(sorted({k for p in pairs for k in p})),
                             ScanLoader(ins), cfg.voxel_m)
     print(f"{args.drive}: {len(pairs)} loops onto itself ({sum(r['accepted'] for r in rows)} accepted in the run)")

@@ -138,9 +138,8 @@ def loop_betweens(loops: list[LoopRecord], cfg: LoopConfig) -> list[Between]:
 
 @dataclass(frozen=True)
 class _Split:
-    """A vehicle-frame cloud, its road plane (None: not found) and the structure above it."""
+    """A vehicle-frame cloud's road plane (None: not found), the structure above it and the road points."""
 
-    points_m: np.ndarray
     plane: object | None
     structure_m: np.ndarray
     ground_m: np.ndarray | None
@@ -154,9 +153,9 @@ def split_road(points_vehicle_m: np.ndarray, tolerance_m: float) -> _Split:
     pts = np.asarray(points_vehicle_m, np.float64)
     plane = fit_ground_plane(pts, np.eye(4))
     if plane is None:
-        return _Split(pts, None, pts, None)
+        return _Split(None, pts, None)
     on = ground_mask(pts, plane, tolerance_m)
-    return _Split(pts, plane, pts[~on], pts[on])
+    return _Split(plane, pts[~on], pts[on])
 
 
 def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_j_prior: np.ndarray,
@@ -167,6 +166,7 @@ def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     and moves the loop less than ``cfg.ground_split_max_shift_m`` (the road pulls close scans towards zero offset by
     centimetres; in a street without cross structure the structure alone slides metres, and the whole clouds' result
     stands)."""
+    prepared = {} if prepared is None else prepared  # the whole clouds, prepared once for both verifications
     whole = verify_once(points_i_vehicle, points_j_vehicle, T_i_j_prior, cfg, False, prepared, keys, splits)
     if not (cfg.ground_split and whole.accepted):
         return whole
@@ -203,8 +203,6 @@ def verify_once(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     min_fitness, max_rmse_m = cfg.min_fitness, cfg.max_rmse_m
     coarse = ((cfg.coarse_voxel_m, cfg.coarse_corr_m),)
     fine = ((voxel_m, max_corr_m), (voxel_m, max_corr_m / 2))
-    reg = dict(max_iterations=40, point_sigma_m=POINT_SIGMA_M, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad,
-               relative_tolerance=cfg.relative_tolerance, prepared={} if prepared is None else prepared, keys=keys)
     src_m, tgt_m, road = points_j_vehicle, points_i_vehicle, None
     if ground_split:
         cache = {} if splits is None else splits
@@ -214,8 +212,9 @@ def verify_once(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
         sj, si = cache[keys[0]], cache[keys[1]]
         if sj.plane is not None and si.plane is not None and min(len(sj.structure_m), len(si.structure_m)) >= 100:
             src_m, tgt_m, road = sj.structure_m, si.structure_m, (sj, si)
-    keys_s = tuple(("structure", k) for k in keys) if road is not None else keys
-    reg["keys"] = keys_s
+    reg = dict(max_iterations=40, point_sigma_m=POINT_SIGMA_M, min_sigma_m=min_sigma_m, min_sigma_rad=min_sigma_rad,
+               relative_tolerance=cfg.relative_tolerance, prepared={} if prepared is None else prepared,
+               keys=keys if road is None else tuple(("structure", k) for k in keys))
     res_coarse, source, target = register_coarse_to_fine(src_m, tgt_m, T_i_j_prior, stages=coarse, **reg)
     res = res_coarse
     if res_coarse.converged:
