@@ -21,12 +21,15 @@ class PrepareConfig:
 
 @dataclass(frozen=True)
 class IcpConfig:
-    """Registration of the structure clouds (open3d GICP or point-to-plane ICP)."""
+    """Registration of the structure clouds (open3d GICP or point-to-plane ICP). ``guided_relative_tolerance``:
+    the convergence criterion of a consecutive pair that starts from its wheel guide corrected by the previous pair's
+    registration (``core.register_pairs``); every other registration stops at ``relative_tolerance``."""
 
     method: str
     max_corr_m: float
     max_iterations: int
     relative_tolerance: float
+    guided_relative_tolerance: float | None = None  # None: relative_tolerance
 
 
 @dataclass(frozen=True)
@@ -77,9 +80,11 @@ class EdgeConfig:
             raise TypeError(f"EdgeConfig.flat: unknown settings {sorted(unknown)}")
         return cls(**built, deskew=deskew, span_scans=tuple(int(n) for n in span_scans))
 
-    def registration_kwargs(self) -> dict:
-        """The keywords of ``stages.common.registration.register_clouds``."""
-        i = self.information
-        return dict(method=self.icp.method, max_corr_m=self.icp.max_corr_m, max_iterations=self.icp.max_iterations,
-                    relative_tolerance=self.icp.relative_tolerance, point_sigma_m=i.point_sigma_m,
-                    min_sigma_m=i.min_sigma_m, min_sigma_rad=i.min_sigma_rad)
+    def registration_kwargs(self, guided: bool = False) -> dict:
+        """The keywords of ``stages.common.registration.register_clouds`` (``guided``: of a consecutive pair started
+        from its corrected wheel guide)."""
+        i, icp = self.information, self.icp
+        tol = icp.guided_relative_tolerance if guided and icp.guided_relative_tolerance else icp.relative_tolerance
+        return dict(method=icp.method, max_corr_m=icp.max_corr_m, max_iterations=icp.max_iterations,
+                    relative_tolerance=tol, point_sigma_m=i.point_sigma_m, min_sigma_m=i.min_sigma_m,
+                    min_sigma_rad=i.min_sigma_rad)

@@ -20,7 +20,7 @@ from stages.common.registration import (
     plane_hessian,
     register_clouds,
 )
-from stages.odometry.config import EdgeConfig, PrepareConfig
+from stages.odometry.config import EdgeConfig, GateConfig, PrepareConfig
 from stages.odometry.prepare import PreparedScan, prepare_scan, prepare_scans
 
 
@@ -125,23 +125,54 @@ def pair_scans(scans: list[Scan], gnss_poses: dict[int, np.ndarray],
 def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar: np.ndarray, cfg: EdgeConfig,
                    guesses_l: dict[int, np.ndarray] | None = None) -> dict[int, RegistrationResult]:
     """Step 3: register every pair's structure clouds. Initial guess: ``guesses_l`` (lidar frame) when given,
-    else the reference increment, else constant velocity from the last converged pair."""
+    else the reference increment, else constant velocity from the last converged pair.
+
+    A guided pair (wheel increment) starts from its guide corrected by the previous pair's registration
+    (``guide_correction``: the guide's error, from wheel scale, gyro bias and deskew, changes slowly from scan to
+    scan) and stops at ``cfg.icp.guided_relative_tolerance``. Open3D's criterion stops while the estimate still
+    creeps towards the optimum, so a loose one leaves part of the start's error in the edge: from the raw guide,
+    1e-3 doubled the ICP-only heading drift over 1,000-1,500 scans (gangnam seed 2 0.047 -> 0.094 deg, demo seed 3
+    -0.133 -> -0.253 deg); from the corrected guide, 3e-3 left it as at 1e-4 (0.051, -0.124 deg) with 1.3 GICP
+    iterations instead of 2.6 (``bench/bench_odometry_guess.py``)."""
     T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
     out: dict[int, RegistrationResult] = {}
     last_v, last_dt = None, None
+    correction_v, corrected_k = np.eye(4), None  # the last guided pair's registration relative to its guide
     for k in pairs.k:
+        guided = guesses_l is None and k in pairs.guided
         if guesses_l is not None:
             guess_l = guesses_l[k]
         else:
             ratio = pairs.dt_s[k] / last_dt if (pairs.dt_s[k] > 0 and last_dt) else 1.0
             guess_v = pairs.reference_v.get(k)
+            if guided and corrected_k == k - 1:
+                guess_v = guess_v @ correction_v
             guess_v = guess_v if guess_v is not None else initial_guess(None, None, last_v, ratio)
             guess_l = T_lidar_vehicle @ guess_v @ T_vehicle_lidar
-        res = register_clouds(prepared[k].structure, prepared[k - 1].structure, guess_l, **cfg.registration_kwargs())
+        res = register_clouds(prepared[k].structure, prepared[k - 1].structure, guess_l,
+                              **cfg.registration_kwargs(guided=guided))
         out[k] = res
         if res.converged and guesses_l is None:
             last_v, last_dt = T_vehicle_lidar @ res.T_target_source @ T_lidar_vehicle, pairs.dt_s[k]
+        corrected_k = None
+        if guided and res.converged:
+            c = guide_correction(pairs.reference_v[k], T_vehicle_lidar @ res.T_target_source @ T_lidar_vehicle,
+                                 res.fitness, cfg.gate)
+            if c is not None:
+                correction_v, corrected_k = c, k
     return out
+
+
+def guide_correction(guide_v: np.ndarray, registered_v: np.ndarray, fitness: float, gate: GateConfig
+                     ) -> np.ndarray | None:
+    """The registration relative to its wheel guide (vehicle frame, ``guide^-1 @ registered``), or None where the
+    gate would reject the pair against its guide (``gate_edge``, planar): a failed registration must not steer the
+    next one."""
+    if not gate_edge(registered_v, guide_v, fitness, True, min_fitness=gate.min_fitness,
+                     max_deviation_m=gate.max_deviation_guide_m, max_deviation_rad=gate.max_deviation_guide_rad,
+                     planar=True):
+        return None
+    return se3_inverse(guide_v) @ registered_v
 
 
 def with_road(src: PreparedScan, tgt: PreparedScan, res: RegistrationResult) -> np.ndarray:

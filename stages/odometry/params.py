@@ -15,7 +15,12 @@ class OdometryParams(Params):
     knn: int = Field(20, ge=5, description="neighbours for covariances / normals")
     max_corr_m: float = Field(1.0, gt=0, description="ICP correspondence distance")
     max_iterations: int = Field(15, ge=1)
-    relative_tolerance: float = Field(1e-4, gt=0)
+    relative_tolerance: float = Field(1e-4, gt=0, description="ICP convergence (open3d's relative fitness and "
+                                      "RMSE): span edges, pairs without a wheel guide, own-sweep second pass")
+    guided_relative_tolerance: float = Field(3e-3, gt=0, description="same, for a consecutive pair started from "
+                                             "its wheel guide corrected by the previous pair's registration: 1.3 "
+                                             "GICP iterations instead of 2.6, ICP-only drift as at 1e-4 (chosen on "
+                                             "gangnam seed 2 and demo seed 3, bench/bench_odometry_guess.py)")
     min_range_m: float = Field(2.0, ge=0, description="drop points closer (vehicle body)")
     max_range_m: float = Field(80.0, gt=0)
     deskew: Literal["odometry", "own_sweep", "none"] = Field(
@@ -57,7 +62,8 @@ class OdometryParams(Params):
                                   max_range_m=self.max_range_m, ground_split=self.ground_split,
                                   ground_tolerance_m=self.ground_tolerance_m),
             icp=IcpConfig(method=self.method, max_corr_m=self.max_corr_m, max_iterations=self.max_iterations,
-                          relative_tolerance=self.relative_tolerance),
+                          relative_tolerance=self.relative_tolerance,
+                          guided_relative_tolerance=self.guided_relative_tolerance),
             information=InformationConfig(point_sigma_m=self.point_sigma_m, min_sigma_m=self.min_sigma_m,
                                           min_sigma_rad=self.min_sigma_rad, rot_sigma_per_rad=self.rot_sigma_per_rad),
             gate=GateConfig(min_fitness=self.min_fitness, max_deviation_m=self.max_deviation_m,
