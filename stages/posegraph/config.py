@@ -161,6 +161,7 @@ class MarkingAnchorConfig:
     min_sigma_m: float = 0.03
     yaw_search_deg: float = 0.0
     yaw_step_deg: float = 0.5
+    scan_step: int = 1  # every scan_step-th scan of the submap's window (``submap_scan_indices``)
 
 
 @dataclass(frozen=True)
@@ -249,7 +250,8 @@ class PosegraphConfig:
             half_travel_m=p.survey_marking_half_travel_m, max_scans=p.survey_marking_max_scans,
             search_m=p.survey_marking_search_m, raster=p.survey_marking_raster,
             sigma_scale=p.survey_marking_sigma_scale, min_sigma_m=p.survey_marking_min_sigma_m,
-            yaw_search_deg=p.survey_marking_yaw_search_deg, yaw_step_deg=p.survey_marking_yaw_step_deg)
+            yaw_search_deg=p.survey_marking_yaw_search_deg, yaw_step_deg=p.survey_marking_yaw_step_deg,
+            scan_step=p.survey_marking_scan_step)
         anchors = AnchorConfig(
             stride_m=p.survey_stride_m, ground=ground, use_markings=p.survey_markings, markings=markings,
             yaw_sigma_deg=p.survey_marking_yaw_sigma_deg, consensus_window_m=p.survey_marking_consensus_window_m,

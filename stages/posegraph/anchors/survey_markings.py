@@ -131,14 +131,17 @@ def marking_mask(index: SurveyMarkingIndex, i0: int, j0: int, n_px: int, raster:
     return rasterize_grid(acc.finish(raster.min_points_per_cell), halo_px, **raster.rasterize_kwargs()).marking
 
 
-def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, max_scans: int) -> np.ndarray:
-    """Scans of one drive within ``half_travel_m`` of travel before and after scan ``k`` (at most
-    ``max_scans`` on each side)."""
-    step = np.r_[0.0, np.linalg.norm(np.diff(positions_m[:, :2], axis=0), axis=1)]
-    travel = np.cumsum(step)
+def submap_scan_indices(positions_m: np.ndarray, k: int, half_travel_m: float, max_scans: int, step: int = 1
+                        ) -> np.ndarray:
+    """Scans of one drive within ``half_travel_m`` of travel before and after scan ``k`` (at most ``max_scans``
+    positions on each side); with ``step`` > 1 only every ``step``-th scan of the drive among them (indices divisible
+    by ``step``: neighbouring keyframes and later rounds use the same scans) and scan ``k`` itself."""
+    step_m = np.r_[0.0, np.linalg.norm(np.diff(positions_m[:, :2], axis=0), axis=1)]
+    travel = np.cumsum(step_m)
     lo = max(int(np.searchsorted(travel, travel[k] - half_travel_m, side="left")), k - max_scans)
     hi = min(int(np.searchsorted(travel, travel[k] + half_travel_m, side="right")), k + max_scans + 1)
-    return np.arange(lo, hi)
+    ks = np.arange(lo, hi)
+    return ks if step <= 1 else ks[(ks % step == 0) | (ks == k)]
 
 
 def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_drive: np.ndarray,
@@ -155,7 +158,7 @@ def marking_anchor(k_local: int, drive, poses_drive: np.ndarray, increments_driv
     heading error turns the submap, and a translation-only match of a turned submap is biased by the lever arm of
     its paint (measured on tiny: the anchors inherited about half of the estimate's 0.42 deg rotation)."""
     half_travel_m, raster = cfg.half_travel_m, cfg.raster
-    ks = submap_scan_indices(poses_drive[:, :3, 3], k_local, half_travel_m, cfg.max_scans)
+    ks = submap_scan_indices(poses_drive[:, :3, 3], k_local, half_travel_m, cfg.max_scans, cfg.scan_step)
     cache = {} if feature_cache is None else feature_cache
     for j in set(cache) - set(ks.tolist()):
         del cache[j]

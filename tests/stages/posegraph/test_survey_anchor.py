@@ -69,6 +69,17 @@ def test_submap_indices_follow_travel_and_the_scan_cap():
     assert ks[0] == 12  # standing still: the cap, not the travel, limits the scans before
 
 
+def test_submap_scan_step_thins_the_window_on_the_drive_grid():
+    """With a step the window is the same, its scans every step-th of the drive (so keyframes and rounds share
+    them) plus the keyframe's own."""
+    pos = np.column_stack([np.arange(80) * 0.5, np.zeros(80), np.zeros(80)])
+    full = submap_scan_indices(pos, 41, half_travel_m=8.0, max_scans=10)
+    assert full.tolist() == list(range(31, 52))
+    ks = submap_scan_indices(pos, 41, half_travel_m=8.0, max_scans=10, step=2)
+    assert ks.tolist() == [32, 34, 36, 38, 40, 41, 42, 44, 46, 48, 50]
+    assert set(submap_scan_indices(pos, 43, 8.0, 10, step=2)) - {43} <= set(range(0, 80, 2))
+
+
 def test_horizontal_anchors_pull_a_gnss_biased_graph_onto_truth(two_lap_drive):
     """Biased GNSS (0.85 m) alone leaves the graph decimetres off; horizontal anchors at truth every 10 poses
     with 3 cm sigma (what an accepted marking match gives) bring it within 5 cm."""
