@@ -40,7 +40,7 @@ def _iterations(register, sample: list) -> float:
 
 def run(sim: Path, drive: str, n: int, tolerance: float, raw: bool) -> str:
     import stages.odometry.core as core
-    from bench.odometry_engines import errors_vs_truth, odometry_ours, truth_at_scans
+    from bench.odometry_engines import odometry_ours, sim_errors
     from bench.odometry_sources import chunked, sim_extrinsic, sim_files, sim_track
 
     if raw:
@@ -58,8 +58,7 @@ def run(sim: Path, drive: str, n: int, tolerance: float, raw: bool) -> str:
     out = odometry_ours(chunked(files, 100), sim_extrinsic(sim), sim_track(sim, drive),
                         guided_relative_tolerance=tolerance)
     total = time.perf_counter() - t0
-    truth = truth_at_scans(sim / "truth" / f"{drive}_poses_tum.txt", files)
-    e = errors_vs_truth(out.poses, truth[:len(out.poses)])
+    e = sim_errors(sim, drive, files, out)
     iters = _iterations(register, sample[:150])
     return (f"| {sim.name} | {'raw' if raw else 'corrected'} | {tolerance:g} | {e['edges']} | "
             f"{e['edge_xy_rms_mm']:.2f} | {e['edge_yaw_rms_deg']:.4f} | {e['end_xy_m']:.3f} | "
@@ -78,6 +77,7 @@ def main() -> int:
     if not (args.sim / "truth").is_dir():
         print(f"bench_odometry_guess: {args.sim} is not a simulated drive folder (no truth/); hint: cornermap "
               "simulate --out DIR", file=sys.stderr)
+        return 1
         return 1
     if args.one:  # one row in this process
         import open3d as o3d

@@ -179,6 +179,12 @@ def errors_vs_truth(est: np.ndarray, truth: np.ndarray, segment_m: float = 100.0
             "end_heading_deg": float(heading)}
 
 
+def sim_errors(sim: Path, drive: str, files: list[ScanFile], run: Run) -> dict[str, float]:
+    """``errors_vs_truth`` of a run over a simulated drive's ``files`` (the truth at their scan starts)."""
+    truth = truth_at_scans(sim / "truth" / f"{drive}_poses_tum.txt", files)
+    return errors_vs_truth(run.poses, truth[:len(run.poses)])
+
+
 def truth_at_scans(path: Path, files: list[ScanFile]) -> np.ndarray:
     """Truth pose at each scan's start (nearest truth sample; refused when more than 5 ms away)."""
     from stages.common.records import Trajectory

@@ -56,7 +56,7 @@ def small_gicp_register(source, target, T_init, *, method="gicp", max_corr_m=1.0
 
 def run(sim: Path, n: int, engine: str) -> str:
     import stages.odometry.core as core
-    from bench.odometry_engines import errors_vs_truth, odometry_ours, truth_at_scans
+    from bench.odometry_engines import odometry_ours, sim_errors
     from bench.odometry_sources import chunked, sim_extrinsic, sim_files, sim_track
 
     if engine == "small_gicp":
@@ -64,8 +64,7 @@ def run(sim: Path, n: int, engine: str) -> str:
     files = sim_files(sim, "drive_0", n)
     t0 = time.perf_counter()
     out = odometry_ours(chunked(files, 100), sim_extrinsic(sim), sim_track(sim, "drive_0"))
-    truth = truth_at_scans(sim / "truth" / "drive_0_poses_tum.txt", files)
-    e = errors_vs_truth(out.poses, truth[:len(out.poses)])
+    e = sim_errors(sim, "drive_0", files, out)
     return (f"| {engine} | {e['edges']} | {e['edge_xy_rms_mm']:.1f} | {e['edge_yaw_rms_deg']:.4f} | "
             f"{e['end_xy_m']:.2f} | {e['end_heading_deg']:.2f} | {out.n_flagged} | {out.seconds:.1f} | "
             f"{time.perf_counter() - t0:.1f} |")
