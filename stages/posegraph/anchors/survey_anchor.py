@@ -15,7 +15,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from stages.common.ground_plane import rotation_between
-from stages.common.registration import floor_information, prepare_cloud, register_clouds, voxel_downsample
+from stages.common.registration import (
+    as_indices,
+    floor_information,
+    prepare_cloud,
+    register_clouds,
+    voxel_downsample,
+)
 from stages.posegraph.config import AnchorConfig, GroundAnchorConfig
 from stages.posegraph.factors.graph import PosePrior
 
@@ -54,7 +60,7 @@ def anchor_scan(i: int, points_vehicle_m: np.ndarray, T_map_vehicle_init: np.nda
     min_sigma_m, min_sigma_rad = cfg.min_sigma_m, cfg.min_sigma_rad
     origin = T_map_vehicle_init[:3, 3].copy()
     low = points_vehicle_m[points_vehicle_m[:, 2] < cfg.max_height_m]
-    near = survey_tree.query_ball_point(origin[:2], cfg.crop_m)
+    near = as_indices(survey_tree.query_ball_point(origin[:2], cfg.crop_m))
     if len(low) < 100 or len(near) < 100:
         return SurveyMatch(i, T_map_vehicle_init, np.zeros((6, 6)), 0.0, float("nan"), False,
                            f"too few points (scan {len(low)}, survey {len(near)})", T_init=T_map_vehicle_init)
@@ -237,7 +243,7 @@ def _anchor_block(item) -> list[SurveyMatch | None]:
     chunk, voxel_m, keyed_poses, cfg = item
     state = worker_state()
     tree = state["survey_tree"]
-    covered = [tree is not None and len(tree.query_ball_point(pose[:2, 3], COVERAGE_RADIUS_M)) > 0
+    covered = [tree is not None and tree.query_ball_point(pose[:2, 3], COVERAGE_RADIUS_M, return_length=True) > 0
                for _, pose in keyed_poses]
     clouds = _clouds_item(([c for c, ok in zip(chunk, covered) if ok], voxel_m)) if any(covered) else {}
     return [anchor_scan(k, clouds[k], pose, state["survey_pts"], tree, cfg, state.get("survey_normals")) if ok

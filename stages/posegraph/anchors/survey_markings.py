@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.common.marking_raster.settings import MarkingRasterSettings
+from stages.common.registration import as_indices
 from stages.common.road_features import extract_road_features
 from stages.posegraph.anchors.marking_match import BLUR_M, MarkingMatch, marking_kernel, match_markings
 from stages.posegraph.config import MarkingAnchorConfig
@@ -125,8 +126,8 @@ def marking_mask(index: SurveyMarkingIndex, i0: int, j0: int, n_px: int, raster:
     halo_px = halo_px_for(cell, raster.threshold_block_m, raster.ground_window_m)
     acc = GridAccumulator((i0 - halo_px) * cell, (j0 - halo_px) * cell, cell, (n_px + 2 * halo_px, n_px + 2 * halo_px))
     centre = (np.array([i0, j0]) + n_px / 2.0) * cell
-    idx = index.tree.query_ball_point(centre, (n_px / 2.0 + halo_px) * cell * np.sqrt(2))
-    if idx:
+    idx = as_indices(index.tree.query_ball_point(centre, (n_px / 2.0 + halo_px) * cell * np.sqrt(2)))
+    if len(idx):
         acc.add(index.points_enu_m[idx], index.intensity[idx])
     return rasterize_grid(acc.finish(raster.min_points_per_cell), halo_px, **raster.rasterize_kwargs()).marking
 
