@@ -17,7 +17,6 @@ import argparse
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -40,8 +39,7 @@ def _iterations(register, sample: list) -> float:
 
 def run(sim: Path, drive: str, n: int, tolerance: float, raw: bool) -> str:
     import stages.odometry.core as core
-    from bench.odometry_engines import odometry_ours, sim_errors
-    from bench.odometry_sources import chunked, sim_extrinsic, sim_files, sim_track
+    from bench.odometry_engines import sim_odometry
 
     if raw:
         core.guide_correction = lambda *a, **k: None
@@ -53,12 +51,7 @@ def run(sim: Path, drive: str, n: int, tolerance: float, raw: bool) -> str:
             sample.append((src, tgt, np.array(T, float), kw))
         return register(src, tgt, T, **kw)
     core.register_clouds = recorded
-    files = sim_files(sim, drive, n)
-    t0 = time.perf_counter()
-    out = odometry_ours(chunked(files, 100), sim_extrinsic(sim), sim_track(sim, drive),
-                        guided_relative_tolerance=tolerance)
-    total = time.perf_counter() - t0
-    e = sim_errors(sim, drive, files, out)
+    out, e, total = sim_odometry(sim, drive, n, guided_relative_tolerance=tolerance)
     iters = _iterations(register, sample[:150])
     return (f"| {sim.name} | {'raw' if raw else 'corrected'} | {tolerance:g} | {e['edges']} | "
             f"{e['edge_xy_rms_mm']:.2f} | {e['edge_yaw_rms_deg']:.4f} | {e['end_xy_m']:.3f} | "

@@ -179,10 +179,19 @@ def errors_vs_truth(est: np.ndarray, truth: np.ndarray, segment_m: float = 100.0
             "end_heading_deg": float(heading)}
 
 
-def sim_errors(sim: Path, drive: str, files: list[ScanFile], run: Run) -> dict[str, float]:
-    """``errors_vs_truth`` of a run over a simulated drive's ``files`` (the truth at their scan starts)."""
+def sim_odometry(sim: Path, drive: str, n_scans: int, **overrides) -> tuple[Run, dict[str, float], float]:
+    """``odometry_ours`` over the first ``n_scans`` of a simulated drive (its wheel track, 100-scan chunks, the stage's
+    params with ``overrides``): the run, its ``errors_vs_truth`` (the truth at the scan starts) and its wall seconds."""
+    import time
+
+    from bench.odometry_sources import chunked, sim_extrinsic, sim_files, sim_track
+
+    files = sim_files(sim, drive, n_scans)
+    t0 = time.perf_counter()
+    run = odometry_ours(chunked(files, 100), sim_extrinsic(sim), sim_track(sim, drive), **overrides)
+    total_s = time.perf_counter() - t0
     truth = truth_at_scans(sim / "truth" / f"{drive}_poses_tum.txt", files)
-    return errors_vs_truth(run.poses, truth[:len(run.poses)])
+    return run, errors_vs_truth(run.poses, truth[:len(run.poses)]), total_s
 
 
 def truth_at_scans(path: Path, files: list[ScanFile]) -> np.ndarray:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -56,18 +55,13 @@ def small_gicp_register(source, target, T_init, *, method="gicp", max_corr_m=1.0
 
 def run(sim: Path, n: int, engine: str) -> str:
     import stages.odometry.core as core
-    from bench.odometry_engines import odometry_ours, sim_errors
-    from bench.odometry_sources import chunked, sim_extrinsic, sim_files, sim_track
+    from bench.odometry_engines import sim_odometry
 
     if engine == "small_gicp":
         core.register_clouds = small_gicp_register
-    files = sim_files(sim, "drive_0", n)
-    t0 = time.perf_counter()
-    out = odometry_ours(chunked(files, 100), sim_extrinsic(sim), sim_track(sim, "drive_0"))
-    e = sim_errors(sim, "drive_0", files, out)
+    out, e, total = sim_odometry(sim, "drive_0", n)
     return (f"| {engine} | {e['edges']} | {e['edge_xy_rms_mm']:.1f} | {e['edge_yaw_rms_deg']:.4f} | "
-            f"{e['end_xy_m']:.2f} | {e['end_heading_deg']:.2f} | {out.n_flagged} | {out.seconds:.1f} | "
-            f"{time.perf_counter() - t0:.1f} |")
+            f"{e['end_xy_m']:.2f} | {e['end_heading_deg']:.2f} | {out.n_flagged} | {out.seconds:.1f} | {total:.1f} |")
 
 
 def main() -> int:
