@@ -114,8 +114,14 @@ def align_lines_to_table(sorted_medians_deg: np.ndarray, elevations_deg: tuple[f
 
 
 def ring_coverage(rings: np.ndarray, n_rings: int) -> tuple[int, list[int]]:
-    """(number of distinct rings with points, missing rings in 0..n_rings-1)."""
-    present = np.unique(rings[rings >= 0])
+    """(number of distinct rings with points, missing rings in 0..n_rings-1). Ring ids are small: counted with
+    ``np.bincount`` (a sort in ``np.unique`` took 0.27 ms of a 45k-point gangnam scan's decoding, 2.6 s of the
+    one-drive ingest's decoder thread); ``np.unique`` for ids beyond 4096."""
+    valid = rings[rings >= 0]
+    if len(valid) and int(valid.max()) <= 4096:
+        present = np.flatnonzero(np.bincount(valid))
+    else:
+        present = np.unique(valid)
     missing = sorted(set(range(n_rings)) - set(present.tolist())) if n_rings else []
     return int(present.size), missing
 

@@ -12,7 +12,7 @@ from stages.ingest.csv_columns import read_csv_columns
 from stages.ingest.drive_file import GnssSpec
 from stages.ingest.gnss_csv import GnssLimits, read_gnss, read_scan_stamps
 from stages.ingest.scan_pass import scan_numbers
-from stages.ingest.sensors import SENSORS, rings_from_point_order
+from stages.ingest.sensors import SENSORS, ring_coverage, rings_from_point_order
 
 OXTS = GnssSpec.model_validate({"file": "g.csv", "time": {"column": "time", "base": "unix"},
                                 "columns": {"lat": "lat", "lon": "lon", "height": "alt", "heading": "yaw"},
@@ -135,3 +135,13 @@ def test_a_duplicate_key_in_a_drive_file_is_named(tmp_path):
     path.write_text("name: a\nsensor: hdl32e\nname: b\n")
     with pytest.raises(ConfigError, match="name"):
         load_drive_file(path)
+
+
+@pytest.mark.parametrize("rings", [np.random.default_rng(3).integers(-1, 32, 45_000).astype(np.int16),
+                                   np.array([], np.int16), np.array([-1, -1], np.int16),
+                                   np.array([5, 70_000, 3], np.int64), np.array([0, 63, 63, 7])])
+def test_ring_coverage_counts_as_np_unique(rings):
+    """The counted ring coverage equals the sort-based one (np.unique), unassigned (-1) rings left out, ids beyond
+    the counting range included."""
+    present = np.unique(rings[rings >= 0])
+    assert ring_coverage(rings, 64) == (int(present.size), sorted(set(range(64)) - set(present.tolist())))
