@@ -131,9 +131,9 @@ def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar:
     (``guide_correction``: the guide's error, from wheel scale, gyro bias and deskew, changes slowly from scan to
     scan) and stops at ``cfg.icp.guided_relative_tolerance``. Open3D's criterion stops while the estimate still
     creeps towards the optimum, so a loose one leaves part of the start's error in the edge: from the raw guide,
-    1e-3 doubled the ICP-only heading drift over 1,000-1,500 scans (gangnam seed 2 0.047 -> 0.094 deg, demo seed 3
-    -0.133 -> -0.253 deg); from the corrected guide, 3e-3 left it as at 1e-4 (0.051, -0.124 deg) with 1.3 GICP
-    iterations instead of 2.6 (``bench/bench_odometry_guess.py``)."""
+    3e-3 tripled the ICP-only heading drift over 1,000-1,500 scans (gangnam seed 2 0.047 -> 0.128 deg, demo seed 3
+    -0.133 -> -0.428 deg); from the corrected guide, 3e-3 left it as at 1e-4 (0.051, -0.136 deg) with 1.65-1.76 GICP
+    iterations instead of 2.84-3.08 (``bench/bench_odometry_guess.py``; docs/posegraph.md, "The guided start")."""
     T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
     out: dict[int, RegistrationResult] = {}
     last_v, last_dt = None, None

@@ -18,8 +18,8 @@ class OdometryParams(Params):
     relative_tolerance: float = Field(1e-4, gt=0, description="ICP convergence (open3d's relative fitness and "
                                       "RMSE): span edges, pairs without a wheel guide, own-sweep second pass")
     guided_relative_tolerance: float = Field(3e-3, gt=0, description="same, for a consecutive pair started from "
-                                             "its wheel guide corrected by the previous pair's registration: 1.3 "
-                                             "GICP iterations instead of 2.6, ICP-only drift as at 1e-4 (chosen on "
+                                             "its wheel guide corrected by the previous pair's registration: 1.5-1.8 "
+                                             "GICP iterations instead of 2.6-3.1, ICP-only drift as at 1e-4 (chosen on "
                                              "gangnam seed 2 and demo seed 3, bench/bench_odometry_guess.py)")
     min_range_m: float = Field(2.0, ge=0, description="drop points closer (vehicle body)")
     max_range_m: float = Field(80.0, gt=0)
