@@ -102,6 +102,34 @@ def ground_mask(points_lidar_m: np.ndarray, plane: GroundPlane, tolerance_m: flo
     return np.abs(np.asarray(points_lidar_m)[:, :3] @ plane.normal + plane.offset_m) < tolerance_m
 
 
+@dataclass(frozen=True)
+class RoadSplit:
+    """A scan's road plane (None: not found), the structure off it and the road points (None without a plane)."""
+
+    plane: GroundPlane | None
+    structure_m: np.ndarray
+    ground_m: np.ndarray | None
+
+
+def split_road(points_m: np.ndarray, T_vehicle_sensor: np.ndarray, tolerance_m: float) -> RoadSplit:
+    """The road plane under a scan (``fit_ground_plane``) and its points split into road (within ``tolerance_m`` of
+    it) and structure; a scan without a road plane is all structure."""
+    plane = fit_ground_plane(points_m, T_vehicle_sensor)
+    if plane is None:
+        return RoadSplit(None, points_m, None)
+    on = ground_mask(points_m, plane, tolerance_m)
+    return RoadSplit(plane, points_m[~on], points_m[on])
+
+
+def on_road_planes(T_target_source: np.ndarray, registered: bool, source_plane: GroundPlane | None,
+                   target_plane: GroundPlane | None) -> np.ndarray:
+    """A registration with height, roll and pitch from the two scans' road planes (``align_ground_planes``) where it
+    registered and both planes exist; else ``T_target_source`` itself (the same object)."""
+    if registered and source_plane is not None and target_plane is not None:
+        return align_ground_planes(T_target_source, source_plane, target_plane)
+    return T_target_source
+
+
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotation taking unit vector a onto unit vector b (Rodrigues)."""
     v = np.cross(a, b)

@@ -84,7 +84,8 @@ class EdgeConfig:
         """The keywords of ``stages.common.registration.register_clouds`` (``guided``: of a consecutive pair started
         from its corrected wheel guide)."""
         i, icp = self.information, self.icp
-        tol = icp.guided_relative_tolerance if guided and icp.guided_relative_tolerance else icp.relative_tolerance
+        guided_tol = icp.guided_relative_tolerance
+        tol = guided_tol if guided and guided_tol is not None else icp.relative_tolerance
         return dict(method=icp.method, max_corr_m=icp.max_corr_m, max_iterations=icp.max_iterations,
                     relative_tolerance=tol, point_sigma_m=i.point_sigma_m, min_sigma_m=i.min_sigma_m,
                     min_sigma_rad=i.min_sigma_rad)

@@ -12,7 +12,7 @@ import numpy as np
 
 from stages.common.deskew import deskew_with_transform, interpolate_transform
 from stages.common.geometry import se3_inverse
-from stages.common.ground_plane import align_ground_planes
+from stages.common.ground_plane import on_road_planes
 from stages.common.registration import (
     RegistrationResult,
     adjoint_se3,
@@ -137,7 +137,7 @@ def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar:
     T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
     out: dict[int, RegistrationResult] = {}
     last_v, last_dt = None, None
-    correction_v, corrected_k = np.eye(4), None  # the last guided pair's registration relative to its guide
+    corrected: tuple[int, np.ndarray] | None = None  # (pair, its registration relative to its guide) of the last pair
     for k in pairs.k:
         guided = guesses_l is None and k in pairs.guided
         if guesses_l is not None:
@@ -145,21 +145,19 @@ def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar:
         else:
             ratio = pairs.dt_s[k] / last_dt if (pairs.dt_s[k] > 0 and last_dt) else 1.0
             guess_v = pairs.reference_v.get(k)
-            if guided and corrected_k == k - 1:
-                guess_v = guess_v @ correction_v
+            if guided and corrected is not None and corrected[0] == k - 1:
+                guess_v = guess_v @ corrected[1]
             guess_v = guess_v if guess_v is not None else initial_guess(None, None, last_v, ratio)
             guess_l = T_lidar_vehicle @ guess_v @ T_vehicle_lidar
         res = register_clouds(prepared[k].structure, prepared[k - 1].structure, guess_l,
                               **cfg.registration_kwargs(guided=guided))
         out[k] = res
+        registered_v = T_vehicle_lidar @ res.T_target_source @ T_lidar_vehicle
         if res.converged and guesses_l is None:
-            last_v, last_dt = T_vehicle_lidar @ res.T_target_source @ T_lidar_vehicle, pairs.dt_s[k]
-        corrected_k = None
-        if guided and res.converged:
-            c = guide_correction(pairs.reference_v[k], T_vehicle_lidar @ res.T_target_source @ T_lidar_vehicle,
-                                 res.fitness, cfg.gate)
-            if c is not None:
-                correction_v, corrected_k = c, k
+            last_v, last_dt = registered_v, pairs.dt_s[k]
+        c = guide_correction(pairs.reference_v[k], registered_v, res.fitness, cfg.gate) \
+            if guided and res.converged else None
+        corrected = None if c is None else (k, c)
     return out
 
 
@@ -177,9 +175,7 @@ def guide_correction(guide_v: np.ndarray, registered_v: np.ndarray, fitness: flo
 
 def with_road(src: PreparedScan, tgt: PreparedScan, res: RegistrationResult) -> np.ndarray:
     """The registration with height, roll and pitch from the two scans' road planes."""
-    if res.converged and src.plane is not None and tgt.plane is not None:
-        return align_ground_planes(res.T_target_source, src.plane, tgt.plane)
-    return res.T_target_source
+    return on_road_planes(res.T_target_source, res.converged, src.plane, tgt.plane)
 
 
 def deskew_own_sweep(prepared: list[PreparedScan], pairs: _Pairs, results: dict[int, RegistrationResult],

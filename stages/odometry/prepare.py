@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import open3d as o3d
 
-from stages.common.ground_plane import GroundPlane, fit_ground_plane, ground_mask
+from stages.common.ground_plane import GroundPlane, split_road
 from stages.common.registration import crop_range, prepare_cloud, voxel_downsample
 from stages.odometry.config import PrepareConfig
 
@@ -41,15 +41,14 @@ class PreparedScan:
 
 def prepare_scan(points_m: np.ndarray, time_offset_s: np.ndarray | None, T_vehicle_lidar: np.ndarray,
                  cfg: PrepareConfig, with_cov: bool) -> PreparedScan:
-    plane = fit_ground_plane(points_m, T_vehicle_lidar) if cfg.ground_split else None
-    if plane is None:
+    road = split_road(points_m, T_vehicle_lidar, cfg.ground_tolerance_m) if cfg.ground_split else None
+    if road is None or road.plane is None:
         return PreparedScan(points_m, time_offset_s,
                             prepare_cloud(points_m, cfg.voxel_m, cfg.knn, with_covariances=with_cov),
                             None, None, cfg.voxel_m)
-    on_ground = ground_mask(points_m, plane, cfg.ground_tolerance_m)
     return PreparedScan(points_m, time_offset_s,
-                        prepare_cloud(points_m[~on_ground], cfg.voxel_m, cfg.knn, with_covariances=with_cov), plane,
-                        points_m[on_ground], cfg.voxel_m)
+                        prepare_cloud(road.structure_m, cfg.voxel_m, cfg.knn, with_covariances=with_cov), road.plane,
+                        road.ground_m, cfg.voxel_m)
 
 
 def prepare_scans(scans: list[Scan], T_vehicle_lidar: np.ndarray, cfg: PrepareConfig, with_cov: bool

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.common.geometry import se3_inverse
+from stages.common.ground_plane import on_road_planes, split_road
 from stages.common.registration import (
     floor_information,
     plane_hessian,
@@ -136,28 +137,6 @@ def loop_betweens(loops: list[LoopRecord], cfg: LoopConfig) -> list[Between]:
     return [Between(r.i, r.j, r.T_i_j, r.information, "loop", robust, cfg.kernel_k) for r in loops if r.accepted]
 
 
-@dataclass(frozen=True)
-class _Split:
-    """A vehicle-frame cloud's road plane (None: not found), the structure above it and the road points."""
-
-    plane: object | None
-    structure_m: np.ndarray
-    ground_m: np.ndarray | None
-
-
-def split_road(points_vehicle_m: np.ndarray, tolerance_m: float) -> _Split:
-    """The road plane under a vehicle-frame cloud (``ground_plane.fit_ground_plane``, the odometry's fit) and the
-    points off it; a cloud without a road plane is all structure."""
-    from stages.common.ground_plane import fit_ground_plane, ground_mask
-
-    pts = np.asarray(points_vehicle_m, np.float64)
-    plane = fit_ground_plane(pts, np.eye(4))
-    if plane is None:
-        return _Split(None, pts, None)
-    on = ground_mask(pts, plane, tolerance_m)
-    return _Split(plane, pts[~on], pts[on])
-
-
 def verify_loop(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_j_prior: np.ndarray,
                 cfg: LoopVerifyConfig, prepared: dict | None = None, keys: tuple = ("j", "i"),
                 splits: dict | None = None) -> Verdict:
@@ -208,7 +187,7 @@ def verify_once(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
         cache = {} if splits is None else splits
         for key, pts in zip(keys, (points_j_vehicle, points_i_vehicle)):
             if key not in cache:
-                cache[key] = split_road(pts, cfg.ground_tolerance_m)
+                cache[key] = split_road(np.asarray(pts, np.float64), np.eye(4), cfg.ground_tolerance_m)
         sj, si = cache[keys[0]], cache[keys[1]]
         if sj.plane is not None and si.plane is not None and min(len(sj.structure_m), len(si.structure_m)) >= 100:
             src_m, tgt_m, road = sj.structure_m, si.structure_m, (sj, si)
@@ -219,7 +198,8 @@ def verify_once(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     res = res_coarse
     if res_coarse.converged:
         res, source, target = register_coarse_to_fine(src_m, tgt_m, res_coarse.T_target_source, stages=fine, **reg)
-    T = _on_road(res, road)
+    T = res.T_target_source if road is None else on_road_planes(res.T_target_source, res.converged, road[0].plane,
+                                                                  road[1].plane)
     if road is not None:  # scored on the whole clouds (the gates' meaning), prepared once per scan as the others
         cache = reg["prepared"]
         for key, pts in zip(keys, (points_j_vehicle, points_i_vehicle)):
@@ -255,16 +235,6 @@ def verify_once(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
         if gap_m > cfg.consistency_m:
             reason = f"ambiguous: two ICP starts disagree by {gap_m:.2f} m"
     return Verdict(reason == "accepted", reason, T, score.inlier_share, score.plane_rmse_m, info)
-
-
-def _on_road(res, road) -> np.ndarray:
-    """The registration with height, roll and pitch from the two road planes (``road`` = (source split, target
-    split)), or as registered without them."""
-    from stages.common.ground_plane import align_ground_planes
-
-    if road is None or not res.converged:
-        return res.T_target_source
-    return align_ground_planes(res.T_target_source, road[0].plane, road[1].plane)
 
 
 def _gap_m(a, b) -> float:
