@@ -115,7 +115,8 @@ class _Parallel:
 
 @dataclass(frozen=True)
 class LoopConfig(_Parallel):
-    """Loop closures: candidates (one query per ``stride_m`` of travel, other passes within ``radius_m``), their
+    """Loop closures: candidates (one query per ``stride_m`` of travel, a reference drive's onto the map one per
+    ``reference_stride_m``, other passes within ``radius_m``), their
     verification, the kernel of the accepted loops and the pass-3 gate; candidates run in parallel processes
     from ``parallel_min_items`` on. With survey anchors, only query poses that the anchors within ``survey_window_m``
     of travel hold to less than ``survey_sigma_m`` in one direction or none look for loops (window 0: all)."""
@@ -131,6 +132,7 @@ class LoopConfig(_Parallel):
     kernel_k: float
     max_whitened_residual: float
     parallel_min_items: int
+    reference_stride_m: float = 10.0  # a reference drive's loop queries onto the fixed map, one per this travel
 
 
 @dataclass(frozen=True)
@@ -241,7 +243,8 @@ class PosegraphConfig:
             radius_m=p.loop_radius_m, min_separation_s=p.loop_min_separation_s, stride_m=p.loop_stride_m,
             max_per_scan=p.loop_max_per_scan, verify=verify, survey_window_m=p.loop_survey_window_m,
             survey_sigma_m=p.loop_survey_sigma_m, kernel=p.loop_kernel, kernel_k=p.loop_kernel_k,
-            max_whitened_residual=p.loop_max_whitened_residual, parallel_min_items=p.parallel_min_items)
+            max_whitened_residual=p.loop_max_whitened_residual, parallel_min_items=p.parallel_min_items,
+            reference_stride_m=p.loop_reference_stride_m)
         ground = GroundAnchorConfig(
             crop_m=p.survey_crop_m, max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,
             min_fitness=p.survey_min_fitness, max_rmse_m=p.survey_max_rmse_m, min_sigma_m=p.survey_min_sigma_m,

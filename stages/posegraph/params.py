@@ -74,6 +74,10 @@ class PosegraphParams(Params):
     loop_min_separation_s: float = Field(30.0, ge=0, description="same drive: minimum time between scans")
     loop_stride_m: float = Field(5.0, gt=0, description="one loop query scan per this much travel")
     loop_max_per_scan: int = Field(2, ge=1)
+    loop_reference_stride_m: float = Field(10.0, gt=0, description=(
+        "a reference (evaluation) drive's loops onto the fixed map: one query scan per this much travel (demo "
+        "calibration seeds 1-3: 5 -> 10 m halves its candidates, its poses 1-2 mm RMS further from the truth; "
+        "docs/posegraph.md, 'The reference drive's loops')"))
     loop_survey_window_m: float = Field(50.0, ge=0, description=(
         "with survey anchors, loop candidates are sought only at query scans that the accepted horizontal anchors of "
         "their drive within this much travel do not hold (loop_survey_sigma_m): where the anchors hold each pass, "

@@ -202,7 +202,7 @@ def solve_reference(drive: DriveInput, map_drives: list[DriveInput], map_poses: 
     stamps = np.concatenate([drive.stamps_ns] + [d.stamps_ns for d in map_drives]) * 1e-9
     positions = np.concatenate([poses[:, :3, 3], map_poses[:, :3, 3]])
     group = np.concatenate([np.zeros(n, int), np.ones(len(map_poses), int)])
-    query = keyframes_by_travel(positions[:n], group[:n], lc.stride_m)
+    query = keyframes_by_travel(positions[:n], group[:n], lc.reference_stride_m)
     cands = find_candidates(positions, stamps, group, query, radius_m=lc.radius_m,
                             min_separation_s=lc.min_separation_s, max_per_scan=lc.max_per_scan,
                             allowed_targets=group == 1)

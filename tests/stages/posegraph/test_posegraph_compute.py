@@ -65,16 +65,31 @@ def _drive_tables(name, T_true, scene, rng, t0_s, gnss_offset_m):
     return pa.concat_tables(scans), pa.Table.from_pylist(edges, schema=schema_of("odometry_edges")), gnss, info
 
 
-def test_compute_map_and_reference_drive(tmp_path):
+def _map_and_reference_street():
+    """A map drive d0 and a reference drive d1 along one raycast street (1 m a scan, 30 scans each), with their
+    truths; the two drives see different GNSS biases (0.8 m apart): only loop closures make them agree."""
     scene = build_street_scene(seed=3)
     rng = np.random.default_rng(4)
     T0 = np.array([se3_from_xyz_rpy(-20 + 1.0 * k, 0.3, 0, 0, 0, 0.0) for k in range(30)])
     T1 = np.array([se3_from_xyz_rpy(-19.5 + 1.0 * k, -1.2, 0, 0, 0, 0.02) for k in range(30)])
-    # the two drives see different GNSS biases (0.8 m apart): only loop closures make them agree
     d0 = _drive_tables("d0", T0, scene, rng, 0.0, np.array([0.4, -0.3, 0.1]))
     d1 = _drive_tables("d1", T1, scene, rng, 500.0, np.array([-0.4, 0.3, -0.1]))
     tables = {k: pa.concat_tables([a, b]) for k, a, b in zip(("scans", "edges", "poses_gnss", "drive_info"), d0, d1)}
-    p = PosegraphParams(loop_stride_m=4.0, gnss_every_s=0.5)
+    return tables, T0, T1
+
+
+def _reference_offset_error_m(opt: pa.Table, T0: np.ndarray, T1: np.ndarray) -> float:
+    """How far the reference drive's mean position relative to the map drive's is from the truth's [m]."""
+    xy = np.column_stack([opt["x_m"].to_numpy(), opt["y_m"].to_numpy()])
+    d = np.array(opt["drive"].to_pylist())
+    rel_est = xy[d == "d1"].mean(0) - xy[d == "d0"].mean(0)
+    rel_true = T1[:, :2, 3].mean(0) - T0[:, :2, 3].mean(0)
+    return float(np.linalg.norm(rel_est - rel_true))
+
+
+def test_compute_map_and_reference_drive(tmp_path):
+    tables, T0, T1 = _map_and_reference_street()
+    p = PosegraphParams(loop_stride_m=4.0, loop_reference_stride_m=4.0, gnss_every_s=0.5)
     ctx = make_context("posegraph", p, tables, settings={"map_drives": ["d0"], "eval_drives": ["d1"]},
                        outputs=("report",), workdir=tmp_path)
     from stages.posegraph.compute import compute
@@ -88,11 +103,7 @@ def test_compute_map_and_reference_drive(tmp_path):
     loops = out["loop_closures"].to_pylist()
     assert any(r["accepted"] and r["drive_a"] != r["drive_b"] for r in loops)
     # reference drive in the map's frame: its offset to the map drive is right to a few cm
-    xy = np.column_stack([opt["x_m"].to_numpy(), opt["y_m"].to_numpy()])
-    d = np.array(opt["drive"].to_pylist())
-    rel_est = xy[d == "d1"].mean(0) - xy[d == "d0"].mean(0)
-    rel_true = T1[:, :2, 3].mean(0) - T0[:, :2, 3].mean(0)
-    assert np.linalg.norm(rel_est - rel_true) < 0.05, (rel_est, rel_true)
+    assert _reference_offset_error_m(opt, T0, T1) < 0.05
     cov = np.stack(opt["cov_xy_yaw"].to_numpy(zero_copy_only=False)).reshape(-1, 3, 3)
     assert np.all(np.linalg.eigvalsh(cov) > 0)
     report_dir = ctx.artifact_dir("report")
@@ -101,3 +112,20 @@ def test_compute_map_and_reference_drive(tmp_path):
     report = json.loads((report_dir / "posegraph_report.json").read_text())
     assert report["reference_drives"] == ["d1"] and report["map_drives"] == ["d0"]
     assert (report_dir / "gnss_residuals.png").stat().st_size > 1000
+
+
+def test_reference_drive_queries_follow_their_own_stride(tmp_path):
+    """``loop_reference_stride_m`` spaces the reference drive's loop queries onto the map (the map drives keep
+    ``loop_stride_m``): at 10 m on a 30 m drive, the loops' reference scans lie >= 10 m of travel apart (1 m a scan),
+    three queries at most; the drive still lands on the map to a few cm."""
+    from stages.posegraph.compute import compute
+
+    tables, T0, T1 = _map_and_reference_street()
+    p = PosegraphParams(loop_stride_m=4.0, loop_reference_stride_m=10.0, gnss_every_s=0.5)
+    ctx = make_context("posegraph", p, tables, settings={"map_drives": ["d0"], "eval_drives": ["d1"]},
+                       outputs=("report",), workdir=tmp_path)
+    out = compute(ctx)
+    rows = [r for r in out["loop_closures"].to_pylist() if "d1" in (r["drive_a"], r["drive_b"])]
+    queries = sorted({r["scan_a"] if r["drive_a"] == "d1" else r["scan_b"] for r in rows})
+    assert 1 <= len(queries) <= 3 and np.all(np.diff(queries) >= 10), queries
+    assert _reference_offset_error_m(out["poses_optimized"], T0, T1) < 0.05
