@@ -6,6 +6,7 @@ every process (pool workers and spawned processes included), scans per second en
     .venv/bin/python -m bench.bench_build --preset gangnam --drives drive_0 --max-scans 1000   # memory vs length
     .venv/bin/python -m bench.bench_build --preset kitti --max-scans 154                       # real HDL-64E scans
     .venv/bin/python -m bench.bench_build --preset demo --cluster-workers 2    # on a dask LocalCluster of 2 workers
+    .venv/bin/python -m bench.bench_build --preset demo --params P.yaml        # other settings, the same code
 
 The simulation is made once per preset and seed and cached (``--cache``, default ``~/.cache/cornermap-bench``);
 simulate and evaluation are not timed. Every run builds into a fresh root (deleted afterwards unless ``--keep``).
@@ -157,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keep", action="store_true", help="keep the build root")
     ap.add_argument("--cluster-workers", type=int, default=None,
                     help="build on a dask LocalCluster of this many single-threaded worker processes")
+    ap.add_argument("--params", type=Path, default=None,
+                    help="a params file over the stages' defaults (as `cornermap run --params`): two settings on "
+                         "the same code side by side")
     args = ap.parse_args(argv)
     with local_cluster(args.cluster_workers) as address:
         if address:
@@ -214,7 +218,7 @@ def _bench(args) -> int:
     try:
         try:
             result = execute_workflow(wf, root=None, scheduler=args.scheduler, only=None, dry_run=False, quiet=True,
-                                      workers=args.workers)
+                                      params_file=args.params, workers=args.workers)
         except CornermapError as exc:  # a quality gate or a bad input: the product's one-line message and exit code
             print(f"error: {exc}", file=sys.stderr)
             return exc.exit_code
@@ -234,6 +238,7 @@ def _bench(args) -> int:
     doc = {"preset": args.preset, "seed": args.seed, "max_scans": args.max_scans, "drives": drives, "scans": n_scans,
            "scheduler": args.scheduler,
            "workers": args.workers, "cluster_workers": args.cluster_workers,
+           "params": str(args.params) if args.params else None,
            "wall_s": round(wall, 1), "scans_per_s": round(n_scans / wall, 1),
            "cpu_s": round(cpu, 1), "cores": cores, "cpu_floor_s": round(cpu / cores, 1),
            "busy_share": round(cpu / (cores * wall), 3), "stages": stages,
