@@ -71,7 +71,6 @@ def main() -> int:
         print(f"bench_odometry_guess: {args.sim} is not a simulated drive folder (no truth/); hint: cornermap "
               "simulate --out DIR", file=sys.stderr)
         return 1
-        return 1
     if args.one:  # one row in this process
         import open3d as o3d
 

@@ -132,7 +132,7 @@ class LoopConfig(_Parallel):
     kernel_k: float
     max_whitened_residual: float
     parallel_min_items: int
-    reference_stride_m: float = 10.0  # a reference drive's loop queries onto the fixed map, one per this travel
+    reference_stride_m: float  # a reference drive's loop queries onto the fixed map, one per this travel
 
 
 @dataclass(frozen=True)
