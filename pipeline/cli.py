@@ -1,8 +1,11 @@
 """The typer root app ``cornermap``. Heavy imports happen inside commands so ``--help`` is instant."""
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Optional
 
@@ -185,9 +188,42 @@ def _register_stages() -> None:
             app.add_typer(sub, name=name, help=sub.info.help or decl.summary)
 
 
+EXIT_TERMINATED = 143  # 128 + SIGTERM, the shells' convention for a process ended by that signal
+
+
+class Terminated(BaseException):
+    """SIGTERM reached the command (a job scheduler's timeout or cancel). Raised in the main thread, so the run's
+    cleanup runs on the way out; not an ``Exception``: no handler of a stage takes it for a stage's own error."""
+
+
+@contextlib.contextmanager
+def sigterm_stops_the_run():
+    """Within: a SIGTERM ends the pool processes this process started (they would otherwise finish their task
+    first) and raises ``Terminated`` in the main thread; a second SIGTERM ends the process at once (the default).
+    Outside the main thread (a test's runner), nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        import multiprocessing
+
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        for child in multiprocessing.active_children():
+            child.terminate()
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point: every error a user can cause ends as one ``error: ...`` line on stderr and exit 1 (3 for
-    data-quality failures); an unexpected exception is reported the same way (traceback with -v)."""
+    data-quality failures); an unexpected exception is reported the same way (traceback with -v); a SIGTERM ends
+    the run with one line and exit 143 (``sigterm_stops_the_run``)."""
     try:  # typer >= 0.20 vendors click
         from typer._click.exceptions import ClickException, UsageError
     except ImportError:  # pragma: no cover - older typer
@@ -196,7 +232,12 @@ def main(argv: list[str] | None = None) -> None:
     try:
         _register_stages()
         command = typer.main.get_command(app)
-        command.main(args=argv, prog_name="cornermap", standalone_mode=False)
+        with sigterm_stops_the_run():
+            command.main(args=argv, prog_name="cornermap", standalone_mode=False)
+    except Terminated:
+        typer.echo("terminated: SIGTERM; the run stopped (what it committed before stays; nothing half-written is "
+                   "visible; run it again to go on)", err=True)
+        sys.exit(EXIT_TERMINATED)
     except typer.Exit as exc:
         sys.exit(getattr(exc, "exit_code", 0))
     except UsageError as exc:

@@ -24,12 +24,11 @@ from __future__ import annotations
 import contextlib
 import heapq
 import logging
-import multiprocessing as mp
 import shutil
 import threading
 import time
 import uuid
-from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -47,6 +46,7 @@ from pipeline.execute import (
     set_step_progress,
     task_key,
 )
+from pipeline.parallel import process_pool
 from pipeline.plan import Plan, StagePlan
 from pipeline.store import dataset_dir, read_manifest
 
@@ -100,7 +100,7 @@ class TaskPool:
         if self.kind == "threads":
             self._pool = ThreadPoolExecutor(max_workers=workers)
         elif self.kind == "processes":
-            self._pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+            self._pool = process_pool(workers)
             self._here = ThreadPoolExecutor(max_workers=2)
         if self._pool is not None:
             self._slots = max(1, int(workers))

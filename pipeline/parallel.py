@@ -20,6 +20,12 @@ the block ends (a long-lived worker does not keep a stage's indices after the st
 
 ``build_once(folder, name, ...)`` shares a value between the processes instead of building it in each: the first
 to need it builds it and writes it under ``folder`` (a stage's scratch directory), the others load it.
+
+Every process pool of the engine comes from ``process_pool``: its processes end themselves when the process that
+started them is gone (``ORPHAN_POLL_S``). A run stopped by SIGKILL (a job scheduler's timeout, the OOM killer) or
+by a SIGTERM that reached only the engine's process left its pool processes behind for good before: idle in a
+queue read that never ends, holding their memory (2.35 GB on the Intel Xeon machine after a demo build was killed
+in its pose graph).
 """
 from __future__ import annotations
 
@@ -27,6 +33,8 @@ import contextlib
 import logging
 import os
 import sys
+import threading
+import time
 from contextvars import ContextVar
 from typing import Any, Callable, Iterator, Sequence
 
@@ -35,6 +43,36 @@ _INIT_STATE: dict[str, Any] = {}
 _CACHE: dict[Any, Any] = {}  # this process's worker_cache, by (block, key)
 _SHARED: list[dict[str, Any]] = []  # the open shared_pool blocks, innermost last
 _BLOCK: ContextVar[str | None] = ContextVar("cornermap_parallel_block", default=None)  # the running item's block
+
+
+ORPHAN_POLL_S = 1.0  # how often a pool process checks that the process that started it is still there
+ORPHAN_EXIT_CODE = 75  # a pool process that ended itself because that process was gone
+
+
+def process_pool(workers: int, initializer: Callable[..., None] | None = None, initargs: tuple = ()):
+    """A spawn-context ``ProcessPoolExecutor`` of ``workers`` processes (no forked OpenMP state), each started with
+    ``initializer(*initargs)`` after a watch thread that ends the process (``os._exit``, ``ORPHAN_EXIT_CODE``) once
+    the process that started it is gone. A task cut off that way leaves nothing visible: outputs are written to a
+    temporary name and renamed (``pipeline.store``)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_start_pool_process,
+                               initargs=(os.getpid(), initializer, initargs))
+
+
+def _start_pool_process(parent_pid: int, initializer: Callable[..., None] | None, initargs: tuple) -> None:
+    threading.Thread(target=exit_when_orphaned, args=(parent_pid,), name="cornermap-orphan-watch", daemon=True).start()
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def exit_when_orphaned(parent_pid: int, poll_s: float = ORPHAN_POLL_S) -> None:
+    """Return never: end this process as soon as its parent is no longer ``parent_pid`` (the parent died and the
+    process was handed to init or a subreaper)."""
+    while os.getppid() == parent_pid:
+        time.sleep(poll_s)
+    os._exit(ORPHAN_EXIT_CODE)
 
 
 def worker_state() -> dict[str, Any]:
@@ -238,14 +276,10 @@ def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], *, workers: int
 
 
 def _on_pool(fn, items, workers, initializer, initargs, progress) -> list[Any]:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
     from pipeline.execute import one_thread_per_process
 
     with one_thread_per_process(workers):  # the spawned processes inherit the environment at start
-        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                 initializer=initializer, initargs=initargs) as pool:
+        with process_pool(workers, initializer, initargs) as pool:
             return _gathered({pool.submit(fn, x): n for n, x in enumerate(items)}, progress)
 
 
@@ -325,10 +359,8 @@ def _pooled_call(fn, x, token: str, block: str, init_path: str | None):
 
 
 def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, progress) -> list[Any]:
-    import multiprocessing as mp
     import pickle
     import uuid
-    from concurrent.futures import ProcessPoolExecutor
     from pathlib import Path
 
     from pipeline.execute import one_thread_per_process
@@ -342,7 +374,7 @@ def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, pr
     try:
         with one_thread_per_process(holder["workers"]):  # processes start at a submit, inherit the environment then
             if holder["pool"] is None:
-                holder["pool"] = ProcessPoolExecutor(max_workers=holder["workers"], mp_context=mp.get_context("spawn"))
+                holder["pool"] = process_pool(holder["workers"])
             futures = {holder["pool"].submit(_pooled_call, fn, x, token, holder["block"],
                                              None if init_path is None else str(init_path)): n
                        for n, x in enumerate(items)}

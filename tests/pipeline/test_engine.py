@@ -172,6 +172,90 @@ def test_sigkill_mid_stage_then_rerun_equals_uninterrupted(tmp_path):
     assert read_output(tmp_path / "root", "toy_total").equals(read_output(tmp_path / "ref_root", "toy_total"))
 
 
+def _children(pid: int) -> list[int]:
+    """Live (not zombie) processes whose parent is ``pid`` (Linux /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        if fields[0] != "Z" and int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _start_mid_squares(tmp_path) -> tuple[subprocess.Popen, list[int], Path]:
+    """A toy run on the local process pool, stopped in the middle of squares (each partition sleeps 30 s): the
+    process and its pool processes."""
+    path = write_toy(tmp_path, params={"squares": {"sleep_s": 30.0}})
+    cmd = [sys.executable, "-m", "pipeline", "run", str(path), "--scheduler", "local", "--workers", "2", "--quiet"]
+    proc = subprocess.Popen(cmd, cwd=REPO, start_new_session=True, stderr=subprocess.PIPE, text=True)
+    numbers = tmp_path / "root" / "datasets" / "toy_numbers"
+    deadline = time.time() + 90
+    pool: list[int] = []
+    while time.time() < deadline and proc.poll() is None:
+        pool = [c for c in _children(proc.pid) if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+        if len(pool) >= 2 and list(numbers.glob("*/_manifest.json")):
+            break
+        time.sleep(0.1)
+    assert proc.poll() is None and len(pool) >= 2, "the run should be in squares with its pool started"
+    time.sleep(1.0)  # the squares partitions are sleeping in the pool processes
+    return proc, pool, tmp_path / "root" / "datasets" / "toy_squares"
+
+
+def _gone_within(pids: list[int], seconds: float) -> list[int]:
+    deadline = time.time() + seconds
+    while time.time() < deadline and any(_alive(p) for p in pids):
+        time.sleep(0.1)
+    return [p for p in pids if _alive(p)]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_sigkill_of_the_engine_alone_ends_its_pool_processes(tmp_path):
+    """A job scheduler's timeout or the OOM killer kills the engine's process, not its pool: the pool processes must
+    not live on (they used to wait forever in a queue read, holding their memory)."""
+    proc, pool, squares = _start_mid_squares(tmp_path)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    try:
+        left = _gone_within(pool, 10.0)
+        assert not left, f"pool processes {left} outlived their engine"
+        assert not list(squares.glob("*/_manifest.json"))
+    finally:
+        for p in pool:
+            with __import__("contextlib").suppress(ProcessLookupError):
+                os.kill(p, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_sigterm_ends_the_run_with_one_line_exit_143_and_no_pool_left(tmp_path):
+    proc, pool, squares = _start_mid_squares(tmp_path)
+    t0 = time.time()
+    os.kill(proc.pid, signal.SIGTERM)  # the engine's process only, as a job scheduler would
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    from pipeline.cli import EXIT_TERMINATED
+
+    assert proc.returncode == EXIT_TERMINATED, err
+    assert time.time() - t0 < 20, "a SIGTERM must not wait for the sleeping partitions (30 s)"
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("terminated: SIGTERM"), err
+    assert not _gone_within(pool, 5.0)
+    assert not list(squares.glob("*/_manifest.json")), "a stopped stage is not committed"
+    result = run(write_toy(tmp_path, params={"squares": {"sleep_s": 0.0}}))  # and the next run goes on
+    assert result["summary"]["numbers"]["decision"] != "ran" and result["summary"]["squares"]["decision"] == "ran"
+
+
 def test_three_mistakes_reported_at_once_exit_1_no_traceback(tmp_path):
     path = write_toy(tmp_path, params={"numbers": {"n_chunk": 3}}, stages=("numbers", "squarez", "total"))
     env = dict(os.environ)
