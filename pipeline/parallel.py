@@ -22,10 +22,9 @@ the block ends (a long-lived worker does not keep a stage's indices after the st
 to need it builds it and writes it under ``folder`` (a stage's scratch directory), the others load it.
 
 Every process pool of the engine comes from ``process_pool``: its processes end themselves when the process that
-started them is gone (``ORPHAN_POLL_S``). A run stopped by SIGKILL (a job scheduler's timeout, the OOM killer) or
-by a SIGTERM that reached only the engine's process left its pool processes behind for good before: idle in a
-queue read that never ends, holding their memory (2.35 GB on the Intel Xeon machine after a demo build was killed
-in its pose graph).
+started them is gone (``ORPHAN_POLL_S``). Why: a run stopped by SIGKILL (a job scheduler's timeout, the OOM killer),
+or by a SIGTERM that reaches only the engine's process, otherwise leaves its pool processes waiting in a queue read
+that never ends, with their memory (a demo build killed in its pose graph: 4 processes, 2.35 GB).
 """
 from __future__ import annotations
 
@@ -46,7 +45,7 @@ _BLOCK: ContextVar[str | None] = ContextVar("cornermap_parallel_block", default=
 
 
 ORPHAN_POLL_S = 1.0  # how often a pool process checks that the process that started it is still there
-ORPHAN_EXIT_CODE = 75  # a pool process that ended itself because that process was gone
+ORPHAN_EXIT_CODE = 129  # a pool process that ended itself because that process was gone (128 + SIGHUP)
 
 
 def process_pool(workers: int, initializer: Callable[..., None] | None = None, initargs: tuple = ()):
