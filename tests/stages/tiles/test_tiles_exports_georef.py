@@ -161,3 +161,28 @@ def test_markings_geojson_puts_the_painted_line_on_earth(city_map, tmp_path):
         lon, lat = np.array(f["geometry"]["coordinates"]).T
         enu = geodetic_to_enu(lat, lon, np.full(len(lat), ORIGIN.h_m), ORIGIN)
         np.testing.assert_allclose(enu[:, 0], LINE_EAST_M, atol=0.05)
+
+
+def test_trajectory_exports_state_their_frame_and_read_in_evo(city_map, tmp_path):
+    """tiles export -f tum / -f kitti: the version's 3-D trajectories, read back by evo's own readers."""
+    evo_io = pytest.importorskip("evo.tools.file_interface")
+    from mapformat.trajectories import poses_matrices, read_version_trajectory
+    from stages.common.trajectory_frame import read_trajectory_origin
+
+    stamps, poses = read_version_trajectory(city_map, "drive_a")
+    want = poses_matrices(poses)
+    [tum] = export_map(city_map, "tum", tmp_path / "tum")
+    head = [ln for ln in tum.read_text().splitlines() if ln.startswith("#")]
+    assert any(ln.startswith("# attitude: 3-D") for ln in head) and any("frame: ENU" in ln for ln in head)
+    assert read_trajectory_origin(tum) == ORIGIN
+    traj = evo_io.read_tum_trajectory_file(str(tum))
+    np.testing.assert_allclose(traj.poses_se3, want, atol=2e-6)
+    np.testing.assert_allclose(traj.timestamps, stamps * 1e-9, rtol=0, atol=1e-6)
+    kitti, times, side = export_map(city_map, "kitti", tmp_path / "kitti")
+    assert (kitti.name, times.name, side.name) == ("drive_a.kitti.txt", "drive_a.times.txt",
+                                                   "drive_a.kitti.frame.json")
+    np.testing.assert_allclose(evo_io.read_kitti_poses_file(str(kitti)).poses_se3, want, atol=1e-6)
+    from mapformat.trajectories import parse_tum_stamps_ns
+
+    assert parse_tum_stamps_ns(times.read_text().split()).tolist() == stamps.tolist()  # exact to the ns
+    assert read_trajectory_origin(kitti) == ORIGIN and json.loads(side.read_text())["n_poses"] == len(stamps)
