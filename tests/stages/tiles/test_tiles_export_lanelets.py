@@ -95,7 +95,8 @@ def test_the_osm_loads_in_lanelet2_with_routable_lanelets_at_the_road_height(lan
         centre = np.array([[p.x, p.y] for p in ll.centerline])
         direction = centre[-1] - centre[0]
         # both bounds run along the lanelet, the left one on its left
-        assert (np.diff(left[:, :2], axis=0) @ direction > 0).all() and (np.diff(right[:, :2], axis=0) @ direction > 0).all()
+        for bound in (left, right):
+            assert (np.diff(bound[:, :2], axis=0) @ direction > 0).all()
         normal = np.array([-direction[1], direction[0]])
         assert ((left[:, :2] - centre.mean(axis=0)) @ normal > 0).all()
         assert ((right[:, :2] - centre.mean(axis=0)) @ normal < 0).all()
