@@ -43,14 +43,20 @@ def read_version_trajectory(reader: "MapReader", drive: str) -> tuple[np.ndarray
     entry = next((d for d in reader.manifest.get("source_drives", []) if d.get("drive") == drive), None)
     if entry is None or not entry.get("trajectory"):
         raise MapFormatError(f"{reader.path}: no trajectory of drive {drive!r} in the manifest's source_drives")
+    import hashlib
+
     from pipeline.names import inside
 
     path = inside(reader.path, entry["trajectory"])
     try:
-        rows = [ln.split() for ln in path.read_text(encoding="utf-8").splitlines() if ln and not ln.startswith("#")]
+        raw = path.read_bytes()
+        want = ((reader.manifest.get("files") or {}).get(entry["trajectory"]) or {}).get("sha256")
+        if want is not None and hashlib.sha256(raw).hexdigest() != want:
+            raise ValueError("its sha256 differs from the manifest's")
+        rows = [ln.split() for ln in raw.decode("utf-8").splitlines() if ln and not ln.startswith("#")]
         poses = np.array([[float(v) for v in r[1:8]] for r in rows], float).reshape(-1, 7)
         stamps = parse_tum_stamps_ns([r[0] for r in rows])
-    except (OSError, ValueError, IndexError) as exc:
+    except (OSError, ValueError, IndexError, UnicodeDecodeError) as exc:
         raise MapFormatError(f"{path}: unreadable trajectory ({exc}); hint: run `cornermap tiles verify`") from exc
     return stamps, poses
 

@@ -186,3 +186,18 @@ def test_trajectory_exports_state_their_frame_and_read_in_evo(city_map, tmp_path
 
     assert parse_tum_stamps_ns(times.read_text().split()).tolist() == stamps.tolist()  # exact to the ns
     assert read_trajectory_origin(kitti) == ORIGIN and json.loads(side.read_text())["n_poses"] == len(stamps)
+
+
+def test_a_changed_trajectory_file_is_refused(city_map, tmp_path):
+    import shutil
+
+    from mapformat.loader import open_map as reopen
+    from pipeline.errors import MapFormatError
+
+    copy = tmp_path / "maps" / "city"
+    shutil.copytree(city_map.path.parent, copy)
+    version = copy / city_map.path.name
+    traj = version / "trajectories" / "drive_a.tum"
+    traj.write_text(traj.read_text().replace("50.000000", "50.100000", 1))
+    with pytest.raises(MapFormatError, match="sha256 differs"):
+        export_map(reopen(version), "tum", tmp_path / "out")
