@@ -22,7 +22,9 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from pipeline.errors import DatasetIOError
+from mapformat.lanelets import DOUBLE_LINE_MIN_WIDTH_M, LaneRun
+from mapformat.lineage import VersionLineage
+from pipeline.errors import MapFormatError
 from stages.common.geodesy import EnuOrigin, enu_to_geodetic
 from stages.common.pointcloud_map import (
     VoxelSums,
@@ -38,10 +40,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from mapformat.loader import MapReader
 
 log = logging.getLogger(__name__)
+HeightOf = Callable[[np.ndarray], np.ndarray]  # (K, 2) map ENU -> (K,) road height, map up (m); NaN unknown
 BATCH_POINTS = 500_000  # scan points per streamed batch (peak memory; see accumulate_map_cloud)
 GROUND_CLEAR_M = 0.3  # points this far above the road under the vehicle take part in the free-space test
-DOUBLE_LINE_MIN_WIDTH_M = 0.55  # two lines merged in the raster (0.5 m of paint drawn ~0.7 m; a single
-# 0.15 m line is drawn 0.3-0.4 m wide)
+LANELET_TAGS = {"type": "lanelet", "subtype": "road", "location": "urban", "one_way": "yes"}
 OSM_TAGS = {"lane_solid": {"type": "line_thin", "subtype": "solid"},
             "lane_dashed": {"type": "line_thin", "subtype": "dashed"},
             "stop_line": {"type": "stop_line"},
@@ -55,14 +57,38 @@ def pointcloud_metadata_yaml(cells: list[tuple[int, int]], cell_m: float) -> str
     return "\n".join(lines) + "\n"
 
 
-def lanelet2_osm(features: list, origin: EnuOrigin, height_m: float = 0.0) -> str:
-    """OSM XML of the marking features (arrows have no Lanelet2 line type here and are skipped): one node per
-    vertex (lat/lon from the ENU origin, plus Autoware's local_x / local_y / ele tags), one way per feature,
-    closed for crosswalk areas."""
+def lanelet2_osm(features: list, origin: EnuOrigin, height_of: HeightOf | None = None,
+                 lanes: list[LaneRun] = ()) -> str:
+    """OSM XML: the marking features as line strings / areas (arrows have no Lanelet2 line type here and are
+    skipped) and the driven lanes as lanelets (``mapformat.lanelets``) with their boundary ways.
+
+    Every node carries ``lat`` / ``lon`` and the tag ``ele`` (WGS84 ellipsoidal height, m) of its point on the road
+    (map ENU (e, n, z) with z = ``height_of`` (e, n); 0 without it), plus Autoware's ``local_x`` / ``local_y``
+    (map ENU east / north). Lanelet2's and Autoware's LocalCartesian projector about (lat0, lon0, 0) maps a node
+    to (e, n, z + h0): the frame of the point cloud map this export writes beside it."""
     from xml.sax.saxutils import quoteattr
 
-    nodes, ways = [], []
-    next_id = 1
+    enu, ways, relations = [], [], []
+    ids = iter(range(1, 1 << 62))
+
+    def way(node_ids: list[int], tags: dict[str, str]) -> int:
+        wid = next(ids)
+        refs = "".join(f'\n    <nd ref="{k}"/>' for k in node_ids)
+        tag_xml = "".join(f"\n    <tag k={quoteattr(k)} v={quoteattr(v)}/>" for k, v in tags.items())
+        ways.append(f'  <way id="{wid}" version="1">{refs}{tag_xml}\n  </way>')
+        return wid
+
+    def nodes(xyz: np.ndarray) -> list[int]:
+        out = []
+        for p in np.asarray(xyz, float):
+            out.append(next(ids))
+            enu.append((out[-1], p))
+        return out
+
+    def heights(xy: np.ndarray) -> np.ndarray:
+        z = height_of(xy) if height_of is not None else np.full(len(xy), np.nan)
+        return np.where(np.isfinite(z), z, 0.0)
+
     for f in features:
         tags = OSM_TAGS.get(f.type)
         if tags is None:
@@ -70,64 +96,85 @@ def lanelet2_osm(features: list, origin: EnuOrigin, height_m: float = 0.0) -> st
         if f.type == "lane_solid" and f.width_m >= DOUBLE_LINE_MIN_WIDTH_M:
             tags = {**tags, "subtype": "solid_solid"}  # a double (centre) line
         xy = np.asarray(f.xy_m, float)
-        llh = enu_to_geodetic(np.column_stack([xy, np.full(len(xy), height_m)]), origin)
-        ids = []
-        for (e, n), (lat, lon, h) in zip(xy, llh):
-            nodes.append(f'  <node id="{next_id}" version="1" lat="{lat:.10f}" lon="{lon:.10f}">\n'
-                         f'    <tag k="local_x" v="{e:.4f}"/>\n    <tag k="local_y" v="{n:.4f}"/>\n'
-                         f'    <tag k="ele" v="{height_m:.4f}"/>\n  </node>')
-            ids.append(next_id)
-            next_id += 1
-        if f.is_polygon:
-            ids.append(ids[0])
-        refs = "".join(f'\n    <nd ref="{k}"/>' for k in ids)
-        tag_xml = "".join(f"\n    <tag k={quoteattr(k)} v={quoteattr(v)}/>" for k, v in
-                          {**tags, "cornermap:type": f.type, "width": f"{f.width_m:.2f}"}.items())
-        ways.append(f'  <way id="{next_id}" version="1">{refs}{tag_xml}\n  </way>')
-        next_id += 1
+        node_ids = nodes(np.column_stack([xy, heights(xy)]))
+        way(node_ids + node_ids[:1] if f.is_polygon else node_ids,
+            {**tags, "cornermap:type": f.type, "width": f"{f.width_m:.2f}"})
+    for run in lanes:
+        left_ids = dict(zip(run.left_keep.tolist(), nodes(run.left[run.left_keep])))
+        right_ids = dict(zip(run.right_keep.tolist(), nodes(run.right[run.right_keep])))
+        for k, (left_type, right_type) in enumerate(run.subtypes):
+            li, ri = run.lanelet_bounds(k)
+            lw = way([left_ids[i] for i in li.tolist()], _boundary_tags(left_type))
+            rw = way([right_ids[i] for i in ri.tolist()], _boundary_tags(right_type))
+            rid = next(ids)
+            tag_xml = "".join(f'\n    <tag k="{k_}" v="{v}"/>' for k_, v in LANELET_TAGS.items())
+            relations.append(f'  <relation id="{rid}" version="1">\n    <member type="way" role="left" ref="{lw}"/>'
+                             f'\n    <member type="way" role="right" ref="{rw}"/>{tag_xml}'
+                             f'\n    <tag k="cornermap:drive" v={quoteattr(run.drive)}/>\n  </relation>')
+    node_xml = []
+    if enu:
+        xyz = np.array([p for _, p in enu])
+        llh = enu_to_geodetic(xyz, origin)
+        for (nid, (e, n, _)), (lat, lon, h) in zip(enu, llh):
+            node_xml.append(f'  <node id="{nid}" version="1" lat="{lat:.10f}" lon="{lon:.10f}">\n'
+                            f'    <tag k="local_x" v="{e:.4f}"/>\n    <tag k="local_y" v="{n:.4f}"/>\n'
+                            f'    <tag k="ele" v="{h:.4f}"/>\n  </node>')
     return ('<?xml version="1.0" encoding="UTF-8"?>\n<osm version="0.6" generator="cornermap">\n'
-            + "\n".join(nodes + ways) + "\n</osm>\n")
+            + "\n".join(node_xml + ways + relations) + "\n</osm>\n")
 
 
-def _committed(root: Path, dataset: str, fingerprint: str | None = None) -> tuple[Path, dict]:
-    """Committed directory + manifest of ``dataset`` (the given fingerprint, else the latest committed)."""
-    from pipeline.store import dataset_dir, read_manifest
-
-    if fingerprint:
-        d = dataset_dir(root, dataset, fingerprint)
-        m = read_manifest(d)
-        if m is not None:
-            return d, m
-    found = [(read_manifest(p), p) for p in sorted((root / "datasets" / dataset).glob("*")) if p.is_dir()]
-    found = [(m, p) for m, p in found if m is not None]
-    if not found:
-        raise DatasetIOError(f"{root}/datasets/{dataset}: no committed data; hint: the autoware export reads the "
-                             "map's scans and poses from the output root (--root) that built the map")
-    m, p = max(found, key=lambda mp: mp[0].get("committed_utc", ""))
-    return p, m
+def _boundary_tags(subtype: str) -> dict[str, str]:
+    return {"type": "virtual"} if subtype == "virtual" else {"type": "line_thin", "subtype": subtype}
 
 
-def _read(root: Path, dataset: str, drive: str, fingerprint: str | None = None, columns=None):
-    import pyarrow as pa
-    import pyarrow.parquet as pq
+def ground_height_sampler(reader: "MapReader", paths: dict[str, np.ndarray], layer: str = "elevation_mean",
+                          window_m: float = 0.25) -> HeightOf:
+    """(K, 2) map ENU -> (K,) the road surface height (map up, m): the median of the version's ``layer`` raster
+    within ``window_m`` of each point (the markings stage's mean height of the road points per cell), else the
+    height of the nearest trajectory pose (the vehicle frame's origin is on the road, docs/drive-file.md), else
+    NaN."""
+    from scipy.spatial import cKDTree
 
-    d, m = _committed(root, dataset, fingerprint)
-    files = [d / f["path"] for f in m["files"] if f.get("partition", {}).get("drive") == drive]
-    if not files:
-        raise DatasetIOError(f"{d}: no {dataset} rows for drive {drive!r}")
-    return pa.concat_tables([pq.read_table(f, columns=columns) for f in files])
+    from stages.common.tiling import tile_key_of
 
+    cache: dict[tuple[int, int], tuple[np.ndarray, dict] | None] = {}
+    s = reader.tile_size_m
+    pose_xyz = np.vstack([p for p in paths.values() if len(p)]) if any(len(p) for p in paths.values()) else None
+    tree = cKDTree(pose_xyz[:, :2]) if pose_xyz is not None else None
 
-def _scan_batches(root: Path, drive: str, batch_points: int, columns: list[str]):
-    """``scans_raw`` rows of ``drive`` (the latest committed version) as record batches of ``batch_points``."""
-    import pyarrow.parquet as pq
+    def raster(key: tuple[int, int]):
+        if key not in cache:
+            meta = reader.tile_entry(*key).get("marking") if key in keys else None
+            try:
+                cache[key] = (reader.tile_layer(*key, layer), meta) if meta else None
+            except MapFormatError:
+                cache[key] = None
+        return cache[key]
 
-    d, m = _committed(root, "scans_raw")
-    files = [d / f["path"] for f in m["files"] if f.get("partition", {}).get("drive") == drive]
-    if not files:
-        raise DatasetIOError(f"{d}: no scans_raw rows for drive {drive!r}")
-    for f in files:
-        yield from pq.ParquetFile(f).iter_batches(batch_size=batch_points, columns=columns)
+    keys = set(reader.tile_keys())
+
+    def height_of(xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        z = np.full(len(xy), np.nan)
+        for k, (e, n) in enumerate(xy):
+            got = raster(tuple(int(v) for v in tile_key_of(e, n, s)))
+            if got is None:
+                continue
+            values, meta = got
+            cell = float(meta["cell_m"])
+            col = (e - float(meta["origin_east_m"])) / cell
+            row = values.shape[0] - (n - float(meta["origin_north_m"])) / cell
+            r = int(np.ceil(window_m / cell))
+            c0, r0 = int(np.floor(col)), int(np.floor(row))
+            win = values[max(r0 - r, 0):r0 + r + 1, max(c0 - r, 0):c0 + r + 1]
+            if win.size and np.isfinite(win).any():
+                z[k] = float(np.nanmedian(win))
+        if tree is not None and np.isnan(z).any():
+            miss = np.isnan(z)
+            z[miss] = pose_xyz[tree.query(xy[miss])[1], 2]
+        return z
+
+    return height_of
 
 
 class _Evidence:
@@ -150,7 +197,7 @@ class _Evidence:
             self.free, self.free_n = [free], [n]
 
 
-def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, voxel_m: float = 0.2,
+def accumulate_map_cloud(lineage: VersionLineage, drives: list[str], *, voxel_m: float = 0.2,
                          free_voxel_m: float = 0.5, pass_s: float = 5.0, max_range_m: float = 60.0,
                          batch_points: int = BATCH_POINTS) -> tuple[np.ndarray, np.ndarray, dict]:
     """Map-frame cloud of ``drives`` (deskewed, dynamic points dropped, downsampled): (xyz, intensity, stats).
@@ -160,21 +207,18 @@ def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, 
     occupied voxels, not by the number of points."""
     from scipy.spatial import cKDTree
 
-    inputs = reader.manifest.get("inputs", {})
     sums, evidence = VoxelSums(voxel_m, free_voxel_m), _Evidence()
     n_in = 0
     cols = ["stamp_ns", "x_m", "y_m", "z_m", "intensity", "time_offset_s"]
     for k, drive in enumerate(drives):
-        poses = _read(root, "poses_optimized", drive, (inputs.get("poses") or {}).get("fingerprint")).sort_by(
-            "stamp_ns"
-        )
-        info = _read(root, "drive_info", drive, (inputs.get("drive_info") or {}).get("fingerprint"))
+        poses = lineage.read("poses_optimized", drive).sort_by("stamp_ns")
+        info = lineage.read("drive_info", drive)
         T_vl = Extrinsics.from_table(info).of(drive)
         stamps = poses["stamp_ns"].to_numpy()
         pxyz = np.column_stack([poses[c].to_numpy() for c in ("x_m", "y_m", "z_m")])
         pq_ = np.column_stack([poses[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
         road = cKDTree(pxyz[:, :2])  # the road under the vehicle: its height at the nearest pose
-        for batch in _scan_batches(root, drive, batch_points, cols):
+        for batch in lineage.batches("scans_raw", drive, cols, batch_points):
             lidar = np.column_stack([batch.column(c).to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
             rng = np.linalg.norm(lidar, axis=1)
             t_ns = batch.column("stamp_ns").to_numpy() + np.round(
@@ -207,28 +251,47 @@ def map_drives(reader: "MapReader") -> list[str]:
 
 def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float = 20.0, voxel_m: float = 0.2,
                     batch_points: int = BATCH_POINTS, write: Callable[[Path, bytes], None]) -> list[Path]:
-    """Write the Autoware folder (module docstring) under ``out``; returns the files written."""
+    """Write the Autoware folder (module docstring) under ``out`` from the datasets ``reader``'s version records
+    (``mapformat.lineage``: never the newest of a name); returns the files written."""
     from mapformat.export import autoware_projector_yaml, pcd_bytes
+    from mapformat.lanelets import driven_lanes
+    from mapformat.trajectories import read_version_trajectory
     from mapformat.vectors import read_map_features
 
     out = Path(out)
     drives = map_drives(reader)
-    xyz, inten, stats = accumulate_map_cloud(reader, Path(root), drives, voxel_m=voxel_m, batch_points=batch_points)
+    label = f"map {reader.manifest.get('map_name')!r} v{reader.version:04d} ({reader.path})"
+    lineage = VersionLineage(Path(root), reader.manifest, label)
+    xyz, inten, stats = accumulate_map_cloud(lineage, drives, voxel_m=voxel_m, batch_points=batch_points)
     log.info("autoware point cloud: %s", stats)
+    h0 = float(reader.origin.h_m)
     files = [out / "map_projector_info.yaml"]
     write(files[0], autoware_projector_yaml(reader.origin).encode("utf-8"))
     cells = grid_split(xyz, grid_m)
     for (i, j), idx in sorted(cells.items()):
         path = out / "pointcloud_map" / f"{i}_{j}.pcd"
-        write(path, pcd_bytes(xyz[idx], inten[idx]))
+        write(path, pcd_bytes(xyz[idx] + np.array([0.0, 0.0, h0]), inten[idx]))  # the Autoware frame: z + h0
         files.append(path)
     files.append(out / "pointcloud_map_metadata.yaml")
     write(files[-1], pointcloud_metadata_yaml(list(cells), grid_m).encode("utf-8"))
     feats = read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()])
+    paths = {d["drive"]: read_version_trajectory(reader, d["drive"])[1][:, :3]
+             for d in reader.manifest.get("source_drives", [])}
+    height_of = ground_height_sampler(reader, paths)
+    lanes = driven_lanes({d: p for d, p in paths.items() if d in drives}, feats, height_of)
     files.append(out / "lanelet2_map.osm")
-    write(files[-1], lanelet2_osm(feats, reader.origin).encode("utf-8"))
+    write(files[-1], lanelet2_osm(feats, reader.origin, height_of, lanes).encode("utf-8"))
     files.append(out / "cornermap_export.json")
+    n_lanelets = sum(len(r.subtypes) for r in lanes)
+    frame = {"projector_type": "LocalCartesian", "origin": {**reader.origin.as_dict(), "h_m": 0.0},
+             "T_autoware_map": [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, h0], [0.0, 0.0, 0.0, 1.0]],
+             "note": "the folder's frame is ENU about the map origin's latitude and longitude at 0 m ellipsoidal "
+                     "height (Autoware's map_projection_loader sets the origin altitude to 0): the map frame "
+                     f"raised by the origin's height h0 = {h0:g} m"}
     write(files[-1], json.dumps({"map_name": reader.manifest.get("map_name"), "version": reader.version,
-                                 "manifest_sha256": reader.manifest_sha256, "pointcloud": stats,
-                                 "grid_m": grid_m, "n_marking_features": len(feats)}, indent=1).encode("utf-8"))
+                                 "manifest_sha256": reader.manifest_sha256, "frame": frame, "pointcloud": stats,
+                                 "grid_m": grid_m, "n_marking_features": len(feats), "n_lanelets": n_lanelets,
+                                 "inputs": {d: c.fingerprint for d in ("poses_optimized", "drive_info", "scans_raw")
+                                            for c in (lineage.find(d),)}},
+                                indent=1).encode("utf-8"))
     return files

@@ -1,4 +1,5 @@
-"""Exports of a published map: Im 2016 Table 1 text, GeoJSON (WGS84; corners and markings), GeoTIFF, Autoware.
+"""Exports of a published map: Im 2016 Table 1 text, GeoJSON (WGS84; corners and markings), GeoTIFF + VRT, Autoware,
+and the version's trajectories (TUM, KITTI).
 
 ``*_document`` / ``*_bytes`` functions are pure (arrays in, text/bytes out); ``export_map`` writes files.
 """
@@ -19,7 +20,8 @@ from stages.common.im2016_text import format_im2016_text
 if TYPE_CHECKING:  # pragma: no cover
     from mapformat.loader import MapReader
 
-FORMATS = ("im2016-text", "geojson", "markings-geojson", "autoware", "geotiff")
+FORMATS = ("im2016-text", "geojson", "markings-geojson", "autoware", "geotiff", "tum", "kitti")
+DIRECTORY_FORMATS = ("autoware", "geotiff", "tum", "kitti")  # --out is a directory
 GEOJSON_CRS = "urn:ogc:def:crs:OGC:1.3:CRS84"
 
 
@@ -75,14 +77,20 @@ def markings_geojson(features: list, origin: EnuOrigin, properties: dict[str, An
 
 
 def autoware_projector_yaml(origin: EnuOrigin) -> str:
-    """Autoware ``map_projector_info.yaml`` for a local ENU (LocalCartesian) frame about ``origin``."""
-    return ("# written by cornermap: the map frame is ENU about this WGS84 origin\n"
+    """Autoware ``map_projector_info.yaml``: LocalCartesian (ENU) about ``origin``'s latitude and longitude at 0 m.
+
+    Autoware's map_projection_loader sets a LocalCartesian origin's altitude to 0 whatever the file says, so the
+    folder's frame is ENU about (lat0, lon0, 0 m): z = ellipsoidal height near the origin. The export writes its
+    point cloud in that frame (the map frame raised by h0) and the Lanelet2 nodes' ``ele`` as WGS84 ellipsoidal
+    heights, which every LocalCartesian projector about this origin (Autoware's, lanelet2's) maps there too."""
+    return (f"# written by cornermap: ENU about this WGS84 origin at 0 m; the cornermap map frame is ENU about "
+            f"h_m = {origin.h_m:.4f} (z here = z there + {origin.h_m:.4f})\n"
             "projector_type: LocalCartesian\n"
             "vertical_datum: WGS84\n"
             "map_origin:\n"
             f"  latitude: {origin.lat_deg:.10f}\n"
             f"  longitude: {origin.lon_deg:.10f}\n"
-            f"  altitude: {origin.h_m:.4f}\n")
+            "  altitude: 0.0\n")
 
 
 def pcd_bytes(xyz_m: np.ndarray, intensity: np.ndarray) -> bytes:
@@ -117,37 +125,17 @@ def check_export_target(out: Path, map_dir: Path) -> None:
                                    "(it could replace LATEST or a published file). hint: choose another --out")
 
 
-def export_geotiffs(reader: "MapReader", out: Path) -> list[Path]:
-    """Every raster layer of every tile as a COG ``out/{layer}/{i}_{j}.tif`` in the map's local TM CRS."""
-    from mapformat.layers import local_tm_proj4, sidecar_layers, write_cog
-
-    crs = local_tm_proj4(reader.manifest["enu_origin"])
-    tags = {"cornermap_map": str(reader.manifest.get("map_name")), "cornermap_version": str(reader.version),
-            "cornermap_enu_origin": json.dumps(reader.manifest["enu_origin"])}
-    files = []
-    for i, j in reader.tile_keys():
-        meta = reader.tile_entry(i, j).get("marking")
-        if not meta:
-            continue
-        cell = float(meta["cell_m"])
-        for layer in sorted(sidecar_layers(reader.path / reader.tile_entry(i, j)["dir"], meta)):
-            values = reader.tile_layer(i, j, layer)
-            north = float(meta["origin_north_m"]) + values.shape[0] * cell
-            files.append(write_cog(Path(out) / layer / f"{i}_{j}.tif", values, float(meta["origin_east_m"]), north,
-                                   cell, crs, layer, tags))
-    return files
-
-
 def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = None) -> list[Path]:
-    """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for autoware/geotiff).
+    """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for the others).
 
-    ``root``: the output root holding the datasets the map was built from (autoware reads scans and poses there;
-    default: the root of the map's own ROOT/maps/NAME/vNNNN directory)."""
+    Each export reads the version directory only, except ``autoware``, which reads the scans, poses and extrinsics
+    the version was built from under ``root`` through the fingerprints its manifest records
+    (``mapformat.lineage``; default root: the one holding the map's ROOT/maps/NAME/vNNNN directory)."""
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
     out = Path(out)
     check_export_target(out, reader.path.parent)
-    if fmt in ("autoware", "geotiff"):
+    if fmt in DIRECTORY_FORMATS:
         if out.exists() and not out.is_dir():
             raise DatasetIOError(f"{out}: not a directory; the {fmt} export writes a directory")
     corners = reader.all_corners()
@@ -184,7 +172,13 @@ def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = Non
         _atomic_write(out, json.dumps(doc, separators=(",", ":")).encode("utf-8"))
         return [out]
     if fmt == "geotiff":
-        return export_geotiffs(reader, out)
+        from mapformat.geotiff import export_geotiffs
+
+        return export_geotiffs(reader, out, write=_atomic_write)
+    if fmt in ("tum", "kitti"):
+        from mapformat.trajectories import export_trajectories
+
+        return export_trajectories(reader, fmt, out, write=_atomic_write)
     from mapformat.autoware import export_autoware
 
     return export_autoware(reader, out, Path(root) if root is not None else reader.path.parents[2],

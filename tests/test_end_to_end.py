@@ -309,7 +309,9 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
     cloud = np.vstack(clouds)
     from scipy.spatial import cKDTree
 
-    walls = cKDTree(cloud[cloud[:, 2] > 2.0][:, :2])  # building walls, above cars and people
+    h0 = json.loads((out / "cornermap_export.json").read_text())["frame"]["T_autoware_map"][2][3]
+    assert h0 == reader.origin.h_m  # the folder's frame: ENU about the origin at 0 m (Autoware's LocalCartesian)
+    walls = cKDTree(cloud[cloud[:, 2] - h0 > 2.0][:, :2])  # building walls, above cars and people
     corners = reader.all_corners()
     d, _ = walls.query(np.column_stack([corners["east_m"].to_numpy(), corners["north_m"].to_numpy()]))
     assert np.median(d) < 0.1 and (d < 0.3).mean() > 0.8, d  # the corner map's corners stand on the cloud's walls
@@ -361,6 +363,23 @@ def test_autoware_export_of_tiny_opens_in_open3d_and_its_markings_lie_on_the_pai
     print("Lanelet2 nodes vs the paint, worst (m):", {k: round(v, 3) for k, v in sorted(worst.items())})
     assert checked.get("line_thin", 0) >= 10 and checked.get("stop_line", 0) >= 2, checked
     assert checked.get("crosswalk", 0) >= 2, checked
+    # the real lanelet2 with the folder's projector: lanelets, and every node on the cloud's road
+    lanelet2 = pytest.importorskip("lanelet2")
+    from lanelet2.io import Origin
+    from lanelet2.projection import LocalCartesianProjector
+
+    o = yaml.safe_load((out / "map_projector_info.yaml").read_text())["map_origin"]
+    lmap, errors = lanelet2.io.loadRobust(str(out / "lanelet2_map.osm"),
+                                          LocalCartesianProjector(Origin(o["latitude"], o["longitude"], o["altitude"])))
+    assert errors == [] and len(lmap.laneletLayer) > 0
+    ground = cKDTree(cloud[:, :2])
+    dz = []
+    for p in lmap.pointLayer:
+        near = cloud[ground.query_ball_point([p.x, p.y], 0.3), 2]
+        if len(near) >= 3:
+            dz.append(p.z - np.median(near[near < near.min() + 0.3]))
+    print("Lanelet2 node heights vs the cloud's road (m): median", np.median(dz), "max", np.abs(dz).max())
+    assert len(dz) > 50 and np.percentile(np.abs(dz), 95) < 0.05
 
 
 def _inside_m(polygon, p) -> float:

@@ -35,9 +35,22 @@ def sidecar_path(trajectory_path: Path) -> Path:
     return p.with_name(p.stem + ".frame.json")
 
 
+def attitude_header(planar: bool) -> str:
+    """The header line (without '# ') saying whether a trajectory's attitude is 3-D or planar."""
+    if planar:
+        return ("attitude: planar: z = 0, roll = pitch = 0 (the estimate is x, y, yaw only; evo: compare with a planar "
+                "reference, or add --project_to_plane xy against a 3-D one)")
+    return "attitude: 3-D: x y z and roll, pitch, yaw as estimated (not planar)"
+
+
+def sidecar_text(origin: EnuOrigin, **extra) -> str:
+    """The sidecar document: ``{"frame": "ENU", "origin": {...}, **extra}``."""
+    return json.dumps({"frame": "ENU", "origin": origin.as_dict(), **extra}, indent=1, sort_keys=True) + "\n"
+
+
 def write_sidecar(trajectory_path: Path, origin: EnuOrigin, **extra) -> Path:
     path = sidecar_path(trajectory_path)
-    path.write_text(json.dumps({"frame": "ENU", "origin": origin.as_dict(), **extra}, indent=1, sort_keys=True) + "\n")
+    path.write_text(sidecar_text(origin, **extra))
     return path
 
 

@@ -267,6 +267,7 @@ def compute(ctx: StageContext) -> dict:
     name = reader.path.parent.name
     write_report(out, ev, cmap, fetch, drive=drive, verdict=v, comparison=comparison, previous=prev_ev,
                  map_info={"name": name, "path": str(reader.path), "version": reader.version,
+                           "enu_origin": reader.origin.as_dict(),
                            "corner_error_correlation": {"share": p_map.ekf_map_corr_share,
                                                         "length_m": p_map.ekf_map_corr_length_m,
                                                         "from": "map" if p_map is not p else "params"}})

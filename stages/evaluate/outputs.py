@@ -96,30 +96,48 @@ def _atomic_write(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def write_tum_files(out_dir: Path, ev: Evaluation) -> list[Path]:
-    from stages.common.geometry import se3_from_xyz_rpy, write_tum
+def planar_tum_text(stamps_ns: np.ndarray, q: np.ndarray, header: list[str]) -> str:
+    """TUM rows of planar poses (x, y, yaw): z = 0, roll = pitch = 0, the stamp exact from integer ns; epochs with a
+    non-finite pose are left out."""
+    ok = np.all(np.isfinite(q), axis=1)
+    sec, frac = np.divmod(np.asarray(stamps_ns, np.int64)[ok], 1_000_000_000)
+    rows = [f"{s}.{f:09d} {x:.6f} {y:.6f} 0.000000 0.000000000 0.000000000 {np.sin(yaw / 2):.9f} {np.cos(yaw / 2):.9f}"
+            for s, f, (x, y, yaw) in zip(sec.tolist(), frac.tolist(), q[ok].tolist())]
+    return "".join(f"# {h}\n" for h in header) + "".join(r + "\n" for r in rows)
 
+
+def write_tum_files(out_dir: Path, ev: Evaluation, origin: dict | None = None) -> list[Path]:
+    """``<method>_tum.txt`` per method and ``reference_<name>_tum.txt`` per reference (at the epochs, as the metrics
+    used them), all planar in the map frame, each with a header naming frame, origin and attitude. evo's defaults
+    on a method and a reference file give the metrics' RMS (translation) and, with ``--pose_relation angle_deg``,
+    the heading RMS of the same epochs."""
+    from stages.common.geodesy import EnuOrigin
+    from stages.common.trajectory_frame import attitude_header, frame_header
+
+    frame = [frame_header(EnuOrigin.from_dict(origin))] if origin else \
+        ["frame: the map's ENU frame (origin not stated); rows: t x y z qx qy qz qw (T_enu_vehicle)"]
+    tail = [attitude_header(planar=True), "t: seconds of the drive's time base, exact from integer ns"]
     paths = []
-    for m, r in ev.runs.items():
-        ok = np.all(np.isfinite(r.q), axis=1)
-        T = np.stack([se3_from_xyz_rpy(x, y, 0.0, 0.0, 0.0, yaw) for x, y, yaw in r.q[ok]]) if ok.any() \
-            else np.zeros((0, 4, 4))
-        path = out_dir / f"{m}_tum.txt"
-        write_tum(path, ev.stamps_ns[ok] * 1e-9, T)
+    series = [(f"{m}_tum.txt", f"cornermap evaluation: {m} estimate", r.q) for m, r in ev.runs.items()]
+    series += [(f"reference_{name}_tum.txt", f"cornermap evaluation: reference '{name}' at the epochs", ref)
+               for name, ref in sorted(ev.references.items())]
+    for name, title, q in series:
+        path = out_dir / name
+        _atomic_write(path, planar_tum_text(ev.stamps_ns, np.asarray(q, float), [title, *frame, *tail]))
         paths.append(path)
     return paths
 
 
 def write_report(out_dir: Path, ev: Evaluation, cmap, fetch, *, drive: str | None, map_info: dict,
                  verdict: dict | None = None, comparison: dict | None = None, previous=None) -> dict:
-    """metrics.json, <method>_tum.txt and the self-contained report.html into ``out_dir``."""
+    """metrics.json, <method>_tum.txt, reference_<name>_tum.txt and the self-contained report.html into ``out_dir``."""
     from stages.evaluate.report import render_report
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     doc = metrics_document(ev, drive, map_info, verdict, comparison)
     _atomic_write(out_dir / "metrics.json", json.dumps(doc, indent=2))
-    write_tum_files(out_dir, ev)
+    write_tum_files(out_dir, ev, map_info.get("enu_origin"))
     _atomic_write(out_dir / "report.html", render_report(ev, doc, cmap, previous))
     log.info("evaluation report written to %s", out_dir / "report.html")
     return doc

@@ -131,6 +131,7 @@ def figure_ellipses(ev, cmap, width: int = 200, every: int = 10) -> str | None:
     for k, i in zip(r.assoc_epoch[sel][::3], r.assoc_map_idx[sel][::3]):
         ax.plot([r.q[k, 0], cmap.en_m[i, 0]], [r.q[k, 1], cmap.en_m[i, 1]], color="tab:green", lw=0.3)
     ax.set_aspect("equal", adjustable="datalim"), ax.legend(fontsize=8)
+    ax.set_xlabel("east (m, map ENU)"), ax.set_ylabel("north (m, map ENU)")
     ax.set_title(f"Epochs {lo}-{hi}: 95 % covariance ellipses x{scale:g} (sparsest corners), green: associations")
     return _png(fig)
 
@@ -188,9 +189,12 @@ def _verdict_html(doc: dict) -> str:
         ref = v["judged_against"].get(m, "-")
         for key, t in targets.items():
             if key == "nees_consistent":
+                from stages.evaluate.verdict import nees_words
+
                 share = None if t["share_below_q95"] is None else 100 * t["share_below_q95"]
-                value = f"mean {_fmt(t['value'])}, {_fmt(share)} % under q95"
-                target = f"mean in {_fmt(t['band95'])} or &ge; {100 * t['min_share_below_q95']:.0f} % under q95"
+                value = f"mean {_fmt(t['value'])} ({html.escape(nees_words(t))}), {_fmt(share)} % under q95"
+                target = (f"mean in {_fmt(t['band95'])} (two-sided); above it: &ge; "
+                          f"{100 * t['min_share_below_q95']:.0f} % under q95")
             else:
                 value, target = _fmt(t["value"]), f"&le; {_fmt(t['target'])}"
             ok = "yes" if t["ok"] else "<b style='color:#cf222e'>NO</b>"

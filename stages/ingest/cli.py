@@ -86,7 +86,13 @@ def register(app: typer.Typer) -> None:
         if target.exists() and not force:
             raise ConfigError("cornermap drive init", [f"{target} exists; refusing to overwrite (use --force or "
                                                        f"--out)"])
-        draft = draft_drive_file(folder)
+        draft = draft_drive_file(folder, target)  # its paths relative to where it is written
+        if draft.outside:
+            raise ConfigError("cornermap drive init", [
+                f"--out {target}: the drive's files would be outside the drive file's parent folder "
+                f"{target.resolve().parent.parent} ({', '.join(draft.outside[:2])}); a drive file's paths may not "
+                "leave it (docs/drive-file.md); hint: write the draft in the drive's folder or next to it"])
+        target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_name(target.name + ".tmp")
         tmp.write_text("\n".join(draft.lines) + "\n")
         tmp.replace(target)

@@ -8,6 +8,7 @@ missing altogether with ``# TODO:``. The draft is meant to be read, completed an
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,10 +21,25 @@ from stages.ingest.sensors import SENSORS, elevation_deg
 
 @dataclass
 class Draft:
-    """The drive file being drafted: ordered YAML lines, and what could not be inferred."""
+    """The drive file being drafted: ordered YAML lines, and what could not be inferred. Paths are written relative
+    to ``base``, the folder the drive file will be in (docs/drive-file.md); ``outside`` lists those that would
+    leave its parent folder, which a drive file may not."""
 
     lines: list[str] = field(default_factory=list)
     todo: list[str] = field(default_factory=list)
+    base: Path | None = None
+    outside: list[str] = field(default_factory=list)
+
+    def rel(self, path: Path) -> str:
+        """``path`` as the drive file names it: relative to ``base``, '/'-separated."""
+        path = Path(path).resolve()
+        if self.base is None:
+            return path.as_posix()
+        text = Path(os.path.relpath(path, self.base)).as_posix()
+        fence = str(self.base.parent)
+        if os.path.commonpath([fence, str(path)]) != fence:
+            self.outside.append(f"{text} ({path})")
+        return text
 
     def add(self, text: str, note: str = "") -> None:
         self.lines.append(f"{text}  # {note}" if note else text)
@@ -90,9 +106,11 @@ def count_beams(points) -> int | None:
     return n if n in (16, 32, 64, 128) else None
 
 
-def draft_drive_file(folder: Path) -> Draft:
+def draft_drive_file(folder: Path, out: Path | None = None) -> Draft:
+    """The draft of ``folder``'s drive file, to be written at ``out`` (default ``folder/drive.yaml``): its paths are
+    relative to ``out``'s folder."""
     folder = Path(folder).resolve()
-    d = Draft()
+    d = Draft(base=Path(out).resolve().parent if out is not None else folder)
     d.add(f"# Drive file drafted by `cornermap drive init {folder.name}`: read every CHECK and TODO, then run "
           f"`cornermap drive check`.")
     d.add("# Keys, units and conventions: docs/drive-file.md")
@@ -139,7 +157,7 @@ def _draft_scans(folder: Path, d: Draft) -> str | None:
     note += "; ring field present" if has_ring else ""
     note += "" if has_time else "; no per-point time (scans are not deskewed)"
     d.add("scans:")
-    d.add(f"  folder: {scan_dir.relative_to(folder).as_posix() or '.'}", note)
+    d.add(f"  folder: {d.rel(scan_dir)}", note)
     d.add(f"  format: {fmt}")
     if elev:
         known = [b for b in beams if b]
@@ -155,7 +173,7 @@ def _draft_scans(folder: Path, d: Draft) -> str | None:
     if stamps.is_file():
         d.add("scan_times:", "scan stamps from the stamps file")
         d.add(f"  source: {'pcd_field' if has_time else 'stamps_csv'}")
-        d.add(f"  file: {stamps.relative_to(folder).as_posix()}")
+        d.add(f"  file: {d.rel(stamps)}")
     elif numbered_us:
         d.add("scan_times: {source: filename_us}", "file names end in microsecond stamps")
     else:
@@ -193,7 +211,7 @@ def _draft_survey(folder: Path, d: Draft, scan_format: str | None) -> None:
     except Exception:  # noqa: BLE001 - a draft notes it, check validates
         crs = None
     d.add("survey:")
-    d.add(f"  file: {path.relative_to(folder).as_posix()}")
+    d.add(f"  file: {d.rel(path)}")
     if crs:
         d.add(f"  crs: \"{crs}\"", "from the LAS header")
     else:

@@ -89,7 +89,7 @@ def draft_csvs(folder: Path, d) -> None:
         d.add("# gnss: none found (a CSV with latitude/longitude columns); the map then has no geodetic frame")
     else:
         path, header = gnss
-        rel = path.relative_to(folder).as_posix()
+        rel = d.rel(path)
         pick = {role: _pick(header, role) for role in _SYNONYMS}
         d.add("gnss:")
         d.add(f"  file: {rel}", f"columns: {', '.join(header)}")
@@ -136,7 +136,7 @@ def draft_csvs(folder: Path, d) -> None:
         path, header = odom
         pick = {role: _pick(header, role) for role in ("time", "week", "speed", "yaw_rate")}
         d.add("odometry:")
-        d.add(f"  file: {path.relative_to(folder).as_posix()}")
+        d.add(f"  file: {d.rel(path)}")
         d.add(f"  time_column: {pick['time'] or 'TIME'}", "" if pick["time"] else "TODO: no time column recognised")
         if pick["week"]:
             d.add(f"  week_column: {pick['week']}")

@@ -137,18 +137,20 @@ def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
 
 def export(
     fmt: str = typer.Option(
-        ..., "--format", "-f", help="im2016-text | geojson | markings-geojson | autoware | geotiff"
+        ..., "--format", "-f", help="im2016-text | geojson | markings-geojson | autoware | geotiff | tum | kitti"
     ),
-    out: Path = typer.Option(..., "--out", "-o", help="Output file (directory for autoware and geotiff)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output file (a directory for autoware, geotiff, tum, kitti)."),
     root: Path = ROOT_OPT,
     map_name: Optional[str] = MAP_OPT,
     version: str = VERSION_OPT,
 ) -> None:
-    """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), Autoware map folder, or GeoTIFFs (COG).
+    """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), Autoware map folder, GeoTIFFs (COG) with a
+    VRT per layer, or the version's trajectories (TUM, KITTI) with their frame stated.
 
     Examples: [b]cornermap tiles export -f im2016-text -o runs/city.txt --map city --root runs/maps[/b];
     [b]cornermap tiles export -f markings-geojson -o runs/markings.geojson --map city --root runs/maps[/b]; an
-    Autoware map folder (point cloud map tiles, projector info, Lanelet2 markings): -f autoware -o DIR
+    Autoware map folder (point cloud map tiles, projector info, Lanelet2 lanelets and markings): -f autoware -o DIR
+    (reads the scans and poses the version was built from under --root); trajectories: -f tum -o DIR, -f kitti -o DIR
     """
     from mapformat.export import FORMATS, export_map
     from mapformat.loader import open_map
