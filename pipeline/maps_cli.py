@@ -109,9 +109,7 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
     params = RebuildParams(min_free_gib=min_free_gib, gate=not no_gate, gate_tol_m=gate_tol_m,
                            gate_tol_rel=gate_tol_rel, workflow=workflow, scheduler=scheduler,
                            quiet_period_s=quiet_period_min * 60.0)
-    result = rebuild(root, map_name, inbox, params)
-    for line in result.lines:
-        typer.echo(line)
+    result = rebuild(root, map_name, inbox, params, say=typer.echo)  # each line as it comes
     if result.exit_code:
         raise typer.Exit(result.exit_code)
 

@@ -29,6 +29,7 @@ import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from pipeline.errors import ConfigError, DataQualityError
 from pipeline.inbox import DEFAULT_QUIET_PERIOD_S, QUARANTINE, Delivery, quarantine  # noqa: F401 - re-exported
@@ -58,6 +59,13 @@ class RebuildResult:
     version: int | None = None
     quarantined: list[str] = field(default_factory=list)
     summary: dict = field(default_factory=dict)  # the build's run summary (stage decisions and times)
+    say: Callable[[str], None] | None = field(default=None, repr=False)  # each line also goes here as it is made
+
+    def add(self, *lines: str) -> None:
+        for line in lines:
+            self.lines.append(line)
+            if self.say is not None:
+                self.say(line)
 
     @property
     def exit_code(self) -> int:
@@ -94,9 +102,9 @@ def check_delivery(drive_yaml: Path) -> DriveCheck:
     files = sorted({Path(p).name if Path(p).parent == folder else p
                     for p in re.findall(r"(/[^\s:;,'\"()]+)", text)
                     if Path(p).is_relative_to(folder.parent) and Path(p).exists() and Path(p) != drive_yaml})
-    what = f"{count.group(1) if count else 'a'} problem{'s' if count and count.group(1) != '1' else ''}"
-    reason = (f"`cornermap drive check` refused it (exit {res.returncode}, {what}"
-              + (f" in the drive file's {', '.join(keys)}" if keys else "")
+    n = int(count.group(1)) if count else 1
+    reason = (f"`cornermap drive check` refused it (exit {res.returncode}: {n} problem{'s' if n != 1 else ''}"
+              + (f" about {', '.join(keys)}" if keys else "")
               + (f"; files named: {', '.join(files[:5])}" if files else "")
               + f"); run `cornermap drive check {drive_yaml}` to read them")
     return DriveCheck(False, content, reason)
@@ -218,7 +226,10 @@ def _candidate_version(plan) -> int:
     return int(rows[0]["version"])
 
 
-def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildParams()) -> RebuildResult:
+def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildParams(),
+            say: Callable[[str], None] | None = None) -> RebuildResult:
+    """One rebuild (module docstring); ``say(line)`` gets each line of the result as it is made, so that what was
+    quarantined or left alone is told even when the build then fails."""
     from pipeline.build import write_build_workflow
     from pipeline.cli import execute_workflow
     from pipeline.gate import run_gate
@@ -237,15 +248,16 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
         if problems:
             raise ConfigError(f"map {name!r}", problems)
         sel, ident = select_new_drives(ident, inbox, params.quiet_period_s)
-        result = RebuildResult("nothing", lines=notes + sel.lines)
+        result = RebuildResult("nothing", say=say)
+        result.add(*notes, *sel.lines)
         for entry, reason in sel.bad:
             dst = quarantine(entry, inbox, reason)
             result.quarantined.append(entry.name)
-            result.lines.append(f"quarantined {entry.name} -> {dst} ({reason[:300]})")
+            result.add(f"quarantined {entry.name} -> {dst} ({reason[:300]})")
         if not sel.good:
             if ident != before:  # fingerprints or contents brought up to date
                 write_identity(mdir, ident)
-            result.lines.append(f"nothing to do: no new drive in {inbox} for map {name!r} "
+            result.add(f"nothing to do: no new drive in {inbox} for map {name!r} "
                                 f"({len(ident.drives)} drive(s), LATEST {_latest_text(mdir)})")
             return result
         drives = [Path(d.path) for d in ident.drives] + [dlv.drive_yaml for dlv, _, _ in sel.good]
@@ -254,17 +266,17 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
                                   hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0)
         run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True)
         result.summary = run["summary"]
-        result.lines.append(reuse_line(run["summary"]))
+        result.add(reuse_line(run["summary"]))
         candidate = _candidate_version(run["plan"])
         previous = read_latest(mdir)
         if candidate != previous and previous is not None and params.gate:
             check = ident.check_drive
             drive, reference = (Path(check.path), check.reference) if check else (sel.good[-1][0].drive_yaml, None)
             verdict = run_gate(mdir, candidate, previous, drive, reference, params.gate_tol_m, params.gate_tol_rel)
-            result.lines += verdict.table
+            result.add(*verdict.table)
             if not verdict.ok:
                 result.status, result.version = "refused", candidate
-                result.lines.append(f"refused: {version_name(candidate)} is worse than {version_name(previous)} on "
+                result.add(f"refused: {version_name(candidate)} is worse than {version_name(previous)} on "
                                     f"{drive.parent.name}; LATEST stays {version_name(previous)}")
                 if ident != before:
                     write_identity(mdir, ident)
@@ -279,7 +291,7 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
                           added_utc=utc_now(), added_in=candidate) for dlv, fp, content in sel.good]
         write_identity(mdir, ident.model_copy(update={"drives": list(ident.drives) + added}))
         result.status, result.version = "published", candidate
-        result.lines.append(f"published map {name!r} {version_name(candidate)} (LATEST): {len(drives)} drive(s), "
+        result.add(f"published map {name!r} {version_name(candidate)} (LATEST): {len(drives)} drive(s), "
                             f"added {', '.join(dlv.name for dlv, _, _ in sel.good)}")
         return result
 

@@ -126,8 +126,8 @@ def _completeness(spec, scans, g, out: DriveCheck) -> None:
     no_file = [s.scan_id for s in scans if s.path is None]
     if listed and scans and no_file:
         share = len(no_file) / len(scans)
-        line = (f"incomplete: {len(no_file)} of the {len(scans)} scans listed in {spec.stamps_file.name} have no "
-                f"file in {spec.scans.folder} (first: scan {no_file[0]})")
+        line = (f"scans: incomplete: {len(no_file)} of the {len(scans)} scans listed in {spec.stamps_file.name} have "
+                f"no file in {spec.scans.folder} (first: scan {no_file[0]})")
         if share > MAX_MISSING_LISTED:
             out.problems.append(line + "; a copy still running or cut short? hint: deliver the whole folder")
         else:
@@ -164,7 +164,7 @@ def _check_sums(folder: Path, out: DriveCheck) -> None:
             elif _sha256(target) != m.group(1).lower():
                 differ.append(rel)
     if missing or differ or bad_lines:
-        out.problems.append(f"incomplete: {SUMS_FILE} lists {n} files: {len(missing)} missing, {len(differ)} with "
+        out.problems.append(f"{SUMS_FILE}: incomplete: it lists {n} files: {len(missing)} missing, {len(differ)} with "
                             f"another content, {bad_lines} unreadable line(s)"
                             + (f" (first missing: {missing[0]})" if missing else "")
                             + (f" (first differing: {differ[0]})" if differ else ""))
