@@ -74,6 +74,29 @@ def read_verified(version_dir: Path, rel: str, files: dict[str, Any], trust: boo
     return data
 
 
+def decode_table(data: bytes, path: Path, expected_rows: int | None = None) -> pa.Table:
+    """A Parquet file's bytes -> table, decoded only after its footer passed the bounds: ``expected_rows`` when the
+    manifest records them, at most MAX_TILE_CORNERS rows and MAX_TILE_TABLE_BYTES decompressed (MapFormatError)."""
+    try:
+        pfile = pq.ParquetFile(pa.BufferReader(data))
+        meta = pfile.metadata
+        rows = meta.num_rows
+        inflated = sum(meta.row_group(g).total_byte_size for g in range(meta.num_row_groups))
+        if (expected_rows is not None and rows != expected_rows) or rows > MAX_TILE_CORNERS \
+                or inflated > MAX_TILE_TABLE_BYTES:
+            raise MapFormatError(f"{path}: {rows} rows, {inflated} bytes decompressed; the manifest records "
+                                 f"{expected_rows} rows for it (limits {MAX_TILE_CORNERS} rows, {MAX_TILE_TABLE_BYTES} "
+                                 "bytes); hint: run `cornermap tiles verify`")
+        table = pfile.read(use_threads=False)
+    except MapFormatError:
+        raise
+    except (OSError, pa.ArrowInvalid, ValueError) as exc:
+        raise MapFormatError(f"{path}: cannot read the table ({exc}); hint: run `cornermap tiles verify`") from exc
+    if table.num_rows != rows:
+        raise MapFormatError(f"{path}: {table.num_rows} rows read, its footer says {rows}")
+    return table
+
+
 class _Lru:
     def __init__(self, capacity: int, load: Callable[[tuple[int, int]], Any]):
         self._capacity, self._load = max(1, capacity), load
@@ -209,29 +232,15 @@ class MapReader:
         return read_layer(tile_dir, marking, layer, data)
 
     def _load_corners(self, key: tuple[int, int]) -> tuple[pa.Table, np.ndarray, np.ndarray]:
-        """A tile's corners, read only after the Parquet footer passed the bounds: the rows the manifest records for
-        the tile (``n_corners``, at most MAX_TILE_CORNERS) and at most MAX_TILE_TABLE_BYTES once decompressed."""
+        """A tile's corners: ``decode_table`` bounded by the rows the manifest records for the tile (``n_corners``)."""
         path, data = self._read(key, layout.CORNERS_FILE)
         recorded = self._tiles[key].get("n_corners")
+        table = decode_table(data, path, recorded if isinstance(recorded, int) else None)
         try:
-            pfile = pq.ParquetFile(pa.BufferReader(data))
-            meta = pfile.metadata
-            rows = meta.num_rows
-            inflated = sum(meta.row_group(g).total_byte_size for g in range(meta.num_row_groups))
-            if (isinstance(recorded, int) and rows != recorded) or rows > MAX_TILE_CORNERS \
-                    or inflated > MAX_TILE_TABLE_BYTES:
-                raise MapFormatError(f"{path}: {rows} rows, {inflated} bytes decompressed; the manifest records "
-                                     f"{recorded} corners for this tile (limits {MAX_TILE_CORNERS} rows, "
-                                     f"{MAX_TILE_TABLE_BYTES} bytes); hint: run `cornermap tiles verify`")
-            table = pfile.read(use_threads=False).cast(self._schema)
-        except MapFormatError:
-            raise
-        except (OSError, pa.ArrowInvalid, ValueError) as exc:
-            raise MapFormatError(
-                f"{path}: cannot read tile corners ({exc}); hint: run `cornermap tiles verify`"
-            ) from exc
-        if table.num_rows != rows:
-            raise MapFormatError(f"{path}: {table.num_rows} rows read, its footer says {rows}")
+            table = table.cast(self._schema)
+        except (pa.ArrowInvalid, ValueError) as exc:
+            raise MapFormatError(f"{path}: cannot read tile corners ({exc}); hint: run `cornermap tiles verify`") \
+                from exc
         return table, table["east_m"].to_numpy(), table["north_m"].to_numpy()
 
     def _load_marking(self, key: tuple[int, int]) -> np.ndarray:

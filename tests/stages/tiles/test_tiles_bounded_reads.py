@@ -98,8 +98,26 @@ def test_a_corners_table_with_more_rows_than_the_manifest_records_is_refused(pub
         _replace(vdir, manifest, rel, sink.getvalue().to_pybytes())
 
     mdir, _ = tampered(published, tmp_path, inflate)
-    with pytest.raises(MapFormatError, match=f"rows, .* the manifest records {tile['n_corners']} corners"):
+    with pytest.raises(MapFormatError, match=f"rows, .* the manifest records {tile['n_corners']} rows for it"):
         open_map(mdir).tile_corners(tile["i"], tile["j"])
+
+
+def test_vector_markings_are_read_verified(published, tmp_path):
+    from mapformat.vectors import MARKINGS_FILE, read_map_features
+    from pipeline.errors import IntegrityError
+
+    reader = open_map(published)
+    entries = [reader.tile_entry(*k) for k in reader.tile_keys()]
+    assert read_map_features(reader.path, entries)  # the synthetic city's painted line
+    rel = next(f"{e['dir']}/{MARKINGS_FILE}" for e in entries if MARKINGS_FILE in (e.get("files") or {}))
+
+    def swap(vdir: Path, manifest: dict) -> None:  # another table in its place, the manifest left alone
+        table = pq.read_table(vdir / rel)
+        pq.write_table(pa.concat_tables([table, table]), vdir / rel)
+
+    mdir, _ = tampered(published, tmp_path, swap)
+    with pytest.raises(IntegrityError):
+        read_map_features(mdir / "v0001", entries)
 
 
 def test_verify_compares_each_files_size_with_the_manifest(published, tmp_path):
