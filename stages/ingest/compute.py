@@ -273,7 +273,9 @@ def compute(ctx: StageContext) -> dict:
                     spec.name, drive)
     origin = resolve_enu_origin(ctx.settings.get("enu_origin"), list(ctx.drives.values()))
     ingest = DriveIngest(drive, spec, ctx.params, origin, str(ctx.drives[drive]))
-    if ingest.gnss is not None:  # before any scan is read: a drive outside the map's area is refused (exit 3)
+    if ingest.gnss is not None and drive in ctx.settings.get("map_drives", [drive]):
+        # before any scan is read: a map drive outside the map's area is refused (exit 3); an evaluation drive is
+        # localized anyway (far off, its verdict is "no coverage")
         check_within_area(ingest.gnss, origin, ctx.settings.get("max_radius_m"), drive, spec.gnss.file)
     return {
         "scans": ingest.iter_scan_tables(),
