@@ -190,8 +190,10 @@ def test_a_command_the_rebuild_started_ends_when_the_rebuild_is_killed(tmp_path)
     parent = subprocess.Popen([sys.executable, "-c", code], env=_env(), start_new_session=True)
     try:
         deadline = time.time() + 60
-        while time.time() < deadline and not (tmp_path / "root" / "datasets" / "toy_squares").exists():
+        while time.time() < deadline and not list((tmp_path / "root" / "datasets" / "toy_numbers").glob(
+                "*/_manifest.json")):
             time.sleep(0.1)
+        time.sleep(1.0)  # in squares, sleeping
         children = _children_running(parent.pid)
         assert children, "the rebuild's child should be running"
         os.kill(parent.pid, signal.SIGKILL)
