@@ -15,6 +15,7 @@ have to be resampled.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -77,17 +78,69 @@ def decode_layer(pixels: np.ndarray, entry: dict[str, Any]) -> np.ndarray:
     return pixels
 
 
-def read_layer(tile_dir: Path, marking_meta: dict[str, Any], layer: str) -> np.ndarray:
-    """Decoded layer ``layer`` of a published tile (row 0 = north edge). Raises MapFormatError when absent."""
+MAX_TILE_PIXELS = 1 << 26  # 64 Mi pixels (128 MiB at 16 bits): a 100 m tile at 0.1 m is 1 Mi; 819 m at 0.1 m fits
+MAX_PNG_BYTES = 1 << 28  # a layer file larger than this is refused before it is read
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_header(data: bytes, where: Path) -> tuple[int, int, int, int]:
+    """(width, height, bit depth, colour type) from a PNG's IHDR, without decoding; MapFormatError if not a PNG."""
+    if len(data) < 26 or data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR":
+        raise MapFormatError(f"{where}: not a PNG (no PNG signature and IHDR chunk); hint: run `cornermap tiles "
+                             "verify`")
+    return (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big"), data[24], data[25])
+
+
+def expected_shape(marking_meta: dict[str, Any]) -> tuple[int, int] | None:
+    """(height, width) in pixels the manifest records for a tile's rasters (``height_px``, ``width_px``), if any."""
+    try:
+        h, w = int(marking_meta["height_px"]), int(marking_meta["width_px"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return (h, w) if h > 0 and w > 0 else None
+
+
+def decode_png(data: bytes, where: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """PNG bytes -> pixels (``cv2.IMREAD_UNCHANGED``), decoded only after its header passed the bounds: the size the
+    manifest records (``shape`` = (height, width)), at most ``MAX_TILE_PIXELS`` pixels, 8 or 16 bits, at most 4
+    channels. A header that promises more (a decompression bomb: 30000 x 30000 from a few kB) is a MapFormatError."""
     import cv2
 
+    width, height, depth, colour = png_header(data, where)
+    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour)
+    if shape is not None and (height, width) != tuple(shape):
+        raise MapFormatError(f"{where}: PNG of {width} x {height} pixels; the manifest records {shape[1]} x {shape[0]}"
+                             " for this tile; hint: run `cornermap tiles verify`")
+    if width * height > MAX_TILE_PIXELS or depth not in (1, 2, 4, 8, 16) or channels is None:
+        raise MapFormatError(f"{where}: PNG of {width} x {height} pixels, {depth} bits, colour type {colour}: beyond "
+                             f"the limits of a tile raster ({MAX_TILE_PIXELS} pixels, 8 or 16 bits, 1-4 channels)")
+    pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if pixels is None or pixels.shape[:2] != (height, width):
+        raise MapFormatError(f"{where}: not a decodable PNG; hint: run `cornermap tiles verify`")
+    return pixels
+
+
+def read_bounded(path: Path, limit: int = MAX_PNG_BYTES) -> bytes:
+    """A file's bytes, refused (MapFormatError) when it is larger than ``limit`` or cannot be read."""
+    try:
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size > limit:
+                raise MapFormatError(f"{path}: {size} bytes, more than the {limit}-byte limit of a tile raster")
+            return fh.read()
+    except OSError as exc:
+        raise MapFormatError(f"{path}: missing or unreadable ({exc.strerror or exc}); hint: run `cornermap tiles "
+                             "verify`") from exc
+
+
+def read_layer(tile_dir: Path, marking_meta: dict[str, Any], layer: str, data: bytes | None = None) -> np.ndarray:
+    """Decoded layer ``layer`` of a published tile (row 0 = north edge), from ``data`` (its file's bytes, already
+    verified by the caller) or read from the tile folder; bounded by ``decode_png``. MapFormatError when absent."""
     layers = sidecar_layers(tile_dir, marking_meta)
     if layer not in layers:
         raise MapFormatError(f"{tile_dir}: no raster layer {layer!r}; have {', '.join(sorted(layers)) or 'none'}")
     path = Path(tile_dir) / layers[layer]["file"]
-    pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if pixels is None:
-        raise MapFormatError(f"{path}: missing or not a PNG; hint: run `cornermap tiles verify`")
+    pixels = decode_png(read_bounded(path) if data is None else data, path, expected_shape(marking_meta))
     return decode_layer(pixels, layers[layer])
 
 

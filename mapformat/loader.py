@@ -39,6 +39,8 @@ from stages.common.geodesy import EnuOrigin
 from stages.common.tiling import tile_key_of
 
 MAX_WINDOW_CELLS = 1 << 28  # 256 Mi cells = 256 MiB of uint8: e.g. 16 km x 16 km at 1 m cells
+MAX_TILE_CORNERS = 1_000_000  # rows of one tile's corners.parquet (a dense 100 m tile holds a few hundred)
+MAX_TILE_TABLE_BYTES = 256 << 20  # one tile's corners once decompressed (footer's row-group sizes)
 _VERIFIED: dict[tuple[str, int, int, int], str] = {}  # (path, size, mtime_ns, inode) -> sha256, this process
 _VERIFIED_LOCK = threading.Lock()
 
@@ -70,6 +72,29 @@ def read_verified(version_dir: Path, rel: str, files: dict[str, Any], trust: boo
     with _VERIFIED_LOCK:
         _VERIFIED[key] = got
     return data
+
+
+def decode_table(data: bytes, path: Path, expected_rows: int | None = None) -> pa.Table:
+    """A Parquet file's bytes -> table, decoded only after its footer passed the bounds: ``expected_rows`` when the
+    manifest records them, at most MAX_TILE_CORNERS rows and MAX_TILE_TABLE_BYTES decompressed (MapFormatError)."""
+    try:
+        pfile = pq.ParquetFile(pa.BufferReader(data))
+        meta = pfile.metadata
+        rows = meta.num_rows
+        inflated = sum(meta.row_group(g).total_byte_size for g in range(meta.num_row_groups))
+        if (expected_rows is not None and rows != expected_rows) or rows > MAX_TILE_CORNERS \
+                or inflated > MAX_TILE_TABLE_BYTES:
+            raise MapFormatError(f"{path}: {rows} rows, {inflated} bytes decompressed; the manifest records "
+                                 f"{expected_rows} rows for it (limits {MAX_TILE_CORNERS} rows, {MAX_TILE_TABLE_BYTES} "
+                                 "bytes); hint: run `cornermap tiles verify`")
+        table = pfile.read(use_threads=False)
+    except MapFormatError:
+        raise
+    except (OSError, pa.ArrowInvalid, ValueError) as exc:
+        raise MapFormatError(f"{path}: cannot read the table ({exc}); hint: run `cornermap tiles verify`") from exc
+    if table.num_rows != rows:
+        raise MapFormatError(f"{path}: {table.num_rows} rows read, its footer says {rows}")
+    return table
 
 
 class _Lru:
@@ -203,31 +228,36 @@ class MapReader:
         if (tile_dir / "raster.json").is_file():
             self._read(key, "raster.json")
         entry = sidecar_layers(tile_dir, marking).get(layer)
-        if entry:
-            self._read(key, str(entry["file"]))
-        return read_layer(tile_dir, marking, layer)
+        data = self._read(key, str(entry["file"]))[1] if entry else None
+        return read_layer(tile_dir, marking, layer, data)
 
     def _load_corners(self, key: tuple[int, int]) -> tuple[pa.Table, np.ndarray, np.ndarray]:
+        """A tile's corners: ``decode_table`` bounded by the rows the manifest records for the tile (``n_corners``)."""
         path, data = self._read(key, layout.CORNERS_FILE)
+        recorded = self._tiles[key].get("n_corners")
+        table = decode_table(data, path, recorded if isinstance(recorded, int) else None)
         try:
-            table = pq.ParquetFile(pa.BufferReader(data)).read(use_threads=False).cast(self._schema)
-        except (OSError, pa.ArrowInvalid, ValueError) as exc:
-            raise MapFormatError(
-                f"{path}: cannot read tile corners ({exc}); hint: run `cornermap tiles verify`"
-            ) from exc
+            table = table.cast(self._schema)
+        except (pa.ArrowInvalid, ValueError) as exc:
+            raise MapFormatError(f"{path}: cannot read tile corners ({exc}); hint: run `cornermap tiles verify`") \
+                from exc
         return table, table["east_m"].to_numpy(), table["north_m"].to_numpy()
 
     def _load_marking(self, key: tuple[int, int]) -> np.ndarray:
-        import cv2
+        from mapformat.layers import decode_png, expected_shape
 
-        path, data = self._read(key, str(self._tiles[key]["marking"]["mask_file"]))
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise MapFormatError(f"{path}: missing or not a PNG; hint: run `cornermap tiles verify`")
-        return img
+        marking = self._tiles[key]["marking"]
+        path, data = self._read(key, str(marking["mask_file"]))
+        return decode_png(data, path, expected_shape(marking))
 
     # -- queries -----------------------------------------------------------------------------------------
     def _keys_in_box(self, e0: float, n0: float, e1: float, n1: float) -> list[tuple[int, int]]:
+        if any(np.isnan(v) for v in (e0, n0, e1, n1)):
+            raise LimitError(f"box ({e0}, {n0}, {e1}, {n1}) m has a NaN bound")
+        if not all(np.isfinite(v) for v in (e0, n0, e1, n1)):  # an unbounded box: the map's tiles it meets
+            s = self.tile_size_m
+            return [k for k in sorted(self._tiles) if k[0] * s <= e1 and (k[0] + 1) * s > e0
+                    and k[1] * s <= n1 and (k[1] + 1) * s > n0]
         i0, j0 = (int(k) for k in tile_key_of(e0, n0, self.tile_size_m))
         i1, j1 = (int(k) for k in tile_key_of(e1, n1, self.tile_size_m))
         if (i1 - i0 + 1) * (j1 - j0 + 1) > len(self._tiles):  # a huge box: filter the map's tiles instead
@@ -252,7 +282,13 @@ class MapReader:
         return self._select(e0, n0, e1, n1, lambda e, n: (e >= e0) & (e < e1) & (n >= n0) & (n < n1))
 
     def corners_within(self, east_m: float, north_m: float, radius_m: float) -> pa.Table:
-        """Corners within ``radius_m`` (inclusive) of (east_m, north_m)."""
+        """Corners within ``radius_m`` (inclusive) of (east_m, north_m); ``radius_m`` = inf: every corner. A NaN or
+        negative radius, or a non-finite centre, is a LimitError."""
+        if not (np.isfinite(east_m) and np.isfinite(north_m)) or np.isnan(radius_m) or radius_m < 0:
+            raise LimitError(f"corners_within: centre ({east_m}, {north_m}) m and radius {radius_m} m: expected a "
+                             "finite centre and a radius >= 0 (inf for every corner)")
+        if np.isinf(radius_m):
+            return self.all_corners()
         r2 = radius_m * radius_m
         return self._select(east_m - radius_m, north_m - radius_m, east_m + radius_m, north_m + radius_m,
                             lambda e, n: (e - east_m) ** 2 + (n - north_m) ** 2 <= r2)

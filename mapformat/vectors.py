@@ -92,19 +92,24 @@ def table_features(table: pa.Table) -> list[MarkingFeature]:
 
 
 def read_map_features(version_dir, tile_entries: list[dict]) -> list[MarkingFeature]:
-    """Every tile's vector markings of a published version (tiles without ``markings.parquet`` have none)."""
-    import pyarrow.parquet as pq
+    """Every tile's vector markings of a published version (tiles without ``markings.parquet`` have none); each file
+    checked against the manifest (sha256, inside the version) and bounded before it is decoded (``loader``)."""
+    from pathlib import Path
 
+    from mapformat.loader import decode_table, read_verified
     from pipeline.errors import MapFormatError
+    from pipeline.versioned import read_manifest
 
+    files = read_manifest(Path(version_dir))[0].get("files") or {}
     out: list[MarkingFeature] = []
     for entry in tile_entries:
         if MARKINGS_FILE not in (entry.get("files") or {}):
             continue
-        path = version_dir / entry["dir"] / MARKINGS_FILE
+        rel = f"{entry['dir']}/{MARKINGS_FILE}"
+        path = Path(version_dir) / rel
         try:
-            out += table_features(pq.read_table(path))
-        except (OSError, pa.ArrowInvalid, KeyError) as exc:
+            out += table_features(decode_table(read_verified(Path(version_dir), rel, files), path))
+        except KeyError as exc:
             raise MapFormatError(
                 f"{path}: cannot read vector markings ({exc}); hint: run `cornermap tiles verify`"
             ) from exc

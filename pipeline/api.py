@@ -56,16 +56,19 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
         for name in only:
             if name not in wf.stages:
                 raise UnknownNameError(f"--only {name!r}: not a stage of {workflow_path}{suggest(name, wf.stages)}")
-    plan = make_plan(wf, wf.root_dir(root), only=only)
-    if dry_run:
-        print_plan(describe_plan(plan), plan.root)
-        return {"dry_run": True}
-    sched = Scheduler(scheduler or wf.spec.scheduler, workers=workers)
-    try:
-        with StageProgress(enabled=not quiet) as progress:
-            summary = run_plan(plan, sched, progress.update)
-    finally:
-        sched.close()
+    from pipeline.locks import workflow_locks
+
+    with workflow_locks(wf, wf.root_dir(root), only, dry_run=dry_run):  # from planning on: gc keeps what it finds
+        plan = make_plan(wf, wf.root_dir(root), only=only)
+        if dry_run:
+            print_plan(describe_plan(plan), plan.root)
+            return {"dry_run": True}
+        sched = Scheduler(scheduler or wf.spec.scheduler, workers=workers)
+        try:
+            with StageProgress(enabled=not quiet) as progress:
+                summary = run_plan(plan, sched, progress.update)
+        finally:
+            sched.close()
     if not quiet:
         print_plan(describe_plan(plan), plan.root, summary)
     for line in over_budget(summary, wf.spec.memory_budget_mb):

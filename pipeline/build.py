@@ -31,10 +31,11 @@ def parse_origin(text: str) -> dict[str, float]:
 
 def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: str, root: Path,
                          origin: dict[str, float] | None = None, tile_size_m: float | None = None,
-                         hold_latest: bool = False) -> Path:
+                         hold_latest: bool = False, max_radius_m: float | None = None) -> Path:
     """The map workflow (a file or a packaged name) with these drives, map name, root and origin, written under
     ``ROOT/workflows/`` (absolute paths: the build's record of what it ran). ``hold_latest``: publish the
-    version without moving LATEST (``cornermap rebuild`` moves it after its regression gate)."""
+    version without moving LATEST (``cornermap rebuild`` moves it after its regression gate). ``max_radius_m``: the
+    map's area (default: its identity's ``max_radius_km``, else the workflow's own)."""
     from pipeline.resources import resolve_workflow
     from pipeline.safe_yaml import load_yaml_file
 
@@ -56,6 +57,13 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
         doc["tile_size_m"] = float(tile_size_m)
     if hold_latest:
         doc["hold_latest"] = True
+    if max_radius_m is None:
+        from pipeline.maps import map_dir, read_identity
+
+        ident = read_identity(map_dir(root, map_name))
+        max_radius_m = ident.max_radius_km * 1000.0 if ident is not None else None
+    if max_radius_m is not None:
+        doc["max_radius_m"] = float(max_radius_m)
     doc["drives"] = [{"name": Path(d).resolve().parent.name, "path": str(Path(d).resolve()), "role": "map"}
                      for d in drives]
     text = yaml.safe_dump(doc, sort_keys=False)

@@ -12,7 +12,10 @@ the stage run):
 A directory without ``_manifest.json`` (a run in progress or a killed one) is removed only when older than
 ``min_age_h``; so is an entry of ``ROOT/tmp`` (a task's scratch folder, a run's verified-files ledger, a stage's
 planning folder: a run removes its own, a killed one leaves them) when nothing in it changed for ``min_age_h``.
-Every map's rebuild lock is held while deleting (exit 75 if a rebuild runs). Files are hard-linked between dataset
+Deleting holds the root's lock exclusive (``pipeline.locks``; exit 75 while any run, build or rebuild writes in the
+root, each of which holds it shared from its planning on) and plans again under it: only what both plans would
+remove goes (a run that ended between the dry plan and the lock keeps what it made and reused). Files are hard-linked
+between dataset
 directories by drive-scoped reuse (pipeline/reuse.py), so the bytes freed are counted per inode: a removed directory
 whose files live on in a kept one frees nothing.
 """
@@ -23,7 +26,6 @@ import logging
 import shutil
 import stat
 import time
-from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -163,8 +165,21 @@ def _read_by_path(manifest: dict, root: Path) -> set[str]:
     return out
 
 
+def check_min_age_h(min_age_h: float) -> float:
+    """``min_age_h`` when it is a finite number >= 0; ConfigError otherwise (a negative age would remove the folders
+    of runs in progress)."""
+    import math
+
+    from pipeline.errors import ConfigError
+
+    if not (isinstance(min_age_h, (int, float)) and math.isfinite(min_age_h) and min_age_h >= 0):
+        raise ConfigError("--min-age-h", [f"expected a number of hours >= 0; got {min_age_h}"])
+    return float(min_age_h)
+
+
 def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
     root = Path(root)
+    check_min_age_h(min_age_h)
     dirs = sorted(d for d in (root / "datasets").glob("*/*") if d.is_dir())
     manifests = {d: _manifest(d) for d in dirs}
     roots, versions = _version_roots(root)
@@ -195,40 +210,51 @@ def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
             plan.young_uncommitted.append(d)
         else:
             plan.remove.append(d)
-    kept_sizes = {(st.st_dev, st.st_ino): st.st_size for d in plan.keep + plan.young_uncommitted
-                  for p in d.rglob("*") if p.is_file() for st in (p.stat(),)}
-    kept_inodes = set(kept_sizes)
-    seen: set[tuple[int, int]] = set()
-    for d in plan.remove:
-        for p in d.rglob("*"):
-            if p.is_file():
-                st = p.stat()
-                key = (st.st_dev, st.st_ino)
-                if key not in kept_inodes and key not in seen:
-                    seen.add(key)
-                    plan.remove_bytes += st.st_size
-    plan.keep_bytes = sum(kept_sizes.values())  # per inode: hard-linked files once
+    plan.remove_bytes, plan.keep_bytes = _bytes(plan.remove, plan.keep + plan.young_uncommitted)
     plan.stale_scratch, plan.scratch_bytes = _stale_scratch(root, min_age_h)
     return plan
 
 
-def apply_gc(root: Path, plan: GcPlan) -> None:
-    """Delete plan.remove while holding every map's rebuild lock (RunLockedError, exit 75, if one is held)."""
-    from pipeline.maps import run_lock
+def _bytes(remove: list[Path], keep: list[Path]) -> tuple[int, int]:
+    """(bytes freed by removing ``remove``, bytes kept in ``keep``), per inode: a file hard-linked into a kept
+    folder frees nothing, and one linked twice counts once."""
+    kept_sizes = {(st.st_dev, st.st_ino): st.st_size for d in keep
+                  for p in d.rglob("*") if p.is_file() for st in (p.stat(),)}
+    seen: set[tuple[int, int]] = set()
+    freed = 0
+    for d in remove:
+        for p in d.rglob("*"):
+            if p.is_file():
+                st = p.stat()
+                key = (st.st_dev, st.st_ino)
+                if key not in kept_sizes and key not in seen:
+                    seen.add(key)
+                    freed += st.st_size
+    return freed, sum(kept_sizes.values())
 
-    maps = Path(root) / "maps"
-    with ExitStack() as stack:
-        for mdir in sorted(maps.iterdir()) if maps.is_dir() else []:
-            if mdir.is_dir() and (mdir / "map.json").is_file():
-                stack.enter_context(run_lock(mdir))
-        for d in plan.remove:
+
+def apply_gc(root: Path, plan: GcPlan, min_age_h: float = 24.0) -> GcPlan:
+    """Delete what ``plan`` lists and a plan made now, under the root's exclusive lock, still lists; returns what
+    was deleted. RunLockedError (exit 75) naming a holder while a run writes in the root: nothing is deleted then."""
+    from pipeline.locks import root_exclusive
+
+    root = Path(root)
+    with root_exclusive(root):
+        now = plan_gc(root, min_age_h)
+        done = GcPlan(keep=now.keep, young_uncommitted=now.young_uncommitted, keep_bytes=now.keep_bytes)
+        done.remove = [d for d in plan.remove if d in set(now.remove)]
+        done.stale_scratch = [e for e in plan.stale_scratch if e in set(now.stale_scratch)]
+        done.remove_bytes = now.remove_bytes if done.remove == now.remove else _bytes(done.remove, now.keep)[0]
+        done.scratch_bytes = now.scratch_bytes if done.stale_scratch == now.stale_scratch else 0
+        for d in done.remove:
             trash = d.with_name(f".gc-{d.name}")
             d.rename(trash)  # the dataset vanishes atomically, then its files go
             shutil.rmtree(trash)
             log.info("gc: removed %s", d)
-        for entry in plan.stale_scratch:
+        for entry in done.stale_scratch:
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)
             else:
                 entry.unlink(missing_ok=True)
             log.info("gc: removed %s", entry)
+    return done

@@ -1,40 +1,40 @@
-"""A map as a maintained thing: its identity (pinned frame, tile size, drive set), its whole-run lock, rollback.
+"""A map as a maintained thing: its identity (pinned frame, tile size, area, drive set), its locks, rollback.
 
 Files under ``ROOT/maps/NAME/`` besides the versions (``pipeline/versioned.py``)::
 
     map.json        the identity: schema, name, enu_origin (lat_deg, lon_deg, h_m WGS84), tile_size_m,
-                    created_utc, check_drive (optional) and the drive set (name, drive.yaml path, content
-                    fingerprint, added_utc, the version that added it); replaced atomically
-    .rebuild.lock   a whole-run lock (fcntl.flock, released by the kernel when its holder dies) holding
-                    "pid host start_utc" of the holder
+                    max_radius_km, created_utc, check_drive (optional) and the drive set (name, drive.yaml path,
+                    fingerprints, added_utc, the version that added it); replaced atomically
     gate/vNNNN.json the regression gate's comparison for candidate vNNNN
+
+A writer of the map holds ``pipeline.locks.writer_locks`` (the root shared, the map exclusive; ``run_lock``).
 
 Knows nothing about LiDAR: a drive is a ``drive.yaml`` path and its ``pipeline.fingerprint.drive_fingerprint``.
 """
 from __future__ import annotations
 
-import errno
-import fcntl
 import json
 import math
 import os
 import shutil
-import socket
 from contextlib import contextmanager
-from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterator
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from pipeline.errors import ConfigError, DatasetIOError, RunLockedError, UnknownNameError
+from pipeline.errors import ConfigError, DatasetIOError, UnknownNameError
 from pipeline.names import check_name
 
 IDENTITY_NAME = "map.json"
 IDENTITY_SCHEMA = "cornermap.map-identity/1"
-LOCK_NAME = ".rebuild.lock"
 GATE_DIR = "gate"
+# A map's area: drives whose GNSS fixes lie farther from the origin are refused (exit 3). A local ENU frame is a
+# tangent plane: at distance d its up axis leans d / R from the local vertical and the ground falls d^2 / (2 R) below
+# its horizontal plane (R = 6371 km): 10 km -> 0.09 deg and 7.8 m; 70 km -> 0.63 deg and 385 m (docs/maintenance.md).
+DEFAULT_MAX_RADIUS_KM = 10.0
+MAX_RADIUS_LIMIT_KM = 100.0
 ORIGIN_TOL_DEG = 1e-9  # ~0.1 mm: two origins closer than this are the same frame
 ORIGIN_TOL_M = 1e-3
 
@@ -52,7 +52,8 @@ class MapDrive(BaseModel):
 
     name: str
     path: str  # absolute drive.yaml
-    fingerprint: str
+    fingerprint: str  # pipeline.fingerprint.drive_fingerprint: the files' names, sizes (and mtimes of large ones)
+    content: str | None = None  # sha256 of what the drive file references (`cornermap drive check --content`)
     added_utc: str
     added_in: int | None = None  # the version that first held it
 
@@ -71,6 +72,7 @@ class MapIdentity(BaseModel):
     name: str
     enu_origin: Origin
     tile_size_m: float = Field(100.0, gt=0, le=10000)
+    max_radius_km: float = Field(DEFAULT_MAX_RADIUS_KM, gt=0, le=MAX_RADIUS_LIMIT_KM)
     created_utc: str
     check_drive: CheckDrive | None = None
     drives: list[MapDrive] = []
@@ -124,21 +126,20 @@ def write_identity(mdir: Path, ident: MapIdentity) -> None:
 
 
 def create_map(root: Path, name: str, origin: dict[str, float], tile_size_m: float = 100.0,
-               check_drive: CheckDrive | None = None) -> MapIdentity:
+               check_drive: CheckDrive | None = None, max_radius_km: float = DEFAULT_MAX_RADIUS_KM) -> MapIdentity:
     """Write a new map's identity; refuses a map that already has one, or versions in another frame."""
     mdir = map_dir(root, name)
     if (mdir / IDENTITY_NAME).exists():
         raise ConfigError(f"cornermap maps create --map {name}", [f"{mdir / IDENTITY_NAME} exists; a map's frame "
                                                                   "is never changed (make a new map)"])
     ident = MapIdentity(name=name, enu_origin=Origin(**origin), tile_size_m=tile_size_m, created_utc=utc_now(),
-                        check_drive=check_drive)
+                        check_drive=check_drive, max_radius_km=max_radius_km)
     published = latest_origin(mdir)
     if published is not None and not same_origin(published, ident.enu_origin.model_dump()):
         raise ConfigError(f"cornermap maps create --map {name}",
                           [f"its published versions are in the frame {fmt_origin(published)}, not "
                            f"{fmt_origin(origin)}; pass that origin or make a new map"])
     write_identity(mdir, ident)
-    (mdir / LOCK_NAME).touch()
     return ident
 
 
@@ -187,35 +188,16 @@ def pinned_frame(root: Path, name: str, origin: dict[str, float] | None) -> tupl
     return pinned, tile
 
 
-@dataclass(frozen=True)
-class LockHolder:
-    pid: int
-    host: str
-    start_utc: str
-
-
 @contextmanager
 def run_lock(mdir: Path) -> Iterator[None]:
-    """Whole-run lock of a map: exclusive, non-waiting, released by the kernel when the holder dies.
-    RunLockedError (exit 75) naming the holder when another run has it; nothing is written then."""
-    mdir.mkdir(parents=True, exist_ok=True)
-    path = mdir / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise
-            holder = os.pread(fd, 512, 0).decode("utf-8", "replace").strip() or "unknown"
-            raise RunLockedError(f"{path}: another run of map {mdir.name!r} holds the lock ({holder}); this one "
-                                 "stopped without writing. hint: it is still running, or ended moments ago") from exc
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid={os.getpid()} host={socket.gethostname()} start={utc_now()}\n".encode(), 0)
-        os.fsync(fd)
+    """A whole run that writes map ``ROOT/maps/NAME``: its root shared and the map exclusive
+    (``pipeline.locks.writer_locks``), non-waiting, released by the kernel when the holder dies. RunLockedError
+    (exit 75) naming the holder when another writer has either; nothing is written then."""
+    from pipeline.locks import writer_locks
+
+    mdir = Path(mdir)
+    with writer_locks(mdir.parent.parent, mdir.name):
         yield
-    finally:
-        os.close(fd)
 
 
 def check_free_disk(root: Path, min_free_gib: float) -> None:
@@ -242,7 +224,9 @@ def rollback(mdir: Path, to: str) -> tuple[int | None, int]:
 
         have = ", ".join(version_name(v) for v in list_versions(mdir)) or "none"
         raise UnknownNameError(f"{mdir}: no version {version_name(number)}; have {have}")
-    with publish_lock(Path(mdir)):
+    from pipeline.locks import map_lock
+
+    with map_lock(Path(mdir)), publish_lock(Path(mdir)):
         problems = verify_version(vdir)
         if problems:
             raise ChecksumError(f"{vdir}: {len(problems)} integrity problem(s), not rolled back to: {problems[0]}")

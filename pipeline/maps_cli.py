@@ -23,6 +23,10 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                origin: str = typer.Option(..., "--origin", help="The map's ENU origin LAT,LON,H (degrees, degrees, "
                                           "metres WGS84), fixed for every version."),
                tile_size_m: float = typer.Option(100.0, "--tile-size-m", help="Tile edge in metres, fixed."),
+               max_radius_km: float = typer.Option(10.0, "--max-radius-km", help="The map's area: drives with a GNSS "
+                                                   "fix farther from the origin are refused (exit 3). 10 km: the ENU "
+                                                   "up axis leans 0.09 deg there and the ground lies 7.8 m below its "
+                                                   "plane (docs/maintenance.md); at most 100."),
                check_drive: Optional[Path] = typer.Option(None, "--check-drive", help="drive.yaml the rebuild's "
                                                           "regression gate localizes (default: the newest drive)."),
                check_reference: Optional[Path] = typer.Option(None, "--check-reference", help="Truth TUM of "
@@ -33,10 +37,12 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
     """
     from pipeline.build import parse_origin
     from pipeline.errors import ConfigError
-    from pipeline.maps import CheckDrive, create_map
+    from pipeline.maps import MAX_RADIUS_LIMIT_KM, CheckDrive, create_map
 
     if not (0 < tile_size_m <= 10000):
         raise ConfigError("--tile-size-m", [f"expected 0 < S <= 10000 m; got {tile_size_m}"])
+    if not (0 < max_radius_km <= MAX_RADIUS_LIMIT_KM):
+        raise ConfigError("--max-radius-km", [f"expected 0 < R <= {MAX_RADIUS_LIMIT_KM:g} km; got {max_radius_km}"])
     check = None
     if check_drive is not None:
         for opt, p in (("--check-drive", check_drive), ("--check-reference", check_reference)):
@@ -46,40 +52,34 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                            reference=str(check_reference.resolve()) if check_reference else None)
     elif check_reference is not None:
         raise ConfigError("--check-reference", ["applies to --check-drive only"])
-    ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check)
+    ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check, max_radius_km)
     o = ident.enu_origin
-    typer.echo(f"created map {map_name!r}: origin {o.lat_deg},{o.lon_deg},{o.h_m}, tiles {ident.tile_size_m} m "
-               f"-> {root / 'maps' / map_name / 'map.json'}")
+    typer.echo(f"created map {map_name!r}: origin {o.lat_deg},{o.lon_deg},{o.h_m}, tiles {ident.tile_size_m} m, "
+               f"area {ident.max_radius_km:g} km -> {root / 'maps' / map_name / 'map.json'}")
 
 
 @maps_app.command("show")
 def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ) -> None:
-    """Print a map's frame and drives: when each was recorded (first/last pose), when added, its versions.
+    """Print a map's frame, its versions (LATEST, refused by the gate, candidate) and drives: when each was recorded
+    (first/last pose), when added, the versions holding it. Maps made by `cornermap build` too.
 
     Example: [b]cornermap maps show --root runs/maps --map kept[/b]
     """
-    from pipeline.maps import map_dir, require_identity
-    from pipeline.maps_show import drive_rows
+    from pipeline.maps import map_dir
+    from pipeline.maps_show import show_lines
 
-    mdir = map_dir(root, map_name)
-    ident = require_identity(mdir)
-    o = ident.enu_origin
-    typer.echo(
-        f"map {ident.name}: origin {o.lat_deg},{o.lon_deg},{o.h_m} (WGS84), tiles {ident.tile_size_m} m, "
-        f"created {ident.created_utc}" + (f", check drive {ident.check_drive.path}" if ident.check_drive else "")
-    )
-    rows = drive_rows(mdir, ident)
-    typer.echo(f"{'drive':16s} {'first pose':20s} {'last pose':20s} {'added (UTC)':20s} versions")
-    for r in rows:
-        typer.echo(f"{r['name']:16s} {r['first']:20s} {r['last']:20s} {r['added']:20s} {r['versions']}")
-    if not rows:
-        typer.echo("(no drives yet: cornermap rebuild --root ROOT --map NAME --inbox DIR)")
+    for line in show_lines(map_dir(root, map_name)):
+        typer.echo(line)
 
 
 def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                 inbox: Path = typer.Option(..., "--inbox", help="Folder of drive folders (each with a drive.yaml); "
                                            "bad ones move to INBOX/quarantine/."),
                 min_free_gib: float = typer.Option(2.0, "--min-free-gib", help="Free space required to start."),
+                quiet_period_min: float = typer.Option(10.0, "--quiet-period-min", help="A drive folder is taken "
+                                                       "when nothing under it changed for this long (minutes), or at "
+                                                       "once when it holds a READY file written after the copy; "
+                                                       "until then: one line 'waiting: ...'."),
                 gate_tol_m: float = typer.Option(0.05, "--gate-tol-m", help="Gate: a localization figure may grow "
                                                  "by max(this, --gate-tol-rel x previous) metres."),
                 gate_tol_rel: float = typer.Option(0.2, "--gate-tol-rel", help="Gate: relative tolerance."),
@@ -88,7 +88,12 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                 workflow: str = typer.Option("map_rebuild", "--workflow", help="The map workflow.")) -> None:
     """Build the next version of map NAME from its drives plus the new ones in INBOX, gate it, publish it.
 
-    Exit codes: 0 published or nothing to do, 3 gate refused (LATEST unchanged), 1 error, 75 locked.
+    Delivery: a drive is a folder INBOX/NAME with its drive.yaml, taken once complete: a READY file in it written
+    after the copy, or nothing under it changed for --quiet-period-min (default 10). A drive already in the map
+    (same content) or delivered twice is left alone; a bad one moves to INBOX/quarantine/ with a reason.
+
+    Exit codes: 0 published or nothing to do, 3 gate refused or a drive outside the map's area (LATEST unchanged),
+    1 error, 75 another writer of the map or root holds its lock.
 
     Example: [b]cornermap rebuild --root runs/maps --map kept --inbox runs/sim[/b] (drive folders in runs/sim)
     """
@@ -97,23 +102,31 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
     from pipeline.errors import ConfigError
     from pipeline.rebuild import RebuildParams, rebuild
 
-    for opt, v in (("--min-free-gib", min_free_gib), ("--gate-tol-m", gate_tol_m), ("--gate-tol-rel", gate_tol_rel)):
+    for opt, v in (("--min-free-gib", min_free_gib), ("--gate-tol-m", gate_tol_m), ("--gate-tol-rel", gate_tol_rel),
+                   ("--quiet-period-min", quiet_period_min)):
         if not (math.isfinite(v) and v >= 0):
             raise ConfigError(opt, [f"expected a finite number >= 0; got {v}"])
     params = RebuildParams(min_free_gib=min_free_gib, gate=not no_gate, gate_tol_m=gate_tol_m,
-                           gate_tol_rel=gate_tol_rel, workflow=workflow, scheduler=scheduler)
-    result = rebuild(root, map_name, inbox, params)
-    for line in result.lines:
-        typer.echo(line)
+                           gate_tol_rel=gate_tol_rel, workflow=workflow, scheduler=scheduler,
+                           quiet_period_s=quiet_period_min * 60.0)
+    result = rebuild(root, map_name, inbox, params, say=typer.echo)  # each line as it comes
     if result.exit_code:
         raise typer.Exit(result.exit_code)
 
 
+def _hours(value: float) -> float:
+    import math
+
+    if not (math.isfinite(value) and value >= 0):
+        raise typer.BadParameter(f"expected a number of hours >= 0; got {value}")
+    return value
+
+
 def gc_cmd(root: Path = ROOT_REQ,
            apply: bool = typer.Option(False, "--apply", help="Delete (default: a dry run that only prints)."),
-           min_age_h: float = typer.Option(24.0, "--min-age-h", help="Uncommitted dataset folders and "
-                                           "scratch (ROOT/tmp) entries younger than this (runs in progress) are "
-                                           "kept.")) -> None:
+           min_age_h: float = typer.Option(24.0, "--min-age-h", callback=_hours, help="Uncommitted dataset "
+                                           "folders and scratch (ROOT/tmp) entries younger than this (runs in "
+                                           "progress) are kept; >= 0.")) -> None:
     """Remove intermediates no kept map version and no current drive set references (dry run by default).
 
     Example: [b]cornermap gc --root runs/maps[/b] (a dry run; add --apply to delete)
@@ -124,6 +137,8 @@ def gc_cmd(root: Path = ROOT_REQ,
     if not any((root / sub).is_dir() for sub in ("datasets", "maps", "tmp")):  # a typo: "nothing to free", exit 0
         raise ConfigError("--root", [f"{root} holds no datasets/, maps/ or tmp/ folder: not an output root"])
     plan = plan_gc(root, min_age_h)
+    if apply:  # under the root's exclusive lock (exit 75 while a run writes): what a plan made there still lists
+        plan = apply_gc(root, plan, min_age_h)
     gib = lambda b: f"{b / 2**20:.1f} MiB"  # noqa: E731
     for d in plan.remove:
         typer.echo(f"{'remove' if apply else 'would remove'} {d.relative_to(root)}")
@@ -131,8 +146,6 @@ def gc_cmd(root: Path = ROOT_REQ,
         typer.echo(f"keep (uncommitted, younger than {min_age_h} h) {d.relative_to(root)}")
     for entry in plan.stale_scratch:
         typer.echo(f"{'remove' if apply else 'would remove'} {entry.relative_to(root)} (scratch of a killed run)")
-    if apply:
-        apply_gc(root, plan)
     scratch = (f"; {len(plan.stale_scratch)} scratch folder(s) of killed runs, {gib(plan.scratch_bytes)}"
                if plan.stale_scratch else "")
     typer.echo(f"{len(plan.remove)} dataset folder(s), {gib(plan.remove_bytes)} "

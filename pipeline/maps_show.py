@@ -1,4 +1,5 @@
-"""Rows of ``cornermap maps show``: each drive of a map with its recording span and the versions holding it."""
+"""``cornermap maps show``: a map's frame, its versions with their standing, and each drive with its recording span
+and the versions holding it; for a map with an identity (``maps create``) or without (made by ``cornermap build``)."""
 from __future__ import annotations
 
 from datetime import datetime, timezone
@@ -44,12 +45,100 @@ def _when(t_s: float | None, base: str) -> str:
     return t.strftime("%Y-%m-%d %H:%M") + (" GPS" if base == "gps" else " UTC")
 
 
-def drive_rows(mdir: Path, ident) -> list[dict]:
-    """name, first, last (recording span of the drive's poses in its time base), added, versions holding it."""
-    from pipeline.errors import CornermapError
+def version_states(mdir: Path) -> dict[int, str]:
+    """Each version's standing: ``LATEST``; ``refused`` when the regression gate refused it (``gate/vNNNN.json`` with
+    ``ok`` false: ``cornermap rebuild`` left LATEST on its parent); ``candidate`` when it is newer than LATEST and was
+    never gated (a rebuild stopped before its gate); ``""`` otherwise (an older version LATEST once named)."""
+    import json
+
+    from pipeline.maps import GATE_DIR
+    from pipeline.version_read import list_versions, read_latest, version_name
+
+    latest = read_latest(mdir) if (Path(mdir) / "LATEST").exists() else None
+    out = {}
+    for v in list_versions(mdir):
+        gate = Path(mdir) / GATE_DIR / f"{version_name(v)}.json"
+        try:
+            ok = json.loads(gate.read_text(encoding="utf-8")).get("ok") if gate.is_file() else None
+        except (OSError, ValueError, AttributeError):
+            ok = None
+        if v == latest:
+            out[v] = "LATEST"
+        elif ok is False:
+            out[v] = "refused"
+        elif latest is not None and v > latest and ok is None:
+            out[v] = "candidate"
+        else:
+            out[v] = ""
+    return out
+
+
+def state_note(mdir: Path, version: int, state: str) -> str:
+    """The words ``tiles ls`` and ``maps show`` print after a version in that standing."""
+    from pipeline.maps import GATE_DIR
+    from pipeline.version_read import version_name
+
+    if state == "refused":
+        return f"REFUSED by the regression gate ({Path(mdir) / GATE_DIR / version_name(version)}.json); never LATEST"
+    if state == "candidate":
+        return "candidate, not gated (a rebuild stopped before its gate); never LATEST"
+    return ""
+
+
+def _mark(version: int, state: str) -> str:
+    from pipeline.version_read import version_name
+
+    return version_name(version) + {"LATEST": "*", "refused": "(refused)", "candidate": "(candidate)"}.get(state, "")
+
+
+def show_lines(mdir: Path) -> list[str]:
+    """The text of ``cornermap maps show``; UnknownNameError for a folder with neither an identity nor a version."""
+    from pipeline.errors import CornermapError, UnknownNameError
+    from pipeline.maps import fmt_origin, latest_origin, read_identity
     from pipeline.version_read import list_versions, read_latest, read_manifest, version_name
 
-    latest = read_latest(mdir) if (mdir / "LATEST").exists() else None
+    ident = read_identity(mdir)
+    versions = list_versions(mdir)
+    if ident is None and not versions:
+        raise UnknownNameError(f"{mdir}: no map here (neither map.json nor a published version); hint: --root is "
+                               "the folder holding maps/NAME")
+    lines = []
+    if ident is not None:
+        o = ident.enu_origin
+        lines.append(f"map {ident.name}: origin {o.lat_deg},{o.lon_deg},{o.h_m} (WGS84), tiles {ident.tile_size_m} m, "
+                     f"area {ident.max_radius_km:g} km around the origin, created {ident.created_utc}"
+                     + (f", check drive {ident.check_drive.path}" if ident.check_drive else ""))
+    else:
+        origin = latest_origin(mdir) if (Path(mdir) / "LATEST").exists() else None
+        latest = read_latest(mdir) if origin is not None else None
+        lines.append(f"map {Path(mdir).name}: no identity (made by `cornermap build`; `cornermap maps create` pins "
+                     "its frame for rebuilds)" + (f"; origin {fmt_origin(origin)} (WGS84) of LATEST "
+                                                  f"{version_name(latest)}" if origin else ""))
+    states = version_states(mdir)
+    lines.append(f"{'version':9s} {'created (UTC)':20s} {'drives':>6s}  standing")
+    for v in versions:
+        try:
+            m = read_manifest(Path(mdir) / version_name(v))[0]
+            created, n = str(m.get("created_utc", "?"))[:19], str(len(m.get("source_drives", [])))
+        except CornermapError:
+            created, n = "unreadable manifest", "?"
+        note = "LATEST" if states[v] == "LATEST" else state_note(mdir, v, states[v])
+        lines.append(f"{version_name(v):9s} {created:20s} {n:>6s}  {note}".rstrip())
+    rows = drive_rows(mdir, ident)
+    lines.append(f"{'drive':16s} {'first pose':20s} {'last pose':20s} {'added (UTC)':20s} versions")
+    lines += [f"{r['name']:16s} {r['first']:20s} {r['last']:20s} {r['added']:20s} {r['versions']}" for r in rows]
+    if not rows:
+        lines.append("(no drives yet: cornermap rebuild --root ROOT --map NAME --inbox DIR)")
+    return lines
+
+
+def drive_rows(mdir: Path, ident) -> list[dict]:
+    """name, first, last (recording span of the drive's poses in its time base), added, versions holding it. Without
+    an identity (``ident`` None): the drives the versions hold, their time base unknown."""
+    from pipeline.errors import CornermapError
+    from pipeline.version_read import list_versions, read_manifest, version_name
+
+    states = version_states(mdir)
     held: dict[str, list[str]] = {}
     span: dict[str, tuple[float, float]] = {}
     for v in list_versions(mdir):
@@ -58,7 +147,7 @@ def drive_rows(mdir: Path, ident) -> list[dict]:
         except CornermapError:
             continue
         for d in manifest.get("source_drives", []):
-            held.setdefault(d["drive"], []).append(version_name(v) + ("*" if v == latest else ""))
+            held.setdefault(d["drive"], []).append(_mark(v, states.get(v, "")))
             try:
                 got = _first_last_s(inside(mdir / version_name(v), d["trajectory"]))
             except (OSError, ValueError, CornermapError):
@@ -66,9 +155,11 @@ def drive_rows(mdir: Path, ident) -> list[dict]:
             if got is not None:
                 span[d["drive"]] = got
     rows = []
-    for d in ident.drives:
-        first, last = span.get(d.name, (None, None))
-        base = _time_base(d.path)
-        rows.append({"name": d.name, "first": _when(first, base), "last": _when(last, base), "added": d.added_utc[:19],
-                     "versions": " ".join(held.get(d.name, [])) or "-"})
+    drives = [(d.name, d.path, d.added_utc[:19]) for d in ident.drives] if ident is not None else \
+        [(name, None, "-") for name in sorted(held)]
+    for name, path, added in drives:
+        first, last = span.get(name, (None, None))
+        base = _time_base(path) if path else "?"
+        rows.append({"name": name, "first": _when(first, base), "last": _when(last, base), "added": added,
+                     "versions": " ".join(held.get(name, [])) or "-"})
     return rows

@@ -74,6 +74,16 @@ def exit_when_orphaned(parent_pid: int, poll_s: float = ORPHAN_POLL_S) -> None:
     os._exit(ORPHAN_EXIT_CODE)
 
 
+def exit_with_parent_from_env(variable: str = "CORNERMAP_EXIT_WITH_PARENT") -> None:
+    """When ``variable`` names this process's parent pid, watch it like a pool process does (``exit_when_orphaned``,
+    in a daemon thread): the command a parent started (``pipeline.rebuild.cli``: the regression gate's evaluations)
+    ends within ``ORPHAN_POLL_S`` once that parent is gone, and its own pool processes follow it."""
+    value = os.environ.pop(variable, "")
+    if value.isdigit():
+        threading.Thread(target=exit_when_orphaned, args=(int(value),), name="cornermap-orphan-watch",
+                         daemon=True).start()
+
+
 def worker_state() -> dict[str, Any]:
     """What ``initializer`` stored in this process (via ``set_worker_state``); empty in the calling process
     unless it set it itself."""

@@ -1,10 +1,14 @@
 """``cornermap rebuild``: new drives from an inbox in, a checked new map version out, in the map's pinned frame.
 
-One run, under the map's whole-run lock (``pipeline.maps.run_lock``, exit 75 when held):
+One run, under the map's writer locks (``pipeline.maps.run_lock``: the root shared, the map exclusive; exit 75 when
+another writer holds either):
   1. free-disk check (``min_free_gib``, exit 1 with the numbers);
-  2. every map drive must still be where the identity says, with the same content fingerprint (exit 1);
-  3. inbox drive folders (``INBOX/*/drive.yaml``) whose fingerprint is not in the map are new; each is checked
-     (``cornermap drive check``); a bad one is moved to ``INBOX/quarantine/`` with ``<folder>.reason.txt``;
+  2. every map drive must still be where the identity says with what it references unchanged (the fingerprint, or,
+     when only that changed, the content of what its drive file references: ``drive check --content``; exit 1);
+  3. the inbox's drive folders (``pipeline.inbox``: complete by the delivery protocol, links resolved and kept
+     inside the inbox) not already in the map, by fingerprint or by content, are new; a second delivery of the same
+     content is left alone; each new one is checked (``cornermap drive check``); a bad one is moved to
+     ``INBOX/quarantine/`` with ``<folder>.reason.txt`` (in cornermap's words: never a line of the drive's files);
   4. no new good drive: one line, exit 0, nothing written;
   5. the map workflow runs on all the map's drives in the pinned frame with ``hold_latest``: the candidate is
      published as version N+1 but LATEST stays (per-drive work of old drives is reused: pipeline/reuse.py);
@@ -13,22 +17,28 @@ One run, under the map's whole-run lock (``pipeline.maps.run_lock``, exit 75 whe
   7. LATEST moves to the verified candidate, then the identity records the new drives.
 A run killed at any point leaves LATEST naming a complete version; the next run finds the same drives new
 and completes from the committed work (a candidate LATEST already names is only recorded).
-This module calls the stages through the command line (``python -m pipeline ...``), never by import.
+This module calls the stages through the command line (``python -m pipeline ...``), never by import; those child
+processes end themselves when the rebuild is gone (``PARENT_ENV``).
 """
 from __future__ import annotations
 
 import logging
+import os
+import re
 import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from pipeline.errors import ConfigError, DataQualityError
+from pipeline.inbox import DEFAULT_QUIET_PERIOD_S, QUARANTINE, Delivery, quarantine  # noqa: F401 - re-exported
 from pipeline.maps import MapDrive, check_free_disk, map_dir, require_identity, run_lock, utc_now, write_identity
 
 log = logging.getLogger(__name__)
 
-QUARANTINE = "quarantine"
+PARENT_ENV = "CORNERMAP_EXIT_WITH_PARENT"  # a child started by cli() ends itself once this pid is gone
+_CONTENT_RE = re.compile(r"^content: sha256 ([0-9a-f]{64})", re.M)
 
 
 @dataclass(frozen=True)
@@ -39,6 +49,7 @@ class RebuildParams:
     gate_tol_rel: float = 0.2
     workflow: str = "map_rebuild"
     scheduler: str | None = None
+    quiet_period_s: float = DEFAULT_QUIET_PERIOD_S  # a drive folder is taken after this long without a change
 
 
 @dataclass
@@ -48,6 +59,13 @@ class RebuildResult:
     version: int | None = None
     quarantined: list[str] = field(default_factory=list)
     summary: dict = field(default_factory=dict)  # the build's run summary (stage decisions and times)
+    say: Callable[[str], None] | None = field(default=None, repr=False)  # each line also goes here as it is made
+
+    def add(self, *lines: str) -> None:
+        for line in lines:
+            self.lines.append(line)
+            if self.say is not None:
+                self.say(line)
 
     @property
     def exit_code(self) -> int:
@@ -55,71 +73,144 @@ class RebuildResult:
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
-    """Run ``cornermap ARGS`` in a child process (the stages' own commands, without importing them)."""
-    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True)
+    """Run ``cornermap ARGS`` in a child process (the stages' own commands, without importing them). The child ends
+    itself within a second once this process is gone (``pipeline.parallel.exit_when_orphaned``, started by
+    ``python -m pipeline`` when ``PARENT_ENV`` names its parent): a SIGKILLed rebuild leaves no evaluation running."""
+    env = {**os.environ, PARENT_ENV: str(os.getpid())}
+    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True, env=env)
 
 
-def inbox_drives(inbox: Path) -> list[Path]:
-    """``INBOX/*/drive.yaml`` in name order, without the quarantine folder."""
-    if not inbox.is_dir():
-        raise ConfigError("--inbox", [f"{inbox}: not a directory"])
-    return sorted(p for p in inbox.glob("*/drive.yaml") if p.parent.name != QUARANTINE)
+@dataclass
+class DriveCheck:
+    ok: bool
+    content: str | None  # sha256 of what the drive file references; None when the drive file does not parse
+    reason: str  # in cornermap's words, when not ok
 
 
-def quarantine(drive_yaml: Path, inbox: Path, reason: str) -> Path:
-    """Move the drive folder to INBOX/quarantine/ (a new name if taken) and write its reason file beside it."""
-    qdir = inbox / QUARANTINE
-    qdir.mkdir(exist_ok=True)
-    src = drive_yaml.parent
-    dst = qdir / src.name
-    if dst.exists():
-        dst = qdir / f"{src.name}-{utc_now().replace(':', '')}"
-    src.rename(dst)
-    tmp = qdir / f".{dst.name}.reason.tmp"
-    tmp.write_text(f"{utc_now()} quarantined by cornermap rebuild: {reason.strip()}\n", encoding="utf-8")
-    tmp.replace(qdir / f"{dst.name}.reason.txt")
-    return dst
+def check_delivery(drive_yaml: Path) -> DriveCheck:
+    """``cornermap drive check --content`` of one drive; the reason names what failed and where, never a line of the
+    drive's files (the check's own messages may quote them: they stay on the command line that asks for them)."""
+    res = cli("drive", "check", "--content", str(drive_yaml))
+    m = _CONTENT_RE.search(res.stdout)
+    content = m.group(1) if m else None
+    if res.returncode == 0:
+        return DriveCheck(True, content, "")
+    text = res.stderr + "\n" + res.stdout
+    count = re.search(r"(\d+) problems? in ", text)
+    keys = sorted(set(re.findall(r"(?:^\s+- |drive\.yaml: )([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z0-9_]+)*):", text, re.M)))
+    folder = drive_yaml.parent
+    files = sorted({Path(p).name if Path(p).parent == folder else p
+                    for p in re.findall(r"(/[^\s:;,'\"()]+)", text)
+                    if Path(p).is_relative_to(folder.parent) and Path(p).exists() and Path(p) != drive_yaml})
+    n = int(count.group(1)) if count else 1
+    reason = (f"`cornermap drive check` refused it (exit {res.returncode}: {n} problem{'s' if n != 1 else ''}"
+              + (f" about {', '.join(keys)}" if keys else "")
+              + (f"; files named: {', '.join(files[:5])}" if files else "")
+              + f"); run `cornermap drive check {drive_yaml}` to read them")
+    return DriveCheck(False, content, reason)
 
 
-def _known_drive_problems(ident) -> list[str]:
+def check_map_drives(ident) -> tuple[object, list[str], list[str]]:
+    """(identity, problems, notes): every map drive must be where it was with the fingerprint it had, or, when only
+    the fingerprint changed (files around it touched, copied or added), the same content of what its drive file
+    references; such a drive's fingerprint is updated in the returned identity."""
     from pipeline.fingerprint import drive_fingerprint
 
-    problems = []
+    problems, notes, drives = [], [], []
     for d in ident.drives:
         if not Path(d.path).is_file():
             problems.append(f"map drive {d.name}: {d.path} is gone; the map needs every drive it was built from")
-        elif drive_fingerprint(Path(d.path)) != d.fingerprint:
-            problems.append(f"map drive {d.name}: {d.path} changed content since it was added (fingerprint "
-                            f"{d.fingerprint[:12]}); restore it, or make a new map")
-    return problems
+        elif (fp := drive_fingerprint(Path(d.path))) != d.fingerprint:
+            check = check_delivery(Path(d.path)) if d.content else None
+            if check is not None and check.content == d.content:
+                notes.append(f"note: map drive {d.name}: files in its folder changed, what its drive file references "
+                             "did not (same content)")
+                d = d.model_copy(update={"fingerprint": fp})
+            else:
+                problems.append(f"map drive {d.name}: {d.path} changed content since it was added (fingerprint "
+                                f"{d.fingerprint[:12]}); restore it, or make a new map")
+        drives.append(d)
+    return ident.model_copy(update={"drives": drives}), problems, notes
 
 
-def select_new_drives(ident, inbox: Path) -> tuple[list[tuple[Path, str]], list[tuple[Path, str]]]:
-    """(new good drives as (drive.yaml, fingerprint), bad ones as (drive.yaml, reason)); checks each new one."""
+@dataclass
+class Selection:
+    good: list[tuple[Delivery, str, str | None]] = field(default_factory=list)  # (drive, fingerprint, content)
+    bad: list[tuple[Path, str]] = field(default_factory=list)  # (inbox entry, reason): quarantined
+    lines: list[str] = field(default_factory=list)  # waiting, already in the map, duplicates
+
+
+def select_new_drives(ident, inbox: Path, quiet_period_s: float = DEFAULT_QUIET_PERIOD_S):
+    """(Selection, identity with the content of older map drives filled in where it had to be computed)."""
     from pipeline.fingerprint import drive_fingerprint
+    from pipeline.inbox import containment_problem, scan_inbox, waiting_reason
     from pipeline.names import name_problem
 
-    known = {d.fingerprint for d in ident.drives}
+    by_fp = {d.fingerprint: d for d in ident.drives}
+    by_path = {str(Path(d.path)): d for d in ident.drives}
     names = {d.name for d in ident.drives}
-    good, bad = [], []
-    for path in inbox_drives(inbox):
-        fp = drive_fingerprint(path)
-        if fp in known:
+    sel = Selection()
+    deliveries, refused = scan_inbox(inbox)
+    sel.bad += refused
+    content_of: dict[str, str] = {}  # map drive name -> content (recorded, or computed now for older identities)
+    taken: dict[str, Delivery] = {}  # content -> the delivery taken this run
+    for dlv in deliveries:
+        fp = drive_fingerprint(dlv.drive_yaml)
+        known = by_path.get(str(dlv.drive_yaml)) or by_fp.get(fp)
+        if known is not None:
+            if str(dlv.drive_yaml) != str(Path(known.path)):
+                sel.lines.append(f"already in the map as {known.name}: {dlv.entry} (the same files) left alone")
             continue
-        name = path.parent.name
-        problem = name_problem(name, "drive")
-        if problem is None and name in names:
-            problem = f"drive name {name!r} is taken by another drive of the map (rename the folder)"
+        waiting = waiting_reason(dlv, quiet_period_s)
+        if waiting:
+            sel.lines.append(f"waiting: {waiting}")
+            continue
+        outside = containment_problem(dlv, inbox)
+        if outside:
+            sel.bad.append((dlv.entry, outside))
+            continue
+        check = check_delivery(dlv.drive_yaml)
+        if check.content is not None:
+            if not content_of:
+                content_of = _map_contents(ident)
+            same = next((n for n, c in content_of.items() if c == check.content), None)
+            if same is not None:
+                sel.lines.append(f"already in the map as {same}: {dlv.entry} (the same content) left alone")
+                continue
+            if check.content in taken:
+                sel.lines.append(f"duplicate of {taken[check.content].entry} (the same content): {dlv.entry} left "
+                                 "alone; the drive is taken once")
+                continue
+        problem = name_problem(dlv.name, "drive")
+        if problem is None and dlv.name in names:
+            problem = f"drive name {dlv.name!r} is taken by another drive of the map (rename the folder)"
+        if problem is None and not check.ok:
+            problem = check.reason
         if problem is None:
-            res = cli("drive", "check", str(path))
-            if res.returncode != 0:
-                problem = "drive check failed: " + " ".join((res.stderr or res.stdout).split())[:2000]
-        if problem is None:
-            good.append((path, fp))
-            names.add(name)
+            sel.good.append((dlv, fp, check.content))
+            names.add(dlv.name)
+            if check.content is not None:
+                taken[check.content] = dlv
         else:
-            bad.append((path, problem))
-    return good, bad
+            sel.bad.append((dlv.entry, problem))
+    missing = {d.name for d in ident.drives if d.content is None}
+    if content_of and missing:
+        ident = ident.model_copy(update={"drives": [d if d.content else d.model_copy(
+            update={"content": content_of.get(d.name)}) for d in ident.drives]})
+    return sel, ident
+
+
+def _map_contents(ident) -> dict[str, str]:
+    """Map drive name -> content: the identity's, else computed now (identities written before it was recorded)."""
+    out = {}
+    for d in ident.drives:
+        if d.content:
+            out[d.name] = d.content
+        elif Path(d.path).is_file():
+            content = check_delivery(Path(d.path)).content
+            if content:
+                out[d.name] = content
+    return out
 
 
 def _candidate_version(plan) -> int:
@@ -135,7 +226,10 @@ def _candidate_version(plan) -> int:
     return int(rows[0]["version"])
 
 
-def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildParams()) -> RebuildResult:
+def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildParams(),
+            say: Callable[[str], None] | None = None) -> RebuildResult:
+    """One rebuild (module docstring); ``say(line)`` gets each line of the result as it is made, so that what was
+    quarantined or left alone is told even when the build then fails."""
     from pipeline.build import write_build_workflow
     from pipeline.cli import execute_workflow
     from pipeline.gate import run_gate
@@ -143,40 +237,49 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
 
     root, inbox = Path(root).resolve(), Path(inbox).resolve()
     mdir = map_dir(root, name)
-    ident = require_identity(mdir)
+    require_identity(mdir)
+    if not inbox.is_dir():
+        raise ConfigError("--inbox", [f"{inbox}: not a directory"])
     with run_lock(mdir):
+        ident = require_identity(mdir)  # read again under the lock: the last writer's
+        before = ident
         check_free_disk(root, params.min_free_gib)
-        problems = _known_drive_problems(ident)
+        ident, problems, notes = check_map_drives(ident)
         if problems:
             raise ConfigError(f"map {name!r}", problems)
-        good, bad = select_new_drives(ident, inbox)
-        result = RebuildResult("nothing")
-        for path, reason in bad:
-            dst = quarantine(path, inbox, reason)
-            result.quarantined.append(path.parent.name)
-            result.lines.append(f"quarantined {path.parent.name} -> {dst} ({reason[:200]})")
-        if not good:
-            result.lines.append(f"nothing to do: no new drive in {inbox} for map {name!r} "
+        sel, ident = select_new_drives(ident, inbox, params.quiet_period_s)
+        result = RebuildResult("nothing", say=say)
+        result.add(*notes, *sel.lines)
+        for entry, reason in sel.bad:
+            dst = quarantine(entry, inbox, reason)
+            result.quarantined.append(entry.name)
+            result.add(f"quarantined {entry.name} -> {dst} ({reason[:300]})")
+        if not sel.good:
+            if ident != before:  # fingerprints or contents brought up to date
+                write_identity(mdir, ident)
+            result.add(f"nothing to do: no new drive in {inbox} for map {name!r} "
                                 f"({len(ident.drives)} drive(s), LATEST {_latest_text(mdir)})")
             return result
-        drives = [Path(d.path) for d in ident.drives] + [p for p, _ in good]
+        drives = [Path(d.path) for d in ident.drives] + [dlv.drive_yaml for dlv, _, _ in sel.good]
         wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=root,
                                   origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
-                                  hold_latest=True)
+                                  hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0)
         run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True)
         result.summary = run["summary"]
-        result.lines.append(reuse_line(run["summary"]))
+        result.add(reuse_line(run["summary"]))
         candidate = _candidate_version(run["plan"])
         previous = read_latest(mdir)
         if candidate != previous and previous is not None and params.gate:
             check = ident.check_drive
-            drive, reference = (Path(check.path), check.reference) if check else (good[-1][0], None)
+            drive, reference = (Path(check.path), check.reference) if check else (sel.good[-1][0].drive_yaml, None)
             verdict = run_gate(mdir, candidate, previous, drive, reference, params.gate_tol_m, params.gate_tol_rel)
-            result.lines += verdict.table
+            result.add(*verdict.table)
             if not verdict.ok:
                 result.status, result.version = "refused", candidate
-                result.lines.append(f"refused: {version_name(candidate)} is worse than {version_name(previous)} on "
+                result.add(f"refused: {version_name(candidate)} is worse than {version_name(previous)} on "
                                     f"{drive.parent.name}; LATEST stays {version_name(previous)}")
+                if ident != before:
+                    write_identity(mdir, ident)
                 return result
         if candidate != previous:
             with publish_lock(mdir):
@@ -184,12 +287,12 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
                 if problems:
                     raise DataQualityError(f"{mdir / version_name(candidate)}: {problems[0]}; LATEST unchanged")
                 write_latest(mdir, candidate)
-        added = [MapDrive(name=p.parent.name, path=str(p), fingerprint=fp, added_utc=utc_now(), added_in=candidate)
-                 for p, fp in good]
+        added = [MapDrive(name=dlv.name, path=str(dlv.drive_yaml), fingerprint=fp, content=content,
+                          added_utc=utc_now(), added_in=candidate) for dlv, fp, content in sel.good]
         write_identity(mdir, ident.model_copy(update={"drives": list(ident.drives) + added}))
         result.status, result.version = "published", candidate
-        result.lines.append(f"published map {name!r} {version_name(candidate)} (LATEST): {len(drives)} drive(s), "
-                            f"added {', '.join(p.parent.name for p, _ in good)}")
+        result.add(f"published map {name!r} {version_name(candidate)} (LATEST): {len(drives)} drive(s), "
+                            f"added {', '.join(dlv.name for dlv, _, _ in sel.good)}")
         return result
 
 

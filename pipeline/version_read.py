@@ -150,7 +150,8 @@ def trusted_manifest_digests(collection_dir: Path) -> dict[int, str]:
 
 def verify_version(version_dir: Path, manifest_sha256: str | None = None) -> list[str]:
     """Every problem of a version directory (manifest digest when ``manifest_sha256`` is given, paths leaving
-    the directory, missing, extra or corrupted files); empty when intact."""
+    the directory, missing, extra or corrupted files: a size other than the manifest's ``bytes``, or another
+    sha256); empty when intact."""
     version_dir = Path(version_dir)
     manifest, got_sha = read_manifest(version_dir)
     problems = []
@@ -171,6 +172,13 @@ def verify_version(version_dir: Path, manifest_sha256: str | None = None) -> lis
             continue
         if not path.is_file():
             problems.append(f"{path}: missing (manifest lists it)")
+            continue
+        size, recorded = path.stat().st_size, entry.get("bytes")
+        if recorded is not None and (not isinstance(recorded, int) or isinstance(recorded, bool) or recorded < 0):
+            problems.append(f"{version_dir / MANIFEST_NAME}: file entry {rel!r} records bytes {recorded!r}; expected a "
+                            "whole number >= 0")
+        elif recorded is not None and size != recorded:
+            problems.append(f"{path}: {size} bytes, the manifest records {recorded}")
             continue
         got = file_sha256(path)
         if got != entry.get("sha256"):

@@ -49,6 +49,8 @@ class WorkflowSpec(BaseModel):
     scheduler: str = "local"
     enu_origin: EnuOriginSpec | None = None
     tile_size_m: float = 100.0
+    # the map's area: a map drive with a GNSS fix farther from enu_origin is refused (exit 3); null: unbounded
+    max_radius_m: float | None = Field(10_000.0, gt=0)
     hold_latest: bool = False  # publish the new map version without moving LATEST (a later gate moves it)
     # peak RSS a task may reach (MB): a stage over it is named after the run (summary and one line each);
     # null: no budget. 1536 MB is the design target of every stage (docs/performance.md).
@@ -98,6 +100,7 @@ class Workflow:
             "root": str(root),
             "references": {d.name: d.reference for d in s.drives},
             "hold_latest": s.hold_latest,
+            "max_radius_m": s.max_radius_m,
         }
 
 

@@ -100,7 +100,9 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"next: complete the TODO/CHECK lines, then `cornermap drive check {target}`")
 
     @drive_app.command("check")
-    def drive_check(drive_file: Path = typer.Argument(..., help="drive.yaml")) -> None:
+    def drive_check(drive_file: Path = typer.Argument(..., help="drive.yaml"),
+                    content: bool = typer.Option(False, "--content", help="Also print the sha256 of every file the "
+                                                 "drive file references (reads them all)")) -> None:
         """Validate a drive file against its files and print a summary (scans, time span, GNSS rate and coverage
         of the scan times, rings per scan, odometry, survey CRS). Exit 1 with every problem listed.
 
@@ -109,7 +111,7 @@ def register(app: typer.Typer) -> None:
         from pipeline.errors import ConfigError
         from stages.ingest.drive_check import check_drive
 
-        result = check_drive(drive_file)
+        result = check_drive(drive_file, content=content)
         for line in result.summary:
             typer.echo(line)
         for line in result.warnings:

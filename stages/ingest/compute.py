@@ -11,7 +11,7 @@ from pipeline.errors import ConfigError, DataQualityError
 from stages.common.geodesy import EnuOrigin, geodetic_to_enu
 from stages.common.records import Extrinsics
 from stages.ingest.drive_file import DriveSpec, load_drive_file
-from stages.ingest.gnss_csv import GnssLimits, find_gaps, read_gnss, read_odometry
+from stages.ingest.gnss_csv import GnssLimits, check_within_area, find_gaps, read_gnss, read_odometry
 from stages.ingest.origin import resolve_enu_origin
 from stages.ingest.params import IngestParams
 from stages.ingest.pose_interpolation import attitude_from_rpy, interpolate_poses, vehicle_origin_from_reference
@@ -273,6 +273,10 @@ def compute(ctx: StageContext) -> dict:
                     spec.name, drive)
     origin = resolve_enu_origin(ctx.settings.get("enu_origin"), list(ctx.drives.values()))
     ingest = DriveIngest(drive, spec, ctx.params, origin, str(ctx.drives[drive]))
+    if ingest.gnss is not None and drive in ctx.settings.get("map_drives", [drive]):
+        # before any scan is read: a map drive outside the map's area is refused (exit 3); an evaluation drive is
+        # localized anyway (far off, its verdict is "no coverage")
+        check_within_area(ingest.gnss, origin, ctx.settings.get("max_radius_m"), drive, spec.gnss.file)
     return {
         "scans": ingest.iter_scan_tables(),
         "scan_index": _Deferred(lambda: [ingest.scan_index_table()]),

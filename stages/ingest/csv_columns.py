@@ -2,7 +2,9 @@
 = record + 2 with one header line) instead of failing the file, when the caller takes them row by row."""
 from __future__ import annotations
 
+import contextlib
 import csv
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,16 +19,23 @@ class TimestampIssue:
     reason: str
 
 
+MAX_HEADER_BYTES = 1 << 16
+
+
 def read_header(path: Path, delimiter: str = ",") -> list[str]:
-    """The header line's column names; a file that is not UTF-8 text is a FormatError naming it."""
+    """The header line's column names; a header that is not UTF-8 text is a FormatError naming the file. Only the
+    header line is decoded (a bad byte further down is the business of the column that holds it)."""
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            return [c.strip() for c in next(csv.reader(fh, delimiter=delimiter), [])]
-    except UnicodeDecodeError as exc:
-        raise FormatError(f"{path}: header line is not UTF-8 text (byte {exc.start}: {exc.reason}); expected a "
-                          f"CSV with a header line") from None
+        with open(path, "rb") as fh:
+            raw = fh.readline(MAX_HEADER_BYTES)
     except OSError as exc:
         raise DatasetIOError(f"{path}: cannot read CSV: {exc.strerror or exc}") from exc
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise FormatError(f"{path}: line 1 (the header) is not UTF-8 text (byte {exc.start}: {exc.reason}); "
+                          "expected a CSV with a header line") from None
+    return [c.strip() for c in next(csv.reader([text], delimiter=delimiter), [])]
 
 
 def read_csv_columns(
@@ -51,38 +60,62 @@ def read_csv_columns(
         return "skip"
 
     wanted = list(dict.fromkeys(names))
-    try:
-        table = pacsv.read_csv(
-            path, read_options=pacsv.ReadOptions(use_threads=False),
-            parse_options=pacsv.ParseOptions(delimiter=delimiter, invalid_row_handler=on_invalid),
-            convert_options=pacsv.ConvertOptions(include_columns=wanted, column_types={n: pa.string() for n in wanted},
-                                                 strings_can_be_null=True))
-    except pa.ArrowInvalid as exc:
-        raise FormatError(f"{path}: unreadable CSV: {exc}") from exc
+    with _undecodable_rows_stay_quiet():  # pyarrow decodes a bad row's text for the handler; see below
+        try:
+            table = pacsv.read_csv(
+                path, read_options=pacsv.ReadOptions(use_threads=False),
+                parse_options=pacsv.ParseOptions(delimiter=delimiter, invalid_row_handler=on_invalid),
+                convert_options=pacsv.ConvertOptions(include_columns=wanted,
+                                                     column_types={n: pa.binary() for n in wanted},
+                                                     strings_can_be_null=True))
+        except pa.ArrowInvalid as exc:
+            raise FormatError(f"{path}: unreadable CSV: {exc}") from exc
     if bad:
         raise FormatError(f"{path}: {len(bad)} row(s) with the wrong number of columns: " + "; ".join(bad[:10]))
     return {n: _floats(table[n], path, n, bad_cells) for n in wanted}
 
 
+@contextlib.contextmanager
+def _undecodable_rows_stay_quiet():
+    """pyarrow decodes a row with the wrong number of values as UTF-8 before calling the invalid-row handler; when it
+    is not UTF-8 the decoding error is "ignored" (printed to stderr as a traceback) and the row ends the read as a
+    parse error (a FormatError here). Within this block that print is not made: one line reaches the user."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable) -> None:
+        if not isinstance(unraisable.exc_value, UnicodeDecodeError):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
 def _floats(column, path: Path, name: str, bad_cells: list[TimestampIssue] | None) -> np.ndarray:
-    """A string column -> float64; empty cells are NaN; non-numeric cells raise or are reported (see above)."""
+    """A bytes column -> float64; empty cells are NaN; cells that are not UTF-8 text or not a number raise or are
+    reported (see above). Only the columns asked for are decoded."""
     import pyarrow as pa
     import pyarrow.compute as pc
 
     try:
-        return pc.cast(column, pa.float64()).to_numpy(zero_copy_only=False).astype(np.float64)
+        return pc.cast(pc.cast(column, pa.string()), pa.float64()).to_numpy(zero_copy_only=False).astype(np.float64)
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
         pass
     values = column.to_pylist()
     out = np.full(len(values), np.nan)
-    for i, v in enumerate(values):
-        if v is None or not v.strip():
+    for i, raw in enumerate(values):
+        if raw is None or not raw.strip():
             continue
         try:
-            out[i] = float(v)
+            out[i] = float(raw.decode("utf-8"))
+            continue
+        except UnicodeDecodeError:
+            why = "is not UTF-8 text"
         except ValueError:
-            if bad_cells is None:
-                raise FormatError(f"{path}: record {i} (line {i + 2}), column {name!r}: {v[:40]!r} is not a "
-                                  f"number") from None
-            bad_cells.append(TimestampIssue(i, f"column {name!r}: {v[:40]!r} is not a number"))
+            why = f"{raw.decode('utf-8')[:40]!r} is not a number"
+        if bad_cells is None:
+            raise FormatError(f"{path}: record {i} (line {i + 2}), column {name!r}: {why}") from None
+        bad_cells.append(TimestampIssue(i, f"line {i + 2}, column {name!r}: {why}"))
     return out

@@ -2,11 +2,27 @@
 
 Runs what ingest would run on the drive's small inputs (the drive file, GNSS, odometry and stamps CSVs, the
 scan list) plus a sample of scans, without writing anything. Problems that would make a build wrong or fail
-(no scans, no GNSS pose for any scan, unreadable samples, every GNSS row rejected) are listed together;
-everything else is summarised.
+(no scans, no GNSS pose for any scan, unreadable samples, every GNSS row rejected, an incomplete drive) are listed
+together; everything else is summarised.
+
+A drive is incomplete (a copy still running or cut short) when:
+  * a stamps file lists scans that have no file: more than ``MAX_MISSING_LISTED`` of them (fewer are gaps: kept as
+    such and warned about);
+  * the folder holds a ``SHA256SUMS`` file (``sha256sum`` format, paths relative to it) and a file it lists is
+    missing or differs.
+Scans that span less than ``MIN_GNSS_SPAN_SHARE`` of the GNSS/INS time span are a warning only: without a stamps
+file or SHA256SUMS nothing says how many scans there should be, and a GNSS log longer than the lidar's is legitimate
+(the simulator's ``--max-scans`` drives: 30 scans over 30.8 s of GNSS).
+``content_fingerprint`` (``--content``): sha256 over the drive file and every file it references as ingest reads
+them (the scan files of its format, the GNSS, odometry, stamps and survey files), by name relative to the drive
+folder and content: a copy with new modification times keeps it, a file beside them that ingest never reads does
+not enter it.
 """
 from __future__ import annotations
 
+import hashlib
+import os
+import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,6 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from stages.ingest.params import IngestParams
+
+MAX_MISSING_LISTED = 0.1  # share of the scans a stamps file lists that may lack a file (gaps)
+MIN_GNSS_SPAN_SHARE = 0.5  # share of the GNSS/INS time span the scans must cover
+SUMS_FILE = "SHA256SUMS"
+_SUM_LINE = re.compile(r"^([0-9a-fA-F]{64}) [ *](.+)$")
 
 
 @dataclass
@@ -29,8 +50,10 @@ def _span(stamps_ns: np.ndarray) -> str:
     )
 
 
-def check_drive(path: Path, params: IngestParams = IngestParams(), sample_scans: int = 5) -> DriveCheck:
-    """Validate and summarise one drive; raises ConfigError only for a drive file that does not parse."""
+def check_drive(path: Path, params: IngestParams = IngestParams(), sample_scans: int = 5,
+                content: bool = False) -> DriveCheck:
+    """Validate and summarise one drive; raises ConfigError only for a drive file that does not parse. ``content``:
+    add the line ``content: sha256 ...`` (``content_fingerprint``; reads every file the drive references)."""
     from stages.common.geodesy import EnuOrigin
     from stages.ingest.compute import DriveIngest
     from stages.ingest.drive_file import load_drive_file
@@ -87,8 +110,98 @@ def check_drive(path: Path, params: IngestParams = IngestParams(), sample_scans:
             out.problems.append(f"odometry: {spec.odometry.file} has no usable row")
     if spec.survey is not None:
         out.summary.append(f"survey: {spec.survey.file} in {spec.survey.crs}")
+    _completeness(spec, scans, g, out)
     _sample_scans(scans, spec, params, sample_scans, out, process_scan)
+    if content:
+        digest, n_files, n_bytes = content_fingerprint(Path(path), spec)
+        out.summary.append(f"content: sha256 {digest} of {n_files} files the drive file references "
+                           f"({n_bytes / 2**20:.1f} MiB)")
     return out
+
+
+def _completeness(spec, scans, g, out: DriveCheck) -> None:
+    """The problems of a drive still being copied, or cut short (module docstring)."""
+    stamped = np.array([s.stamp_ns for s in scans if s.path is not None and s.stamp_ns is not None], np.int64)
+    listed = spec.scan_times.source in ("stamps_csv", "pcd_field")
+    no_file = [s.scan_id for s in scans if s.path is None]
+    if listed and scans and no_file:
+        share = len(no_file) / len(scans)
+        line = (f"scans: incomplete: {len(no_file)} of the {len(scans)} scans listed in {spec.stamps_file.name} have "
+                f"no file in {spec.scans.folder} (first: scan {no_file[0]})")
+        if share > MAX_MISSING_LISTED:
+            out.problems.append(line + "; a copy still running or cut short? hint: deliver the whole folder")
+        else:
+            out.warnings.append(line + " (kept as gaps)")
+    if g is not None and len(g.stamp_ns) > 1 and len(stamped) > 1:
+        gnss_s = (g.stamp_ns[-1] - g.stamp_ns[0]) / 1e9
+        scans_s = (stamped.max() - stamped.min()) / 1e9 + 1.0 / spec.scan_rate_hz
+        if gnss_s > 0 and scans_s < MIN_GNSS_SPAN_SHARE * gnss_s:
+            expected = int(round(gnss_s * spec.scan_rate_hz))
+            out.warnings.append(
+                f"the scans span {scans_s:.1f} s of the GNSS/INS file's {gnss_s:.1f} s (at {spec.scan_rate_hz:g} Hz "
+                f"about {expected} scans, {len(stamped)} found): a copy cut short, or a GNSS log longer than the "
+                f"lidar's; hint: if scans are missing, deliver the whole folder (a {SUMS_FILE} file makes it checked)")
+    _check_sums(spec.drive_dir, out)
+
+
+def _check_sums(folder: Path, out: DriveCheck) -> None:
+    """A ``SHA256SUMS`` file in the drive folder: every file it lists must be there with that content."""
+    sums = folder / SUMS_FILE
+    if not sums.is_file():
+        return
+    missing, differ, bad_lines, n = [], [], 0, 0
+    with open(sums, "rb") as fh:
+        for raw in fh:
+            m = _SUM_LINE.match(raw.decode("utf-8", "replace").rstrip("\r\n"))
+            if not m:
+                bad_lines += bool(raw.strip())
+                continue
+            n += 1
+            rel = m.group(2)
+            target = Path(os.path.normpath(folder / rel))
+            if not target.is_relative_to(folder) or not target.is_file():
+                missing.append(rel)
+            elif _sha256(target) != m.group(1).lower():
+                differ.append(rel)
+    if missing or differ or bad_lines:
+        out.problems.append(f"{SUMS_FILE}: incomplete: it lists {n} files: {len(missing)} missing, {len(differ)} with "
+                            f"another content, {bad_lines} unreadable line(s)"
+                            + (f" (first missing: {missing[0]})" if missing else "")
+                            + (f" (first differing: {differ[0]})" if differ else ""))
+    else:
+        out.summary.append(f"{SUMS_FILE}: {n} files present and intact")
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(1 << 20):
+            h.update(block)
+    return h.hexdigest()
+
+
+def content_fingerprint(drive_yaml: Path, spec) -> tuple[str, int, int]:
+    """(sha256, files, bytes) over the drive file and what it references as ingest reads it (module docstring)."""
+    from stages.ingest.scan_pass import list_scan_files
+
+    files = {drive_yaml.name: drive_yaml}
+    for p in list_scan_files(spec.path(spec.scans.folder), spec.scans.format):
+        files[os.path.relpath(p, spec.drive_dir)] = p
+    named = [(spec.gnss, "file"), (spec.odometry, "file"), (spec.survey, "file")]
+    for section, key in named:
+        if section is not None:
+            files[getattr(section, key)] = spec.path(getattr(section, key))
+    if spec.scan_times.source in ("stamps_csv", "pcd_field"):
+        files[os.path.relpath(spec.stamps_file, spec.drive_dir)] = spec.stamps_file
+    h, n_bytes = hashlib.sha256(), 0
+    for rel in sorted(files):
+        path = files[rel]
+        if not path.is_file():
+            continue
+        digest = _sha256(path)
+        n_bytes += path.stat().st_size
+        h.update(f"{rel}\0{digest}\n".encode())
+    return h.hexdigest(), len(files), n_bytes
 
 
 def _sample_scans(scans, spec, params, n_sample: int, out: DriveCheck, process_scan) -> None:

@@ -119,6 +119,8 @@ def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
     issues += [TimestampIssue(int(i), f"position jumps {v:.0f} m/s from the previous fix (limit "
                                       f"{limits.max_speed_mps:g} m/s)") for i, v in jumps]
     keep[[i for i, _ in jumps]] = False
+    if spec.latlon_unit == "deg":
+        _refuse_radians_as_degrees(path, stamp[keep], lat[keep], lon[keep], limits.max_speed_mps)
 
     def opt(key: str, scale: float = 1.0) -> np.ndarray:
         return cols[optional[key]] * scale if optional[key] else np.full(n, np.nan)
@@ -144,6 +146,56 @@ def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
         np.nan_to_num(opt("roll", angle))[keep], np.nan_to_num(opt("pitch", angle))[keep], yaw[keep],
         std[keep], std_yaw[keep], np.flatnonzero(keep), roll_pitch_known, tuple(defaults))
     return fixes, sorted(issues, key=lambda t: t.record)
+
+
+EARTH_RADIUS_M = 6_371_000.0
+SLOW_AS_DEGREES_MPS = 0.5  # a survey track this slow on average, that is a plausible drive as radians: radians
+
+
+def _track_speed_mps(stamp_ns: np.ndarray, lat_rad: np.ndarray, lon_rad: np.ndarray) -> float:
+    """Mean speed along a track (path length over duration), local equirectangular distances."""
+    east = lon_rad * EARTH_RADIUS_M * np.cos(np.median(lat_rad))
+    north = lat_rad * EARTH_RADIUS_M
+    duration_s = (stamp_ns[-1] - stamp_ns[0]) / 1e9
+    return float(np.hypot(np.diff(east), np.diff(north)).sum() / duration_s) if duration_s > 0 else 0.0
+
+
+def _refuse_radians_as_degrees(path: Path, stamp_ns: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray,
+                               max_speed_mps: float) -> None:
+    """FormatError when fixes declared in degrees are radians: every latitude within +-pi/2 and longitude within +-pi
+    (as degrees: a few hundred km around 0 N 0 E, open sea but for a strip of coast) and the track, slower than
+    ``SLOW_AS_DEGREES_MPS`` as degrees, is a plausible drive as radians (1 m/s up to the speed limit). A drive parked
+    all along passes here; its distance from the map's origin (``check_within_area``) stops it then."""
+    if len(lat_deg) < 2 or np.abs(lat_deg).max() > np.pi / 2 or np.abs(lon_deg).max() > np.pi:
+        return
+    as_degrees = _track_speed_mps(stamp_ns, np.radians(lat_deg), np.radians(lon_deg))
+    as_radians = _track_speed_mps(stamp_ns, lat_deg, lon_deg)
+    if as_degrees < SLOW_AS_DEGREES_MPS and 1.0 <= as_radians <= max_speed_mps:
+        raise FormatError(
+            f"{path}: every latitude/longitude lies within +-pi/2 / +-pi (latitude {lat_deg.min():.6g}.."
+            f"{lat_deg.max():.6g}, longitude {lon_deg.min():.6g}..{lon_deg.max():.6g}); read as degrees the track "
+            f"moves at {as_degrees:.3f} m/s, read as radians at {as_radians:.1f} m/s: these are radians, but the "
+            "drive file says degrees "
+            "(gnss.latlon_unit: deg, the default); expected degrees. hint: set gnss.latlon_unit: rad")
+
+
+def check_within_area(fixes: GnssFixes, origin, max_radius_m: float | None, drive: str, file: str) -> None:
+    """DataQualityError (exit 3) when a fix lies farther than ``max_radius_m`` (horizontal) from the map's ENU origin
+    ``origin``: a local ENU frame is a tangent plane, and the map's area is bounded (docs/maintenance.md)."""
+    from pipeline.errors import DataQualityError
+    from stages.common.geodesy import geodetic_to_enu
+
+    if max_radius_m is None or origin is None or not len(fixes.stamp_ns):
+        return
+    enu = geodetic_to_enu(fixes.lat_deg, fixes.lon_deg, fixes.h_m, origin)
+    dist = np.hypot(enu[:, 0], enu[:, 1])
+    worst = int(np.argmax(dist))
+    if dist[worst] > max_radius_m:
+        raise DataQualityError(
+            f"drive {drive}: {file} record {int(fixes.records[worst])} lies {dist[worst] / 1000:.1f} km from the map's "
+            f"origin ({origin.lat_deg:.6f}, {origin.lon_deg:.6f}), {int((dist > max_radius_m).sum())} of "
+            f"{len(dist)} fixes beyond the map's area of {max_radius_m / 1000:g} km; refused (a local ENU frame "
+            "does not reach that far). hint: build it into a map of its own, or check the GNSS file")
 
 
 def _speed_outliers(stamp_ns: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray, keep: np.ndarray,

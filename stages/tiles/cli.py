@@ -32,15 +32,18 @@ def map_dir_of(root: Path, name: Optional[str]) -> Path:
 
 
 def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
-    """List the versions of a map (* marks LATEST) with tiles, corners, parent and creation time.
+    """List the versions of a map (* marks LATEST) with tiles, corners, parent and creation time; a candidate the
+    rebuild's regression gate refused, or one never gated, is marked so.
 
     Example: [b]cornermap tiles ls --map tiny --root runs/tiny[/b]
     """
     from pipeline.errors import MapFormatError
+    from pipeline.maps_show import state_note, version_states
     from pipeline.versioned import list_versions, read_latest, read_manifest, version_name
 
     d = map_dir_of(root, map_name)
     latest = read_latest(d)
+    states = version_states(d)
     typer.echo(f"{d}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
     for v in list_versions(d):
         mark = "*" if v == latest else " "
@@ -53,7 +56,7 @@ def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
         typer.echo(f"{mark} {version_name(v)}  {m.get('created_utc', '?')}  tiles={m.get('n_tiles', '?'):<5} "
                    f"corners={m.get('n_corners', '?'):<7} drives={len(m.get('source_drives', []))} "
                    f"parent={version_name(parent) if parent is not None else '-'}  format={m.get('format_version')} "
-                   f"sha256={sha[:12]}")
+                   f"sha256={sha[:12]}" + (f"  {note}" if (note := state_note(d, v, states.get(v, ""))) else ""))
 
 
 def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LATEST)."),
