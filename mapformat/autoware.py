@@ -122,12 +122,19 @@ def _scan_batches(root: Path, drive: str, batch_points: int, columns: list[str])
     """``scans_raw`` rows of ``drive`` (the latest committed version) as record batches of ``batch_points``."""
     import pyarrow.parquet as pq
 
+    from pipeline.progress import report
+
     d, m = _committed(root, "scans_raw")
     files = [d / f["path"] for f in m["files"] if f.get("partition", {}).get("drive") == drive]
     if not files:
         raise DatasetIOError(f"{d}: no scans_raw rows for drive {drive!r}")
-    for f in files:
-        yield from pq.ParquetFile(f).iter_batches(batch_size=batch_points, columns=columns)
+    readers = [pq.ParquetFile(f) for f in files]
+    done, total = 0, sum(r.metadata.num_rows for r in readers)
+    for r in readers:
+        for batch in r.iter_batches(batch_size=batch_points, columns=columns):
+            report("autoware", done, total, step=f"point cloud of {drive}: scan points")
+            yield batch
+            done += batch.num_rows
 
 
 class _Evidence:
@@ -210,6 +217,7 @@ def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float
     """Write the Autoware folder (module docstring) under ``out``; returns the files written."""
     from mapformat.export import autoware_projector_yaml, pcd_bytes
     from mapformat.vectors import read_map_features
+    from pipeline.progress import finish, report
 
     out = Path(out)
     drives = map_drives(reader)
@@ -218,12 +226,14 @@ def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float
     files = [out / "map_projector_info.yaml"]
     write(files[0], autoware_projector_yaml(reader.origin).encode("utf-8"))
     cells = grid_split(xyz, grid_m)
-    for (i, j), idx in sorted(cells.items()):
+    for n, ((i, j), idx) in enumerate(sorted(cells.items())):
+        report("autoware", n, len(cells), step="point cloud tiles")
         path = out / "pointcloud_map" / f"{i}_{j}.pcd"
         write(path, pcd_bytes(xyz[idx], inten[idx]))
         files.append(path)
     files.append(out / "pointcloud_map_metadata.yaml")
     write(files[-1], pointcloud_metadata_yaml(list(cells), grid_m).encode("utf-8"))
+    report("autoware", step="Lanelet2 markings")
     feats = read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()])
     files.append(out / "lanelet2_map.osm")
     write(files[-1], lanelet2_osm(feats, reader.origin).encode("utf-8"))
@@ -231,4 +241,5 @@ def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float
     write(files[-1], json.dumps({"map_name": reader.manifest.get("map_name"), "version": reader.version,
                                  "manifest_sha256": reader.manifest_sha256, "pointcloud": stats,
                                  "grid_m": grid_m, "n_marking_features": len(feats)}, indent=1).encode("utf-8"))
+    finish("autoware")
     return files

@@ -124,8 +124,12 @@ def export_geotiffs(reader: "MapReader", out: Path) -> list[Path]:
     crs = local_tm_proj4(reader.manifest["enu_origin"])
     tags = {"cornermap_map": str(reader.manifest.get("map_name")), "cornermap_version": str(reader.version),
             "cornermap_enu_origin": json.dumps(reader.manifest["enu_origin"])}
+    from pipeline.progress import report
+
     files = []
-    for i, j in reader.tile_keys():
+    keys = reader.tile_keys()
+    for n, (i, j) in enumerate(keys):
+        report("geotiff", n, len(keys), step="tiles")
         meta = reader.tile_entry(i, j).get("marking")
         if not meta:
             continue

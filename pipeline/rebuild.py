@@ -39,6 +39,9 @@ class RebuildParams:
     gate_tol_rel: float = 0.2
     workflow: str = "map_rebuild"
     scheduler: str | None = None
+    params_file: Path | None = None  # --params: {stage: {param: value}} over the workflow's
+    workers: int | None = None
+    dask_host: str = "127.0.0.1"
 
 
 @dataclass
@@ -98,11 +101,14 @@ def select_new_drives(ident, inbox: Path) -> tuple[list[tuple[Path, str]], list[
     """(new good drives as (drive.yaml, fingerprint), bad ones as (drive.yaml, reason)); checks each new one."""
     from pipeline.fingerprint import drive_fingerprint
     from pipeline.names import name_problem
+    from pipeline.progress import finish, report
 
     known = {d.fingerprint for d in ident.drives}
     names = {d.name for d in ident.drives}
     good, bad = [], []
-    for path in inbox_drives(inbox):
+    delivered = inbox_drives(inbox)
+    for i, path in enumerate(delivered):
+        report("inbox", i, len(delivered), step=f"checking {path.parent.name}")
         fp = drive_fingerprint(path)
         if fp in known:
             continue
@@ -119,6 +125,8 @@ def select_new_drives(ident, inbox: Path) -> tuple[list[tuple[Path, str]], list[
             names.add(name)
         else:
             bad.append((path, problem))
+    report("inbox", len(delivered), len(delivered))
+    finish("inbox", f"{len(good)} new, {len(bad)} quarantined")
     return good, bad
 
 
@@ -163,7 +171,8 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
         wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=root,
                                   origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
                                   hold_latest=True)
-        run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True)
+        run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
+                               params_file=params.params_file, workers=params.workers, dask_host=params.dask_host)
         result.summary = run["summary"]
         result.lines.append(reuse_line(run["summary"]))
         candidate = _candidate_version(run["plan"])

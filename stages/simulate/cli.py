@@ -28,9 +28,10 @@ def simulate_command(
     drives: int = typer.Option(None, help="number of drives (drive 0 maps, later ones evaluate); default 2"),
     motion_distortion: bool = typer.Option(True, help="roll each scan during motion (per-firing poses)"),
     max_scans: int = typer.Option(None, help="cap the scans written per drive (quick looks, tests)"),
-    quiet: bool = typer.Option(False, help="no progress bar"),
+    quiet: bool = typer.Option(False, help="no progress display"),
     set_: list[str] = typer.Option([], "--set", help="change a preset field, KEY=VALUE or KEY=LO,HI (repeatable), "
-                                   "e.g. lead_vehicle_share=0.6, corner_radius_m=1,5; see docs/simulator.md"),
+                                   "e.g. lead_vehicle_share=0.6, corner_radius_m=1,5; an unknown KEY lists the "
+                                   "preset's fields"),
     changes: bool = typer.Option(False, "--changes", help="the city changes before the last drive (a building "
                                  "demolished, one built, a crosswalk moved); truth in truth/changes.json"),
     changes_from_drive: int = typer.Option(None, help="with --changes: first drive that sees the changed city"),
@@ -43,22 +44,17 @@ def simulate_command(
     from stages.simulate.presets import get_preset
 
     preset = get_preset(preset, **parse_overrides(set_))
-    if quiet:
-        summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, changes=changes,
+    from pipeline.progress import StageProgress
+
+    with StageProgress(enabled=not quiet) as display:
+        def progress(name: str, i: int, n: int) -> None:
+            display.update(f"{name} scans", i, n)
+            if i >= n:
+                display.finish(f"{name} scans")
+
+        summary = simulate(preset, seed, out, drives, motion_distortion, max_scans,
+                           progress if display.enabled else None, changes=changes,
                            changes_from_drive=changes_from_drive)
-    else:
-        from rich.progress import Progress
-
-        with Progress(transient=False) as bar:
-            tasks: dict[str, int] = {}
-
-            def progress(name: str, i: int, n: int) -> None:
-                if name not in tasks:
-                    tasks[name] = bar.add_task(f"{name} scans", total=n)
-                bar.update(tasks[name], completed=i)
-
-            summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, progress, changes=changes,
-                               changes_from_drive=changes_from_drive)
     for name in summary.drives:
         st = summary.gnss_stats[name]
         typer.echo(f"{name}: {summary.n_scans[name]} scans, GNSS horizontal RMS {st['rms_m']:.2f} m, "
