@@ -58,7 +58,7 @@ def _evaluate(mdir: Path, version: int, drive: Path, reference: str | None, out:
     from pipeline.progress import run_cornermap
     from pipeline.versioned import version_name
 
-    res = run_cornermap(["evaluate", "--root", str(mdir.parent.parent), "--map", mdir.name, "--version",
+    res = run_cornermap(["evaluate", "--root", str(mdir.parent.parent), "--map", mdir.name, "--map-version",
                          version_name(version), "--drive", str(drive), "--reference", reference or "map", "--out",
                          str(out)], label="gate", step=f"{drive.parent.name} on {version_name(version)}")
     metrics = out / "metrics.json"

@@ -1,7 +1,8 @@
 """``cornermap maps create|show``, ``cornermap rebuild`` and ``cornermap gc``: a map kept up to date on a schedule.
 
 Exit codes of ``rebuild`` (for monitoring): 0 published, 0 nothing to do, 3 the regression gate refused the
-candidate (LATEST unchanged), 1 error, 75 another rebuild of the map holds its lock. Heavy imports inside.
+candidate (LATEST unchanged), 1 error, 2 usage, 75 another rebuild of the map holds its lock, 130 / 143
+interrupted / terminated. Heavy imports inside.
 """
 from __future__ import annotations
 
@@ -10,12 +11,14 @@ from typing import Optional
 
 import typer
 
+from pipeline import cli_options as opts
+
 maps_app = typer.Typer(no_args_is_help=True, help="A map's identity: pinned frame, tile size, drive set.\n\n"
                        "Examples:\n\n  cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57"
                        "\n\n  cornermap maps show --root runs/maps --map kept")
 
-ROOT_REQ = typer.Option(..., "--root", help="Output root holding maps/NAME/ and datasets/.")
-MAP_REQ = typer.Option(..., "--map", help="Map name (ROOT/maps/NAME).")
+ROOT_REQ = opts.ROOT
+MAP_REQ = opts.MAP
 
 
 @maps_app.command("create")
@@ -32,11 +35,11 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
     Example: [b]cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57[/b]
     """
     from pipeline.build import parse_origin
-    from pipeline.errors import ConfigError
+    from pipeline.errors import ConfigError, OptionError
     from pipeline.maps import CheckDrive, create_map
 
     if not (0 < tile_size_m <= 10000):
-        raise ConfigError("--tile-size-m", [f"expected 0 < S <= 10000 m; got {tile_size_m}"])
+        raise OptionError("--tile-size-m", [f"expected 0 < S <= 10000 m; got {tile_size_m}"])
     check = None
     if check_drive is not None:
         for opt, p in (("--check-drive", check_drive), ("--check-reference", check_reference)):
@@ -45,7 +48,7 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
         check = CheckDrive(path=str(check_drive.resolve()),
                            reference=str(check_reference.resolve()) if check_reference else None)
     elif check_reference is not None:
-        raise ConfigError("--check-reference", ["applies to --check-drive only"])
+        raise OptionError("--check-reference", ["applies to --check-drive only"])
     ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check)
     o = ident.enu_origin
     typer.echo(f"created map {map_name!r}: origin {o.lat_deg},{o.lon_deg},{o.h_m}, tiles {ident.tile_size_m} m "
@@ -53,7 +56,7 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
 
 
 @maps_app.command("show")
-def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ) -> None:
+def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ, as_json: bool = opts.JSON) -> None:
     """Print a map's frame and drives: when each was recorded (first/last pose), when added, its versions.
 
     Example: [b]cornermap maps show --root runs/maps --map kept[/b]
@@ -64,11 +67,17 @@ def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ) -> None:
     mdir = map_dir(root, map_name)
     ident = require_identity(mdir)
     o = ident.enu_origin
+    rows = drive_rows(mdir, ident)
+    if as_json:
+        opts.echo_json({"map": ident.name, "path": str(mdir), "enu_origin": o.model_dump(),
+                        "tile_size_m": ident.tile_size_m, "created_utc": ident.created_utc,
+                        "check_drive": ident.check_drive.model_dump() if ident.check_drive else None,
+                        "drives": rows})
+        return
     typer.echo(
         f"map {ident.name}: origin {o.lat_deg},{o.lon_deg},{o.h_m} (WGS84), tiles {ident.tile_size_m} m, "
         f"created {ident.created_utc}" + (f", check drive {ident.check_drive.path}" if ident.check_drive else "")
     )
-    rows = drive_rows(mdir, ident)
     typer.echo(f"{'drive':16s} {'first pose':20s} {'last pose':20s} {'added (UTC)':20s} versions")
     for r in rows:
         typer.echo(f"{r['name']:16s} {r['first']:20s} {r['last']:20s} {r['added']:20s} {r['versions']}")
@@ -84,27 +93,38 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                                                  "by max(this, --gate-tol-rel x previous) metres."),
                 gate_tol_rel: float = typer.Option(0.2, "--gate-tol-rel", help="Gate: relative tolerance."),
                 no_gate: bool = typer.Option(False, "--no-gate", help="Publish without the regression gate."),
-                scheduler: Optional[str] = typer.Option(None, "--scheduler", help="As for cornermap run."),
-                workflow: str = typer.Option("map_rebuild", "--workflow", help="The map workflow.")) -> None:
+                scheduler: Optional[str] = opts.SCHEDULER, workers: Optional[int] = opts.WORKERS,
+                dask_host: str = opts.DASK_HOST, params: Optional[Path] = opts.PARAMS,
+                workflow: str = typer.Option("map_rebuild", "--workflow", help="The map workflow."),
+                quiet: bool = opts.QUIET, as_json: bool = opts.JSON) -> None:
     """Build the next version of map NAME from its drives plus the new ones in INBOX, gate it, publish it.
 
-    Exit codes: 0 published or nothing to do, 3 gate refused (LATEST unchanged), 1 error, 75 locked.
+    Exit codes: 0 published or nothing to do, 3 gate refused (LATEST unchanged), 1 error, 2 usage, 75 locked,
+    130/143 interrupted/terminated (LATEST unchanged unless the candidate was already published).
 
     Example: [b]cornermap rebuild --root runs/maps --map kept --inbox runs/sim[/b] (drive folders in runs/sim)
     """
     import math
 
-    from pipeline.errors import ConfigError
+    from pipeline.errors import OptionError
+    from pipeline.progress import StageProgress
     from pipeline.rebuild import RebuildParams, rebuild
 
     for opt, v in (("--min-free-gib", min_free_gib), ("--gate-tol-m", gate_tol_m), ("--gate-tol-rel", gate_tol_rel)):
         if not (math.isfinite(v) and v >= 0):
-            raise ConfigError(opt, [f"expected a finite number >= 0; got {v}"])
+            raise OptionError(opt, [f"expected a finite number >= 0; got {v}"])
     params = RebuildParams(min_free_gib=min_free_gib, gate=not no_gate, gate_tol_m=gate_tol_m,
-                           gate_tol_rel=gate_tol_rel, workflow=workflow, scheduler=scheduler)
-    result = rebuild(root, map_name, inbox, params)
-    for line in result.lines:
-        typer.echo(line)
+                           gate_tol_rel=gate_tol_rel, workflow=workflow, scheduler=scheduler,
+                           params_file=params, workers=workers, dask_host=dask_host)
+    with StageProgress(enabled=not quiet):
+        result = rebuild(root, map_name, inbox, params)
+    if as_json:
+        opts.echo_json({"map": map_name, "status": result.status, "exit_code": result.exit_code,
+                        "version": f"v{result.version:04d}" if result.version is not None else None,
+                        "quarantined": result.quarantined, "lines": result.lines, "stages": result.summary})
+    else:
+        for line in result.lines:
+            typer.echo(line)
     if result.exit_code:
         raise typer.Exit(result.exit_code)
 

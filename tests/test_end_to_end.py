@@ -257,7 +257,7 @@ def test_evaluate_a_drive_60_km_off_the_map_is_no_coverage(tiny_sync, tmp_path):
 
 def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):
     """No odometry in the drive file: the EKF runs on ICP increments, the MCL on ICP (GNSS/INS where ICP failed),
-    one warning line, no traceback; a path to the map folder is still accepted alone, not beside --root."""
+    one warning line, no traceback; a path to the map folder in --map is a usage error (a map is named)."""
     root, _ = tiny_sync
     [sim] = root.glob("datasets/raw_drives/*/artifacts/all")
     drive = _short_drive(sim, tmp_path / "noodo", 60, odometry=False)
@@ -272,9 +272,9 @@ def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):
     assert ekf["epochs"] == 60 - ekf["localized_from_epoch"]  # scored from its first association on
     assert doc["methods"]["ekf"]["absolute"]["rms_2d_m"] < 1.0
     assert doc["verdict"]["coverage"]["ok"]
-    ambiguous = _evaluate(root, "--map", str(root / "maps" / "tiny"), "--drive", str(drive), "--out",
-                          str(tmp_path / "e2"))
-    assert ambiguous.returncode == 1 and "is a path and --root" in ambiguous.stderr
+    a_path = _evaluate(root, "--map", str(root / "maps" / "tiny"), "--drive", str(drive), "--out",
+                       str(tmp_path / "e2"))
+    assert a_path.returncode == 2 and "is a path; a map is named" in a_path.stderr
 
 
 @pytest.mark.slow  # the export streams its scans (0.73 GB peak, was 3.4 GB) but takes ~70 s of CPU on tiny

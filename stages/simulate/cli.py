@@ -5,6 +5,8 @@ from pathlib import Path
 
 import typer
 
+from pipeline import cli_options as opts
+
 
 def register(app: typer.Typer) -> None:
     app.command("simulate", help=(
@@ -28,7 +30,7 @@ def simulate_command(
     drives: int = typer.Option(None, help="number of drives (drive 0 maps, later ones evaluate); default 2"),
     motion_distortion: bool = typer.Option(True, help="roll each scan during motion (per-firing poses)"),
     max_scans: int = typer.Option(None, help="cap the scans written per drive (quick looks, tests)"),
-    quiet: bool = typer.Option(False, help="no progress display"),
+    quiet: bool = opts.QUIET,
     set_: list[str] = typer.Option([], "--set", help="change a preset field, KEY=VALUE or KEY=LO,HI (repeatable), "
                                    "e.g. lead_vehicle_share=0.6, corner_radius_m=1,5; an unknown KEY lists the "
                                    "preset's fields"),
@@ -41,9 +43,13 @@ def simulate_command(
 
     if out.exists() and not out.is_dir():
         raise DatasetIOError(f"--out {out}: exists and is not a directory; simulate writes a directory")
+    from pipeline.errors import ConfigError, OptionError
     from stages.simulate.presets import get_preset
 
-    preset = get_preset(preset, **parse_overrides(set_))
+    try:
+        preset = get_preset(preset, **parse_overrides(set_))
+    except ConfigError as exc:  # an unknown preset or field, a value out of range: the command line is wrong
+        raise OptionError(exc.where.replace("simulate ", ""), exc.problems) from None
     from pipeline.progress import StageProgress
 
     with StageProgress(enabled=not quiet) as display:

@@ -79,7 +79,7 @@ def test_maps_cli_create_and_show(tmp_path):
     res = cornermap("maps", "show", "--root", str(tmp_path), "--map", "city")
     assert res.returncode == 0 and "origin 37.4979,127.0276,57.0" in res.stdout and "no drives yet" in res.stdout
     res = cornermap("maps", "create", "--root", str(tmp_path), "--map", "../x", "--origin", "37.4979,127.0276,57")
-    assert res.returncode == 1 and "not allowed" in res.stderr
+    assert res.returncode == 2 and "not allowed" in res.stderr  # a usage error: the option's value
 
 
 def test_lock_held_second_run_exits_75_and_names_the_holder(tmp_path):
