@@ -38,9 +38,10 @@ def load_param_file(path: Optional[Path]) -> dict:
 def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, scheduler: Optional[str] = None,
                      only: list[str] | None = None, dry_run: bool = False, quiet: bool = True,
                      params_file: Optional[Path] = None, workers: Optional[int] = None,
-                     dask_host: str = "127.0.0.1") -> dict:
+                     dask_host: str = "127.0.0.1", quiet_plan: bool = False) -> dict:
     """Run a workflow (a file or a packaged name): ``{"plan": Plan, "summary": ..., "wall_s", "cpu_s",
-    "dashboard", "dask_log"}``, or ``{"dry_run": True}`` (the plan is printed).
+    "dashboard", "dask_log"}``, or with ``dry_run`` ``{"dry_run": True, "root", "stages": rows}`` (the plan, also
+    printed unless ``quiet_plan``).
 
     ``only`` restricts the run to these stages (their inputs must be committed); ``scheduler`` overrides the
     workflow's (local | sync | threads | processes | distributed | tcp://HOST:PORT); ``workers`` sizes a local pool;
@@ -65,8 +66,10 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
                 raise UnknownNameError(f"--only {name!r}: not a stage of {workflow_path}{suggest(name, wf.stages)}")
     plan = make_plan(wf, wf.root_dir(root), only=only)
     if dry_run:
-        print_plan(describe_plan(plan), plan.root)
-        return {"dry_run": True}
+        rows = describe_plan(plan)
+        if not quiet_plan:
+            print_plan(rows, plan.root)
+        return {"dry_run": True, "root": str(plan.root), "stages": rows}
     t0, cpu0 = time.perf_counter(), _cpu_s()
     with StageProgress(enabled=not quiet) as progress:
         skipped = [n for n, sp in plan.stages.items() if sp.selected and sp.committed]

@@ -97,8 +97,10 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a 
     [b]cornermap run tiny --root runs/tiny --scheduler tcp://127.0.0.1:8786[/b] (a dask.distributed scheduler)
     """
     result = execute_workflow(workflow, root=root, scheduler=scheduler, only=only, dry_run=dry_run, quiet=quiet,
-                              params_file=params, workers=workers, dask_host=dask_host)
-    if not dry_run:
+                              params_file=params, workers=workers, dask_host=dask_host, quiet_plan=as_json)
+    if dry_run and as_json:
+        opts.echo_json({"root": result["root"], "dry_run": True, "stages": result["stages"]})
+    elif not dry_run:
         report_run(result, as_json)
 
 

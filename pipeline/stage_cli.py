@@ -43,8 +43,11 @@ def stage_app(decl: StageDecl) -> typer.Typer:
         from pipeline.cli import report_run
 
         result = execute_workflow(workflow, root=root, scheduler=scheduler, only=[decl.name], dry_run=dry_run,
-                                  quiet=quiet, params_file=params, workers=workers, dask_host=dask_host)
-        if not dry_run:
+                                  quiet=quiet, params_file=params, workers=workers, dask_host=dask_host,
+                                  quiet_plan=as_json)
+        if dry_run and as_json:
+            opts.echo_json({"root": result["root"], "dry_run": True, "stages": result["stages"]})
+        elif not dry_run:
             report_run(result, as_json)
 
     @sub.command("describe")

@@ -68,6 +68,9 @@ def test_help_with_h_and_usage_errors_exit_2(tmp_path):
 
 def test_run_json_is_the_only_stdout_and_progress_is_plain_lines_on_stderr(tmp_path):
     path = write_toy(tmp_path)
+    dry = cornermap("run", str(path), "--dry-run", "--json", cwd=tmp_path)
+    assert [(s["stage"], s["decision"]) for s in json.loads(dry.stdout)["stages"]] == [
+        ("numbers", "run"), ("squares", "run"), ("total", "run")], dry.stdout
     res = cornermap("run", str(path), "--scheduler", "local", "--workers", "2", "--json", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     doc = json.loads(res.stdout)  # stdout holds the JSON document and nothing else
