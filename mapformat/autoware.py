@@ -167,11 +167,14 @@ def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, 
     occupied voxels, not by the number of points."""
     from scipy.spatial import cKDTree
 
+    from pipeline.progress import report
+
     inputs = reader.manifest.get("inputs", {})
     sums, evidence = VoxelSums(voxel_m, free_voxel_m), _Evidence()
     n_in = 0
     cols = ["stamp_ns", "x_m", "y_m", "z_m", "intensity", "time_offset_s"]
     for k, drive in enumerate(drives):
+        report("autoware", k, len(drives))  # drives streamed so far (the step counts a drive's scan points)
         poses = _read(root, "poses_optimized", drive, (inputs.get("poses") or {}).get("fingerprint")).sort_by(
             "stamp_ns"
         )
@@ -196,6 +199,8 @@ def accumulate_map_cloud(reader: "MapReader", root: Path, drives: list[str], *, 
                                               ground_clear_m=GROUND_CLEAR_M, first_index=n_in))
             sums.add(pts, batch.column("intensity").to_numpy()[ok].astype(float), pts[:, 2] > gz + GROUND_CLEAR_M)
             n_in += len(pts)
+    report("autoware", len(drives), len(drives))
+    report("autoware", step="dynamic points, voxel centroids")
     evidence.compact()
     dyn = dynamic_voxels(evidence.hits[0], evidence.free[0], evidence.free_n[0]) if n_in else np.zeros(0, np.int64)
     xyz, inten, n_dropped = sums.centroids(dyn)

@@ -123,8 +123,13 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                         "version": f"v{result.version:04d}" if result.version is not None else None,
                         "quarantined": result.quarantined, "lines": result.lines, "stages": result.summary})
     else:
+        from pipeline.progress import summary_lines
+
         for line in result.lines:
             typer.echo(line)
+        if result.summary:  # the build ran: per stage its partitions (reused), wall and CPU seconds
+            for line in summary_lines(result.summary, root):
+                typer.echo(line)
     if result.exit_code:
         raise typer.Exit(result.exit_code)
 

@@ -213,9 +213,11 @@ class StageProgress:
 
     def _show(self, row: _Row, what: str | None) -> None:
         now = time.monotonic()
-        if self._live is not None:
-            task = self._tasks[row.label]
-            self._live.update(task, completed=row.done or 0, total=row.total)
+        if self._live is not None:  # the bar: the row's counts, else its step's, else full once it ended
+            done, total = (row.done, row.total) if row.total is not None else (row.step_done, row.step_total)
+            if total is None and row.t_end is not None:
+                done, total = 1, 1
+            self._live.update(self._tasks[row.label], completed=done or 0, total=total)
             return
         if what is None and now - row.last_plain < self.every_s:
             return
