@@ -45,12 +45,13 @@ def count(n: int | None) -> str:
     return str(n)
 
 
-def eta_s(elapsed_s: float, done: int | None, total: int | None) -> float | None:
-    """The time left at the pace so far (elapsed x remaining / done), None when it cannot be told (nothing done yet,
-    all done, under a second of pace)."""
+def eta_s(elapsed_s: float, done: int | None, total: int | None, since_s: float = 0.0) -> float | None:
+    """The time left at the pace so far: ``done`` of ``total`` took ``elapsed_s``, so the rest takes
+    elapsed x remaining / done, less the ``since_s`` gone by since ``done`` was reached. None when it cannot be told
+    (nothing done yet, all done, under a second of pace)."""
     if not total or not done or done >= total or elapsed_s < 1.0:
         return None
-    return elapsed_s * (total - done) / done
+    return max(0.0, elapsed_s * (total - done) / done - since_s)
 
 
 @dataclass
@@ -59,10 +60,12 @@ class _Row:
     t0: float
     done: int | None = None
     total: int | None = None
+    done_t: float = 0.0  # when ``done`` last changed
     step: str | None = None
     step_done: int | None = None
     step_total: int | None = None
     step_t0: float = 0.0
+    step_done_t: float = 0.0
     t_end: float | None = None
     note: str | None = None
     last_plain: float = field(default=0.0)
@@ -70,13 +73,23 @@ class _Row:
     def counts(self) -> str:
         return f"{count(self.done)}/{count(self.total)}" if self.total is not None else ""
 
+    def set_counts(self, done: int | None, total: int | None, now: float) -> None:
+        if done != self.done:
+            self.done_t = now
+        self.done, self.total = done, total
+
+    def set_step_counts(self, done: int | None, total: int | None, now: float) -> None:
+        if done != self.step_done:
+            self.step_done_t = now
+        self.step_done, self.step_total = done, total
+
     def step_text(self, now: float) -> str:
         if not self.step:
             return self.note or ""
         text = self.step
         if self.step_total is not None:
             text += f" {count(self.step_done)}/{count(self.step_total)}"
-            left = eta_s(now - self.step_t0, self.step_done, self.step_total)
+            left = eta_s(self.step_done_t - self.step_t0, self.step_done, self.step_total, now - self.step_done_t)
             if left is not None:
                 text += f" (~{hms(left)} left)"
         return text
@@ -85,7 +98,9 @@ class _Row:
         return (self.t_end if self.t_end is not None else now) - self.t0
 
     def eta(self, now: float) -> float | None:
-        return None if self.t_end is not None else eta_s(self.elapsed(now), self.done, self.total)
+        if self.t_end is not None:
+            return None
+        return eta_s(self.done_t - self.t0, self.done, self.total, now - self.done_t)
 
 
 def _mode(stream: TextIO) -> str:
@@ -159,7 +174,7 @@ class StageProgress:
             row, new = self._row(label)
             if row.t_end is not None and total is not None and done is not None and done < total:
                 row.t_end = None  # more work arrived (a streaming stage's next drive)
-            row.done, row.total = done, total
+            row.set_counts(done, total, time.monotonic())
             self._show(row, "started" if new else None)
 
     def step(self, label: str, step: str, done: int | None = None, total: int | None = None) -> None:
@@ -171,9 +186,10 @@ class StageProgress:
         with self._lock:
             row, new = self._row(label)
             changed = step != row.step
+            now = time.monotonic()
             if changed:
-                row.step, row.step_t0 = step, time.monotonic()
-            row.step_done, row.step_total = done, total
+                row.step, row.step_t0, row.step_done = step, now, None
+            row.set_step_counts(done, total, now)
             self._show(row, "started" if new else ("step" if changed else None))
 
     def finish(self, label: str, note: str | None = None) -> None:

@@ -247,12 +247,14 @@ def test_evaluate_a_drive_60_km_off_the_map_is_no_coverage(tiny_sync, tmp_path):
     [sim] = root.glob("datasets/raw_drives/*/artifacts/all")
     drive = _short_drive(sim, tmp_path / "far", 60, lat_shift_deg=0.54)
     res = _evaluate(root, "--drive", str(drive), "--method", "ekf", "--out", str(tmp_path / "eval"),
-                    "--reference", str(sim / "truth" / "drive_1_poses_tum.txt"))
+                    "--reference", str(sim / "truth" / "drive_1_poses_tum.txt"), "--json")
     assert res.returncode == 3, res.stderr
     assert "Traceback" not in res.stderr
     assert "verdict: no coverage: 0% of 60 epochs with a map corner within 60 m" in res.stderr
     doc = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert doc["verdict"]["status"] == "no coverage" and doc["verdict"]["coverage"]["share_associated"] == 0.0
+    said = json.loads(res.stdout)  # --json: the verdict on stdout, exit 3 all the same
+    assert said["verdict"] == doc["verdict"] and said["map"] == "tiny" and said["report"].endswith("report.html")
 
 
 def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):

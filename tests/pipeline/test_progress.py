@@ -22,6 +22,8 @@ def lines(stream: io.StringIO) -> list[str]:
 
 def test_eta_is_elapsed_times_remaining_over_done():
     assert eta_s(30.0, 1, 4) == pytest.approx(90.0)  # a quarter in 30 s: three quarters left, 90 s
+    assert eta_s(30.0, 1, 4, since_s=10.0) == pytest.approx(80.0)  # ... and 10 s gone by since: 80 s
+    assert eta_s(30.0, 1, 4, since_s=200.0) == 0.0
     assert eta_s(30.0, 0, 4) is None and eta_s(30.0, 4, 4) is None and eta_s(30.0, 2, None) is None
     assert hms(3725.4) == "1:02:05" and hms(-1) == "0:00:00"
     assert pg.count(950) == "950" and pg.count(12_345) == "12k" and pg.count(4_500_000) == "4.5M"
