@@ -120,12 +120,11 @@ def check_export_target(out: Path, map_dir: Path) -> None:
 def export_geotiffs(reader: "MapReader", out: Path) -> list[Path]:
     """Every raster layer of every tile as a COG ``out/{layer}/{i}_{j}.tif`` in the map's local TM CRS."""
     from mapformat.layers import local_tm_proj4, sidecar_layers, write_cog
+    from pipeline.progress import report
 
     crs = local_tm_proj4(reader.manifest["enu_origin"])
     tags = {"cornermap_map": str(reader.manifest.get("map_name")), "cornermap_version": str(reader.version),
             "cornermap_enu_origin": json.dumps(reader.manifest["enu_origin"])}
-    from pipeline.progress import report
-
     files = []
     keys = reader.tile_keys()
     for n, (i, j) in enumerate(keys):
