@@ -1,7 +1,7 @@
 """A published corner map's errors against the simulator's truth: how honest its stored covariances are and how its
 corners' errors correlate with distance (the EKF's ``ekf_map_corr_share`` / ``ekf_map_corr_length_m``).
 
-    .venv/bin/python -m bench.bench_map_errors --root ROOT [--map NAME] [--version vNNNN]
+    .venv/bin/python -m bench.bench_map_errors --root ROOT [--map NAME] [--map-version vNNNN]
 
 The truth corners are moved into the map's frame by geodesy and fitted onto the map corners (the evaluation's
 ``truth_in_map``); per matched corner the residual, its NEES under the stored 2x2 covariance, and for every pair of
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--root", type=Path, required=True, nargs="+", help="one or more roots (pooled for the fit)")
     ap.add_argument("--map", default=None)
-    ap.add_argument("--version", default="LATEST")
+    ap.add_argument("--map-version", dest="version", default="LATEST", help="LATEST, vNNNN or N")
     ap.add_argument("--fit-max-m", type=float, default=150.0)
     args = ap.parse_args(argv)
     ens, rs = [], []

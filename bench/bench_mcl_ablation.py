@@ -29,7 +29,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path, required=True, help="output root holding maps/NAME/")
     ap.add_argument("--map", required=True)
-    ap.add_argument("--version", default="LATEST")
+    ap.add_argument("--map-version", dest="version", default="LATEST", help="LATEST, vNNNN or N")
     ap.add_argument("--drive", type=Path, required=True, help="the drive's drive.yaml")
     ap.add_argument("--reference", type=Path, required=True, help="truth TUM trajectory (its frame stated)")
     ap.add_argument("--out", type=Path, required=True)

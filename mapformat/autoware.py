@@ -207,10 +207,13 @@ def accumulate_map_cloud(lineage: VersionLineage, drives: list[str], *, voxel_m:
     occupied voxels, not by the number of points."""
     from scipy.spatial import cKDTree
 
+    from pipeline.progress import report
+
     sums, evidence = VoxelSums(voxel_m, free_voxel_m), _Evidence()
     n_in = 0
     cols = ["stamp_ns", "x_m", "y_m", "z_m", "intensity", "time_offset_s"]
     for k, drive in enumerate(drives):
+        report("autoware", k, len(drives))  # drives streamed so far (the step counts a drive's scan points)
         poses = lineage.read("poses_optimized", drive).sort_by("stamp_ns")
         info = lineage.read("drive_info", drive)
         T_vl = Extrinsics.from_table(info).of(drive)
@@ -218,7 +221,10 @@ def accumulate_map_cloud(lineage: VersionLineage, drives: list[str], *, voxel_m:
         pxyz = np.column_stack([poses[c].to_numpy() for c in ("x_m", "y_m", "z_m")])
         pq_ = np.column_stack([poses[c].to_numpy() for c in ("qx", "qy", "qz", "qw")])
         road = cKDTree(pxyz[:, :2])  # the road under the vehicle: its height at the nearest pose
+        done, total = 0, lineage.rows("scans_raw", drive)
         for batch in lineage.batches("scans_raw", drive, cols, batch_points):
+            report("autoware", done, total, step=f"point cloud of {drive}: scan points")
+            done += batch.num_rows
             lidar = np.column_stack([batch.column(c).to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
             rng = np.linalg.norm(lidar, axis=1)
             t_ns = batch.column("stamp_ns").to_numpy() + np.round(
@@ -233,6 +239,8 @@ def accumulate_map_cloud(lineage: VersionLineage, drives: list[str], *, voxel_m:
                                               ground_clear_m=GROUND_CLEAR_M, first_index=n_in))
             sums.add(pts, batch.column("intensity").to_numpy()[ok].astype(float), pts[:, 2] > gz + GROUND_CLEAR_M)
             n_in += len(pts)
+    report("autoware", len(drives), len(drives))
+    report("autoware", step="dynamic points, voxel centroids")
     evidence.compact()
     dyn = dynamic_voxels(evidence.hits[0], evidence.free[0], evidence.free_n[0]) if n_in else np.zeros(0, np.int64)
     xyz, inten, n_dropped = sums.centroids(dyn)
@@ -257,6 +265,7 @@ def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float
     from mapformat.lanelets import driven_lanes
     from mapformat.trajectories import read_version_trajectory
     from mapformat.vectors import read_map_features
+    from pipeline.progress import finish, report
 
     out = Path(out)
     drives = map_drives(reader)
@@ -268,12 +277,14 @@ def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float
     files = [out / "map_projector_info.yaml"]
     write(files[0], autoware_projector_yaml(reader.origin).encode("utf-8"))
     cells = grid_split(xyz, grid_m)
-    for (i, j), idx in sorted(cells.items()):
+    for n, ((i, j), idx) in enumerate(sorted(cells.items())):
+        report("autoware", n, len(cells), step="point cloud tiles")
         path = out / "pointcloud_map" / f"{i}_{j}.pcd"
         write(path, pcd_bytes(xyz[idx] + np.array([0.0, 0.0, h0]), inten[idx]))  # the Autoware frame: z + h0
         files.append(path)
     files.append(out / "pointcloud_map_metadata.yaml")
     write(files[-1], pointcloud_metadata_yaml(list(cells), grid_m).encode("utf-8"))
+    report("autoware", step="Lanelet2 markings")
     feats = read_map_features(reader.path, [reader.tile_entry(*k) for k in reader.tile_keys()])
     paths = {d["drive"]: read_version_trajectory(reader, d["drive"])[1][:, :3]
              for d in reader.manifest.get("source_drives", [])}
@@ -294,4 +305,5 @@ def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float
                                  "inputs": {d: c.fingerprint for d in ("poses_optimized", "drive_info", "scans_raw")
                                             for c in (lineage.find(d),)}},
                                 indent=1).encode("utf-8"))
+    finish("autoware")
     return files

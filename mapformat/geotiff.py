@@ -91,13 +91,16 @@ def layer_vrt(layer: str, tiles: list[tuple[str, int, int, float, float]], cell_
 def export_geotiffs(reader: "MapReader", out: Path, write: Callable[[Path, bytes], None]) -> list[Path]:
     """Every raster layer of every tile as a COG ``out/{layer}/{i}_{j}.tif``, and ``out/{layer}.vrt`` per layer."""
     from mapformat.layers import LAYER_BANDS, sidecar_layers, write_cog
+    from pipeline.progress import report
 
     wkt = local_tm_wkt(reader.manifest["enu_origin"])
     tags = {"cornermap_map": str(reader.manifest.get("map_name")), "cornermap_version": str(reader.version),
             "cornermap_enu_origin": json.dumps(reader.manifest["enu_origin"])}
     files: list[Path] = []
     by_layer: dict[str, list[tuple[str, int, int, float, float, float]]] = {}
-    for i, j in reader.tile_keys():
+    keys = reader.tile_keys()
+    for n, (i, j) in enumerate(keys):
+        report("geotiff", n, len(keys), step="tiles")
         meta = reader.tile_entry(i, j).get("marking")
         if not meta:
             continue

@@ -122,6 +122,12 @@ class VersionLineage:
         c = self.find(dataset, drive)
         return pa.concat_tables([pq.read_table(f, columns=columns) for f in c.files(drive)])
 
+    def rows(self, dataset: str, drive: str) -> int:
+        """How many rows of ``drive`` ``dataset`` holds (the files' Parquet footers; nothing else is read)."""
+        import pyarrow.parquet as pq
+
+        return sum(pq.ParquetFile(f).metadata.num_rows for f in self.find(dataset, drive).files(drive))
+
     def batches(self, dataset: str, drive: str, columns: list[str], batch_rows: int) -> Iterator[Any]:
         """``dataset``'s rows of ``drive`` as record batches of at most ``batch_rows`` (streamed file by file)."""
         import pyarrow.parquet as pq

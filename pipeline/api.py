@@ -4,12 +4,14 @@
 - ``stage_context``: the ``StageContext`` a stage's task would receive for a planned stage (params resolved, inputs
   reading the committed fingerprints), so a bench can call the stage's own functions on a committed root.
 - ``load_param_file``: a ``--params`` YAML file ``{stage: {param: value}}``.
+- ``published_version``: the map version a run's tiles stage published.
 
 Heavy imports happen inside the functions so ``cornermap --help`` stays instant.
 """
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
@@ -17,7 +19,7 @@ if TYPE_CHECKING:
     from pipeline.declare import PartitionKey, StageContext
     from pipeline.plan import Plan
 
-__all__ = ["execute_workflow", "load_param_file", "stage_context"]
+__all__ = ["execute_workflow", "load_param_file", "published_version", "stage_context"]
 
 
 def load_param_file(path: Optional[Path]) -> dict:
@@ -35,11 +37,17 @@ def load_param_file(path: Optional[Path]) -> dict:
 
 def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, scheduler: Optional[str] = None,
                      only: list[str] | None = None, dry_run: bool = False, quiet: bool = True,
-                     params_file: Optional[Path] = None, workers: Optional[int] = None) -> dict:
-    """Run a workflow (a file or a packaged name): ``{"plan": Plan, "summary": ...}``, or ``{"dry_run": True}``.
+                     params_file: Optional[Path] = None, workers: Optional[int] = None,
+                     dask_host: str = "127.0.0.1", quiet_plan: bool = False) -> dict:
+    """Run a workflow (a file or a packaged name): ``{"plan": Plan, "summary": ..., "wall_s", "cpu_s",
+    "dashboard", "dask_log"}``, or with ``dry_run`` ``{"dry_run": True, "root", "stages": rows}`` (the plan, also
+    printed unless ``quiet_plan``).
 
     ``only`` restricts the run to these stages (their inputs must be committed); ``scheduler`` overrides the
-    workflow's (local | sync | threads | processes | distributed | tcp://HOST:PORT); ``workers`` sizes a local pool.
+    workflow's (local | sync | threads | processes | distributed | tcp://HOST:PORT); ``workers`` sizes a local pool;
+    ``dask_host`` is where a local dask cluster listens. Progress goes to the display a command opened
+    (``pipeline.progress``), else to one of its own unless ``quiet``. ``cpu_s``: this process's CPU seconds and
+    its finished children's (the pools) during the run.
     """
     from pipeline.execute import Scheduler
     from pipeline.flow import run_plan
@@ -61,19 +69,56 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
     with workflow_locks(wf, wf.root_dir(root), only, dry_run=dry_run):  # from planning on: gc keeps what it finds
         plan = make_plan(wf, wf.root_dir(root), only=only)
         if dry_run:
-            print_plan(describe_plan(plan), plan.root)
-            return {"dry_run": True}
-        sched = Scheduler(scheduler or wf.spec.scheduler, workers=workers)
-        try:
-            with StageProgress(enabled=not quiet) as progress:
-                summary = run_plan(plan, sched, progress.update)
-        finally:
-            sched.close()
-    if not quiet:
-        print_plan(describe_plan(plan), plan.root, summary)
+            rows = describe_plan(plan)
+            if not quiet_plan:
+                print_plan(rows, plan.root)
+            return {"dry_run": True, "root": str(plan.root), "stages": rows}
+        t0, cpu0 = time.perf_counter(), _cpu_s()
+        with StageProgress(enabled=not quiet) as progress:
+            skipped = [n for n, sp in plan.stages.items() if sp.selected and sp.committed]
+            if skipped:
+                progress.event(f"committed by an earlier run, skipped: {', '.join(skipped)}")
+            sched = Scheduler(scheduler or wf.spec.scheduler, workers=workers, host=dask_host,
+                              log_dir=Path(plan.root) / "tmp")
+            try:
+                if sched.dashboard_link:
+                    line = f"dask dashboard: {sched.dashboard_link} (log: {sched.log_file})"
+                    progress.event(line) if progress.enabled else print(line, file=sys.stderr)
+                summary = run_plan(plan, sched, progress if progress.enabled else None)
+            finally:
+                sched.close()
     for line in over_budget(summary, wf.spec.memory_budget_mb):
         print(line, file=sys.stderr)
-    return {"plan": plan, "summary": summary}
+    return {"plan": plan, "summary": summary, "wall_s": round(time.perf_counter() - t0, 3),
+            "cpu_s": round(_cpu_s() - cpu0, 3), "dashboard": sched.dashboard_link,
+            "dask_log": str(sched.log_file) if sched.log_file else None}
+
+
+def _cpu_s() -> float:
+    import resource
+
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def published_version(plan: "Plan") -> int | None:
+    """The map version the plan's tiles stage published (its committed ``map_tiles`` dataset), None without one."""
+    import pyarrow.parquet as pq
+
+    from pipeline.store import dataset_dir, read_manifest
+
+    sp = next((sp for sp in plan.stages.values() if "map_tiles" in sp.outputs.values()), None)
+    if sp is None:
+        return None
+    d = dataset_dir(plan.root, "map_tiles", sp.fingerprint)
+    m = read_manifest(d)
+    if not m:
+        return None
+    for f in m["files"]:
+        rows = pq.read_table(d / f["path"], columns=["version"]).to_pylist()
+        if rows:
+            return int(rows[0]["version"])
+    return None
 
 
 def stage_context(plan: "Plan", stage: str, scratch_dir: Path, *, partition: "PartitionKey | None" = None,

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import yaml
 
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, OptionError
 
 
 def parse_origin(text: str) -> dict[str, float]:
@@ -15,7 +15,7 @@ def parse_origin(text: str) -> dict[str, float]:
     try:
         lat, lon, h = (float(p) for p in parts)
     except ValueError:
-        raise ConfigError("--origin", [f"expected LAT,LON,H (three numbers: degrees, degrees, metres), got "
+        raise OptionError("--origin", [f"expected LAT,LON,H (three numbers: degrees, degrees, metres), got "
                                        f"{text!r}"]) from None
     problems = []
     if not -90.0 <= lat <= 90.0:
@@ -25,7 +25,7 @@ def parse_origin(text: str) -> dict[str, float]:
     if not -1000.0 <= h <= 10000.0:
         problems.append(f"height {h} m is outside -1000..10000 m")
     if problems:
-        raise ConfigError("--origin", problems)
+        raise OptionError("--origin", problems)
     return {"lat_deg": lat, "lon_deg": lon, "h_m": h}
 
 

@@ -1,8 +1,12 @@
-"""The typer root app ``cornermap``. Heavy imports happen inside commands so ``--help`` is instant."""
+"""The typer root app ``cornermap`` and its entry point ``main``: the exit codes of every command.
+
+Heavy imports happen inside commands so ``--help`` is instant. Shared options: ``pipeline.cli_options``.
+"""
 from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import signal
 import sys
 import threading
@@ -11,6 +15,7 @@ from typing import Optional
 
 import typer
 
+from pipeline import cli_options as opts
 from pipeline.api import execute_workflow
 from pipeline.errors import CornermapError
 
@@ -19,7 +24,10 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     rich_markup_mode="rich",
+    context_settings={"help_option_names": ["-h", "--help"]},
     help="Batch production of LiDAR localization maps (vertical-corner landmarks + road-marking rasters).\n\n"
+    "Exit codes: 0 ok, 1 error, 2 usage, 3 data quality (a gate refused), 75 locked (try later), 130 interrupted "
+    "(SIGINT), 143 terminated (SIGTERM).\n\n"
     "Examples:\n\n"
     "  cornermap simulate --preset tiny --seed 7 --out runs/sim\n\n"
     "  cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57\n\n"
@@ -28,14 +36,6 @@ app = typer.Typer(
 )
 catalog_app = typer.Typer(no_args_is_help=True, help="Inspect and validate the data catalog.")
 app.add_typer(catalog_app, name="catalog")
-
-ROOT_OPT = typer.Option(None, "--root", help="Output root (datasets/, maps/); default: the workflow's root.")
-SCHED_OPT = typer.Option(None, "--scheduler",
-                         help="local (processes sized to the machine) | sync | threads | distributed | tcp://HOST:PORT")
-WORKERS_OPT = typer.Option(None, "--workers", min=1,
-                           help="Processes (or threads) of a local scheduler; default: the machine's cores.")
-QUIET_OPT = typer.Option(False, "--quiet", "-q", help="No progress display.")
-PARAMS_OPT = typer.Option(None, "--params", help="YAML file {stage: {param: value}} overriding workflow params.")
 
 
 def _version_callback(value: bool) -> None:
@@ -59,14 +59,35 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version_cal
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
+def report_run(result: dict, as_json: bool, *, extra: dict | None = None, notes: list[str] = ()) -> None:
+    """The closing summary of a run (``execute_workflow``'s result): what the stages published, then per stage its
+    decision, partitions, wall and CPU seconds and peak memory, and the run's totals; with ``as_json`` all of it as
+    one JSON document on stdout. ``notes`` go to stderr."""
+    from pipeline.progress import outcome_lines, summary_lines
+
+    plan = result["plan"]
+    outcomes = outcome_lines(plan)
+    if as_json:
+        opts.echo_json({"root": str(plan.root), "workflow": plan.workflow.spec.name, **(extra or {}),
+                        "outcomes": outcomes, "wall_s": result["wall_s"], "cpu_s": result["cpu_s"],
+                        "stages": result["summary"], "dask_dashboard": result.get("dashboard"),
+                        "dask_log": result.get("dask_log")})
+    else:
+        for line in outcomes + summary_lines(result["summary"], plan.root, result["wall_s"], result["cpu_s"]):
+            typer.echo(line)
+    for line in notes:
+        typer.echo(line, err=True)
+
+
 @app.command("run")
 def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a packaged workflow's name "
                                                      "(demo, tiny, gangnam, map_rebuild)"),
-            root: Optional[Path] = ROOT_OPT, scheduler: Optional[str] = SCHED_OPT,
+            root: Optional[Path] = opts.ROOT_OF_WORKFLOW, scheduler: Optional[str] = opts.SCHEDULER,
             only: Optional[list[str]] = typer.Option(None, "--only", help="Run only these stages (repeatable)."),
             dry_run: bool = typer.Option(False, "--dry-run", help="Print order, partitions, fingerprints, decisions."),
-            quiet: bool = QUIET_OPT, params: Optional[Path] = PARAMS_OPT,
-            workers: Optional[int] = WORKERS_OPT) -> None:
+            quiet: bool = opts.QUIET, params: Optional[Path] = opts.PARAMS,
+            workers: Optional[int] = opts.WORKERS, dask_host: str = opts.DASK_HOST,
+            as_json: bool = opts.JSON) -> None:
     """Run a workflow: stages in dependency order; unchanged stages are skipped.
 
     Relative paths inside a workflow file resolve against the file's folder; the output root is --root, else the
@@ -76,26 +97,30 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a 
     [b]cornermap run tiny --root runs/tiny --scheduler tcp://127.0.0.1:8786[/b] (a dask.distributed scheduler)
     """
     result = execute_workflow(workflow, root=root, scheduler=scheduler, only=only, dry_run=dry_run, quiet=quiet,
-                              params_file=params, workers=workers)
-    if not dry_run:
-        from pipeline.progress import print_outcomes
-
-        print_outcomes(result["plan"])
+                              params_file=params, workers=workers, dask_host=dask_host, quiet_plan=as_json)
+    if dry_run and as_json:
+        opts.echo_json({"root": result["root"], "dry_run": True, "stages": result["stages"]})
+    elif not dry_run:
+        report_run(result, as_json)
 
 
 @app.command("build")
 def build_cmd(
     drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml of a map drive (repeatable)."),
-    map_name: str = typer.Option(..., "--map", help="Map name: publishes ROOT/maps/NAME/vNNNN."),
-    root: Path = typer.Option(..., "--root", help="Output root."),
+    map_name: str = opts.MAP,
+    root: Path = opts.ROOT,
     origin: Optional[str] = typer.Option(
         None,
         "--origin",
         help="The map's ENU origin LAT,LON,H (degrees, "
         "degrees, metres WGS84); default: the first GNSS fix of the first drive.",
     ),
-    scheduler: Optional[str] = SCHED_OPT,
-    quiet: bool = QUIET_OPT,
+    scheduler: Optional[str] = opts.SCHEDULER,
+    workers: Optional[int] = opts.WORKERS,
+    dask_host: str = opts.DASK_HOST,
+    quiet: bool = opts.QUIET,
+    params: Optional[Path] = opts.PARAMS,
+    as_json: bool = opts.JSON,
     workflow: str = typer.Option(
         "map_rebuild", "--workflow", help="The map workflow to run on these drives (a file or a packaged name)."
     ),
@@ -108,22 +133,21 @@ def build_cmd(
     Example:
     [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
     """
+    from pipeline.api import published_version
     from pipeline.build import parse_origin, write_build_workflow
-    from pipeline.maps import pinned_frame
+    from pipeline.maps import pinned_frame, stale_latest_note
     from pipeline.names import check_name
 
     check_name(map_name, "map", "--map")
     pinned, tile_size_m = pinned_frame(root, map_name, parse_origin(origin) if origin else None)
     path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root, origin=pinned,
                                 tile_size_m=tile_size_m)
-    result = execute_workflow(path, root=root, scheduler=scheduler, only=None, dry_run=False, quiet=quiet)
-    from pipeline.maps import stale_latest_note
-    from pipeline.progress import print_outcomes
-
-    print_outcomes(result["plan"])
+    result = execute_workflow(path, root=root, scheduler=scheduler, only=None, dry_run=False, quiet=quiet,
+                              params_file=params, workers=workers, dask_host=dask_host)
+    version = published_version(result["plan"])
     note = stale_latest_note(result["plan"], map_name)
-    if note:
-        typer.echo(note, err=True)
+    report_run(result, as_json, notes=[note] if note else [],
+               extra={"map": map_name, "map_version": f"v{version:04d}" if version is not None else None})
 
 
 @catalog_app.command("ls")
@@ -188,19 +212,41 @@ def _register_stages() -> None:
             app.add_typer(sub, name=name, help=sub.info.help or decl.summary)
 
 
-EXIT_TERMINATED = 143  # 128 + SIGTERM, the shells' convention for a process ended by that signal
+EXIT_USAGE = 2  # the command line is wrong (click's and argparse's code)
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, the shells' convention for a process ended by that signal
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 
 
-class Terminated(BaseException):
-    """SIGTERM reached the command (a job scheduler's timeout or cancel). Raised in the main thread, so the run's
-    cleanup runs on the way out; not an ``Exception``: no handler of a stage takes it for a stage's own error."""
+class Stopped(BaseException):
+    """A signal asked the command to stop. Raised in the main thread, so the run's cleanup runs on the way out; not
+    an ``Exception``: no handler of a stage takes it for a stage's own error."""
+
+    exit_code = 1
+    line = "stopped"
+
+
+class Interrupted(Stopped):
+    """SIGINT reached the command (Ctrl-C in its terminal, or ``kill -INT``)."""
+
+    exit_code = EXIT_INTERRUPTED
+    line = ("interrupted: SIGINT; the command stopped (what it committed before stays; nothing half-written is "
+            "visible; run it again to go on)")
+
+
+class Terminated(Stopped):
+    """SIGTERM reached the command (a job scheduler's timeout or cancel, systemd stopping a unit)."""
+
+    exit_code = EXIT_TERMINATED
+    line = ("terminated: SIGTERM; the command stopped (what it committed before stays; nothing half-written is "
+            "visible; run it again to go on)")
 
 
 @contextlib.contextmanager
-def sigterm_stops_the_run():
-    """Within: a SIGTERM ends the pool processes this process started (they would otherwise finish their task
-    first) and raises ``Terminated`` in the main thread; a second SIGTERM ends the process at once (the default).
-    Outside the main thread (a test's runner), nothing changes."""
+def signals_stop_the_run():
+    """Within: SIGINT and SIGTERM end the pool processes this process started (they would otherwise finish their
+    task first; they ignore SIGINT themselves, ``pipeline.parallel``) and raise ``Interrupted`` / ``Terminated`` in
+    the main thread; a second signal ends the process at once (the default action). Outside the main thread (a
+    test's runner), nothing changes."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -209,60 +255,116 @@ def sigterm_stops_the_run():
         import multiprocessing
 
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
         for child in multiprocessing.active_children():
             child.terminate()
-        raise Terminated()
+        raise Interrupted() if signum == signal.SIGINT else Terminated()
 
-    previous = signal.signal(signal.SIGTERM, stop)
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGTERM, signal.SIGINT)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point: every error a user can cause ends as one ``error: ...`` line on stderr and exit 1 (3 for
-    data-quality failures); an unexpected exception is reported the same way (traceback with -v); a SIGTERM ends
-    the run with one line and exit 143 (``sigterm_stops_the_run``)."""
+sigterm_stops_the_run = signals_stop_the_run  # the name of its first version (SIGTERM only)
+
+
+def _exceptions():
     try:  # typer >= 0.20 vendors click
-        from typer._click.exceptions import ClickException, UsageError
+        from typer._click import exceptions
     except ImportError:  # pragma: no cover - older typer
-        from click.exceptions import ClickException, UsageError
+        from click import exceptions
+    return exceptions
 
+
+def _command_path(argv: list[str] | None) -> str:
+    """``cornermap SUB CMD``: the commands named at the start of ``argv`` (for "see '... --help'")."""
+    command = typer.main.get_command(app)
+    path = ["cornermap"]
+    for arg in (sys.argv[1:] if argv is None else argv):
+        sub = getattr(command, "commands", {}).get(arg)
+        if sub is None:
+            if arg.startswith("-"):
+                continue  # a root option (-v) before the command
+            break
+        command, path = sub, path + [arg]
+    return " ".join(path)
+
+
+def run_command(argv: list[str] | None = None) -> int:
+    """Run ``cornermap ARGV`` and return its exit code (see ``main``); what a user should read is on stderr."""
+    exc_mod = _exceptions()
     try:
         _register_stages()
         command = typer.main.get_command(app)
-        with sigterm_stops_the_run():
-            command.main(args=argv, prog_name="cornermap", standalone_mode=False)
-    except Terminated:
-        typer.echo("terminated: SIGTERM; the run stopped (what it committed before stays; nothing half-written is "
-                   "visible; run it again to go on)", err=True)
-        sys.exit(EXIT_TERMINATED)
-    except typer.Exit as exc:
-        sys.exit(getattr(exc, "exit_code", 0))
-    except UsageError as exc:
-        path = exc.ctx.command_path if exc.ctx is not None else "cornermap"
+        with signals_stop_the_run():
+            code = command.main(args=argv, prog_name="cornermap", standalone_mode=False)
+        if code == EXIT_INTERRUPTED:  # typer's own answer to a KeyboardInterrupt (a SIGINT outside our handler)
+            typer.echo(Interrupted.line, err=True)
+        return code if isinstance(code, int) else 0
+    except Stopped as exc:
+        typer.echo(exc.line, err=True)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        typer.echo(Interrupted.line, err=True)
+        return EXIT_INTERRUPTED
+    except exc_mod.NoArgsIsHelpError as exc:  # a group named without a command: its help is the answer
+        message = exc.format_message().strip()
+        if message:
+            typer.echo(message, err=True)
+        return EXIT_USAGE
+    except exc_mod.UsageError as exc:
+        path = exc.ctx.command_path if exc.ctx is not None else _command_path(argv)
         typer.echo(f"error: {exc.format_message()} (see '{path} --help')", err=True)
-        sys.exit(1)
-    except ClickException as exc:
+        return EXIT_USAGE
+    except exc_mod.ClickException as exc:
         typer.echo(f"error: {exc.format_message()}", err=True)
-        sys.exit(1)
+        return exc.exit_code or 1
     except typer.Abort:
         typer.echo("aborted", err=True)
-        sys.exit(130)
+        return 1
+    except typer.Exit as exc:
+        return exc.exit_code
     except CornermapError as exc:
         from pipeline.errors import ConfigError
 
         one = isinstance(exc, ConfigError) and len(exc.problems) == 1
-        typer.echo(f"error: {exc.where}: {exc.problems[0]}" if one else f"error: {exc}", err=True)
-        sys.exit(exc.exit_code)
+        text = f"error: {exc.where}: {exc.problems[0]}" if one else f"error: {exc}"
+        if exc.exit_code == EXIT_USAGE:
+            text += f" (see '{_command_path(argv)} --help')"
+        typer.echo(text, err=True)
+        return exc.exit_code
     except OSError as exc:  # the file system refused (permissions, full disk, a directory where a file goes)
         where = f"{exc.filename}: " if exc.filename else ""
         typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
-        sys.exit(1)
+        return 1
     except Exception as exc:  # noqa: BLE001 - the last line of defence: a bug, reported without a traceback
         if logging.getLogger().isEnabledFor(logging.INFO):
             logging.getLogger("cornermap").exception("unexpected error")
         typer.echo(f"error: internal error {type(exc).__name__}: {exc} (a bug; rerun with -v for the traceback)",
                    err=True)
-        sys.exit(1)
+        return 1
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point. Exit codes: 0 ok; 1 error (one ``error: ...`` line on stderr, a bug too: traceback with -v);
+    2 usage (unknown command or option, a missing or malformed option value); 3 data quality (a gate refused);
+    75 locked (another run holds the lock: try later); 130 interrupted (SIGINT), 143 terminated (SIGTERM), each
+    with one line, pool processes ended, nothing half-written visible (``signals_stop_the_run``)."""
+    code = run_command(argv)
+    if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) and _computing_threads():
+        # a single-partition stage still computing in a thread of this process: not waited for (it would finish
+        # its stage first); what it writes is invisible until committed, and nothing commits any more
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        logging.shutdown()
+        os._exit(code)
+    if code:
+        sys.exit(code)
+
+
+def _computing_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon and t.is_alive()]

@@ -200,11 +200,11 @@ class StageContext:
     settings: Mapping[str, Any]  # workflow-level settings (map name, ENU origin, tile size, ...)
     scratch_dir: Path  # private, deleted after the task
     artifact_dirs: Mapping[str, Path]  # output key -> staging dir for non-tabular files of this partition
-    # Inner steps of a long partition ("loops verified", n, total) -> the run's progress display, where the
-    # partition runs in the process that shows it (no-op elsewhere).
-    step_progress: Callable[[str, int, int], None] | None = None
+    # Inner steps of a long partition ("loops verified", n, total; counts None for a step that cannot count) -> the
+    # run's progress display, where the partition runs in the process that shows it (no-op elsewhere).
+    step_progress: Callable[[str, int | None, int | None], None] | None = None
 
-    def report_step(self, step: str, done: int, total: int) -> None:
+    def report_step(self, step: str, done: int | None = None, total: int | None = None) -> None:
         if self.step_progress is not None:
             self.step_progress(step, done, total)
 

@@ -25,6 +25,13 @@ class ConfigError(CornermapError, ValueError):
         return (type(self), (self.where, self.problems))
 
 
+class OptionError(ConfigError):
+    """A command-line option's value is malformed or out of range: the command line itself is wrong. Exit 2, as
+    click's and argparse's usage errors (``where`` names the option)."""
+
+    exit_code = 2
+
+
 class UnknownNameError(CornermapError, KeyError):
     """A stage, dataset or key that does not exist."""
 

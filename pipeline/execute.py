@@ -297,20 +297,58 @@ def one_thread_per_process(processes: int | None = None):
 
 class Scheduler:
     """Where a run's tasks go: ``sync``, ``threads``, ``local``/``processes`` (pools of ``pipeline.flow``), or a
-    dask.distributed cluster (``distributed`` starts a local one; ``tcp://HOST:PORT`` connects)."""
+    dask.distributed cluster (``distributed`` starts a local one; ``tcp://HOST:PORT`` connects).
 
-    def __init__(self, address: str = "local", workers: int | None = None):
+    A local cluster listens on ``host`` only (its scheduler, workers and dashboard; default 127.0.0.1: the dashboard
+    has no authentication). dask's own log lines (this process's client, and a local cluster's scheduler, nannies
+    and workers) go to ``log_dir``/dask-<time>-<pid>.log (default: the system's temporary folder), not to the
+    terminal: a task that raises (an expected quality refusal too) reaches the command as its exception, reported
+    in one line. ``dashboard_link`` and ``log_file`` say where to look."""
+
+    def __init__(self, address: str = "local", workers: int | None = None, *, host: str = "127.0.0.1",
+                 log_dir: Path | None = None):
         self.address = address
         self.workers = workers or os.cpu_count() or 1
         self._client = None
+        self._cluster = None
+        self._logs = None  # pipeline.dask_logs.DaskLogs while a cluster is in use
+        self.dashboard_link: str | None = None
+        self.log_file: Path | None = None
         if address.startswith("tcp://") or address == "distributed":
-            from distributed import Client
-
-            self._client = Client(address) if address.startswith("tcp://") else Client(
-                n_workers=self.workers, threads_per_worker=1, processes=True)
+            self._start_cluster(address, host, log_dir)
         elif address not in ("local", "sync", "synchronous", "threads", "processes"):
             raise StageError(f"unknown scheduler {address!r}; use local | sync | threads | processes | "
                              f"distributed | tcp://HOST:PORT")
+
+    def _start_cluster(self, address: str, host: str, log_dir: Path | None) -> None:
+        import tempfile
+        import warnings
+
+        from distributed import Client, LocalCluster
+
+        from pipeline.dask_logs import DaskLogs, WorkerLogsToFile
+
+        folder = Path(log_dir) if log_dir is not None else Path(tempfile.gettempdir())
+        folder.mkdir(parents=True, exist_ok=True)
+        self.log_file = folder / f"dask-{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}.log"
+        self._logs = DaskLogs(self.log_file)  # worker processes log at ERROR until their plugin sends it to the file
+        try:
+            with warnings.catch_warnings(record=True) as caught:  # "port 8787 is in use, serving on ..." and alike
+                warnings.simplefilter("always")
+                if address == "distributed":
+                    self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                                 host=host, dashboard_address=f"{host}:8787",
+                                                 worker_dashboard_address=None, silence_logs=False)
+                    self._client = Client(self._cluster)
+                    self._client.register_plugin(WorkerLogsToFile(str(self.log_file)), name="cornermap-logs")
+                else:  # a running cluster's workers log where its operator decided
+                    self._client = Client(address)
+            for w in caught:
+                logging.getLogger("distributed").warning("%s: %s", w.category.__name__, w.message)
+            self.dashboard_link = self._client.dashboard_link
+        except BaseException:
+            self.close()
+            raise
 
     @property
     def kind(self) -> str:
@@ -319,5 +357,13 @@ class Scheduler:
         return {"local": "processes", "synchronous": "sync"}.get(self.address, self.address)
 
     def close(self) -> None:
-        if self._client is not None:
-            self._client.close()
+        try:
+            if self._client is not None:
+                self._client.close()
+            if self._cluster is not None:
+                self._cluster.close()
+        finally:
+            self._client = self._cluster = None
+            if self._logs is not None:
+                self._logs.restore()
+                self._logs = None

@@ -163,9 +163,10 @@ class TaskPool:
             for *_, outer in self._waiting:  # never started
                 outer.cancel()
             self._waiting.clear()
-        for pool in (self._here, self._pool):
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=cancel)
+        if self._here is not None:  # a stopped or failed run does not wait for a single-partition stage's thread
+            self._here.shutdown(wait=not cancel, cancel_futures=cancel)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=cancel)
 
 
 @dataclass
@@ -198,6 +199,9 @@ class _Stage:
 class Flow:
     def __init__(self, plan: Plan, scheduler: Scheduler, progress: Progress | None):
         self.plan, self.scheduler, self.progress = plan, scheduler, progress
+        # a display (pipeline.progress.StageProgress) also shows a stage's inner steps and when it ends
+        self._step = getattr(progress, "step", None)
+        self._finish = getattr(progress, "finish", None)
         self.stages: dict[str, _Stage] = {}
         self.pending: dict[Any, tuple[str, str]] = {}  # future -> (stage, label)
         self.summary: dict[str, Any] = {}
@@ -272,7 +276,7 @@ class Flow:
             st.t_submit = time.perf_counter()
             log.info("stage %s: running (fingerprint %s)", st.name, st.sp.fp8)
             if self.progress is not None and self.scheduler.kind != "distributed":
-                set_step_progress(st.name, lambda step, d, t, n=st.name: self.progress(f"{n}: {step}", d, t))
+                set_step_progress(st.name, self._step_display(st.name))
         here = st.sp.decl.partition == Partitioning.SINGLE
         for pk in keys:
             if pk.label in st.keys:
@@ -282,6 +286,13 @@ class Flow:
                                    here=here, priority=self.ranks.get(st.name, 0))
             self.pending[fut] = (st.name, pk.label)
         self._show(st)
+
+    def _step_display(self, name: str) -> Callable[[str, int, int], None]:
+        """Where stage ``name``'s inner steps (``StageContext.report_step``) go: its own row's step, or a row of
+        their own for a plain progress callback."""
+        if self._step is not None:
+            return lambda step, d, t: self._step(name, step, d, t)
+        return lambda step, d, t: self.progress(f"{name}: {step}", d, t)
 
     def _show(self, st: _Stage) -> None:
         if self.progress is not None:
@@ -295,6 +306,8 @@ class Flow:
         if st.sp.partitions is None:
             st.sp.partitions = sorted(st.keys.values())
         set_step_progress(st.name, None)
+        if self._finish is not None:
+            self._finish(st.name)
         starts = [p["t_start"] for p in parts if "t_start" in p]
         ends = [p["t_end"] for p in parts if "t_end" in p]
         self.summary[st.name] = {

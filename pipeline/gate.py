@@ -55,11 +55,12 @@ def compare(candidate: dict | None, previous: dict | None, tol_m: float, tol_rel
 
 def _evaluate(mdir: Path, version: int, drive: Path, reference: str | None, out: Path) -> dict | None:
     from pipeline.errors import StageError
-    from pipeline.rebuild import cli
+    from pipeline.progress import run_cornermap
     from pipeline.versioned import version_name
 
-    res = cli("evaluate", "--root", str(mdir.parent.parent), "--map", mdir.name, "--version", version_name(version),
-              "--drive", str(drive), "--reference", reference or "map", "--out", str(out), "-q")
+    res = run_cornermap(["evaluate", "--root", str(mdir.parent.parent), "--map", mdir.name, "--map-version",
+                         version_name(version), "--drive", str(drive), "--reference", reference or "map", "--out",
+                         str(out)], label="gate", step=f"{drive.parent.name} on {version_name(version)}")
     metrics = out / "metrics.json"
     if res.returncode not in (0, 3) or not metrics.is_file():
         raise StageError(f"gate: cornermap evaluate of {drive} on {version_name(version)} failed (exit "
@@ -72,17 +73,22 @@ def _evaluate(mdir: Path, version: int, drive: Path, reference: str | None, out:
 
 def run_gate(mdir: Path, candidate: int, previous: int, drive: Path, reference: str | None,
              tol_m: float, tol_rel: float) -> GateVerdict:
+    from pipeline.progress import finish, report
     from pipeline.store import atomic_write_json
     from pipeline.versioned import version_name
 
     gate_dir = mdir / "gate"
     work = gate_dir / f".work-{version_name(candidate)}"
     try:
+        report("gate", 0, 2)
         cand = _evaluate(mdir, candidate, drive, reference, work)
+        report("gate", 1, 2)
         prev = _evaluate(mdir, previous, drive, reference, work)
+        report("gate", 2, 2)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     verdict = compare(cand, prev, tol_m, tol_rel)
+    finish("gate", "passed" if verdict.ok else "refused")
     atomic_write_json(gate_dir / f"{version_name(candidate)}.json", {
         "candidate": candidate, "previous": previous, "check_drive": str(drive), "reference": reference or "map",
         "tol_m": tol_m, "tol_rel": tol_rel, "ok": verdict.ok, "rows": verdict.rows,

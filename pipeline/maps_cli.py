@@ -1,7 +1,8 @@
 """``cornermap maps create|show``, ``cornermap rebuild`` and ``cornermap gc``: a map kept up to date on a schedule.
 
 Exit codes of ``rebuild`` (for monitoring): 0 published, 0 nothing to do, 3 the regression gate refused the
-candidate (LATEST unchanged), 1 error, 75 another rebuild of the map holds its lock. Heavy imports inside.
+candidate (LATEST unchanged), 1 error, 2 usage, 75 another rebuild of the map holds its lock, 130 / 143
+interrupted / terminated. Heavy imports inside.
 """
 from __future__ import annotations
 
@@ -10,12 +11,14 @@ from typing import Optional
 
 import typer
 
+from pipeline import cli_options as opts
+
 maps_app = typer.Typer(no_args_is_help=True, help="A map's identity: pinned frame, tile size, drive set.\n\n"
                        "Examples:\n\n  cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57"
                        "\n\n  cornermap maps show --root runs/maps --map kept")
 
-ROOT_REQ = typer.Option(..., "--root", help="Output root holding maps/NAME/ and datasets/.")
-MAP_REQ = typer.Option(..., "--map", help="Map name (ROOT/maps/NAME).")
+ROOT_REQ = opts.ROOT
+MAP_REQ = opts.MAP
 
 
 @maps_app.command("create")
@@ -36,13 +39,13 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
     Example: [b]cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57[/b]
     """
     from pipeline.build import parse_origin
-    from pipeline.errors import ConfigError
+    from pipeline.errors import ConfigError, OptionError
     from pipeline.maps import MAX_RADIUS_LIMIT_KM, CheckDrive, create_map
 
     if not (0 < tile_size_m <= 10000):
-        raise ConfigError("--tile-size-m", [f"expected 0 < S <= 10000 m; got {tile_size_m}"])
+        raise OptionError("--tile-size-m", [f"expected 0 < S <= 10000 m; got {tile_size_m}"])
     if not (0 < max_radius_km <= MAX_RADIUS_LIMIT_KM):
-        raise ConfigError("--max-radius-km", [f"expected 0 < R <= {MAX_RADIUS_LIMIT_KM:g} km; got {max_radius_km}"])
+        raise OptionError("--max-radius-km", [f"expected 0 < R <= {MAX_RADIUS_LIMIT_KM:g} km; got {max_radius_km}"])
     check = None
     if check_drive is not None:
         for opt, p in (("--check-drive", check_drive), ("--check-reference", check_reference)):
@@ -51,7 +54,7 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
         check = CheckDrive(path=str(check_drive.resolve()),
                            reference=str(check_reference.resolve()) if check_reference else None)
     elif check_reference is not None:
-        raise ConfigError("--check-reference", ["applies to --check-drive only"])
+        raise OptionError("--check-reference", ["applies to --check-drive only"])
     ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check, max_radius_km)
     o = ident.enu_origin
     typer.echo(f"created map {map_name!r}: origin {o.lat_deg},{o.lon_deg},{o.h_m}, tiles {ident.tile_size_m} m, "
@@ -59,16 +62,20 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
 
 
 @maps_app.command("show")
-def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ) -> None:
+def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ, as_json: bool = opts.JSON) -> None:
     """Print a map's frame, its versions (LATEST, refused by the gate, candidate) and drives: when each was recorded
     (first/last pose), when added, the versions holding it. Maps made by `cornermap build` too.
 
     Example: [b]cornermap maps show --root runs/maps --map kept[/b]
     """
     from pipeline.maps import map_dir
-    from pipeline.maps_show import show_lines
+    from pipeline.maps_show import show_doc, show_lines
 
-    for line in show_lines(map_dir(root, map_name)):
+    mdir = map_dir(root, map_name)
+    if as_json:
+        opts.echo_json(show_doc(mdir))
+        return
+    for line in show_lines(mdir):
         typer.echo(line)
 
 
@@ -84,8 +91,10 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                                                  "by max(this, --gate-tol-rel x previous) metres."),
                 gate_tol_rel: float = typer.Option(0.2, "--gate-tol-rel", help="Gate: relative tolerance."),
                 no_gate: bool = typer.Option(False, "--no-gate", help="Publish without the regression gate."),
-                scheduler: Optional[str] = typer.Option(None, "--scheduler", help="As for cornermap run."),
-                workflow: str = typer.Option("map_rebuild", "--workflow", help="The map workflow.")) -> None:
+                scheduler: Optional[str] = opts.SCHEDULER, workers: Optional[int] = opts.WORKERS,
+                dask_host: str = opts.DASK_HOST, params: Optional[Path] = opts.PARAMS,
+                workflow: str = typer.Option("map_rebuild", "--workflow", help="The map workflow."),
+                quiet: bool = opts.QUIET, as_json: bool = opts.JSON) -> None:
     """Build the next version of map NAME from its drives plus the new ones in INBOX, gate it, publish it.
 
     Delivery: a drive is a folder INBOX/NAME with its drive.yaml, taken once complete: a READY file in it written
@@ -93,23 +102,37 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
     (same content) or delivered twice is left alone; a bad one moves to INBOX/quarantine/ with a reason.
 
     Exit codes: 0 published or nothing to do, 3 gate refused or a drive outside the map's area (LATEST unchanged),
-    1 error, 75 another writer of the map or root holds its lock.
+    1 error, 2 usage, 75 another writer of the map or root holds its lock, 130/143 interrupted/terminated (LATEST
+    unchanged unless the candidate was already published).
 
     Example: [b]cornermap rebuild --root runs/maps --map kept --inbox runs/sim[/b] (drive folders in runs/sim)
     """
     import math
 
-    from pipeline.errors import ConfigError
+    from pipeline.errors import OptionError
+    from pipeline.progress import StageProgress
     from pipeline.rebuild import RebuildParams, rebuild
 
     for opt, v in (("--min-free-gib", min_free_gib), ("--gate-tol-m", gate_tol_m), ("--gate-tol-rel", gate_tol_rel),
                    ("--quiet-period-min", quiet_period_min)):
         if not (math.isfinite(v) and v >= 0):
-            raise ConfigError(opt, [f"expected a finite number >= 0; got {v}"])
+            raise OptionError(opt, [f"expected a finite number >= 0; got {v}"])
     params = RebuildParams(min_free_gib=min_free_gib, gate=not no_gate, gate_tol_m=gate_tol_m,
                            gate_tol_rel=gate_tol_rel, workflow=workflow, scheduler=scheduler,
-                           quiet_period_s=quiet_period_min * 60.0)
-    result = rebuild(root, map_name, inbox, params, say=typer.echo)  # each line as it comes
+                           quiet_period_s=quiet_period_min * 60.0, params_file=params, workers=workers,
+                           dask_host=dask_host)
+    with StageProgress(enabled=not quiet):
+        # each line as it comes (a cron log keeps what was quarantined even when the build then fails)
+        result = rebuild(root, map_name, inbox, params, say=None if as_json else typer.echo)
+    if as_json:
+        opts.echo_json({"map": map_name, "status": result.status, "exit_code": result.exit_code,
+                        "version": f"v{result.version:04d}" if result.version is not None else None,
+                        "quarantined": result.quarantined, "lines": result.lines, "stages": result.summary})
+    elif result.summary:  # the build ran: per stage its partitions (reused), wall and CPU seconds
+        from pipeline.progress import summary_lines
+
+        for line in summary_lines(result.summary, root):
+            typer.echo(line)
     if result.exit_code:
         raise typer.Exit(result.exit_code)
 

@@ -91,10 +91,12 @@ def _mark(version: int, state: str) -> str:
     return version_name(version) + {"LATEST": "*", "refused": "(refused)", "candidate": "(candidate)"}.get(state, "")
 
 
-def show_lines(mdir: Path) -> list[str]:
-    """The text of ``cornermap maps show``; UnknownNameError for a folder with neither an identity nor a version."""
+def show_doc(mdir: Path) -> dict:
+    """What ``cornermap maps show`` says, as data (its ``--json``): the frame (``identity`` None for a map made by
+    ``cornermap build``), each version with its standing, each drive; UnknownNameError for a folder with neither an
+    identity nor a version."""
     from pipeline.errors import CornermapError, UnknownNameError
-    from pipeline.maps import fmt_origin, latest_origin, read_identity
+    from pipeline.maps import latest_origin, read_identity
     from pipeline.version_read import list_versions, read_latest, read_manifest, version_name
 
     ident = read_identity(mdir)
@@ -102,29 +104,52 @@ def show_lines(mdir: Path) -> list[str]:
     if ident is None and not versions:
         raise UnknownNameError(f"{mdir}: no map here (neither map.json nor a published version); hint: --root is "
                                "the folder holding maps/NAME")
-    lines = []
+    doc: dict = {"map": Path(mdir).name, "path": str(mdir), "identity": None, "enu_origin": None,
+                 "latest": None, "versions": [], "drives": drive_rows(mdir, ident)}
     if ident is not None:
-        o = ident.enu_origin
-        lines.append(f"map {ident.name}: origin {o.lat_deg},{o.lon_deg},{o.h_m} (WGS84), tiles {ident.tile_size_m} m, "
-                     f"area {ident.max_radius_km:g} km around the origin, created {ident.created_utc}"
-                     + (f", check drive {ident.check_drive.path}" if ident.check_drive else ""))
-    else:
-        origin = latest_origin(mdir) if (Path(mdir) / "LATEST").exists() else None
-        latest = read_latest(mdir) if origin is not None else None
-        lines.append(f"map {Path(mdir).name}: no identity (made by `cornermap build`; `cornermap maps create` pins "
-                     "its frame for rebuilds)" + (f"; origin {fmt_origin(origin)} (WGS84) of LATEST "
-                                                  f"{version_name(latest)}" if origin else ""))
+        doc["identity"] = {"tile_size_m": ident.tile_size_m, "max_radius_km": ident.max_radius_km,
+                           "created_utc": ident.created_utc,
+                           "check_drive": ident.check_drive.model_dump() if ident.check_drive else None}
+        doc["enu_origin"] = ident.enu_origin.model_dump()
+    elif (Path(mdir) / "LATEST").exists():
+        doc["enu_origin"] = latest_origin(mdir)
+    if (Path(mdir) / "LATEST").exists():
+        latest = read_latest(mdir)
+        doc["latest"] = version_name(latest) if latest is not None else None
     states = version_states(mdir)
-    lines.append(f"{'version':9s} {'created (UTC)':20s} {'drives':>6s}  standing")
     for v in versions:
         try:
             m = read_manifest(Path(mdir) / version_name(v))[0]
-            created, n = str(m.get("created_utc", "?"))[:19], str(len(m.get("source_drives", [])))
+            created, n = str(m.get("created_utc", "?"))[:19], len(m.get("source_drives", []))
         except CornermapError:
-            created, n = "unreadable manifest", "?"
-        note = "LATEST" if states[v] == "LATEST" else state_note(mdir, v, states[v])
-        lines.append(f"{version_name(v):9s} {created:20s} {n:>6s}  {note}".rstrip())
-    rows = drive_rows(mdir, ident)
+            created, n = "unreadable manifest", None
+        doc["versions"].append({"version": version_name(v), "created_utc": created, "drives": n,
+                                "standing": states[v] or None, "note": state_note(mdir, v, states[v]) or None})
+    return doc
+
+
+def show_lines(mdir: Path) -> list[str]:
+    """The text of ``cornermap maps show`` (``show_doc`` in words)."""
+    doc = show_doc(mdir)
+    o, ident = doc["enu_origin"], doc["identity"]
+    lines = []
+    if ident is not None:
+        lines.append(f"map {doc['map']}: origin {o['lat_deg']},{o['lon_deg']},{o['h_m']} (WGS84), tiles "
+                     f"{ident['tile_size_m']} m, area {ident['max_radius_km']:g} km around the origin, created "
+                     f"{ident['created_utc']}"
+                     + (f", check drive {ident['check_drive']['path']}" if ident["check_drive"] else ""))
+    else:
+        from pipeline.maps import fmt_origin
+
+        lines.append(f"map {doc['map']}: no identity (made by `cornermap build`; `cornermap maps create` pins "
+                     "its frame for rebuilds)" + (f"; origin {fmt_origin(o)} (WGS84) of LATEST {doc['latest']}"
+                                                  if o and doc["latest"] else ""))
+    lines.append(f"{'version':9s} {'created (UTC)':20s} {'drives':>6s}  standing")
+    for v in doc["versions"]:
+        note = "LATEST" if v["standing"] == "LATEST" else (v["note"] or "")
+        n = "?" if v["drives"] is None else str(v["drives"])
+        lines.append(f"{v['version']:9s} {v['created_utc']:20s} {n:>6s}  {note}".rstrip())
+    rows = doc["drives"]
     lines.append(f"{'drive':16s} {'first pose':20s} {'last pose':20s} {'added (UTC)':20s} versions")
     lines += [f"{r['name']:16s} {r['first']:20s} {r['last']:20s} {r['added']:20s} {r['versions']}" for r in rows]
     if not rows:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from pipeline.errors import ConfigError, PathEscapeError
+from pipeline.errors import ConfigError, OptionError, PathEscapeError
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 _NAME_RE = re.compile(NAME_PATTERN)
@@ -29,10 +29,11 @@ def name_problem(name: object, kind: str) -> str | None:
 
 
 def check_name(name: object, kind: str, where: str = "name") -> str:
-    """Return ``name`` when it matches NAME_PATTERN, else raise ConfigError naming ``where``."""
+    """Return ``name`` when it matches NAME_PATTERN, else raise ConfigError naming ``where`` (an ``OptionError``,
+    exit 2, when ``where`` is a command-line option)."""
     problem = name_problem(name, kind)
     if problem:
-        raise ConfigError(where, [problem])
+        raise (OptionError if where.startswith("--") else ConfigError)(where, [problem])
     return name  # type: ignore[return-value]
 
 

@@ -24,7 +24,10 @@ to need it builds it and writes it under ``folder`` (a stage's scratch directory
 Every process pool of the engine comes from ``process_pool``: its processes end themselves when the process that
 started them is gone (``ORPHAN_POLL_S``). Why: a run stopped by SIGKILL (a job scheduler's timeout, the OOM killer),
 or by a SIGTERM that reaches only the engine's process, otherwise leaves its pool processes waiting in a queue read
-that never ends, with their memory (a demo build killed in its pose graph: 4 processes, 2.35 GB).
+that never ends, with their memory (a demo build killed in its pose graph: 4 processes, 2.35 GB). They ignore
+SIGINT: a terminal's Ctrl-C reaches the whole process group, and the process that started them ends them
+(``pipeline.cli``: exit 130, one line) where each would otherwise print a KeyboardInterrupt traceback. Their log
+records go to the starting process, which shows them as its own (``_log_relay``).
 """
 from __future__ import annotations
 
@@ -51,19 +54,56 @@ ORPHAN_EXIT_CODE = 129  # a pool process that ended itself because that process 
 def process_pool(workers: int, initializer: Callable[..., None] | None = None, initargs: tuple = ()):
     """A spawn-context ``ProcessPoolExecutor`` of ``workers`` processes (no forked OpenMP state), each started with
     ``initializer(*initargs)`` after a watch thread that ends the process (``os._exit``, ``ORPHAN_EXIT_CODE``) once
-    the process that started it is gone. A task cut off that way leaves nothing visible: outputs are written to a
-    temporary name and renamed (``pipeline.store``)."""
+    the process that started it is gone, with SIGINT ignored and its log records relayed here (``_log_relay``). A
+    task cut off that way leaves nothing visible: outputs are written to a temporary name and renamed
+    (``pipeline.store``)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
+    logs, level = _log_relay(), logging.getLogger().getEffectiveLevel()
     return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_start_pool_process,
-                               initargs=(os.getpid(), initializer, initargs))
+                               initargs=(os.getpid(), logs, level, initializer, initargs))
 
 
-def _start_pool_process(parent_pid: int, initializer: Callable[..., None] | None, initargs: tuple) -> None:
+def _start_pool_process(parent_pid: int, logs, level: int, initializer: Callable[..., None] | None,
+                        initargs: tuple) -> None:
+    import logging.handlers
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     threading.Thread(target=exit_when_orphaned, args=(parent_pid,), name="cornermap-orphan-watch", daemon=True).start()
+    root = logging.getLogger()  # log records go to the starting process, which shows them as its own
+    logs.cancel_join_thread()  # exiting never waits on the queue (a sibling killed while writing would hold its lock)
+    root.handlers = [logging.handlers.QueueHandler(logs)]
+    root.setLevel(level)
     if initializer is not None:
         initializer(*initargs)
+
+
+_RELAY: list = []  # this process's (queue, thread) relaying its pool processes' log records
+
+
+def _log_relay():
+    """The queue this process's pool processes put their log records on (started once per process): a thread here
+    hands each to this process's logger of the same name, so a pool process's warning is shown as this process's
+    (its format, its level, above a live progress display) rather than written to the terminal by the child."""
+    if not _RELAY:
+        import multiprocessing as mp
+
+        queue = mp.get_context("spawn").Queue()
+
+        def relay() -> None:
+            while True:
+                try:
+                    record = queue.get()
+                except (EOFError, OSError):  # the process is ending
+                    return
+                logging.getLogger(record.name).handle(record)
+
+        thread = threading.Thread(target=relay, name="cornermap-pool-logs", daemon=True)
+        thread.start()
+        _RELAY.append((queue, thread))
+    return _RELAY[0][0]
 
 
 def exit_when_orphaned(parent_pid: int, poll_s: float = ORPHAN_POLL_S) -> None:
@@ -74,9 +114,13 @@ def exit_when_orphaned(parent_pid: int, poll_s: float = ORPHAN_POLL_S) -> None:
     os._exit(ORPHAN_EXIT_CODE)
 
 
-def exit_with_parent_from_env(variable: str = "CORNERMAP_EXIT_WITH_PARENT") -> None:
+EXIT_WITH_PARENT_VARIABLE = "CORNERMAP_EXIT_WITH_PARENT"  # set by pipeline.progress.run_cornermap for its child
+
+
+def exit_with_parent_from_env(variable: str = EXIT_WITH_PARENT_VARIABLE) -> None:
     """When ``variable`` names this process's parent pid, watch it like a pool process does (``exit_when_orphaned``,
-    in a daemon thread): the command a parent started (``pipeline.rebuild.cli``: the regression gate's evaluations)
+    in a daemon thread): the command a parent started (``pipeline.progress.run_cornermap``: the rebuild's drive
+    checks, the regression gate's evaluations)
     ends within ``ORPHAN_POLL_S`` once that parent is gone, and its own pool processes follow it."""
     value = os.environ.pop(variable, "")
     if value.isdigit():

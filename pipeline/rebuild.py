@@ -18,26 +18,23 @@ another writer holds either):
 A run killed at any point leaves LATEST naming a complete version; the next run finds the same drives new
 and completes from the committed work (a candidate LATEST already names is only recorded).
 This module calls the stages through the command line (``python -m pipeline ...``), never by import; those child
-processes end themselves when the rebuild is gone (``PARENT_ENV``).
+processes end themselves when the rebuild is gone (``pipeline.progress.run_cornermap``).
 """
 from __future__ import annotations
 
 import logging
-import os
 import re
 import subprocess
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from pipeline.errors import ConfigError, DataQualityError
+from pipeline.errors import ConfigError, DataQualityError, StageError
 from pipeline.inbox import DEFAULT_QUIET_PERIOD_S, QUARANTINE, Delivery, quarantine  # noqa: F401 - re-exported
 from pipeline.maps import MapDrive, check_free_disk, map_dir, require_identity, run_lock, utc_now, write_identity
 
 log = logging.getLogger(__name__)
 
-PARENT_ENV = "CORNERMAP_EXIT_WITH_PARENT"  # a child started by cli() ends itself once this pid is gone
 _CONTENT_RE = re.compile(r"^content: sha256 ([0-9a-f]{64})", re.M)
 
 
@@ -50,6 +47,9 @@ class RebuildParams:
     workflow: str = "map_rebuild"
     scheduler: str | None = None
     quiet_period_s: float = DEFAULT_QUIET_PERIOD_S  # a drive folder is taken after this long without a change
+    params_file: Path | None = None  # --params: {stage: {param: value}} over the workflow's
+    workers: int | None = None
+    dask_host: str = "127.0.0.1"
 
 
 @dataclass
@@ -73,11 +73,11 @@ class RebuildResult:
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
-    """Run ``cornermap ARGS`` in a child process (the stages' own commands, without importing them). The child ends
-    itself within a second once this process is gone (``pipeline.parallel.exit_when_orphaned``, started by
-    ``python -m pipeline`` when ``PARENT_ENV`` names its parent): a SIGKILLed rebuild leaves no evaluation running."""
-    env = {**os.environ, PARENT_ENV: str(os.getpid())}
-    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True, env=env)
+    """Run ``cornermap ARGS`` in a child process (the stages' own commands, without importing them), which ends itself
+    once this process is gone (``pipeline.progress.run_cornermap``)."""
+    from pipeline.progress import run_cornermap
+
+    return run_cornermap(list(args))
 
 
 @dataclass
@@ -145,6 +145,7 @@ def select_new_drives(ident, inbox: Path, quiet_period_s: float = DEFAULT_QUIET_
     from pipeline.fingerprint import drive_fingerprint
     from pipeline.inbox import containment_problem, scan_inbox, waiting_reason
     from pipeline.names import name_problem
+    from pipeline.progress import finish, report
 
     by_fp = {d.fingerprint: d for d in ident.drives}
     by_path = {str(Path(d.path)): d for d in ident.drives}
@@ -154,7 +155,8 @@ def select_new_drives(ident, inbox: Path, quiet_period_s: float = DEFAULT_QUIET_
     sel.bad += refused
     content_of: dict[str, str] = {}  # map drive name -> content (recorded, or computed now for older identities)
     taken: dict[str, Delivery] = {}  # content -> the delivery taken this run
-    for dlv in deliveries:
+    for i, dlv in enumerate(deliveries):
+        report("inbox", i, len(deliveries), step=f"checking {dlv.entry.name}")
         fp = drive_fingerprint(dlv.drive_yaml)
         known = by_path.get(str(dlv.drive_yaml)) or by_fp.get(fp)
         if known is not None:
@@ -193,6 +195,8 @@ def select_new_drives(ident, inbox: Path, quiet_period_s: float = DEFAULT_QUIET_
                 taken[check.content] = dlv
         else:
             sel.bad.append((dlv.entry, problem))
+    report("inbox", len(deliveries), len(deliveries))
+    finish("inbox", f"{len(sel.good)} new, {len(sel.bad)} quarantined")
     missing = {d.name for d in ident.drives if d.content is None}
     if content_of and missing:
         ident = ident.model_copy(update={"drives": [d if d.content else d.model_copy(
@@ -213,25 +217,12 @@ def _map_contents(ident) -> dict[str, str]:
     return out
 
 
-def _candidate_version(plan) -> int:
-    """The version the build's tiles stage published (read from its committed map_tiles dataset)."""
-    import pyarrow.parquet as pq
-
-    from pipeline.store import dataset_dir, read_manifest
-
-    sp = next(sp for sp in plan.stages.values() if "map_tiles" in sp.outputs.values())
-    d = dataset_dir(plan.root, "map_tiles", sp.fingerprint)
-    m = read_manifest(d)
-    rows = [r for f in m["files"] for r in pq.read_table(d / f["path"], columns=["version"]).to_pylist()]
-    return int(rows[0]["version"])
-
-
 def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildParams(),
             say: Callable[[str], None] | None = None) -> RebuildResult:
     """One rebuild (module docstring); ``say(line)`` gets each line of the result as it is made, so that what was
     quarantined or left alone is told even when the build then fails."""
+    from pipeline.api import execute_workflow, published_version
     from pipeline.build import write_build_workflow
-    from pipeline.cli import execute_workflow
     from pipeline.gate import run_gate
     from pipeline.versioned import publish_lock, read_latest, verify_version, version_name, write_latest
 
@@ -264,10 +255,13 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
         wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=root,
                                   origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
                                   hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0)
-        run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True)
+        run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
+                               params_file=params.params_file, workers=params.workers, dask_host=params.dask_host)
         result.summary = run["summary"]
         result.add(reuse_line(run["summary"]))
-        candidate = _candidate_version(run["plan"])
+        candidate = published_version(run["plan"])
+        if candidate is None:
+            raise StageError(f"rebuild of map {name!r}: the build committed no map_tiles rows (no version published)")
         previous = read_latest(mdir)
         if candidate != previous and previous is not None and params.gate:
             check = ident.check_drive

@@ -6,6 +6,7 @@ from typing import Optional
 
 import typer
 
+from pipeline import cli_options as opts
 from pipeline.declare import StageDecl
 
 
@@ -33,18 +34,21 @@ def stage_app(decl: StageDecl) -> typer.Typer:
     @sub.command("run")
     def run(workflow: str = typer.Option("map_rebuild", "--workflow", "-w",
                                          help="Workflow whose inputs this stage reads (a file or a packaged name)."),
-            root: Optional[Path] = typer.Option(None, "--root", help="Output root; default: the workflow's."),
-            scheduler: Optional[str] = typer.Option(None, "--scheduler"),
-            params: Optional[Path] = typer.Option(None, "--params", help="YAML {stage: {param: value}}."),
-            dry_run: bool = typer.Option(False, "--dry-run"), quiet: bool = typer.Option(False, "--quiet", "-q")):
+            root: Optional[Path] = opts.ROOT_OF_WORKFLOW, scheduler: Optional[str] = opts.SCHEDULER,
+            workers: Optional[int] = opts.WORKERS, dask_host: str = opts.DASK_HOST,
+            params: Optional[Path] = opts.PARAMS, dry_run: bool = typer.Option(False, "--dry-run"),
+            quiet: bool = opts.QUIET, as_json: bool = opts.JSON):
         """Run this stage alone on committed inputs of a workflow."""
         from pipeline.api import execute_workflow
-        from pipeline.progress import print_outcomes
+        from pipeline.cli import report_run
 
         result = execute_workflow(workflow, root=root, scheduler=scheduler, only=[decl.name], dry_run=dry_run,
-                                  quiet=quiet, params_file=params)
-        if not dry_run:
-            print_outcomes(result["plan"])
+                                  quiet=quiet, params_file=params, workers=workers, dask_host=dask_host,
+                                  quiet_plan=as_json)
+        if dry_run and as_json:
+            opts.echo_json({"root": result["root"], "dry_run": True, "stages": result["stages"]})
+        elif not dry_run:
+            report_run(result, as_json)
 
     @sub.command("describe")
     def describe():

@@ -1,5 +1,6 @@
 """Issue 22 finding 8: every CLI command, given missing, wrong or hostile arguments, ends with ONE line on
-stderr ("error: ...") and exit code 1 (3 for data quality), never a traceback or an "internal error"."""
+stderr ("error: ...") and its exit code: 2 when the command line itself is wrong (unknown command or option, a
+missing or malformed option value), 1 when the work failed; never a traceback or an "internal error"."""
 from __future__ import annotations
 
 import json
@@ -36,88 +37,102 @@ def env(tmp_path_factory):
     return root
 
 
-def _cases(r: Path) -> list[tuple[str, ...]]:
+def _cases(r: Path) -> list[tuple[int, tuple[str, ...]]]:
+    """(expected exit code, arguments): 2 where the command line itself is wrong, 1 where the work failed."""
     m = str(r / "maps" / "city")
     R = str(r)
     return [
         # missing and wrong arguments
-        ("run",),
-        ("run", f"{R}/nope.yaml"),
-        ("run", R),
-        ("run", f"{R}/a_file"),
-        ("run", "--bogus"),
-        ("run", f"{R}/latin1.yaml"),
-        ("run", f"{R}/dup.yaml"),
-        ("run", f"{R}/bomb.yaml"),
-        ("run", str(REPO / "workflows" / "tiny.yaml"), "--only", "nope", "--dry-run"),
-        ("run", str(REPO / "workflows" / "tiny.yaml"), "--params", f"{R}/bomb.yaml", "--dry-run"),
-        ("build",),
-        ("build", "--drive", f"{R}/a_file", "--map", "../../evil", "--root", R),
-        ("catalog", "ls", f"{R}/nope"),
-        ("catalog", "validate", f"{R}/dup.yaml"),
-        ("ingest", "run", "--workflow", f"{R}/nope.yaml"),
-        ("ingest", "describe", "extra"),
-        ("corners", "params", "-x"),
-        ("inspect",),
-        ("inspect", f"{R}/nope.pcd"),
-        ("inspect", f"{R}/a_file", "--format", "pcd"),
-        ("inspect", f"{R}/a_file", "--sensor", "bogus"),
-        ("inspect", f"{R}/a_file", "--format", "bogus"),
-        ("simulate",),
-        ("simulate", "--out", f"{R}/a_file", "--quiet"),
-        ("simulate", "--out", f"{R}/sim", "--preset", "bogus", "--quiet"),
-        ("evaluate",),
-        ("evaluate", "--map", m, "--drive", f"{R}/nope.yaml", "--out", f"{R}/ev"),
-        ("evaluate", "--map", m, "--drive", f"{R}/a_file", "--out", f"{R}/a_file"),
+        (2, ("run",)),
+        (1, ("run", f"{R}/nope.yaml")),
+        (1, ("run", R)),
+        (1, ("run", f"{R}/a_file")),
+        (2, ("run", "--bogus")),
+        (1, ("run", f"{R}/latin1.yaml")),
+        (1, ("run", f"{R}/dup.yaml")),
+        (1, ("run", f"{R}/bomb.yaml")),
+        (1, ("run", str(REPO / "workflows" / "tiny.yaml"), "--only", "nope", "--dry-run")),
+        (1, ("run", str(REPO / "workflows" / "tiny.yaml"), "--params", f"{R}/bomb.yaml", "--dry-run")),
+        (2, ("build",)),
+        (2, ("build", "--drive", f"{R}/a_file", "--map", "../../evil", "--root", R)),
+        (1, ("catalog", "ls", f"{R}/nope")),
+        (1, ("catalog", "validate", f"{R}/dup.yaml")),
+        (1, ("ingest", "run", "--workflow", f"{R}/nope.yaml")),
+        (2, ("ingest", "describe", "extra")),
+        (2, ("corners", "params", "-x")),
+        (2, ("inspect",)),
+        (1, ("inspect", f"{R}/nope.pcd")),
+        (1, ("inspect", f"{R}/a_file", "--format", "pcd")),
+        (2, ("inspect", f"{R}/a_file", "--sensor", "bogus")),
+        (2, ("inspect", f"{R}/a_file", "--format", "bogus")),
+        (2, ("simulate",)),
+        (1, ("simulate", "--out", f"{R}/a_file", "--quiet")),
+        (2, ("simulate", "--out", f"{R}/sim", "--preset", "bogus", "--quiet")),
+        (2, ("evaluate",)),
+        (1, ("evaluate", "--root", R, "--map", "city", "--drive", f"{R}/nope.yaml", "--out", f"{R}/ev")),
+        (1, ("evaluate", "--root", R, "--map", "city", "--drive", f"{R}/a_file", "--out", f"{R}/a_file")),
+        (2, ("evaluate", "--root", R, "--map", m, "--drive", f"{R}/a_file", "--out", f"{R}/ev")),  # a path, not a name
+        (2, ("evaluate", "--root", R, "--map", "city", "--version", "v1", "--drive", f"{R}/a_file",
+             "--out", f"{R}/ev")),
+        (2, ("evaluate", "--root", R, "--map", "city", "--drive", f"{R}/a_file", "--out", f"{R}/ev",
+             "--method", "kalman")),
+        (2, ("evaluate", "--drive", f"{R}/a_file", "--out", f"{R}/ev")),  # no --root (nor CORNERMAP_ROOT)
         # tiles: wrong names, hostile paths and options, broken maps
-        ("tiles", "ls", "--root", f"{R}/nope"),
-        ("tiles", "ls", "--root", R, "--map", "../.."),
-        ("tiles", "diff", "v1", "v7", "--root", R),
-        ("tiles", "diff", "v1", "v1", "--match-radius-m", "nan", "--root", R),
-        ("tiles", "diff", "v1", "banana", "--root", R),
-        ("tiles", "export", "--root", R),
-        ("tiles", "export", "-f", "shp", "-o", f"{R}/x", "--root", R),
-        ("tiles", "export", "-f", "geojson", "-o", f"{m}/LATEST", "--root", R),
-        ("tiles", "export", "-f", "geojson", "-o", f"{m}/v0001/manifest.json", "--root", R),
-        ("tiles", "export", "-f", "geojson", "-o", R, "--root", R),
-        ("tiles", "export", "-f", "geojson", "-o", f"{R}/a_file/x.json", "--root", R),
-        ("tiles", "export", "-f", "geotiff", "-o", f"{R}/a_file", "--root", R),
-        ("tiles", "export", "-f", "markings-geojson", "-o", R, "--root", R),
-        ("tiles", "export", "-f", "autoware", "-o", f"{R}/a_file", "--root", R),
-        ("tiles", "verify", "--root", f"{R}/empty_map", "--all"),
-        ("tiles", "export", "-f", "geojson", "-o", f"{R}/g.json", "--root", f"{R}/bad_manifest"),
-        ("tiles", "diff", "v1", "v1", "--root", f"{R}/bad_manifest"),
-        ("tiles", "ls", "--root", f"{R}/latest_dir"),
-        ("tiles", "verify", "--root", f"{R}/latest_dir"),
-        ("tiles", "export", "-f", "geojson", "-o", f"{R}/g.json", "--root", f"{R}/latest_dir"),
-        ("drive", "init", f"{R}/nope"),
-        ("drive", "init", f"{R}/a_file"),
-        ("drive", "check"),
-        ("drive", "check", f"{R}/nope.yaml"),
-        ("drive", "check", f"{R}/bomb.yaml"),
-        ("drive", "check", f"{R}/a_file"),
-        ("drive", "check", f"{R}/dup.yaml"),
-        ("build", "--drive", f"{R}/a_file", "--map", "city", "--root", R, "--origin", "north,1,2"),
-        ("build", "--drive", f"{R}/a_file", "--map", "city", "--root", R, "--origin", "137.5,1,2"),
-        ("run", "tinny", "--dry-run"),
-        ("catalog", "validate", "--workflow", "nope"),
-        ("bogus",),
-        ("--bogus",),
+        (1, ("tiles", "ls", "--root", f"{R}/nope")),
+        (2, ("tiles", "ls", "--root", R, "--map", "../..")),
+        (1, ("tiles", "diff", "v1", "v7", "--root", R)),
+        (2, ("tiles", "diff", "v1", "v1", "--match-radius-m", "nan", "--root", R)),
+        (1, ("tiles", "diff", "v1", "banana", "--root", R)),
+        (2, ("tiles", "export", "--root", R)),
+        (2, ("tiles", "export", "-f", "shp", "-o", f"{R}/x", "--root", R)),
+        (1, ("tiles", "export", "-f", "geojson", "-o", f"{m}/LATEST", "--root", R)),
+        (1, ("tiles", "export", "-f", "geojson", "-o", f"{m}/v0001/manifest.json", "--root", R)),
+        (1, ("tiles", "export", "-f", "geojson", "-o", R, "--root", R)),
+        (1, ("tiles", "export", "-f", "geojson", "-o", f"{R}/a_file/x.json", "--root", R)),
+        (1, ("tiles", "export", "-f", "geotiff", "-o", f"{R}/a_file", "--root", R)),
+        (1, ("tiles", "export", "-f", "markings-geojson", "-o", R, "--root", R)),
+        (1, ("tiles", "export", "-f", "autoware", "-o", f"{R}/a_file", "--root", R)),
+        (1, ("tiles", "verify", "--root", f"{R}/empty_map", "--all")),
+        (2, ("tiles", "export", "-f", "geojson", "-o", f"{R}/g.json", "--root", R, "--version", "v1")),  # --map-version
+        (2, ("tiles", "verify", "--version", "v1", "--root", R)),
+        (2, ("tiles", "ls")),  # no --root
+        (2, ("maps", "create", "--root", R, "--map", "c", "--origin", "1,2,3", "--tile-size-m", "0")),
+        (2, ("rebuild", "--root", R, "--map", "c", "--inbox", R, "--gate-tol-m", "-1")),
+        (1, ("tiles", "export", "-f", "geojson", "-o", f"{R}/g.json", "--root", f"{R}/bad_manifest")),
+        (1, ("tiles", "diff", "v1", "v1", "--root", f"{R}/bad_manifest")),
+        (1, ("tiles", "ls", "--root", f"{R}/latest_dir")),
+        (1, ("tiles", "verify", "--root", f"{R}/latest_dir")),
+        (1, ("tiles", "export", "-f", "geojson", "-o", f"{R}/g.json", "--root", f"{R}/latest_dir")),
+        (1, ("drive", "init", f"{R}/nope")),
+        (1, ("drive", "init", f"{R}/a_file")),
+        (2, ("drive", "check")),
+        (1, ("drive", "check", f"{R}/nope.yaml")),
+        (1, ("drive", "check", f"{R}/bomb.yaml")),
+        (1, ("drive", "check", f"{R}/a_file")),
+        (1, ("drive", "check", f"{R}/dup.yaml")),
+        (2, ("build", "--drive", f"{R}/a_file", "--map", "city", "--root", R, "--origin", "north,1,2")),
+        (2, ("build", "--drive", f"{R}/a_file", "--map", "city", "--root", R, "--origin", "137.5,1,2")),
+        (1, ("run", "tinny", "--dry-run")),
+        (1, ("catalog", "validate", "--workflow", "nope")),
+        (2, ("bogus",)),
+        (2, ("--bogus",)),
     ]
 
 
-def test_every_command_fails_with_one_line_and_exit_1(env, capsys):
+def test_every_command_fails_with_one_line_and_its_exit_code(env, capsys):
     failures = []
-    for args in _cases(env):
+    for code, args in _cases(env):
         with pytest.raises(SystemExit) as info:
             main(list(args))
         captured = capsys.readouterr()
         err = captured.err.strip().splitlines()
-        ok = (info.value.code in (1, 3) and len(err) == 1 and err[0].startswith("error: ")
+        ok = (info.value.code == code and len(err) == 1 and err[0].startswith("error: ")
               and "internal error" not in err[0] and "Traceback" not in captured.err + captured.out)
         if not ok:
             failures.append((args, info.value.code, captured.err[-400:]))
     assert not failures, "\n".join(map(str, failures))
+
+
 
 
 def test_hostile_commands_left_nothing_behind(env):

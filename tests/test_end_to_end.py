@@ -247,17 +247,19 @@ def test_evaluate_a_drive_60_km_off_the_map_is_no_coverage(tiny_sync, tmp_path):
     [sim] = root.glob("datasets/raw_drives/*/artifacts/all")
     drive = _short_drive(sim, tmp_path / "far", 60, lat_shift_deg=0.54)
     res = _evaluate(root, "--drive", str(drive), "--method", "ekf", "--out", str(tmp_path / "eval"),
-                    "--reference", str(sim / "truth" / "drive_1_poses_tum.txt"))
+                    "--reference", str(sim / "truth" / "drive_1_poses_tum.txt"), "--json")
     assert res.returncode == 3, res.stderr
     assert "Traceback" not in res.stderr
     assert "verdict: no coverage: 0% of 60 epochs with a map corner within 60 m" in res.stderr
     doc = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert doc["verdict"]["status"] == "no coverage" and doc["verdict"]["coverage"]["share_associated"] == 0.0
+    said = json.loads(res.stdout)  # --json: the verdict on stdout, exit 3 all the same
+    assert said["verdict"] == doc["verdict"] and said["map"] == "tiny" and said["report"].endswith("report.html")
 
 
 def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):
     """No odometry in the drive file: the EKF runs on ICP increments, the MCL on ICP (GNSS/INS where ICP failed),
-    one warning line, no traceback; a path to the map folder is still accepted alone, not beside --root."""
+    one warning line, no traceback; a path to the map folder in --map is a usage error (a map is named)."""
     root, _ = tiny_sync
     [sim] = root.glob("datasets/raw_drives/*/artifacts/all")
     drive = _short_drive(sim, tmp_path / "noodo", 60, odometry=False)
@@ -272,9 +274,9 @@ def test_evaluate_a_drive_without_wheel_odometry(tiny_sync, tmp_path):
     assert ekf["epochs"] == 60 - ekf["localized_from_epoch"]  # scored from its first association on
     assert doc["methods"]["ekf"]["absolute"]["rms_2d_m"] < 1.0
     assert doc["verdict"]["coverage"]["ok"]
-    ambiguous = _evaluate(root, "--map", str(root / "maps" / "tiny"), "--drive", str(drive), "--out",
-                          str(tmp_path / "e2"))
-    assert ambiguous.returncode == 1 and "is a path and --root" in ambiguous.stderr
+    a_path = _evaluate(root, "--map", str(root / "maps" / "tiny"), "--drive", str(drive), "--out",
+                       str(tmp_path / "e2"))
+    assert a_path.returncode == 2 and "is a path; a map is named" in a_path.stderr
 
 
 @pytest.mark.slow  # the export streams its scans (0.73 GB peak, was 3.4 GB) but takes ~70 s of CPU on tiny

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 import yaml
 
+from fixtures.cli import one_error_line
 from pipeline.maps import create_map, read_identity
 from pipeline.versioned import list_versions, read_latest, write_latest
 
@@ -34,12 +35,6 @@ SECRET = "TOPSECRET-do-not-copy"
 def cornermap(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([str(CM), *args], capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
-
-
-def one_line(res: subprocess.CompletedProcess) -> str:
-    lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -225,7 +220,7 @@ def test_a_drive_70_km_away_is_refused_with_exit_3_naming_it_and_the_distance(ci
     before = (list_versions(mdir), (mdir / "LATEST").read_bytes())
     res = cornermap("build", "--drive", str(far / "drive.yaml"), "--map", "city", "--root", str(root), "--quiet")
     assert res.returncode == 3, res.stderr
-    line = one_line(res)
+    line = one_error_line(res)
     assert "drive drive_far" in line and " km from the map's origin" in line and "area of 10 km" in line, line
     distance_km = float(line.split(" lies ")[1].split(" km")[0])
     assert 60.0 < distance_km < 90.0, line
@@ -244,7 +239,7 @@ def test_gnss_in_radians_declared_as_degrees_is_a_named_error(sim, tmp_path):
     _write_gnss(drive / "gnss_inspva.csv", header, rows)
     res = cornermap("drive", "check", str(drive / "drive.yaml"))
     assert res.returncode == 1, res.stdout
-    line = one_line(res)
+    line = one_error_line(res)
     assert "gnss_inspva.csv" in line and "radians" in line and "expected degrees" in line, line
 
 
@@ -294,7 +289,7 @@ def test_a_png_bomb_in_a_version_is_refused_before_decoding(city, tmp_path):
         open_map(mdir).tile_marking(tile["i"], tile["j"])
     res = cornermap("tiles", "export", "-f", "geotiff", "-o", str(tmp_path / "rasters"), "--map", "bombed",
                     "--root", str(root))
-    assert res.returncode == 1 and "30000 x 30000" in one_line(res), res.stderr
+    assert res.returncode == 1 and "30000 x 30000" in one_error_line(res), res.stderr
 
 
 def test_tiles_verify_checks_the_manifests_byte_counts(city):

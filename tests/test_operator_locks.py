@@ -19,6 +19,7 @@ import psutil
 import pytest
 import yaml
 
+from fixtures.cli import one_error_line
 from pipeline.maps import create_map, read_identity
 from pipeline.versioned import list_versions, publish_version, read_latest
 from tests.pipeline.toy_stages import EXTRA
@@ -62,7 +63,7 @@ def _publish(mdir: Path, payload: bytes, move_latest: bool = True) -> int:
 
 def _one_line_75(res: subprocess.CompletedProcess, holder_pid: int) -> None:
     assert res.returncode == 75, (res.returncode, res.stdout, res.stderr)
-    assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr, res.stderr
+    one_error_line(res)
     assert f"held by pid={holder_pid}" in res.stderr, res.stderr
 
 
@@ -170,7 +171,7 @@ def test_gc_min_age_h_must_be_hours_not_negative(tmp_path):
     for bad in ("-1", "nan", "-inf"):
         res = cornermap("gc", "--root", str(tmp_path), "--apply", "--min-age-h", bad)
         assert res.returncode == usage.returncode != 0, (bad, res.returncode, res.stderr)  # exit like any usage error
-        assert "--min-age-h" in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+        assert "--min-age-h" in one_error_line(res), res.stderr
     assert (tmp_path / "datasets").is_dir()
 
 

@@ -11,10 +11,12 @@ from typing import Optional
 
 import typer
 
+from pipeline import cli_options as opts
+
 EXAMPLES = ("Examples:\n\n"
             "  cornermap evaluate --map city --root runs/maps --drive runs/sim/drive_1/drive.yaml "
             "--reference runs/sim/truth/drive_1_poses_tum.txt --out runs/eval1\n\n"
-            "  cornermap evaluate --map tiny --root runs/tiny --version v0001 --drive runs/sim/drive_1/drive.yaml "
+            "  cornermap evaluate --map tiny --root runs/tiny --map-version v0001 --drive runs/sim/drive_1/drive.yaml "
             "--method ekf --reference map --out runs/eval2")
 
 
@@ -42,29 +44,16 @@ def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: di
     return path
 
 
-def open_named_map(root: Optional[Path], map_arg: Optional[str], version: str):
-    """The map named as on every command: ``--root ROOT --map NAME [--version vNNNN]``. A ``--map`` holding a path
-    separator is a path (ROOT/maps/NAME or a vNNNN folder) and is accepted alone, when it is unambiguous."""
+def open_named_map(root: Path, map_arg: Optional[str], version: str):
+    """The map named as on every command: ``--root ROOT --map NAME [--map-version vNNNN]`` (the only map under
+    ROOT/maps without ``--map``)."""
     from mapformat.loader import open_map
-    from pipeline.errors import ConfigError
-
-    if map_arg is not None and ("/" in map_arg or "\\" in map_arg):
-        path = Path(map_arg)
-        problems = []
-        if root is not None:
-            problems.append(f"--map {map_arg!r} is a path and --root {root} was given: pass --root ROOT --map NAME, "
-                            "or the path alone")
-        is_version, is_map = (path / "manifest.json").is_file(), (path / "LATEST").is_file()
-        if not (is_version or is_map):
-            problems.append(f"--map {map_arg!r}: not a published map folder (no LATEST) nor a version folder "
-                            "(no manifest.json)")
-        if is_version and version != "LATEST":
-            problems.append(f"--map {map_arg!r} is the version folder {path.name} and --version {version} was given")
-        if problems:
-            raise ConfigError("cornermap evaluate", problems)
-        return open_map(path, version)
+    from pipeline.errors import OptionError
     from pipeline.names import published_map_dir
 
+    if map_arg is not None and ("/" in map_arg or "\\" in map_arg):
+        raise OptionError("--map", [f"{map_arg!r} is a path; a map is named: --root ROOT --map NAME "
+                                    "(ROOT/maps/NAME), its version --map-version vNNNN"])
     return open_map(published_map_dir(root, map_arg), version)
 
 
@@ -92,18 +81,10 @@ def _evaluate_params(params_file: Optional[Path], methods: list[str], reference_
 
 def evaluate_cmd(
     drive: Path = typer.Option(..., "--drive", help="drive.yaml of the evaluation drive."),
-    root: Optional[Path] = typer.Option(
-        None, "--root", envvar="CORNERMAP_ROOT", help="Output root holding maps/NAME/ (default: .)."
-    ),
-    map_arg: Optional[str] = typer.Option(
-        None,
-        "--map",
-        "-m",
-        help="Map name under ROOT/maps "
-        "(default: the only map there); a path to ROOT/maps/NAME "
-        "or to a vNNNN folder is accepted alone.",
-    ),
-    version: str = typer.Option("LATEST", "--version", help="LATEST, vNNNN or N."),
+    root: Path = opts.ROOT,
+    map_arg: Optional[str] = opts.MAP_OR_ONLY,
+    version: str = opts.MAP_VERSION,
+    old_version: Optional[str] = opts.MOVED_VERSION,
     method: str = typer.Option("both", "--method", help="ekf | mcl | both"),
     reference: Optional[str] = typer.Option(
         None, "--reference", help="TRAJ.tum (truth) or 'map' (pose-graph co-registration)."
@@ -121,32 +102,48 @@ def evaluate_cmd(
         None, "--params", help="YAML {stage: {param: value}}; the 'evaluate' entry sets targets and thresholds."
     ),
     out: Path = typer.Option(..., "--out", help="Output directory (metrics.json, report.html, ...)."),
-    quiet: bool = typer.Option(False, "--quiet", "-q"),
+    quiet: bool = opts.QUIET,
+    as_json: bool = opts.JSON,
 ) -> None:
     """Localize a drive on a published map (corner EKF, marking MCL, RTK/INS and ICP baselines), score it and give a
     verdict: exit 3 when the drive has no map coverage or, with --fail-on-targets, when a target is missed."""
-    from pipeline.errors import ConfigError
+    import json
+
+    from pipeline.errors import ConfigError, DataQualityError, OptionError
     from stages.evaluate.outputs import metrics_table_text
     from stages.evaluate.verdict import verdict_line
 
-    problems = []
     if method not in ("ekf", "mcl", "both"):
-        problems.append(f"--method: expected ekf, mcl or both; got {method!r}")
+        raise OptionError("--method", [f"expected ekf, mcl or both; got {method!r}"])
+    if reference_frame is not None and reference in (None, "map"):
+        raise OptionError("--reference-frame", ["applies to a --reference TRAJ.tum file only"])
+    problems = []
     if not drive.is_file():
         problems.append(f"--drive: no such file {drive}")
     if reference not in (None, "map") and not Path(reference).is_file():
         problems.append(f"--reference: expected a TUM file or 'map'; no such file {reference}")
     if out.exists() and not out.is_dir():
         problems.append(f"--out: {out} exists and is not a directory")
-    if reference_frame is not None and reference in (None, "map"):
-        problems.append("--reference-frame: applies to a --reference TRAJ.tum file only")
     if problems:
         raise ConfigError("cornermap evaluate", problems)
     p, stage_params = _evaluate_params(params, ["ekf", "mcl"] if method == "both" else [method], reference_frame,
                                        fail_on_targets)
     reader = open_named_map(root, map_arg, version)
     out.mkdir(parents=True, exist_ok=True)
-    doc = run_evaluation(reader, drive, reference, p, out, quiet, stage_params)
+    def summary(doc: dict) -> dict:
+        return {"map": reader.path.parent.name, "map_version": f"v{reader.version:04d}", "drive": str(drive),
+                "verdict": doc.get("verdict"), "methods": doc.get("methods"),
+                "report": str((out / "report.html").resolve()), "metrics": str((out / "metrics.json").resolve())}
+
+    try:
+        doc = run_evaluation(reader, drive, reference, p, out, quiet, stage_params)
+    except DataQualityError:  # a verdict that fails (exit 3) is still a result a program reads
+        if as_json and (out / "metrics.json").is_file():
+            opts.echo_json(summary(json.loads((out / "metrics.json").read_text())))
+        raise
+    if as_json:
+        opts.echo_json(summary(doc))
+        return
     typer.echo(metrics_table_text(doc))
     typer.echo(verdict_line(doc["verdict"]))
     typer.echo(f"report: {(out / 'report.html').resolve()}")
@@ -154,7 +151,9 @@ def evaluate_cmd(
 
 def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, quiet: bool,
                    stage_params: Optional[dict] = None) -> dict:
-    """Ingest the drive in a generated workflow, then run the evaluate compute on the committed datasets."""
+    """Ingest the drive in a generated workflow, then run the evaluate compute on the committed datasets. Progress
+    (the ingest's stages, then the evaluation's steps) goes to the display open in this process, else to one of its
+    own unless ``quiet``."""
     import json
 
     import pyarrow as pa
@@ -162,29 +161,34 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
     from pipeline.api import execute_workflow
     from pipeline.catalog import resolve_schema
     from pipeline.declare import PartitionKey, StageContext
+    from pipeline.progress import StageProgress, finish, report
     from pipeline.reader import StoreInputReader
     from stages.evaluate.compute import compute
     from stages.evaluate.decl import STAGE
 
-    wf_path = _write_workflow(out, drive, reference, reader.origin.as_dict(), reader.path.parent.name,
-                              stage_params or {})
-    result = execute_workflow(wf_path, root=None, scheduler=None, only=None, dry_run=False, quiet=quiet)
-    plan = result["plan"]
-    produced = {ds: sp.fingerprint for sp in plan.stages.values() for ds in sp.outputs.values()}
-    inputs = {arg: (ds, produced.get(ds, "")) for arg, ds in STAGE.inputs.items() if arg != "map"}
-    catalog = plan.workflow.catalog
-    schemas = {arg: resolve_schema(catalog.datasets[ds].schema_ref) if ds in catalog.datasets else None
-               for arg, (ds, _) in inputs.items()}
-    store = StoreInputReader(plan.root, inputs, schemas)
-    map_row = pa.table({"map_name": [reader.path.parent.name], "version": [reader.version],
-                        "path": [str(Path(reader.path).resolve())]})  # absolute: the work root is elsewhere
-    drive_name = next(iter(plan.workflow.spec.drives)).name
-    settings = plan.workflow.settings(plan.root)
-    settings["references"] = {drive_name: str(Path(reference).resolve()) if reference not in (None, "map") else None}
-    ctx = StageContext(stage="evaluate", partition=PartitionKey(drive=drive_name),
-                       params=p, inputs=_WithMap(store, map_row), drives={},
-                       settings=settings, scratch_dir=out / "work" / "scratch", artifact_dirs={"report": out})
-    compute(ctx)  # writes metrics.json, report.html, <method>_tum.txt and epochs.parquet into out
+    with StageProgress(enabled=not quiet):
+        wf_path = _write_workflow(out, drive, reference, reader.origin.as_dict(), reader.path.parent.name,
+                                  stage_params or {})
+        result = execute_workflow(wf_path, root=None, scheduler=None, only=None, dry_run=False, quiet=True)
+        plan = result["plan"]
+        produced = {ds: sp.fingerprint for sp in plan.stages.values() for ds in sp.outputs.values()}
+        inputs = {arg: (ds, produced.get(ds, "")) for arg, ds in STAGE.inputs.items() if arg != "map"}
+        catalog = plan.workflow.catalog
+        schemas = {arg: resolve_schema(catalog.datasets[ds].schema_ref) if ds in catalog.datasets else None
+                   for arg, (ds, _) in inputs.items()}
+        store = StoreInputReader(plan.root, inputs, schemas)
+        map_row = pa.table({"map_name": [reader.path.parent.name], "version": [reader.version],
+                            "path": [str(Path(reader.path).resolve())]})  # absolute: the work root is elsewhere
+        drive_name = next(iter(plan.workflow.spec.drives)).name
+        settings = plan.workflow.settings(plan.root)
+        truth = str(Path(reference).resolve()) if reference not in (None, "map") else None
+        settings["references"] = {drive_name: truth}
+        ctx = StageContext(stage="evaluate", partition=PartitionKey(drive=drive_name),
+                           params=p, inputs=_WithMap(store, map_row), drives={},
+                           settings=settings, scratch_dir=out / "work" / "scratch", artifact_dirs={"report": out},
+                           step_progress=lambda step, done, total: report("evaluate", done, total, step=step))
+        compute(ctx)  # writes metrics.json, report.html, <method>_tum.txt and epochs.parquet into out
+        finish("evaluate")
     return json.loads((out / "metrics.json").read_text())
 
 

@@ -162,9 +162,9 @@ def extract_features(ctx: StageContext, drive: str, epoch_scan_ids: np.ndarray, 
     reach = p.feature_max_range_m + float(np.hypot(*np.asarray(T_vehicle_lidar)[:2, 3])) + FEATURE_READ_MARGIN_M
     near = pc.field("x_m") * pc.field("x_m") + pc.field("y_m") * pc.field("y_m") <= reach * reach
     n_raw = 0
-    for part in ctx.inputs.partitions("scans"):
-        if part.drive != drive:
-            continue
+    parts = [part for part in ctx.inputs.partitions("scans") if part.drive == drive]
+    for i, part in enumerate(parts):
+        ctx.report_step("road features of the scans", i, len(parts))
         t = ctx.inputs.read("scans", partition=part, columns=cols, filters=near)
         n_raw += _chunk_features(t, epoch_scan_ids, T_vehicle_lidar, p, track, epochs, points)
         del t
@@ -252,7 +252,9 @@ def compute(ctx: StageContext) -> dict:
 
     p: EvaluateParams = ctx.params  # type: ignore[assignment]
     drive = ctx.partition.drive
+    ctx.report_step("reading the drive")
     d, scan_ids = read_drive(ctx, drive, p)
+    ctx.report_step("localizing (" + ", ".join(p.methods) + ")")
     reader = open_published_map(ctx)
     p_map = with_map_correlation(p, reader)
     cmap, fetch = map_inputs(reader, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config(),
@@ -262,7 +264,9 @@ def compute(ctx: StageContext) -> dict:
     cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
                    p.sensor_range_m, p.coverage_min_in_range, p.coverage_min_associated)
     v = verdict(ev.metrics, cov, p.target_config())
+    ctx.report_step("the previous version")
     comparison, prev_ev = compare_with_previous(ctx, drive, reader, d, cmap, ev, p)
+    ctx.report_step("writing the report")
     out = ctx.artifact_dir("report")
     name = reader.path.parent.name
     write_report(out, ev, cmap, fetch, drive=drive, verdict=v, comparison=comparison, previous=prev_ev,

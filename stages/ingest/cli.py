@@ -22,7 +22,7 @@ def register(app: typer.Typer) -> None:
         """
         import numpy as np
 
-        from pipeline.errors import UnknownNameError
+        from pipeline.errors import OptionError
         from pipeline.registry import suggest
         from stages.ingest.pcd import read_pcd
         from stages.ingest.scan_formats import drop_invalid_points, read_scan
@@ -32,10 +32,10 @@ def register(app: typer.Typer) -> None:
         kind = fmt or ("pcd" if name.endswith(".pcd") else "las" if name.endswith((".las", ".laz")) else "kitti_bin")
         kinds = ("pcd", "kitti_bin", "nuscenes_bin", "las")
         if kind not in kinds:
-            raise UnknownNameError(f"--format {kind!r}: expected one of {', '.join(kinds)}{suggest(kind, kinds)}")
+            raise OptionError("--format", [f"{kind!r}: expected one of {', '.join(kinds)}{suggest(kind, kinds)}"])
         if sensor not in SENSORS:
-            raise UnknownNameError(f"--sensor {sensor!r}: expected one of {', '.join(sorted(SENSORS))}"
-                                   f"{suggest(sensor, SENSORS)}")
+            raise OptionError("--sensor", [f"{sensor!r}: expected one of {', '.join(sorted(SENSORS))}"
+                                           f"{suggest(sensor, SENSORS)}"])
         if kind == "pcd":
             cloud = read_pcd(path)
             h = cloud.header
@@ -65,7 +65,9 @@ def register(app: typer.Typer) -> None:
                    f"min {counts.min() if counts.size else 0} max {counts.max() if counts.size else 0}")
 
     drive_app = typer.Typer(no_args_is_help=True, help="Draft and check drive files (drive.yaml), the contract "
-                                                       "between a recorded drive and cornermap (docs/drive-file.md).")
+                                                       "between a recorded drive and cornermap: drive init writes "
+                                                       "every key with its unit and frame in a comment, drive check "
+                                                       "names each problem with the key and what was expected.")
     app.add_typer(drive_app, name="drive")
 
     @drive_app.command("init")

@@ -113,7 +113,8 @@ def draft_drive_file(folder: Path, out: Path | None = None) -> Draft:
     d = Draft(base=Path(out).resolve().parent if out is not None else folder)
     d.add(f"# Drive file drafted by `cornermap drive init {folder.name}`: read every CHECK and TODO, then run "
           f"`cornermap drive check`.")
-    d.add("# Keys, units and conventions: docs/drive-file.md")
+    d.add("# Keys, units and conventions: the comments below (the full contract: docs/drive-file.md in cornermap's "
+          "source)")
     d.add(f"name: {folder.name}")
     fmt = _draft_scans(folder, d)
     d.add("scan_rate_hz: 10.0", "CHECK: the sensor's rotation rate")

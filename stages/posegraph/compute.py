@@ -151,6 +151,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
 
 def _compute(ctx: StageContext) -> dict[str, pa.Table]:
     cfg = PosegraphConfig.from_params(ctx.params)
+    ctx.report_step("reading the drives")
     drives, ref_drives = read_drive_inputs(ctx)
     load = scan_loader(ctx)
     survey_cb, survey_matches = None, []
@@ -163,6 +164,8 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
                                            report_step=ctx.report_step)
     sol = solve_map(drives, load, cfg, survey_priors=survey_cb, report_step=ctx.report_step)
     names = [(d.name, int(s)) for d in drives for s in d.scan_ids]
+    if cfg.solve.compute_marginals:
+        ctx.report_step("marginal covariances")
     cov = _marginals(sol.problem, sol.poses, "the map drives") if cfg.solve.compute_marginals \
         else np.zeros((len(names), 9))
     offsets = np.cumsum([0] + [d.n for d in drives])
@@ -171,7 +174,8 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
     odometry = [poses_table("poses_odometry", d, dead_reckoning(d)) for d in drives]
     loop_rows = _loop_rows(sol.loops, names)
     refs = {}
-    for d in ref_drives:
+    for k, d in enumerate(ref_drives):
+        ctx.report_step(f"reference drive {d.name}", k, len(ref_drives))
         ref = solve_reference(d, drives, sol.poses, load, cfg)
         rcov = _marginals(ref.problem, np.concatenate([ref.poses, ref.problem.initial[d.n:]]), f"drive {d.name!r}"
                           )[:d.n] if cfg.solve.compute_marginals else np.zeros((d.n, 9))
@@ -187,6 +191,7 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
     for name, (d, ref) in refs.items():
         write_tum(out_dir / f"{name}_optimized_tum.txt", d.stamps_ns * 1e-9, ref.poses)
         write_kitti(out_dir / f"{name}_optimized_kitti.txt", ref.poses)
+    ctx.report_step("the report")
     kernel = _error_kernel(sol, cfg.solve.error_kernel_pairs_per_bin) if cfg.solve.compute_marginals else None
     write_report(out_dir, drives, sol, refs, loop_rows, survey_matches, kernel)
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),

@@ -102,7 +102,7 @@ def _as_accepted(r: LoopRecord) -> LoopRecord:
 
 def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, *, extra_loops: list[LoopRecord] = (),
               survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None = None,
-              report_step: Callable[[str, int, int], None] | None = None) -> Solution:
+              report_step: Callable[..., None] | None = None) -> Solution:
     """All map drives in one graph: pass 1 (odometry + GNSS); with ``survey_priors(poses, offsets)`` (absolute
     anchors of the keyframes, matched on the current estimate) the anchoring rounds (``anchored``); then loops,
     verified and solved (passes 2 and 3) where the anchors leave a drive free: with anchors, only the query poses
@@ -112,7 +112,9 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     accepted (tests/bench plant false loops here)."""
     import time
 
+    say = report_step or (lambda step, done=None, total=None: None)
     t0 = time.perf_counter()
+    say("pass 1: odometry and GNSS")
     problem, offsets = base_problem(drives, cfg.factors, cfg.gnss)
     lc, lm = cfg.loops, cfg.solve.lm_kwargs()
     poses = optimize(problem, **lm)
@@ -129,6 +131,7 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
         query = loosely_anchored(query, held, info_en, travel_m(poses[:, :3, 3], group), group,
                                  lc.survey_window_m, lc.survey_sigma_m)
     t2 = time.perf_counter()
+    say("loop candidates")
     cands = find_candidates(poses[:, :3, 3], stamps_s, group, query, radius_m=lc.radius_m,
                             min_separation_s=lc.min_separation_s, max_per_scan=lc.max_per_scan)
     step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
@@ -137,6 +140,7 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     t3 = time.perf_counter()
     solve_times: list[float] = []
     if loops or survey_priors is None:
+        say(f"passes 2-3: solving with {sum(r.accepted for r in loops)} loops")
         poses = optimize_with_loops(problem, loops, lc, cfg.solve, solve_times_s=solve_times, initial=poses)
     t4 = time.perf_counter()
     log.info("posegraph: %d poses, %d loop query poses, %d candidates, %d loops accepted", len(poses), len(query),

@@ -5,6 +5,8 @@ from pathlib import Path
 
 import typer
 
+from pipeline import cli_options as opts
+
 
 def register(app: typer.Typer) -> None:
     app.command("simulate", help=(
@@ -28,9 +30,10 @@ def simulate_command(
     drives: int = typer.Option(None, help="number of drives (drive 0 maps, later ones evaluate); default 2"),
     motion_distortion: bool = typer.Option(True, help="roll each scan during motion (per-firing poses)"),
     max_scans: int = typer.Option(None, help="cap the scans written per drive (quick looks, tests)"),
-    quiet: bool = typer.Option(False, help="no progress bar"),
+    quiet: bool = opts.QUIET,
     set_: list[str] = typer.Option([], "--set", help="change a preset field, KEY=VALUE or KEY=LO,HI (repeatable), "
-                                   "e.g. lead_vehicle_share=0.6, corner_radius_m=1,5; see docs/simulator.md"),
+                                   "e.g. lead_vehicle_share=0.6, corner_radius_m=1,5; an unknown KEY lists the "
+                                   "preset's fields"),
     changes: bool = typer.Option(False, "--changes", help="the city changes before the last drive (a building "
                                  "demolished, one built, a crosswalk moved); truth in truth/changes.json"),
     changes_from_drive: int = typer.Option(None, help="with --changes: first drive that sees the changed city"),
@@ -40,25 +43,24 @@ def simulate_command(
 
     if out.exists() and not out.is_dir():
         raise DatasetIOError(f"--out {out}: exists and is not a directory; simulate writes a directory")
+    from pipeline.errors import ConfigError, OptionError
     from stages.simulate.presets import get_preset
 
-    preset = get_preset(preset, **parse_overrides(set_))
-    if quiet:
-        summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, changes=changes,
+    try:
+        preset = get_preset(preset, **parse_overrides(set_))
+    except ConfigError as exc:  # an unknown preset or field, a value out of range: the command line is wrong
+        raise OptionError(exc.where.replace("simulate ", ""), exc.problems) from None
+    from pipeline.progress import StageProgress
+
+    with StageProgress(enabled=not quiet) as display:
+        def progress(name: str, i: int, n: int) -> None:
+            display.update(f"{name} scans", i, n)
+            if i >= n:
+                display.finish(f"{name} scans")
+
+        summary = simulate(preset, seed, out, drives, motion_distortion, max_scans,
+                           progress if display.enabled else None, changes=changes,
                            changes_from_drive=changes_from_drive)
-    else:
-        from rich.progress import Progress
-
-        with Progress(transient=False) as bar:
-            tasks: dict[str, int] = {}
-
-            def progress(name: str, i: int, n: int) -> None:
-                if name not in tasks:
-                    tasks[name] = bar.add_task(f"{name} scans", total=n)
-                bar.update(tasks[name], completed=i)
-
-            summary = simulate(preset, seed, out, drives, motion_distortion, max_scans, progress, changes=changes,
-                               changes_from_drive=changes_from_drive)
     for name in summary.drives:
         st = summary.gnss_stats[name]
         typer.echo(f"{name}: {summary.n_scans[name]} scans, GNSS horizontal RMS {st['rms_m']:.2f} m, "

@@ -10,10 +10,11 @@ from typing import Optional
 
 import typer
 
-ROOT_OPT = typer.Option(Path("."), "--root", envvar="CORNERMAP_ROOT",
-                        help="Output root holding maps/NAME/ (env CORNERMAP_ROOT).")
-MAP_OPT = typer.Option(None, "--map", "-m", help="Map name under ROOT/maps; default: the only map there.")
-VERSION_OPT = typer.Option("LATEST", "--version", help="LATEST, vNNNN or N.")
+from pipeline import cli_options as opts
+
+ROOT_OPT = opts.ROOT
+MAP_OPT = opts.MAP_OR_ONLY
+VERSION_OPT = opts.MAP_VERSION
 
 EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles ls --map tiny --root runs/tiny\n\n"
@@ -21,7 +22,8 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles log --map tiny --root runs/tiny\n\n"
             "  cornermap tiles export --format geojson --out runs/city.geojson --map city --root runs/maps\n\n"
             "  cornermap tiles export --format geotiff --out runs/rasters --map city --root runs/maps\n\n"
-            "  cornermap tiles verify --all --map tiny --root runs/tiny")
+            "  cornermap tiles verify --all --map tiny --root runs/tiny\n\n"
+            "  cornermap tiles ls --map tiny --root runs/tiny --json")
 
 
 def map_dir_of(root: Path, name: Optional[str]) -> Path:
@@ -31,7 +33,7 @@ def map_dir_of(root: Path, name: Optional[str]) -> Path:
     return published_map_dir(root, name, hint="pass --map NAME (and --root ROOT)")
 
 
-def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
+def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, as_json: bool = opts.JSON) -> None:
     """List the versions of a map (* marks LATEST) with tiles, corners, parent and creation time; a candidate the
     rebuild's regression gate refused, or one never gated, is marked so.
 
@@ -44,19 +46,34 @@ def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
     d = map_dir_of(root, map_name)
     latest = read_latest(d)
     states = version_states(d)
-    typer.echo(f"{d}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
+    rows = []
+    if not as_json:
+        typer.echo(f"{d}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
     for v in list_versions(d):
         mark = "*" if v == latest else " "
         try:
             m, sha = read_manifest(d / version_name(v))
         except MapFormatError as exc:
-            typer.echo(f"{mark} {version_name(v)}  unreadable: {exc}")
+            rows.append({"version": version_name(v), "latest": v == latest, "error": str(exc)})
+            if not as_json:
+                typer.echo(f"{mark} {version_name(v)}  unreadable: {exc}")
             continue
         parent = m.get("parent_version")
-        typer.echo(f"{mark} {version_name(v)}  {m.get('created_utc', '?')}  tiles={m.get('n_tiles', '?'):<5} "
-                   f"corners={m.get('n_corners', '?'):<7} drives={len(m.get('source_drives', []))} "
-                   f"parent={version_name(parent) if parent is not None else '-'}  format={m.get('format_version')} "
-                   f"sha256={sha[:12]}" + (f"  {note}" if (note := state_note(d, v, states.get(v, ""))) else ""))
+        note = state_note(d, v, states.get(v, ""))
+        rows.append({"version": version_name(v), "latest": v == latest, "standing": states.get(v) or None,
+                     "note": note or None, "created_utc": m.get("created_utc"),
+                     "n_tiles": m.get("n_tiles"), "n_corners": m.get("n_corners"),
+                     "drives": [d_.get("drive") for d_ in m.get("source_drives", [])],
+                     "parent_version": version_name(parent) if parent is not None else None,
+                     "format_version": m.get("format_version"), "manifest_sha256": sha})
+        if not as_json:
+            typer.echo(f"{mark} {version_name(v)}  {m.get('created_utc', '?')}  tiles={m.get('n_tiles', '?'):<5} "
+                       f"corners={m.get('n_corners', '?'):<7} drives={len(m.get('source_drives', []))} "
+                       f"parent={version_name(parent) if parent is not None else '-'}  "
+                       f"format={m.get('format_version')} sha256={sha[:12]}" + (f"  {note}" if note else ""))
+    if as_json:
+        opts.echo_json({"map": d.name, "path": str(d), "latest": version_name(latest) if latest is not None else None,
+                        "versions": rows})
 
 
 def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LATEST)."),
@@ -74,11 +91,11 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
 
     from mapformat.diff import diff_maps
     from mapformat.loader import open_map
-    from pipeline.errors import LimitError
+    from pipeline.errors import OptionError
 
     for opt, value in (("--move-threshold-m", move_threshold_m), ("--match-radius-m", match_radius_m)):
         if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
-            raise LimitError(f"{opt} {value}: expected 0 to 1000 m")
+            raise OptionError(opt, [f"{value}: expected 0 to 1000 m"])
     d = map_dir_of(root, map_name)
     a, b = open_map(d, version_a), open_map(d, version_b)
     diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m)
@@ -118,7 +135,10 @@ def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
             m, _ = read_manifest(d / version_name(v))
             doc = read_changelog(d / version_name(v), m)
         except (MapFormatError, ChecksumError) as exc:
-            typer.echo(f"{mark} {version_name(v)}  unreadable: {exc}")
+            if as_json:
+                docs.append({"version": version_name(v), "error": str(exc)})
+            else:
+                typer.echo(f"{mark} {version_name(v)}  unreadable: {exc}")
             continue
         docs.append({"version": version_name(v), "created_utc": m.get("created_utc"), "changelog": doc})
         if as_json:
@@ -146,6 +166,8 @@ def export(
     root: Path = ROOT_OPT,
     map_name: Optional[str] = MAP_OPT,
     version: str = VERSION_OPT,
+    old_version: Optional[str] = opts.MOVED_VERSION,
+    quiet: bool = opts.QUIET,
 ) -> None:
     """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), Autoware map folder, GeoTIFFs (COG) with a
     VRT per layer, or the version's trajectories (TUM, KITTI) with their frame stated.
@@ -157,16 +179,21 @@ def export(
     """
     from mapformat.export import FORMATS, export_map
     from mapformat.loader import open_map
+    from pipeline.progress import StageProgress
 
     if fmt not in FORMATS:
         raise typer.BadParameter(f"{fmt!r}; expected one of {', '.join(FORMATS)}", param_hint="--format")
     reader = open_map(map_dir_of(root, map_name), version)
-    for path in export_map(reader, fmt, out, root=root):
+    with StageProgress(enabled=not quiet):
+        files = export_map(reader, fmt, out, root=root)
+    for path in files:
         typer.echo(f"wrote {path}")
 
 
 def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
-           all_versions: bool = typer.Option(False, "--all", help="Verify every version, not only one.")) -> None:
+           old_version: Optional[str] = opts.MOVED_VERSION,
+           all_versions: bool = typer.Option(False, "--all", help="Verify every version, not only one."),
+           as_json: bool = opts.JSON) -> None:
     """Recompute every file's sha256 and compare with the manifest; exit 1 on any mismatch.
 
     Example: [b]cornermap tiles verify --all --map tiny --root runs/tiny[/b]
@@ -180,15 +207,20 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
     if not dirs:
         raise UnknownNameError(f"{d}: no published versions to verify")
     trusted = trusted_manifest_digests(d)
-    bad = []
+    bad, rows = [], []
     for vdir in dirs:
         expected = trusted.get(int(vdir.name[1:]))
         problems = verify_map(vdir, expected)
-        note = "" if expected else " (no digest recorded outside the manifest: only its files were checked)"
-        typer.echo(f"{vdir.name}: {'ok' if not problems else f'{len(problems)} problem(s)'}{note}")
-        for p in problems:
-            typer.echo(f"  - {p}")
+        rows.append({"version": vdir.name, "ok": not problems, "problems": problems,
+                     "manifest_digest_recorded": bool(expected)})
+        if not as_json:
+            note = "" if expected else " (no digest recorded outside the manifest: only its files were checked)"
+            typer.echo(f"{vdir.name}: {'ok' if not problems else f'{len(problems)} problem(s)'}{note}")
+            for p in problems:
+                typer.echo(f"  - {p}")
         bad += problems
+    if as_json:
+        opts.echo_json({"map": d.name, "path": str(d), "ok": not bad, "versions": rows})
     if bad:
         raise ChecksumError(f"{d}: {len(bad)} integrity problem(s) (listed above); hint: republish the version")
 

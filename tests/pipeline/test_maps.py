@@ -79,7 +79,7 @@ def test_maps_cli_create_and_show(tmp_path):
     res = cornermap("maps", "show", "--root", str(tmp_path), "--map", "city")
     assert res.returncode == 0 and "origin 37.4979,127.0276,57.0" in res.stdout and "no drives yet" in res.stdout
     res = cornermap("maps", "create", "--root", str(tmp_path), "--map", "../x", "--origin", "37.4979,127.0276,57")
-    assert res.returncode == 1 and "not allowed" in res.stderr
+    assert res.returncode == 2 and "not allowed" in res.stderr  # a usage error: the option's value
 
 
 def test_lock_held_second_run_exits_75_and_names_the_holder(tmp_path):
@@ -322,7 +322,7 @@ def test_rebuild_quarantines_a_bad_drive_with_its_reason_and_goes_on(tmp_path):
 def _fake_build(monkeypatch, tmp_path, cand_ekf_rms: float, prev_ekf_rms: float = 0.10):
     """rebuild's orchestration with the build and the evaluations replaced: the build publishes a held candidate
     (real publisher), the evaluations return known figures; the gate's comparison, LATEST and identity are real."""
-    import pipeline.cli
+    import pipeline.api
     import pipeline.gate
     import pipeline.rebuild
 
@@ -340,8 +340,8 @@ def _fake_build(monkeypatch, tmp_path, cand_ekf_rms: float, prev_ekf_rms: float 
 
     new = pipeline.rebuild.Selection(good=[(pipeline.rebuild.Delivery(drive.parent, drive.parent), "f" * 64, None)])
     monkeypatch.setattr(pipeline.rebuild, "select_new_drives", lambda ident, inbox, quiet_s: (new, ident))
-    monkeypatch.setattr(pipeline.cli, "execute_workflow", execute_workflow)
-    monkeypatch.setattr(pipeline.rebuild, "_candidate_version", lambda plan: published["v"])
+    monkeypatch.setattr(pipeline.api, "execute_workflow", execute_workflow)
+    monkeypatch.setattr(pipeline.api, "published_version", lambda plan: published["v"])
     monkeypatch.setattr(pipeline.gate, "_evaluate", evaluate)
 
 

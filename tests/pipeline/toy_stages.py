@@ -8,6 +8,7 @@ import numpy as np
 import pyarrow as pa
 
 from pipeline.declare import Params, Partitioning, StageDecl
+from pipeline.errors import DataQualityError
 
 NUMBERS = pa.schema([pa.field("drive", pa.string(), nullable=False), pa.field("chunk", pa.int32(), nullable=False),
                      pa.field("value", pa.float64(), nullable=False)])
@@ -30,6 +31,8 @@ class SquaresParams(Params):
 
 class TotalParams(Params):
     scale: float = 1.0
+    refuse: bool = False  # its quality gate refuses the sum (a DataQualityError: exit 3)
+    sleep_s: float = 0.0  # lets a test stop a run in this single-partition stage (a thread of the run's process)
 
 
 def numbers(ctx):
@@ -60,6 +63,11 @@ def squares(ctx):
 
 def total(ctx):
     t = ctx.inputs.read("squares")
+    for k in range(int(ctx.params.sleep_s)):
+        ctx.report_step("waiting", k, int(ctx.params.sleep_s))
+        time.sleep(1.0)
+    if ctx.params.refuse:
+        raise DataQualityError(f"toy total: the quality gate refused the sum of {t.num_rows} squares")
     return {"total": pa.table({"total": [float(np.sum(t["value"].to_numpy())) * ctx.params.scale],
                                "n": [t.num_rows]})}
 

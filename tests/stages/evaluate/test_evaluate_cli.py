@@ -1,9 +1,9 @@
-"""`cornermap evaluate` names a map as every command does: --root ROOT --map NAME [--version]; a path alone."""
+"""`cornermap evaluate` names a map as every command does: --root ROOT --map NAME [--map-version vNNNN]."""
 from __future__ import annotations
 
 import pytest
 
-from pipeline.errors import ConfigError, UnknownNameError
+from pipeline.errors import OptionError, UnknownNameError
 from stages.evaluate.cli import open_named_map
 
 
@@ -28,13 +28,12 @@ def test_no_name_needs_a_single_map(root, tmp_path_factory):
         open_named_map(tmp_path_factory.mktemp("empty"), None, "LATEST")
 
 
-def test_a_path_is_accepted_only_when_unambiguous(root):
-    with pytest.raises(ConfigError, match="is a path and --root"):
-        open_named_map(root, str(root / "maps" / "demo"), "LATEST")
-    with pytest.raises(ConfigError, match="is the version folder v0001 and --version v0002 was given"):
-        open_named_map(None, str(root / "maps" / "demo" / "v0001"), "v0002")
-    with pytest.raises(ConfigError, match="not a published map folder"):
-        open_named_map(None, str(root / "maps"), "LATEST")
+def test_a_path_is_refused_as_a_usage_error(root):
+    """A map is named, never a path (every command does so): a path in --map is a usage error naming the way."""
+    for path in (root / "maps" / "demo", root / "maps" / "demo" / "v0001"):
+        with pytest.raises(OptionError, match="is a path; a map is named: --root ROOT --map NAME") as info:
+            open_named_map(root, str(path), "LATEST")
+        assert info.value.exit_code == 2
 
 
 def test_help_examples_use_root_and_map_name():

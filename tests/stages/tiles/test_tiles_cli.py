@@ -47,7 +47,7 @@ def test_diff_json_and_text(app, root):
 
 def test_export_and_verify(app, root, tmp_path):
     out = tmp_path / "c.geojson"
-    res = _run(app, "export", "--format", "geojson", "--out", str(out), "--root", str(root), "--version", "v1")
+    res = _run(app, "export", "--format", "geojson", "--out", str(out), "--root", str(root), "--map-version", "v1")
     assert res.exit_code == 0 and out.is_file()
     res = _run(app, "export", "--format", "shapefile", "--out", str(out), "--root", str(root))
     assert res.exit_code != 0 and "shapefile" in res.output
