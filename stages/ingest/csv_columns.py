@@ -18,7 +18,12 @@ class TimestampIssue:
 
 
 def read_header(path: Path, delimiter: str = ",") -> list[str]:
-    """The header line's column names; a file that is not UTF-8 text is a FormatError naming it."""
+    """The header line's column names; a file that is not UTF-8 text is a FormatError naming it. A KITTI OXTS
+    folder (``stages.ingest.kitti_raw``) is read like a CSV: its header is ``time`` and the 30 OXTS fields."""
+    if Path(path).is_dir():
+        from stages.ingest.kitti_raw import oxts_header
+
+        return oxts_header(Path(path))
     try:
         with open(path, newline="", encoding="utf-8") as fh:
             return [c.strip() for c in next(csv.reader(fh, delimiter=delimiter), [])]
@@ -38,6 +43,10 @@ def read_csv_columns(
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
+    if Path(path).is_dir():  # a KITTI OXTS folder: every value a number, or a FormatError naming the file
+        from stages.ingest.kitti_raw import read_oxts_columns
+
+        return read_oxts_columns(Path(path), list(dict.fromkeys(names)))
     header = read_header(path, delimiter)
     missing = [n for n in dict.fromkeys(names) if n not in header]
     if missing:
