@@ -60,8 +60,9 @@ class KeyframeConfig:
     """Pairs of scans further apart in time than ``min_dt_s`` (keyframes, metres apart; ``keyframes.py``): GICP in
     ``stages`` of (voxel m, correspondence m); started from the prior, the GNSS/INS, else a global registration
     (FPFH + RANSAC at ``global_voxel_m``); gated within hypot(the reference's limit, ``deviation_*_per_m`` x the
-    pair's distance); information floored at ``sigma_*_per_m`` x that distance. ``prior_gate_sigmas``: a prior's
-    limit in its stated std (times sqrt 2: two poses)."""
+    pair's distance); information floored at ``sigma_*_per_m`` x that distance; rejected when its chord leaves the
+    heading by more than ``max_sideslip_rad`` (a car follows its heading: ``keyframes.plausible_motion``).
+    ``prior_gate_sigmas``: a prior's limit in its stated std (times sqrt 2: two poses)."""
 
     min_dt_s: float = 0.35
     stages: tuple[tuple[float, float], ...] = ((1.0, 2.0), (0.5, 0.5))
@@ -71,6 +72,7 @@ class KeyframeConfig:
     sigma_rad_per_m: float = 0.0015
     global_voxel_m: float = 1.0
     prior_gate_sigmas: float = 3.0
+    max_sideslip_rad: float = 0.26  # the chord of a keyframe pair within this of the arc's (heading + turn / 2)
 
 
 @dataclass(frozen=True)

@@ -261,7 +261,7 @@ def consecutive_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _P
                       results: dict[int, RegistrationResult], T_vehicle_lidar: np.ndarray, cfg: EdgeConfig
                       ) -> list[Edge]:
     """Step 5: every pair's vehicle edge with the gate's decision (guided pairs: the planar guide gate)."""
-    from stages.odometry.keyframes import keyframe_information, widened_limits
+    from stages.odometry.keyframes import keyframe_information, plausible_motion, widened_limits
 
     g = cfg.gate
     edges: list[Edge] = []
@@ -276,6 +276,8 @@ def consecutive_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _P
             info_v = keyframe_information(info_v, distance_m, cfg.keyframe)
         accepted = gate_edge(T_v, pairs.reference_v.get(k), res.fitness, res.converged, min_fitness=g.min_fitness,
                              max_deviation_m=limit_m, max_deviation_rad=limit_rad, planar=guided)
+        if k in pairs.keyframe:
+            accepted = accepted and plausible_motion(T_v, cfg.keyframe.max_sideslip_rad)
         edges.append(Edge(scans[k].scan_id, scans[k].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
                           accepted))
     return edges

@@ -10,6 +10,10 @@ keyframes metres apart, or a gap), registered like the wide-baseline pairs they 
   started from the truth: 0.08 m and 0.43 deg RMS, up to 0.25 m and 1.1 deg), so the reference's limit grows with
   the pair's distance d: hypot(limit, ``deviation_*_per_m`` x d).
 - Information: floored at ``sigma_*_per_m`` x d (the same measurement: 0.015 m and 0.0015 rad per metre).
+- Vehicle motion: a car moves along its heading; over a pair turning by t its chord points at t / 2 from the first
+  heading (forward or reverse). A pair whose chord leaves that by more than ``max_sideslip_rad`` (15 deg) is
+  rejected: without a reference, a global registration matched to a repeated facade (tiny seed 861, every 12th scan:
+  22 m backwards and 10 m sideways, fitness 0.30) is caught by nothing else. Pairs under 1 m are not judged.
 
 ``bench/bench_keyframes.py`` measures it; docs/posegraph.md, "Keyframe drives", has the figures.
 """
@@ -60,6 +64,18 @@ def widened_limits(limit_m: float, limit_rad: float, distance_m: float, kf: Keyf
     """A keyframe pair's gate limits: the reference's, widened with the registration's error over ``distance_m``."""
     return float(np.hypot(limit_m, kf.deviation_m_per_m * distance_m)), \
         float(np.hypot(limit_rad, kf.deviation_rad_per_m * distance_m))
+
+
+def plausible_motion(T_v: np.ndarray, max_sideslip_rad: float, min_distance_m: float = 1.0) -> bool:
+    """Whether a vehicle increment's chord follows its heading: within ``max_sideslip_rad`` of half its turn,
+    forward or reverse (module docstring); increments under ``min_distance_m`` always are."""
+    dx, dy = float(T_v[0, 3]), float(T_v[1, 3])
+    if np.hypot(dx, dy) < min_distance_m:
+        return True
+    half_turn = 0.5 * np.arctan2(T_v[1, 0], T_v[0, 0])
+    off = np.arctan2(dy, dx) - half_turn
+    off = (off + np.pi / 2) % np.pi - np.pi / 2  # forward and reverse alike
+    return bool(abs(off) <= max_sideslip_rad)
 
 
 def keyframe_information(info_v: np.ndarray, distance_m: float, kf: KeyframeConfig) -> np.ndarray:

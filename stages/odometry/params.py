@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numpy as np
 from pydantic import Field, model_validator
 
 from pipeline.declare import Params
@@ -75,6 +76,9 @@ class OdometryParams(Params):
     keyframe_sigma_rad_per_m: float = Field(0.0015, ge=0, description="same, rotation (0.43 deg RMS at 5.4 m)")
     keyframe_global_voxel_m: float = Field(1.0, gt=0, description="voxel of the global registration (FPFH + "
                                            "RANSAC) that starts a keyframe pair without a prior or GNSS/INS")
+    keyframe_max_sideslip_deg: float = Field(15.0, gt=0, le=90, description="keyframe gate: the pair's chord within "
+                                             "this of its heading plus half its turn, forward or reverse (a car "
+                                             "follows its heading; 90 = off, for a robot that moves sideways)")
     prior_gate_sigmas: float = Field(3.0, gt=0, description="gate against a prior trajectory's increment at this "
                                      "many times its stated std (x sqrt 2: two poses)")
 
@@ -98,7 +102,8 @@ class OdometryParams(Params):
                 deviation_m_per_m=self.keyframe_deviation_m_per_m,
                 deviation_rad_per_m=self.keyframe_deviation_rad_per_m, sigma_m_per_m=self.keyframe_sigma_m_per_m,
                 sigma_rad_per_m=self.keyframe_sigma_rad_per_m, global_voxel_m=self.keyframe_global_voxel_m,
-                prior_gate_sigmas=self.prior_gate_sigmas))
+                prior_gate_sigmas=self.prior_gate_sigmas,
+                max_sideslip_rad=float(np.radians(self.keyframe_max_sideslip_deg))))
 
     @model_validator(mode="after")
     def _ranges(self) -> "OdometryParams":

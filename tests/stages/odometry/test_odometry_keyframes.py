@@ -16,12 +16,14 @@ SPACING_M = (5.5, 3.5, 7.5, 6.0, 4.0, 7.0, 5.0, 6.5, 4.5)
 
 
 def _keyframes(scene, seed: int = 3):
-    """A zig-zag down the street: the heading alternates between +-(10..20) deg, each step along it."""
+    """A zig-zag down the street: the heading alternates between +-(10..20) deg, each step an arc (its chord at
+    the mean of the two headings, as a car drives it)."""
     rng = np.random.default_rng(seed)
-    x, y, poses = -40.0, 0.0, []
+    x, y, last, poses = -40.0, 0.0, 0.0, []
     for k, step in enumerate((0.0,) + SPACING_M):
         yaw = (-1) ** k * np.radians(rng.uniform(10, 20))
-        x, y = x + step * np.cos(yaw), y + step * np.sin(yaw)
+        chord = 0.5 * (yaw + last) if k else yaw
+        x, y, last = x + step * np.cos(chord), y + step * np.sin(chord), yaw
         poses.append(se3_from_xyz_rpy(x, y, 0.0, 0.0, 0.0, yaw))
     scans = [Scan(i, int(i * 1e9), raycast_scan(scene, T @ T_VL, rng), None) for i, T in enumerate(poses)]
     return poses, scans
@@ -82,3 +84,16 @@ def test_keyframes_start_from_the_prior_and_its_gate_rejects_a_prior_off_by_two_
     verdict = {e.scan_id: e.accepted for e in edges}
     assert verdict[5] is False and verdict[6] is False  # both increments touching pose 5 disagree with the scans
     assert sum(verdict.values()) == len(edges) - 2
+
+
+@pytest.mark.parametrize("dx, dy, yaw_deg, plausible", [
+    (6.0, 0.0, 0.0, True), (5.4, 1.3, 26.6, True),  # straight; a turn: the chord at half the turn
+    (-6.0, 0.0, 0.0, True), (-5.4, -1.3, 26.6, True),  # reversing
+    (6.0, 3.0, 0.0, False), (-20.5, -9.7, 7.7, False),  # sideways; a match to a repeated facade (tiny seed 861)
+    (0.3, 0.6, 0.0, True),  # under 1 m: not judged
+])
+def test_a_keyframe_pair_must_move_along_its_heading(dx, dy, yaw_deg, plausible):
+    from stages.odometry.keyframes import plausible_motion
+
+    T = se3_from_xyz_rpy(dx, dy, 0.0, 0.0, 0.0, np.radians(yaw_deg))
+    assert plausible_motion(T, np.radians(15.0)) is plausible
