@@ -3,8 +3,9 @@
 Evidence, strongest first:
 1. a calibration file in the drive's folder (Ouster metadata JSON, Velodyne db.xml, Hesai angle-correction CSV,
    ``sensor_calibration``): its table and model, and the draft names it as ``calibration_file``;
-2. the beam count: distinct ring ids of the file's ring field, else the rows of an organised PCD (HEIGHT > 1, the
-   way Ouster's driver writes them), else the laser lines of a laser-by-laser export;
+2. the beam count: the ring field's ids (0..max: the upper beams of a scan in a street may see only sky, so the
+   distinct ids can be fewer than the beams), else the rows of an organised PCD (HEIGHT > 1, the way Ouster's
+   driver writes them), else the laser lines of a laser-by-laser export;
 3. the point count per scan: a sensor cannot give more than ``MAX_POINTS_PER_BEAM`` points per beam and sweep
    (a 0.08 deg azimuth step at 5 Hz), which rules out too few beams;
 4. the elevations: each beam's median elevation (by ring, organised row or laser line; points beyond ``FAR_M``,
@@ -34,13 +35,17 @@ class ScanEvidence:
 
     points_per_scan: list[int] = field(default_factory=list)  # records in the file (zeros and no-returns included)
     ring_ids: int | None = None  # distinct ring ids of the ring field
+    ring_max: int | None = None  # the largest ring id
     organised_rows: int | None = None  # PCD HEIGHT when > 1
     lines: int | None = None  # laser lines in point order (16/32/64/128 only)
     far_elev_deg: list[np.ndarray] = field(default_factory=list)
-    ring_medians_deg: np.ndarray | None = None  # per ring, ascending ring id (far points)
+    ring_medians_deg: np.ndarray | None = None  # per beam, ascending (far points); NaN: a beam without points
 
     def beams(self) -> tuple[int | None, str]:
         if self.ring_ids:
+            n = self.ring_max + 1
+            if n in (16, 32, 40, 64, 128) and self.ring_ids <= n:
+                return n, f"{self.ring_ids} distinct ring ids" + (f" of 0..{self.ring_max}" if self.ring_ids < n else "")
             return self.ring_ids, f"{self.ring_ids} distinct ring ids"
         if self.organised_rows:
             return self.organised_rows, f"an organised cloud of {self.organised_rows} rows"
@@ -79,6 +84,7 @@ def collect_evidence(paths: list[Path], fmt: str) -> ScanEvidence:
         if pts.ring is not None:
             beam = pts.ring.astype(np.int64)
             ev.ring_ids = max(ev.ring_ids or 0, int(np.unique(pts.ring[ok]).size))
+            ev.ring_max = max(ev.ring_max or 0, int(pts.ring[ok].max()) if ok.any() else 0)
         elif height > 1 and width * height == len(pts):
             ev.organised_rows = height
             beam = np.arange(len(pts)) // width
@@ -94,9 +100,14 @@ def collect_evidence(paths: list[Path], fmt: str) -> ScanEvidence:
     n, _ = ev.beams()
     if beams_seen and n:
         a = np.concatenate(beams_seen)
-        ids = np.unique(a[:, 0])
-        if len(ids) == n:
+        ids = np.unique(a[:, 0]).astype(int)
+        if len(ids) == n:  # every beam seen: their medians in ascending order (rows and lines are not ring ids)
             ev.ring_medians_deg = np.sort([np.median(a[a[:, 0] == r, 1]) for r in ids])
+        elif ev.ring_ids and ids.max() < n:  # ring ids index the table (0 = lowest); a beam that saw nothing: NaN
+            med = np.full(n, np.nan)
+            for r in ids:
+                med[r] = np.median(a[a[:, 0] == r, 1])
+            ev.ring_medians_deg = med
     return ev
 
 
@@ -142,9 +153,10 @@ def guess_sensor(ev: ScanEvidence) -> tuple[str, str]:
     scores = []
     if ev.ring_medians_deg is not None and n is not None and len(ev.ring_medians_deg) == n:
         med = ev.ring_medians_deg
-        why.append(f"beam elevations {med[0]:.2f}..{med[-1]:.2f} deg")
+        seen = np.isfinite(med)
+        why.append(f"beam elevations {np.nanmin(med):.2f}..{np.nanmax(med):.2f} deg")
         for m in candidates:
-            rms = float(np.sqrt(np.mean((np.asarray(m.elevations_deg) - med) ** 2)))
+            rms = float(np.sqrt(np.mean((np.asarray(m.elevations_deg)[seen] - med[seen]) ** 2)))
             scores.append((rms, m.name, f"{m.name} ({m.label}) table RMS {rms:.2f} deg"))
         scores.sort()
         ok = scores[0][0] < 1.0

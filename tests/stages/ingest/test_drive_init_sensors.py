@@ -31,6 +31,14 @@ def test_drive_init_guesses_the_sensor_and_says_why(tmp_path, sensor, organised,
     assert why in line and f"{sensor} ({SENSORS[sensor].label}) table RMS" in line and "next " in line, line
 
 
+def test_beams_without_points_still_count(tmp_path):
+    """Scans whose 4 lowest beams return nothing (the vehicle's roof) have 28 distinct ring ids of 0..31 (found on a
+    keyframe drive of tiny seed 851: 'generic, no model has 28 beams')."""
+    write_sensor_scans(tmp_path, SENSORS["hdl32e"].elevations_deg, body_beams=4)
+    line = _sensor_line(tmp_path)
+    assert line.startswith("sensor: hdl32e") and "28 distinct ring ids of 0..31" in line, line
+
+
 def test_too_many_points_for_few_beams_is_no_vlp16(tmp_path):
     """16 beams of 5,000 points each: more than a sensor gives per beam and sweep (4,500), so no 16-beam model fits
     and the draft says generic instead of forcing VLP-16."""
