@@ -45,7 +45,8 @@ class ScanEvidence:
         if self.ring_ids:
             n = self.ring_max + 1
             if n in (16, 32, 40, 64, 128) and self.ring_ids <= n:
-                return n, f"{self.ring_ids} distinct ring ids" + (f" of 0..{self.ring_max}" if self.ring_ids < n else "")
+                of = f" of 0..{self.ring_max}" if self.ring_ids < n else ""
+                return n, f"{self.ring_ids} distinct ring ids{of}"
             return self.ring_ids, f"{self.ring_ids} distinct ring ids"
         if self.organised_rows:
             return self.organised_rows, f"an organised cloud of {self.organised_rows} rows"
