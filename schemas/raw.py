@@ -64,6 +64,22 @@ register(
 )
 
 register(
+    "poses_prior", "A trajectory the drive file names (prior:) at each scan stamp, and the drive's stated start pose "
+    "(start:); T_frame_vehicle, std per axis (NaN: nothing known on that axis).",
+    DRIVE,
+    f("scan_id", pa.int64()), f("stamp_ns", pa.int64(), "ns"),
+    f("x_m", pa.float64(), "m", "frame"), f("y_m", pa.float64(), "m", "frame"), f("z_m", pa.float64(), "m", "frame"),
+    f("qx", pa.float64()), f("qy", pa.float64()), f("qz", pa.float64()), f("qw", pa.float64()),
+    f("std_x_m", pa.float64(), "m"), f("std_y_m", pa.float64(), "m"), f("std_z_m", pa.float64(), "m"),
+    f("std_roll_rad", pa.float64(), "rad"), f("std_pitch_rad", pa.float64(), "rad"),
+    f("std_yaw_rad", pa.float64(), "rad"),
+    f("frame", pa.string(), doc="map_enu: the map's ENU frame; local: the prior file's own frame (z up, origin and "
+                                "heading unknown: only its relative motion is information)"),
+    f("source", pa.string(), doc="prior_file | start"),
+    f("valid", pa.bool_(), doc="the scan stamp lies within the prior's span (interpolated between two rows)"),
+)
+
+register(
     "drive_info", "Per drive: sensor, extrinsic T_vehicle_lidar (row-major 4x4), ENU origin, counts.",
     DRIVE,
     f("sensor", pa.string()),

@@ -4,6 +4,9 @@
   relative ``dx_m, dy_m, dz_m`` + quaternion of ``odometry_edges``) <-> (N,4,4) homogeneous matrices:
   ``pose_matrices`` / ``pose_columns``, the heading alone with ``yaw_rad``; a drive's trajectory as ``Trajectory``,
   which also reads TUM trajectory files (``t x y z qx qy qz qw`` per line, t in seconds; simulator truth, references).
+- Pose files a drive comes with (``read_pose_file``): TUM (``t x y z qx qy qz qw``) and KITTI odometry poses (12
+  numbers, the top 3x4 of a pose, per line), each row with its file line, every malformed line a ``FormatError``
+  naming file and line; ``poses_prior`` rows <-> ``PriorPoses``.
 - ``drive_info.T_vehicle_lidar`` (16 floats, row-major 4x4; maps lidar points into the vehicle frame) <->
   ``Extrinsics`` (one matrix per drive), with a named error for a short or non-rigid row or a missing drive.
 
@@ -82,15 +85,10 @@ class Trajectory:
     @classmethod
     def from_tum(cls, path, drive: str = "") -> "Trajectory":
         """A TUM file (``t x y z qx qy qz qw`` per line, t in seconds, ``#`` comments): row k is scan k, stamped
-        t rounded to the nanosecond; FormatError naming the file when a line does not hold 8 numbers."""
-        try:
-            rows = np.loadtxt(path, comments="#", ndmin=2)
-        except ValueError as exc:
-            raise FormatError(f"{path}: not a TUM trajectory (t x y z qx qy qz qw per line): {exc}") from exc
-        if rows.shape[1] != 8:
-            raise FormatError(f"{path}: a TUM trajectory has 8 columns (t x y z qx qy qz qw); got {rows.shape[1]}")
-        return cls(drive, np.arange(len(rows), dtype=np.int64), np.round(rows[:, 0] * 1e9).astype(np.int64),
-                   _matrices(rows[:, 1:4], rows[:, 4:8]))
+        t rounded to the nanosecond; FormatError naming the file and line when a line does not hold 8 numbers."""
+        poses = read_pose_file(path, "tum")
+        return cls(drive, np.arange(len(poses.T), dtype=np.int64), np.round(poses.stamp_s * 1e9).astype(np.int64),
+                   poses.T)
 
     @property
     def stamp_s(self) -> np.ndarray:
@@ -105,6 +103,122 @@ class Trajectory:
     @property
     def yaw_rad(self) -> np.ndarray:
         return np.arctan2(self.T[:, 1, 0], self.T[:, 0, 0])
+
+
+POSE_FILE_COLUMNS = {"tum": 8, "kitti": 12}
+MAX_POSE_FILE_BYTES = 256 << 20
+
+
+@dataclass(frozen=True)
+class PoseFile:
+    """The rows of a TUM or KITTI poses file: ``T[k]`` maps body points into the file's frame."""
+
+    stamp_s: np.ndarray | None  # (N,) TUM times; None for KITTI (row k is scan k)
+    T: np.ndarray  # (N,4,4)
+    line: np.ndarray  # (N,) 1-based file line of each row
+
+
+def read_pose_file(path, fmt: str, *, increasing: bool = False) -> PoseFile:
+    """A TUM (``t x y z qx qy qz qw``) or KITTI (``r00 r01 r02 tx r10 ... tz``) poses file; ``#`` comment and blank
+    lines are skipped. FormatError naming the file and line for a line with another number of values, a value that
+    is no finite number, a zero quaternion or a KITTI rotation that is not one (|R R^T - I| > 1e-3), and with
+    ``increasing`` for a TUM time that does not increase."""
+    from pathlib import Path
+
+    path = Path(path)
+    n_cols = POSE_FILE_COLUMNS[fmt]
+    what = "t x y z qx qy qz qw" if fmt == "tum" else "12 numbers: the top 3x4 of a pose, row by row"
+    try:
+        if path.stat().st_size > MAX_POSE_FILE_BYTES:
+            raise FormatError(f"{path}: more than {MAX_POSE_FILE_BYTES} bytes; not a poses file")
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise FormatError(f"{path}: not UTF-8 text (byte {exc.start}); expected a {fmt} poses file") from None
+    except OSError as exc:
+        from pipeline.errors import DatasetIOError
+
+        raise DatasetIOError(f"{path}: cannot read poses: {exc.strerror or exc}") from exc
+    rows, lines = [], []
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != n_cols:
+            raise FormatError(f"{path}: line {n}: {len(parts)} values; expected {n_cols} ({what})")
+        try:
+            values = [float(v) for v in parts]
+        except ValueError:
+            raise FormatError(f"{path}: line {n}: {line[:60]!r} holds a value that is not a number ({what})") from None
+        if not np.all(np.isfinite(values)):
+            raise FormatError(f"{path}: line {n}: a value is not finite ({what})")
+        rows.append(values)
+        lines.append(n)
+    if not rows:
+        raise FormatError(f"{path}: no pose line; expected {what} per line")
+    a = np.asarray(rows, float)
+    if fmt == "tum":
+        norm = np.linalg.norm(a[:, 4:8], axis=1)
+        if np.any(norm < 1e-9):
+            raise FormatError(f"{path}: line {lines[int(np.argmin(norm))]}: zero quaternion (qx qy qz qw)")
+        if increasing and len(a) > 1 and np.any(np.diff(a[:, 0]) <= 0):
+            k = int(np.flatnonzero(np.diff(a[:, 0]) <= 0)[0]) + 1
+            raise FormatError(f"{path}: line {lines[k]}: time {float(a[k, 0])!r} does not increase (previous "
+                              f"{float(a[k - 1, 0])!r})")
+        return PoseFile(a[:, 0], _matrices(a[:, 1:4], a[:, 4:8] / norm[:, None]), np.asarray(lines))
+    T = np.tile(np.eye(4), (len(a), 1, 1))
+    T[:, :3, :4] = a.reshape(-1, 3, 4)
+    err = np.abs(T[:, :3, :3] @ np.transpose(T[:, :3, :3], (0, 2, 1)) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(T[:, :3, :3])
+    bad = (err > 1e-3) | (det < 0)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise FormatError(f"{path}: line {lines[k]}: the 3x3 part is not a rotation (|R R^T - I| = {err[k]:.2g}, det "
+                          f"{det[k]:.3f}); expected {what}")
+    return PoseFile(None, T, np.asarray(lines))
+
+
+PRIOR_STD_COLUMNS = ("std_x_m", "std_y_m", "std_z_m", "std_roll_rad", "std_pitch_rad", "std_yaw_rad")
+
+
+@dataclass(frozen=True)
+class PriorPoses:
+    """One drive's ``poses_prior`` rows (see schemas/raw.py): ``T[k]`` maps vehicle points of ``scan_id[k]`` into
+    ``frame[k]`` ('map_enu': the map's ENU frame; 'local': the prior file's own z-up frame, origin and heading
+    unknown), with a std per axis (NaN: no information on that axis) and where it comes from ('prior_file',
+    'start')."""
+
+    drive: str
+    scan_id: np.ndarray
+    stamp_ns: np.ndarray
+    T: np.ndarray
+    std: np.ndarray  # (N,6): x y z m, roll pitch yaw rad
+    frame: np.ndarray  # (N,) str
+    source: np.ndarray  # (N,) str
+    valid: np.ndarray  # (N,) bool
+
+    @classmethod
+    def from_table(cls, table: pa.Table, drive: str) -> "PriorPoses":
+        if "drive" in table.column_names:
+            table = table.filter(pc.equal(table["drive"], drive))
+        table = table.sort_by([("source", "ascending"), ("scan_id", "ascending")])
+        std = _columns(table, PRIOR_STD_COLUMNS, None)
+        return cls(drive, table["scan_id"].to_numpy(), table["stamp_ns"].to_numpy(), pose_matrices(table), std,
+                   np.asarray(table["frame"].to_pylist(), dtype=object),
+                   np.asarray(table["source"].to_pylist(), dtype=object),
+                   table["valid"].to_numpy(zero_copy_only=False).astype(bool))
+
+    def to_columns(self) -> dict:
+        n = len(self.scan_id)
+        return {"drive": [self.drive] * n, "scan_id": np.asarray(self.scan_id, np.int64),
+                "stamp_ns": np.asarray(self.stamp_ns, np.int64), **pose_columns(self.T),
+                **{c: np.asarray(self.std, float).reshape(n, 6)[:, k] for k, c in enumerate(PRIOR_STD_COLUMNS)},
+                "frame": [str(f) for f in self.frame], "source": [str(s) for s in self.source],
+                "valid": np.asarray(self.valid, bool)}
+
+    def select(self, mask: np.ndarray) -> "PriorPoses":
+        return PriorPoses(self.drive, self.scan_id[mask], self.stamp_ns[mask], self.T[mask], self.std[mask],
+                          self.frame[mask], self.source[mask], self.valid[mask])
 
 
 @dataclass(frozen=True)

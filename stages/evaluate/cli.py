@@ -31,7 +31,7 @@ def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: di
 
     stages = ["ingest", "odometry", "corners"] + (["posegraph"] if reference in (None, "map") else [])
     entry = {"name": safe(drive.resolve().parent.name, "drive"), "path": str(drive.resolve()), "role": "eval"}
-    if reference not in (None, "map"):
+    if reference not in (None, "map", "gnss"):
         entry["reference"] = str(Path(reference).resolve())
     doc = {"name": f"evaluate-{entry['name']}", "root": str((out / "work").resolve()),
            "map_name": safe(map_name, "map"),
@@ -87,7 +87,8 @@ def evaluate_cmd(
     old_version: Optional[str] = opts.MOVED_VERSION,
     method: str = typer.Option("both", "--method", help="ekf | mcl | both"),
     reference: Optional[str] = typer.Option(
-        None, "--reference", help="TRAJ.tum (truth) or 'map' (pose-graph co-registration)."
+        None, "--reference", help="TRAJ.tum (truth), 'map' (pose-graph co-registration) or 'gnss' (the drive's own "
+        "GNSS/INS through its drive file, lever arm applied, in the map's frame)."
     ),
     reference_frame: Optional[str] = typer.Option(
         None,
@@ -115,13 +116,13 @@ def evaluate_cmd(
 
     if method not in ("ekf", "mcl", "both"):
         raise OptionError("--method", [f"expected ekf, mcl or both; got {method!r}"])
-    if reference_frame is not None and reference in (None, "map"):
+    if reference_frame is not None and reference in (None, "map", "gnss"):
         raise OptionError("--reference-frame", ["applies to a --reference TRAJ.tum file only"])
     problems = []
     if not drive.is_file():
         problems.append(f"--drive: no such file {drive}")
-    if reference not in (None, "map") and not Path(reference).is_file():
-        problems.append(f"--reference: expected a TUM file or 'map'; no such file {reference}")
+    if reference not in (None, "map", "gnss") and not Path(reference).is_file():
+        problems.append(f"--reference: expected a TUM file, 'map' or 'gnss'; no such file {reference}")
     if out.exists() and not out.is_dir():
         problems.append(f"--out: {out} exists and is not a directory")
     if problems:
@@ -181,6 +182,8 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
                             "path": [str(Path(reader.path).resolve())]})  # absolute: the work root is elsewhere
         drive_name = next(iter(plan.workflow.spec.drives)).name
         settings = plan.workflow.settings(plan.root)
+        if reference == "gnss":  # the drive's GNSS/INS as ingest read it (gnss_enu), as a TUM file stating its frame
+            reference = str(_gnss_reference_file(store.read("gnss"), drive_name, reader.origin, out))
         truth = str(Path(reference).resolve()) if reference not in (None, "map") else None
         settings["references"] = {drive_name: truth}
         ctx = StageContext(stage="evaluate", partition=PartitionKey(drive=drive_name),
@@ -190,6 +193,34 @@ def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, 
         compute(ctx)  # writes metrics.json, report.html, <method>_tum.txt and epochs.parquet into out
         finish("evaluate")
     return json.loads((out / "metrics.json").read_text())
+
+
+def _gnss_reference_file(gnss, drive: str, origin, out: Path) -> Path:
+    """``OUT/gnss_reference_tum.txt``: the drive's ``gnss_enu`` fixes (vehicle origin, map ENU frame; attitude Rz Ry
+    Rx, a missing roll/pitch as 0) with the map's frame in its header. ConfigError when the drive has no fix."""
+    import numpy as np
+    import pyarrow.compute as pc
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.errors import ConfigError
+    from stages.common.geometry import write_tum
+    from stages.common.trajectory_frame import frame_header
+
+    rows = gnss.filter(pc.equal(gnss["drive"], drive)) if gnss.num_rows else gnss
+    if not rows.num_rows:
+        raise ConfigError("cornermap evaluate", ["--reference gnss: the drive has no GNSS/INS fix (no gnss section, "
+                                                 "or every row rejected: see its ingest report)"])
+    rows = rows.sort_by("stamp_ns")
+    col = {c: np.nan_to_num(rows[c].to_numpy()) for c in ("east_m", "north_m", "up_m", "roll_rad", "pitch_rad",
+                                                         "yaw_enu_rad")}
+    T = np.tile(np.eye(4), (rows.num_rows, 1, 1))
+    T[:, :3, :3] = Rotation.from_euler("ZYX", np.column_stack([col["yaw_enu_rad"], col["pitch_rad"],
+                                                              col["roll_rad"]])).as_matrix()
+    T[:, :3, 3] = np.column_stack([col["east_m"], col["north_m"], col["up_m"]])
+    path = out / "gnss_reference_tum.txt"
+    write_tum(path, rows["stamp_ns"].to_numpy() * 1e-9, T, header=frame_header(origin) + "\nreference: the drive's "
+              "GNSS/INS fixes (gnss_enu)")
+    return path
 
 
 class _WithMap:

@@ -5,12 +5,14 @@ import logging
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from pipeline.declare import StageContext
 from pipeline.errors import ConfigError, DataQualityError
 from stages.common.geodesy import EnuOrigin, geodetic_to_enu
 from stages.common.records import Extrinsics
 from stages.ingest.drive_file import DriveSpec, load_drive_file
+from stages.ingest.frame import frame_source
 from stages.ingest.gnss_csv import GnssLimits, check_within_area, find_gaps, read_gnss, read_odometry
 from stages.ingest.origin import resolve_enu_origin
 from stages.ingest.params import IngestParams
@@ -76,6 +78,7 @@ class DriveIngest:
         self.report_coverage()
         self._index_rows: list[dict] | None = None
         self._untimed = 0
+        self._prior = None
 
     # ---- scan list and stamps --------------------------------------------------------------------------
     # ---- the scan pass -----------------------------------------------------------------------------------
@@ -193,9 +196,59 @@ class DriveIngest:
             "yaw_enu_rad": g.yaw_enu_rad, "std_east_m": g.std_enu_m[:, 0], "std_north_m": g.std_enu_m[:, 1],
             "std_up_m": g.std_enu_m[:, 2], "std_yaw_rad": g.std_yaw_rad})
 
+    def prior(self):
+        """The drive's ``poses_prior`` rows (prior file at the scans, start pose), computed once."""
+        if self._prior is None:
+            from stages.ingest.prior import concat, prior_file_poses, start_pose
+
+            scans = [s for s in self.scans if s.stamp_ns is not None]
+            ids = np.array([s.scan_id for s in scans], np.int64)
+            stamps = np.array([s.stamp_ns for s in scans], np.int64)
+            parts = []
+            if self.spec.prior is not None and len(ids):
+                parts.append(prior_file_poses(self.spec, self.drive, ids, stamps, self.origin,
+                                              self.params.prior_gap_s))
+                n_bad = int((~parts[-1].valid).sum())
+                if n_bad:
+                    self.report.add("prior", self.spec.prior.file, None, n_bad,
+                                    f"{n_bad} of {len(ids)} scans without a prior pose (outside the prior's span or "
+                                    f"in a gap longer than prior_gap_s {self.params.prior_gap_s} s)")
+            if self.spec.start is not None and len(ids):
+                parts.append(start_pose(self.spec, self.drive, int(ids[0]), int(stamps[0]), self.origin))
+            self._prior = concat(parts, self.drive)
+        return self._prior
+
+    def prior_table(self):
+        return _table("poses_prior", self.prior().to_columns())
+
+    def _poses_from_prior(self):
+        """poses_gnss rows from the prior where the drive has no GNSS (``prior_as_gnss``), or None."""
+        from stages.ingest.prior import as_absolute_poses
+
+        if self.spec.gnss is not None or not self.params.prior_as_gnss or self.origin is None:
+            return None
+        absolute = as_absolute_poses(self.prior())
+        if absolute is None:
+            return None
+        self.report.add("prior", self.spec.prior.file, None, int(absolute.valid.sum()),
+                        f"no GNSS: poses_gnss holds {absolute.how} (ingest param prior_as_gnss)")
+        q = Rotation.from_matrix(absolute.T[:, :3, :3]).as_quat()
+        n = len(absolute.scan_id)
+        return _table("poses_gnss", {
+            "drive": [self.drive] * n, "scan_id": absolute.scan_id, "stamp_ns": absolute.stamp_ns,
+            "x_m": absolute.T[:, 0, 3], "y_m": absolute.T[:, 1, 3], "z_m": absolute.T[:, 2, 3],
+            "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3], "std_east_m": absolute.std_enu_yaw[:, 0],
+            "std_north_m": absolute.std_enu_yaw[:, 1], "std_up_m": absolute.std_enu_yaw[:, 2],
+            "std_yaw_rad": absolute.std_enu_yaw[:, 3], "valid": absolute.valid,
+            "roll_pitch_known": np.ones(n, bool)})
+
     def poses_table(self):
         g = self.gnss
         scans = [s for s in self.scans if s.stamp_ns is not None]
+        if g is None and scans:
+            from_prior = self._poses_from_prior()
+            if from_prior is not None:
+                return from_prior
         if g is None or self.origin is None or not len(g.stamp_ns) or not scans:
             return _table("poses_gnss", {n: [] for n in _names("poses_gnss")})
         position, attitude = self._vehicle_fixes()
@@ -268,6 +321,10 @@ def compute(ctx: StageContext) -> dict:
         raise ConfigError(f"ingest partition {drive!r}", [f"no drive file for {drive!r}; drives: "
                                                           f"{', '.join(ctx.drives)}"])
     spec = load_drive_file(ctx.drives[drive])
+    frame = frame_source(spec)
+    placed = set(ctx.settings.get("map_drives") or []) | set(ctx.settings.get("eval_drives") or [])
+    if frame.problem and drive in placed:  # before anything is read: a map or evaluation drive that cannot be placed
+        raise ConfigError(f"ingest {drive}", [frame.problem])  # in the map's frame stops the build here, in one line
     if spec.name != drive:
         log.warning("drive file %s names the drive %r; the workflow calls it %r (used)", ctx.drives[drive],
                     spec.name, drive)
@@ -283,6 +340,7 @@ def compute(ctx: StageContext) -> dict:
         "gnss": ingest.gnss_table(),
         "odometry": ingest.odometry_table(),
         "poses_gnss": ingest.poses_table(),
+        "poses_prior": ingest.prior_table(),
         "drive_info": _Deferred(lambda: [ingest.drive_info_table()]),
         "survey": ingest.iter_survey_tables(),
         "report": _Deferred(lambda: [ingest.report.to_table(drive)]),

@@ -24,7 +24,12 @@ MAX_HEADER_BYTES = 1 << 16
 
 def read_header(path: Path, delimiter: str = ",") -> list[str]:
     """The header line's column names; a header that is not UTF-8 text is a FormatError naming the file. Only the
-    header line is decoded (a bad byte further down is the business of the column that holds it)."""
+    header line is decoded (a bad byte further down is the business of the column that holds it). A KITTI OXTS
+    folder (``stages.ingest.kitti_raw``) is read like a CSV: its header is ``time`` and the 30 OXTS fields."""
+    if Path(path).is_dir():
+        from stages.ingest.kitti_raw import oxts_header
+
+        return oxts_header(Path(path))
     try:
         with open(path, "rb") as fh:
             raw = fh.readline(MAX_HEADER_BYTES)
@@ -47,6 +52,10 @@ def read_csv_columns(
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
+    if Path(path).is_dir():  # a KITTI OXTS folder: every value a number, or a FormatError naming the file
+        from stages.ingest.kitti_raw import read_oxts_columns
+
+        return read_oxts_columns(Path(path), list(dict.fromkeys(names)))
     header = read_header(path, delimiter)
     missing = [n for n in dict.fromkeys(names) if n not in header]
     if missing:

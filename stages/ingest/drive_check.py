@@ -57,6 +57,7 @@ def check_drive(path: Path, params: IngestParams = IngestParams(), sample_scans:
     from stages.common.geodesy import EnuOrigin
     from stages.ingest.compute import DriveIngest
     from stages.ingest.drive_file import load_drive_file
+    from stages.ingest.frame import frame_check_lines
     from stages.ingest.scan_pass import process_scan
 
     spec = load_drive_file(path)
@@ -76,8 +77,12 @@ def check_drive(path: Path, params: IngestParams = IngestParams(), sample_scans:
         out.summary.append(f"scans: {len(scans)} (ids {scans[0].scan_id}..{scans[-1].scan_id}, {with_file} with a "
                            f"file, {len(stamped)} stamped, {gaps} gap(s)); time span "
                            + (_span(stamped) if len(stamped) else "unknown"))
+    lines = frame_check_lines(spec, ingest)  # the frame, prior trajectory and beam table (stages/ingest/frame.py)
+    out.summary += lines[0]
+    out.warnings += lines[1]
+    out.problems += lines[2]
     if g is None:
-        out.warnings.append("gnss: none; the map has no geodetic frame (give the workflow an enu_origin)")
+        pass  # the frame line above says what places the drive
     elif not len(g.stamp_ns):
         out.problems.append(f"gnss: every row of {spec.gnss.file} was rejected")
     else:

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from pipeline.errors import ConfigError, DatasetIOError
 
 MAX_DRIVE_FILE_BYTES = 1 << 20  # a drive file is a few kB
+TIME_UNIT_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}  # gnss.time.unit, odometry.time_unit
 
 
 class _Strict(BaseModel):
@@ -32,6 +33,8 @@ class GnssTime(_Strict):
     column: str
     week_column: str | None = None  # GPS week: stamp = week * 604800 s + seconds
     base: Literal["gps", "unix"] = "gps"
+    unit: Literal["s", "ms", "us", "ns"] = "s"  # of the time column (ROS exports: ns)
+    nanosec_column: str | None = None  # adds its nanoseconds (ROS header.stamp.secs + header.stamp.nsecs)
 
 
 class GnssColumns(_Strict):
@@ -45,21 +48,30 @@ class GnssColumns(_Strict):
     std_north: str | None = None
     std_up: str | None = None
     std_heading: str | None = None
+    undulation: str | None = None  # geoid height above the ellipsoid (NovAtel INSPVAX): height + undulation
+
+
+GNSS_FORMATS = ("csv", "kitti_oxts")
 
 
 class GnssSpec(_Strict):
     file: str
+    format: Literal["csv", "kitti_oxts"] = "csv"  # kitti_oxts: a folder with data/*.txt and timestamps.txt
     time: GnssTime
     columns: GnssColumns
     angle_unit: Literal["deg", "rad"] = "deg"  # roll, pitch, heading and std_heading
     latlon_unit: Literal["deg", "rad"] = "deg"
     heading_convention: Literal["azimuth_cw_from_north", "enu_yaw_ccw_from_east"]
+    std_is_variance: bool = False  # the std columns hold variances (m^2; angle_unit^2): ROS position_covariance
     lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # GNSS/INS reference point in the vehicle frame
 
 
 class OdometrySpec(_Strict):
     file: str
+    format: Literal["csv", "kitti_oxts"] = "csv"
     time_column: str
+    time_unit: Literal["s", "ms", "us", "ns"] = "s"
+    nanosec_column: str | None = None
     week_column: str | None = None
     speed: str  # m/s
     yaw_rate: str  # rad/s
@@ -74,15 +86,55 @@ class ScanTimesSpec(_Strict):
     # pcd_field / stamps_csv: scan stamps from a CSV (scan_id, gps_seconds[, gps_week]); per-point times
     # from the PCD time field. rate: scan i at t0 + i / scan_rate_hz (t0_s, else the first GNSS fix, else 0).
     # filename_us: stamp in microseconds at the end of the file name (nuScenes ``...__1532402927647951``).
-    source: Literal["pcd_field", "stamps_csv", "rate", "filename_us"] = "rate"
-    file: str | None = None  # default <scans folder>/stamps.csv
+    # stamps_lines: one stamp per line, line k = scan k (KITTI ``timestamps.txt``; numbers or date-times).
+    source: Literal["pcd_field", "stamps_csv", "rate", "filename_us", "stamps_lines"] = "rate"
+    file: str | None = None  # default <scans folder>/stamps.csv (stamps_lines: required)
     t0_s: float | None = None
+
+
+class GeodeticPoint(_Strict):
+    lat_deg: float = Field(ge=-90, le=90)
+    lon_deg: float = Field(ge=-180, le=180)
+    h_m: float = Field(ge=-1000, le=10000)  # WGS84 ellipsoidal
+
+
+class PriorSpec(_Strict):
+    """A trajectory the drive comes with (SLAM poses of a keyframe dataset, a post-processed INS): ingest decodes it
+    into ``poses_prior``."""
+
+    file: str
+    format: Literal["tum", "kitti"]  # tum: t x y z qx qy qz qw; kitti: 12 numbers (3x4 row-major) per line
+    frame: Literal["enu", "local"]  # enu: ENU about ``origin``; local: z up, origin and heading unknown
+    origin: GeodeticPoint | None = None  # the ENU origin of an ``enu`` file
+    time: Literal["stamps", "scan_order"] = "stamps"  # stamps: tum t in the drive's time base; scan_order: row k
+    body: Literal["vehicle", "lidar"] = "vehicle"  # whose poses the file holds
+    std_m: tuple[float, float, float] = (0.1, 0.1, 0.1)  # per axis of the file's frame (x y z)
+    std_deg: tuple[float, float, float] = (0.1, 0.1, 0.5)  # roll, pitch, yaw
+
+    @field_validator("std_m", "std_deg")
+    @classmethod
+    def _positive(cls, v):
+        if any(not np.isfinite(x) or x <= 0 for x in v):
+            raise ValueError("every std must be a positive number")
+        return v
+
+
+class StartSpec(_Strict):
+    """Where and how the drive starts, for a drive with no GNSS: its first scan's vehicle pose is at ``position``
+    (default: the map's origin, ``cornermap build --origin``) with this heading."""
+
+    heading_deg: float = Field(ge=-360, le=360)
+    heading_convention: Literal["azimuth_cw_from_north", "enu_yaw_ccw_from_east"]
+    std_heading_deg: float = Field(1.0, gt=0)
+    position: GeodeticPoint | None = None  # None: the map's origin
+    std_m: float = Field(0.5, gt=0)  # of ``position`` (horizontal); the map's origin is exact
 
 
 class DriveSpec(_Strict):
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
-    sensor: Literal["hdl32e", "hdl64e", "vlp16", "generic"]
+    sensor: str  # a model of stages/ingest/sensors.py SENSORS
     elevations_deg: tuple[float, ...] | None = None  # overrides the sensor's table (ascending)
+    calibration_file: str | None = None  # the sensor's own table (Ouster metadata JSON, Velodyne db.xml, Hesai CSV)
     scans: ScansSpec
     scan_rate_hz: float = Field(gt=0, le=100)
     T_vehicle_lidar: tuple[tuple[float, float, float, float], ...]
@@ -90,6 +142,8 @@ class DriveSpec(_Strict):
     odometry: OdometrySpec | None = None
     survey: SurveySpec | None = None
     scan_times: ScanTimesSpec = ScanTimesSpec()
+    prior: PriorSpec | None = None
+    start: StartSpec | None = None
     drive_dir: Path = Field(default=Path("."), exclude=True)  # set by load_drive_file
 
     @field_validator("T_vehicle_lidar")
@@ -103,6 +157,16 @@ class DriveSpec(_Strict):
                 or np.linalg.det(R) < 0:
             raise ValueError("not a rigid transform (last row 0 0 0 1, orthonormal rotation with det +1)")
         return rows
+
+    @field_validator("sensor")
+    @classmethod
+    def _known_sensor(cls, v):
+        from pipeline.registry import suggest
+        from stages.ingest.sensors import SENSORS
+
+        if v not in SENSORS:
+            raise ValueError(f"unknown sensor {v!r}; expected one of {', '.join(SENSORS)}{suggest(v, SENSORS)}")
+        return v
 
     @field_validator("elevations_deg")
     @classmethod
@@ -137,11 +201,17 @@ def _path_problems(spec: DriveSpec) -> list[str]:
     fence = os.path.normpath(spec.drive_dir.parent)
     wanted: list[tuple[str, str, str]] = [("scans.folder", spec.scans.folder, "dir")]
     if spec.gnss:
-        wanted.append(("gnss.file", spec.gnss.file, "file"))
+        wanted.append(("gnss.file", spec.gnss.file, "dir" if spec.gnss.format == "kitti_oxts" else "file"))
     if spec.odometry:
-        wanted.append(("odometry.file", spec.odometry.file, "file"))
+        wanted.append(("odometry.file", spec.odometry.file, "dir" if spec.odometry.format == "kitti_oxts" else "file"))
     if spec.survey:
         wanted.append(("survey.file", spec.survey.file, "file"))
+    if spec.calibration_file:
+        wanted.append(("calibration_file", spec.calibration_file, "file"))
+    if spec.prior:
+        wanted.append(("prior.file", spec.prior.file, "file"))
+    if spec.scan_times.source == "stamps_lines" and spec.scan_times.file:
+        wanted.append(("scan_times.file", spec.scan_times.file, "file"))
     if spec.scan_times.source in ("pcd_field", "stamps_csv"):
         wanted.append(("scan_times.file", str(spec.stamps_file.relative_to(spec.drive_dir)
                                               if spec.stamps_file.is_relative_to(spec.drive_dir)
@@ -153,7 +223,7 @@ def _path_problems(spec: DriveSpec) -> list[str]:
             problems.append(f"{key}: {rel!r} resolves to {full}, outside the drive's parent folder {fence}; "
                             f"refused (keep drive data under {fence})")
         elif kind == "dir" and not full.is_dir():
-            problems.append(f"{key}: folder {full} does not exist")
+            problems.append(f"{key}: folder {full} does not exist" + (" (it is a file)" if full.is_file() else ""))
         elif kind == "file" and not full.is_file():
             problems.append(f"{key}: file {full} does not exist")
     return problems
@@ -163,8 +233,21 @@ def _semantic_problems(spec: DriveSpec) -> list[str]:
     problems = []
     if spec.scans.ring_from == "file" and spec.scans.format == "kitti_bin":
         problems.append("scans.ring_from: 'file' but kitti_bin files carry no ring; use point_order")
-    if spec.scans.ring_from == "elevation_table" and spec.sensor == "generic" and not spec.elevations_deg:
-        problems.append("scans.ring_from: elevation_table needs elevations_deg for the generic sensor")
+    if spec.scans.ring_from == "elevation_table" and spec.sensor == "generic" and not spec.elevations_deg \
+            and not spec.calibration_file:
+        problems.append("scans.ring_from: elevation_table needs elevations_deg or calibration_file for the generic "
+                        "sensor")
+    if spec.scan_times.source == "stamps_lines" and not spec.scan_times.file:
+        problems.append("scan_times.file: source stamps_lines needs the file of one stamp per line (e.g. "
+                        "velodyne_points/timestamps.txt)")
+    if spec.prior:
+        p = spec.prior
+        if p.format == "kitti" and p.time != "scan_order":
+            problems.append("prior.time: a kitti poses file has no times; use time: scan_order (line k = scan k)")
+        if p.frame == "enu" and p.origin is None:
+            problems.append("prior.origin: frame enu needs the file's ENU origin {lat_deg, lon_deg, h_m}")
+        if p.frame == "local" and p.origin is not None:
+            problems.append("prior.origin: a local frame has no geodetic origin; use frame: enu for ENU about it")
     if spec.survey:
         from pyproj import CRS
         from pyproj.exceptions import CRSError

@@ -1,7 +1,8 @@
 """``cornermap drive init FOLDER``: draft a drive file by inspecting a recorded drive's files.
 
-What can be read off the files is filled in (scan folder and format, fields, point counts, a sensor guess from
-the elevation histogram, the GNSS / odometry / stamps CSV column mapping, a survey cloud and its CRS); what cannot
+What can be read off the files is filled in (scan folder and format, fields, point counts, the sensor from a
+calibration file or the scans (``drive_init_sensor``), stamps, the GNSS / odometry columns of CSVs and of KITTI's
+OXTS folder, KITTI's ``calib_imu_to_velo.txt``, a prior trajectory, a survey cloud and its CRS); what cannot
 (the lidar extrinsic, conventions a header does not state) is written with a ``# CHECK:`` comment, and what is
 missing altogether with ``# TODO:``. The draft is meant to be read, completed and then checked with
 ``cornermap drive check``.
@@ -14,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.ingest.drive_init_csv import draft_csvs
+from stages.ingest.drive_init_csv import draft_csvs, draft_prior
+from stages.ingest.drive_init_sensor import collect_evidence, find_calibration, guess_sensor
 from stages.ingest.scan_formats import read_scan
-from stages.ingest.sensors import SENSORS, elevation_deg
 
 
 @dataclass
@@ -31,8 +32,9 @@ class Draft:
     outside: list[str] = field(default_factory=list)
 
     def rel(self, path: Path) -> str:
-        """``path`` as the drive file names it: relative to ``base``, '/'-separated."""
-        path = Path(path).resolve()
+        """``path`` as the drive file names it: relative to ``base``, '/'-separated (lexically: a symbolic link
+        placed in the drive's folder stays a path inside it, as the drive file's check reads it)."""
+        path = Path(os.path.abspath(path))
         if self.base is None:
             return path.as_posix()
         text = Path(os.path.relpath(path, self.base)).as_posix()
@@ -73,39 +75,6 @@ def bin_format(path: Path) -> str:
     return "kitti_bin"
 
 
-def guess_sensor(elev_deg: np.ndarray, n_beams: int | None) -> tuple[str, str]:
-    """The sensor with ``n_beams`` beams (from a ring field or the point order) whose table best spans the
-    scan's elevations (0.5th-99.5th percentile; the lowest beams often miss), and why; else the best span."""
-    lo, hi = np.percentile(elev_deg, [0.5, 99.5])
-    scores = []
-    for name, model in SENSORS.items():
-        if not model.elevations_deg:
-            continue
-        t = model.elevations_deg
-        mismatch = 0.0 if n_beams is None or n_beams == len(t) else 100.0
-        scores.append((mismatch + abs(t[-1] - hi) + 0.5 * abs(t[0] - lo), name))
-    err, name = min(scores)
-    table = SENSORS[name].elevations_deg
-    why = f"{n_beams or 'unknown'} beams, elevations {lo:.1f}..{hi:.1f} deg; {name} has {len(table)} beams over " \
-          f"{table[0]:.1f}..{table[-1]:.1f}"
-    # The top beam is reliable (it hits facades); the lowest often see the car itself or nothing.
-    same_count = n_beams is not None and n_beams == len(table)
-    ok = abs(table[-1] - hi) < 3.0 if same_count else err < 6.0
-    return (name if ok else "generic"), why
-
-
-def count_beams(points) -> int | None:
-    """Beams in one scan: the ring field's range, else the number of laser lines in point order (KITTI-style
-    exports), when that is a plausible beam count."""
-    from stages.ingest.sensors import rings_from_point_order
-
-    if points.ring is not None and len(points.ring):
-        return int(points.ring.max()) + 1
-    lines = rings_from_point_order(points.x_m, points.y_m, points.z_m)
-    n = int(lines.max()) + 1 if len(lines) else 0
-    return n if n in (16, 32, 64, 128) else None
-
-
 def draft_drive_file(folder: Path, out: Path | None = None) -> Draft:
     """The draft of ``folder``'s drive file, to be written at ``out`` (default ``folder/drive.yaml``): its paths are
     relative to ``out``'s folder."""
@@ -118,9 +87,9 @@ def draft_drive_file(folder: Path, out: Path | None = None) -> Draft:
     d.add(f"name: {folder.name}")
     fmt = _draft_scans(folder, d)
     d.add("scan_rate_hz: 10.0", "CHECK: the sensor's rotation rate")
-    d.unknown("T_vehicle_lidar: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1.7], [0, 0, 0, 1]]",
-              "the lidar's pose in the vehicle frame (x forward, y left, z up; here: identity, 1.7 m up)")
-    draft_csvs(folder, d)
+    _draft_extrinsic(folder, d)
+    gnss = draft_csvs(folder, d)
+    draft_prior(folder, d, has_gnss=gnss)
     _draft_survey(folder, d, fmt)
     return d
 
@@ -141,46 +110,99 @@ def _draft_scans(folder: Path, d: Draft) -> str | None:
     scan_dir, kind, files = found
     fmt = {"pcd": "pcd", "las": "las", "bin": bin_format(files[0])}[kind]
     sample = [files[0], files[len(files) // 2], files[-1]]
-    elev, beams, n_points = [], [], []
+    ev = collect_evidence(sample, fmt)
     has_ring = has_time = False
-    for f in sample:
+    for f in sample[:1]:
         try:
             pts = read_scan(f, fmt)
+            has_ring, has_time = pts.ring is not None, pts.time_offset_s is not None
         except Exception:  # noqa: BLE001 - a draft notes unreadable samples, check reports them
-            continue
-        ok = np.isfinite(pts.x_m) & (np.abs(pts.x_m) + np.abs(pts.y_m) + np.abs(pts.z_m) > 0)
-        n_points.append(int(ok.sum()))
-        elev.append(elevation_deg(pts.x_m[ok], pts.y_m[ok], pts.z_m[ok]))
-        beams.append(count_beams(pts.select(ok)))
-        has_ring |= pts.ring is not None
-        has_time |= pts.time_offset_s is not None
-    note = f"{len(files)} files; {min(n_points, default=0)}-{max(n_points, default=0)} points in 3 sampled"
+            pass
+    counts = ev.points_per_scan
+    note = f"{len(files)} files; {min(counts, default=0)}-{max(counts, default=0)} points in 3 sampled"
     note += "; ring field present" if has_ring else ""
     note += "" if has_time else "; no per-point time (scans are not deskewed)"
     d.add("scans:")
     d.add(f"  folder: {d.rel(scan_dir)}", note)
     d.add(f"  format: {fmt}")
-    if elev:
-        known = [b for b in beams if b]
-        sensor, why = guess_sensor(np.concatenate(elev), max(known) if known else None)
-        d.add(f"sensor: {sensor}", f"CHECK: guessed from the elevation histogram ({why})")
+    calibration = find_calibration(folder)
+    if calibration is not None:
+        path, cal = calibration
+        sensor = cal.model or "generic"
+        d.add(f"sensor: {sensor}", f"from {path.name}: {cal.why}")
+        d.add(f"calibration_file: {d.rel(path)}", f"the unit's own {len(cal.elevations_deg)}-beam table ({cal.kind})")
+    elif counts:
+        sensor, why = guess_sensor(ev)
+        d.add(f"sensor: {sensor}", f"CHECK: guessed from the scans ({why})")
         if sensor == "generic":
-            d.unknown("# elevations_deg: [...]", "the beam elevation table (ascending) if rings are to be "
-                                                 "recovered from elevation")
+            d.unknown("# elevations_deg: [...]", "the beam elevation table (ascending) or calibration_file, if rings "
+                                                 "are to be recovered from elevation")
     else:
         d.unknown("sensor: generic", "no sampled scan was readable")
+    _draft_scan_times(scan_dir, sample, has_time, d)
+    return fmt
+
+
+STAMP_LINE_FILES = ("timestamps_start.txt", "timestamps.txt", "times.txt", "stamps.txt")
+
+
+def _draft_scan_times(scan_dir: Path, sample: list[Path], has_time: bool, d: Draft) -> None:
+    """scan_times: a stamps CSV, a file of one stamp per line beside the scans (KITTI ``timestamps_start.txt``: the
+    sweep's start, the scan stamp's meaning), stamps in the file names, else the rate."""
+    from stages.ingest.kitti_raw import parse_stamp
+
     stamps = scan_dir / "stamps.csv"
     numbered_us = all(len("".join(ch for ch in f.name.split(".")[0] if ch.isdigit())) >= 13 for f in sample)
+    lines = None
+    for name in STAMP_LINE_FILES:
+        for where in (scan_dir, scan_dir.parent):
+            candidate = where / name
+            try:
+                first = candidate.read_text(encoding="utf-8", errors="strict").splitlines()[:1] \
+                    if candidate.is_file() else []
+                if lines is None and first and parse_stamp(first[0]) >= 0:
+                    lines = candidate
+            except (OSError, UnicodeDecodeError, ValueError):
+                continue
     if stamps.is_file():
         d.add("scan_times:", "scan stamps from the stamps file")
         d.add(f"  source: {'pcd_field' if has_time else 'stamps_csv'}")
         d.add(f"  file: {d.rel(stamps)}")
+    elif lines is not None:
+        d.add("scan_times:", "one stamp per line, line k = scan k (date-times are read as UTC: unix base)")
+        d.add("  source: stamps_lines")
+        d.add(f"  file: {d.rel(lines)}")
     elif numbered_us:
         d.add("scan_times: {source: filename_us}", "file names end in microsecond stamps")
     else:
         d.add("scan_times: {source: rate}", "CHECK: scan i at t0 + (i - first) / scan_rate_hz; t0 = first "
                                             "GNSS fix unless t0_s is given")
-    return fmt
+
+
+def _draft_extrinsic(folder: Path, d: Draft) -> None:
+    """T_vehicle_lidar from KITTI's ``calib_imu_to_velo.txt`` in the drive's folder or the date folder above it
+    (the vehicle frame is then the OXTS unit's, whose poses the GNSS/INS reports), else a TODO."""
+    from pipeline.errors import FormatError
+    from stages.ingest.kitti_raw import vehicle_from_imu_calibration
+
+    for where in (folder, folder.parent):
+        calib = where / "calib_imu_to_velo.txt"
+        if not calib.is_file():
+            continue
+        try:
+            T = vehicle_from_imu_calibration(calib)
+        except FormatError as exc:
+            d.unknown("T_vehicle_lidar: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1.7], [0, 0, 0, 1]]", str(exc))
+            return
+        U, _, Vt = np.linalg.svd(T[:3, :3])  # the file's 7 digits: the nearest rotation
+        T[:3, :3] = U @ Vt
+        rows = ", ".join("[" + ", ".join(f"{v:.9f}".rstrip("0").rstrip(".") if v else "0" for v in r) + "]"
+                         for r in T)
+        d.add(f"T_vehicle_lidar: [{rows}]", f"{calib.name} inverted: the vehicle frame is the OXTS unit's "
+                                             "(x forward, y left, z up)")
+        return
+    d.unknown("T_vehicle_lidar: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1.7], [0, 0, 0, 1]]",
+              "the lidar's pose in the vehicle frame (x forward, y left, z up; here: identity, 1.7 m up)")
 
 
 def _georeferenced(path: Path) -> bool:

@@ -12,7 +12,7 @@ import numpy as np
 
 from pipeline.errors import FormatError
 from stages.ingest.csv_columns import TimestampIssue, read_csv_columns, read_header
-from stages.ingest.drive_file import GnssSpec, OdometrySpec
+from stages.ingest.drive_file import TIME_UNIT_S, GnssSpec, OdometrySpec
 
 NS_PER_WEEK = 604_800 * 1_000_000_000
 
@@ -74,8 +74,8 @@ def find_gaps(stamp_ns: np.ndarray, max_gap_s: float) -> list[tuple[int, float]]
     return [(int(i), float(dt_s[i])) for i in np.flatnonzero(dt_s > max_gap_s)]
 
 
-def _time_columns(spec_time_column: str, week_column: str | None) -> list[str]:
-    return [spec_time_column] + ([week_column] if week_column else [])
+def _time_columns(spec_time_column: str, week_column: str | None, nanosec_column: str | None = None) -> list[str]:
+    return [spec_time_column] + ([week_column] if week_column else []) + ([nanosec_column] if nanosec_column else [])
 
 
 def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
@@ -84,14 +84,17 @@ def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
     non-monotonic time, latitude/longitude/height out of range after unit conversion, a jump faster than
     ``limits.max_speed_mps`` from the previous kept fix); the drive fails only if the file cannot be read."""
     c = spec.columns
-    optional = {k: getattr(c, k) for k in ("roll", "pitch", "std_east", "std_north", "std_up", "std_heading")}
-    names = _time_columns(spec.time.column, spec.time.week_column) + [c.lat, c.lon, c.height, c.heading] + \
+    optional = {k: getattr(c, k) for k in ("roll", "pitch", "std_east", "std_north", "std_up", "std_heading",
+                                            "undulation")}
+    names = _time_columns(spec.time.column, spec.time.week_column, spec.time.nanosec_column) + \
+        [c.lat, c.lon, c.height, c.heading] + \
         [v for v in optional.values() if v]
     bad_cells: list[TimestampIssue] = []
     cols = read_csv_columns(path, names, bad_cells=bad_cells)
     n = len(cols[c.lat])
     week = cols[spec.time.week_column] if spec.time.week_column else None
-    seconds = cols[spec.time.column]
+    seconds = cols[spec.time.column] * TIME_UNIT_S[spec.time.unit] + \
+        (cols[spec.time.nanosec_column] * 1e-9 if spec.time.nanosec_column else 0.0)
     finite = np.isfinite(seconds) & (np.isfinite(week) if week is not None else True)
     stamp = stamps_ns(np.where(finite, seconds, 0.0), None if week is None else np.where(finite, week, 0.0))
     keep, issues = monotonic_mask(stamp, finite)
@@ -104,7 +107,8 @@ def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
     keep &= values_ok
     angle = np.pi / 180.0 if spec.angle_unit == "deg" else 1.0
     latlon = 1.0 if spec.latlon_unit == "deg" else 180.0 / np.pi
-    lat, lon, h = cols[c.lat] * latlon, cols[c.lon] * latlon, cols[c.height]
+    lat, lon, h = cols[c.lat] * latlon, cols[c.lon] * latlon, cols[c.height] + (cols[c.undulation] if c.undulation
+                                                                                else 0.0)
     unit = f"latlon_unit {spec.latlon_unit}"
     checks = ((np.abs(lat) > 90.0, f"latitude outside -90..90 deg ({unit})"),
               (np.abs(lon) > 180.0, f"longitude outside -180..180 deg ({unit})"),
@@ -130,12 +134,15 @@ def read_gnss(path: Path, spec: GnssSpec, limits: GnssLimits = GnssLimits()
     yaw = (yaw + np.pi) % (2 * np.pi) - np.pi
     defaults = []
     std = np.column_stack([opt("std_east"), opt("std_north"), opt("std_up")])
+    if spec.std_is_variance:  # ROS covariances (m^2): the std is the square root
+        std = np.sqrt(np.where(std > 0, std, np.nan))
     for axis, key in enumerate(("std_east", "std_north", "std_up")):
         missing = ~np.isfinite(std[:, axis]) | (std[:, axis] <= 0)
         if np.any(missing & keep):
             defaults.append(key)
             std[missing, axis] = limits.default_std_enu_m[axis]
-    std_yaw = opt("std_heading", angle)
+    std_yaw = np.sqrt(np.where(opt("std_heading") > 0, opt("std_heading"), np.nan)) * angle \
+        if spec.std_is_variance else opt("std_heading", angle)
     missing = ~np.isfinite(std_yaw) | (std_yaw <= 0)
     if np.any(missing & keep):
         defaults.append("std_heading")
@@ -227,6 +234,8 @@ def read_first_fix(path: Path, spec: GnssSpec) -> tuple[float, float, float] | N
     """(lat_deg, lon_deg, h_m) of the first data row with finite values, reading only the file's head."""
     header = read_header(path)
     c = spec.columns
+    if Path(path).is_dir() or c.undulation:  # a KITTI OXTS folder, or height + undulation: read as columns
+        return _first_fix_from_columns(path, spec)
     try:
         idx = [header.index(k) for k in (c.lat, c.lon, c.height)]
     except ValueError:
@@ -246,9 +255,22 @@ def read_first_fix(path: Path, spec: GnssSpec) -> tuple[float, float, float] | N
     return None
 
 
+def _first_fix_from_columns(path: Path, spec: GnssSpec) -> tuple[float, float, float] | None:
+    c = spec.columns
+    cols = read_csv_columns(path, [c.lat, c.lon, c.height] + ([c.undulation] if c.undulation else []),
+                            bad_cells=[])
+    scale = 1.0 if spec.latlon_unit == "deg" else 180.0 / np.pi
+    h = cols[c.height] + (cols[c.undulation] if c.undulation else 0.0)
+    ok = np.flatnonzero(np.isfinite(cols[c.lat]) & np.isfinite(cols[c.lon]) & np.isfinite(h))
+    return None if not len(ok) else (float(cols[c.lat][ok[0]]) * scale, float(cols[c.lon][ok[0]]) * scale,
+                                     float(h[ok[0]]))
+
+
 def read_odometry(path: Path, spec: OdometrySpec) -> tuple[dict[str, np.ndarray], list[TimestampIssue]]:
-    cols = read_csv_columns(path, _time_columns(spec.time_column, spec.week_column) + [spec.speed, spec.yaw_rate])
-    seconds = cols[spec.time_column]
+    cols = read_csv_columns(path, _time_columns(spec.time_column, spec.week_column, spec.nanosec_column)
+                            + [spec.speed, spec.yaw_rate])
+    seconds = cols[spec.time_column] * TIME_UNIT_S[spec.time_unit] + \
+        (cols[spec.nanosec_column] * 1e-9 if spec.nanosec_column else 0.0)
     week = cols[spec.week_column] if spec.week_column else None
     finite = np.isfinite(seconds) & (np.isfinite(week) if week is not None else True)
     stamp = stamps_ns(np.where(finite, seconds, 0.0), None if week is None else np.where(finite, week, 0.0))

@@ -24,3 +24,8 @@ class IngestParams(Params):
                                                                 "speed allows is rejected (per row, with a reason)")
     gnss_height_min_m: float = Field(-1000.0, description="fixes below this ellipsoidal height are rejected")
     gnss_height_max_m: float = Field(10000.0, description="fixes above this ellipsoidal height are rejected")
+    prior_gap_s: float = Field(1.0, gt=0, description="a scan stamp between two prior-trajectory rows further apart "
+                               "than this has no prior pose (valid=false), unless a row lies at its stamp")
+    prior_as_gnss: bool = Field(True, description="a drive without GNSS takes its prior trajectory (ENU, or local "
+                                "aligned at the start heading) as its poses_gnss, the pose graph's absolute input "
+                                "(the prior's std; a local prior's grown by the start's heading std per metre)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 KINDS = ("quarantined_file", "dropped_points", "timestamp", "gnss_gap", "ring_coverage", "gnss_row", "gnss_default",
-         "gnss_coverage", "deskew", "scan_gap")
+         "gnss_coverage", "deskew", "scan_gap", "prior")
 
 
 @dataclass

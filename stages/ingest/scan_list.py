@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from stages.ingest.drive_file import DriveSpec
 from stages.ingest.gnss_csv import NS_PER_WEEK, GnssFixes, read_scan_stamps, stamps_ns
+from stages.ingest.kitti_raw import read_stamp_lines
 from stages.ingest.report import IngestReport
 from stages.ingest.scan_pass import MAX_SCAN_ID, ScanFile, list_scan_files, scan_numbers, stamp_from_filename_us
 
@@ -29,6 +30,12 @@ def list_scans(spec: DriveSpec, gnss: GnssFixes | None, max_scans: int | None, r
         scans = [ScanFile(i, by_id[i], t0 + round((i - first) * 1e9 / spec.scan_rate_hz)) for i in sorted(by_id)]
     elif source == "filename_us":
         scans = [ScanFile(i, p, stamp_from_filename_us(p)) for i, p in by_id.items()]
+    elif source == "stamps_lines":  # line k is the stamp of scan k; a line without a file is a missing scan
+        lines, issues = read_stamp_lines(spec.path(spec.scan_times.file))
+        for record, reason in issues:
+            report.add("timestamp", spec.scan_times.file, record, 1, reason)
+        by_line = {k: t for k, t in enumerate(lines) if t is not None}
+        scans = [ScanFile(i, by_id.get(i), by_line.get(i)) for i in sorted(set(by_id) | set(by_line))]
     else:
         week = None
         if spec.gnss and spec.gnss.time.week_column and gnss is not None and len(gnss.stamp_ns):

@@ -73,7 +73,14 @@ def stamp_from_filename_us(path: Path) -> int:
 
 
 def elevation_table(spec: DriveSpec) -> tuple[float, ...]:
-    return tuple(spec.elevations_deg) if spec.elevations_deg else SENSORS[spec.sensor].elevations_deg
+    """The drive's beam table: ``elevations_deg``, else the sensor's own ``calibration_file``, else the model's."""
+    if spec.elevations_deg:
+        return tuple(spec.elevations_deg)
+    if spec.calibration_file:
+        from stages.ingest.sensor_calibration import calibration_table
+
+        return calibration_table(spec.path(spec.calibration_file))
+    return SENSORS[spec.sensor].elevations_deg
 
 
 def choose_ring_method(spec: DriveSpec, has_file_ring: bool) -> str:

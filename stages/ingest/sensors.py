@@ -13,12 +13,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.ingest import beam_tables
+
 
 @dataclass(frozen=True)
 class SensorModel:
     name: str
     elevations_deg: tuple[float, ...]  # ascending: index = ring
     ring_from_order: bool  # the usual export stores points laser by laser (KITTI HDL-64E)
+    label: str = ""  # the maker's name of the model (Ouster: the metadata's ``prod_line``)
+    source: str = ""  # where the table comes from (``beam_tables``)
 
     @property
     def n_rings(self) -> int:
@@ -31,13 +35,45 @@ def _hdl64e_nominal_deg() -> tuple[float, ...]:
     return tuple(np.round(np.sort(np.concatenate([upper, lower])), 3))
 
 
+def _model(name: str, table, label: str, source: str, ring_from_order: bool = False) -> SensorModel:
+    return SensorModel(name, tuple(sorted(float(v) for v in table)), ring_from_order, label, source)
+
+
+def _ouster() -> list[SensorModel]:
+    """Ouster models: published units' metadata, and the configurations derived from a family's 128-laser table
+    (``beam_tables``: U02 every 2nd laser from the lowest, U0 every 4th, BH the lower half, BH02 every 2nd of it)."""
+    bt = beam_tables
+    derived = "derived from the {0} example ({1})"
+    out = [_model("os1-128", bt.OS1_128, "OS-1-128", "ouster-sdk metadata 3_0_1_os-122246000293"),
+           _model("os2-128", bt.OS2_128, "OS-2-128", "ouster-sdk metadata OS-2-128-U1_v2.3.0"),
+           _model("os1-64", bt.OS1_64_GEN1, "OS-1-64", "ouster-sdk metadata 2_0_0_os1-991913000010-64 (first "
+                  "generation, 33.2 deg)"),
+           _model("os1-32-gradient", bt.OS1_32_G, "OS-1-32-G", "ouster-sdk metadata OS-1-32-G_v2.1.1"),
+           _model("os2-32-uniform", bt.OS2_32_U0, "OS-2-32-U0", "ouster-sdk metadata OS-2-32-U0_v2.0.0")]
+    for family, table in (("os1", bt.OS1_128), ("os2", bt.OS2_128)):
+        code = family.upper().replace("OS", "OS-")
+        for name, label, step, lower in (("64-uniform", "64-U02", 2, False), ("64-below-horizon", "64-BH", 1, True),
+                                          ("32-below-horizon", "32-BH02", 2, True)):
+            out.append(_model(f"{family}-{name}", bt.lasers_from_lowest(table, step, lower_half=lower),
+                              f"{code}-{label}", derived.format(f"{code}-128", label)))
+    out.append(_model("os1-32-uniform", bt.lasers_from_lowest(bt.OS1_128, 4), "OS-1-32-U0",
+                      derived.format("OS-1-128", "U0")))
+    return out
+
+
 SENSORS: dict[str, SensorModel] = {
     # Velodyne HDL-32E manual: -30.67 .. +10.67 deg in 4/3 deg steps.
-    "hdl32e": SensorModel("hdl32e", tuple(np.round(-30.67 + np.arange(32) * (41.34 / 31), 3)), False),
+    "hdl32e": SensorModel("hdl32e", tuple(np.round(-30.67 + np.arange(32) * (41.34 / 31), 3)), False, "HDL-32E",
+                          "Velodyne HDL-32E manual"),
     # Velodyne HDL-64E S2 nominal: two blocks of 32 lasers (per-unit calibration differs by a few 0.1 deg).
-    "hdl64e": SensorModel("hdl64e", _hdl64e_nominal_deg(), True),
+    "hdl64e": SensorModel("hdl64e", _hdl64e_nominal_deg(), True, "HDL-64E", "Velodyne HDL-64E S2 nominal"),
     # Velodyne VLP-16: -15 .. +15 deg in 2 deg steps.
-    "vlp16": SensorModel("vlp16", tuple(float(v) for v in np.arange(-15.0, 16.0, 2.0)), False),
+    "vlp16": SensorModel("vlp16", tuple(float(v) for v in np.arange(-15.0, 16.0, 2.0)), False, "VLP-16",
+                         "Velodyne VLP-16 manual"),
+    "vlp32c": _model("vlp32c", beam_tables.VLP32C, "VLP-32C", "VeloView VLP-32c.xml"),
+    "pandar64": _model("pandar64", beam_tables.PANDAR64, "Pandar64", "Hesai SDK Pandar64 angle correction file"),
+    "pandarxt32": _model("pandarxt32", beam_tables.PANDARXT32, "PandarXT-32", "Hesai SDK pandarXT.h"),
+    **{m.name: m for m in _ouster()},
     # Generic: no table unless the drive file gives one (elevations_deg); rings from the file or point order.
     "generic": SensorModel("generic", (), False),
 }

@@ -16,7 +16,7 @@ from pipeline.memory import release_memory
 from schemas.registry import schema_of
 from stages.common.records import Extrinsics
 from stages.common.wheel_odometry import OdometryTrack, track_from_table, wheel_increments
-from stages.odometry.core import Edge, Scan, estimate_edges
+from stages.odometry.core import Edge, PriorPoses, Scan, estimate_edges
 
 log = logging.getLogger(__name__)
 SCAN_COLUMNS = ["scan_id", "stamp_ns", "x_m", "y_m", "z_m", "time_offset_s"]
@@ -79,6 +79,22 @@ def poses_from_table(table: pa.Table, valid_only: bool = True) -> dict[int, np.n
 
     T = pose_matrices(table)
     return {int(s): T[i] for i, s in enumerate(table["scan_id"].to_numpy())}
+
+
+def prior_from_table(table: pa.Table | None, drive: str) -> PriorPoses | None:
+    """The drive's prior-trajectory rows (``poses_prior``, source prior_file, valid) as the odometry's references,
+    with the largest stated std per axis; None without any."""
+    from stages.common.records import PriorPoses as PriorRows
+
+    if table is None or table.num_rows == 0:
+        return None
+    rows = PriorRows.from_table(table, drive)
+    use = (rows.source == "prior_file") & rows.valid
+    if not use.any():
+        return None
+    std = rows.std[use]
+    return PriorPoses({int(s): rows.T[i] for i, s in zip(np.flatnonzero(use), rows.scan_id[use])},
+                      float(np.nanmax(std[:, :3])), float(np.nanmax(std[:, 3:])))
 
 
 def _odometry_track(ctx: StageContext) -> OdometryTrack | None:
@@ -154,9 +170,11 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
             log.info("odometry %s: %d scans deskewed with wheel odometry, the others with their own sweep",
                      ctx.partition.label, n_wheel)
     gnss_tab = ctx.inputs.read("poses_gnss", partition=PartitionKey(drive=drive))
+    prior = prior_from_table(ctx.inputs.read("prior", partition=PartitionKey(drive=drive))
+                             if ctx.inputs.has("prior") else None, drive)
     release_memory()  # the Arrow table the scans were split from (0.4 GB for 100 real HDL-64E scans)
     edges = estimate_edges(scans, T_vehicle_lidar, poses_from_table(gnss_tab), p.edge_config(),
-                           guide_increments=guides, release_points=True)
+                           guide_increments=guides, release_points=True, prior=prior)
     spans = [e for e in edges if e.span > 1]
     edges = [e for e in edges if e.span == 1]
     n_bad = sum(not e.accepted for e in edges)

@@ -56,8 +56,28 @@ class GateConfig:
 
 
 @dataclass(frozen=True)
+class KeyframeConfig:
+    """Pairs of scans further apart in time than ``min_dt_s`` (keyframes, metres apart; ``keyframes.py``): GICP in
+    ``stages`` of (voxel m, correspondence m); started from the prior, the GNSS/INS, else a global registration
+    (FPFH + RANSAC at ``global_voxel_m``); gated within hypot(the reference's limit, ``deviation_*_per_m`` x the
+    pair's distance); information floored at ``sigma_*_per_m`` x that distance; rejected when its chord leaves the
+    heading by more than ``max_sideslip_rad`` (a car follows its heading: ``keyframes.plausible_motion``).
+    ``prior_gate_sigmas``: a prior's limit in its stated std (times sqrt 2: two poses)."""
+
+    min_dt_s: float = 0.35
+    stages: tuple[tuple[float, float], ...] = ((1.0, 2.0), (0.5, 0.5))
+    deviation_m_per_m: float = 0.05
+    deviation_rad_per_m: float = 0.0035
+    sigma_m_per_m: float = 0.015
+    sigma_rad_per_m: float = 0.0015
+    global_voxel_m: float = 1.0
+    prior_gate_sigmas: float = 3.0
+    max_sideslip_rad: float = 0.26  # the chord of a keyframe pair within this of the arc's (heading + turn / 2)
+
+
+@dataclass(frozen=True)
 class EdgeConfig:
-    """All of ``estimate_edges``' settings: the four sections, own-sweep ``deskew`` and the ``span_scans``."""
+    """All of ``estimate_edges``' settings: the sections, own-sweep ``deskew`` and the ``span_scans``."""
 
     prepare: PrepareConfig
     icp: IcpConfig
@@ -65,12 +85,13 @@ class EdgeConfig:
     gate: GateConfig
     deskew: bool
     span_scans: tuple[int, ...] = ()
+    keyframe: KeyframeConfig = KeyframeConfig()
 
     @classmethod
     def flat(cls, *, deskew: bool, span_scans: tuple[int, ...] | list[int] = (), **values) -> "EdgeConfig":
         """Build from flat keywords named like the sections' fields; an unknown or missing one is a TypeError."""
         sections = {"prepare": PrepareConfig, "icp": IcpConfig, "information": InformationConfig,
-                    "gate": GateConfig}
+                    "gate": GateConfig}  # keyframe: its defaults (``EdgeConfig(..., keyframe=KeyframeConfig(...))``)
         built = {}
         for key, section in sections.items():
             names = {f.name for f in fields(section)}

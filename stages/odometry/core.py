@@ -99,27 +99,55 @@ def gate_edge(T_v: np.ndarray, T_gnss_v: np.ndarray | None, fitness: float, regi
 
 
 @dataclass(frozen=True)
+class PriorPoses:
+    """A drive's prior trajectory for the odometry: scan_id -> T_frame_vehicle (any frame: only increments are
+    used) and the std the drive file states for it (the largest per axis)."""
+
+    T: dict[int, np.ndarray]
+    sigma_m: float
+    sigma_rad: float
+
+
+@dataclass(frozen=True)
 class _Pairs:
-    """Consecutive scan pairs by position ``k`` (scan k-1 -> k): their duration, reference increments (GNSS/INS,
-    replaced by the guide where one exists) and which of them are guided."""
+    """Consecutive scan pairs by position ``k`` (scan k-1 -> k): their duration, reference increments (the wheel
+    guide, else the prior trajectory's, else the GNSS/INS's), which of them are guided, the gate's limits of the
+    reference (m, rad) and which pairs are keyframe pairs (``keyframes.py``)."""
 
     k: list[int]
     dt_s: dict[int, float]
     reference_v: dict[int, np.ndarray]
     guided: set[int]
+    limits: dict[int, tuple[float, float]] = None
+    keyframe: frozenset[int] = frozenset()
 
 
 def pair_scans(scans: list[Scan], gnss_poses: dict[int, np.ndarray],
-               guide_increments: dict[int, np.ndarray] | None) -> _Pairs:
-    """Step 2: the consecutive pairs (ids k-1, k) and their reference increments."""
+               guide_increments: dict[int, np.ndarray] | None, prior: PriorPoses | None = None,
+               cfg: EdgeConfig | None = None) -> _Pairs:
+    """Step 2: the consecutive pairs (ids k-1, k), their reference increments and the gate's limits."""
     pairs = [k for k in range(1, len(scans)) if scans[k].scan_id == scans[k - 1].scan_id + 1]
     dt_s = {k: (scans[k].stamp_ns - scans[k - 1].stamp_ns) * 1e-9 for k in pairs}
-    reference = {k: se3_inverse(gnss_poses[scans[k - 1].scan_id]) @ gnss_poses[scans[k].scan_id]
-                 for k in pairs if scans[k - 1].scan_id in gnss_poses and scans[k].scan_id in gnss_poses}
+    g = cfg.gate if cfg is not None else None
+    base = (g.max_deviation_m, g.max_deviation_rad) if g else (np.inf, np.inf)
+    reference, limits = {}, {}
+    for k in pairs:
+        a, b = scans[k - 1].scan_id, scans[k].scan_id
+        if a in gnss_poses and b in gnss_poses:
+            reference[k], limits[k] = se3_inverse(gnss_poses[a]) @ gnss_poses[b], base
+    if prior is not None and cfg is not None:  # a prior's increments: its std twice, at prior_gate_sigmas
+        n = cfg.keyframe.prior_gate_sigmas * np.sqrt(2.0)
+        for k in pairs:
+            a, b = scans[k - 1].scan_id, scans[k].scan_id
+            if a in prior.T and b in prior.T:
+                reference[k] = se3_inverse(prior.T[a]) @ prior.T[b]
+                limits[k] = (n * prior.sigma_m, n * prior.sigma_rad)
     guided = {k for k in pairs if guide_increments and scans[k].scan_id in guide_increments}
     for k in guided:
         reference[k] = guide_increments[scans[k].scan_id]
-    return _Pairs(pairs, dt_s, reference, guided)
+        limits[k] = (g.max_deviation_guide_m, g.max_deviation_guide_rad) if g else base
+    keyframe = frozenset(k for k in pairs if cfg is not None and dt_s[k] > cfg.keyframe.min_dt_s and k not in guided)
+    return _Pairs(pairs, dt_s, reference, guided, limits, keyframe)
 
 
 def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar: np.ndarray, cfg: EdgeConfig,
@@ -134,12 +162,24 @@ def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar:
     3e-3 tripled the ICP-only heading drift over 1,000-1,500 scans (gangnam seed 2 0.047 -> 0.128 deg, demo seed 3
     -0.133 -> -0.428 deg); from the corrected guide, 3e-3 left it as at 1e-4 (0.051, -0.136 deg) with 1.65-1.76 GICP
     iterations instead of 2.84-3.08 (``bench/bench_odometry_guess.py``; docs/posegraph.md, "The guided start")."""
+    from stages.odometry.keyframes import global_guess_l, register_keyframe_pair
+
     T_lidar_vehicle = se3_inverse(T_vehicle_lidar)
     out: dict[int, RegistrationResult] = {}
     last_v, last_dt = None, None
     corrected: tuple[int, np.ndarray] | None = None  # (pair, its registration relative to its guide) of the last pair
     for k in pairs.k:
         guided = guesses_l is None and k in pairs.guided
+        if k in pairs.keyframe:  # metres apart: no constant velocity; coarse-to-fine GICP
+            if guesses_l is not None:
+                guess_l = guesses_l[k]
+            elif k in pairs.reference_v:
+                guess_l = T_lidar_vehicle @ pairs.reference_v[k] @ T_vehicle_lidar
+            else:
+                guess_l = global_guess_l(prepared[k], prepared[k - 1], T_vehicle_lidar, cfg, seed=k)
+            out[k] = register_keyframe_pair(prepared[k], prepared[k - 1], guess_l, T_vehicle_lidar, cfg)
+            corrected = None
+            continue
         if guesses_l is not None:
             guess_l = guesses_l[k]
         else:
@@ -221,16 +261,23 @@ def consecutive_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _P
                       results: dict[int, RegistrationResult], T_vehicle_lidar: np.ndarray, cfg: EdgeConfig
                       ) -> list[Edge]:
     """Step 5: every pair's vehicle edge with the gate's decision (guided pairs: the planar guide gate)."""
+    from stages.odometry.keyframes import keyframe_information, plausible_motion, widened_limits
+
     g = cfg.gate
     edges: list[Edge] = []
     for k in pairs.k:
         res = results[k]
         T_v, info_v = vehicle_edge(prepared[k], prepared[k - 1], res, T_vehicle_lidar, cfg)
         guided = k in pairs.guided
+        limit_m, limit_rad = (pairs.limits or {}).get(k, (g.max_deviation_m, g.max_deviation_rad))
+        if k in pairs.keyframe:
+            distance_m = float(np.linalg.norm(T_v[:3, 3]))
+            limit_m, limit_rad = widened_limits(limit_m, limit_rad, distance_m, cfg.keyframe)
+            info_v = keyframe_information(info_v, distance_m, cfg.keyframe)
         accepted = gate_edge(T_v, pairs.reference_v.get(k), res.fitness, res.converged, min_fitness=g.min_fitness,
-                             max_deviation_m=g.max_deviation_guide_m if guided else g.max_deviation_m,
-                             max_deviation_rad=g.max_deviation_guide_rad if guided else g.max_deviation_rad,
-                             planar=guided)
+                             max_deviation_m=limit_m, max_deviation_rad=limit_rad, planar=guided)
+        if k in pairs.keyframe:
+            accepted = accepted and plausible_motion(T_v, cfg.keyframe.max_sideslip_rad)
         edges.append(Edge(scans[k].scan_id, scans[k].stamp_ns, T_v, res.fitness, res.inlier_rmse_m, info_v,
                           accepted))
     return edges
@@ -247,6 +294,8 @@ def span_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _Pairs, e
     for span in sorted(set(int(n) for n in cfg.span_scans if int(n) > 1)):
         for i in range(span, len(scans), span):
             chain = [by_position.get(k) for k in range(i - span + 1, i + 1)]
+            if any(k in pairs.keyframe for k in range(i - span + 1, i + 1)):
+                continue  # N keyframes span tens of metres: no span edge
             if any(e is None or not e.accepted for e in chain):
                 continue  # a gap or a rejected edge inside: no reference to start from or gate against
             T_chain_v = np.eye(4)
@@ -265,7 +314,7 @@ def span_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _Pairs, e
 
 def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: dict[int, np.ndarray],
                    cfg: EdgeConfig, guide_increments: dict[int, np.ndarray] | None = None, *,
-                   release_points: bool = False) -> list[Edge]:
+                   release_points: bool = False, prior: PriorPoses | None = None) -> list[Edge]:
     """Register each scan onto its predecessor (``scans`` sorted by id; pairs need consecutive ids).
 
     ``gnss_poses`` maps scan_id -> T_map_vehicle for scans with a valid GNSS/INS solution (initial guesses and
@@ -284,12 +333,15 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
     per-edge bias of chained scan-to-scan ICP.
     With ``release_points`` the raw points of ``scans`` are released once the scans are prepared (each item of the
     list is replaced by the same scan without points): a chunk of 100 real HDL-64E scans holds 0.4 GB of them.
+    ``prior`` (a prior trajectory's poses) gives reference increments where there is no guide, in place of the GNSS/
+    INS's, gated at its stated std. Pairs further apart in time than ``cfg.keyframe.min_dt_s`` are keyframe pairs
+    (``keyframes.py``).
     """
     with_cov = cfg.icp.method == "gicp"
     prepared = prepare_scans(scans, T_vehicle_lidar, cfg.prepare, with_cov)
     if release_points:
         scans[:] = [Scan(s.scan_id, s.stamp_ns, np.zeros((0, 3)), None) for s in scans]
-    pairs = pair_scans(scans, gnss_poses, guide_increments)
+    pairs = pair_scans(scans, gnss_poses, guide_increments, prior, cfg)
     results = register_pairs(prepared, pairs, T_vehicle_lidar, cfg)
     if cfg.deskew and any(p.time_offset_s is not None for p in prepared):
         prepared, motion = deskew_own_sweep(prepared, pairs, results, T_vehicle_lidar, cfg.prepare, with_cov)

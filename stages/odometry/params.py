@@ -3,10 +3,18 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numpy as np
 from pydantic import Field, model_validator
 
 from pipeline.declare import Params
-from stages.odometry.config import EdgeConfig, GateConfig, IcpConfig, InformationConfig, PrepareConfig
+from stages.odometry.config import (
+    EdgeConfig,
+    GateConfig,
+    IcpConfig,
+    InformationConfig,
+    KeyframeConfig,
+    PrepareConfig,
+)
 
 
 class OdometryParams(Params):
@@ -55,6 +63,25 @@ class OdometryParams(Params):
                                   "0.255 m, heading 0.096 -> 0.060 deg; ~6 % odometry time); [] = consecutive edges "
                                   "only")
 
+    keyframe_min_dt_s: float = Field(0.35, gt=0, description="a consecutive pair further apart in time is a keyframe "
+                                     "pair (keyframe drives, gaps): no constant-velocity start, coarse-to-fine GICP, "
+                                     "spacing-aware gate and information; a 5-20 Hz sweep never is one")
+    keyframe_stages: list[tuple[float, float]] = Field([(1.0, 2.0), (0.5, 0.5)], description="keyframe pairs' GICP "
+                                                       "stages (voxel m, correspondence m), each from the last")
+    keyframe_deviation_m_per_m: float = Field(0.05, ge=0, description="keyframe gate: the reference's limit widened "
+                                              "by this much per metre between the keyframes (hypot)")
+    keyframe_deviation_rad_per_m: float = Field(0.0035, ge=0, description="same, rotation (0.2 deg per metre)")
+    keyframe_sigma_m_per_m: float = Field(0.015, ge=0, description="keyframe edges' translation std floor per metre "
+                                          "(tiny calibration seed 7 at 5.4 m: 0.08 m RMS from the truth's start)")
+    keyframe_sigma_rad_per_m: float = Field(0.0015, ge=0, description="same, rotation (0.43 deg RMS at 5.4 m)")
+    keyframe_global_voxel_m: float = Field(1.0, gt=0, description="voxel of the global registration (FPFH + "
+                                           "RANSAC) that starts a keyframe pair without a prior or GNSS/INS")
+    keyframe_max_sideslip_deg: float = Field(15.0, gt=0, le=90, description="keyframe gate: the pair's chord within "
+                                             "this of its heading plus half its turn, forward or reverse (a car "
+                                             "follows its heading; 90 = off, for a robot that moves sideways)")
+    prior_gate_sigmas: float = Field(3.0, gt=0, description="gate against a prior trajectory's increment at this "
+                                     "many times its stated std (x sqrt 2: two poses)")
+
     def edge_config(self) -> EdgeConfig:
         """The algorithm's settings in sections (``estimate_edges`` never sees this params object)."""
         return EdgeConfig(
@@ -69,7 +96,14 @@ class OdometryParams(Params):
             gate=GateConfig(min_fitness=self.min_fitness, max_deviation_m=self.max_deviation_m,
                             max_deviation_rad=self.max_deviation_rad, max_deviation_guide_m=self.max_deviation_wheel_m,
                             max_deviation_guide_rad=self.max_deviation_wheel_rad),
-            deskew=self.deskew != "none", span_scans=tuple(self.span_scans))
+            deskew=self.deskew != "none", span_scans=tuple(self.span_scans),
+            keyframe=KeyframeConfig(
+                min_dt_s=self.keyframe_min_dt_s, stages=tuple((float(v), float(c)) for v, c in self.keyframe_stages),
+                deviation_m_per_m=self.keyframe_deviation_m_per_m,
+                deviation_rad_per_m=self.keyframe_deviation_rad_per_m, sigma_m_per_m=self.keyframe_sigma_m_per_m,
+                sigma_rad_per_m=self.keyframe_sigma_rad_per_m, global_voxel_m=self.keyframe_global_voxel_m,
+                prior_gate_sigmas=self.prior_gate_sigmas,
+                max_sideslip_rad=float(np.radians(self.keyframe_max_sideslip_deg))))
 
     @model_validator(mode="after")
     def _ranges(self) -> "OdometryParams":

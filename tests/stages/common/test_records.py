@@ -54,7 +54,7 @@ def test_trajectory_selects_the_drive_and_sorts_by_scan():
 
 def test_tum_files_read_back_what_was_written_and_malformed_ones_are_named(tmp_path):
     """``write_tum`` (9 decimals) -> ``Trajectory.from_tum``: poses within 1e-9 m / rad, GPS-epoch stamps to the
-    nanosecond, one scan per row; a wrong column count or a word in a line is a FormatError naming the file."""
+    nanosecond, one scan per row; a wrong column count or a word in a line is a FormatError naming file and line."""
     from stages.common.geometry import write_tum
 
     T = _poses(7, 4)
@@ -68,10 +68,10 @@ def test_tum_files_read_back_what_was_written_and_malformed_ones_are_named(tmp_p
     np.testing.assert_allclose(traj.T[:, :3, :3], T[:, :3, :3], atol=1e-8)
     bad = tmp_path / "bad.txt"
     bad.write_text("0.0 1 2 3 0 0 0\n")
-    with pytest.raises(FormatError, match="bad.txt: a TUM trajectory has 8 columns.*got 7"):
+    with pytest.raises(FormatError, match=r"bad.txt: line 1: 7 values; expected 8 \(t x y z qx qy qz qw\)"):
         Trajectory.from_tum(bad)
-    bad.write_text("0.0 1 2 3 0 0 0 one\n")
-    with pytest.raises(FormatError, match="bad.txt: not a TUM trajectory"):
+    bad.write_text("# a header\n0.0 1 2 3 0 0 0 one\n")
+    with pytest.raises(FormatError, match="bad.txt: line 2: .* not a number"):
         Trajectory.from_tum(bad)
 
 

@@ -8,7 +8,7 @@ from stages.odometry.config import EdgeConfig
 from stages.odometry.params import OdometryParams
 
 CHANGED = {"method": "point_to_plane", "deskew": "none", "ground_split": False, "span_scans": [5],
-           "knn": 7, "max_iterations": 3, "min_fitness": 0.5}
+           "knn": 7, "max_iterations": 3, "min_fitness": 0.5, "keyframe_stages": [(2.0, 3.0)]}
 NOT_IN_CONFIG = set()  # fields the stage's compute uses but the algorithm does not (none today)
 
 

@@ -1,0 +1,100 @@
+"""What fixes a drive in the map's frame, said in one line before anything is read.
+
+A drive is placed in the map's ENU frame by (in order): its GNSS/INS fixes; a prior trajectory in ENU about a
+stated origin; a prior trajectory in a local frame plus a stated start heading (at the map's origin or a stated
+position). A start heading alone (odometry only) fixes the frame too, but the pose graph does not yet build such a
+drive, and a local prior without a start heading fixes nothing: those, and a drive with none of the three, are
+refused with what to add (``cornermap drive check`` warns; ingest, the first stage of a build, refuses before it
+reads a scan).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from stages.ingest.drive_file import DriveSpec
+
+ADD = ("add one of: a gnss section (GNSS/INS CSV or KITTI oxts folder); prior: a TUM/KITTI poses file with its "
+       "frame (enu + origin, or local) and std; start: {heading_deg, heading_convention} for a drive that starts at "
+       "cornermap build --origin (docs/drive-file.md)")
+
+
+@dataclass(frozen=True)
+class FrameSource:
+    kind: str | None  # gnss | prior_enu | prior_local+start | start | prior_local | None
+    line: str  # what places the drive (drive check's summary line)
+    problem: str | None  # why a build refuses the drive now, with what to add; None: it can be built
+
+
+def frame_source(spec: DriveSpec) -> FrameSource:
+    p, s = spec.prior, spec.start
+    if spec.gnss is not None:
+        extra = " (prior trajectory: poses_prior, odometry seeds)" if p else ""
+        return FrameSource("gnss", f"frame: the GNSS/INS fixes of {spec.gnss.file}{extra}", None)
+    if p is not None and p.frame == "enu":
+        o = p.origin
+        return FrameSource("prior_enu", f"frame: no GNSS; the prior trajectory {p.file} in ENU about {o.lat_deg:.7f}, "
+                                        f"{o.lon_deg:.7f}, {o.h_m:.2f} m (the drive's absolute input)", None)
+    where = "the map's origin (cornermap build --origin)" if s is None or s.position is None else \
+        f"{s.position.lat_deg:.7f}, {s.position.lon_deg:.7f}"
+    if p is not None and s is not None:
+        return FrameSource("prior_local+start", f"frame: no GNSS; the local prior trajectory {p.file} aligned at the "
+                                                f"start heading {s.heading_deg:g} deg ({s.heading_convention}, std "
+                                                f"{s.std_heading_deg:g} deg) at {where}", None)
+    if s is not None:
+        return FrameSource("start", f"frame: no GNSS; the start heading {s.heading_deg:g} deg at {where} and "
+                                    "odometry alone",
+                           f"drive {spec.name}: no GNSS and no prior trajectory; a start heading with odometry alone "
+                           "is not built yet (the pose graph needs an absolute input per drive); add prior: a TUM/"
+                           "KITTI poses file of the drive (docs/drive-file.md)")
+    if p is not None:
+        return FrameSource("prior_local", f"frame: none (the prior trajectory {p.file} is in a local frame)",
+                           f"drive {spec.name}: its frame cannot be fixed: no GNSS, and the prior trajectory "
+                           f"{p.file} is in a local frame; add start: {{heading_deg, heading_convention}} (the drive "
+                           "starts at cornermap build --origin), or state the prior's ENU origin (prior.frame: enu, "
+                           "prior.origin)")
+    return FrameSource(None, "frame: none (no GNSS, no prior trajectory, no start heading)",
+                       f"drive {spec.name}: its frame cannot be fixed: no GNSS, no prior trajectory, no start "
+                       f"heading; {ADD}")
+
+
+def frame_check_lines(spec: DriveSpec, ingest) -> tuple[list[str], list[str], list[str]]:
+    """``cornermap drive check``'s lines on the drive's frame, prior trajectory and beam table: (summary, warnings,
+    problems). A drive that cannot be placed is a warning here (the drive file is valid; a build refuses it); a prior
+    or calibration file that does not decode is a problem. ``ingest`` is the check's ``DriveIngest`` (no origin)."""
+    from pipeline.errors import CornermapError
+
+    summary, warnings, problems = [], [], []
+    frame = frame_source(spec)
+    summary.append(frame.line)
+    if frame.problem:
+        warnings.append(f"{frame.problem}; a build refuses it")
+    if spec.calibration_file:
+        from stages.ingest.sensor_calibration import read_beam_calibration
+
+        try:
+            cal = read_beam_calibration(spec.path(spec.calibration_file))
+            summary.append(f"beam table: {len(cal.elevations_deg)} beams {cal.elevations_deg[0]:.2f}.."
+                           f"{cal.elevations_deg[-1]:.2f} deg from {spec.calibration_file} ({cal.kind}; {cal.why})")
+            if cal.model not in (None, spec.sensor) and spec.sensor != "generic":
+                warnings.append(f"calibration_file {spec.calibration_file} looks like {cal.model} ({cal.why}); the "
+                                f"drive file says sensor {spec.sensor}")
+        except CornermapError as exc:
+            problems.append(f"calibration_file: {exc}")
+    if spec.prior is not None:
+        try:
+            if ingest.origin is None:  # the check knows no map origin: the prior's own, or any (only counts matter)
+                from stages.common.geodesy import EnuOrigin
+
+                o = spec.prior.origin
+                ingest.origin = EnuOrigin(o.lat_deg, o.lon_deg, o.h_m) if o is not None else EnuOrigin(0.0, 0.0, 0.0)
+            prior = ingest.prior()
+            rows = prior.source == "prior_file"
+            n, ok = int(rows.sum()), int((prior.valid & rows).sum())
+            summary.append(f"prior: {spec.prior.file} ({spec.prior.format}, frame {spec.prior.frame}, time "
+                           f"{spec.prior.time}): a pose for {ok} of {n} scans")
+            if n and not ok:
+                problems.append(f"prior: {spec.prior.file} gives no scan a pose; hint: check prior.time and that "
+                                "its times are in the drive's time base")
+        except CornermapError as exc:
+            problems.append(f"prior: {exc}")
+    return summary, warnings, problems
