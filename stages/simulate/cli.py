@@ -66,7 +66,8 @@ def simulate_command(
 
 
 def parse_overrides(items: list[str]) -> dict:
-    """``KEY=VALUE`` / ``KEY=LO,HI`` strings -> preset field overrides (floats, or a pair of floats)."""
+    """``KEY=VALUE`` / ``KEY=LO,HI`` / ``KEY=NAME`` strings -> preset field overrides (floats, a pair of floats, or
+    a name such as ``sensor=hdl64e``)."""
     from pipeline.errors import ConfigError
 
     out, bad = {}, []
@@ -76,8 +77,12 @@ def parse_overrides(items: list[str]) -> dict:
             nums = tuple(float(v) for v in value.split(","))
         except ValueError:
             nums = ()
+        name = value.strip()
+        if sep and key and not nums and name.isidentifier():  # a name: sensor=hdl64e
+            out[key.strip()] = name
+            continue
         if not sep or not key or len(nums) not in (1, 2):
-            bad.append(f"--set {item!r}: expected KEY=NUMBER or KEY=LO,HI")
+            bad.append(f"--set {item!r}: expected KEY=NUMBER, KEY=LO,HI or KEY=NAME")
             continue
         out[key.strip()] = nums[0] if len(nums) == 1 else nums
     if bad:
