@@ -95,8 +95,10 @@ def simulate_gnss_errors(t_s: np.ndarray, canyon: np.ndarray, dist_m: np.ndarray
     yaw_sigma = np.radians(0.15 + 0.25 * c)
     err_yaw = gauss_markov(n, dt, 60.0, rng)[:, 0] * yaw_sigma + rng.normal(size=n) * np.radians(0.03)
     in_mp = np.linalg.norm(multipath, axis=1) > 0.1
-    if std_share > 0:
-        std_h = (0.05 + std_share * sigma_b) * np.where(in_mp, 1.5, 1.0)
+    if std_share > 0:  # of the order of the target bias, higher in canyons (the scaled sigma_b is not: over a drive
+        # much shorter than the bias' correlation time the normalisation to the target RMS scales it arbitrarily)
+        shape = (bias_open_m + bias_canyon_m * c) / np.mean(bias_open_m + bias_canyon_m * c)
+        std_h = (0.05 + std_share * target_rms_m / np.sqrt(2) * shape) * np.where(in_mp, 1.5, 1.0)
     else:
         std_h = (0.012 + 0.3 * bias_open_m * scale + 0.12 * sigma_b * c) * np.where(in_mp, 1.5, 1.0)
     std = np.column_stack([std_h * 0.95, std_h * 1.05, 1.6 * std_h])

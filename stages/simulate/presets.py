@@ -72,7 +72,8 @@ class Preset:
     gnss_bias_tau_s: float = 90.0  # correlation time of the slowly varying bias
     gnss_multipath_m: tuple[float, float] = (1.0, 1.8)  # size of a multipath jump
     gnss_outage_s: tuple[float, float] = (1.5, 5.0)  # length of an outage
-    gnss_std_share: float = 0.0  # 0: RTK/INS reported std (understated in canyons); > 0: this share of the bias std
+    gnss_std_share: float = 0.0  # 0: RTK/INS reported std (understated in canyons); > 0: this share of the target
+    # bias std per axis (gnss_target_rms_m / sqrt 2), higher in canyons
     # issue 62: facades as real streets have them (stages/simulate/facades.py); 0 = flat walls
     window_share: float = 0.0  # share of opaque walls with rows of windows set into them
     shopfront_share: float = 0.0  # share of opaque walls whose ground floor is a shop front (glass, entrances)
