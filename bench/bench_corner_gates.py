@@ -3,7 +3,7 @@ gate that drops each multi-layer cluster, and a built map's corners per km, reje
 
     .venv/bin/python -m bench.bench_corner_gates --kitti [--scans 0:11]        # the 22 KITTI HDL-64E scans
     .venv/bin/python -m bench.bench_corner_gates --nuscenes                    # the nuScenes HDL-32E sweep
-    .venv/bin/python -m bench.bench_corner_gates --sim DIR [--drive drive_0] [--every 2] [--max-scans 300]
+    .venv/bin/python -m bench.bench_corner_gates --sim DIR|ROOT [--drive drive_0] [--every 2] [--max-scans 300]
     .venv/bin/python -m bench.bench_corner_gates --map-root ROOT [--drive drive_0]   # a built map (real or simulated)
     .venv/bin/python -m bench.bench_corner_gates --obs-table ROOT   # a simulated map built with cornermap.min_obs 1
     add --param NAME=VALUE (corners params) to any per-scan run
@@ -357,7 +357,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--kitti", action="store_true", help="the KITTI HDL-64E scans of ../shared/data")
     ap.add_argument("--scans", default=":", help="with --kitti: a slice of the 22 scans, e.g. 0:11")
     ap.add_argument("--nuscenes", action="store_true", help="the nuScenes HDL-32E sweep of ../shared/data")
-    ap.add_argument("--sim", type=Path, help="a cornermap simulate output folder")
+    ap.add_argument("--sim", type=Path, help="a cornermap simulate output folder, or a workflow root that simulated")
     ap.add_argument("--drive", default="drive_0")
     ap.add_argument("--every", type=int, default=1, help="with --sim: every Nth scan")
     ap.add_argument("--max-scans", type=int, default=None)
@@ -374,6 +374,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.nuscenes:
         print_profile("nuScenes HDL-32E sweep", gate_profile(nuscenes_scans(args.data), params))
     if args.sim:
+        if (args.sim / "datasets").is_dir():  # a workflow root: its simulate stage's output
+            from bench.roots import simulator_dir
+
+            args.sim = simulator_dir(args.sim)
         sim = SimDrive(args.sim, args.drive)
         print_profile(f"simulated {args.sim} {args.drive} (every {args.every})",
                       gate_profile(sim.scans(args.every, args.max_scans), params, sim.labels))

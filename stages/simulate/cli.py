@@ -17,12 +17,16 @@ def register(app: typer.Typer) -> None:
         "  cornermap simulate --preset demo --out runs/demo_lead --set queue_stop_share=0 "
         "--set lead_vehicle_share=0.7\n\n"
         "  (a vehicle ahead in >= 50% of the scans; lead_vehicle_share=0: the same city and drives without it)\n\n"
-        "  cornermap simulate --preset tiny --seed 7 --drives 3 --changes --out runs/tiny_changed"
+        "  cornermap simulate --preset tiny --seed 7 --drives 3 --changes --out runs/tiny_changed\n\n"
+        "  cornermap simulate --preset tiny_consumer --seed 7 --out runs/consumer   (no survey, consumer GNSS, "
+        "lidar 0.95 m ahead turned -90 deg, facade detail)\n\n"
+        "  cornermap simulate --preset kitti_city --seed 7 --out runs/kitti_city   (HDL-64E, KITTI-like street)\n\n"
+        "  cornermap simulate --preset tiny --out runs/tiny_nosurvey --set survey=0 --set lidar_yaw_deg=90"
     ))(simulate_command)
 
 
 def simulate_command(
-    preset: str = typer.Option("tiny", help="tiny | demo | gangnam"),
+    preset: str = typer.Option("tiny", help="tiny | demo | gangnam | tiny_consumer | demo_consumer | kitti_city"),
     seed: int = typer.Option(0, help="random seed; same preset and seed give identical files"),
     out: Path = typer.Option(..., help="output directory (drive_K/, survey/, truth/)"),
     drives: int = typer.Option(None, help="number of drives (drive 0 maps, later ones evaluate); default 2"),

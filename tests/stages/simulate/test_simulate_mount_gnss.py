@@ -129,3 +129,15 @@ def test_new_presets_and_typed_overrides():
         q = get_preset(name)
         assert q.survey and q.gnss_attitude and q.sensor == "hdl32e" and q.window_share == 0.0
         assert (q.lidar_x_m, q.lidar_y_m, q.lidar_z_m, q.lidar_yaw_deg) == (0.0, 0.0, 1.9, 0.0)
+
+
+@pytest.mark.parametrize("name", ["tiny_consumer", "demo_consumer", "kitti_city"])
+def test_packaged_workflows_of_the_new_presets_plan_from_any_folder(name, tmp_path):
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "pipeline", "run", name, "--root", str(tmp_path / "r"), "--dry-run"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-800:]
+    for stage in ("simulate", "ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "evaluate"):
+        assert stage in run.stdout
