@@ -18,9 +18,10 @@ def register(app: typer.Typer) -> None:
         "--set lead_vehicle_share=0.7\n\n"
         "  (a vehicle ahead in >= 50% of the scans; lead_vehicle_share=0: the same city and drives without it)\n\n"
         "  cornermap simulate --preset tiny --seed 7 --drives 3 --changes --out runs/tiny_changed\n\n"
-        "  cornermap simulate --preset tiny_consumer --seed 7 --out runs/consumer   (no survey, consumer GNSS, "
-        "lidar 0.95 m ahead turned -90 deg, facade detail)\n\n"
-        "  cornermap simulate --preset kitti_city --seed 7 --out runs/kitti_city   (HDL-64E, KITTI-like street)\n\n"
+        "  cornermap simulate --preset tiny_consumer --seed 7 --out runs/consumer\n\n"
+        "  (no survey, consumer GNSS, the lidar 0.95 m ahead and turned -90 deg, facade detail)\n\n"
+        "  cornermap simulate --preset kitti_city --seed 7 --out runs/kitti_city\n\n"
+        "  (the HDL-64E in a KITTI-like street)\n\n"
         "  cornermap simulate --preset tiny --out runs/tiny_nosurvey --set survey=0 --set lidar_yaw_deg=90"
     ))(simulate_command)
 
