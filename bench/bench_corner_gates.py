@@ -22,7 +22,9 @@ by reason, each kept corner's observations (``corners_per_scan`` placed with ``p
 self-consistency between the drive's two halves: the distance between the means of a corner's observations from
 the first and from the second half of the scans (for independent halves, the standard error of the whole mean is
 about half of it). With a simulator root, the error of each corner against the truth (rigid fit removed: the
-frame's error is not the corner's).
+frame's error is not the corner's), and each corner's observations placed with the drive's true poses instead
+(``truth_false_true_poses``: the extraction and clustering judged apart from the pose graph; a kilometre map that
+the GNSS bias bends is off by more than ``MATCH_M`` somewhere whatever the rigid fit).
 """
 from __future__ import annotations
 
@@ -208,10 +210,13 @@ def map_profile(root: Path, drive: str, tables=None) -> dict:
     c_th = np.column_stack([cmap["theta1_rad"].to_numpy(), cmap["theta2_rad"].to_numpy()])
     sigma = np.sqrt(0.5 * (cmap["cov_ee_m2"].to_numpy() + cmap["cov_nn_m2"].to_numpy()))
     half = np.median(scan) if len(scan) else 0
-    spread, halves, n_obs = [], [], []
+    true_en = _true_pose_positions(root, drive, scan, p, T_vl)
+    spread, halves, n_obs, true_mean = [], [], [], np.full((len(c_en), 2), np.nan)
     for k in range(len(c_en)):
         m = has & (np.hypot(*(en - c_en[k]).T) < MATCH_M) & _walls_agree(th, c_th[k])
         n_obs.append(int(m.sum()))
+        if true_en is not None and m.any():
+            true_mean[k] = true_en[m].mean(axis=0)
         if m.sum() >= 2:
             spread.append(float(np.sqrt(np.mean(np.sum((en[m] - en[m].mean(0)) ** 2, axis=1)))))
         a, b = m & (scan <= half), m & (scan > half)
@@ -227,7 +232,36 @@ def map_profile(root: Path, drive: str, tables=None) -> dict:
            "halves_distance_m_rms": round(float(np.sqrt(np.mean(np.square(halves)))), 4) if halves else None,
            "halves_n": len(halves)}
     out.update(_truth_error(root, c_en, cmap["n_obs"].to_numpy()))
+    if true_en is not None:
+        from scipy.spatial import cKDTree
+
+        building, detail = truth_corner_sets(_sim_dir(root))
+        ok = np.isfinite(true_mean[:, 0])
+        d = cKDTree(np.vstack([building, detail])).query(true_mean[ok])[0]
+        out["truth_false_true_poses"] = int(np.sum(d > MATCH_M))
     return out
+
+
+def _sim_dir(root: Path) -> Path | None:
+    from bench.roots import simulator_dir
+
+    try:
+        sim = simulator_dir(root)
+    except SystemExit:
+        return None
+    return sim if (sim / "truth" / "corners.csv").is_file() else None
+
+
+def _true_pose_positions(root: Path, drive: str, scan: np.ndarray, p_lidar: np.ndarray, T_vl: np.ndarray):
+    """(N, 2) the observations placed with the simulator's true pose of their scan (None: not a simulator root)."""
+    from stages.common.records import Trajectory
+
+    sim = _sim_dir(root)
+    if sim is None or not (sim / "truth" / f"{drive}_poses_tum.txt").is_file():
+        return None
+    T = Trajectory.from_tum(sim / "truth" / f"{drive}_poses_tum.txt").T
+    idx = np.clip(scan.astype(np.int64), 0, len(T) - 1)
+    return np.einsum("nij,nj->ni", T[idx] @ T_vl, p_lidar)[:, :2]
 
 
 def obs_threshold_table(root: Path, thresholds=(2, 3, 4, 5, 6, 8, 10)) -> list[dict]:
