@@ -91,7 +91,8 @@ def print_table(title: str, rows: dict[int, dict], cols) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="tiny", choices=["tiny", "demo", "gangnam"])
+    ap.add_argument("--preset", default="tiny", choices=sorted(p.stem for p in (REPO / "workflows").glob("*.yaml")
+                                                               if p.stem != "map_rebuild"))
     ap.add_argument("--seeds", type=int, nargs="+", required=True)
     ap.add_argument("--root", type=Path, required=True, help="scratch folder for the per-seed runs")
     ap.add_argument("--fresh-evaluate", action="store_true", help="recompute the evaluate stage")

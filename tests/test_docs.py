@@ -16,7 +16,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md", ROOT / "CHANGELOG.md"]
 # pages with parameter tables -> the owners of their names: stage names (their params model), "presets" (the
-# simulator's Preset fields, the same in every preset) or "drive_file" (the drive file's keys)
+# simulator's Preset fields: the record's default) or "drive_file" (the drive file's keys)
 PARAM_PAGES = {"corners.md": ("corners",), "posegraph.md": ("odometry", "posegraph"), "evaluation.md": ("evaluate",),
                "cornermap.md": ("cornermap",), "simulator.md": ("presets",), "drive-file.md": ("drive_file",)}
 NAME = re.compile(r"`\.?[A-Za-z0-9_.]+`")
@@ -125,9 +125,15 @@ def _stage_default(stage: str, name: str):
 
 
 def _preset_defaults(name: str):
-    """The field's value in every preset (KeyError when not a Preset field; a list when the presets differ)."""
-    from stages.simulate.presets import PRESETS
+    """The Preset record's default of the field (presets may set their own), else its value in every preset
+    (KeyError when not a Preset field; a list when the presets differ)."""
+    import dataclasses
 
+    from stages.simulate.presets import PRESETS, Preset
+
+    field = {f.name: f for f in dataclasses.fields(Preset)}.get(name)
+    if field is not None and field.default is not dataclasses.MISSING:
+        return field.default
     values = {repr(getattr(p, name, KeyError)) for p in PRESETS.values()}
     if len(values) != 1:
         return [getattr(p, name) for p in PRESETS.values()]

@@ -26,7 +26,9 @@ class CornerMapParams(Params):
     halo_m: float = Field(10.0, gt=0.0, description="must exceed twice the widest cluster plus link_radius_m")
     workers: int = Field(2, ge=1, description="threads clustering cells in parallel")
     # Filtering (filtering.py), after Im et al.: drop clusters with a large covariance or a small count.
-    min_obs: int = Field(8, ge=1, description="fewer observations than this -> rejected")
+    # 4, not 8: real HDL-64E facades give each corner fewer observations (docs/corners.md, "Real facades and the
+    # gates"); chosen on kitti_city / tiny_consumer calibration seeds thinned to the real extraction rate
+    min_obs: int = Field(4, ge=1, description="fewer observations than this -> rejected")
     min_drives: int = Field(1, ge=1)
     # 0.25 m, not 0.15: with a GNSS-level pose graph the scatter is dominated by the poses (tiny drive_0: a corner
     # seen from 8-44 m scatters 0.21 m through the optimized poses, 0.03 m through the true ones), see

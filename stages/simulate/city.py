@@ -28,6 +28,7 @@ class Building:
     outline_glass: np.ndarray | None = None  # (m,) bool per outline segment
     corner_shape: np.ndarray | None = None  # (n,) 0 sharp, 1 rounded, 2 chamfered
     shape_size_m: np.ndarray | None = None  # (n,) arc radius or cut length along each wall (0 when sharp)
+    facade: object | None = None  # facades.FacadeDetail: windows, shop fronts, balconies, hedges (None: flat walls)
 
     def walls(self) -> tuple[np.ndarray, np.ndarray]:
         """The outline as built (rounded/chamfered where shaped) and its per-segment glass flags."""
@@ -50,6 +51,7 @@ class City:
     parked: np.ndarray  # (C, 5) east, north, yaw_enu_rad, length_m, width_m
     congested: set = field(default_factory=set)  # street edges with queues: ((j, i), (j2, i2))
     furniture: list = field(default_factory=list)  # furniture.Furniture: shelters, kiosks, fences
+    parked_top_m: np.ndarray | None = None  # (C,) roof height of each parked vehicle (None: all cars, 1.5 m)
 
     @property
     def bounds_en(self) -> tuple[float, float, float, float]:

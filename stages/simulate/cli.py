@@ -19,12 +19,17 @@ def register(app: typer.Typer) -> None:
         "  cornermap simulate --preset demo --out runs/demo_lead --set queue_stop_share=0 "
         "--set lead_vehicle_share=0.7\n\n"
         "  (a vehicle ahead in >= 50% of the scans; lead_vehicle_share=0: the same city and drives without it)\n\n"
-        "  cornermap simulate --preset tiny --seed 7 --drives 3 --changes --out runs/tiny_changed"
+        "  cornermap simulate --preset tiny --seed 7 --drives 3 --changes --out runs/tiny_changed\n\n"
+        "  cornermap simulate --preset tiny_consumer --seed 7 --out runs/consumer\n\n"
+        "  (no survey, consumer GNSS, the lidar 0.95 m ahead and turned -90 deg, facade detail)\n\n"
+        "  cornermap simulate --preset kitti_city --seed 7 --out runs/kitti_city\n\n"
+        "  (the HDL-64E in a KITTI-like street)\n\n"
+        "  cornermap simulate --preset tiny --out runs/tiny_nosurvey --set survey=0 --set lidar_yaw_deg=90"
     ))(simulate_command)
 
 
 def simulate_command(
-    preset: str = typer.Option("tiny", help="tiny | demo | gangnam"),
+    preset: str = typer.Option("tiny", help="tiny | demo | gangnam | tiny_consumer | demo_consumer | kitti_city"),
     seed: int = typer.Option(0, help="random seed; same preset and seed give identical files"),
     out: Path = typer.Option(..., help="output directory (drive_K/, survey/, truth/)"),
     drives: int = typer.Option(None, help="number of drives (drive 0 maps, later ones evaluate); default 2"),
@@ -68,7 +73,8 @@ def simulate_command(
 
 
 def parse_overrides(items: list[str]) -> dict:
-    """``KEY=VALUE`` / ``KEY=LO,HI`` strings -> preset field overrides (floats, or a pair of floats)."""
+    """``KEY=VALUE`` / ``KEY=LO,HI`` / ``KEY=NAME`` strings -> preset field overrides (floats, a pair of floats, or
+    a name such as ``sensor=hdl64e``)."""
     from pipeline.errors import ConfigError
 
     out, bad = {}, []
@@ -78,8 +84,12 @@ def parse_overrides(items: list[str]) -> dict:
             nums = tuple(float(v) for v in value.split(","))
         except ValueError:
             nums = ()
+        name = value.strip()
+        if sep and key and not nums and name.isidentifier():  # a name: sensor=hdl64e
+            out[key.strip()] = name
+            continue
         if not sep or not key or len(nums) not in (1, 2):
-            bad.append(f"--set {item!r}: expected KEY=NUMBER or KEY=LO,HI")
+            bad.append(f"--set {item!r}: expected KEY=NUMBER, KEY=LO,HI or KEY=NAME")
             continue
         out[key.strip()] = nums[0] if len(nums) == 1 else nums
     if bad:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -21,11 +21,12 @@ from stages.simulate import writers
 from stages.simulate.city import City, generate_city
 from stages.simulate.corner_shapes import SHAPE_NAMES, shape_corners
 from stages.simulate.drive import DriveSpec, simulate_drive
+from stages.simulate.facades import facade_corner_rows, generate_facades
 from stages.simulate.furniture import furniture_corners, generate_furniture
 from stages.simulate.markings import asphalt_albedo, generate_markings, rasterize_markings
 from stages.simulate.mesh import Scene, build_building_soup, build_static_soup
 from stages.simulate.presets import Preset, get_preset, preset_overrides
-from stages.simulate.sensor import MOUNT_HEIGHT_M, LaserCalibration, build_beam_table
+from stages.simulate.sensor import LIDARS, LaserCalibration, build_beam_table, mount_matrix
 from stages.simulate.survey import generate_survey
 from stages.simulate.trajectory import choose_loop_cells, loop_nodes
 from stages.simulate.truth import building_corners, city_description, count_visible_scans
@@ -52,14 +53,33 @@ def component_rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(entropy=seed, spawn_key=(zlib.crc32(name.encode()),)))
 
 
+VEHICLE_FRAME = ("x forward, y left, z up; origin on the ground at the vehicle's reference point, which the "
+                 "trajectory, the GNSS solution and the truth poses refer to (under the lidar when the preset's "
+                 "lidar_x_m and lidar_y_m are 0); the lidar at T_vehicle_lidar")
+
+
+def preset_mount(p: Preset) -> np.ndarray:
+    """The preset's T_vehicle_lidar (lidar_x_m, lidar_y_m, lidar_z_m, lidar_yaw_deg)."""
+    return mount_matrix(p.lidar_x_m, p.lidar_y_m, p.lidar_z_m, p.lidar_yaw_deg)
+
+
 def build_city(p: Preset, seed: int) -> City:
-    """The city of (preset, seed): street grid and buildings, then rounded/chamfered corners and street
-    furniture, each from its own generator (so the grid and footprints do not depend on those features)."""
+    """The city of (preset, seed): street grid and buildings, then rounded/chamfered corners, street furniture
+    and facade detail, each from its own generator (so the grid and footprints do not depend on those
+    features)."""
     city = generate_city(p, component_rng(seed, "city"))
     city.buildings = shape_corners(city.buildings, p.rounded_corner_share, p.chamfered_corner_share,
                                    p.corner_radius_m, p.chamfer_m, component_rng(seed, "corner_shapes"))
     city.furniture = generate_furniture(city.curbs_en, p.sidewalk_m, p.furniture_per_km, city.trees, city.poles,
                                        component_rng(seed, "furniture"))
+    if p.window_share or p.shopfront_share or p.balcony_share or p.facade_vegetation_share:
+        details = generate_facades(city.buildings, p.window_share, p.shopfront_share, p.balcony_share,
+                                   p.facade_vegetation_share, component_rng(seed, "facades"))
+        city.buildings = [replace(b, facade=d) for b, d in zip(city.buildings, details)]
+    if p.parked_tall_share:
+        rng = component_rng(seed, "parked_heights")
+        tall = rng.random(len(city.parked)) < p.parked_tall_share
+        city.parked_top_m = np.where(tall, rng.uniform(1.8, 2.6, len(city.parked)), 1.5)
     return city
 
 
@@ -79,7 +99,7 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     if p.max_scans_per_drive is not None:
         scan_limit = p.max_scans_per_drive if scan_limit is None else min(scan_limit, p.max_scans_per_drive)
     out_dir = Path(out_dir)
-    for sub in ("survey", "truth"):
+    for sub in ("survey", "truth") if p.survey else ("truth",):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
     origin = EnuOrigin(p.origin_lat_deg, p.origin_lon_deg, p.origin_h_m)
     epsg = utm_epsg_for(origin.lat_deg, origin.lon_deg)
@@ -91,11 +111,11 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     buildings = Scene(build_building_soup(city))
     cells = choose_loop_cells(p.n_rows, p.n_cols, city.nodes_en, p.lap_length_m, component_rng(seed, "route"))
     loop = loop_nodes(cells)
-    beams = build_beam_table()
-    calib = LaserCalibration.draw(component_rng(seed, "laser_calibration"))
+    T_vehicle_lidar = preset_mount(p)
+    lidar = LIDARS[p.sensor]
+    beams = build_beam_table(lidar, T_vehicle_lidar)
+    calib = LaserCalibration.draw(component_rng(seed, "laser_calibration"), lidar.n_rings)
     corners = building_corners(city)
-    T_vehicle_lidar = np.eye(4)
-    T_vehicle_lidar[2, 3] = MOUNT_HEIGHT_M
     worlds = {False: (city, static, buildings, marks)}  # dated variants: False = as generated
     plan = None
     if changes:
@@ -114,21 +134,23 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
                                 drive_dir, out_dir / "truth", motion_distortion, scan_limit,
                                 component_rng(seed, f"drive{k}"),
                                 (lambda i, n, _name=name: progress(_name, i, n)) if progress else None)
-        writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}",
-                                 dated.SURVEY_DIR if changed else "survey")
+        writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}" if p.survey else None,
+                                 dated.SURVEY_DIR if changed else "survey", sensor=p.sensor,
+                                 gnss_attitude=p.gnss_attitude)
         names.append(name)
         n_scans[name] = result.n_scans
         stats[name] = result.gnss_stats
-        visible[name] = count_visible_scans(corners, w_static, result.scan_positions_en, MOUNT_HEIGHT_M)
+        visible[name] = count_visible_scans(corners, w_static, result.scan_positions_en, p.lidar_z_m)
         if k == 0:
             route0 = result.route_en
         ahead[name] = result.lead_scan_share
         log.info("%s: %d scans, GNSS horizontal RMS %.2f m, a vehicle ahead in %.0f%% of the scans", name,
                  result.n_scans, result.gnss_stats["rms_m"], 100 * result.lead_scan_share)
 
-    _write_survey(city, route0, p, marks, albedo, origin, epsg, out_dir, component_rng(seed, "survey"))
+    if p.survey:
+        _write_survey(city, route0, p, marks, albedo, origin, epsg, out_dir, component_rng(seed, "survey"))
     _write_truth(out_dir / "truth", city, corners, visible, marks, origin, epsg)
-    if plan is not None:  # the survey of the changed city, which later drives reference
+    if plan is not None and p.survey:  # the survey of the changed city, which later drives reference
         (out_dir / dated.SURVEY_DIR).mkdir(exist_ok=True)
         _write_survey(worlds[True][0], route0, p, worlds[True][3], albedo, origin, epsg, out_dir,
                       component_rng(seed, "survey"), dated.SURVEY_DIR)
@@ -141,7 +163,7 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
         "utm_epsg": epsg, "gnss_error_stats": stats,
         "vehicles_ahead_scan_share": ahead, "T_vehicle_lidar": T_vehicle_lidar.tolist(),
         **({"changes": {"from_drive": plan.from_drive, "truth": "truth/changes.json"}} if plan is not None else {}),
-        "vehicle_frame": "x forward, y left, z up; origin on the ground under the lidar",
+        "vehicle_frame": VEHICLE_FRAME, "sensor": p.sensor, "survey": p.survey,
         "laser_calibration": {"gain": np.round(calib.gain, 6).tolist(), "offset": np.round(calib.offset, 6).tolist()},
     })
     return summary
@@ -171,6 +193,10 @@ def _write_truth(truth_dir: Path, city, corners, visible, marks, origin, epsg) -
              corners["shape_size_m"]]
     fmts += ["%.3f", "%s", "%.3f"]
     writers.write_csv(truth_dir / "corners.csv", header, cols, fmts)
+    if any(b.facade is not None for b in city.buildings):
+        rows = facade_corner_rows([b.facade for b in city.buildings])
+        writers.write_csv(truth_dir / "facade_corners.csv", list(rows), list(rows.values()),
+                          ["%d", "%s", "%.4f", "%.4f", "%.4f", "%.4f", "%.1f", "%.3f", "%.3f"])
     fc = furniture_corners(city.furniture)
     writers.write_csv(truth_dir / "furniture_corners.csv",
                       FURNITURE_COLUMNS, [fc[k] for k in FURNITURE_COLUMNS],

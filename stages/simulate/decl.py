@@ -8,12 +8,12 @@ from stages import code_version
 
 
 class SimulateParams(Params):
-    preset: Literal["tiny", "demo", "gangnam"] = "tiny"
+    preset: Literal["tiny", "demo", "gangnam", "tiny_consumer", "demo_consumer", "kitti_city"] = "tiny"
     seed: int = 0
     drives: int | None = None  # None: the preset's default (2)
     motion_distortion: bool = True
     # preset fields to change, e.g. {lead_vehicle_share: 0.6} (the issue-25 test city); see `simulate --set`
-    preset_overrides: dict[str, float | tuple[float, float]] = {}
+    preset_overrides: dict[str, float | tuple[float, float] | str] = {}
     changes: bool = False  # dated variants: later drives see a changed city (stages/simulate/changes.py)
     changes_from_drive: int | None = None  # first drive that sees the changed city; None: the last drive
 

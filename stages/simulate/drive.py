@@ -7,18 +7,24 @@ at a different point of the loop.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from stages.simulate import writers
-from stages.simulate.gnss import GNSS_RATE_HZ, simulate_gnss_errors, simulate_odometry, sky_blocked_fraction
+from stages.simulate.gnss import (
+    GNSS_RATE_HZ,
+    course_over_ground_errors,
+    simulate_gnss_errors,
+    simulate_odometry,
+    sky_blocked_fraction,
+)
 from stages.simulate.lead_vehicle import plan_lead_traffic
 from stages.simulate.mesh import VEHICLE, Scene, TriangleSoup, box_triangles
 from stages.simulate.presets import Preset
-from stages.simulate.sensor import N_AZIMUTH, SCAN_PERIOD_S, rotations_enu_vehicle, simulate_scan
+from stages.simulate.sensor import SCAN_PERIOD_S, rotations_enu_vehicle, simulate_scan
 from stages.simulate.sensor_effects import SensorEffects
 from stages.simulate.traffic import ego_lanes, generate_traffic
 from stages.simulate.trajectory import lane_polyline, plan_drive
@@ -48,7 +54,7 @@ class DriveSpec:
 class DriveResult:
     n_scans: int
     gnss_stats: dict
-    scan_positions_en: np.ndarray
+    scan_positions_en: np.ndarray  # (n_scans, 2) the lidar's horizontal position at each scan start
     route_en: np.ndarray
     lead_scan_share: float  # scans with a vehicle ahead in the ego lane
 
@@ -76,10 +82,11 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
     if scan_limit is not None:
         n_scans = min(n_scans, int(scan_limit))
     t_scan = np.arange(n_scans) * SCAN_PERIOD_S
-    t_col = np.arange(N_AZIMUTH) * (SCAN_PERIOD_S / N_AZIMUTH)
+    n_az = beams.n_azimuth
+    t_col = np.arange(n_az) * (SCAN_PERIOD_S / n_az)
     ahead = np.zeros((n_scans, 2))  # vehicles ahead in the ego lane, bumper gap of the nearest (m)
     for i, t0 in enumerate(t_scan):
-        poses = traj.sample(t0 + t_col) if motion_distortion else np.repeat(traj.sample(np.array([t0])), N_AZIMUTH, 0)
+        poses = traj.sample(t0 + t_col) if motion_distortion else np.repeat(traj.sample(np.array([t0])), n_az, 0)
         boxes, refl = traffic.boxes_at(float(t0), poses[0, :2])
         lead_boxes, lead_refl, gaps = lead.vehicles_at(float(t0))
         ahead[i] = len(gaps), gaps[0] if len(gaps) else np.nan
@@ -112,7 +119,19 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
     writers.write_csv(drive_dir / "wheel_gyro.csv", ["gps_week", "gps_seconds", "wheel_speed_mps", "yaw_rate_radps"],
                       [np.full(len(traj.t_s), p.gps_week), spec.gps_t0_s + traj.t_s, wheel, gyro],
                       ["%d", "%.3f", "%.3f", "%.6f"])
-    return DriveResult(n_scans, stats, truth[:, :2], poly, round(float((ahead[:, 0] > 0).mean()), 4))
+    return DriveResult(n_scans, stats, lidar_positions_en(truth, beams.T_vehicle_lidar), poly,
+                       round(float((ahead[:, 0] > 0).mean()), 4))
+
+
+def lidar_positions_en(states: np.ndarray, T_vehicle_lidar: np.ndarray) -> np.ndarray:
+    """(K, >=3) vehicle states (east, north, yaw, ...) -> (K, 2) the lidar's horizontal position: the vehicle's
+    plus its horizontal lever arm turned by the yaw (roll and pitch left out: centimetres on the simulator's flat
+    roads)."""
+    lever = np.asarray(T_vehicle_lidar, float)[:2, 3]
+    if not lever.any():
+        return states[:, :2].copy()
+    c, s = np.cos(states[:, 2]), np.sin(states[:, 2])
+    return states[:, :2] + np.column_stack([c * lever[0] - s * lever[1], s * lever[0] + c * lever[1]])
 
 
 def gnss_errors_for(traj, buildings: Scene, p: Preset, rng: np.random.Generator):
@@ -125,7 +144,11 @@ def gnss_errors_for(traj, buildings: Scene, p: Preset, rng: np.random.Generator)
         buildings, np.column_stack([s1[:, :2], np.full(len(t1), ANTENNA_HEIGHT_M)])))
     dist = np.interp(t, traj.t_s, np.cumsum(traj.speed_mps) * (traj.t_s[1] - traj.t_s[0]))
     err = simulate_gnss_errors(t, canyon, dist, p.gnss_target_rms_m, p.gnss_bias_open_m, p.gnss_bias_canyon_m,
-                               p.multipath_per_km, p.outage_per_km, rng)
+                               p.multipath_per_km, p.outage_per_km, rng, bias_tau_s=p.gnss_bias_tau_s,
+                               multipath_m=p.gnss_multipath_m, outage_s=p.gnss_outage_s, std_share=p.gnss_std_share)
+    if not p.gnss_attitude:  # a receiver alone: the heading is the course over ground
+        yaw_err, yaw_std = course_over_ground_errors(np.interp(t, traj.t_s, traj.speed_mps), rng)
+        err = replace(err, err_yaw_rad=yaw_err, std_yaw_rad=yaw_std)
     return t, state, canyon, err
 
 
@@ -143,11 +166,12 @@ def _write_gnss(spec: DriveSpec, p: Preset, traj, buildings: Scene, origin, driv
         p.gps_week,
         spec.gps_t0_s + t[v],
         llh,
-        np.degrees(state[v, 4] + err.err_roll_rad[v]),
-        np.degrees(state[v, 3] + err.err_pitch_rad[v]),
+        np.degrees(state[v, 4] + err.err_roll_rad[v]) if p.gnss_attitude else None,
+        np.degrees(state[v, 3] + err.err_pitch_rad[v]) if p.gnss_attitude else None,
         azimuth[v],
         err.std_enu_m[v],
         np.degrees(err.std_yaw_rad[v]),
+        status="INS_SOLUTION_GOOD" if p.gnss_attitude else "SINGLE",
     )
     h = np.linalg.norm(err.err_enu_m[v, :2], axis=1)
     stats = {"rms_m": round(float(np.sqrt(np.mean(h ** 2))), 4), "max_m": round(float(h.max()), 4),

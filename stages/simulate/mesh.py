@@ -89,7 +89,8 @@ def build_static_soup(city: City, rng: np.random.Generator) -> TriangleSoup:
         parts.append(_soup(vertical_quads(curb, np.roll(curb, -1, 0), 0.0, CURB_H_M), CURB, 0.35))
     for b in city.buildings:
         fp, glass = b.walls()
-        solid = ~glass
+        detail = b.facade
+        solid = ~glass if detail is None else ~glass & ~detail.replaced
         if solid.any():
             parts.append(_soup(vertical_quads(fp[solid], np.roll(fp, -1, 0)[solid], 0.0, b.height_m), WALL,
                                b.reflectance))
@@ -97,6 +98,13 @@ def build_static_soup(city: City, rng: np.random.Generator) -> TriangleSoup:
         if glass.any():  # interior floor slabs seen through the glass
             for z in np.arange(4.0, b.height_m - 1.0, max(4.0, b.height_m / 12)):
                 parts.append(_soup(_polygon_at(fp, float(z)), SLAB, 0.3))
+        if detail is not None:  # windows, shop fronts, balconies (facades.py); floors seen through the windows
+            parts.append(TriangleSoup(detail.tris, np.full(len(detail.tris), WALL, np.uint8), detail.refl))
+            if not glass.any():
+                for z in detail.slab_z_m:
+                    parts.append(_soup(_polygon_at(fp, float(z)), SLAB, 0.3))
+            if len(detail.leaves):
+                parts.append(_soup(detail.leaves, LEAF, 0.4))  # leaves reflect well in the near infrared
     parts += _tree_soups(city.trees, rng)
     if len(city.poles):
         poles = np.column_stack([city.poles, np.zeros(len(city.poles)), np.full((len(city.poles), 2), 0.22),
@@ -104,7 +112,8 @@ def build_static_soup(city: City, rng: np.random.Generator) -> TriangleSoup:
         parts.append(_soup(box_triangles(poles), POLE, 0.45))
     if len(city.parked):
         pk = city.parked
-        body = np.column_stack([pk[:, :5], np.full(len(pk), 0.3), np.full(len(pk), 1.2)])
+        top = np.full(len(pk), 1.5) if city.parked_top_m is None else city.parked_top_m
+        body = np.column_stack([pk[:, :5], np.full(len(pk), 0.3), top - 0.3])
         refl = np.repeat(rng.uniform(0.1, 0.7, len(pk)), 12)
         parts.append(_soup(box_triangles(body), PARKED, refl))
     for item in city.furniture:

@@ -61,6 +61,25 @@ class Preset:
     mixed_pixel_share: float = 0.5  # share of depth discontinuities (> 0.3 m) giving a mixed return
     sector_dropout_scan_share: float = 0.02  # share of scans losing one azimuth sector
     sector_dropout_deg: tuple[float, float] = (5.0, 30.0)
+    # issue 62: the lidar, the survey and the GNSS grade (defaults keep the presets as they were; docs/simulator.md)
+    sensor: str = "hdl32e"  # lidar model: hdl32e | hdl64e
+    lidar_x_m: float = 0.0  # the lidar in the vehicle frame (x forward, y left, z up; origin on the ground)
+    lidar_y_m: float = 0.0
+    lidar_z_m: float = 1.9
+    lidar_yaw_deg: float = 0.0  # mount yaw: the lidar's x axis turned this far left of the vehicle's
+    survey: bool = True  # a mobile-mapping survey cloud (LAS) that the drive files reference
+    gnss_attitude: bool = True  # an INS gives roll, pitch, heading; False: heading = course over ground, no roll/pitch
+    gnss_bias_tau_s: float = 90.0  # correlation time of the slowly varying bias
+    gnss_multipath_m: tuple[float, float] = (1.0, 1.8)  # size of a multipath jump
+    gnss_outage_s: tuple[float, float] = (1.5, 5.0)  # length of an outage
+    gnss_std_share: float = 0.0  # 0: RTK/INS reported std (understated in canyons); > 0: this share of the target
+    # bias std per axis (gnss_target_rms_m / sqrt 2), higher in canyons
+    # issue 62: facades as real streets have them (stages/simulate/facades.py); 0 = flat walls
+    window_share: float = 0.0  # share of opaque walls with rows of windows set into them
+    shopfront_share: float = 0.0  # share of opaque walls whose ground floor is a shop front (glass, entrances)
+    balcony_share: float = 0.0  # share of buildings with balconies on their walls with windows
+    facade_vegetation_share: float = 0.0  # share of walls with a hedge in front
+    parked_tall_share: float = 0.0  # share of parked vehicles that are vans or SUVs (1.8-2.6 m instead of 1.5 m)
 
 
 PRESETS: dict[str, Preset] = {
@@ -87,9 +106,34 @@ PRESETS: dict[str, Preset] = {
         outage_per_km=1.0),
 }
 
+# Issue 62: drives as most users bring them. A consumer GNSS receiver (no RTK, no INS): metres of bias varying over
+# ten minutes, 2-5 m multipath jumps, outages of 5-20 s, the heading from the course over ground, a reported std of
+# the order of the bias; no survey cloud; the lidar on a roof mount ahead of the reference point, turned a quarter
+# turn like nuScenes' LIDAR_TOP; facades with windows, shop fronts, balconies and hedges.
+CONSUMER = dict(survey=False, gnss_attitude=False, gnss_target_rms_m=3.0, gnss_bias_tau_s=600.0,
+                gnss_multipath_m=(2.0, 5.0), multipath_per_km=1.0, outage_per_km=2.0, gnss_outage_s=(5.0, 20.0),
+                gnss_std_share=0.7, lidar_x_m=0.95, lidar_y_m=-0.25, lidar_z_m=1.85, lidar_yaw_deg=-90.0,
+                window_share=0.8, shopfront_share=0.5, balcony_share=0.3, facade_vegetation_share=0.2)
+PRESETS["tiny_consumer"] = replace(PRESETS["tiny"], name="tiny_consumer", **CONSUMER)
+PRESETS["demo_consumer"] = replace(PRESETS["demo"], name="demo_consumer", **CONSUMER)
+# The held-out real drive of issue 62 as a city: a KITTI-like street (Karlsruhe: one lane each way, cars, vans and
+# SUVs parked on both sides, 2.5 m sidewalks, 16 m between the facades, 4-6 storeys with shops below, street trees
+# and hedges), the HDL-64E of the KITTI samples at KITTI's mount (0.81 m ahead of and 0.32 m right of the GNSS/INS
+# reference, 1.73 m up), OXTS-grade GNSS/INS, no survey, 154 scans per drive (80-100 m from a standing start).
+PRESETS["kitti_city"] = Preset(
+    name="kitti_city", n_cols=3, n_rows=2, block_w_m=80.0, block_h_m=68.0, jitter_share=0.3, jitter_m=5.0,
+    lanes_row=1, lanes_col=1, sidewalk_m=2.5, height_range_m=(12.0, 22.0), glass_building_share=0.1,
+    tree_side_share=0.5, parked_side_share=0.9, traffic_per_km=6.0, congested_street_share=0.0,
+    lap_length_m=0.0, map_laps=1, eval_laps=1, default_drives=2, cruise_mps=8.5, stop_share=0.0,
+    gnss_target_rms_m=0.8, gnss_bias_open_m=0.3, gnss_bias_canyon_m=1.0, multipath_per_km=1.0,
+    outage_per_km=0.0, max_scans_per_drive=154, origin_lat_deg=49.0111, origin_lon_deg=8.4164, origin_h_m=160.0,
+    gps_week=1655, survey=False, sensor="hdl64e", lidar_x_m=0.81, lidar_y_m=-0.32, lidar_z_m=1.73,
+    window_share=0.9, shopfront_share=0.8, balcony_share=0.3, facade_vegetation_share=0.4, parked_tall_share=0.25)
 
 SHARES = ("lead_vehicle_share", "queue_stop_share", "rounded_corner_share", "chamfered_corner_share",
-          "mixed_pixel_share", "sector_dropout_scan_share")
+          "mixed_pixel_share", "sector_dropout_scan_share", "window_share", "shopfront_share", "balcony_share",
+          "facade_vegetation_share", "parked_tall_share")
+SENSOR_NAMES = ("hdl32e", "hdl64e")  # stages/simulate/sensor.py LIDARS
 
 
 def get_preset(name: str, **overrides) -> Preset:
@@ -101,12 +145,24 @@ def get_preset(name: str, **overrides) -> Preset:
     bad = [f"unknown preset field {k!r}; expected one of {sorted(known)}" for k in overrides if k not in known]
     bad += [f"{k} must be within 0..1; got {v}" for k, v in overrides.items() if k in SHARES and not 0 <= v <= 1]
     base = PRESETS[name]
-    for k, v in overrides.items():  # integer fields given as integral floats (from --set) stay integers
-        if isinstance(getattr(base, k, None), int) and isinstance(v, float):
+    for k, v in overrides.items():  # integer / boolean fields given as numbers (from --set) keep their type
+        current = getattr(base, k, None)
+        if isinstance(current, bool):
+            if v in (0, 1) and not isinstance(v, str):
+                overrides[k] = bool(v)
+            else:
+                bad.append(f"{k} must be 0 or 1 (false or true); got {v!r}")
+        elif isinstance(current, int) and isinstance(v, float):
             if v.is_integer():
                 overrides[k] = int(v)
             else:
                 bad.append(f"{k} must be an integer; got {v}")
+        elif isinstance(current, str) and not isinstance(v, str):
+            bad.append(f"{k} must be a name; got {v!r}")
+        elif not isinstance(current, str) and isinstance(v, str) and k in known:
+            bad.append(f"{k} must be a number; got {v!r}")
+    if "sensor" in overrides and overrides["sensor"] not in SENSOR_NAMES:
+        bad.append(f"sensor must be one of {list(SENSOR_NAMES)}; got {overrides['sensor']!r}")
     if bad:
         raise ConfigError(f"simulate preset {name!r} overrides", bad)
     return replace(base, **overrides) if overrides else base

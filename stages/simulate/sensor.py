@@ -1,13 +1,15 @@
-"""Velodyne HDL-32E model: published elevation table, firing order and timing, ray casting against the city,
-range noise, dropouts, angular jitter / beam divergence / mixed pixels / sector dropouts
-(``sensor_effects.py``), intensity from reflectance and incidence with per-laser (uncalibrated) gain and
-offset, self-occlusion by the ego roof, and motion distortion (each firing uses the pose at its own time).
+"""Spinning lidar models (Velodyne HDL-32E, the default, and HDL-64E): published elevation tables, firing order
+and timing, ray casting against the city, range noise, dropouts, angular jitter / beam divergence / mixed pixels /
+sector dropouts (``sensor_effects.py``), intensity from reflectance and incidence with per-laser (uncalibrated) gain
+and offset, self-occlusion by the ego body, and motion distortion (each firing uses the pose at its own time).
 
-Output points are in the instantaneous lidar frame (x forward, y left, z up), as a driver writes them.
+The lidar sits at ``T_vehicle_lidar`` in the vehicle frame (x forward, y left, z up; origin on the ground at the
+vehicle's reference point): a height, a horizontal lever arm and a mount yaw. Output points are in the
+instantaneous lidar frame, as a driver writes them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,47 +30,111 @@ ELEVATION_DEG = np.array([-30.67, -29.33, -28.00, -26.67, -25.33, -24.00, -22.67
 # Firing order: laser id -> ring (the HDL-32E interleaves low and high beams).
 LASER_TO_RING = np.array([0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23,
                           8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31])
-N_AZIMUTH = 2250  # 0.16 deg steps at 10 Hz
+N_AZIMUTH = 2250  # HDL-32E: 0.16 deg steps at 10 Hz
 SCAN_PERIOD_S = 0.1
 FIRING_DT_S = 1.152e-6
 MAX_RANGE_M, MIN_RANGE_M = 100.0, 1.0
 RANGE_SIGMA_M = 0.02
-MOUNT_HEIGHT_M = 1.9
-# Ego body in the vehicle frame (origin on the ground under the lidar): cabin and body boxes, x/y/z min-max.
+MOUNT_HEIGHT_M = 1.9  # the default lidar height above the road (presets' lidar_z_m)
+# Ego body in the vehicle frame (origin on the ground at the vehicle's reference point): cabin and body boxes,
+# x/y/z min-max.
 EGO_BOXES_M = (np.array([[-1.7, 0.8], [-0.82, 0.82], [0.0, 1.50]]), np.array([[-2.7, 1.9], [-0.95, 0.95], [0.0, 1.0]]))
 
 
 @dataclass(frozen=True)
+class LidarModel:
+    """A spinning lidar: beam elevations by ring (ring 0 = lowest), the ring of each laser in firing order,
+    azimuth columns per revolution and the time between two firings of a column."""
+
+    name: str
+    elevation_deg: np.ndarray  # (R,) by ring, ascending
+    laser_to_ring: np.ndarray  # (R,) firing order: laser id -> ring
+    n_azimuth: int
+    firing_dt_s: float
+
+    @property
+    def n_rings(self) -> int:
+        return len(self.elevation_deg)
+
+
+# HDL-64E elevations by ring (deg): the unit of the KITTI samples in ../shared/data (median over the 22 scans of
+# ``stages.corners.layers.estimate_ring_elevation_deg``; spread 0.2 deg at most). Its upper lasers reach +2.84 deg,
+# the nominal S2 table +2.0 (-24.33 .. +2.0): a unit's calibration moves the upper rings' facade band by 0.2 m at
+# 15 m, which decides what the eight upper layers see (window and door tops at 2.1-2.4 m).
+HDL64E_KITTI_ELEVATION_DEG = np.array([
+    -23.66, -23.18, -22.66, -22.03, -21.58, -21.18, -20.68, -20.09, -19.58, -19.03, -18.57, -18.16, -17.65, -17.19,
+    -16.61, -16.10, -15.48, -15.11, -14.62, -14.18, -13.59, -13.10, -12.54, -12.11, -11.66, -11.22, -10.72, -10.14,
+    -9.65, -9.24, -8.77, -8.23, -7.58, -7.19, -6.98, -6.60, -6.21, -5.92, -5.64, -5.33, -4.93, -4.60, -4.30, -3.93,
+    -3.66, -3.26, -2.98, -2.59, -2.29, -1.94, -1.62, -1.28, -0.90, -0.57, -0.29, 0.11, 0.44, 0.80, 1.08, 1.49, 1.76,
+    2.21, 2.47, 2.84])
+
+
+def _hdl64e_model() -> LidarModel:
+    """Velodyne HDL-64E (S2) as in KITTI: 64 lasers at ``HDL64E_KITTI_ELEVATION_DEG``, an upper block (rings 32-63)
+    and a lower block (rings 0-31) firing in pairs (upper k with lower k), 2000 columns per 0.1 s revolution
+    (0.18 deg; the KITTI samples: 0.1797 deg, ~1980 returns per upper ring)."""
+    lasers = np.empty(64, np.intp)
+    lasers[0::2], lasers[1::2] = np.arange(32, 64), np.arange(32)  # pair k: upper k then lower k
+    return LidarModel("hdl64e", HDL64E_KITTI_ELEVATION_DEG, lasers, 2000, SCAN_PERIOD_S / 2000 / 64)
+
+
+LIDARS: dict[str, LidarModel] = {
+    "hdl32e": LidarModel("hdl32e", ELEVATION_DEG, LASER_TO_RING, N_AZIMUTH, FIRING_DT_S),
+    "hdl64e": _hdl64e_model(),
+}
+
+
+def mount_matrix(x_m: float, y_m: float, z_m: float, yaw_deg: float) -> np.ndarray:
+    """T_vehicle_lidar of a lidar at (x, y, z) in the vehicle frame turned by ``yaw_deg`` about z (counter-clockwise
+    seen from above: the lidar's x axis points ``yaw_deg`` to the left of the vehicle's)."""
+    T = np.eye(4)
+    if yaw_deg:
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = (x_m, y_m, z_m)
+    return T
+
+
+@dataclass(frozen=True)
 class LaserCalibration:
-    gain: np.ndarray  # (32,) by ring
-    offset: np.ndarray  # (32,) by ring
+    gain: np.ndarray  # (R,) by ring
+    offset: np.ndarray  # (R,) by ring
 
     @staticmethod
-    def draw(rng: np.random.Generator) -> "LaserCalibration":
-        return LaserCalibration(rng.uniform(0.55, 1.45, 32), rng.uniform(-6.0, 22.0, 32))
+    def draw(rng: np.random.Generator, n_rings: int = 32) -> "LaserCalibration":
+        return LaserCalibration(rng.uniform(0.55, 1.45, n_rings), rng.uniform(-6.0, 22.0, n_rings))
 
 
 @dataclass(frozen=True)
 class BeamTable:
     """All firings of one revolution, in firing order: azimuth column major, then laser id."""
 
-    dirs_lidar: np.ndarray  # (N_AZIMUTH*32, 3)
+    dirs_lidar: np.ndarray  # (n_azimuth * n_lasers, 3)
     ring: np.ndarray  # (N,) uint16
     time_s: np.ndarray  # (N,) seconds after the scan start
     column: np.ndarray  # (N,) azimuth column index
     ego_range_m: np.ndarray  # (N,) distance at which the beam enters the ego body (inf if never)
+    n_azimuth: int = N_AZIMUTH
+    n_lasers: int = 32
+    T_vehicle_lidar: np.ndarray = field(default_factory=lambda: mount_matrix(0.0, 0.0, MOUNT_HEIGHT_M, 0.0))
 
 
-def build_beam_table() -> BeamTable:
-    col = np.repeat(np.arange(N_AZIMUTH), 32)
-    laser = np.tile(np.arange(32), N_AZIMUTH)
-    ring = LASER_TO_RING[laser]
-    az = np.pi - 2 * np.pi * col / N_AZIMUTH  # starts facing backwards, spins clockwise seen from above
-    el = np.radians(ELEVATION_DEG[ring])
+def build_beam_table(model: LidarModel | None = None, T_vehicle_lidar: np.ndarray | None = None) -> BeamTable:
+    """The firings of ``model`` (default HDL-32E) mounted at ``T_vehicle_lidar`` (default (0, 0, 1.9 m), no
+    rotation); the ego body is cast from the mount."""
+    m = LIDARS["hdl32e"] if model is None else model
+    T = mount_matrix(0.0, 0.0, MOUNT_HEIGHT_M, 0.0) if T_vehicle_lidar is None else np.asarray(T_vehicle_lidar, float)
+    n_az, n_l = m.n_azimuth, m.n_rings
+    col = np.repeat(np.arange(n_az), n_l)
+    laser = np.tile(np.arange(n_l), n_az)
+    ring = m.laser_to_ring[laser]
+    az = np.pi - 2 * np.pi * col / n_az  # starts facing backwards, spins clockwise seen from above
+    el = np.radians(m.elevation_deg[ring])
     dirs = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    time_s = col * (SCAN_PERIOD_S / N_AZIMUTH) + laser * FIRING_DT_S
-    ego = np.min([_ray_box_entry(np.array([0.0, 0.0, MOUNT_HEIGHT_M]), dirs, box) for box in EGO_BOXES_M], axis=0)
-    return BeamTable(dirs, ring.astype(np.uint16), time_s, col, ego)
+    time_s = col * (SCAN_PERIOD_S / n_az) + laser * m.firing_dt_s
+    dirs_vehicle = dirs @ T[:3, :3].T
+    ego = np.min([_ray_box_entry(T[:3, 3], dirs_vehicle, box) for box in EGO_BOXES_M], axis=0)
+    return BeamTable(dirs, ring.astype(np.uint16), time_s, col, ego, n_az, n_l, T)
 
 
 def _ray_box_entry(origin: np.ndarray, dirs: np.ndarray, box: np.ndarray) -> np.ndarray:
@@ -93,19 +159,22 @@ def simulate_scan(beams: BeamTable, poses_col: np.ndarray, static: Scene, dynami
                   albedo: Raster, calib: LaserCalibration, rng: np.random.Generator,
                   effects: SensorEffects | None = None, rng_effects: np.random.Generator | None = None
                   ) -> dict[str, np.ndarray]:
-    """One revolution. ``poses_col``: (N_AZIMUTH, 5) east, north, yaw, pitch, roll of the vehicle at each
-    azimuth column's time (all rows equal = no motion distortion). ``effects`` (with their own generator
-    ``rng_effects``): None = range noise only. Returns PCD-ready arrays."""
+    """One revolution. ``poses_col``: (n_azimuth, 5) east, north, yaw, pitch, roll of the vehicle at each
+    azimuth column's time (all rows equal = no motion distortion); the lidar sits at ``beams.T_vehicle_lidar``.
+    ``effects`` (with their own generator ``rng_effects``): None = range noise only. Returns PCD-ready arrays."""
     fx = effects if effects is not None and effects.active else None
-    R = rotations_enu_vehicle(poses_col[:, 2], poses_col[:, 3], poses_col[:, 4])  # (C, 3, 3)
-    lidar_origin = np.column_stack([poses_col[:, :2], np.zeros(len(poses_col))]) + R[:, :, 2] * MOUNT_HEIGHT_M
-    d_lidar = beams.dirs_lidar.reshape(N_AZIMUTH, 32, 3)
-    R_cast = R
+    n_az, n_l, T_vl = beams.n_azimuth, beams.n_lasers, beams.T_vehicle_lidar
+    R = rotations_enu_vehicle(poses_col[:, 2], poses_col[:, 3], poses_col[:, 4])  # (C, 3, 3) R_enu_vehicle
+    lever = np.einsum("cij,j->ci", R, T_vl[:3, 3])
+    lidar_origin = np.column_stack([poses_col[:, :2], np.zeros(len(poses_col))]) + lever
+    R_lidar = R if np.array_equal(T_vl[:3, :3], np.eye(3)) else np.matmul(R, T_vl[:3, :3])  # R_enu_lidar
+    d_lidar = beams.dirs_lidar.reshape(n_az, n_l, 3)
+    R_cast = R_lidar
     if fx is not None and fx.angular_jitter_deg > 0:  # cast along the jittered direction, report the nominal one
-        az = np.pi - 2 * np.pi * np.arange(N_AZIMUTH) / N_AZIMUTH
-        R_cast = np.matmul(R, column_jitter_rotations(az, fx.angular_jitter_deg, rng_effects))
+        az = np.pi - 2 * np.pi * np.arange(n_az) / n_az
+        R_cast = np.matmul(R_lidar, column_jitter_rotations(az, fx.angular_jitter_deg, rng_effects))
     dirs_w = np.matmul(d_lidar, R_cast.transpose(0, 2, 1)).reshape(-1, 3)
-    origins_w = np.repeat(lidar_origin, 32, axis=0)
+    origins_w = np.repeat(lidar_origin, n_l, axis=0)
     t_s, prim_s = static.cast(origins_w, dirs_w)
     t_d, prim_d = dynamic.cast(origins_w, dirs_w)
     use_dyn = t_d < t_s
@@ -113,10 +182,10 @@ def simulate_scan(beams: BeamTable, poses_col: np.ndarray, static: Scene, dynami
     hit = np.isfinite(r_true) & (r_true < MAX_RANGE_M) & (r_true > MIN_RANGE_M) & (r_true < beams.ego_range_m)
     if fx is not None:
         if fx.mixed_pixel_share > 0:
-            grid = np.where(hit, r_true, np.inf).reshape(N_AZIMUTH, 32)
+            grid = np.where(hit, r_true, np.inf).reshape(n_az, n_l)
             r_true = mix_edge_ranges(grid, fx.mixed_pixel_share, fx.mixed_min_jump_m, rng_effects)[0].reshape(-1)
         if fx.sector_dropout_scan_share > 0:
-            hit &= ~dropped_columns(N_AZIMUTH, fx.sector_dropout_scan_share, fx.sector_dropout_deg,
+            hit &= ~dropped_columns(n_az, fx.sector_dropout_scan_share, fx.sector_dropout_deg,
                                     rng_effects)[beams.column]
     idx = np.flatnonzero(hit)
     dyn = use_dyn[idx]

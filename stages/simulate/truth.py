@@ -194,5 +194,7 @@ def city_description(city: City, origin: dict, epsg: int) -> dict:
                    "crown_radius_m": round(t[3], 3), "crown_half_height_m": round(t[4], 3)} for t in city.trees],
         "poles_en": np.round(city.poles, 3).tolist(),
         "parked_cars": [{"east_m": round(p[0], 3), "north_m": round(p[1], 3), "yaw_enu_rad": round(p[2], 5),
-                         "length_m": round(p[3], 3), "width_m": round(p[4], 3)} for p in city.parked],
+                         "length_m": round(p[3], 3), "width_m": round(p[4], 3),
+                         **({} if city.parked_top_m is None else {"height_m": round(float(city.parked_top_m[k]), 3)})}
+                        for k, p in enumerate(city.parked)],
     }

@@ -42,34 +42,41 @@ def write_csv(path: Path, header: list[str], columns: list[np.ndarray], fmts: li
     path.write_text("\n".join(lines) + "\n")
 
 
-def write_gnss_csv(path: Path, week: int, gps_s: np.ndarray, llh: np.ndarray, roll_deg: np.ndarray,
-                   pitch_deg: np.ndarray, azimuth_deg: np.ndarray, std_enu_m: np.ndarray,
-                   std_azimuth_deg: np.ndarray) -> None:
+def write_gnss_csv(path: Path, week: int, gps_s: np.ndarray, llh: np.ndarray, roll_deg: np.ndarray | None,
+                   pitch_deg: np.ndarray | None, azimuth_deg: np.ndarray, std_enu_m: np.ndarray,
+                   std_azimuth_deg: np.ndarray, status: str = "INS_SOLUTION_GOOD") -> None:
+    """INSPVA-like CSV; ``roll_deg`` / ``pitch_deg`` None: no such columns (a receiver without an INS)."""
     header = ["gps_week", "gps_seconds", "latitude_deg", "longitude_deg", "height_m", "roll_deg", "pitch_deg",
               "azimuth_deg", "std_lat_m", "std_lon_m", "std_height_m", "std_azimuth_deg", "status"]
     n = len(gps_s)
     cols = [np.full(n, week), gps_s, llh[:, 0], llh[:, 1], llh[:, 2], roll_deg, pitch_deg, azimuth_deg,
-            std_enu_m[:, 1], std_enu_m[:, 0], std_enu_m[:, 2], std_azimuth_deg, np.full(n, "INS_SOLUTION_GOOD")]
+            std_enu_m[:, 1], std_enu_m[:, 0], std_enu_m[:, 2], std_azimuth_deg, np.full(n, status)]
     fmts = ["%d", "%.3f", "%.10f", "%.10f", "%.4f", "%.5f", "%.5f", "%.5f", "%.4f", "%.4f", "%.4f", "%.4f", "%s"]
-    write_csv(path, header, cols, fmts)
+    keep = [k for k, c in enumerate(cols) if c is not None]
+    write_csv(path, [header[k] for k in keep], [cols[k] for k in keep], [fmts[k] for k in keep])
 
 
 def write_drive_yaml(path: Path, name: str, T_vehicle_lidar: np.ndarray, survey_crs: str | None,
-                     survey_dir: str = "survey") -> None:
+                     survey_dir: str = "survey", *, sensor: str = "hdl32e", gnss_attitude: bool = True) -> None:
+    """The drive file; ``survey_crs`` None: no survey section; ``gnss_attitude`` False: the GNSS file has no roll
+    or pitch column (a receiver without an INS)."""
     import yaml
 
+    columns = {"lat": "latitude_deg", "lon": "longitude_deg", "height": "height_m", "roll": "roll_deg",
+               "pitch": "pitch_deg", "heading": "azimuth_deg", "std_east": "std_lon_m", "std_north": "std_lat_m",
+               "std_up": "std_height_m", "std_heading": "std_azimuth_deg"}
+    if not gnss_attitude:
+        del columns["roll"], columns["pitch"]
     doc = {
         "name": name,
-        "sensor": "hdl32e",
+        "sensor": sensor,
         "scans": {"folder": "scans", "format": "pcd"},
         "scan_rate_hz": 10.0,
         "T_vehicle_lidar": [[float(v) for v in row] for row in T_vehicle_lidar],
         "gnss": {
             "file": "gnss_inspva.csv",
             "time": {"column": "gps_seconds", "week_column": "gps_week", "base": "gps"},
-            "columns": {"lat": "latitude_deg", "lon": "longitude_deg", "height": "height_m", "roll": "roll_deg",
-                        "pitch": "pitch_deg", "heading": "azimuth_deg", "std_east": "std_lon_m",
-                        "std_north": "std_lat_m", "std_up": "std_height_m", "std_heading": "std_azimuth_deg"},
+            "columns": columns,
             "angle_unit": "deg",
             "heading_convention": "azimuth_cw_from_north",
             "lever_arm_m": [0.0, 0.0, 0.0],
@@ -81,8 +88,10 @@ def write_drive_yaml(path: Path, name: str, T_vehicle_lidar: np.ndarray, survey_
     }
     if survey_crs:
         doc["survey"] = {"file": f"../{survey_dir}/survey.las", "crs": survey_crs}
+    under = "under the lidar" if not np.any(np.asarray(T_vehicle_lidar, float)[:2, 3]) else \
+        "at the vehicle's reference point\n# (the lidar at T_vehicle_lidar)"
     text = ("# Simulated drive (cornermap simulate). Vehicle frame: x forward, y left, z up, origin on the ground\n"
-            "# under the lidar. Scan stamps (scan start, GPS week + seconds of week) are in scans/stamps.csv.\n")
+            f"# {under}. Scan stamps (scan start, GPS week + seconds of week) are in scans/stamps.csv.\n")
     path.write_text(text + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110))
 
 

@@ -44,7 +44,7 @@ def _corners_near(building: Building, target_xy, views, elevation_deg, params=Co
 @pytest.mark.parametrize("radius_m", [1.0, 2.0, 3.0, 5.0])
 def test_rounded_corner_gives_no_corner(sensor, radius_m):
     found = _corners_near(rounded_box_building((16.0, 12.0), radius_m), (16.0, 12.0), VIEWS, SENSORS[sensor])
-    # at most one stray view of six (the map needs min_obs 8 observations of one corner)
+    # at most one stray view of six (the map needs min_obs 4 observations of one corner)
     assert sum(len(f) for f in found) <= 1, found
     if radius_m == 2.0:  # the gate is what removes it: without it the arc's chords make corners
         loose = _corners_near(rounded_box_building((16.0, 12.0), radius_m), (16.0, 12.0), VIEWS, SENSORS[sensor],
