@@ -187,6 +187,7 @@ class MapReader:
         self._corners = _Lru(cache_tiles, self._load_corners)
         self._markings = _Lru(cache_tiles, self._load_marking)
         self._observed = _Lru(cache_tiles, self._load_observed)
+        self._localizability = _Lru(cache_tiles, self._load_localizability)
 
     # -- tiles -------------------------------------------------------------------------------------------
     def tile_keys(self) -> list[tuple[int, int]]:
@@ -361,6 +362,45 @@ class MapReader:
             out[(s1 - b_s):(s1 - a_s), (a_c - c0):(b_c - c0)] = src.astype(np.uint8, copy=False)
         return out, (c0 * cell, s0 * cell), cell
 
+    def tile_localizability(self, i: int, j: int) -> pa.Table | None:
+        """Tile (i, j)'s cells of the localizability layer (``mapformat/localizability.py``'s columns; verified,
+        bounded, cached like the corners), None for a tile without one (a version published before the layer)."""
+        from mapformat.localizability import LOCALIZABILITY_FILE
+
+        entry = self._tiles.get((int(i), int(j)))
+        if entry is None or LOCALIZABILITY_FILE not in (entry.get("files") or {}):
+            return None
+        return self._localizability.get((int(i), int(j)))
+
+    def _load_localizability(self, key: tuple[int, int]) -> pa.Table:
+        from mapformat.localizability import LOCALIZABILITY_FILE, SCHEMA
+
+        entry = self._tiles[key]
+        path, data = self._read(key, LOCALIZABILITY_FILE)
+        recorded = entry.get("n_localizability_cells")
+        table = decode_table(data, path, recorded if isinstance(recorded, int) else None)
+        try:
+            return table.select(SCHEMA.names).cast(SCHEMA)
+        except (KeyError, pa.ArrowInvalid, ValueError) as exc:
+            raise MapFormatError(f"{path}: not a localizability layer ({exc}); hint: run `cornermap tiles verify`") \
+                from exc
+
+    def localizability_in_bbox(self, e0: float, n0: float, e1: float, n1: float) -> pa.Table:
+        """The localizability cells whose road point lies in [e0, e1) x [n0, n1) (both methods; empty table of the
+        layer's columns when the version has none)."""
+        import pyarrow.compute as pc
+
+        from mapformat.localizability import SCHEMA
+
+        parts = []
+        for key in self._keys_in_box(e0, n0, e1, n1):
+            t = self.tile_localizability(*key)
+            if t is not None and t.num_rows:
+                e, n = t["east_m"], t["north_m"]
+                parts.append(t.filter(pc.and_(pc.and_(pc.greater_equal(e, e0), pc.less(e, e1)),
+                                              pc.and_(pc.greater_equal(n, n0), pc.less(n, n1)))))
+        return pa.concat_tables(parts) if parts else SCHEMA.empty_table()
+
     @staticmethod
     def covariances(corners: pa.Table) -> np.ndarray:
         """(N, 2, 2) east/north covariances in m^2 of a corner table."""
@@ -371,6 +411,7 @@ class MapReader:
         self._corners.clear()
         self._markings.clear()
         self._observed.clear()
+        self._localizability.clear()
 
 
 def _corner_schema() -> pa.Schema:

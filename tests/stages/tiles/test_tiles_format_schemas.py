@@ -84,3 +84,19 @@ def test_parquet_layers_read_with_duckdb_agree_with_the_manifest_and_the_loader(
                       ).fetchall()
     assert len(vec) == sum(t.get("n_marking_features", 0) for t in manifest["tiles"]) and vec[0][:2] == (
         "lane_solid", "LineString")
+
+
+def test_the_localizability_layer_reads_with_duckdb_with_its_units(published):
+    duckdb = pytest.importorskip("duckdb")
+    vdir = published / "v0002"
+    manifest = json.loads((vdir / "manifest.json").read_text())
+    con = duckdb.connect()
+    rows = con.execute(f"SELECT method, count(*), median(sigma_2d_m), max(abs(sigma_2d_m - sqrt(cov_ee_m2 + "
+                       f"cov_nn_m2))) FROM read_parquet('{vdir}/tiles/*/localizability.parquet') GROUP BY method "
+                       "ORDER BY method").fetchall()
+    assert [r[0] for r in rows] == ["ekf", "mcl"] and rows[0][1] == rows[1][1] == manifest["localizability"]["n_cells"]
+    assert rows[0][2] == pytest.approx(manifest["localizability"]["methods"]["ekf"]["median_sigma_2d_m"], abs=1e-4)
+    assert rows[0][3] < 1e-12
+    meta = con.execute(f"SELECT key, value FROM parquet_kv_metadata('{vdir}/tiles/0_0/localizability.parquet')"
+                       ).fetchall()
+    assert any(k == b"ARROW:schema" for k, _ in meta)  # units travel in the file's Arrow field metadata
