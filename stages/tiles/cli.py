@@ -62,36 +62,53 @@ def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
 def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LATEST)."),
          version_b: str = typer.Argument(..., help="New version."),
          root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
-         move_threshold_m: float = typer.Option(0.1, "--move-threshold-m", help="A matched corner moved more "
-                                                "than this is reported as moved."),
+         significance: float = typer.Option(0.001, "--significance", help="A matched corner is moved when the "
+                                            "chi-square test (2 dof) on its displacement with both covariances "
+                                            "rejects 'unchanged' at this level; marking cells likewise."),
+         move_threshold_m: float = typer.Option(0.0, "--move-threshold-m", help="... and it moved more than this "
+                                                "(0: the test alone)."),
          match_radius_m: float = typer.Option(1.0, "--match-radius-m", help="Corners further apart never match."),
          as_json: bool = typer.Option(False, "--json", help="Print the per-tile diff as JSON.")) -> None:
-    """Per tile: corners added, removed, moved more than a threshold; marking pixels changed (A -> B).
+    """Per tile: corners added, removed, moved (chi-square test on both covariances); marking cells changed beyond
+    the rasters' noise (A -> B).
 
     Example: [b]cornermap tiles diff v0001 LATEST --map tiny --root runs/tiny[/b]
     """
     import math
 
-    from mapformat.diff import diff_maps
+    from mapformat.change_tests import chi2_threshold
+    from mapformat.diff import diff_maps, marking_cells
     from mapformat.loader import open_map
     from pipeline.errors import LimitError
 
     for opt, value in (("--move-threshold-m", move_threshold_m), ("--match-radius-m", match_radius_m)):
         if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
             raise LimitError(f"{opt} {value}: expected 0 to 1000 m")
+    if not (0.0 < significance < 1.0):
+        raise LimitError(f"--significance {significance}: expected a probability in (0, 1)")
     d = map_dir_of(root, map_name)
     a, b = open_map(d, version_a), open_map(d, version_b)
-    diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m)
+    diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m,
+                      significance=significance)
+    cells, test = marking_cells(a, b, significance)
+    corner_test = {"method": "chi2", "dof": 2, "significance": significance,
+                   "threshold": round(chi2_threshold(significance), 3)}
     if as_json:
-        typer.echo(json.dumps({"a": a.version, "b": b.version, "tiles": [t.as_dict() for t in diffs]}, indent=1))
+        typer.echo(json.dumps({"a": a.version, "b": b.version, "corner_test": corner_test,
+                               "tiles": [t.as_dict() for t in diffs],
+                               "marking_cells": cells, "marking_test": test}, indent=1))
         return
-    typer.echo(f"diff v{a.version:04d} -> v{b.version:04d}: {len(diffs)} tile(s) changed")
+    typer.echo(f"diff v{a.version:04d} -> v{b.version:04d}: {len(diffs)} tile(s) changed (corners: chi-square, 2 "
+               f"dof, significance {significance:g}, threshold {corner_test['threshold']})")
     for t in diffs:
         typer.echo(f"  tile ({t.i},{t.j}): +{t.corners_added} -{t.corners_removed} ~{t.corners_moved} corners, "
                    f"{t.marking_px_changed} marking px changed")
     totals = [sum(getattr(t, k) for t in diffs) for k in ("corners_added", "corners_removed", "corners_moved",
                                                          "marking_px_changed")]
     typer.echo("total: +{} -{} ~{} corners, {} marking px changed".format(*totals))
+    typer.echo(f"marking cells changed ({test['cells_compared']} compared, noise rate {test['noise_rate']:g}): "
+               + (", ".join(f"({c['east_m']:.0f}, {c['north_m']:.0f}) {c['px_changed']} px" for c in cells)
+                  or "none"))
 
 
 def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,

@@ -87,7 +87,8 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         _, doc = carry_history(map_dir, corners, origin, size_m, staging,
                                lambda table: write_map_files(staging, table, size_m, rasters, trajectories, by_tile),
                                gates=IdGates(params.id_max_dist_m, params.id_max_angle_deg),
-                               move_threshold_m=params.changelog_move_threshold_m)
+                               move_threshold_m=params.changelog_move_threshold_m,
+                               new_paths=[t.pose_xyz_qxyzw[:, :2] for t in trajectories])
         return {**fields, "n_tiles": len(doc["files"]["tiles"]), **doc["files"],
                 "next_corner_id": doc["changelog"]["corners"]["next_corner_id"],
                 "changelog": write_changelog(staging, doc["changelog"])}
