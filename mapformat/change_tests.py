@@ -6,9 +6,11 @@ Corners. A corner kept from version A to B (matched by identity or geometry) mov
 "unchanged" ``d ~ N(0, C_A + C_B)`` (the two maps' errors taken as independent: conservative when they share
 drives), so ``chi2 = d^T (C_A + C_B)^-1 d`` follows a chi-square law with 2 degrees of freedom; the corner is
 ``moved`` when chi2 exceeds its ``1 - significance`` quantile (significance 0.001: 13.82). A corner of A not
-matched in B is ``removed`` only where B's drives could have seen it (``corner_visibility.visible`` from B's
-roads), else ``not_reobserved``; a corner of B not matched in A is ``added`` where A's drives could have seen it,
-else ``newly_observed`` (A never looked there).
+matched in B is ``removed`` only when B's drives would have mapped it had it been there: with L scans of B's drives
+in view of it (``corner_visibility.visible`` from B's roads) each detecting it with ``detection_rate``, the chance
+of fewer than ``min_obs`` detections (the corner map's minimum) is ``p_missed = P(Binomial(L, rate) < min_obs)``;
+removed when it is below the significance, else ``not_reobserved`` (one pass at a corner seen from a few scans is
+no evidence). A corner of B not matched in A is ``added`` by the same test on A's drives, else ``newly_observed``.
 
 Markings. Two surveys of unchanged paint differ at its edges: a cell counts as changed where one version paints
 and the other has no paint within ``tolerance_px`` cells, among cells both versions observed (point_count > 0).
@@ -44,20 +46,24 @@ def corner_chi2(d_en_m: np.ndarray, cov_a_m2: np.ndarray, cov_b_m2: np.ndarray) 
     return stat, chi2.sf(stat, DOF)
 
 
-def seen_from(paths_en_m: list[np.ndarray], corners_en_m: np.ndarray, theta_rad: np.ndarray, convex: np.ndarray,
-              range_m: float = 60.0, step_m: float = 2.0) -> np.ndarray:
-    """(K,) True where some sample of the paths (every ``step_m``) sees the corner (range, walls' side, walls)."""
-    from stages.common.corner_visibility import visible, wall_segments
-    from stages.common.localizability import resample_path
-
-    c = np.asarray(corners_en_m, float).reshape(-1, 2)
-    out = np.zeros(len(c), bool)
-    pts = [resample_path(p, step_m)[0] for p in paths_en_m if len(p) > 1]
-    pts = np.vstack(pts) if pts else np.zeros((0, 2))
-    if len(c) == 0 or len(pts) == 0:
-        return out
+def looks_from(paths_en_m: list[np.ndarray], corners_en_m: np.ndarray, theta_rad: np.ndarray, convex: np.ndarray,
+               range_m: float = 60.0) -> np.ndarray:
+    """(K,) how many scans of the drives (each path resampled at one scan's travel, its median moving step) see each
+    corner (range, the walls' seen side, the rebuilt walls: ``corner_visibility.visible``)."""
     from scipy.spatial import cKDTree
 
+    from stages.common.corner_visibility import visible, wall_segments
+    from stages.common.localizability import resample_path
+    from stages.common.localizability_cells import sample_step_m
+
+    c = np.asarray(corners_en_m, float).reshape(-1, 2)
+    out = np.zeros(len(c), np.int64)
+    paths = [np.asarray(p, float).reshape(-1, 2) for p in paths_en_m if len(p) > 1]
+    if len(c) == 0 or not paths:
+        return out
+    pts = np.vstack([resample_path(p, sample_step_m([p], 0.1))[0] for p in paths])
+    if len(pts) == 0:
+        return out
     near = np.flatnonzero(np.isfinite(cKDTree(pts).query(c, distance_upper_bound=range_m)[0]))
     if len(near) == 0:
         return out
@@ -65,8 +71,22 @@ def seen_from(paths_en_m: list[np.ndarray], corners_en_m: np.ndarray, theta_rad:
     for a in range(0, len(pts), 256):
         vis = visible(pts[a:a + 256], c[near], np.asarray(theta_rad)[near], np.asarray(convex, bool)[near],
                       range_m=range_m, segments=segs)
-        out[near] |= vis.any(axis=0)
+        out[near] += vis.sum(axis=0)
     return out
+
+
+def seen_from(paths_en_m: list[np.ndarray], corners_en_m: np.ndarray, theta_rad: np.ndarray, convex: np.ndarray,
+              range_m: float = 60.0) -> np.ndarray:
+    """(K,) True where some scan of the drives sees the corner (``looks_from`` > 0)."""
+    return looks_from(paths_en_m, corners_en_m, theta_rad, convex, range_m) > 0
+
+
+def p_missed(looks: np.ndarray, detection_rate: float, min_obs: int) -> np.ndarray:
+    """(K,) probability that a corner still there is not mapped from ``looks`` scans in view: fewer than ``min_obs``
+    detections (the corner map's minimum) when each scan detects it with ``detection_rate``: binomial."""
+    from scipy.stats import binom
+
+    return binom.cdf(int(min_obs) - 1, np.asarray(looks, np.int64), float(detection_rate))
 
 
 @dataclass(frozen=True)

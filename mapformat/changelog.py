@@ -83,12 +83,24 @@ def carry_ids(prev_corners: pa.Table | None, prev_next_id: int | None, corners: 
     return out, match, next_id
 
 
-def _corner_entries(table: pa.Table, idx: np.ndarray, size_m: float) -> list[dict[str, Any]]:
+def _corner_entries(table: pa.Table | None, idx: np.ndarray, size_m: float, keep: np.ndarray | None = None,
+                    looks: np.ndarray | None = None, p: np.ndarray | None = None, want: bool = True
+                    ) -> list[dict[str, Any]]:
+    """Entries of the corners ``idx`` of ``table`` (those whose ``keep`` is ``want``), with the scans that had them
+    in view and p_missed when given."""
+    if table is None:
+        return []
+    sel = np.ones(len(idx), bool) if keep is None else (np.asarray(keep, bool) == want)
+    idx = np.asarray(idx, np.int64)[sel]
     en = _en(table)[idx]
     ids = table["corner_id"].to_numpy()[idx] if len(idx) else np.zeros(0, np.int64)
     ti, tj = tile_key_of(en[:, 0], en[:, 1], size_m) if len(idx) else (np.zeros(0), np.zeros(0))
-    return [{"id": int(c), "east_m": round(float(e), 3), "north_m": round(float(n), 3), "tile": [int(i), int(j)]}
-            for c, (e, n), i, j in zip(ids.tolist(), en.tolist(), np.asarray(ti).tolist(), np.asarray(tj).tolist())]
+    out = [{"id": int(c), "east_m": round(float(e), 3), "north_m": round(float(n), 3), "tile": [int(i), int(j)]}
+           for c, (e, n), i, j in zip(ids.tolist(), en.tolist(), np.asarray(ti).tolist(), np.asarray(tj).tolist())]
+    if looks is not None and p is not None and keep is not None:
+        for entry, lk, pm in zip(out, np.asarray(looks)[sel], np.asarray(p)[sel]):
+            entry["scans_in_view"], entry["p_missed"] = int(lk), float(f"{pm:.3g}")
+    return out
 
 
 def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, Any] | None,
@@ -97,13 +109,15 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
                     source_drives: list[dict[str, Any]], marking_px_changed: dict[tuple[int, int], int],
                     next_corner_id: int, significance: float = SIGNIFICANCE,
                     prev_paths: list[np.ndarray] | None = None, new_paths: list[np.ndarray] | None = None,
-                    marking_cells: tuple[list[dict], dict] | None = None) -> dict[str, Any]:
+                    marking_cells: tuple[list[dict], dict] | None = None, detection_rate: float = 0.7,
+                    min_obs: int = 8) -> dict[str, Any]:
     """The changelog document of a new version (all lists sorted, numbers rounded: deterministic text).
 
     Kept corners are ``moved`` when the chi-square test on their displacement with both covariances rejects
     "unchanged" at ``significance`` (mapformat/change_tests.py); ``move_threshold_m`` is recorded for readers of
     format 1. With ``prev_paths`` / ``new_paths`` (the two versions' drives, (N,2) ENU each), an unmatched corner is
-    ``removed`` / ``added`` only where the other version's drives could have seen it, else ``not_reobserved`` /
+    ``removed`` / ``added`` only when the other version's drives would have mapped it (``change_tests.p_missed``
+    with ``detection_rate`` per scan in view and the corner map's ``min_obs``), else ``not_reobserved`` /
     ``newly_observed``. ``marking_cells``: ``change_tests.changed_cells``' result."""
     prev_drives = {d["drive"]: d.get("fingerprint") for d in (parent_manifest or {}).get("source_drives", [])}
     new_drives = {d["drive"]: d.get("fingerprint") for d in source_drives}
@@ -121,8 +135,8 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
               "north_m": round(float(en_new[j, 1]), 3)}
              for j, d, a, c, pv in zip(match.i_new[moved_sel], match.dist_m[moved_sel], match.angle_deg[moved_sel],
                                        stat[moved_sel], p_value[moved_sel])]
-    seen_new = _seen(new_paths, prev_corners, removed) if prev_corners is not None else np.zeros(0, bool)
-    seen_old = _seen(prev_paths, corners, added)
+    seen_new, looks_new, p_new = _confirmed(new_paths, prev_corners, removed, detection_rate, min_obs, significance)
+    seen_old, looks_old, p_old = _confirmed(prev_paths, corners, added, detection_rate, min_obs, significance)
     dist = match.dist_m
     frame = {"enu_origin": origin.as_dict(), "tile_size_m": float(tile_size_m), "unchanged": frame_unchanged}
     if parent_manifest is not None and not frame_unchanged:
@@ -139,12 +153,13 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
                     "unchanged": int(len(match.i_new) - len(moved)),
                     "test": {"method": "chi2: d^T (C_parent + C_new)^-1 d of each kept corner", "dof": DOF,
                              "significance": significance, "threshold": round(chi2_threshold(significance), 3)},
-                    "added": _corner_entries(corners, added[seen_old], tile_size_m),
-                    "newly_observed": _corner_entries(corners, added[~seen_old], tile_size_m),
-                    "removed": _corner_entries(prev_corners, removed[seen_new], tile_size_m)
-                    if prev_corners is not None else [],
-                    "not_reobserved": _corner_entries(prev_corners, removed[~seen_new], tile_size_m)
-                    if prev_corners is not None else [],
+                    "presence_test": {"method": "P(Binomial(scans in view, detection_rate) < min_obs) below the "
+                                      "significance", "detection_rate": detection_rate, "min_obs": int(min_obs)},
+                    "added": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, p_old, True),
+                    "newly_observed": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, p_old, False),
+                    "removed": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, p_new, True),
+                    "not_reobserved": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, p_new,
+                                                      False),
                     "moved": moved, "move_threshold_m": move_threshold_m,
                     "kept_dist_m": {"median": round(float(np.median(dist)), 4) if len(dist) else None,
                                     "p95": round(float(np.percentile(dist, 95)), 4) if len(dist) else None,
@@ -159,15 +174,18 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
     }
 
 
-def _seen(paths: list[np.ndarray] | None, table: pa.Table | None, idx: np.ndarray) -> np.ndarray:
-    """(len(idx),) True where the drives of ``paths`` could have seen those corners of ``table`` (all True when the
-    paths are not known: every unmatched corner is then added / removed)."""
+def _confirmed(paths: list[np.ndarray] | None, table: pa.Table | None, idx: np.ndarray, detection_rate: float,
+               min_obs: int, significance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For those corners of ``table``: (confirmed (the other drives would have mapped them: p_missed below the
+    significance), scans in view, p_missed); all confirmed when the paths are not known."""
     if paths is None or table is None or len(idx) == 0:
-        return np.ones(len(idx), bool)
-    from mapformat.change_tests import seen_from
+        return np.ones(len(idx), bool), np.zeros(len(idx), np.int64), np.zeros(len(idx))
+    from mapformat.change_tests import looks_from, p_missed
 
-    return seen_from(paths, _en(table)[idx], _theta(table)[idx],
-                     table["convex"].to_numpy(zero_copy_only=False).astype(bool)[idx])
+    looks = looks_from(paths, _en(table)[idx], _theta(table)[idx],
+                       table["convex"].to_numpy(zero_copy_only=False).astype(bool)[idx])
+    p = p_missed(looks, detection_rate, min_obs)
+    return p < significance, looks, p
 
 
 def marking_changes(new_tiles: list[dict[str, Any]], staging: Path, prev: Any | None) -> dict[tuple[int, int], int]:

@@ -24,9 +24,16 @@ class TilesParams(Params):
                                                         "id only within this distance (mapformat/corner_ids.py)")
     id_max_angle_deg: float = Field(15.0, gt=0, le=90, description="corner identity: both wall directions "
                                                                   "within this angle of the previous corner's")
-    changelog_move_threshold_m: float = Field(0.2, ge=0, description="changelog: a kept corner further than "
-                                                                     "this from its previous position is listed "
-                                                                     "as moved")
+    changelog_move_threshold_m: float = Field(0.2, ge=0, description="recorded in the changelog for readers of its "
+                                              "format 1 (moved by distance); format 2 lists a corner as moved by "
+                                              "changelog_significance")
+    changelog_significance: float = Field(0.001, gt=0, lt=1, description="changelog: a kept corner is moved when "
+                                          "the chi-square test (2 dof) on its displacement with both covariances "
+                                          "rejects 'unchanged' at this level; a marking cell changed and an "
+                                          "unmatched corner removed / added likewise (mapformat/change_tests.py)")
+    changelog_min_obs: int = Field(8, ge=1, description="observations the corner map needs to keep a corner (its "
+                                   "cornermap stage's min_obs): an unmatched corner is removed / added only when "
+                                   "the other version's drives would have observed it that often")
     localizability: bool = Field(True, description="publish the localizability layer: per cell of the driven roads "
                                  "the predicted position uncertainty of the corner EKF and of the marking MCL "
                                  "(tiles/{i}_{j}/localizability.parquet; stages/common/localizability.py)")
