@@ -7,10 +7,11 @@ Corners. A corner kept from version A to B (matched by identity or geometry) mov
 drives), so ``chi2 = d^T (C_A + C_B)^-1 d`` follows a chi-square law with 2 degrees of freedom; the corner is
 ``moved`` when chi2 exceeds its ``1 - significance`` quantile (significance 0.001: 13.82). A corner of A not
 matched in B is ``removed`` only when B's drives would have mapped it had it been there: with L scans of B's drives
-in view of it (``corner_visibility.visible`` from B's roads) each detecting it with ``detection_rate``, the chance
-of fewer than ``min_obs`` detections (the corner map's minimum) is ``p_missed = P(Binomial(L, rate) < min_obs)``;
-removed when it is below the significance, else ``not_reobserved`` (one pass at a corner seen from a few scans is
-no evidence). A corner of B not matched in A is ``added`` by the same test on A's drives, else ``newly_observed``.
+in view of it (``corner_visibility.visible`` from B's roads), each detecting it at the corner's own rate in A
+(its ``n_obs`` over A's scans in view of it, the 95 % lower bound: ``detection_rate``), the chance of fewer than
+``min_obs`` detections (the corner map's minimum) is ``p_missed = P(Binomial(L, rate) < min_obs)``; removed when it
+is below the significance, else ``not_reobserved`` (one pass at a corner seen from a few scans is no evidence). A
+corner of B not matched in A is ``added`` by the same test on A's drives, else ``newly_observed``.
 
 Markings. Two surveys of unchanged paint differ at its edges: a cell counts as changed where one version paints
 and the other has no paint within ``tolerance_px`` cells, among cells both versions observed (point_count > 0).
@@ -81,12 +82,23 @@ def seen_from(paths_en_m: list[np.ndarray], corners_en_m: np.ndarray, theta_rad:
     return looks_from(paths_en_m, corners_en_m, theta_rad, convex, range_m) > 0
 
 
-def p_missed(looks: np.ndarray, detection_rate: float, min_obs: int) -> np.ndarray:
+def detection_rate(n_obs: np.ndarray, looks: np.ndarray, confidence: float = 0.95) -> np.ndarray:
+    """(K,) a corner's detection rate per scan in view, from its own record: ``n_obs`` observations merged from
+    ``looks`` scans that had it in view; the lower ``confidence`` bound of the binomial rate (Beta posterior of a
+    uniform prior), so a corner seen by few scans is not taken as easy to see."""
+    from scipy.stats import beta
+
+    n = np.asarray(n_obs, float)
+    fail = np.maximum(np.asarray(looks, float) - n, 0.0)
+    return beta.ppf(1.0 - confidence, n + 1.0, fail + 1.0)
+
+
+def p_missed(looks: np.ndarray, rate: np.ndarray, min_obs: int) -> np.ndarray:
     """(K,) probability that a corner still there is not mapped from ``looks`` scans in view: fewer than ``min_obs``
-    detections (the corner map's minimum) when each scan detects it with ``detection_rate``: binomial."""
+    detections (the corner map's minimum) when each scan detects it with ``rate``: binomial."""
     from scipy.stats import binom
 
-    return binom.cdf(int(min_obs) - 1, np.asarray(looks, np.int64), float(detection_rate))
+    return binom.cdf(int(min_obs) - 1, np.asarray(looks, np.int64), np.asarray(rate, float))
 
 
 @dataclass(frozen=True)

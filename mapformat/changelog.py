@@ -109,15 +109,14 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
                     source_drives: list[dict[str, Any]], marking_px_changed: dict[tuple[int, int], int],
                     next_corner_id: int, significance: float = SIGNIFICANCE,
                     prev_paths: list[np.ndarray] | None = None, new_paths: list[np.ndarray] | None = None,
-                    marking_cells: tuple[list[dict], dict] | None = None, detection_rate: float = 0.7,
-                    min_obs: int = 8) -> dict[str, Any]:
+                    marking_cells: tuple[list[dict], dict] | None = None, min_obs: int = 8) -> dict[str, Any]:
     """The changelog document of a new version (all lists sorted, numbers rounded: deterministic text).
 
     Kept corners are ``moved`` when the chi-square test on their displacement with both covariances rejects
     "unchanged" at ``significance`` (mapformat/change_tests.py); ``move_threshold_m`` is recorded for readers of
     format 1. With ``prev_paths`` / ``new_paths`` (the two versions' drives, (N,2) ENU each), an unmatched corner is
     ``removed`` / ``added`` only when the other version's drives would have mapped it (``change_tests.p_missed``
-    with ``detection_rate`` per scan in view and the corner map's ``min_obs``), else ``not_reobserved`` /
+    at the corner's own detection rate and the corner map's ``min_obs``), else ``not_reobserved`` /
     ``newly_observed``. ``marking_cells``: ``change_tests.changed_cells``' result."""
     prev_drives = {d["drive"]: d.get("fingerprint") for d in (parent_manifest or {}).get("source_drives", [])}
     new_drives = {d["drive"]: d.get("fingerprint") for d in source_drives}
@@ -135,8 +134,8 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
               "north_m": round(float(en_new[j, 1]), 3)}
              for j, d, a, c, pv in zip(match.i_new[moved_sel], match.dist_m[moved_sel], match.angle_deg[moved_sel],
                                        stat[moved_sel], p_value[moved_sel])]
-    seen_new, looks_new, p_new = _confirmed(new_paths, prev_corners, removed, detection_rate, min_obs, significance)
-    seen_old, looks_old, p_old = _confirmed(prev_paths, corners, added, detection_rate, min_obs, significance)
+    seen_new, looks_new, p_new = _confirmed(new_paths, prev_paths, prev_corners, removed, min_obs, significance)
+    seen_old, looks_old, p_old = _confirmed(prev_paths, new_paths, corners, added, min_obs, significance)
     dist = match.dist_m
     frame = {"enu_origin": origin.as_dict(), "tile_size_m": float(tile_size_m), "unchanged": frame_unchanged}
     if parent_manifest is not None and not frame_unchanged:
@@ -153,8 +152,9 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
                     "unchanged": int(len(match.i_new) - len(moved)),
                     "test": {"method": "chi2: d^T (C_parent + C_new)^-1 d of each kept corner", "dof": DOF,
                              "significance": significance, "threshold": round(chi2_threshold(significance), 3)},
-                    "presence_test": {"method": "P(Binomial(scans in view, detection_rate) < min_obs) below the "
-                                      "significance", "detection_rate": detection_rate, "min_obs": int(min_obs)},
+                    "presence_test": {"method": "P(Binomial(the other drives' scans in view, the corner's own "
+                                      "detection rate, 95 % lower bound) < min_obs) below the significance",
+                                      "min_obs": int(min_obs)},
                     "added": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, p_old, True),
                     "newly_observed": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, p_old, False),
                     "removed": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, p_new, True),
@@ -174,17 +174,20 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
     }
 
 
-def _confirmed(paths: list[np.ndarray] | None, table: pa.Table | None, idx: np.ndarray, detection_rate: float,
-               min_obs: int, significance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For those corners of ``table``: (confirmed (the other drives would have mapped them: p_missed below the
-    significance), scans in view, p_missed); all confirmed when the paths are not known."""
-    if paths is None or table is None or len(idx) == 0:
+def _confirmed(paths: list[np.ndarray] | None, own_paths: list[np.ndarray] | None, table: pa.Table | None,
+               idx: np.ndarray, min_obs: int, significance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For those corners of ``table`` (a version whose drives are ``own_paths``): (confirmed: the other version's
+    drives ``paths`` would have mapped them, p_missed below the significance; their scans in view; p_missed). All
+    confirmed when the paths are not known."""
+    if paths is None or own_paths is None or table is None or len(idx) == 0:
         return np.ones(len(idx), bool), np.zeros(len(idx), np.int64), np.zeros(len(idx))
-    from mapformat.change_tests import looks_from, p_missed
+    from mapformat.change_tests import detection_rate, looks_from, p_missed
 
-    looks = looks_from(paths, _en(table)[idx], _theta(table)[idx],
-                       table["convex"].to_numpy(zero_copy_only=False).astype(bool)[idx])
-    p = p_missed(looks, detection_rate, min_obs)
+    en, th = _en(table)[idx], _theta(table)[idx]
+    convex = table["convex"].to_numpy(zero_copy_only=False).astype(bool)[idx]
+    looks = looks_from(paths, en, th, convex)
+    rate = detection_rate(table["n_obs"].to_numpy()[idx], looks_from(own_paths, en, th, convex))
+    p = p_missed(looks, rate, min_obs)
     return p < significance, looks, p
 
 

@@ -90,7 +90,7 @@ def compute(ctx: StageContext) -> dict[str, Any]:
                                move_threshold_m=params.changelog_move_threshold_m,
                                new_paths=[t.pose_xyz_qxyzw[:, :2] for t in trajectories],
                                significance=params.changelog_significance,
-                               detection_rate=params.localizability_detection_rate, min_obs=params.changelog_min_obs)
+                               min_obs=params.changelog_min_obs)
         return {**fields, "n_tiles": len(doc["files"]["tiles"]), **doc["files"],
                 "next_corner_id": doc["changelog"]["corners"]["next_corner_id"],
                 "changelog": write_changelog(staging, doc["changelog"])}

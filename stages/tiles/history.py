@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: float, staging: Path,
                   write_files: Callable[[pa.Table], dict[str, Any]], *, gates: IdGates,
                   move_threshold_m: float, new_paths: list | None = None, significance: float = 0.001,
-                  detection_rate: float = 0.7, min_obs: int = 8) -> tuple[pa.Table, dict[str, Any]]:
+                  min_obs: int = 8) -> tuple[pa.Table, dict[str, Any]]:
     """(corners with stable ids, {"files": write_files' fields, "changelog": the changelog document}). A corner
     within ``gates`` of a parent corner keeps its id; one that kept its id but moved more than
     ``move_threshold_m`` is listed as moved."""
@@ -56,7 +56,7 @@ def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: f
                           tile_size_m=size_m, frame_unchanged=frame_unchanged, source_drives=files["source_drives"],
                           marking_px_changed=markings, next_corner_id=next_id, prev_paths=_paths(prev),
                           new_paths=new_paths, marking_cells=cells, significance=significance,
-                          detection_rate=detection_rate, min_obs=min_obs)
+                          min_obs=min_obs)
     if prev_corners is not None and not frame_unchanged:  # every old corner is gone from this frame's view
         doc["corners"]["n_before"] = prev_corners.num_rows
     return ided, {"files": files, "changelog": doc}

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pyarrow as pa
 import pytest
 from typer.testing import CliRunner
 
@@ -30,7 +31,9 @@ def history(tmp_path_factory):
     corners renumbered and listed in another order by the corner stage."""
     root = tmp_path_factory.mktemp("log")
     xy, dirs, owner = building_corners(buildings())
-    compute(city_context(root, corner_table(xy, dirs, seed=1)))
+    v1 = corner_table(xy, dirs, seed=1)  # each corner merged from 60 scans: seen by most scans in view of it
+    v1 = v1.set_column(v1.schema.get_field_index("n_obs"), "n_obs", pa.array(np.full(len(xy), 60, np.int64)))
+    compute(city_context(root, v1))
     new_xy, new_dirs, _ = building_corners(np.array([[400.0, 40.0, 430.0, 60.0]]))
     keep = owner != DEMOLISHED
     xy2 = xy.copy()
@@ -53,8 +56,9 @@ def test_changelog_lists_removed_added_moved_corners_with_stable_ids(history):
     assert (ids2 == ids1[keep]).all()  # every surviving corner, the moved one too, keeps its id
     c = log["corners"]
     # the drive (east = 50, 150, 250 m) sees the demolished building's east face only: its two west corners are
-    # beyond 60 m of it, so v2 cannot say they are gone (not re-observed); the new building at (400, 50) m is
-    # 150 m from any drive: v1 never looked there (newly observed, not added)
+    # beyond 60 m of it, so v2 cannot say they are gone (not re-observed); the east ones, seen from tens of scans
+    # and detected by most in v1, would have been mapped again (removed); the new building at (400, 50) m is 150 m
+    # from any drive: v1 never looked there (newly observed, not added)
     gone = c["removed"] + c["not_reobserved"]
     assert sorted(e["id"] for e in gone) == sorted(ids1[~keep].tolist())
     assert sorted(e["east_m"] for e in c["removed"]) == pytest.approx([140.0, 140.0], abs=0.05)
