@@ -6,12 +6,12 @@ Corners. A corner kept from version A to B (matched by identity or geometry) mov
 "unchanged" ``d ~ N(0, C_A + C_B)`` (the two maps' errors taken as independent: conservative when they share
 drives), so ``chi2 = d^T (C_A + C_B)^-1 d`` follows a chi-square law with 2 degrees of freedom; the corner is
 ``moved`` when chi2 exceeds its ``1 - significance`` quantile (significance 0.001: 13.82). A corner of A not
-matched in B is ``removed`` only when B's drives would have mapped it had it been there: with L scans of B's drives
-in view of it (``corner_visibility.visible`` from B's roads), each detecting it at the corner's own rate in A
-(its ``n_obs`` over A's scans in view of it, the 95 % lower bound: ``detection_rate``), the chance of fewer than
-``min_obs`` detections (the corner map's minimum) is ``p_missed = P(Binomial(L, rate) < min_obs)``; removed when it
-is below the significance, else ``not_reobserved`` (one pass at a corner seen from a few scans is no evidence). A
-corner of B not matched in A is ``added`` by the same test on A's drives, else ``newly_observed``.
+matched in B is ``removed`` when B's drives had it in view (``corner_visibility.visible`` from B's roads) from at
+least as many scans as the corner map needs observations to keep a corner (``min_obs``), else ``not_reobserved``;
+a corner of B not matched in A is ``added`` by the same rule on A's drives, else ``newly_observed``. Absence is not
+a statistical test: a drive's scans are not independent looks (a vehicle ahead hides a corner for a whole pass),
+and one pass cannot show at 0.001 that a corner is gone; the false alarms this rule gives on an unchanged re-drive
+are measured (docs/map-format.md).
 
 Markings. Two surveys of unchanged paint differ at its edges: a cell counts as changed where one version paints
 and the other has no paint within ``tolerance_px`` cells, among cells both versions observed (point_count > 0).
@@ -80,25 +80,6 @@ def seen_from(paths_en_m: list[np.ndarray], corners_en_m: np.ndarray, theta_rad:
               range_m: float = 60.0) -> np.ndarray:
     """(K,) True where some scan of the drives sees the corner (``looks_from`` > 0)."""
     return looks_from(paths_en_m, corners_en_m, theta_rad, convex, range_m) > 0
-
-
-def detection_rate(n_obs: np.ndarray, looks: np.ndarray, confidence: float = 0.95) -> np.ndarray:
-    """(K,) a corner's detection rate per scan in view, from its own record: ``n_obs`` observations merged from
-    ``looks`` scans that had it in view; the lower ``confidence`` bound of the binomial rate (Beta posterior of a
-    uniform prior), so a corner seen by few scans is not taken as easy to see."""
-    from scipy.stats import beta
-
-    n = np.asarray(n_obs, float)
-    fail = np.maximum(np.asarray(looks, float) - n, 0.0)
-    return beta.ppf(1.0 - confidence, n + 1.0, fail + 1.0)
-
-
-def p_missed(looks: np.ndarray, rate: np.ndarray, min_obs: int) -> np.ndarray:
-    """(K,) probability that a corner still there is not mapped from ``looks`` scans in view: fewer than ``min_obs``
-    detections (the corner map's minimum) when each scan detects it with ``rate``: binomial."""
-    from scipy.stats import binom
-
-    return binom.cdf(int(min_obs) - 1, np.asarray(looks, np.int64), np.asarray(rate, float))
 
 
 @dataclass(frozen=True)

@@ -84,10 +84,9 @@ def carry_ids(prev_corners: pa.Table | None, prev_next_id: int | None, corners: 
 
 
 def _corner_entries(table: pa.Table | None, idx: np.ndarray, size_m: float, keep: np.ndarray | None = None,
-                    looks: np.ndarray | None = None, p: np.ndarray | None = None, want: bool = True
-                    ) -> list[dict[str, Any]]:
-    """Entries of the corners ``idx`` of ``table`` (those whose ``keep`` is ``want``), with the scans that had them
-    in view and p_missed when given."""
+                    looks: np.ndarray | None = None, want: bool = True) -> list[dict[str, Any]]:
+    """Entries of the corners ``idx`` of ``table`` (those whose ``keep`` is ``want``), with the other version's
+    scans that had them in view when given."""
     if table is None:
         return []
     sel = np.ones(len(idx), bool) if keep is None else (np.asarray(keep, bool) == want)
@@ -97,9 +96,9 @@ def _corner_entries(table: pa.Table | None, idx: np.ndarray, size_m: float, keep
     ti, tj = tile_key_of(en[:, 0], en[:, 1], size_m) if len(idx) else (np.zeros(0), np.zeros(0))
     out = [{"id": int(c), "east_m": round(float(e), 3), "north_m": round(float(n), 3), "tile": [int(i), int(j)]}
            for c, (e, n), i, j in zip(ids.tolist(), en.tolist(), np.asarray(ti).tolist(), np.asarray(tj).tolist())]
-    if looks is not None and p is not None and keep is not None:
-        for entry, lk, pm in zip(out, np.asarray(looks)[sel], np.asarray(p)[sel]):
-            entry["scans_in_view"], entry["p_missed"] = int(lk), float(f"{pm:.3g}")
+    if looks is not None and keep is not None:
+        for entry, lk in zip(out, np.asarray(looks)[sel]):
+            entry["scans_in_view"] = int(lk)
     return out
 
 
@@ -115,8 +114,8 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
     Kept corners are ``moved`` when the chi-square test on their displacement with both covariances rejects
     "unchanged" at ``significance`` (mapformat/change_tests.py); ``move_threshold_m`` is recorded for readers of
     format 1. With ``prev_paths`` / ``new_paths`` (the two versions' drives, (N,2) ENU each), an unmatched corner is
-    ``removed`` / ``added`` only when the other version's drives would have mapped it (``change_tests.p_missed``
-    at the corner's own detection rate and the corner map's ``min_obs``), else ``not_reobserved`` /
+    ``removed`` / ``added`` only when the other version's drives had it in view from at least ``min_obs`` scans
+    (the corner map's minimum observations; ``change_tests``' module doc), else ``not_reobserved`` /
     ``newly_observed``. ``marking_cells``: ``change_tests.changed_cells``' result."""
     prev_drives = {d["drive"]: d.get("fingerprint") for d in (parent_manifest or {}).get("source_drives", [])}
     new_drives = {d["drive"]: d.get("fingerprint") for d in source_drives}
@@ -134,8 +133,8 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
               "north_m": round(float(en_new[j, 1]), 3)}
              for j, d, a, c, pv in zip(match.i_new[moved_sel], match.dist_m[moved_sel], match.angle_deg[moved_sel],
                                        stat[moved_sel], p_value[moved_sel])]
-    seen_new, looks_new, p_new = _confirmed(new_paths, prev_paths, prev_corners, removed, min_obs, significance)
-    seen_old, looks_old, p_old = _confirmed(prev_paths, new_paths, corners, added, min_obs, significance)
+    seen_new, looks_new = _confirmed(new_paths, prev_corners, removed, min_obs)
+    seen_old, looks_old = _confirmed(prev_paths, corners, added, min_obs)
     dist = match.dist_m
     frame = {"enu_origin": origin.as_dict(), "tile_size_m": float(tile_size_m), "unchanged": frame_unchanged}
     if parent_manifest is not None and not frame_unchanged:
@@ -152,14 +151,12 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
                     "unchanged": int(len(match.i_new) - len(moved)),
                     "test": {"method": "chi2: d^T (C_parent + C_new)^-1 d of each kept corner", "dof": DOF,
                              "significance": significance, "threshold": round(chi2_threshold(significance), 3)},
-                    "presence_test": {"method": "P(Binomial(the other drives' scans in view, the corner's own "
-                                      "detection rate, 95 % lower bound) < min_obs) below the significance",
-                                      "min_obs": int(min_obs)},
-                    "added": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, p_old, True),
-                    "newly_observed": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, p_old, False),
-                    "removed": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, p_new, True),
-                    "not_reobserved": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, p_new,
-                                                      False),
+                    "presence": {"rule": "removed / added when the other version's drives had the corner in "
+                                 "view from at least min_obs scans", "min_obs": int(min_obs)},
+                    "added": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, True),
+                    "newly_observed": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, False),
+                    "removed": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, True),
+                    "not_reobserved": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, False),
                     "moved": moved, "move_threshold_m": move_threshold_m,
                     "kept_dist_m": {"median": round(float(np.median(dist)), 4) if len(dist) else None,
                                     "p95": round(float(np.percentile(dist, 95)), 4) if len(dist) else None,
@@ -174,21 +171,17 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
     }
 
 
-def _confirmed(paths: list[np.ndarray] | None, own_paths: list[np.ndarray] | None, table: pa.Table | None,
-               idx: np.ndarray, min_obs: int, significance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For those corners of ``table`` (a version whose drives are ``own_paths``): (confirmed: the other version's
-    drives ``paths`` would have mapped them, p_missed below the significance; their scans in view; p_missed). All
-    confirmed when the paths are not known."""
-    if paths is None or own_paths is None or table is None or len(idx) == 0:
-        return np.ones(len(idx), bool), np.zeros(len(idx), np.int64), np.zeros(len(idx))
-    from mapformat.change_tests import detection_rate, looks_from, p_missed
+def _confirmed(paths: list[np.ndarray] | None, table: pa.Table | None, idx: np.ndarray, min_obs: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """For those corners of ``table``: (confirmed: the other version's drives ``paths`` had them in view from at
+    least ``min_obs`` scans; those scans). All confirmed when the paths are not known."""
+    if paths is None or table is None or len(idx) == 0:
+        return np.ones(len(idx), bool), np.zeros(len(idx), np.int64)
+    from mapformat.change_tests import looks_from
 
-    en, th = _en(table)[idx], _theta(table)[idx]
-    convex = table["convex"].to_numpy(zero_copy_only=False).astype(bool)[idx]
-    looks = looks_from(paths, en, th, convex)
-    rate = detection_rate(table["n_obs"].to_numpy()[idx], looks_from(own_paths, en, th, convex))
-    p = p_missed(looks, rate, min_obs)
-    return p < significance, looks, p
+    looks = looks_from(paths, _en(table)[idx], _theta(table)[idx],
+                       table["convex"].to_numpy(zero_copy_only=False).astype(bool)[idx])
+    return looks >= min_obs, looks
 
 
 def marking_changes(new_tiles: list[dict[str, Any]], staging: Path, prev: Any | None) -> dict[tuple[int, int], int]:

@@ -29,11 +29,11 @@ class TilesParams(Params):
                                               "changelog_significance")
     changelog_significance: float = Field(0.001, gt=0, lt=1, description="changelog: a kept corner is moved when "
                                           "the chi-square test (2 dof) on its displacement with both covariances "
-                                          "rejects 'unchanged' at this level; a marking cell changed and an "
-                                          "unmatched corner removed / added likewise (mapformat/change_tests.py)")
+                                          "rejects 'unchanged' at this level; a marking cell is changed by its "
+                                          "binomial test at this level (mapformat/change_tests.py)")
     changelog_min_obs: int = Field(8, ge=1, description="observations the corner map needs to keep a corner (its "
                                    "cornermap stage's min_obs): an unmatched corner is removed / added only when "
-                                   "the other version's drives would have observed it that often")
+                                   "the other version's drives had it in view from at least this many scans")
     localizability: bool = Field(True, description="publish the localizability layer: per cell of the driven roads "
                                  "the predicted position uncertainty of the corner EKF and of the marking MCL "
                                  "(tiles/{i}_{j}/localizability.parquet; stages/common/localizability.py)")

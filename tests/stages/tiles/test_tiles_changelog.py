@@ -56,8 +56,8 @@ def test_changelog_lists_removed_added_moved_corners_with_stable_ids(history):
     assert (ids2 == ids1[keep]).all()  # every surviving corner, the moved one too, keeps its id
     c = log["corners"]
     # the drive (east = 50, 150, 250 m) sees the demolished building's east face only: its two west corners are
-    # beyond 60 m of it, so v2 cannot say they are gone (not re-observed); the east ones, seen from tens of scans
-    # and detected by most in v1, would have been mapped again (removed); the new building at (400, 50) m is 150 m
+    # beyond 60 m of it, so v2 cannot say they are gone (not re-observed); the east ones, in view of tens of scans
+    # of v2's drive, are removed; the new building at (400, 50) m is 150 m
     # from any drive: v1 never looked there (newly observed, not added)
     gone = c["removed"] + c["not_reobserved"]
     assert sorted(e["id"] for e in gone) == sorted(ids1[~keep].tolist())
