@@ -370,9 +370,9 @@ class MapReader:
         entry = self._tiles.get((int(i), int(j)))
         if entry is None or LOCALIZABILITY_FILE not in (entry.get("files") or {}):
             return None
-        return self._localizability.get((int(i), int(j)))
+        return self._localizability.get((int(i), int(j)))[0]
 
-    def _load_localizability(self, key: tuple[int, int]) -> pa.Table:
+    def _load_localizability(self, key: tuple[int, int]) -> tuple[pa.Table, np.ndarray, np.ndarray]:
         from mapformat.localizability import LOCALIZABILITY_FILE, SCHEMA
 
         entry = self._tiles[key]
@@ -380,26 +380,46 @@ class MapReader:
         recorded = entry.get("n_localizability_cells")
         table = decode_table(data, path, recorded if isinstance(recorded, int) else None)
         try:
-            return table.select(SCHEMA.names).cast(SCHEMA)
+            table = table.select(SCHEMA.names).cast(SCHEMA)
         except (KeyError, pa.ArrowInvalid, ValueError) as exc:
             raise MapFormatError(f"{path}: not a localizability layer ({exc}); hint: run `cornermap tiles verify`") \
                 from exc
+        return table, table["east_m"].to_numpy(), table["north_m"].to_numpy()
 
-    def localizability_in_bbox(self, e0: float, n0: float, e1: float, n1: float) -> pa.Table:
-        """The localizability cells whose road point lies in [e0, e1) x [n0, n1) (both methods; empty table of the
-        layer's columns when the version has none)."""
-        import pyarrow.compute as pc
+    def localizability_in_bbox(self, e0: float, n0: float, e1: float, n1: float,
+                               keep: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> pa.Table:
+        """The localizability cells whose road point lies in [e0, e1) x [n0, n1) and, with ``keep(east, north)``,
+        where it says so (both methods; an empty table of the layer's columns when the version has none)."""
+        from mapformat.localizability import LOCALIZABILITY_FILE, SCHEMA
 
-        from mapformat.localizability import SCHEMA
+        got = [self._localizability.get(key) for key in self._keys_in_box(e0, n0, e1, n1)
+               if LOCALIZABILITY_FILE in (self._tiles[key].get("files") or {})]
+        if not got:
+            return SCHEMA.empty_table()
+        e, n = np.concatenate([g[1] for g in got]), np.concatenate([g[2] for g in got])
+        mask = (e >= e0) & (e < e1) & (n >= n0) & (n < n1)
+        if keep is not None:
+            mask &= keep(e, n)
+        table = got[0][0] if len(got) == 1 else pa.concat_tables([g[0] for g in got])
+        return table if mask.all() else table.take(np.flatnonzero(mask))  # take: 4x a filter on many chunks
 
-        parts = []
-        for key in self._keys_in_box(e0, n0, e1, n1):
-            t = self.tile_localizability(*key)
-            if t is not None and t.num_rows:
-                e, n = t["east_m"], t["north_m"]
-                parts.append(t.filter(pc.and_(pc.and_(pc.greater_equal(e, e0), pc.less(e, e1)),
-                                              pc.and_(pc.greater_equal(n, n0), pc.less(n, n1)))))
-        return pa.concat_tables(parts) if parts else SCHEMA.empty_table()
+    def query_latlon(self, lat_deg: float, lon_deg: float, radius_m: float, *, heading_deg: float | None = None,
+                     fov_deg: float | None = None, markings: bool = True):
+        """Corners (with lat_deg / lon_deg), marking window and localizability cells within ``radius_m`` of a WGS84
+        latitude / longitude, within ``fov_deg`` about ``heading_deg`` (ENU, from east) when both are given
+        (``mapformat.query.MapQuery``)."""
+        from mapformat.query import query_latlon
+
+        return query_latlon(self, lat_deg, lon_deg, radius_m, heading_deg=heading_deg, fov_deg=fov_deg,
+                            markings=markings)
+
+    def query_pose(self, east_m: float, north_m: float, yaw_rad: float, fov_rad: float, range_m: float, *,
+                   markings: bool = True):
+        """What a sensor at pose (east_m, north_m, yaw_rad) (map ENU) sees within ``range_m`` and ``fov_rad`` about
+        its heading (``mapformat.query.MapQuery``; the marking window covers the range's square)."""
+        from mapformat.query import query
+
+        return query(self, east_m, north_m, range_m, heading_rad=yaw_rad, fov_rad=fov_rad, markings=markings)
 
     @staticmethod
     def covariances(corners: pa.Table) -> np.ndarray:

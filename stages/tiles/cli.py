@@ -21,7 +21,8 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles log --map tiny --root runs/tiny\n\n"
             "  cornermap tiles export --format geojson --out runs/city.geojson --map city --root runs/maps\n\n"
             "  cornermap tiles export --format geotiff --out runs/rasters --map city --root runs/maps\n\n"
-            "  cornermap tiles verify --all --map tiny --root runs/tiny")
+            "  cornermap tiles verify --all --map tiny --root runs/tiny\n\n"
+            "  cornermap tiles query --at 37.4979,127.0276 --radius 150 --map tiny --root runs/tiny --json")
 
 
 def map_dir_of(root: Path, name: Optional[str]) -> Path:
@@ -210,6 +211,55 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
         raise ChecksumError(f"{d}: {len(bad)} integrity problem(s) (listed above); hint: republish the version")
 
 
+def query(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
+          at: str = typer.Option(..., "--at", help="LAT,LON in degrees, WGS84."),
+          radius_m: float = typer.Option(150.0, "--radius", help="Metres around --at (at most 10 km)."),
+          heading_deg: Optional[float] = typer.Option(None, "--heading-deg", help="The vehicle's heading, degrees "
+                                                      "counter-clockwise from east (with --fov-deg)."),
+          fov_deg: Optional[float] = typer.Option(None, "--fov-deg", help="Field of view about --heading-deg."),
+          as_json: bool = typer.Option(False, "--json", help="Print the answer as JSON.")) -> None:
+    """What the map holds where the vehicle is: corners (id, east/north, lat/lon, wall angles, covariance), the
+    marking window and the localizability cells within --radius of a latitude / longitude.
+
+    Example: [b]cornermap tiles query --at 37.49790,127.02760 --radius 150 --map tiny --root runs/tiny --json[/b]
+    """
+    from mapformat.loader import open_map
+    from mapformat.query import as_json as answer_json
+    from mapformat.query import check_area, query_latlon
+
+    parts = at.split(",")
+    try:
+        lat, lon = (float(v) for v in parts)
+    except ValueError:
+        raise typer.BadParameter(f"{at!r}: expected LAT,LON in degrees, e.g. 37.4979,127.0276",
+                                 param_hint="--at") from None
+    if (heading_deg is None) != (fov_deg is None):
+        raise typer.BadParameter("give --heading-deg and --fov-deg together", param_hint="--fov-deg")
+    check_area(radius_m, fov_deg)
+    reader = open_map(map_dir_of(root, map_name), version)
+    q = query_latlon(reader, lat, lon, radius_m, heading_deg=heading_deg, fov_deg=fov_deg)
+    doc = answer_json(reader, q)
+    if as_json:
+        typer.echo(json.dumps(doc, indent=1))
+        return
+    view = f", heading {heading_deg:g} deg, field of view {fov_deg:g} deg" if fov_deg is not None else ""
+    typer.echo(f"{doc['map']} v{reader.version:04d} at {lat:.8f},{lon:.8f} = ENU ({q.east_m:.3f}, {q.north_m:.3f}) m, "
+               f"radius {radius_m:g} m{view}: {len(doc['corners'])} corner(s), "
+               f"{len(doc['localizability'])} localizability row(s)")
+    for c in doc["corners"]:
+        typer.echo(f"  #{c['corner_id']:<6d} ENU ({c['east_m']:9.3f}, {c['north_m']:9.3f}) m  {c['lat_deg']:.9f},"
+                   f"{c['lon_deg']:.9f}  walls {c['theta1_deg']:7.2f} {c['theta2_deg']:7.2f} deg  cov "
+                   f"[{c['cov_ee_m2']:.2e} {c['cov_en_m2']:.2e} {c['cov_nn_m2']:.2e}] m^2")
+    m = doc["marking_window"]
+    typer.echo("marking window: none (no rasters)" if m is None else
+               f"marking window: {m['width_px']} x {m['height_px']} px of {m['cell_m']} m from ENU "
+               f"({m['origin_east_m']:.1f}, {m['origin_north_m']:.1f}) m, {m['painted_px']} painted")
+    for c in doc["localizability"]:
+        typer.echo(f"  cell ({c['cell_i']},{c['cell_j']}) {c['method']}: sigma_2d {c['sigma_2d_m']:.3f} m (along "
+                   f"{c['sigma_along_m']:.3f}, across {c['sigma_cross_m']:.3f}) {c['status']}"
+                   + (f": {c['reason']}" if c["reason"] else ""))
+
+
 def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
     """Add ls/diff/log/export/verify to the ``tiles`` group (created on ``app`` when not given)."""
     target = stage_app
@@ -223,6 +273,7 @@ def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
     target.command("export")(export)
     target.command("verify")(verify)
     target.command("rollback")(rollback)
+    target.command("query")(query)
 
 
 def rollback(to: str = typer.Option(..., "--to", help="The version LATEST should name (vNNNN or N)."),
