@@ -22,7 +22,9 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles export --format geojson --out runs/city.geojson --map city --root runs/maps\n\n"
             "  cornermap tiles export --format geotiff --out runs/rasters --map city --root runs/maps\n\n"
             "  cornermap tiles verify --all --map tiny --root runs/tiny\n\n"
-            "  cornermap tiles query --at 37.4979,127.0276 --radius 150 --map tiny --root runs/tiny --json")
+            "  cornermap tiles query --at 37.4979,127.0276 --radius 150 --map tiny --root runs/tiny --json\n\n"
+            "  cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny\n\n"
+            "  cornermap tiles apply runs/delta --map /vehicle/maps/tiny")
 
 
 def map_dir_of(root: Path, name: Optional[str]) -> Path:
@@ -260,6 +262,49 @@ def query(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str
                    + (f": {c['reason']}" if c["reason"] else ""))
 
 
+def bundle(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+           base: str = typer.Option(..., "--from", help="The version the vehicle holds (vNNNN or N)."),
+           target: str = typer.Option(..., "--to", help="The version to deliver (vNNNN, N or LATEST)."),
+           out: Path = typer.Option(..., "--out", "-o", help="A new folder for the bundle."),
+           as_json: bool = typer.Option(False, "--json", help="Print the bundle manifest as JSON.")) -> None:
+    """Write a delta bundle: the files of --to whose bytes --from does not have, the target's manifest and a bundle
+    manifest naming every file of the target with its sha256 and both versions' manifest digests.
+
+    Example: [b]cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny[/b]
+    """
+    from mapformat.bundle import make_bundle
+
+    doc = make_bundle(map_dir_of(root, map_name), base, target, out)
+    if as_json:
+        typer.echo(json.dumps(doc, indent=1))
+        return
+    n = sum(e["source"] == "bundle" for e in doc["files"])
+    b, t = doc["bytes"]["bundle"], doc["bytes"]["target"]
+    typer.echo(f"wrote {out}: v{doc['base']['version']:04d} -> v{doc['target']['version']:04d}, {n + 1} of "
+               f"{len(doc['files']) + 1} files, {b} of {t} bytes ({100.0 * b / max(t, 1):.1f} %)")
+
+
+def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle.json, files/)."),
+          map_folder: Path = typer.Option(..., "--map", help="The vehicle's map folder (LATEST and its vNNNN)."),
+          as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON.")) -> None:
+    """Apply a delta bundle to a copy of a map: the copy's LATEST must name the bundle's base; the target is built
+    and checked file by file in a staging folder, renamed into place, then named by LATEST.
+
+    Example: [b]cornermap tiles apply runs/delta --map /vehicle/maps/tiny[/b]
+    """
+    from mapformat.bundle import apply_bundle
+
+    res = apply_bundle(bundle_dir, map_folder)
+    if as_json:
+        typer.echo(json.dumps(res, indent=1))
+    elif res["already"]:
+        typer.echo(f"{map_folder}: already holds v{res['target']:04d}; nothing to do")
+    else:
+        typer.echo(f"{map_folder}: v{res['base']:04d} -> v{res['target']:04d} ({res['written']} files from the "
+                   f"bundle, {res['from_base']} from v{res['base']:04d}, every sha256 checked); LATEST = "
+                   f"v{res['target']:04d}")
+
+
 def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
     """Add ls/diff/log/export/verify to the ``tiles`` group (created on ``app`` when not given)."""
     target = stage_app
@@ -274,6 +319,8 @@ def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
     target.command("verify")(verify)
     target.command("rollback")(rollback)
     target.command("query")(query)
+    target.command("bundle")(bundle)
+    target.command("apply")(apply)
 
 
 def rollback(to: str = typer.Option(..., "--to", help="The version LATEST should name (vNNNN or N)."),
