@@ -75,3 +75,14 @@ def test_the_layer_can_be_turned_off_and_such_a_version_reads_as_before(tmp_path
     assert m.localizability_in_bbox(0, 0, 300, 300).num_rows == 0
     assert all(LOCALIZABILITY_FILE not in t["files"] for t in json.loads(
         (m.path / "manifest.json").read_text())["tiles"])
+
+
+def test_maps_show_names_the_weak_cells_of_latest(city):
+    from pipeline.maps_show import show_lines
+
+    lines = show_lines(city.path.parent)
+    head = next(s for s in lines if s.startswith("localizability of v0001"))
+    n = city.manifest["localizability"]["n_cells"]
+    assert f"({n} cells of 10 m)" in head and "ekf sigma_2d median" in head and "mcl sigma_2d median" in head
+    worst = city.manifest["localizability"]["weak_cells"][0]
+    assert any(f"at ENU ({worst['east_m']:.1f}, {worst['north_m']:.1f}) m" in s and worst["reason"] in s for s in lines)
