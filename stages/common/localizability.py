@@ -43,7 +43,7 @@ class Corners:
 @dataclass(frozen=True)
 class LocalizabilityConfig:
     cell_m: float = 10.0
-    detection_rate: float = 0.7  # share of the corners in view an EKF look associates (calibration seeds)
+    detection_rate: float = 0.58  # share of the corners in view an EKF look associates (tiles param)
     min_incidence_deg: float = 10.0  # a wall seen more obliquely gives no line
     wall_stub_m: float = 5.0  # an unpaired wall's length when rebuilding walls
     burn_in_m: float = 50.0  # a pass's start-up, used only where nothing else covers a cell
