@@ -70,11 +70,12 @@ def main() -> None:
         ll = enu_to_geodetic(np.column_stack([places, np.zeros(len(places))]), origin)
         for lat, lon, _ in ll[:20]:  # warm the caches along the way
             reader.query_latlon(lat, lon, args.radius_m)
-        warm, warm_marking, n_corners, n_cells = [], [], [], []
+        warm, warm_cpu, warm_marking, n_corners, n_cells = [], [], [], [], []
         for lat, lon, _ in ll:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             q = reader.query_latlon(lat, lon, args.radius_m, markings=False)
             warm.append(time.perf_counter() - t0)
+            warm_cpu.append(time.thread_time() - c0)
             t0 = time.perf_counter()
             reader.marking_window(q.east_m - args.radius_m, q.north_m - args.radius_m, q.east_m + args.radius_m,
                                   q.north_m + args.radius_m)
@@ -88,7 +89,9 @@ def main() -> None:
             fresh.query_latlon(lat, lon, args.radius_m, markings=False)
             cold.append(time.perf_counter() - t0)
         print(f"query {args.radius_m:g} m by lat/lon (corners with lat/lon + localizability cells), warm: "
-              f"{_ms(warm)}; {np.median(n_corners):.0f} corners, {np.median(n_cells):.0f} localizability rows")
+              f"{_ms(warm)} wall, {_ms(warm_cpu)} CPU (the thread's: the machine's load aside); "
+              f"{np.median(n_corners):.0f} corners, {np.median(n_cells):.0f} localizability rows; load average "
+              f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
         print(f"  marking window {2 * args.radius_m:g} m square at 0.1 m, warm: {_ms(warm_marking)}")
         print(f"  cold (new reader, tiles read and verified): {_ms(cold)}")
     finally:
