@@ -15,13 +15,16 @@ from typing import Any, Callable
 import numpy as np
 import pyarrow as pa
 
+from mapformat.change_tests import DOF, SIGNIFICANCE, chi2_threshold, corner_chi2
 from mapformat.corner_ids import IdGates, IdMatch, assign_ids, match_corners
 from stages.common.geodesy import EnuOrigin
 from stages.common.tiling import tile_key_of
 
 CHANGELOG_FILE = "changelog.json"
 CHANGELOG_FORMAT = "cornermap-changelog"
-CHANGELOG_FORMAT_VERSION = 1
+CHANGELOG_FORMAT_VERSION = 2  # 2: kept corners tested by chi-square, markings per cell (1 still read)
+MARKING_CELL_M = 10.0  # the markings' change regions
+MARKING_TOLERANCE_PX = 2  # paint within this many raster cells in the other version is not a change
 ORIGIN_TOL_DEG, ORIGIN_TOL_M = 1e-9, 1e-3  # 1e-9 deg is ~0.1 mm on the ground
 
 
@@ -39,6 +42,13 @@ def _en(table: pa.Table) -> np.ndarray:
     if table.num_rows == 0:
         return np.zeros((0, 2))
     return np.column_stack([table["east_m"].to_numpy(), table["north_m"].to_numpy()])
+
+
+def covariances(table: pa.Table | None) -> np.ndarray:
+    """(N,2,2) corner covariances through the loader's public reader of them (whatever columns hold them)."""
+    from mapformat.loader import MapReader
+
+    return MapReader.covariances(table) if table is not None and table.num_rows else np.zeros((0, 2, 2))
 
 
 def _theta(table: pa.Table) -> np.ndarray:
@@ -73,29 +83,58 @@ def carry_ids(prev_corners: pa.Table | None, prev_next_id: int | None, corners: 
     return out, match, next_id
 
 
-def _corner_entries(table: pa.Table, idx: np.ndarray, size_m: float) -> list[dict[str, Any]]:
+def _corner_entries(table: pa.Table | None, idx: np.ndarray, size_m: float, keep: np.ndarray | None = None,
+                    looks: np.ndarray | None = None, want: bool = True) -> list[dict[str, Any]]:
+    """Entries of the corners ``idx`` of ``table`` (those whose ``keep`` is ``want``), with the other version's
+    scans that had them in view when given."""
+    if table is None:
+        return []
+    sel = np.ones(len(idx), bool) if keep is None else (np.asarray(keep, bool) == want)
+    idx = np.asarray(idx, np.int64)[sel]
     en = _en(table)[idx]
     ids = table["corner_id"].to_numpy()[idx] if len(idx) else np.zeros(0, np.int64)
     ti, tj = tile_key_of(en[:, 0], en[:, 1], size_m) if len(idx) else (np.zeros(0), np.zeros(0))
-    return [{"id": int(c), "east_m": round(float(e), 3), "north_m": round(float(n), 3), "tile": [int(i), int(j)]}
-            for c, (e, n), i, j in zip(ids.tolist(), en.tolist(), np.asarray(ti).tolist(), np.asarray(tj).tolist())]
+    out = [{"id": int(c), "east_m": round(float(e), 3), "north_m": round(float(n), 3), "tile": [int(i), int(j)]}
+           for c, (e, n), i, j in zip(ids.tolist(), en.tolist(), np.asarray(ti).tolist(), np.asarray(tj).tolist())]
+    if looks is not None and keep is not None:
+        for entry, lk in zip(out, np.asarray(looks)[sel]):
+            entry["scans_in_view"] = int(lk)
+    return out
 
 
 def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, Any] | None,
                     prev_corners: pa.Table | None, corners: pa.Table, match: IdMatch, gates: IdGates,
                     move_threshold_m: float, origin: EnuOrigin, tile_size_m: float, frame_unchanged: bool | None,
                     source_drives: list[dict[str, Any]], marking_px_changed: dict[tuple[int, int], int],
-                    next_corner_id: int) -> dict[str, Any]:
-    """The changelog document of a new version (all lists sorted, numbers rounded: deterministic text)."""
+                    next_corner_id: int, significance: float = SIGNIFICANCE,
+                    prev_paths: list[np.ndarray] | None = None, new_paths: list[np.ndarray] | None = None,
+                    marking_cells: tuple[list[dict], dict] | None = None, min_obs: int = 8) -> dict[str, Any]:
+    """The changelog document of a new version (all lists sorted, numbers rounded: deterministic text).
+
+    Kept corners are ``moved`` when the chi-square test on their displacement with both covariances rejects
+    "unchanged" at ``significance`` (mapformat/change_tests.py); ``move_threshold_m`` is recorded for readers of
+    format 1. With ``prev_paths`` / ``new_paths`` (the two versions' drives, (N,2) ENU each), an unmatched corner is
+    ``removed`` / ``added`` only when the other version's drives had it in view from at least ``min_obs`` scans
+    (the corner map's minimum observations; ``change_tests``' module doc), else ``not_reobserved`` /
+    ``newly_observed``. ``marking_cells``: ``change_tests.changed_cells``' result."""
     prev_drives = {d["drive"]: d.get("fingerprint") for d in (parent_manifest or {}).get("source_drives", [])}
     new_drives = {d["drive"]: d.get("fingerprint") for d in source_drives}
     n_prev = 0 if prev_corners is None else prev_corners.num_rows
     removed = np.setdiff1d(np.arange(n_prev), match.i_prev)
     added = np.setdiff1d(np.arange(corners.num_rows), match.i_new)
-    moved_sel = match.dist_m > move_threshold_m
     new_ids = corners["corner_id"].to_numpy() if corners.num_rows else np.zeros(0, np.int64)
-    moved = [{"id": int(new_ids[j]), "dist_m": round(float(d), 3), "angle_deg": round(float(a), 2)}
-             for j, d, a in zip(match.i_new[moved_sel], match.dist_m[moved_sel], match.angle_deg[moved_sel])]
+    stat, p_value = (corner_chi2(_en(corners)[match.i_new] - _en(prev_corners)[match.i_prev],
+                                 covariances(prev_corners)[match.i_prev], covariances(corners)[match.i_new])
+                     if len(match.i_new) else (np.zeros(0), np.zeros(0)))
+    moved_sel = stat > chi2_threshold(significance)
+    en_new = _en(corners)
+    moved = [{"id": int(new_ids[j]), "dist_m": round(float(d), 3), "angle_deg": round(float(a), 2),
+              "chi2": round(float(c), 2), "p_value": float(f"{pv:.3g}"), "east_m": round(float(en_new[j, 0]), 3),
+              "north_m": round(float(en_new[j, 1]), 3)}
+             for j, d, a, c, pv in zip(match.i_new[moved_sel], match.dist_m[moved_sel], match.angle_deg[moved_sel],
+                                       stat[moved_sel], p_value[moved_sel])]
+    seen_new, looks_new = _confirmed(new_paths, prev_corners, removed, min_obs)
+    seen_old, looks_old = _confirmed(prev_paths, corners, added, min_obs)
     dist = match.dist_m
     frame = {"enu_origin": origin.as_dict(), "tile_size_m": float(tile_size_m), "unchanged": frame_unchanged}
     if parent_manifest is not None and not frame_unchanged:
@@ -109,8 +148,15 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
                    "changed": sorted(d for d in set(new_drives) & set(prev_drives) if new_drives[d] != prev_drives[d]),
                    "all": sorted(new_drives)},
         "corners": {"n_before": int(n_prev), "n_after": int(corners.num_rows), "kept": int(len(match.i_new)),
-                    "added": _corner_entries(corners, added, tile_size_m),
-                    "removed": _corner_entries(prev_corners, removed, tile_size_m) if prev_corners is not None else [],
+                    "unchanged": int(len(match.i_new) - len(moved)),
+                    "test": {"method": "chi2: d^T (C_parent + C_new)^-1 d of each kept corner", "dof": DOF,
+                             "significance": significance, "threshold": round(chi2_threshold(significance), 3)},
+                    "presence": {"rule": "removed / added when the other version's drives had the corner in "
+                                 "view from at least min_obs scans", "min_obs": int(min_obs)},
+                    "added": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, True),
+                    "newly_observed": _corner_entries(corners, added, tile_size_m, seen_old, looks_old, False),
+                    "removed": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, True),
+                    "not_reobserved": _corner_entries(prev_corners, removed, tile_size_m, seen_new, looks_new, False),
                     "moved": moved, "move_threshold_m": move_threshold_m,
                     "kept_dist_m": {"median": round(float(np.median(dist)), 4) if len(dist) else None,
                                     "p95": round(float(np.percentile(dist, 95)), 4) if len(dist) else None,
@@ -118,8 +164,24 @@ def build_changelog(*, parent_version: int | None, parent_manifest: dict[str, An
                     "id_gates": asdict(gates), "next_corner_id": int(next_corner_id)},
         "markings": {"tiles": [{"tile": [i, j], "px_changed": int(n)}
                                for (i, j), n in sorted(marking_px_changed.items()) if n],
-                     "total_px_changed": int(sum(marking_px_changed.values()))},
+                     "total_px_changed": int(sum(marking_px_changed.values())),
+                     "cell_m": MARKING_CELL_M,
+                     "test": (marking_cells[1] if marking_cells else None),
+                     "cells": (marking_cells[0] if marking_cells else [])},
     }
+
+
+def _confirmed(paths: list[np.ndarray] | None, table: pa.Table | None, idx: np.ndarray, min_obs: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """For those corners of ``table``: (confirmed: the other version's drives ``paths`` had them in view from at
+    least ``min_obs`` scans; those scans). All confirmed when the paths are not known."""
+    if paths is None or table is None or len(idx) == 0:
+        return np.ones(len(idx), bool), np.zeros(len(idx), np.int64)
+    from mapformat.change_tests import looks_from
+
+    looks = looks_from(paths, _en(table)[idx], _theta(table)[idx],
+                       table["convex"].to_numpy(zero_copy_only=False).astype(bool)[idx])
+    return looks >= min_obs, looks
 
 
 def marking_changes(new_tiles: list[dict[str, Any]], staging: Path, prev: Any | None) -> dict[tuple[int, int], int]:
@@ -144,6 +206,37 @@ def marking_changes(new_tiles: list[dict[str, Any]], staging: Path, prev: Any | 
         img_p = prev.tile_marking(*key) if mask_p else None
         out[key] = count_changed_pixels(img_p, img_n)
     return out
+
+
+def marking_cell_changes(new_tiles: list[dict[str, Any]], staging: Path, prev: Any | None,
+                         significance: float = SIGNIFICANCE) -> tuple[list[dict], dict] | None:
+    """The marking cells that changed since the previous version (``change_tests.changed_cells``), over the tiles
+    both versions hold a raster of, where both observed the ground. None without a previous version."""
+    if prev is None:
+        return None
+    import cv2
+
+    from mapformat.change_tests import changed_cells, tile_cells
+    from mapformat.layers import read_layer, sidecar_layers
+
+    cells = []
+    for entry in new_tiles:
+        key = (int(entry["i"]), int(entry["j"]))
+        meta = entry.get("marking") or {}
+        if not meta.get("mask_file") or key not in prev.tile_keys() or prev.tile_marking(*key) is None:
+            continue
+        tile_dir = staging / entry["dir"]
+        mask = cv2.imread(str(tile_dir / meta["mask_file"]), cv2.IMREAD_UNCHANGED)
+        seen_new = (read_layer(tile_dir, meta, "point_count") > 0) if "point_count" in sidecar_layers(tile_dir, meta) \
+            else np.ones(mask.shape[:2], bool)
+        e0, n0 = float(meta["origin_east_m"]), float(meta["origin_north_m"])
+        cell = float(meta["cell_m"])
+        seen_old, _, _ = prev.observed_window(e0, n0, e0 + mask.shape[1] * cell, n0 + mask.shape[0] * cell)
+        if seen_old.shape != seen_new.shape:
+            continue
+        cells.append(tile_cells(prev.tile_marking(*key), mask, seen_new & (seen_old > 0), (e0, n0), cell,
+                                MARKING_CELL_M, MARKING_TOLERANCE_PX))
+    return changed_cells(cells, MARKING_CELL_M, significance)
 
 
 def write_changelog(staging: Path, doc: dict[str, Any]) -> str:
@@ -182,6 +275,9 @@ def summary_line(version: str, manifest: dict[str, Any], doc: dict[str, Any] | N
     drives = ("+" + ",+".join(d["added"]) if d["added"] else "") + \
              (" " + " ".join("-" + x for x in d["removed"]) if d["removed"] else "")
     frame = {True: "frame unchanged", False: "FRAME CHANGED", None: "first version"}[f.get("unchanged")]
+    views = (f" (+{len(c['newly_observed'])} newly observed, -{len(c['not_reobserved'])} not re-observed)"
+             if c.get("newly_observed") or c.get("not_reobserved") else "")
+    cells = f", {len(m['cells'])} cell(s) changed" if m.get("cells") is not None and doc["format_version"] >= 2 else ""
     return (f"{head}  drives {drives.strip() or 'unchanged'}  corners +{len(c['added'])} -{len(c['removed'])} "
-            f"~{len(c['moved'])} kept={c['kept']} (n={c['n_after']})  marking px changed {m['total_px_changed']} "
-            f"in {len(m['tiles'])} tile(s)  {frame}")
+            f"~{len(c['moved'])}{views} kept={c['kept']} (n={c['n_after']})  marking px changed "
+            f"{m['total_px_changed']} in {len(m['tiles'])} tile(s){cells}  {frame}")

@@ -2,9 +2,11 @@
 
 Corner ids are carried across versions of one map (mapformat/corner_ids.py), but diff compares any two
 versions (not only a parent and its child), so corners are matched geometrically here:
-mutual nearest neighbours within ``match_radius_m``. A matched pair further apart than ``move_threshold_m``
-is "moved"; unmatched corners of A are "removed", of B "added". A corner that moved more than the match
-radius therefore shows as removed + added. Removed/moved corners count in A's tile, added ones in B's.
+mutual nearest neighbours within ``match_radius_m``. A matched pair is "moved" when the chi-square test on its
+displacement with both versions' covariances rejects "unchanged" at ``significance`` (mapformat/change_tests.py)
+and it moved more than ``move_threshold_m`` (0: the test alone); unmatched corners of A are "removed", of B
+"added". A corner that moved more than the match radius therefore shows as removed + added. Removed/moved corners
+count in A's tile, added ones in B's. ``marking_cells`` gives the marking changes per 10 m cell with their test.
 Two versions in different frames (ENU origin or tile size) are refused with ``ReferenceFrameError``.
 """
 from __future__ import annotations
@@ -85,9 +87,11 @@ def count_changed_pixels(a: np.ndarray | None, b: np.ndarray | None) -> int:
     return int(np.count_nonzero(a_on != b_on))
 
 
-def diff_maps(a: "MapReader", b: "MapReader", move_threshold_m: float = 0.1,
-              match_radius_m: float = 1.0) -> list[TileDiff]:
+def diff_maps(a: "MapReader", b: "MapReader", move_threshold_m: float = 0.0,
+              match_radius_m: float = 1.0, significance: float = 0.001) -> list[TileDiff]:
     """Per-tile differences from version A to version B (only tiles with a change), sorted by key."""
+    from mapformat.change_tests import chi2_threshold, corner_chi2
+
     check_same_frame(a, b)
     size = a.tile_size_m
     ta, tb = a.all_corners(), b.all_corners()
@@ -96,7 +100,9 @@ def diff_maps(a: "MapReader", b: "MapReader", move_threshold_m: float = 0.1,
     m = match_corners(a_en, b_en, match_radius_m)
     removed = np.setdiff1d(np.arange(len(a_en)), m.ia)
     added = np.setdiff1d(np.arange(len(b_en)), m.ib)
-    moved = m.ia[m.dist_m > move_threshold_m]
+    stat, _ = corner_chi2(b_en[m.ib] - a_en[m.ia], a.covariances(ta)[m.ia] if len(m.ia) else np.zeros((0, 2, 2)),
+                          b.covariances(tb)[m.ib] if len(m.ib) else np.zeros((0, 2, 2)))
+    moved = m.ia[(stat > chi2_threshold(significance)) & (m.dist_m > move_threshold_m)]
     diffs: dict[tuple[int, int], TileDiff] = {}
 
     def tally(en: np.ndarray, idx: np.ndarray, ids: np.ndarray, count: str, id_list: str) -> None:
@@ -125,3 +131,24 @@ def diff_maps(a: "MapReader", b: "MapReader", move_threshold_m: float = 0.1,
         if n:
             diffs.setdefault(key, TileDiff(*key)).marking_px_changed = n
     return [d for _, d in sorted(diffs.items()) if d.changed]
+
+
+def marking_cells(a: "MapReader", b: "MapReader", significance: float = 0.001) -> tuple[list[dict], dict]:
+    """The 10 m cells whose road markings changed from A to B beyond the rasters' noise, over the tiles both hold a
+    raster of, where both observed the ground (``change_tests.changed_cells``; the changelog's test)."""
+    from mapformat.change_tests import changed_cells, tile_cells
+    from mapformat.changelog import MARKING_CELL_M, MARKING_TOLERANCE_PX
+
+    check_same_frame(a, b)
+    cells = []
+    for key in sorted(set(a.tile_keys()) & set(b.tile_keys())):
+        ma, mb = a.tile_marking(*key), b.tile_marking(*key)
+        if ma is None or mb is None or ma.shape[:2] != mb.shape[:2]:
+            continue
+        meta = b.tile_entry(*key)["marking"]
+        e0, n0, cell = float(meta["origin_east_m"]), float(meta["origin_north_m"]), float(meta["cell_m"])
+        box = (e0, n0, e0 + mb.shape[1] * cell, n0 + mb.shape[0] * cell)
+        seen = (a.observed_window(*box)[0] > 0) & (b.observed_window(*box)[0] > 0)
+        if seen.shape == mb.shape[:2]:
+            cells.append(tile_cells(ma, mb, seen, (e0, n0), cell, MARKING_CELL_M, MARKING_TOLERANCE_PX))
+    return changed_cells(cells, MARKING_CELL_M, significance)

@@ -111,6 +111,7 @@ def export_geotiffs(reader: "MapReader", out: Path, write: Callable[[Path, bytes
             files.append(write_cog(Path(out) / layer / f"{i}_{j}.tif", values, west, north, cell, wkt, layer, tags))
             by_layer.setdefault(layer, []).append((f"{layer}/{i}_{j}.tif", values.shape[1], values.shape[0], west,
                                                    north, cell))
+    _localizability_layers(reader, out, wkt, tags, files, by_layer)
     for layer, tiles in sorted(by_layer.items()):
         cells = {t[5] for t in tiles}
         if len(cells) != 1:
@@ -123,3 +124,25 @@ def export_geotiffs(reader: "MapReader", out: Path, write: Callable[[Path, bytes
                               tags).encode("utf-8"))
         files.append(path)
     return files
+
+
+def _localizability_layers(reader: "MapReader", out: Path, wkt: str, tags: dict[str, str], files: list[Path],
+                           by_layer: dict[str, list]) -> None:
+    """The localizability layer's sigma_2d per method as ``OUT/localizability_{method}/{i}_{j}.tif`` (one pixel per
+    cell, NaN where the drives did not pass), with the raster layers' CRS and a VRT each."""
+    from mapformat.layers import write_cog
+    from mapformat.localizability import rasterize
+
+    cell = (reader.manifest.get("localizability") or {}).get("cell_m")
+    for i, j in reader.tile_keys():
+        table = reader.tile_localizability(i, j)
+        if table is None or not cell:
+            continue
+        bounds = tuple(float(b) for b in reader.tile_entry(i, j)["bounds_m"])
+        for method in ("ekf", "mcl"):
+            layer = f"localizability_{method}"
+            values = rasterize(table, method, bounds, float(cell))
+            files.append(write_cog(Path(out) / layer / f"{i}_{j}.tif", values, bounds[0], bounds[3], float(cell), wkt,
+                                   layer, tags))
+            by_layer.setdefault(layer, []).append((f"{layer}/{i}_{j}.tif", values.shape[1], values.shape[0],
+                                                   bounds[0], bounds[3], float(cell)))

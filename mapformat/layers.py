@@ -32,6 +32,8 @@ LAYER_BANDS: dict[str, tuple[str, float | None, str]] = {
     "elevation_min": ("float32", float("nan"), "elevation_min: lowest point up, m (map ENU)"),
     "elevation_mean": ("float32", float("nan"), "elevation_mean: mean point up, m (map ENU)"),
     "point_count": ("uint16", 0, "point_count: points per cell (saturates at 65535), 0 = no data"),
+    "localizability_ekf": ("float32", float("nan"), "localizability_ekf: predicted sigma_2d of the corner EKF, m"),
+    "localizability_mcl": ("float32", float("nan"), "localizability_mcl: predicted sigma_2d of the marking MCL, m"),
 }
 
 

@@ -187,6 +187,7 @@ class MapReader:
         self._corners = _Lru(cache_tiles, self._load_corners)
         self._markings = _Lru(cache_tiles, self._load_marking)
         self._observed = _Lru(cache_tiles, self._load_observed)
+        self._localizability = _Lru(cache_tiles, self._load_localizability)
 
     # -- tiles -------------------------------------------------------------------------------------------
     def tile_keys(self) -> list[tuple[int, int]]:
@@ -361,6 +362,65 @@ class MapReader:
             out[(s1 - b_s):(s1 - a_s), (a_c - c0):(b_c - c0)] = src.astype(np.uint8, copy=False)
         return out, (c0 * cell, s0 * cell), cell
 
+    def tile_localizability(self, i: int, j: int) -> pa.Table | None:
+        """Tile (i, j)'s cells of the localizability layer (``mapformat/localizability.py``'s columns; verified,
+        bounded, cached like the corners), None for a tile without one (a version published before the layer)."""
+        from mapformat.localizability import LOCALIZABILITY_FILE
+
+        entry = self._tiles.get((int(i), int(j)))
+        if entry is None or LOCALIZABILITY_FILE not in (entry.get("files") or {}):
+            return None
+        return self._localizability.get((int(i), int(j)))[0]
+
+    def _load_localizability(self, key: tuple[int, int]) -> tuple[pa.Table, np.ndarray, np.ndarray]:
+        from mapformat.localizability import LOCALIZABILITY_FILE, SCHEMA
+
+        entry = self._tiles[key]
+        path, data = self._read(key, LOCALIZABILITY_FILE)
+        recorded = entry.get("n_localizability_cells")
+        table = decode_table(data, path, recorded if isinstance(recorded, int) else None)
+        try:
+            table = table.select(SCHEMA.names).cast(SCHEMA)
+        except (KeyError, pa.ArrowInvalid, ValueError) as exc:
+            raise MapFormatError(f"{path}: not a localizability layer ({exc}); hint: run `cornermap tiles verify`") \
+                from exc
+        return table, table["east_m"].to_numpy(), table["north_m"].to_numpy()
+
+    def localizability_in_bbox(self, e0: float, n0: float, e1: float, n1: float,
+                               keep: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> pa.Table:
+        """The localizability cells whose road point lies in [e0, e1) x [n0, n1) and, with ``keep(east, north)``,
+        where it says so (both methods; an empty table of the layer's columns when the version has none)."""
+        from mapformat.localizability import LOCALIZABILITY_FILE, SCHEMA
+
+        got = [self._localizability.get(key) for key in self._keys_in_box(e0, n0, e1, n1)
+               if LOCALIZABILITY_FILE in (self._tiles[key].get("files") or {})]
+        if not got:
+            return SCHEMA.empty_table()
+        e, n = np.concatenate([g[1] for g in got]), np.concatenate([g[2] for g in got])
+        mask = (e >= e0) & (e < e1) & (n >= n0) & (n < n1)
+        if keep is not None:
+            mask &= keep(e, n)
+        table = got[0][0] if len(got) == 1 else pa.concat_tables([g[0] for g in got])
+        return table if mask.all() else table.take(np.flatnonzero(mask))  # take: 4x a filter on many chunks
+
+    def query_latlon(self, lat_deg: float, lon_deg: float, radius_m: float, *, heading_deg: float | None = None,
+                     fov_deg: float | None = None, markings: bool = True):
+        """Corners (with lat_deg / lon_deg), marking window and localizability cells within ``radius_m`` of a WGS84
+        latitude / longitude, within ``fov_deg`` about ``heading_deg`` (ENU, from east) when both are given
+        (``mapformat.query.MapQuery``)."""
+        from mapformat.query import query_latlon
+
+        return query_latlon(self, lat_deg, lon_deg, radius_m, heading_deg=heading_deg, fov_deg=fov_deg,
+                            markings=markings)
+
+    def query_pose(self, east_m: float, north_m: float, yaw_rad: float, fov_rad: float, range_m: float, *,
+                   markings: bool = True):
+        """What a sensor at pose (east_m, north_m, yaw_rad) (map ENU) sees within ``range_m`` and ``fov_rad`` about
+        its heading (``mapformat.query.MapQuery``; the marking window covers the range's square)."""
+        from mapformat.query import query
+
+        return query(self, east_m, north_m, range_m, heading_rad=yaw_rad, fov_rad=fov_rad, markings=markings)
+
     @staticmethod
     def covariances(corners: pa.Table) -> np.ndarray:
         """(N, 2, 2) east/north covariances in m^2 of a corner table."""
@@ -371,6 +431,7 @@ class MapReader:
         self._corners.clear()
         self._markings.clear()
         self._observed.clear()
+        self._localizability.clear()
 
 
 def _corner_schema() -> pa.Schema:

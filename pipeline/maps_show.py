@@ -149,12 +149,40 @@ def show_lines(mdir: Path) -> list[str]:
         note = "LATEST" if v["standing"] == "LATEST" else (v["note"] or "")
         n = "?" if v["drives"] is None else str(v["drives"])
         lines.append(f"{v['version']:9s} {v['created_utc']:20s} {n:>6s}  {note}".rstrip())
+    lines += localizability_lines(mdir)
     rows = doc["drives"]
     lines.append(f"{'drive':16s} {'first pose':20s} {'last pose':20s} {'added (UTC)':20s} versions")
     lines += [f"{r['name']:16s} {r['first']:20s} {r['last']:20s} {r['added']:20s} {r['versions']}" for r in rows]
     if not rows:
         lines.append("(no drives yet: cornermap rebuild --root ROOT --map NAME --inbox DIR)")
     return lines
+
+
+def localizability_lines(mdir: Path, limit: int = 10) -> list[str]:
+    """LATEST's localizability summary (its manifest's ``localizability``: the tiles stage's prediction of the
+    localizers' uncertainty per cell of the roads): the median and p95 per method and the cells predicted weak or
+    failing, worst first, with their reason. Nothing for a version without one."""
+    from pipeline.errors import CornermapError
+    from pipeline.version_read import read_latest, read_manifest, version_name
+
+    try:
+        latest = read_latest(mdir) if (Path(mdir) / "LATEST").exists() else None
+        loc = read_manifest(Path(mdir) / version_name(latest))[0].get("localizability") if latest else None
+    except CornermapError:
+        return []
+    if not isinstance(loc, dict) or not isinstance(loc.get("methods"), dict):
+        return []
+    head = f"localizability of {version_name(latest)} ({loc.get('n_cells')} cells of {loc.get('cell_m'):g} m): "
+    out = [head + "; ".join(f"{m} sigma_2d median {v.get('median_sigma_2d_m')} m, p95 {v.get('p95_sigma_2d_m')} m, "
+                            f"{v.get('n_weak')} weak" for m, v in sorted(loc["methods"].items()))]
+    weak = loc.get("weak_cells") or []
+    for w in weak[:limit]:
+        out.append(f"  {w.get('status', 'weak'):4s} {w['method']} at ENU ({w['east_m']:.1f}, {w['north_m']:.1f}) m: "
+                   f"sigma_2d {w['sigma_2d_m']:.3f} m, {w['reason']}")
+    if len(weak) > limit:
+        out.append(f"  ... {len(weak) - limit} more in the manifest's localizability.weak_cells; every cell in "
+                   "tiles/*/localizability.parquet")
+    return out
 
 
 def drive_rows(mdir: Path, ident) -> list[dict]:

@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field, model_validator
 
 from pipeline.declare import Params
+from stages.common.localizer_defaults import CORNER_EKF, MARKINGS, MCL_MOTION
 
 if TYPE_CHECKING:
     from stages.evaluate.config import EvaluationConfig, FieldConfig, TargetConfig
@@ -17,12 +18,15 @@ class EvaluateParams(Params):
     methods: list[Literal["ekf", "mcl"]] = Field(["ekf", "mcl"], description="localizers; baselines always run")
     # EKF initialisation: the first GNSS/INS fix, its reported std floored by these (urban RTK/INS understates its
     # error: 0.5-2 m true vs 0.1-0.25 m reported in canyons), so the first corners can pull the filter in.
-    init_sigma_xy_m: float = Field(0.7, gt=0, description="floor of the initial position std")
-    init_sigma_yaw_deg: float = Field(0.5, gt=0, description="floor of the initial heading std")
+    init_sigma_xy_m: float = Field(CORNER_EKF.init_sigma_xy_m, gt=0, description="floor of the initial position std")
+    init_sigma_yaw_deg: float = Field(CORNER_EKF.init_sigma_yaw_deg, gt=0,
+                                      description="floor of the initial heading std")
     # EKF motion noise (ICP increments, eq. 2)
-    icp_sigma_frac: float = Field(0.03, ge=0, description="ICP translation std per metre travelled")
-    icp_sigma_xy_m: float = Field(0.01, ge=0, description="ICP translation std floor per scan")
-    icp_sigma_yaw_deg: float = Field(0.016, ge=0, description="ICP heading std per scan: the consecutive ICP edges' "
+    icp_sigma_frac: float = Field(CORNER_EKF.icp_sigma_frac, ge=0,
+                                  description="ICP translation std per metre travelled")
+    icp_sigma_xy_m: float = Field(CORNER_EKF.icp_sigma_xy_m, ge=0, description="ICP translation std floor per scan")
+    icp_sigma_yaw_deg: float = Field(CORNER_EKF.icp_sigma_yaw_deg, ge=0,
+                                     description="ICP heading std per scan: the consecutive ICP edges' "
                                      "heading error vs truth on the tiny calibration seeds 7 / 21 / 22 with the "
                                      "simulator's sensor effects and traffic: 0.010-0.023 deg RMS, in turns as on "
                                      "straights (bench_posegraph_root's edge table; docs/evaluation.md). The previous "
@@ -50,23 +54,28 @@ class EvaluateParams(Params):
     ekf_icp_gate_probability: float = Field(0.999, gt=0, lt=1, description="ICP increment vs wheel/gyro "
                                             "consistency gate (chi-square 3 dof)")
     # EKF association and measurement (s.3.3, eqs. 3-5)
-    sensor_range_m: float = Field(60.0, gt=0, description="map corners farther than this are not predicted")
+    sensor_range_m: float = Field(CORNER_EKF.sensor_range_m, gt=0,
+                                  description="map corners farther than this are not predicted")
     gate_probability: float = Field(0.99, gt=0, lt=1, description="Mahalanobis gate, chi-square 2 dof")
     angle_gate_deg: float = Field(15.0, gt=0, le=180, description="max wall direction difference")
     association: Literal["gnn", "nn"] = "gnn"
-    range_sigma_floor_m: float = Field(0.05, ge=0, description="added to extracted corners' range std (gangnam "
+    range_sigma_floor_m: float = Field(CORNER_EKF.range_sigma_floor_m, ge=0,
+                                       description="added to extracted corners' range std (gangnam "
                                        "drive 1: position NEES 2.2 for 2 dof; 0.03 gave 2.7, map corner errors are "
                                        "shared by consecutive epochs)")
-    bearing_sigma_floor_deg: float = Field(0.15, ge=0, description="added to extracted corners' bearing std")
-    wall_heading_sigma_deg: float = Field(1.5, ge=0, description="heading from wall directions; 0 = off")
+    bearing_sigma_floor_deg: float = Field(CORNER_EKF.bearing_sigma_floor_deg, ge=0,
+                                           description="added to extracted corners' bearing std")
+    wall_heading_sigma_deg: float = Field(CORNER_EKF.wall_heading_sigma_deg, ge=0,
+                                          description="heading from wall directions; 0 = off")
     ekf_map_consider: bool = Field(True, description="map-corner errors as Schmidt consider states (shared by every "
                                    "epoch using the corner, not fresh noise per epoch; evaluate/consider.py)")
     ekf_map_cov_scale: float = Field(1.0, gt=0, description="multiplies the map's stored corner covariances")
-    ekf_map_corr_share: float = Field(0.0, ge=0, lt=1, description="with the consider states: correlation of two "
+    ekf_map_corr_share: float = Field(CORNER_EKF.map_corr_share, ge=0, lt=1,
+                                      description="with the consider states: correlation of two "
                                       "map corners' errors at distance d is share * exp(-d^2 / (2 L^2)), L = "
                                       "ekf_map_corr_length_m (corners seen from one stretch of the survey drive share "
                                       "its pose error)")
-    ekf_map_corr_length_m: float = Field(50.0, gt=0, description="length of that correlation")
+    ekf_map_corr_length_m: float = Field(CORNER_EKF.map_corr_length_m, gt=0, description="length of that correlation")
     ekf_map_corr_source: Literal["map", "params"] = Field(
         "map", description="map: the correlation the published map states (its pose graph's joint marginals, "
         "manifest corner_error_correlation) replaces ekf_map_corr_share / ekf_map_corr_length_m when it states one; "
@@ -91,7 +100,8 @@ class EvaluateParams(Params):
                                "mcl_effective_points, mcl_decorrelation_m, mcl_max_features): the lateral position "
                                "and heading between corners (evaluate/ekf_markings.py; on by the tiny calibration "
                                "seeds 7 / 21 / 22: EKF p99 0.193 / 0.084 / 0.083 m -> 0.097 / 0.057 / 0.047)")
-    ekf_corner_decorrelation_m: float = Field(0.5, ge=0, description="a corner's range/bearing and wall-heading "
+    ekf_corner_decorrelation_m: float = Field(CORNER_EKF.corner_decorrelation_m, ge=0,
+                                              description="a corner's range/bearing and wall-heading "
                                               "noise is divided by min(1, travel since the corner last measured "
                                               "the pose / this): looks from nearly the same place repeat most of "
                                               "the extraction error (0 = every look counts fully; 0.5 chosen on "
@@ -99,24 +109,31 @@ class EvaluateParams(Params):
                                               "NEES share under the quantile 0.989 -> 0.999 on demo 1)")
     ekf_marking_min_info: float = Field(0.05, gt=0, description="a direction the markings inform less than this "
                                         "share of the prior's information is not measured")
-    ekf_marking_map_sigma_m: float = Field(0.036, ge=0, description="the marking raster's own local error per axis "
+    ekf_marking_map_sigma_m: float = Field(MARKINGS.map_sigma_m, ge=0,
+                                           description="the marking raster's own local error per axis "
                                            "(a Gauss-Markov offset along the road, a consider parameter): the "
                                            "mapping drive's optimised poses vs the truth on the worst tiny "
                                            "calibration seed (7: 0.051 m horizontal RMS; bench_posegraph_eval)")
-    ekf_marking_map_sigma_deg: float = Field(0.092, ge=0, description="its heading part (seed 7: 0.092 deg RMS)")
-    ekf_marking_map_length_m: float = Field(50.0, gt=0, description="its correlation length along the road (as "
+    ekf_marking_map_sigma_deg: float = Field(MARKINGS.map_sigma_deg, ge=0,
+                                             description="its heading part (seed 7: 0.092 deg RMS)")
+    ekf_marking_map_length_m: float = Field(MARKINGS.map_length_m, gt=0,
+                                            description="its correlation length along the road (as "
                                             "ekf_map_corr_length_m)")
     # MCL (s.2.3) and road features (s.2.2). Wheel speed + gyro prediction through a per-particle wheel scale and
     # gyro bias; weights from the correlation of the scan's features with a distance likelihood field; low-variance
     # resampling; progressive correction and guarded injection (see localize_mcl.MclConfig for the measurements).
     n_particles: int = Field(1000, ge=10)
     seed: int = 0
-    mcl_init_sigma_xy_m: float = Field(1.0, gt=0)
-    mcl_init_sigma_yaw_deg: float = Field(1.0, gt=0)
-    mcl_sigma_frac: float = Field(0.005, ge=0, description="along-track motion noise per metre (beside the scale)")
-    mcl_sigma_lateral_frac: float = Field(0.002, ge=0, description="across-track motion noise per metre")
-    mcl_sigma_xy_m: float = Field(0.02, ge=0, description="translation motion noise floor per moving scan")
-    mcl_sigma_yaw_deg: float = Field(0.03, ge=0, description="heading motion noise per moving scan (beside the bias)")
+    mcl_init_sigma_xy_m: float = Field(MCL_MOTION.init_sigma_xy_m, gt=0)
+    mcl_init_sigma_yaw_deg: float = Field(MCL_MOTION.init_sigma_yaw_deg, gt=0)
+    mcl_sigma_frac: float = Field(MCL_MOTION.sigma_frac, ge=0,
+                                  description="along-track motion noise per metre (beside the scale)")
+    mcl_sigma_lateral_frac: float = Field(MCL_MOTION.sigma_lateral_frac, ge=0,
+                                          description="across-track motion noise per metre")
+    mcl_sigma_xy_m: float = Field(MCL_MOTION.sigma_xy_m, ge=0,
+                                  description="translation motion noise floor per moving scan")
+    mcl_sigma_yaw_deg: float = Field(MCL_MOTION.sigma_yaw_deg, ge=0,
+                                     description="heading motion noise per moving scan (beside the bias)")
     mcl_sigma_yaw_frac: float = Field(0.01, ge=0, description="heading motion noise per radian turned")
     mcl_init_sigma_scale: float = Field(0.01, ge=0, description="wheel-speed scale std per particle (0 = no state)")
     mcl_sigma_scale_per_sqrt_m: float = Field(1e-3, ge=0, description="random walk of the wheel scale")
@@ -127,15 +144,17 @@ class EvaluateParams(Params):
                                             "systematic over the drive (0.5 %, a MEMS gyro's; tiny calibration "
                                             "seeds 7 / 21 / 22, mean |heading| over filter seeds 0-2: 0.213 / "
                                             "0.049 / 0.128 deg without, 0.171 / 0.045 / 0.137 with)")
-    mcl_decorrelation_m: float = Field(0.5, ge=0, description="travel after which a scan counts fully (0 = always)")
-    mcl_sharpness: float = Field(5.0, gt=0, description="log-likelihood gain per effective feature point")
-    mcl_effective_points: float = Field(60.0, gt=0)
+    mcl_decorrelation_m: float = Field(MARKINGS.decorrelation_m, ge=0,
+                                       description="travel after which a scan counts fully (0 = always)")
+    mcl_sharpness: float = Field(MARKINGS.sharpness, gt=0,
+                                 description="log-likelihood gain per effective feature point")
+    mcl_effective_points: float = Field(MARKINGS.effective_points, gt=0)
     mcl_max_features: int = Field(400, ge=10)
     mcl_max_inject: float = Field(0.3, ge=0, le=1, description="share of particles a recovery may replace; 0 = off")
     mcl_inject_sigma_xy_m: float = Field(1.0, gt=0, description="spread of recovery candidates about the estimate")
     raster_field: Literal["distance", "blur"] = Field("distance", description="marking likelihood field: "
                                                       "exp(-d^2/2 sigma^2) of the distance to paint, or a blurred mask")
-    raster_sigma_m: float = Field(0.2, gt=0, description="sigma of the distance likelihood field")
+    raster_sigma_m: float = Field(MARKINGS.raster_sigma_m, gt=0, description="sigma of the distance likelihood field")
     raster_blur_m: float = Field(0.2, ge=0, description="Gaussian blur of the marking raster (raster_field=blur)")
     raster_coverage: bool = Field(True, description="count only the road features that fall where the map saw the "
                                   "ground (its point_count layer; beyond the survey 'no paint' is not known): MCL "
@@ -155,7 +174,7 @@ class EvaluateParams(Params):
         "follows roll, pitch and grade), 'level' (the mode of the near heights)")
     feature_ground_band_m: float = Field(0.15, gt=0, description="half-height of the band about the road surface "
                                          "a feature point must lie in")
-    feature_max_range_m: float = Field(30.0, gt=0)
+    feature_max_range_m: float = Field(MARKINGS.feature_max_range_m, gt=0)
     # References
     reference_max_gap_s: float = Field(1.0, gt=0, description="no reference across gaps longer than this")
     reference_frame: str = Field("auto", description="frame of a reference trajectory file: 'auto' (the ENU "

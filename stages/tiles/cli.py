@@ -23,7 +23,10 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles export --format geojson --out runs/city.geojson --map city --root runs/maps\n\n"
             "  cornermap tiles export --format geotiff --out runs/rasters --map city --root runs/maps\n\n"
             "  cornermap tiles verify --all --map tiny --root runs/tiny\n\n"
-            "  cornermap tiles ls --map tiny --root runs/tiny --json")
+            "  cornermap tiles ls --map tiny --root runs/tiny --json\n\n"
+            "  cornermap tiles query --at 37.4979,127.0276 --radius 150 --map tiny --root runs/tiny --json\n\n"
+            "  cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny\n\n"
+            "  cornermap tiles apply runs/delta --map /vehicle/maps/tiny")
 
 
 def map_dir_of(root: Path, name: Optional[str]) -> Path:
@@ -79,36 +82,53 @@ def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, as_json: bool =
 def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LATEST)."),
          version_b: str = typer.Argument(..., help="New version."),
          root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
-         move_threshold_m: float = typer.Option(0.1, "--move-threshold-m", help="A matched corner moved more "
-                                                "than this is reported as moved."),
+         significance: float = typer.Option(0.001, "--significance", help="A matched corner is moved when the "
+                                            "chi-square test (2 dof) on its displacement with both covariances "
+                                            "rejects 'unchanged' at this level; marking cells likewise."),
+         move_threshold_m: float = typer.Option(0.0, "--move-threshold-m", help="... and it moved more than this "
+                                                "(0: the test alone)."),
          match_radius_m: float = typer.Option(1.0, "--match-radius-m", help="Corners further apart never match."),
          as_json: bool = typer.Option(False, "--json", help="Print the per-tile diff as JSON.")) -> None:
-    """Per tile: corners added, removed, moved more than a threshold; marking pixels changed (A -> B).
+    """Per tile: corners added, removed, moved (chi-square test on both covariances); marking cells changed beyond
+    the rasters' noise (A -> B).
 
     Example: [b]cornermap tiles diff v0001 LATEST --map tiny --root runs/tiny[/b]
     """
     import math
 
-    from mapformat.diff import diff_maps
+    from mapformat.change_tests import chi2_threshold
+    from mapformat.diff import diff_maps, marking_cells
     from mapformat.loader import open_map
     from pipeline.errors import OptionError
 
     for opt, value in (("--move-threshold-m", move_threshold_m), ("--match-radius-m", match_radius_m)):
         if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
             raise OptionError(opt, [f"{value}: expected 0 to 1000 m"])
+    if not (0.0 < significance < 1.0):
+        raise OptionError("--significance", [f"{significance}: expected a probability in (0, 1)"])
     d = map_dir_of(root, map_name)
     a, b = open_map(d, version_a), open_map(d, version_b)
-    diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m)
+    diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m,
+                      significance=significance)
+    cells, test = marking_cells(a, b, significance)
+    corner_test = {"method": "chi2", "dof": 2, "significance": significance,
+                   "threshold": round(chi2_threshold(significance), 3)}
     if as_json:
-        typer.echo(json.dumps({"a": a.version, "b": b.version, "tiles": [t.as_dict() for t in diffs]}, indent=1))
+        typer.echo(json.dumps({"a": a.version, "b": b.version, "corner_test": corner_test,
+                               "tiles": [t.as_dict() for t in diffs],
+                               "marking_cells": cells, "marking_test": test}, indent=1))
         return
-    typer.echo(f"diff v{a.version:04d} -> v{b.version:04d}: {len(diffs)} tile(s) changed")
+    typer.echo(f"diff v{a.version:04d} -> v{b.version:04d}: {len(diffs)} tile(s) changed (corners: chi-square, 2 "
+               f"dof, significance {significance:g}, threshold {corner_test['threshold']})")
     for t in diffs:
         typer.echo(f"  tile ({t.i},{t.j}): +{t.corners_added} -{t.corners_removed} ~{t.corners_moved} corners, "
                    f"{t.marking_px_changed} marking px changed")
     totals = [sum(getattr(t, k) for t in diffs) for k in ("corners_added", "corners_removed", "corners_moved",
                                                          "marking_px_changed")]
     typer.echo("total: +{} -{} ~{} corners, {} marking px changed".format(*totals))
+    typer.echo(f"marking cells changed ({test['cells_compared']} compared, noise rate {test['noise_rate']:g}): "
+               + (", ".join(f"({c['east_m']:.0f}, {c['north_m']:.0f}) {c['px_changed']} px" for c in cells)
+                  or "none"))
 
 
 def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
@@ -225,6 +245,98 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
         raise ChecksumError(f"{d}: {len(bad)} integrity problem(s) (listed above); hint: republish the version")
 
 
+def query(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
+          at: str = typer.Option(..., "--at", help="LAT,LON in degrees, WGS84."),
+          radius_m: float = typer.Option(150.0, "--radius", help="Metres around --at (at most 10 km)."),
+          heading_deg: Optional[float] = typer.Option(None, "--heading-deg", help="The vehicle's heading, degrees "
+                                                      "counter-clockwise from east (with --fov-deg)."),
+          fov_deg: Optional[float] = typer.Option(None, "--fov-deg", help="Field of view about --heading-deg."),
+          as_json: bool = typer.Option(False, "--json", help="Print the answer as JSON.")) -> None:
+    """What the map holds where the vehicle is: corners (id, east/north, lat/lon, wall angles, covariance), the
+    marking window and the localizability cells within --radius of a latitude / longitude.
+
+    Example: [b]cornermap tiles query --at 37.49790,127.02760 --radius 150 --map tiny --root runs/tiny --json[/b]
+    """
+    from mapformat.loader import open_map
+    from mapformat.query import as_json as answer_json
+    from mapformat.query import check_area, query_latlon
+
+    parts = at.split(",")
+    try:
+        lat, lon = (float(v) for v in parts)
+    except ValueError:
+        raise typer.BadParameter(f"{at!r}: expected LAT,LON in degrees, e.g. 37.4979,127.0276",
+                                 param_hint="--at") from None
+    if (heading_deg is None) != (fov_deg is None):
+        raise typer.BadParameter("give --heading-deg and --fov-deg together", param_hint="--fov-deg")
+    check_area(radius_m, fov_deg)
+    reader = open_map(map_dir_of(root, map_name), version)
+    q = query_latlon(reader, lat, lon, radius_m, heading_deg=heading_deg, fov_deg=fov_deg)
+    doc = answer_json(reader, q)
+    if as_json:
+        typer.echo(json.dumps(doc, indent=1))
+        return
+    view = f", heading {heading_deg:g} deg, field of view {fov_deg:g} deg" if fov_deg is not None else ""
+    typer.echo(f"{doc['map']} v{reader.version:04d} at {lat:.8f},{lon:.8f} = ENU ({q.east_m:.3f}, {q.north_m:.3f}) m, "
+               f"radius {radius_m:g} m{view}: {len(doc['corners'])} corner(s), "
+               f"{len(doc['localizability'])} localizability row(s)")
+    for c in doc["corners"]:
+        typer.echo(f"  #{c['corner_id']:<6d} ENU ({c['east_m']:9.3f}, {c['north_m']:9.3f}) m  {c['lat_deg']:.9f},"
+                   f"{c['lon_deg']:.9f}  walls {c['theta1_deg']:7.2f} {c['theta2_deg']:7.2f} deg  cov "
+                   f"[{c['cov_ee_m2']:.2e} {c['cov_en_m2']:.2e} {c['cov_nn_m2']:.2e}] m^2")
+    m = doc["marking_window"]
+    typer.echo("marking window: none (no rasters)" if m is None else
+               f"marking window: {m['width_px']} x {m['height_px']} px of {m['cell_m']} m from ENU "
+               f"({m['origin_east_m']:.1f}, {m['origin_north_m']:.1f}) m, {m['painted_px']} painted")
+    for c in doc["localizability"]:
+        typer.echo(f"  cell ({c['cell_i']},{c['cell_j']}) {c['method']}: sigma_2d {c['sigma_2d_m']:.3f} m (along "
+                   f"{c['sigma_along_m']:.3f}, across {c['sigma_cross_m']:.3f}) {c['status']}"
+                   + (f": {c['reason']}" if c["reason"] else ""))
+
+
+def bundle(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+           base: str = typer.Option(..., "--from", help="The version the vehicle holds (vNNNN or N)."),
+           target: str = typer.Option(..., "--to", help="The version to deliver (vNNNN, N or LATEST)."),
+           out: Path = typer.Option(..., "--out", "-o", help="A new folder for the bundle."),
+           as_json: bool = typer.Option(False, "--json", help="Print the bundle manifest as JSON.")) -> None:
+    """Write a delta bundle: the files of --to whose bytes --from does not have, the target's manifest and a bundle
+    manifest naming every file of the target with its sha256 and both versions' manifest digests.
+
+    Example: [b]cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny[/b]
+    """
+    from mapformat.bundle import make_bundle
+
+    doc = make_bundle(map_dir_of(root, map_name), base, target, out)
+    if as_json:
+        typer.echo(json.dumps(doc, indent=1))
+        return
+    n = sum(e["source"] == "bundle" for e in doc["files"])
+    b, t = doc["bytes"]["bundle"], doc["bytes"]["target"]
+    typer.echo(f"wrote {out}: v{doc['base']['version']:04d} -> v{doc['target']['version']:04d}, {n + 1} of "
+               f"{len(doc['files']) + 1} files, {b} of {t} bytes ({100.0 * b / max(t, 1):.1f} %)")
+
+
+def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle.json, files/)."),
+          map_folder: Path = typer.Option(..., "--map", help="The vehicle's map folder (LATEST and its vNNNN)."),
+          as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON.")) -> None:
+    """Apply a delta bundle to a copy of a map: the copy's LATEST must name the bundle's base; the target is built
+    and checked file by file in a staging folder, renamed into place, then named by LATEST.
+
+    Example: [b]cornermap tiles apply runs/delta --map /vehicle/maps/tiny[/b]
+    """
+    from mapformat.bundle import apply_bundle
+
+    res = apply_bundle(bundle_dir, map_folder)
+    if as_json:
+        typer.echo(json.dumps(res, indent=1))
+    elif res["already"]:
+        typer.echo(f"{map_folder}: already holds v{res['target']:04d}; nothing to do")
+    else:
+        typer.echo(f"{map_folder}: v{res['base']:04d} -> v{res['target']:04d} ({res['written']} files from the "
+                   f"bundle, {res['from_base']} from v{res['base']:04d}, every sha256 checked); LATEST = "
+                   f"v{res['target']:04d}")
+
+
 def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
     """Add ls/diff/log/export/verify to the ``tiles`` group (created on ``app`` when not given)."""
     target = stage_app
@@ -238,6 +350,9 @@ def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
     target.command("export")(export)
     target.command("verify")(verify)
     target.command("rollback")(rollback)
+    target.command("query")(query)
+    target.command("bundle")(bundle)
+    target.command("apply")(apply)
 
 
 def rollback(to: str = typer.Option(..., "--to", help="The version LATEST should name (vNNNN or N)."),

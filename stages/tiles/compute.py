@@ -13,6 +13,7 @@ import pyarrow as pa
 from mapformat import layout
 from mapformat.changelog import write_changelog
 from mapformat.corner_ids import IdGates
+from mapformat.localizability import split_by_tile, summary
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
 from pipeline.names import check_name, inside
@@ -75,14 +76,21 @@ def compute(ctx: StageContext) -> dict[str, Any]:
               # error_correlation.py) for localizers that hold several corners at once; None: not stated
               "corner_error_correlation": ctx.inputs.metadata("poses").get("pose_error_correlation")}
 
+    cells = _localizability(params, size_m, corners, trajectories, rasters, fields["corner_error_correlation"])
+    by_tile = split_by_tile(cells, params.localizability_cell_m, size_m) if cells is not None else None
+    if cells is not None:
+        fields["localizability"] = summary(cells, params.localizability_cell_m)
     map_dir = inside(Path(ctx.settings["root"]) / "maps", check_name(name, "map", "tiles: settings.map_name"))
     origin = EnuOrigin.from_dict(fields["enu_origin"])
 
     def write(staging: Path) -> dict[str, Any]:  # runs under the map's publish lock: LATEST cannot move
         _, doc = carry_history(map_dir, corners, origin, size_m, staging,
-                               lambda table: write_map_files(staging, table, size_m, rasters, trajectories),
+                               lambda table: write_map_files(staging, table, size_m, rasters, trajectories, by_tile),
                                gates=IdGates(params.id_max_dist_m, params.id_max_angle_deg),
-                               move_threshold_m=params.changelog_move_threshold_m)
+                               move_threshold_m=params.changelog_move_threshold_m,
+                               new_paths=[t.pose_xyz_qxyzw[:, :2] for t in trajectories],
+                               significance=params.changelog_significance,
+                               min_obs=params.changelog_min_obs)
         return {**fields, "n_tiles": len(doc["files"]["tiles"]), **doc["files"],
                 "next_corner_id": doc["changelog"]["corners"]["next_corner_id"],
                 "changelog": write_changelog(staging, doc["changelog"])}
@@ -105,6 +113,26 @@ def compute(ctx: StageContext) -> dict[str, Any]:
     outcome = [f"{what} map {name!r} version {pub.name}: {{root}}/maps/{name}/{pub.name} "
                f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles)"]
     return {"published": table, "_extra": {"outcome": outcome}}
+
+
+def _localizability(params, size_m: float, corners: pa.Table, trajectories: list[DriveTrajectory],
+                    rasters: list[RasterTile], correlation: dict | None) -> pa.Table | None:
+    """The localizability layer's cells (None when the param turns it off)."""
+    if not params.localizability:
+        return None
+    per = size_m / params.localizability_cell_m
+    if abs(per - round(per)) > 1e-9:
+        raise ConfigError("tiles stage", [f"localizability_cell_m {params.localizability_cell_m} does not divide "
+                                          f"the tile edge {size_m} m"])
+    from stages.common.localizability import LocalizabilityConfig
+    from stages.tiles.localizability import localizability_table
+
+    cfg = LocalizabilityConfig(cell_m=params.localizability_cell_m,
+                               detection_rate=params.localizability_detection_rate,
+                               weak_sigma_m=params.localizability_weak_sigma_m,
+                               fail_sigma_m=params.localizability_fail_sigma_m)
+    corr = (correlation["share"], correlation["length_m"]) if correlation else None
+    return localizability_table(corners, trajectories, rasters, corr, cfg)
 
 
 def _schema_problems(table: pa.Table, expected: pa.Schema) -> list[str]:

@@ -11,7 +11,14 @@ from typing import Any, Callable
 
 import pyarrow as pa
 
-from mapformat.changelog import build_changelog, carry_ids, describe_origin, marking_changes, same_frame
+from mapformat.changelog import (
+    build_changelog,
+    carry_ids,
+    describe_origin,
+    marking_cell_changes,
+    marking_changes,
+    same_frame,
+)
 from mapformat.corner_ids import IdGates
 from pipeline.versioned import read_latest
 from stages.common.geodesy import EnuOrigin
@@ -21,7 +28,8 @@ log = logging.getLogger(__name__)
 
 def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: float, staging: Path,
                   write_files: Callable[[pa.Table], dict[str, Any]], *, gates: IdGates,
-                  move_threshold_m: float) -> tuple[pa.Table, dict[str, Any]]:
+                  move_threshold_m: float, new_paths: list | None = None, significance: float = 0.001,
+                  min_obs: int = 8) -> tuple[pa.Table, dict[str, Any]]:
     """(corners with stable ids, {"files": write_files' fields, "changelog": the changelog document}). A corner
     within ``gates`` of a parent corner keeps its id; one that kept its id but moved more than
     ``move_threshold_m`` is listed as moved."""
@@ -41,11 +49,30 @@ def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: f
     ided, match, next_id = carry_ids(prev_corners if frame_unchanged else None, prev_next, corners, gates)
     files = write_files(ided)
     markings = marking_changes(files["tiles"], staging, prev if frame_unchanged else None)
+    cells = marking_cell_changes(files["tiles"], staging, prev if frame_unchanged else None, significance)
     doc = build_changelog(parent_version=parent, parent_manifest=prev.manifest if prev is not None else None,
                           prev_corners=prev_corners if frame_unchanged else None, corners=ided, match=match,
                           gates=gates, move_threshold_m=move_threshold_m, origin=origin,
                           tile_size_m=size_m, frame_unchanged=frame_unchanged, source_drives=files["source_drives"],
-                          marking_px_changed=markings, next_corner_id=next_id)
+                          marking_px_changed=markings, next_corner_id=next_id, prev_paths=_paths(prev),
+                          new_paths=new_paths, marking_cells=cells, significance=significance,
+                          min_obs=min_obs)
     if prev_corners is not None and not frame_unchanged:  # every old corner is gone from this frame's view
         doc["corners"]["n_before"] = prev_corners.num_rows
     return ided, {"files": files, "changelog": doc}
+
+
+def _paths(reader) -> list | None:
+    """The (N,2) ENU paths of a version's drives (its trajectories, verified), None without a version or when one
+    cannot be read (the changelog then calls every unmatched corner added / removed)."""
+    if reader is None:
+        return None
+    from mapformat.trajectories import read_version_trajectory
+    from pipeline.errors import CornermapError
+
+    try:
+        return [read_version_trajectory(reader, d["drive"])[1][:, :2] for d in reader.manifest["source_drives"]]
+    except (CornermapError, KeyError, OSError, ValueError) as exc:
+        log.warning("tiles: the parent's trajectories could not be read (%s); unmatched corners are listed as "
+                    "added / removed without a visibility check", exc)
+        return None

@@ -24,6 +24,25 @@ class TilesParams(Params):
                                                         "id only within this distance (mapformat/corner_ids.py)")
     id_max_angle_deg: float = Field(15.0, gt=0, le=90, description="corner identity: both wall directions "
                                                                   "within this angle of the previous corner's")
-    changelog_move_threshold_m: float = Field(0.2, ge=0, description="changelog: a kept corner further than "
-                                                                     "this from its previous position is listed "
-                                                                     "as moved")
+    changelog_move_threshold_m: float = Field(0.2, ge=0, description="recorded in the changelog for readers of its "
+                                              "format 1 (moved by distance); format 2 lists a corner as moved by "
+                                              "changelog_significance")
+    changelog_significance: float = Field(0.001, gt=0, lt=1, description="changelog: a kept corner is moved when "
+                                          "the chi-square test (2 dof) on its displacement with both covariances "
+                                          "rejects 'unchanged' at this level; a marking cell is changed by its "
+                                          "binomial test at this level (mapformat/change_tests.py)")
+    changelog_min_obs: int = Field(8, ge=1, description="observations the corner map needs to keep a corner (its "
+                                   "cornermap stage's min_obs): an unmatched corner is removed / added only when "
+                                   "the other version's drives had it in view from at least this many scans")
+    localizability: bool = Field(True, description="publish the localizability layer: per cell of the driven roads "
+                                 "the predicted position uncertainty of the corner EKF and of the marking MCL "
+                                 "(tiles/{i}_{j}/localizability.parquet; stages/common/localizability.py)")
+    localizability_cell_m: float = Field(10.0, gt=0, description="the layer's cell edge (divides the tile edge)")
+    localizability_detection_rate: float = Field(0.58, gt=0, le=1, description="share of the corners in view an "
+                                                 "EKF look associates: the EKF's associations over the corners "
+                                                 "predicted in view, tiny calibration seeds 221 / 222 / 223: 0.665 / "
+                                                 "0.584 / 0.478, mean 0.58 (docs/map-format.md)")
+    localizability_weak_sigma_m: float = Field(0.10, gt=0, description="a cell predicted above this sigma_2d is "
+                                               "'weak' (the EKF's RMS target)")
+    localizability_fail_sigma_m: float = Field(0.40, gt=0, description="... above this 'fail' (the EKF's max "
+                                               "target)")

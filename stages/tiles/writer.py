@@ -16,6 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from mapformat import layout
+from mapformat.localizability import LOCALIZABILITY_FILE
 from mapformat.vectors import MARKINGS_FILE, features_table, tile_features
 from pipeline.errors import DatasetIOError
 from pipeline.fingerprint import file_sha256
@@ -96,8 +97,11 @@ def _vectorize(by_key: dict[tuple[int, int], RasterTile], tile_size_m: float) ->
 
 
 def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, rasters: list[RasterTile],
-                    trajectories: list[DriveTrajectory]) -> dict[str, Any]:
-    """Write tiles/ and trajectories/ under ``staging``; return the ``tiles`` and ``source_drives`` fields."""
+                    trajectories: list[DriveTrajectory],
+                    localizability: dict[tuple[int, int], pa.Table] | None = None) -> dict[str, Any]:
+    """Write tiles/ and trajectories/ under ``staging``; return the ``tiles`` and ``source_drives`` fields.
+    ``localizability``: each tile's cells of the localizability layer (a tile holding only cells gets an empty
+    corners.parquet, as a raster-only tile does)."""
     corners = corners.select(list(layout.CORNER_COLUMNS)).sort_by("corner_id")
     east = corners["east_m"].to_numpy()
     north = corners["north_m"].to_numpy()
@@ -106,7 +110,8 @@ def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, raster
     vectors = _vectorize(by_key, tile_size_m)
     empty = corners.slice(0, 0)
     tiles = []
-    for key in sorted(set(groups) | set(by_key)):
+    localizability = localizability or {}
+    for key in sorted(set(groups) | set(by_key) | set(localizability)):
         i, j = key
         rel_dir = layout.tile_dir_name(i, j)
         tile_dir = staging / rel_dir
@@ -128,6 +133,9 @@ def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, raster
             entry["n_marking_features"] = vectors[key].num_rows
             entry["n_marking_px"] = int(raster.meta.get("n_marking_px", 0))
             entry["marking"] = {**raster.meta, "mask_file": mask, "layers": sorted(raster.files)}
+        if key in localizability:
+            pq.write_table(localizability[key], tile_dir / LOCALIZABILITY_FILE, compression="zstd")
+            entry["n_localizability_cells"] = localizability[key].num_rows
         entry["files"] = {p.name: file_sha256(p) for p in sorted(tile_dir.iterdir())}
         tiles.append(entry)
     drives = []

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pyarrow as pa
 import pytest
 from typer.testing import CliRunner
 
@@ -30,7 +31,9 @@ def history(tmp_path_factory):
     corners renumbered and listed in another order by the corner stage."""
     root = tmp_path_factory.mktemp("log")
     xy, dirs, owner = building_corners(buildings())
-    compute(city_context(root, corner_table(xy, dirs, seed=1)))
+    v1 = corner_table(xy, dirs, seed=1)  # each corner merged from 60 scans: seen by most scans in view of it
+    v1 = v1.set_column(v1.schema.get_field_index("n_obs"), "n_obs", pa.array(np.full(len(xy), 60, np.int64)))
+    compute(city_context(root, v1))
     new_xy, new_dirs, _ = building_corners(np.array([[400.0, 40.0, 430.0, 60.0]]))
     keep = owner != DEMOLISHED
     xy2 = xy.copy()
@@ -52,16 +55,27 @@ def test_changelog_lists_removed_added_moved_corners_with_stable_ids(history):
     ids2 = _ids_by_position(v2, np.where((np.arange(len(xy)) == MOVED_ROW)[:, None], xy + [0.5, 0], xy)[keep])
     assert (ids2 == ids1[keep]).all()  # every surviving corner, the moved one too, keeps its id
     c = log["corners"]
-    assert sorted(e["id"] for e in c["removed"]) == sorted(ids1[~keep].tolist())
-    assert all(e["tile"] == [1, 1] for e in c["removed"])
-    added = sorted(e["id"] for e in c["added"])
+    # the drive (east = 50, 150, 250 m) sees the demolished building's east face only: its two west corners are
+    # beyond 60 m of it, so v2 cannot say they are gone (not re-observed); the east ones, in view of tens of scans
+    # of v2's drive, are removed; the new building at (400, 50) m is 150 m
+    # from any drive: v1 never looked there (newly observed, not added)
+    gone = c["removed"] + c["not_reobserved"]
+    assert sorted(e["id"] for e in gone) == sorted(ids1[~keep].tolist())
+    assert sorted(e["east_m"] for e in c["removed"]) == pytest.approx([140.0, 140.0], abs=0.05)
+    assert all(e["tile"] == [1, 1] for e in gone)
+    assert c["added"] == []
+    added = sorted(e["id"] for e in c["newly_observed"])
     assert added == sorted(_ids_by_position(v2, new_xy).tolist())
     assert min(added) > ids1.max() and c["next_corner_id"] == max(added) + 1 == v2.manifest["next_corner_id"]
     assert [(e["id"], e["dist_m"]) for e in c["moved"]] == [(int(ids1[MOVED_ROW]), pytest.approx(0.5, abs=0.03))]
+    # moved by the chi-square test on both covariances (0.05 m-class: 0.5 m is far beyond), the rest unchanged
+    assert c["moved"][0]["chi2"] > c["test"]["threshold"] == pytest.approx(13.816, abs=1e-3) and c["test"]["dof"] == 2
+    assert c["unchanged"] == c["kept"] - 1
     assert (c["n_before"], c["n_after"], c["kept"]) == (len(xy), keep.sum() + 4, keep.sum())
     assert log["parent_version"] == 1 and log["frame"]["unchanged"] is True
     assert log["frame"]["enu_origin"]["lat_deg"] == ORIGIN.lat_deg
-    assert log["markings"] == {"tiles": [], "total_px_changed": 0}  # same rasters both times
+    m = log["markings"]  # same rasters both times
+    assert (m["tiles"], m["total_px_changed"], m["cells"], m["test"]["cells_compared"] > 0) == ([], 0, [], True)
     first = read_changelog(v1.path, v1.manifest)
     assert first["parent_version"] is None and first["frame"]["unchanged"] is None
     assert len(first["corners"]["added"]) == len(xy) and first["drives"]["added"] == ["drive_a"]
@@ -101,7 +115,8 @@ def test_tiles_log_prints_the_history(history):
     v1 = next(s for s in lines if "v0001" in s and "parent=" in s)
     v2 = next(s for s in lines if "v0002" in s and "parent=" in s)
     assert f"+{len(xy)} -0 ~0" in v1 and "first version" in v1
-    assert "parent=v0001" in v2 and "+4 -4 ~1" in v2 and "frame unchanged" in v2 and v2.startswith("*")
+    assert "parent=v0001" in v2 and "+0 -2 ~1 (+4 newly observed, -2 not re-observed)" in v2 \
+        and "frame unchanged" in v2 and v2.startswith("*")
     assert any(s.strip().startswith("removed: #") for s in lines)
     res = CliRunner().invoke(app, ["tiles", "log", "--root", str(root), "--map", "city", "--json"])
     docs = json.loads(res.output)
@@ -124,6 +139,11 @@ def test_marking_pixels_changed_per_tile(tmp_path):
     assert log["markings"]["total_px_changed"] == 200
     [tile] = log["markings"]["tiles"]
     assert tile["px_changed"] == 200 and tile["tile"] in ([0, 0], [0, 1], [0, 2])  # the rasters' tiles (0, 0..2)
+    # per 10 m cell against the rasters' noise: the repainted 10 m x 5 m block is one changed cell (its tile's
+    # north-west cell), the painted line's other cells unchanged
+    [cell] = log["markings"]["cells"]
+    assert cell["cell"] == [0, 10 * tile["tile"][1] + 9] and cell["px_changed"] == 200 and cell["p_value"] < 1e-6
+    assert log["markings"]["test"]["cells_compared"] == 31 and log["markings"]["cell_m"] == 10.0
 
 
 def test_diff_refuses_two_frames_with_one_line_naming_both_origins(tmp_path, monkeypatch):

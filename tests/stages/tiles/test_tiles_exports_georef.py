@@ -62,6 +62,17 @@ def test_the_geotiff_crs_is_the_local_tm_on_the_wgs84_datum_by_name():
 
 def test_every_layer_is_a_cog_with_crs_bounds_nodata_and_description(city_map, tmp_path):
     files = [p for p in export_map(city_map, "geotiff", tmp_path / "tif") if p.suffix == ".tif"]
+    loc = [p for p in files if p.parent.name.startswith("localizability_")]
+    files = [p for p in files if p not in loc]
+    crs = local_tm_crs(ORIGIN.as_dict())
+    assert {p.parent.name for p in loc} == {"localizability_ekf", "localizability_mcl"}
+    for path in loc:  # one 10 m pixel per cell of each tile the drive crossed (the drive crosses all 9 tiles)
+        i, j = (int(k) for k in path.stem.split("_"))
+        with rasterio.open(path) as ds:
+            assert pyproj.CRS.from_wkt(ds.crs.to_wkt()).equals(crs, ignore_axis_order=True)
+            assert ds.bounds == pytest.approx((i * TILE_M, j * TILE_M, (i + 1) * TILE_M, (j + 1) * TILE_M))
+            assert ds.res == (10.0, 10.0) and np.isnan(ds.nodata) and ds.descriptions[0].startswith(path.parent.name)
+    assert len(loc) == 2 * 9
     layers = {p.parent.name for p in files}
     assert layers == {"marking_mask", "traversable_mask", "intensity", "elevation_min", "elevation_mean",
                       "point_count"}
@@ -111,7 +122,7 @@ def test_a_pixel_centre_maps_back_to_its_enu_point_on_earth(city_map, tmp_path):
 
 def test_a_vrt_per_layer_reads_the_pixels_of_its_tiles(city_map, tmp_path):
     files = export_map(city_map, "geotiff", tmp_path / "tif")
-    vrts = sorted(p for p in files if p.suffix == ".vrt")
+    vrts = sorted(p for p in files if p.suffix == ".vrt" and not p.stem.startswith("localizability_"))
     assert [p.stem for p in vrts] == sorted(["marking_mask", "traversable_mask", "intensity", "elevation_min",
                                              "elevation_mean", "point_count"])
     for vrt in vrts:

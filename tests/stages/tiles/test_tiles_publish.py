@@ -46,7 +46,7 @@ def test_publish_writes_a_complete_documented_version(city):
     assert t00["bounds_m"] == [0.0, 0.0, 100.0, 100.0]
     assert set(t00["files"]) == {"corners.parquet", "marking_mask.png", "traversable_mask.png", "intensity.png",
                                  "elevation_min.png", "elevation_mean.png", "point_count.png", "raster.json",
-                                 "markings.parquet"}
+                                 "markings.parquet", "localizability.parquet"}
     vec = pq.read_table(vdir / "tiles" / "0_0" / "markings.parquet").to_pylist()  # the painted line, clipped
     assert [(v["type"], v["geometry"]) for v in vec] == [("lane_solid", "LineString")] and t00[
         "n_marking_features"
@@ -155,7 +155,8 @@ def test_flat_prefixed_raster_artifacts_are_copied_per_tile(city):
     _publish(root, corners, flat_rasters=True)
     reader = open_map(root / "maps" / "city")
     t = reader.tile_entry(0, 1)
-    assert set(t["files"]) == {"corners.parquet", "marking.png", "intensity.png", "raster.json", "markings.parquet"}
+    assert set(t["files"]) == {"corners.parquet", "marking.png", "intensity.png", "raster.json", "markings.parquet",
+                                "localizability.parquet"}
     assert t["marking"]["mask_file"] == "marking.png" and reader.tile_marking(0, 1).sum() == 255 * 200
     assert "marking.png" not in reader.tile_entry(1, 1)["files"]  # another tile's files are not copied
 
