@@ -73,7 +73,9 @@ def compute(ctx: StageContext) -> dict[str, Any]:
               "quality": measured,
               # how the corners' errors correlate with distance: the pose graph's figure (posegraph
               # error_correlation.py) for localizers that hold several corners at once; None: not stated
-              "corner_error_correlation": ctx.inputs.metadata("poses").get("pose_error_correlation")}
+              "corner_error_correlation": ctx.inputs.metadata("poses").get("pose_error_correlation"),
+              # the map frame's error against ENU (posegraph map_frame.py); the corner covariances are relative to it
+              "map_frame": ctx.inputs.metadata("poses").get("map_frame")}
 
     map_dir = inside(Path(ctx.settings["root"]) / "maps", check_name(name, "map", "tiles: settings.map_name"))
     origin = EnuOrigin.from_dict(fields["enu_origin"])
