@@ -4,10 +4,14 @@ markings stage's peak RSS, and a figure of the accumulated markings and corners.
 
     .venv/bin/python -m bench.bench_kitti_map --work DIR [--figure docs/figures/kitti_0048_map.png]
     .venv/bin/python -m bench.bench_kitti_map --work DIR --params P.yaml   # e.g. markings: {surface_band_m: 0}
+    .venv/bin/python -m bench.bench_kitti_map --work DIR --no-rerun --self-evaluate   # + the drive on its own map
 
 DIR receives the drive folder (links to the shared scans) and the output root; it is reused when present.
 The markings stage is re-run alone in a child process (``cornermap run --only markings --scheduler sync``
 with a fingerprint-changing no-op override, under /usr/bin/time) so its peak RSS is measured on its own.
+The map's corners are reported with their stored (map-relative) stds and the manifest's stated frame error.
+``--self-evaluate`` localizes the map's own drive on it (``cornermap evaluate --reference map --method ekf``, a
+child process; self-consistency: no truth exists for these scans) and adds the EKF's figures.
 """
 from __future__ import annotations
 
@@ -121,10 +125,40 @@ def measure(root: Path) -> tuple[dict, dict]:
         "rejected_reasons": reasons,
         "duplicates_1m": count_duplicates(en, th),
         "corner_std_m_median": round(float(np.median(std)), 3) if len(std) else None,
+        "corner_std_m": [round(float(v), 3) for v in std],
+        "map_frame": frame_summary(root),
     }
     fig = {"layers": layers, "intensity": intensity, "extent": extent, "path": path, "corners": en, "theta": th,
            "rejected": np.column_stack([rejected["east_m"].to_numpy(), rejected["north_m"].to_numpy()])}
     return out, fig
+
+
+def frame_summary(root: Path) -> dict | None:
+    """The newest published version's stated frame error (``map_frame``: stds of shift and rotation, source)."""
+    manifests = sorted((root / "maps").glob("*/v*/manifest.json"))
+    frame = json.loads(manifests[-1].read_text()).get("map_frame") if manifests else None
+    if not frame:
+        return None
+    return {k: round(frame[k], 4) for k in ("std_east_m", "std_north_m", "std_rotation_deg", "relative_std_m")} \
+        | {"source": frame.get("source")}
+
+
+def self_evaluate(work: Path, root: Path) -> dict:
+    """``cornermap evaluate`` of the map's own drive against its own map (reference: its pose-graph poses)."""
+    drive = work / "drive" / "k0048" / "drive.yaml"
+    out = work / "self_eval"
+    run = subprocess.run([sys.executable, "-m", "pipeline", "evaluate", "--root", str(root), "--map", "kitti",
+                          "--drive", str(drive), "--reference", "map", "--method", "ekf", "--out", str(out), "-q"],
+                         cwd=REPO, capture_output=True, text=True)
+    metrics = out / "metrics.json"
+    if not metrics.is_file():
+        raise SystemExit(f"self-evaluation failed (exit {run.returncode}): {run.stderr.strip().splitlines()[-3:]}")
+    ekf = json.loads(metrics.read_text())["methods"]["ekf"]
+    judged = ekf.get("map_relative") or ekf.get("map") or {}
+    keys = ("rms_2d_m", "p99_2d_m", "max_2d_m", "heading_rms_deg", "longitudinal_rms_m", "nees_mean", "epochs",
+            "localized_from_epoch")
+    return {"self_eval_exit": run.returncode, "self_eval_ekf": {k: judged.get(k) for k in keys},
+            "self_eval_ekf_all_epochs": {k: (judged.get("all_epochs") or {}).get(k) for k in keys[:4]}}
 
 
 def plot(fig: dict, path: Path, title: str) -> None:
@@ -168,6 +202,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--params", type=Path, help="YAML {stage: {param: value}} for the markings re-run")
     ap.add_argument("--figure", type=Path, help="write the map figure (PNG) here")
     ap.add_argument("--no-rerun", action="store_true", help="measure the built map only (no markings re-run)")
+    ap.add_argument("--self-evaluate", action="store_true", help="also localize the map's own drive on it (EKF)")
     args = ap.parse_args(argv)
     if not KITTI.is_dir():
         raise SystemExit(f"{KITTI}: the KITTI samples are not there")
@@ -176,6 +211,8 @@ def main(argv: list[str] | None = None) -> None:
                                                      if args.params else {})
     numbers, fig = measure(root)
     result.update(numbers)
+    if args.self_evaluate:
+        result.update(self_evaluate(args.work.resolve(), root))
     print(json.dumps(result))
     if args.figure:
         plot(fig, args.figure, f"KITTI 2011_09_26 drive 0048, {numbers['scans']} scans")

@@ -9,6 +9,13 @@ Each seed runs ``workflows/<preset>.yaml`` with ``params.simulate.seed`` changed
 (the engine skips stages whose fingerprints are committed, so a second run only redoes what changed).
 ``--fresh-evaluate`` drops the committed evaluate outputs first (after a code change that does not change the
 evaluate params). Which seeds are calibration and which validation seeds: docs/evaluation.md.
+
+``--no-survey`` builds the same cities without a survey cloud: the simulator runs first into
+``ROOT/<preset>-<seed>/sim`` (``stages.simulate.core.simulate``, the preset's defaults plus ``--sim-set``
+overrides), the ``survey:`` section of every drive file is deleted, and the workflow reads those drive files (no
+simulate stage; the truth and the drive folders stay in ``sim/``, where ``bench.roots.simulator_dir`` finds them):
+
+    .venv/bin/python -m bench.bench_seeds --preset tiny --seeds 201 202 --root /work/scratch-x/seeds --no-survey
 """
 from __future__ import annotations
 
@@ -32,8 +39,39 @@ FRAMES = ("truth_in_map", "map_relative", "absolute")
 WORST_MIN = {"nees_share_below_q95"}
 
 
+def simulate_without_survey(preset: str, seed: int, sim_dir: Path, overrides: dict | None = None) -> list[Path]:
+    """The simulator's output for (preset, seed) in ``sim_dir`` (simulated once: reused when its
+    ``simulation.json`` is there), every drive file's ``survey:`` section deleted; returns the drive files."""
+    from stages.simulate.core import simulate
+    from stages.simulate.presets import get_preset
+
+    if not (sim_dir / "simulation.json").is_file():
+        simulate(get_preset(preset, **(overrides or {})), seed, sim_dir)
+    drives = sorted(sim_dir.glob("drive_*/drive.yaml"), key=lambda p: int(p.parent.name.split("_")[1]))
+    for path in drives:
+        text = path.read_text()
+        doc = yaml.safe_load(text)
+        if doc.pop("survey", None) is not None:
+            header = "".join(line + "\n" for line in text.splitlines() if line.startswith("#"))
+            path.write_text(header + "# survey: deleted (bench_seeds --no-survey)\n"
+                            + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110))
+    return drives
+
+
+def without_simulate(spec: dict, sim_dir: Path) -> dict:
+    """A workflow of the seed's preset that reads the drive files in ``sim_dir`` instead of simulating."""
+    spec["stages"] = [s for s in spec["stages"] if s != "simulate"]
+    spec["params"].pop("simulate", None)
+    for d in spec["drives"]:
+        for key in ("path", "reference"):
+            if d.get(key):
+                d[key] = d[key].replace("${raw_drives}", str(sim_dir))
+    return spec
+
+
 def write_workflow(preset: str, seed: int, run_dir: Path, methods: list[str] | None,
-                   ekf_motion: str | None = None, evaluate_params: dict | None = None) -> Path:
+                   ekf_motion: str | None = None, evaluate_params: dict | None = None,
+                   no_survey: bool = False, sim_overrides: dict | None = None) -> Path:
     spec = yaml.safe_load((REPO / "workflows" / f"{preset}.yaml").read_text())
     spec["root"] = str(run_dir)
     spec["name"] = f"{preset}-{seed}"
@@ -44,6 +82,11 @@ def write_workflow(preset: str, seed: int, run_dir: Path, methods: list[str] | N
         spec["params"].setdefault("evaluate", {})["ekf_motion"] = ekf_motion
     if evaluate_params:
         spec["params"].setdefault("evaluate", {}).update(evaluate_params)
+    if sim_overrides and not no_survey:
+        spec["params"]["simulate"]["preset_overrides"] = dict(sim_overrides)
+    if no_survey:
+        simulate_without_survey(preset, seed, run_dir / "sim", sim_overrides)
+        spec = without_simulate(spec, run_dir / "sim")
     path = run_dir / f"workflow-{abs(hash(yaml.safe_dump(spec))) % 10**8}.yaml"
     run_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
@@ -101,16 +144,22 @@ def main() -> None:
                     help="the EKF motion model (default: the evaluate params' default)")
     ap.add_argument("--set", nargs="+", default=[], metavar="NAME=VALUE",
                     help="evaluate params for calibration runs (only on calibration seeds)")
+    ap.add_argument("--no-survey", action="store_true",
+                    help="delete the survey: section of every simulated drive file before building")
+    ap.add_argument("--sim-set", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="simulator preset fields (as `cornermap simulate --set`), e.g. gnss_target_rms_m=1.5")
     args = ap.parse_args()
 
     from pipeline.api import execute_workflow
     from pipeline.errors import CornermapError
+    from stages.simulate.cli import parse_overrides
 
     rows = {f: {"ekf": {}, "mcl": {}} for f in FRAMES}
     for seed in args.seeds:
         run_dir = (args.root / f"{args.preset}-{seed}").resolve()
         wf = write_workflow(args.preset, seed, run_dir, args.methods, args.ekf_motion,
-                            {k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.set)})
+                            {k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.set)},
+                            no_survey=args.no_survey, sim_overrides=parse_overrides(args.sim_set))
         if args.fresh_evaluate:
             for ds in ("eval_epochs", "eval_report"):
                 shutil.rmtree(run_dir / "datasets" / ds, ignore_errors=True)

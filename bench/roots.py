@@ -34,5 +34,9 @@ def read(root: Path, name: str, **kwargs):
 
 
 def simulator_dir(root: Path) -> Path:
-    """The simulator output of a root's simulate stage (its ``truth/`` folder, the drive folders)."""
+    """The simulator output of a root's simulate stage (its ``truth/`` folder, the drive folders), or the ``sim/``
+    folder that ``bench_seeds --no-survey`` simulates into when the root has no simulate stage."""
+    own = Path(root) / "sim"
+    if (own / "simulation.json").is_file() and not (Path(root) / "datasets" / "raw_drives").is_dir():
+        return own
     return latest(root, "raw_drives") / "artifacts" / "all"

@@ -145,6 +145,26 @@ def _error_correlation(doc: Any, where: Path) -> tuple[float, float] | None:
     return share, length
 
 
+def _map_frame(doc: Any, where: Path) -> dict[str, Any] | None:
+    """The map's ``map_frame`` entry: how far the map frame may sit from the true ENU frame (a shift at
+    ``reference_en_m`` and a rotation, covariance ``cov_shift_rotation`` 3x3 in m^2, m rad, rad^2), stated once per
+    version; the corners' covariances are then relative to the frame (docs/map-format.md). None for maps published
+    before it: their corner covariances hold the frame's error too."""
+    if doc is None:
+        return None
+    try:
+        ref = np.asarray(doc["reference_en_m"], dtype=float)
+        cov = np.asarray(doc["cov_shift_rotation"], dtype=float)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise MapFormatError(f"{where}: map_frame is malformed ({type(exc).__name__}: {exc}); expected "
+                             "reference_en_m [e, n] and cov_shift_rotation 3x3") from exc
+    ok = ref.shape == (2,) and cov.shape == (3, 3) and np.all(np.isfinite(ref)) and np.all(np.isfinite(cov))
+    if not ok or not np.allclose(cov, cov.T, atol=1e-12) or np.linalg.eigvalsh(cov).min() < -1e-12:
+        raise MapFormatError(f"{where}: map_frame reference_en_m {ref.tolist()} / cov_shift_rotation "
+                             f"{cov.tolist()}: expected 2 finite numbers and a symmetric positive semi-definite 3x3")
+    return {**doc, "reference_en_m": ref, "cov_shift_rotation": cov}
+
+
 class MapReader:
     """A pinned, read-only view of one map version."""
 
@@ -182,6 +202,7 @@ class MapReader:
         self.cell_m: float | None = cells.pop() if cells else None
         self.corner_error_correlation = _error_correlation(self.manifest.get("corner_error_correlation"),
                                                            self.path / MANIFEST_NAME)
+        self.map_frame = _map_frame(self.manifest.get("map_frame"), self.path / MANIFEST_NAME)
         self._schema = _corner_schema()
         self._empty = self._schema.empty_table()
         self._corners = _Lru(cache_tiles, self._load_corners)

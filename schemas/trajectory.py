@@ -47,7 +47,9 @@ register(
 register(
     "poses_optimized", "Pose-graph optimized vehicle poses T_map_vehicle with marginal covariance.",
     DRIVE, f("scan_id", pa.int64()), f("stamp_ns", pa.int64(), "ns"), *POSE,
-    f("cov_xy_yaw", pa.list_(pa.float64(), 9), doc="3x3 row-major marginal covariance of (east m, north m, yaw rad)"),
+    f("cov_xy_yaw", pa.list_(pa.float64(), 9), doc="3x3 row-major marginal covariance of (east m, north m, yaw rad) "
+      "relative to the map frame; the frame's own error against ENU is the dataset's map_frame metadata "
+      "(docs/posegraph.md)"),
 )
 
 register(

@@ -23,7 +23,7 @@ from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_
 from stages.evaluate.localize_mcl import odometry_increments
 from stages.evaluate.map_access import map_inputs, open_published_map
 from stages.evaluate.params import EvaluateParams
-from stages.evaluate.run import DriveArrays, evaluate_drive
+from stages.evaluate.run import DriveArrays, FrameError, evaluate_drive
 
 log = logging.getLogger(__name__)
 
@@ -259,7 +259,9 @@ def compute(ctx: StageContext) -> dict:
     p_map = with_map_correlation(p, reader)
     cmap, fetch = map_inputs(reader, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config(),
                             coverage_margin_m=p.coverage_margin_m())
-    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p_map.evaluation_config())
+    frame = FrameError.from_map(getattr(reader, "map_frame", None))
+    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p_map.evaluation_config(),
+                        frame)
     ekf = ev.runs.get("ekf")
     cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
                    p.sensor_range_m, p.coverage_min_in_range, p.coverage_min_associated)
@@ -311,7 +313,7 @@ def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays,
                                       coverage_margin_m=p.coverage_margin_m())
     cfg_prev = with_map_correlation(p, prev).model_copy(update={"methods": ["ekf"]}).evaluation_config()
     ev_prev = evaluate_drive(d, prev_cmap, prev_fetch, read_references(ctx, drive, reader.origin, p, prev_cmap),
-                             cfg_prev)
+                             cfg_prev, FrameError.from_map(getattr(prev, "map_frame", None)))
     ref = judged_reference(ev.metrics, "ekf")
     if ref == "truth_in_map":  # fitted on each version's own corners: compare against the common absolute truth
         ref = "truth"

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from stages.evaluate.config import EvaluationConfig
-from stages.evaluate.localize_ekf import CornerMap, CornerObservations, dead_reckon, run_ekf
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, dead_reckon, run_ekf
 from stages.evaluate.localize_mcl import RasterFetcher, run_mcl
 from stages.evaluate.metrics import JUDGE_ORDER, compute_errors, interpolate_poses, summarize, summarize_localized
 
@@ -36,6 +36,40 @@ class DriveArrays:
     icp_raw_increments: np.ndarray | None = None  # (E,3) ICP increments alone (NaN = failed), no wheel fallback
     icp_cov: np.ndarray | None = None  # (E,3,3) their covariance from the registration's information
     features_deskewed: bool = True  # road features motion-compensated (the EKF's marking measurement needs it)
+
+
+@dataclass(frozen=True)
+class FrameError:
+    """How far the map's frame may sit from the true ENU frame, as the map states it (its manifest's ``map_frame``):
+    a shift at ``reference_en_m`` and a rotation about it, covariance ``cov`` of (shift east m, shift north m,
+    rotation rad). A GNSS/INS fix is in the true frame; placed in the map's, its error gains this. Beside it, the
+    map's poses' own error relative to the frame (``relative_std_m`` per axis, ``relative_std_rad``): what a layer
+    painted from them, the marking raster, is locally off by."""
+
+    reference_en_m: np.ndarray  # (2,)
+    cov: np.ndarray  # (3,3)
+    relative_std_m: float = 0.0
+    relative_std_rad: float = 0.0
+
+    def at(self, en_m: np.ndarray) -> np.ndarray:
+        """(3,3) covariance of the frame's displacement of a pose at ``en_m`` (east, north, yaw)."""
+        d = np.asarray(en_m, float)[:2] - self.reference_en_m
+        G = np.array([[1.0, 0.0, -d[1]], [0.0, 1.0, d[0]], [0.0, 0.0, 1.0]])
+        return G @ self.cov @ G.T
+
+    @classmethod
+    def from_map(cls, doc: dict | None) -> FrameError | None:
+        """From ``MapReader.map_frame`` (None: the map states none; its corner covariances hold it)."""
+        if doc is None:
+            return None
+        return cls(np.asarray(doc["reference_en_m"], float), np.asarray(doc["cov_shift_rotation"], float),
+                   float(doc.get("relative_std_m") or 0.0), float(np.radians(doc.get("relative_std_deg") or 0.0)))
+
+    def marking_offset(self, cfg: EkfConfig) -> EkfConfig:
+        """The EKF's section with the marking raster's local error at least the map's stated relative pose error
+        (a raster painted from the map drives' scans is off by it; the params' value stays the floor)."""
+        return replace(cfg, marking_map_sigma_m=max(cfg.marking_map_sigma_m, self.relative_std_m),
+                       marking_map_sigma_yaw_rad=max(cfg.marking_map_sigma_yaw_rad, self.relative_std_rad))
 
 
 @dataclass
@@ -78,11 +112,18 @@ def first_fix(d: DriveArrays) -> int:
     return int(np.argmax(ok))
 
 
-def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None, cfg: EvaluationConfig
-                ) -> dict[str, MethodRun]:
+def initial_covariance(d: DriveArrays, k0: int, cfg: EvaluationConfig, frame: FrameError | None) -> np.ndarray:
+    """(3,3) the filters' start: the fix's own std (floored: urban GNSS/INS understates it) and, in the map's frame,
+    the map frame's error at the fix (``frame``; a map that states none holds it in its corner covariances)."""
+    P0 = np.diag(np.maximum(d.gnss_std[k0], [cfg.init_sigma_xy_m, cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad]) ** 2)
+    return P0 if frame is None else P0 + frame.at(d.gnss_q[k0, :2])
+
+
+def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None, cfg: EvaluationConfig,
+                frame: FrameError | None = None) -> dict[str, MethodRun]:
     k0 = first_fix(d)
     q0 = d.gnss_q[k0]
-    P0 = np.diag(np.maximum(d.gnss_std[k0], [cfg.init_sigma_xy_m, cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad]) ** 2)
+    P0 = initial_covariance(d, k0, cfg, frame)
     runs: dict[str, MethodRun] = {}
     n = len(d.stamps_ns)
     valid = d.gnss_valid[:, None] & np.isfinite(d.gnss_q)
@@ -102,6 +143,8 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
                    if not len(d.feature_epoch) else "road features are not deskewed (no wheel odometry)")
             log.warning("ekf: the road-marking measurement is on, but the %s; the EKF runs on corners alone", why)
         ekf_cfg = cfg.ekf if marks or not cfg.ekf.markings else replace(cfg.ekf, markings=False)
+        if frame is not None:
+            ekf_cfg = frame.marking_offset(ekf_cfg)
         if cfg.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
             r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, ekf_cfg,
                         wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov, **marks)
@@ -119,20 +162,28 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
     if "mcl" in cfg.methods and fetch is not None:
         t0 = time.perf_counter()
+        mcl_cfg = cfg.mcl
+        if frame is not None:  # the particles spread over the frame's error too
+            F = frame.at(q0[:2])
+            mcl_cfg = replace(mcl_cfg, init_sigma_xy_m=float(np.sqrt(mcl_cfg.init_sigma_xy_m**2
+                                                                     + np.linalg.eigvalsh(F[:2, :2])[-1])),
+                              init_sigma_yaw_rad=float(np.hypot(mcl_cfg.init_sigma_yaw_rad, np.sqrt(F[2, 2]))))
         r = run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, k0,
-                    np.random.default_rng(cfg.seed), cfg.mcl, stamps_ns=d.stamps_ns)
+                    np.random.default_rng(cfg.seed), mcl_cfg, stamps_ns=d.stamps_ns)
         runs["mcl"] = MethodRun(r.q, r.P, r.n_features, time.perf_counter() - t0)
         log.info("mcl: %d epochs in %.2f s", n - k0, runs["mcl"].seconds)
     return runs
 
 
 def evaluate_drive(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None,
-                   references: dict[str, tuple[np.ndarray, np.ndarray]], cfg: EvaluationConfig) -> Evaluation:
+                   references: dict[str, tuple[np.ndarray, np.ndarray]], cfg: EvaluationConfig,
+                   frame: FrameError | None = None) -> Evaluation:
     """Run the methods and score them. ``references``: name ('map', 'truth', 'truth_in_map') -> (stamps_ns, (R,3)
     x y yaw). The primary reference (per-epoch errors, targets) is the first of ``JUDGE_ORDER`` given. With
     ``cfg.ekf_judge_after_startup`` the EKF is scored from its first map-corner association on
-    (``metrics.summarize_localized``)."""
-    runs = run_methods(d, cmap, fetch, cfg)
+    (``metrics.summarize_localized``). ``frame``: the map frame's stated error (``FrameError.from_map``), added to
+    the filters' start."""
+    runs = run_methods(d, cmap, fetch, cfg, frame)
     gap = int(cfg.reference_max_gap_s * 1e9)
     refs = {name: interpolate_poses(d.stamps_ns, st, q, gap) for name, (st, q) in references.items() if len(st)}
     k0 = first_fix(d)

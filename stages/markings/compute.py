@@ -30,7 +30,7 @@ from stages.markings.raster_io import TileRasters, write_tile_rasters
 log = logging.getLogger(__name__)
 DEFAULT_TILE_SIZE_M = 100.0
 SCANS_PER_PIECE = 16  # scans read and placed at once (a 120k-point HDL-64E scan: ~16 MB per piece member)
-_POSE_COLUMNS = ["drive", "scan_id", "x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
+_POSE_COLUMNS = ["drive", "scan_id", "stamp_ns", "x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 
 
 def _tile_size_m(ctx) -> float:
@@ -108,6 +108,7 @@ def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[t
     for drive in sorted(set(poses["drive"].to_pylist())):
         dp = poses.filter(pc.equal(poses["drive"], drive))
         ids = dp["scan_id"].to_numpy()
+        stamps = dp["stamp_ns"].to_numpy()
         T_map_vehicle = pose_matrices(dp)
         T_vehicle_lidar = extrinsics.get(drive, np.eye(4))
         if drive not in extrinsics:
@@ -117,13 +118,17 @@ def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[t
             batch = ids[start:start + SCANS_PER_PIECE].tolist()
             for part in parts:
                 table = ctx.inputs.read_in("scans", "scan_id", batch, partition=part,
-                                           columns=["drive", "scan_id", "x_m", "y_m", "z_m", "intensity"])
+                                           columns=["drive", "scan_id", "x_m", "y_m", "z_m", "intensity",
+                                                    "time_offset_s"])
                 table = table.filter(pc.equal(table["drive"], drive))
                 if table.num_rows == 0:
                     continue
                 pts = np.column_stack([table[c].to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
+                # each point at its own time in the sweep, between its scan's optimized pose and the next's
                 enu, keep = scans_to_enu(pts, table["scan_id"].to_numpy(), ids, T_map_vehicle, T_vehicle_lidar,
-                                         min_range_m=params.min_range_m, max_range_m=params.max_range_m)
+                                         min_range_m=params.min_range_m, max_range_m=params.max_range_m,
+                                         time_offset_s=table["time_offset_s"].to_numpy().astype(float),
+                                         pose_stamps_ns=stamps)
                 yield enu, table["intensity"].to_numpy().astype(float)[keep]
 
 

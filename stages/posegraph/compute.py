@@ -168,8 +168,11 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
         ctx.report_step("marginal covariances")
     cov = _marginals(sol.problem, sol.poses, "the map drives") if cfg.solve.compute_marginals \
         else np.zeros((len(names), 9))
+    split = frame_of_map(sol, drives, cov.reshape(-1, 3, 3)) \
+        if cfg.solve.compute_marginals else None
+    cov_map = split.cov_relative.reshape(-1, 9) if split is not None else cov
     offsets = np.cumsum([0] + [d.n for d in drives])
-    optimized = [poses_table("poses_optimized", d, sol.poses[a:b], cov[a:b])
+    optimized = [poses_table("poses_optimized", d, sol.poses[a:b], cov_map[a:b])
                  for d, a, b in zip(drives, offsets[:-1], offsets[1:])]
     odometry = [poses_table("poses_odometry", d, dead_reckoning(d)) for d in drives]
     loop_rows = _loop_rows(sol.loops, names)
@@ -179,6 +182,7 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
         ref = solve_reference(d, drives, sol.poses, load, cfg)
         rcov = _marginals(ref.problem, np.concatenate([ref.poses, ref.problem.initial[d.n:]]), f"drive {d.name!r}"
                           )[:d.n] if cfg.solve.compute_marginals else np.zeros((d.n, 9))
+        # solved on the map's poses held fixed: its covariance is relative to the map already
         optimized.append(poses_table("poses_optimized", d, ref.poses, rcov))
         odometry.append(poses_table("poses_odometry", d, dead_reckoning(d)))
         loop_rows += _loop_rows(ref.loops, [(d.name, int(s)) for s in d.scan_ids] + names)
@@ -192,13 +196,33 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
         write_tum(out_dir / f"{name}_optimized_tum.txt", d.stamps_ns * 1e-9, ref.poses)
         write_kitti(out_dir / f"{name}_optimized_kitti.txt", ref.poses)
     ctx.report_step("the report")
-    kernel = _error_kernel(sol, cfg.solve.error_kernel_pairs_per_bin) if cfg.solve.compute_marginals else None
-    write_report(out_dir, drives, sol, refs, loop_rows, survey_matches, kernel)
+    kernel = _error_kernel(sol, cfg.solve.error_kernel_pairs_per_bin, split) if cfg.solve.compute_marginals \
+        else None
+    anchored = any(r.get("anchors") for r in sol.survey_rounds)
+    frame = split.as_dict() | {"source": "survey anchors" if anchored else "GNSS/INS"} if split is not None else None
+    write_report(out_dir, drives, sol, refs, loop_rows, survey_matches, kernel, frame)
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
-            "loop_closures": loops_table(loop_rows), "_extra": {"pose_error_correlation": kernel}}
+            "loop_closures": loops_table(loop_rows),
+            "_extra": {"pose_error_correlation": kernel, "map_frame": frame}}
 
 
-def _error_kernel(sol, per_bin: int) -> dict | None:
+def frame_of_map(sol, drives: list[DriveInput], marginals_enu: np.ndarray):
+    """The map drives' frame error and relative covariances (``map_frame.split_map_frame``), logged."""
+    from stages.posegraph.map_frame import split_map_frame
+
+    group = np.repeat(np.arange(len(drives)), [d.n for d in drives])
+    split = split_map_frame(sol.problem, sol.poses, group, marginals_enu)
+    c = split.cov_frame
+    log.info("posegraph: map frame against ENU (%s): std (%.3f, %.3f) m at (%.1f, %.1f), %.3f deg, scale %.1e; "
+             "poses relative to it %.3f m RMS (absolute %.3f m)",
+             "survey anchors" if any(r.get("anchors") for r in sol.survey_rounds) else "GNSS/INS",
+             np.sqrt(c[0, 0]), np.sqrt(c[1, 1]), *split.reference_en_m, np.degrees(np.sqrt(c[2, 2])), split.scale_std,
+             np.sqrt(np.mean(np.trace(split.cov_relative[:, :2, :2], axis1=1, axis2=2))),
+             np.sqrt(np.mean(marginals_enu[:, 0, 0] + marginals_enu[:, 1, 1])))
+    return split
+
+
+def _error_kernel(sol, per_bin: int, split=None) -> dict | None:
     """The map drives' pose-error correlation kernel (``error_correlation``) for the map's metadata; None when
     off (``per_bin`` 0) or when gtsam's Cholesky marginals give up."""
     from stages.posegraph.error_correlation import pose_error_kernel
@@ -207,7 +231,7 @@ def _error_kernel(sol, per_bin: int) -> dict | None:
     if per_bin <= 0:
         return None
     graph, values, _ = build_graph(sol.problem, sol.poses)
-    kernel = pose_error_kernel(graph, values, sol.poses, sol.problem.n_poses, per_bin=per_bin)
+    kernel = pose_error_kernel(graph, values, sol.poses, sol.problem.n_poses, per_bin=per_bin, split=split)
     if kernel is None:
         return None
     log.info("posegraph: pose errors correlate %.2f exp(-d^2 / 2 (%.0f m)^2) (%d pose pairs of the map drives)",

@@ -85,13 +85,24 @@ def fit_kernel(d_m: np.ndarray, rho: np.ndarray, max_length_m: float = 500.0) ->
     return float(fit.x[0]), float(fit.x[1])
 
 
-def pose_error_kernel(graph, values, poses: np.ndarray, n_poses: int, per_bin: int = 60, seed: int = 0
-                      ) -> ErrorKernel | None:
+def _enu_block(cov6: np.ndarray, Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    """(3,3) (east, north, yaw) block of a 6x6 joint-marginal block in gtsam's body-frame (rotation, translation)
+    tangents of poses a and b (rotations R_map_vehicle)."""
+    Ba, Bb = np.zeros((3, 6)), np.zeros((3, 6))
+    Ba[:2, 3:], Ba[2, :3] = Ra[:2], Ra[2]
+    Bb[:2, 3:], Bb[2, :3] = Rb[:2], Rb[2]
+    return Ba @ cov6 @ Bb.T
+
+
+def pose_error_kernel(graph, values, poses: np.ndarray, n_poses: int, per_bin: int = 60, seed: int = 0,
+                      split=None) -> ErrorKernel | None:
     """The kernel of poses ``0..n_poses-1`` of the graph (``T_map_vehicle`` ``poses`` give their positions and the
-    rotations into ENU of gtsam's body-frame marginals); None when gtsam's Cholesky marginals give up."""
+    rotations into ENU of gtsam's body-frame marginals); None when gtsam's Cholesky marginals give up. With
+    ``split`` (``map_frame.FrameSplit`` of these poses) the errors are those relative to the map frame."""
     import gtsam
 
     from stages.posegraph.factors.graph import _key, _variable_named
+    from stages.posegraph.map_frame import frame_basis
 
     i_idx, j_idx = sample_pairs(poses[:n_poses, :2, 3], per_bin=per_bin, seed=seed)
     if not len(i_idx):
@@ -102,16 +113,18 @@ def pose_error_kernel(graph, values, poses: np.ndarray, n_poses: int, per_bin: i
         log.warning("pose graph: the map states no error correlation (gtsam's Cholesky marginals gave up near %s)",
                     _variable_named(err))
         return None
+    G = None if split is None else frame_basis(poses[:n_poses, :2, 3], split.reference_en_m)
     rho = np.empty(len(i_idx))
     for n, (i, j) in enumerate(zip(i_idx.tolist(), j_idx.tolist())):
         keys = gtsam.KeyVector()
         keys.append(_key(i))
         keys.append(_key(j))
         joint = marginals.jointMarginalCovariance(keys)  # 6x6 blocks, body frames, rotation then translation
-        Ri, Rj = poses[i, :3, :3], poses[j, :3, :3]
-        rho[n] = horizontal_correlation(Ri @ joint.at(keys[0], keys[0])[3:, 3:] @ Ri.T,
-                                        Rj @ joint.at(keys[1], keys[1])[3:, 3:] @ Rj.T,
-                                        Ri @ joint.at(keys[0], keys[1])[3:, 3:] @ Rj.T)
+        blocks = [_enu_block(joint.at(keys[a], keys[b]), poses[(i, j)[a], :3, :3], poses[(i, j)[b], :3, :3])
+                  for a, b in ((0, 0), (1, 1), (0, 1))]
+        if G is not None:
+            blocks = [split.relative_cross(a, b, c, G) for (a, b), c in zip(((i, i), (j, j), (i, j)), blocks)]
+        rho[n] = horizontal_correlation(*blocks)
     d = np.linalg.norm(poses[i_idx, :2, 3] - poses[j_idx, :2, 3], axis=1)
     share, length = fit_kernel(d, rho)
     means = []

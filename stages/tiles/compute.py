@@ -74,7 +74,9 @@ def compute(ctx: StageContext) -> dict[str, Any]:
               "quality": measured,
               # how the corners' errors correlate with distance: the pose graph's figure (posegraph
               # error_correlation.py) for localizers that hold several corners at once; None: not stated
-              "corner_error_correlation": ctx.inputs.metadata("poses").get("pose_error_correlation")}
+              "corner_error_correlation": ctx.inputs.metadata("poses").get("pose_error_correlation"),
+              # the map frame's error against ENU (posegraph map_frame.py); the corner covariances are relative to it
+              "map_frame": ctx.inputs.metadata("poses").get("map_frame")}
 
     cells = _localizability(params, size_m, corners, trajectories, rasters, fields["corner_error_correlation"])
     by_tile = split_by_tile(cells, params.localizability_cell_m, size_m) if cells is not None else None

@@ -51,7 +51,21 @@ def test_align_truth_to_map_ignores_unmapped_true_corners_and_moves_poses():
 def test_align_truth_to_map_needs_three_matches():
     truth = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
     assert align_truth_to_map(truth[:2] + 0.1, truth) is None
-    assert align_truth_to_map(truth + 5.0, truth) is None  # nothing within 1.5 m
+    assert align_truth_to_map(truth + 5.0, truth) is None  # nothing within the coarse search's 4 m
+
+
+def test_align_truth_to_map_finds_a_map_metres_off_a_consumer_receivers_frame():
+    """A map 3.2 m and 0.5 deg off the true frame (a consumer receiver's bias): no map corner lies within the 1.5 m
+    matching radius of its true corner, the coarse vote finds the shift and the fit recovers the transform."""
+    rng = np.random.default_rng(12)
+    truth = rng.uniform(-80, 80, (40, 2))
+    R, t = _transform(np.deg2rad(0.5), [2.6, -1.8])
+    mapped = truth[:25] @ R.T + t + rng.normal(0, 0.02, (25, 2))
+    assert np.min(np.linalg.norm(mapped - truth[:25], axis=1)) > 1.5
+    R_fit, t_fit, resid = align_truth_to_map(mapped, truth)
+    assert len(resid) == 25 and resid.max() < 0.1
+    assert np.degrees(np.arctan2(R_fit[1, 0], R_fit[0, 0])) == pytest.approx(0.5, abs=0.02)
+    assert align_truth_to_map(mapped, truth, coarse_radius_m=0.0) is None  # the 1.5 m matching alone finds nothing
 
 
 def test_align_truth_to_map_leaves_out_map_corners_that_are_no_true_corner():
@@ -69,3 +83,17 @@ def test_align_truth_to_map_leaves_out_map_corners_that_are_no_true_corner():
     q = np.array([[150.0, -200.0, 0.3]])
     assert np.allclose(transform_poses(q, R_fit, t_fit)[:, :2], transform_poses(q, R_ref, t_ref)[:, :2], atol=1e-9)
     assert np.allclose(transform_poses(q, R_fit, t_fit)[:, :2], transform_poses(q, R, t)[:, :2], atol=0.02)
+
+
+def test_align_truth_to_map_starts_from_the_corners_that_agree_not_from_decoys_at_the_matching_radius():
+    """A tiny map: 5 map corners on true ones (2 cm noise) and 3 decoys 1.45-1.5 m from others, inside the 1.5 m
+    matching radius (tiny seed 203's layout): the fit is the true transform and the decoys stay out."""
+    truth = np.array([[-4.9, -10.3], [-32.4, -10.3], [10.0, 25.0], [40.0, -5.0], [-20.0, 35.0], [25.0, 45.0],
+                      [-45.0, 20.0], [5.0, -40.0]])
+    R, t = _transform(np.deg2rad(0.05), [0.3, -0.2])
+    rng = np.random.default_rng(21)
+    mapped = truth[:5] @ R.T + t + rng.normal(0, 0.02, (5, 2))
+    decoys = truth[5:] @ R.T + t + np.array([[1.49, 0.0], [0.0, -1.47], [-1.05, 1.05]])
+    R_fit, t_fit, resid = align_truth_to_map(np.vstack([mapped, decoys]), truth)
+    assert len(resid) == 5 and resid.max() < 0.06
+    assert np.degrees(np.arctan2(R_fit[1, 0], R_fit[0, 0])) == pytest.approx(0.05, abs=0.1)

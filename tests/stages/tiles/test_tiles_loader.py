@@ -147,3 +147,29 @@ def test_the_map_states_the_pose_graphs_error_correlation(tmp_path):
                 {"share": 0.5, "length_m": -1.0}):
         with pytest.raises(MapFormatError, match="corner_error_correlation"):
             _error_correlation(bad, tmp_path / "manifest.json")
+
+
+def test_the_map_states_its_frame_error(tmp_path):
+    """The pose graph's map frame error (metadata of its poses) is published in the manifest and read back; a map
+    published before it states none (its corner covariances held the frame's error); a malformed entry is a named
+    format error."""
+    from mapformat.loader import _map_frame
+    from pipeline.errors import MapFormatError
+
+    xy, dirs, _ = building_corners(buildings())
+    corners = corner_table(xy, dirs, seed=2, noise_m=0.0)
+    cov = [[0.09, 0.001, 0.0], [0.001, 0.1, 0.0], [0.0, 0.0, 4e-6]]
+    compute(city_context(tmp_path / "a", corners, poses_metadata={
+        "map_frame": {"reference_en_m": [120.0, 80.0], "cov_shift_rotation": cov, "source": "GNSS/INS"}}))
+    frame = open_map(tmp_path / "a" / "maps" / "city").map_frame
+    np.testing.assert_allclose(frame["cov_shift_rotation"], cov)
+    np.testing.assert_allclose(frame["reference_en_m"], [120.0, 80.0])
+    assert frame["source"] == "GNSS/INS"
+    compute(city_context(tmp_path / "b", corners))
+    assert open_map(tmp_path / "b" / "maps" / "city").map_frame is None
+    for bad in ({"reference_en_m": [1.0, 2.0]}, {"reference_en_m": [1.0], "cov_shift_rotation": cov},
+                {"reference_en_m": [1.0, 2.0], "cov_shift_rotation": [[1.0, 2.0], [2.0, 1.0]]},
+                {"reference_en_m": [1.0, 2.0], "cov_shift_rotation": [[1, 0, 0], [0, -1, 0], [0, 0, 1]]},
+                {"reference_en_m": [1.0, "x"], "cov_shift_rotation": cov}):
+        with pytest.raises(MapFormatError, match="map_frame"):
+            _map_frame(bad, tmp_path / "manifest.json")
