@@ -26,7 +26,7 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles ls --map tiny --root runs/tiny --json\n\n"
             "  cornermap tiles query --at 37.4979,127.0276 --radius 150 --map tiny --root runs/tiny --json\n\n"
             "  cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny\n\n"
-            "  cornermap tiles apply runs/delta --map /vehicle/maps/tiny")
+            "  cornermap tiles apply runs/delta --map tiny --root /vehicle")
 
 
 def map_dir_of(root: Path, name: Optional[str]) -> Path:
@@ -317,15 +317,17 @@ def bundle(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
 
 
 def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle.json, files/)."),
-          map_folder: Path = typer.Option(..., "--map", help="The vehicle's map folder (LATEST and its vNNNN)."),
+          root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
           as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON.")) -> None:
-    """Apply a delta bundle to a copy of a map: the copy's LATEST must name the bundle's base; the target is built
-    and checked file by file in a staging folder, renamed into place, then named by LATEST.
+    """Apply a delta bundle to a copy of a map (ROOT/maps/NAME on the vehicle: LATEST and the version it names):
+    the copy's LATEST must name the bundle's base; the target is built and checked file by file in a staging
+    folder, renamed into place, then named by LATEST.
 
-    Example: [b]cornermap tiles apply runs/delta --map /vehicle/maps/tiny[/b]
+    Example: [b]cornermap tiles apply runs/delta --map tiny --root /vehicle[/b]
     """
     from mapformat.bundle import apply_bundle
 
+    map_folder = map_dir_of(root, map_name)
     res = apply_bundle(bundle_dir, map_folder)
     if as_json:
         typer.echo(json.dumps(res, indent=1))

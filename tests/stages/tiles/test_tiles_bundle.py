@@ -157,13 +157,14 @@ def test_the_cli_bundles_applies_and_refuses_in_one_line(two, tmp_path):
     res = subprocess.run(cli + ["bundle", "--root", str(root), "--map", "city", "--from", "v0001", "--to", "LATEST",
                                 "--out", str(tmp_path / "d")], capture_output=True, text=True, env=env)
     assert res.returncode == 0 and "v0001 -> v0002" in res.stdout, res.stderr
-    car = _vehicle(two, tmp_path / "car")
-    res = subprocess.run(cli + ["apply", str(tmp_path / "d"), "--map", str(car)], capture_output=True, text=True,
-                         env=env)
+    _vehicle(two, tmp_path / "car" / "maps" / "city")  # the vehicle's root holds maps/city like any root
+    res = subprocess.run(cli + ["apply", str(tmp_path / "d"), "--root", str(tmp_path / "car"), "--map", "city"],
+                         capture_output=True, text=True, env=env)
     assert res.returncode == 0 and "LATEST = v0002" in res.stdout, res.stderr
     again = subprocess.run(cli + ["bundle", "--root", str(root), "--map", "city", "--from", "v0001", "--to", "v0002",
                                   "--out", str(tmp_path / "d")], capture_output=True, text=True, env=env)
-    wrong = subprocess.run(cli + ["apply", str(tmp_path / "d"), "--map", str(_other_v1(two, tmp_path / "c3"))],
+    _other_v1(two, tmp_path / "c3" / "maps" / "city")
+    wrong = subprocess.run(cli + ["apply", str(tmp_path / "d"), "--root", str(tmp_path / "c3"), "--map", "city"],
                            capture_output=True, text=True, env=env)
     for r, want in ((again, "not an empty folder"), (wrong, "refusing it")):
         assert r.returncode == 1 and want in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
