@@ -317,7 +317,11 @@ def bundle(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
 
 
 def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle.json, files/)."),
-          root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+          root: Optional[Path] = typer.Option(None, "--root", envvar="CORNERMAP_ROOT", show_envvar=False,
+                                              help="The vehicle's root (it holds maps/NAME)."),
+          map_name: Optional[str] = typer.Option(None, "--map", "-m", help="Map name (ROOT/maps/NAME); default: "
+                                                 "the only map there. A vehicle's copy kept outside a root may be "
+                                                 "given as its folder (one holding LATEST), without --root."),
           as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON.")) -> None:
     """Apply a delta bundle to a copy of a map (ROOT/maps/NAME on the vehicle: LATEST and the version it names):
     the copy's LATEST must name the bundle's base; the target is built and checked file by file in a staging
@@ -327,7 +331,7 @@ def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle
     """
     from mapformat.bundle import apply_bundle
 
-    map_folder = map_dir_of(root, map_name)
+    map_folder = _vehicle_map_folder(root, map_name)
     res = apply_bundle(bundle_dir, map_folder)
     if as_json:
         typer.echo(json.dumps(res, indent=1))
@@ -337,6 +341,21 @@ def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle
         typer.echo(f"{map_folder}: v{res['base']:04d} -> v{res['target']:04d} ({res['written']} files from the "
                    f"bundle, {res['from_base']} from v{res['base']:04d}, every sha256 checked); LATEST = "
                    f"v{res['target']:04d}")
+
+
+def _vehicle_map_folder(root: Optional[Path], map_name: Optional[str]) -> Path:
+    """ROOT/maps/NAME, or a copy's own folder when --map names one (a path holding LATEST) and --root is not given."""
+    from pipeline.errors import OptionError
+
+    if map_name is not None and ("/" in map_name or "\\" in map_name):
+        folder = Path(map_name)
+        if root is not None:
+            raise OptionError("--map", [f"{map_name!r} is a folder; with --root, --map is a name (ROOT/maps/NAME)"])
+        if not (folder / "LATEST").is_file():
+            raise OptionError("--map", [f"{map_name!r} holds no LATEST: not a map folder; expected a name with "
+                                        "--root ROOT (ROOT/maps/NAME) or a map's folder"])
+        return folder
+    return map_dir_of(root if root is not None else Path("."), map_name)
 
 
 def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:

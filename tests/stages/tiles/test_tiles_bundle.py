@@ -166,5 +166,13 @@ def test_the_cli_bundles_applies_and_refuses_in_one_line(two, tmp_path):
     _other_v1(two, tmp_path / "c3" / "maps" / "city")
     wrong = subprocess.run(cli + ["apply", str(tmp_path / "d"), "--root", str(tmp_path / "c3"), "--map", "city"],
                            capture_output=True, text=True, env=env)
+    # a vehicle's copy kept outside any root is named by its folder (the issue's `--map MAP_FOLDER`)
+    loose = _vehicle(two, tmp_path / "loose")
+    res = subprocess.run(cli + ["apply", str(tmp_path / "d"), "--map", str(loose)], capture_output=True, text=True,
+                         env=env)
+    assert res.returncode == 0 and "LATEST = v0002" in res.stdout and read_latest(loose) == 2, res.stderr
+    bad = subprocess.run(cli + ["apply", str(tmp_path / "d"), "--map", str(tmp_path)], capture_output=True,
+                         text=True, env=env)
+    assert bad.returncode == 2 and "holds no LATEST" in bad.stderr, bad.stderr
     for r, want in ((again, "not an empty folder"), (wrong, "refusing it")):
         assert r.returncode == 1 and want in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
