@@ -353,6 +353,7 @@ def main(argv: list[str] | None = None) -> None:
     2 usage (unknown command or option, a missing or malformed option value); 3 data quality (a gate refused);
     75 locked (another run holds the lock: try later); 130 interrupted (SIGINT), 143 terminated (SIGTERM), each
     with one line, pool processes ended, nothing half-written visible (``signals_stop_the_run``)."""
+    quiet_resource_tracker()
     code = run_command(argv)
     if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) and _computing_threads():
         # a single-partition stage still computing in a thread of this process: not waited for (it would finish
@@ -364,6 +365,16 @@ def main(argv: list[str] | None = None) -> None:
         os._exit(code)
     if code:
         sys.exit(code)
+
+
+def quiet_resource_tracker() -> None:
+    """The process multiprocessing starts to track its semaphores (at the first one, with this process's warning
+    options) unlinks those a signal left behind, and warns about each as it does (``UserWarning: resource_tracker:
+    There appear to be 3 leaked semaphore objects``, two lines after an interrupted build's one line). The clean-up
+    is its job; the warning is not for a user: it is filtered in that process only."""
+    option = "ignore::UserWarning:multiprocessing.resource_tracker"
+    if option not in sys.warnoptions:
+        sys.warnoptions.append(option)
 
 
 def _computing_threads() -> list[threading.Thread]:

@@ -218,3 +218,18 @@ def test_a_refused_rebuild_exits_3_and_keeps_latest(tmp_path):
     assert "Traceback" not in res.stderr
     assert (tmp_path / "maps" / "maps" / "city" / "LATEST").read_text().startswith("v0001")
     assert any(" gate: " in ln for ln in res.stderr.splitlines() if PLAIN_LINE.match(ln)), res.stderr
+
+
+@pytest.mark.parametrize("quiet", [True, False])
+def test_an_interrupted_command_leaves_no_resource_tracker_warning(quiet):
+    """A command ended by a signal while a pool's semaphores exist (``os._exit``, as ``main`` does when a stage still
+    computes in a thread): the tracker process unlinks them without a warning on the user's stderr (and, the oracle,
+    with one when the filter is not set)."""
+    code = ("import os, multiprocessing as mp\n"
+            "from pipeline.cli import quiet_resource_tracker\n"
+            f"{'quiet_resource_tracker()' if quiet else 'pass'}\n"
+            "lock = mp.get_context('spawn').Lock()\n"
+            "os._exit(130)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=60)
+    assert res.returncode == 130
+    assert ("leaked semaphore" in res.stderr) is not quiet, res.stderr
