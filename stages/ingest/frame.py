@@ -2,8 +2,10 @@
 
 A drive is placed in the map's ENU frame by (in order): its GNSS/INS fixes; a prior trajectory in ENU about a
 stated origin; a prior trajectory in a local frame plus a stated start heading (at the map's origin or a stated
-position); a start heading alone (odometry and loop closures give the rest). A local prior without a start heading,
-and a drive with none of these, cannot be placed: ``cornermap drive check`` warns, and a run refuses it before any
+position); a start heading alone (odometry and loop closures give the rest), unless the drive is a keyframe drive
+(its edges would rest on unchecked global registrations). A local prior without a start heading, a keyframe drive
+with a start heading alone, and a drive with none of these, cannot be placed: ``cornermap drive check`` warns
+(``--placed``: exit 3, as ``cornermap rebuild`` runs it to quarantine the drive), and a run refuses it before any
 stage starts (``preflight``, exit 3: the drive lacks what places it); a drive that starts at the map's origin needs
 that origin stated (``cornermap build --origin``, a pinned map, the workflow's ``enu_origin``; exit 2 without it).
 """
@@ -16,6 +18,28 @@ from stages.ingest.drive_file import DriveSpec
 ADD = ("add one of: a gnss section (GNSS/INS CSV or KITTI oxts folder); prior: a TUM/KITTI poses file with its "
        "frame (enu + origin, or local) and std; start: {heading_deg, heading_convention} for a drive that starts at "
        "cornermap build --origin (docs/drive-file.md)")
+
+
+# The odometry's default keyframe_min_dt_s: consecutive scans further apart are registered as keyframes (global
+# registration where no reference increment exists). Stated here as a number: a stage does not import another.
+KEYFRAME_GAP_S = 0.35
+
+
+def median_scan_gap_s(spec: DriveSpec) -> float | None:
+    """The median time between consecutive stamped scans of the drive (None: fewer than two, or unreadable; the
+    drive check names that)."""
+    import numpy as np
+
+    from pipeline.errors import CornermapError
+    from stages.ingest.report import IngestReport
+    from stages.ingest.scan_list import list_scans
+
+    try:
+        stamps = np.array([f.stamp_ns for f in list_scans(spec, None, None, IngestReport()) if f.stamp_ns is not None],
+                          np.int64)
+    except (CornermapError, OSError):
+        return None
+    return float(np.median(np.diff(np.sort(stamps)))) * 1e-9 if len(stamps) > 1 else None
 
 
 @dataclass(frozen=True)
@@ -43,9 +67,15 @@ def frame_source(spec: DriveSpec) -> FrameSource:
                                                 f"start heading {s.heading_deg:g} deg ({s.heading_convention}, std "
                                                 f"{s.std_heading_deg:g} deg) at {where}", None, at_origin)
     if s is not None:
-        return FrameSource("start", f"frame: no GNSS; the start heading {s.heading_deg:g} deg ({s.heading_convention}"
-                                    f", std {s.std_heading_deg:g} deg) at {where}, then odometry and loop closures",
-                           None, at_origin)
+        line = (f"frame: no GNSS; the start heading {s.heading_deg:g} deg ({s.heading_convention}, std "
+                f"{s.std_heading_deg:g} deg) at {where}, then odometry and loop closures")
+        gap_s = median_scan_gap_s(spec)
+        if gap_s is not None and gap_s > KEYFRAME_GAP_S:
+            return FrameSource("start", line, f"drive {spec.name}: a keyframe drive (median {gap_s:.2f} s between "
+                               "scans) with a start heading alone: its scan-to-scan edges would rest on global "
+                               "registrations nothing checks (one matched a wrong place 7.8 m off on tiny seed 862); "
+                               "add prior: its keyframes' poses (TUM/KITTI) with their std", at_origin)
+        return FrameSource("start", line, None, at_origin)
     if p is not None:
         return FrameSource("prior_local", f"frame: none (the prior trajectory {p.file} is in a local frame)",
                            f"drive {spec.name}: its frame cannot be fixed: no GNSS, and the prior trajectory "

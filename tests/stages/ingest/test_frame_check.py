@@ -78,3 +78,18 @@ def test_a_drive_starting_at_the_origin_needs_one(tmp_path):
     lines = [ln for ln in build.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "starts at the map's origin" in lines[0] and "--origin" in lines[0], lines
     assert not (root / "datasets").exists() or not list((root / "datasets").rglob("_manifest.json"))
+
+
+def test_a_keyframe_drive_with_a_start_heading_alone_is_not_placed(tmp_path):
+    start = {"heading_deg": 30.0, "heading_convention": "azimuth_cw_from_north"}
+    drive = _without_gnss(tmp_path / "k", start=start)
+    stamps = drive.parent / "scans" / "stamps.csv"
+    lines = stamps.read_text().splitlines()
+    head, rows = lines[0], [ln.split(",") for ln in lines[1:]]
+    col = head.split(",").index("gps_seconds")
+    for k, r in enumerate(rows):  # keyframes 1.5 s apart
+        r[col] = f"{float(rows[0][col]) + 1.5 * k:.6f}"
+    stamps.write_text("\n".join([head] + [",".join(r) for r in rows]) + "\n")
+    src = frame_source(load_drive_file(drive))
+    assert src.kind == "start" and "a keyframe drive (median 1.50 s between scans)" in src.problem
+    assert "add prior:" in src.problem
