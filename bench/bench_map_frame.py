@@ -143,6 +143,9 @@ def report(m: MapDrives, sim: Path, bias_tau_s: float, label: str) -> None:
         sel = m.group == k
         v, gx, tx = m.gnss_valid[sel], m.gnss_T[sel][:, :2, 3], truth[sel][:, :2, 3]
         t_s = m.stamps_ns[sel] * 1e-9
+        if v.sum() < 3:
+            print(f"{name}: {t_s[-1] - t_s[0]:.0f} s; no GNSS (placed by its prior trajectory / start pose)")
+            continue
         err = np.linalg.norm(gx[v] - tx[v], axis=1)
         fix = np.flatnonzero(v)[::10] if v.sum() > 10 else np.flatnonzero(v)  # one fix per second at 10 Hz
         bound = gnss_frame_bound(t_s[fix], tx[fix], float(np.sqrt(np.mean(err**2) / 2)), bias_tau_s, 0.05,

@@ -68,6 +68,8 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
 
     with workflow_locks(wf, wf.root_dir(root), only, dry_run=dry_run):  # from planning on: gc keeps what it finds
         plan = make_plan(wf, wf.root_dir(root), only=only)
+        if not dry_run:
+            run_preflights(plan)
         if dry_run:
             rows = describe_plan(plan)
             if not quiet_plan:
@@ -92,6 +94,16 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
     return {"plan": plan, "summary": summary, "wall_s": round(time.perf_counter() - t0, 3),
             "cpu_s": round(_cpu_s() - cpu0, 3), "dashboard": sched.dashboard_link,
             "dask_log": str(sched.log_file) if sched.log_file else None}
+
+
+def run_preflights(plan: "Plan") -> None:
+    """Each selected stage's ``preflight`` on its drives that exist and its settings, before any stage runs: a run
+    that cannot succeed on its inputs stops here, in one line, with nothing computed."""
+    from pipeline.declare import resolve
+
+    for sp in plan.stages.values():
+        if sp.selected and not sp.committed and sp.decl.preflight:
+            resolve(sp.decl.preflight)({n: p for n, p in sp.drives.items() if p.is_file()}, dict(sp.settings))
 
 
 def _cpu_s() -> float:

@@ -113,7 +113,8 @@ def build_cmd(
         None,
         "--origin",
         help="The map's ENU origin LAT,LON,H (degrees, "
-        "degrees, metres WGS84); default: the first GNSS fix of the first drive.",
+        "degrees, metres WGS84); default: the first GNSS fix of the first drive, else a prior trajectory's ENU "
+        "origin, else a stated start position. A drive whose start: has no position starts here.",
     ),
     scheduler: Optional[str] = opts.SCHEDULER,
     workers: Optional[int] = opts.WORKERS,
@@ -128,7 +129,9 @@ def build_cmd(
     """Build and publish the next version of map NAME from drives (the standard map workflow).
 
     A map with an identity (cornermap maps create) or a published version keeps its frame: its origin is used,
-    and an --origin that differs is refused (exit 1).
+    and an --origin that differs is refused (exit 1). A drive nothing places in the map's frame (no GNSS, no prior
+    trajectory, no start heading) is refused before any stage runs (exit 3); a drive that starts at the map's
+    origin needs one (exit 2 without).
 
     Example:
     [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]

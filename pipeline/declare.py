@@ -81,6 +81,10 @@ class StageDecl:
     drive_role: str | None = None
     # Workflow settings that affect the output (part of the fingerprint); None means all of them.
     settings_keys: frozenset[str] | None = None
+    # Optional "module:function" run before any stage of a run starts: f(drives: dict[name, Path], settings: dict)
+    # raises a CornermapError when the run cannot succeed on these inputs (a drive nothing places in the map's
+    # frame); drives whose files do not exist yet (written by an earlier stage) are not passed.
+    preflight: str | None = None
 
     def load_compute(self) -> Callable[["StageContext"], Mapping[str, Any]]:
         return resolve(self.compute)

@@ -90,11 +90,16 @@ class DriveCheck:
 def check_delivery(drive_yaml: Path) -> DriveCheck:
     """``cornermap drive check --content`` of one drive; the reason names what failed and where, never a line of the
     drive's files (the check's own messages may quote them: they stay on the command line that asks for them)."""
-    res = cli("drive", "check", "--content", str(drive_yaml))
+    res = cli("drive", "check", "--content", "--placed", str(drive_yaml))
     m = _CONTENT_RE.search(res.stdout)
     content = m.group(1) if m else None
     if res.returncode == 0:
         return DriveCheck(True, content, "")
+    if res.returncode == 3:  # valid, but nothing places it in the map's frame (the drive check's --placed)
+        return DriveCheck(False, content, "its frame cannot be fixed: no GNSS/INS, no prior trajectory the map can "
+                                          "place, no start heading; add a gnss section, prior: (ENU, or local with "
+                                          "start:) or start: to its drive file; run `cornermap drive check "
+                                          f"{drive_yaml}` to read what it lacks")
     text = res.stderr + "\n" + res.stdout
     count = re.search(r"(\d+) problems? in ", text)
     keys = sorted(set(re.findall(r"(?:^\s+- |drive\.yaml: )([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z0-9_]+)*):", text, re.M)))

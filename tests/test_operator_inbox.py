@@ -188,6 +188,22 @@ def test_a_half_copied_drive_fails_drive_check_and_is_quarantined(city, sim, wor
     assert read_identity(root / "maps" / "city").drives[-1].name == "drive_0"
 
 
+def test_a_drive_nothing_places_is_quarantined_with_the_reason(city, sim, workflow):
+    root, inbox, _ = city
+    lost = copy_drive(sim / "drive_1", inbox / "drive_lost")
+    doc = yaml.safe_load((lost / "drive.yaml").read_text())
+    del doc["gnss"]  # no GNSS, no prior trajectory, no start heading: a valid drive file nothing places
+    (lost / "drive.yaml").write_text(yaml.safe_dump(doc))
+    assert cornermap("drive", "check", str(lost / "drive.yaml")).returncode == 0  # a warning there
+    placed = cornermap("drive", "check", "--placed", str(lost / "drive.yaml"))
+    assert placed.returncode == 3 and "its frame cannot be fixed" in one_error_line(placed)
+    out = rebuild(root, inbox, workflow, "--quiet-period-min", "0")
+    assert out.returncode == 0 and "quarantined drive_lost" in out.stdout, out.stdout + out.stderr
+    reason = (inbox / "quarantine" / "drive_lost.reason.txt").read_text()
+    assert "its frame cannot be fixed" in reason and "start:" in reason, reason
+    assert all(d.name != "drive_lost" for d in read_identity(root / "maps" / "city").drives)
+
+
 def test_a_drive_with_a_sha256sums_file_is_checked_against_it(sim, tmp_path):
     drive = copy_drive(sim / "drive_1", tmp_path / "summed" / "drive_1")
     shutil.copytree(sim / "survey", tmp_path / "summed" / "survey")

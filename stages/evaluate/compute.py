@@ -178,6 +178,28 @@ def extract_features(ctx: StageContext, drive: str, epoch_scan_ids: np.ndarray, 
     return ep[order], pts[order]
 
 
+def prior_fixes(prior_rows: pa.Table, drive: str, scan_ids: np.ndarray, q: np.ndarray, std: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A drive without GNSS: the (east, north, yaw) 'fixes' the filters start from and fall back on, from its
+    ``poses_prior`` rows in the map's frame (a prior trajectory in ENU, the start pose; a local prior places nothing
+    by itself) with their stated std; ``q`` and ``std`` elsewhere as they were."""
+    from stages.common.records import PriorPoses
+
+    prior = PriorPoses.from_table(prior_rows, drive)
+    q, std, valid = q.copy(), std.copy(), np.zeros(len(scan_ids), bool)
+    usable = (prior.frame == "map_enu") & prior.valid & np.all(np.isfinite(prior.std[:, [0, 1, 5]]), axis=1)
+    pos = np.searchsorted(scan_ids, prior.scan_id)
+    usable &= pos < len(scan_ids)
+    usable[usable] &= scan_ids[pos[usable]] == prior.scan_id[usable]
+    for r in np.flatnonzero(usable):
+        T = prior.T[r]
+        q[pos[r]] = (T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0]))
+        std[pos[r]] = prior.std[r, [0, 1, 5]]
+        valid[pos[r]] = True
+    q[~valid] = np.nan
+    return q, std, valid
+
+
 def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveArrays, np.ndarray]:
     poses = _rows_of(ctx, "poses_gnss", drive).sort_by("scan_id")
     if poses.num_rows == 0:
@@ -187,6 +209,9 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     T_vl = Extrinsics.from_table(_rows_of(ctx, "drive_info", drive)).of(drive)
     gnss_q = np.column_stack([poses["x_m"].to_numpy(), poses["y_m"].to_numpy(), yaw_rad(poses)])
     gnss_std = np.column_stack([poses[c].to_numpy() for c in ("std_east_m", "std_north_m", "std_yaw_rad")])
+    gnss_valid = poses["valid"].to_numpy(zero_copy_only=False)
+    if not gnss_valid.any() and ctx.inputs.has("prior"):  # a drive without GNSS: its prior / start pose in the map
+        gnss_q, gnss_std, gnss_valid = prior_fixes(_rows_of(ctx, "prior", drive), drive, scan_ids, gnss_q, gnss_std)
     odo = _rows_of(ctx, "odometry", drive).sort_by("stamp_ns") if ctx.inputs.has("odometry") else None
     edges = _rows_of(ctx, "edges", drive)
     icp_raw = read_icp_increments(edges, scan_ids)
@@ -208,8 +233,14 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
         f_ep, f_xy = extract_features(ctx, drive, scan_ids, T_vl, p, track)
     else:
         f_ep, f_xy = np.zeros(0, np.int64), np.zeros((0, 2))
-    return DriveArrays(stamps, icp, odo_inc, gnss_q, gnss_std, poses["valid"].to_numpy(zero_copy_only=False),
-                       corners, f_ep, f_xy, icp_raw, read_icp_covariances(edges, scan_ids), deskewed), scan_ids
+    where = None
+    if not poses["valid"].to_numpy(zero_copy_only=False).any() and gnss_valid.any():  # no GNSS: from its start
+        from stages.evaluate.localize_ekf import dead_reckon
+
+        k0 = int(np.argmax(gnss_valid))
+        where = dead_reckon(icp, gnss_q[k0], k0)
+    return DriveArrays(stamps, icp, odo_inc, gnss_q, gnss_std, gnss_valid, corners, f_ep, f_xy, icp_raw,
+                       read_icp_covariances(edges, scan_ids), deskewed, where_q=where), scan_ids
 
 
 def read_references(ctx: StageContext, drive: str, map_origin, p: EvaluateParams, cmap: CornerMap | None = None
@@ -257,13 +288,15 @@ def compute(ctx: StageContext) -> dict:
     ctx.report_step("localizing (" + ", ".join(p.methods) + ")")
     reader = open_published_map(ctx)
     p_map = with_map_correlation(p, reader)
-    cmap, fetch = map_inputs(reader, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config(),
+    where_q, where_ok = d.roughly
+    cmap, fetch = map_inputs(reader, np.where(where_ok[:, None], where_q, np.nan), sensor_range_m=p.sensor_range_m,
+                             field=p.field_config(),
                             coverage_margin_m=p.coverage_margin_m())
     frame = FrameError.from_map(getattr(reader, "map_frame", None))
     ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p_map.evaluation_config(),
                         frame)
     ekf = ev.runs.get("ekf")
-    cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
+    cov = coverage(where_q, where_ok, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
                    p.sensor_range_m, p.coverage_min_in_range, p.coverage_min_associated)
     v = verdict(ev.metrics, cov, p.target_config())
     ctx.report_step("the previous version")

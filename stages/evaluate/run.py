@@ -36,6 +36,15 @@ class DriveArrays:
     icp_raw_increments: np.ndarray | None = None  # (E,3) ICP increments alone (NaN = failed), no wheel fallback
     icp_cov: np.ndarray | None = None  # (E,3,3) their covariance from the registration's information
     features_deskewed: bool = True  # road features motion-compensated (the EKF's marking measurement needs it)
+    where_q: np.ndarray | None = None  # (E,3) where the vehicle roughly is, for the map's area and the coverage:
+    # None: the GNSS/INS fixes; a drive without GNSS: ICP dead reckoning from its start pose
+
+    @property
+    def roughly(self) -> tuple[np.ndarray, np.ndarray]:
+        """(E,3) positions and (E,) valid that say which part of the map the drive covers."""
+        if self.where_q is None:
+            return self.gnss_q, self.gnss_valid
+        return self.where_q, np.all(np.isfinite(self.where_q), axis=1)
 
 
 @dataclass(frozen=True)

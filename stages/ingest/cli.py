@@ -104,13 +104,16 @@ def register(app: typer.Typer) -> None:
     @drive_app.command("check")
     def drive_check(drive_file: Path = typer.Argument(..., help="drive.yaml"),
                     content: bool = typer.Option(False, "--content", help="Also print the sha256 of every file the "
-                                                 "drive file references (reads them all)")) -> None:
+                                                 "drive file references (reads them all)"),
+                    placed: bool = typer.Option(False, "--placed", help="Refuse (exit 3) a drive that nothing places "
+                                                "in a map's frame, as a build does (a warning otherwise)")) -> None:
         """Validate a drive file against its files and print a summary (scans, time span, GNSS rate and coverage
-        of the scan times, rings per scan, odometry, survey CRS). Exit 1 with every problem listed.
+        of the scan times, rings per scan, odometry, survey CRS, what places the drive). Exit 1 with every problem
+        listed; with --placed, exit 3 when nothing places the drive in a map's frame.
 
         Example: cornermap drive check runs/sim/drive_0/drive.yaml
         """
-        from pipeline.errors import ConfigError
+        from pipeline.errors import ConfigError, DataQualityError
         from stages.ingest.drive_check import check_drive
 
         result = check_drive(drive_file, content=content)
@@ -120,4 +123,11 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"warning: {line}")
         if result.problems:
             raise ConfigError(str(drive_file), result.problems)
+        if placed:
+            from stages.ingest.drive_file import load_drive_file
+            from stages.ingest.frame import frame_source
+
+            frame = frame_source(load_drive_file(drive_file))
+            if frame.problem:
+                raise DataQualityError(f"{frame.problem} ({drive_file})")
         typer.echo(f"ok: {drive_file}")

@@ -249,6 +249,7 @@ class DriveIngest:
             from_prior = self._poses_from_prior()
             if from_prior is not None:
                 return from_prior
+            return self._scans_without_fix(scans)
         if g is None or self.origin is None or not len(g.stamp_ns) or not scans:
             return _table("poses_gnss", {n: [] for n in _names("poses_gnss")})
         position, attitude = self._vehicle_fixes()
@@ -262,6 +263,17 @@ class DriveIngest:
             "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3], "std_east_m": poses.std[:, 0],
             "std_north_m": poses.std[:, 1], "std_up_m": poses.std[:, 2], "std_yaw_rad": poses.std[:, 3],
             "valid": poses.valid, "roll_pitch_known": np.full(len(query), g.roll_pitch_known)})
+
+    def _scans_without_fix(self, scans):
+        """A drive without GNSS: one row per stamped scan, valid false (no fix; the pose graph places the drive from
+        its ``poses_prior``), so that every stage sees the drive's scans."""
+        n = len(scans)
+        nan, zero = np.full(n, np.nan), np.zeros(n)
+        return _table("poses_gnss", {
+            "drive": [self.drive] * n, "scan_id": [s.scan_id for s in scans],
+            "stamp_ns": np.array([s.stamp_ns for s in scans], np.int64), "x_m": zero, "y_m": zero, "z_m": zero,
+            "qx": zero, "qy": zero, "qz": zero, "qw": np.ones(n), "std_east_m": nan, "std_north_m": nan,
+            "std_up_m": nan, "std_yaw_rad": nan, "valid": np.zeros(n, bool), "roll_pitch_known": np.zeros(n, bool)})
 
     def odometry_table(self):
         if self.spec.odometry is None:

@@ -17,5 +17,6 @@ STAGE = StageDecl(
     uses_drives=True,
     compute="stages.ingest.compute:compute",
     cli="stages.ingest.cli",
+    preflight="stages.ingest.frame:preflight",
     settings_keys=frozenset({"enu_origin", "map_drives", "eval_drives"}),  # origin: first fix of the first drive
 )

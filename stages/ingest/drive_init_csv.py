@@ -297,8 +297,8 @@ def draft_prior(folder: Path, d, has_gnss: bool) -> None:
         d.add("# TODO: no GNSS and no prior trajectory: nothing places this drive in a map frame; add one of: gnss "
               "(a GNSS/INS CSV or KITTI oxts/), prior (a TUM/KITTI poses file: docs/drive-file.md), or start (below)")
     d.add("# start: {heading_deg: 0.0, heading_convention: azimuth_cw_from_north, std_heading_deg: 2.0}",
-          "the drive's first pose at the map's origin (cornermap build --origin): uncomment with its heading to align "
-          "a local prior")
+          "the drive's first pose at the map's origin (cornermap build --origin): uncomment with its heading (it "
+          "places the drive by itself, odometry and loops giving the rest, or aligns a local prior)")
     if found is not None:
         d.todo.append("the prior is in a local frame unless stated otherwise: uncomment start: with the drive's "
                       "initial heading, or give prior.frame: enu with its origin")

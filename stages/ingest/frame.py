@@ -2,10 +2,12 @@
 
 A drive is placed in the map's ENU frame by (in order): its GNSS/INS fixes; a prior trajectory in ENU about a
 stated origin; a prior trajectory in a local frame plus a stated start heading (at the map's origin or a stated
-position). A start heading alone (odometry only) fixes the frame too, but the pose graph does not yet build such a
-drive, and a local prior without a start heading fixes nothing: those, and a drive with none of the three, are
-refused with what to add (``cornermap drive check`` warns; ingest, the first stage of a build, refuses before it
-reads a scan).
+position); a start heading alone (odometry and loop closures give the rest), unless the drive is a keyframe drive
+(its edges would rest on unchecked global registrations). A local prior without a start heading, a keyframe drive
+with a start heading alone, and a drive with none of these, cannot be placed: ``cornermap drive check`` warns
+(``--placed``: exit 3, as ``cornermap rebuild`` runs it to quarantine the drive), and a run refuses it before any
+stage starts (``preflight``, exit 3: the drive lacks what places it); a drive that starts at the map's origin needs
+that origin stated (``cornermap build --origin``, a pinned map, the workflow's ``enu_origin``; exit 2 without it).
 """
 from __future__ import annotations
 
@@ -18,11 +20,34 @@ ADD = ("add one of: a gnss section (GNSS/INS CSV or KITTI oxts folder); prior: a
        "cornermap build --origin (docs/drive-file.md)")
 
 
+# The odometry's default keyframe_min_dt_s: consecutive scans further apart are registered as keyframes (global
+# registration where no reference increment exists). Stated here as a number: a stage does not import another.
+KEYFRAME_GAP_S = 0.35
+
+
+def median_scan_gap_s(spec: DriveSpec) -> float | None:
+    """The median time between consecutive stamped scans of the drive (None: fewer than two, or unreadable; the
+    drive check names that)."""
+    import numpy as np
+
+    from pipeline.errors import CornermapError
+    from stages.ingest.report import IngestReport
+    from stages.ingest.scan_list import list_scans
+
+    try:
+        stamps = np.array([f.stamp_ns for f in list_scans(spec, None, None, IngestReport()) if f.stamp_ns is not None],
+                          np.int64)
+    except (CornermapError, OSError):
+        return None
+    return float(np.median(np.diff(np.sort(stamps)))) * 1e-9 if len(stamps) > 1 else None
+
+
 @dataclass(frozen=True)
 class FrameSource:
     kind: str | None  # gnss | prior_enu | prior_local+start | start | prior_local | None
     line: str  # what places the drive (drive check's summary line)
     problem: str | None  # why a build refuses the drive now, with what to add; None: it can be built
+    needs_origin: bool = False  # it starts at the map's origin (start: without a position)
 
 
 def frame_source(spec: DriveSpec) -> FrameSource:
@@ -36,16 +61,21 @@ def frame_source(spec: DriveSpec) -> FrameSource:
                                         f"{o.lon_deg:.7f}, {o.h_m:.2f} m (the drive's absolute input)", None)
     where = "the map's origin (cornermap build --origin)" if s is None or s.position is None else \
         f"{s.position.lat_deg:.7f}, {s.position.lon_deg:.7f}"
+    at_origin = s is not None and s.position is None
     if p is not None and s is not None:
         return FrameSource("prior_local+start", f"frame: no GNSS; the local prior trajectory {p.file} aligned at the "
                                                 f"start heading {s.heading_deg:g} deg ({s.heading_convention}, std "
-                                                f"{s.std_heading_deg:g} deg) at {where}", None)
+                                                f"{s.std_heading_deg:g} deg) at {where}", None, at_origin)
     if s is not None:
-        return FrameSource("start", f"frame: no GNSS; the start heading {s.heading_deg:g} deg at {where} and "
-                                    "odometry alone",
-                           f"drive {spec.name}: no GNSS and no prior trajectory; a start heading with odometry alone "
-                           "is not built yet (the pose graph needs an absolute input per drive); add prior: a TUM/"
-                           "KITTI poses file of the drive (docs/drive-file.md)")
+        line = (f"frame: no GNSS; the start heading {s.heading_deg:g} deg ({s.heading_convention}, std "
+                f"{s.std_heading_deg:g} deg) at {where}, then odometry and loop closures")
+        gap_s = median_scan_gap_s(spec)
+        if gap_s is not None and gap_s > KEYFRAME_GAP_S:
+            return FrameSource("start", line, f"drive {spec.name}: a keyframe drive (median {gap_s:.2f} s between "
+                               "scans) with a start heading alone: its scan-to-scan edges would rest on global "
+                               "registrations nothing checks (one matched a wrong place 7.8 m off on tiny seed 862); "
+                               "add prior: its keyframes' poses (TUM/KITTI) with their std", at_origin)
+        return FrameSource("start", line, None, at_origin)
     if p is not None:
         return FrameSource("prior_local", f"frame: none (the prior trajectory {p.file} is in a local frame)",
                            f"drive {spec.name}: its frame cannot be fixed: no GNSS, and the prior trajectory "
@@ -55,6 +85,32 @@ def frame_source(spec: DriveSpec) -> FrameSource:
     return FrameSource(None, "frame: none (no GNSS, no prior trajectory, no start heading)",
                        f"drive {spec.name}: its frame cannot be fixed: no GNSS, no prior trajectory, no start "
                        f"heading; {ADD}")
+
+
+def preflight(drives: dict, settings: dict) -> None:
+    """Before any stage of a run: every map and evaluation drive can be placed in the map's frame. A drive nothing
+    places: ``DataQualityError`` (exit 3), one line naming each such drive and what to add to its drive file; a
+    drive that starts at the map's origin while the run states none: ``OptionError`` (exit 2) naming the drive and
+    ``--origin``. (The ingest stage's declared ``preflight``.)"""
+    from pipeline.errors import DataQualityError, OptionError
+    from stages.ingest.drive_file import load_drive_file
+
+    placed = list(settings.get("map_drives") or []) + list(settings.get("eval_drives") or [])
+    problems, at_origin = [], []
+    for name in placed:
+        if name not in drives:
+            continue
+        frame = frame_source(load_drive_file(drives[name]))
+        if frame.problem:
+            problems.append(f"{frame.problem} ({drives[name]})")
+        elif frame.needs_origin and not settings.get("enu_origin"):
+            at_origin.append(name)
+    if problems:
+        raise DataQualityError("; ".join(problems))
+    if at_origin:
+        raise OptionError("--origin", [f"drive {', '.join(at_origin)} starts at the map's origin (start: without a "
+                                       "position) and the map states none; give cornermap build --origin LAT,LON,H "
+                                       "(where the drive starts), or start.position in its drive file"])
 
 
 def frame_check_lines(spec: DriveSpec, ingest) -> tuple[list[str], list[str], list[str]]:

@@ -26,6 +26,8 @@ class IngestParams(Params):
     gnss_height_max_m: float = Field(10000.0, description="fixes above this ellipsoidal height are rejected")
     prior_gap_s: float = Field(1.0, gt=0, description="a scan stamp between two prior-trajectory rows further apart "
                                "than this has no prior pose (valid=false), unless a row lies at its stamp")
-    prior_as_gnss: bool = Field(True, description="a drive without GNSS takes its prior trajectory (ENU, or local "
-                                "aligned at the start heading) as its poses_gnss, the pose graph's absolute input "
-                                "(the prior's std; a local prior's grown by the start's heading std per metre)")
+    prior_as_gnss: bool = Field(False, description="a drive without GNSS takes its prior trajectory (ENU, or local "
+                                "aligned at the start heading) as its poses_gnss (the prior's std; a local prior's "
+                                "grown by the start's heading std per metre), treated as GNSS fixes by the pose "
+                                "graph; off (default): poses_gnss rows without a fix (valid false), the pose graph "
+                                "reads poses_prior as pose priors with the stated std")

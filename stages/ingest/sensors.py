@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.ingest import beam_tables
+from stages.common import beam_tables
 
 
 @dataclass(frozen=True)

@@ -94,8 +94,9 @@ def read_drive_inputs(ctx: StageContext) -> tuple[list[DriveInput], list[DriveIn
         raise ConfigError("posegraph settings", [f"drive {d!r} has no poses_gnss rows; have {all_drives}"
                                                  for d in missing])
     spans = ctx.inputs.read("span_edges") if p.span_edges and ctx.inputs.has("span_edges") else None
-    return ([drive_input(d, gnss, edges, info, wheel, spans) for d in map_names],
-            [drive_input(d, gnss, edges, info, wheel, spans) for d in eval_names])
+    prior = ctx.inputs.read("prior") if ctx.inputs.has("prior") else None
+    return ([drive_input(d, gnss, edges, info, wheel, spans, prior) for d in map_names],
+            [drive_input(d, gnss, edges, info, wheel, spans, prior) for d in eval_names])
 
 
 class SurveySource:
@@ -198,8 +199,7 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
     ctx.report_step("the report")
     kernel = _error_kernel(sol, cfg.solve.error_kernel_pairs_per_bin, split) if cfg.solve.compute_marginals \
         else None
-    anchored = any(r.get("anchors") for r in sol.survey_rounds)
-    frame = split.as_dict() | {"source": "survey anchors" if anchored else "GNSS/INS"} if split is not None else None
+    frame = split.as_dict() | {"source": frame_source_of(sol, drives)} if split is not None else None
     write_report(out_dir, drives, sol, refs, loop_rows, survey_matches, kernel, frame)
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
             "loop_closures": loops_table(loop_rows),
@@ -215,11 +215,22 @@ def frame_of_map(sol, drives: list[DriveInput], marginals_enu: np.ndarray):
     c = split.cov_frame
     log.info("posegraph: map frame against ENU (%s): std (%.3f, %.3f) m at (%.1f, %.1f), %.3f deg, scale %.1e; "
              "poses relative to it %.3f m RMS (absolute %.3f m)",
-             "survey anchors" if any(r.get("anchors") for r in sol.survey_rounds) else "GNSS/INS",
+             frame_source_of(sol, drives),
              np.sqrt(c[0, 0]), np.sqrt(c[1, 1]), *split.reference_en_m, np.degrees(np.sqrt(c[2, 2])), split.scale_std,
              np.sqrt(np.mean(np.trace(split.cov_relative[:, :2, :2], axis1=1, axis2=2))),
              np.sqrt(np.mean(marginals_enu[:, 0, 0] + marginals_enu[:, 1, 1])))
     return split
+
+
+def frame_source_of(sol, drives: list[DriveInput]) -> str:
+    """What fixes the map's frame: survey anchors, else the drives' GNSS/INS, prior trajectories (ENU or local with
+    a start pose) and start poses, named in that order."""
+    if any(r.get("anchors") for r in sol.survey_rounds):
+        return "survey anchors"
+    kinds = {p.kind for p in sol.problem.pose_priors} | {b.kind for b in sol.problem.betweens}
+    parts = ["GNSS/INS"] if any(d.gnss_valid.any() for d in drives) else []
+    parts += [name for kind, name in (("prior", "prior trajectory"), ("start", "start pose")) if kind in kinds]
+    return " + ".join(parts) or "the first pose held"
 
 
 def _error_kernel(sol, per_bin: int, split=None) -> dict | None:

@@ -189,6 +189,16 @@ class AnchorConfig(_Parallel):
 
 
 @dataclass(frozen=True)
+class PriorConfig:
+    """A drive without GNSS: its prior trajectory and start pose as factors (``factors/prior.py``)."""
+
+    every_s: float  # one absolute prior / shape factor per this many seconds (0: every scan)
+    kernel: str  # huber | cauchy | none, on the prior trajectory's factors (not the start's)
+    kernel_k: float
+    unknown_roll_pitch_sigma_rad: float  # roll / pitch the prior leaves unknown (NaN std)
+
+
+@dataclass(frozen=True)
 class SolveConfig:
     """Levenberg-Marquardt stopping rules, the tight prior on map poses held fixed for a reference drive,
     whether the marginal covariances are computed, and how many pose pairs per distance bin give the map's
@@ -212,6 +222,7 @@ class PosegraphConfig:
     loops: LoopConfig
     anchors: AnchorConfig
     solve: SolveConfig
+    prior: PriorConfig
 
     @classmethod
     def from_params(cls, p: PosegraphParams) -> PosegraphConfig:
@@ -265,4 +276,6 @@ class PosegraphConfig:
         solve = SolveConfig(max_iterations=p.max_iterations, lm_relative_error_tol=p.lm_relative_error_tol,
                             fixed_prior_sigma_m=p.fixed_prior_sigma_m, compute_marginals=p.compute_marginals,
                             error_kernel_pairs_per_bin=p.error_kernel_pairs_per_bin)
-        return cls(factors, gnss, loops, anchors, solve)
+        prior = PriorConfig(every_s=p.prior_every_s, kernel=p.prior_kernel, kernel_k=p.prior_kernel_k,
+                            unknown_roll_pitch_sigma_rad=p.unknown_roll_pitch_sigma_rad)
+        return cls(factors, gnss, loops, anchors, solve, prior)

@@ -68,6 +68,12 @@ class PosegraphParams(Params):
                                 "loops and the GNSS track (the INS heading error is a minute-scale bias; with the "
                                 "prior demo heading RMS 0.335 deg, without 0.099, docs/posegraph.md)")
     heading_std_inflation: float = Field(3.0, ge=1, description="INS yaw std inflation (when heading_prior)")
+    # a drive without GNSS: its prior trajectory and start pose (poses_prior)
+    prior_every_s: float = Field(1.0, ge=0, description="without GNSS: one prior-trajectory factor per this many "
+                                 "seconds (0: every scan); the trajectory's errors are correlated along it, as GNSS's")
+    prior_kernel: Literal["huber", "cauchy", "none"] = Field("huber", description="robust kernel of the prior "
+                                                             "trajectory's factors (not the start pose's)")
+    prior_kernel_k: float = Field(1.345, gt=0, description="prior-trajectory kernel width in whitened units")
     # loop closures
     loop_radius_m: float = Field(12.0, gt=0, description="candidate search radius on the pass-1 estimate (two "
                                  "drives in different lanes of one street are 3.5-7 m apart)")

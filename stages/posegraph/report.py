@@ -18,7 +18,7 @@ def _drive_of(offsets: np.ndarray, i: int) -> int:
 def summarize_solution(drives, sol, top_k: int = 10) -> dict:
     offsets = np.cumsum([0] + [d.n for d in drives])
     res_gnss = gnss_residuals_enu(sol.poses, sol.problem.positions)
-    odo = [b for b in sol.problem.betweens if b.kind != "loop"]  # ICP edges, wheel factors, bridges
+    odo = [b for b in sol.problem.betweens if b.kind not in ("loop", "prior")]  # ICP edges, wheel factors, bridges
     res_odo = between_residuals(odo, sol.poses) if odo else np.zeros(0)
     worst = np.argsort(res_odo)[::-1][:top_k]
     edges = []
@@ -34,6 +34,8 @@ def summarize_solution(drives, sol, top_k: int = 10) -> dict:
         "n_wheel_bridges": sum(b.kind == "wheel" for b in sol.problem.betweens),
         "n_wheel_fused": sum(b.kind == "wheel_fused" for b in sol.problem.betweens),
         "n_span_edges": sum(b.kind == "span" for b in sol.problem.betweens),
+        "n_prior_factors": sum(b.kind == "prior" for b in sol.problem.betweens)
+        + sum(p.kind in ("prior", "start") for p in sol.problem.pose_priors),
         "wheel_calibration": {d.name: vars(d.wheel_calibration) for d in drives if d.wheel_calibration is not None},
         "gnss_residual_horizontal_rms_m": float(np.sqrt(np.mean(h ** 2))) if h.size else None,
         "gnss_residual_horizontal_max_m": float(h.max()) if h.size else None,

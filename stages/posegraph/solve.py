@@ -115,7 +115,7 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     say = report_step or (lambda step, done=None, total=None: None)
     t0 = time.perf_counter()
     say("pass 1: odometry and GNSS")
-    problem, offsets = base_problem(drives, cfg.factors, cfg.gnss)
+    problem, offsets = base_problem(drives, cfg.factors, cfg.gnss, cfg.prior)
     lc, lm = cfg.loops, cfg.solve.lm_kwargs()
     poses = optimize(problem, **lm)
     t1 = time.perf_counter()
@@ -199,7 +199,7 @@ def anchored(problem, poses: np.ndarray, offsets: np.ndarray,
 def solve_reference(drive: DriveInput, map_drives: list[DriveInput], map_poses: np.ndarray, load: ScanLoader,
                     cfg: PosegraphConfig) -> Solution:
     """One eval drive in the map's frame: its odometry + GNSS, plus loops onto map scans held fixed."""
-    problem, _ = base_problem([drive], cfg.factors, cfg.gnss)
+    problem, _ = base_problem([drive], cfg.factors, cfg.gnss, cfg.prior)
     lc = cfg.loops
     poses = optimize(problem, **cfg.solve.lm_kwargs())
     n = drive.n

@@ -7,7 +7,7 @@ import pyarrow.compute as pc
 
 from pipeline.errors import FormatError
 from schemas.registry import schema_of
-from stages.common.records import INCREMENT_COLUMNS, Extrinsics, pose_columns, pose_matrices
+from stages.common.records import INCREMENT_COLUMNS, Extrinsics, PriorPoses, pose_columns, pose_matrices
 from stages.common.wheel_odometry import track_from_table, wheel_increments
 from stages.posegraph.factors.drive import DriveInput, SpanEdges
 from stages.posegraph.factors.wheel import calibrate_wheel, calibrated_wheel_increments
@@ -19,9 +19,11 @@ def _information(edges: pa.Table) -> np.ndarray:
 
 
 def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Table,
-                odometry: pa.Table | None = None, span_edges: pa.Table | None = None) -> DriveInput:
+                odometry: pa.Table | None = None, span_edges: pa.Table | None = None,
+                prior: pa.Table | None = None) -> DriveInput:
     """One drive's rows of poses_gnss (one per scan), odometry_edges, drive_info and (optional) odometry_raw
-    (wheel speed and yaw rate: increments where ICP failed) and odometry_span_edges (accepted ones kept)."""
+    (wheel speed and yaw rate: increments where ICP failed), odometry_span_edges (accepted ones kept) and
+    poses_prior (a prior trajectory, a start pose: the frame of a drive without GNSS)."""
     g = gnss.filter(pc.equal(gnss["drive"], drive)).sort_by("scan_id")
     if g.num_rows == 0:
         raise FormatError(f"poses_gnss: no rows for drive {drive!r}; hint: is it in the workflow's drives?")
@@ -50,6 +52,13 @@ def drive_input(drive: str, gnss: pa.Table, edges: pa.Table, drive_info: pa.Tabl
     d.spans = _span_edges(drive, ids, span_edges)
     if "roll_pitch_known" in g.column_names:
         d.gnss_roll_pitch_known = g["roll_pitch_known"].to_numpy(zero_copy_only=False).astype(bool)
+    if prior is not None and not d.gnss_valid.any():
+        from stages.posegraph.factors.prior import prior_in_map
+
+        d.prior = PriorPoses.from_table(prior, drive)
+        placed = prior_in_map(d.prior, ids)
+        if placed is not None:
+            d.prior_T, d.prior_known = placed
     if d.wheel_T is not None:
         d.wheel_calibration = calibrate_wheel(d)
         d.wheel_T = calibrated_wheel_increments(d, d.wheel_calibration)

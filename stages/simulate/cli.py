@@ -68,8 +68,9 @@ def simulate_command(
                            changes_from_drive=changes_from_drive)
     for name in summary.drives:
         st = summary.gnss_stats[name]
-        typer.echo(f"{name}: {summary.n_scans[name]} scans, GNSS horizontal RMS {st['rms_m']:.2f} m, "
-                   f"max {st['max_m']:.2f} m -> {out / name / 'drive.yaml'}")
+        what = f"GNSS horizontal RMS {st['rms_m']:.2f} m, max {st['max_m']:.2f} m" if preset.gnss else \
+            f"no GNSS ({'start pose' if preset.prior == 'none' else f'{preset.prior} prior trajectory + start pose'})"
+        typer.echo(f"{name}: {summary.n_scans[name]} scans, {what} -> {out / name / 'drive.yaml'}")
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -85,7 +86,7 @@ def parse_overrides(items: list[str]) -> dict:
         except ValueError:
             nums = ()
         name = value.strip()
-        if sep and key and not nums and name.isidentifier():  # a name: sensor=hdl64e
+        if sep and key and not nums and name.replace("-", "_").isidentifier():  # a name: sensor=os1-64
             out[key.strip()] = name
             continue
         if not sep or not key or len(nums) not in (1, 2):

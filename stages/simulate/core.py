@@ -136,7 +136,8 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
                                 (lambda i, n, _name=name: progress(_name, i, n)) if progress else None)
         writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}" if p.survey else None,
                                  dated.SURVEY_DIR if changed else "survey", sensor=p.sensor,
-                                 gnss_attitude=p.gnss_attitude)
+                                 gnss_attitude=p.gnss_attitude, gnss=p.gnss, start=result.start,
+                                 prior=prior_section(p, origin))
         names.append(name)
         n_scans[name] = result.n_scans
         stats[name] = result.gnss_stats
@@ -167,6 +168,19 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
         "laser_calibration": {"gain": np.round(calib.gain, 6).tolist(), "offset": np.round(calib.offset, 6).tolist()},
     })
     return summary
+
+
+def prior_section(p, origin) -> dict | None:
+    """The drive file's ``prior:`` of a simulated prior trajectory (``drive.write_prior``), its stated std the
+    simulated errors' (horizontal per axis, heading; height, roll and pitch carry none: 0.1 m / 0.1 deg stated)."""
+    if p.prior == "none":
+        return None
+    doc = {"file": "prior.txt", "format": "tum", "frame": p.prior, "time": "stamps", "body": "vehicle",
+           "std_m": [round(float(p.prior_std_m / np.sqrt(2)), 4)] * 2 + [0.1],
+           "std_deg": [0.1, 0.1, float(p.prior_std_deg)]}
+    if p.prior == "enu":
+        doc["origin"] = {"lat_deg": origin.lat_deg, "lon_deg": origin.lon_deg, "h_m": origin.h_m}
+    return doc
 
 
 def _write_survey(city, route_en, p: Preset, marks, albedo, origin, epsg, out_dir: Path, rng,

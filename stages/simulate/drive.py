@@ -57,6 +57,7 @@ class DriveResult:
     scan_positions_en: np.ndarray  # (n_scans, 2) the lidar's horizontal position at each scan start
     route_en: np.ndarray
     lead_scan_share: float  # scans with a vehicle ahead in the ego lane
+    start: dict | None = None  # a drive without GNSS: its drive file's start: section
 
 
 def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: Scene, marks, albedo, beams,
@@ -79,9 +80,12 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
 
     duration = float(traj.t_s[-1])
     n_scans = int((duration - SCAN_PERIOD_S) / SCAN_PERIOD_S) + 1
-    if scan_limit is not None:
-        n_scans = min(n_scans, int(scan_limit))
     t_scan = np.arange(n_scans) * SCAN_PERIOD_S
+    if p.keyframe_spacing_m > 0:
+        t_scan = keyframe_times(t_scan, traj, p.keyframe_spacing_m, rng.spawn(1)[0])
+    if scan_limit is not None:
+        t_scan = t_scan[:int(scan_limit)]
+    n_scans = len(t_scan)
     n_az = beams.n_azimuth
     t_col = np.arange(n_az) * (SCAN_PERIOD_S / n_az)
     ahead = np.zeros((n_scans, 2))  # vehicles ahead in the ego lane, bumper gap of the nearest (m)
@@ -115,12 +119,77 @@ def simulate_drive(spec: DriveSpec, p: Preset, city, static: Scene, buildings: S
                   body="vehicle: x forward, y left, z up; origin on the ground under the lidar")
 
     stats = _write_gnss(spec, p, traj, buildings, origin, drive_dir, truth_dir, rng_gnss)
+    if not p.gnss:
+        (drive_dir / "gnss_inspva.csv").unlink()  # simulated all the same: the other drives' errors stay as they were
+    if p.prior != "none":
+        write_prior(drive_dir / "prior.txt", p, p.gps_week * 604800.0 + gps_scan, T, rng.spawn(1)[0])
     wheel, gyro = simulate_odometry(traj.speed_mps, traj.yaw_rate_radps, 0.01, rng_odo)
     writers.write_csv(drive_dir / "wheel_gyro.csv", ["gps_week", "gps_seconds", "wheel_speed_mps", "yaw_rate_radps"],
                       [np.full(len(traj.t_s), p.gps_week), spec.gps_t0_s + traj.t_s, wheel, gyro],
                       ["%d", "%.3f", "%.3f", "%.6f"])
+    start = None if p.gnss else start_pose(p, T[0], origin, rng.spawn(1)[0])
     return DriveResult(n_scans, stats, lidar_positions_en(truth, beams.T_vehicle_lidar), poly,
-                       round(float((ahead[:, 0] > 0).mean()), 4))
+                       round(float((ahead[:, 0] > 0).mean()), 4), start)
+
+
+def keyframe_times(t_scan: np.ndarray, traj, spacing_m: float, rng: np.random.Generator) -> np.ndarray:
+    """The sweep start times kept as keyframes: each the first sweep 0.5-1.5 x ``spacing_m`` of travel (uniform)
+    after the previous keyframe, the first sweep first (a keyframe dataset: irregular spacing, metres apart)."""
+    travelled = np.concatenate([[0.0], np.cumsum(np.diff(traj.t_s) * traj.speed_mps[1:])])
+    d = np.interp(t_scan, traj.t_s, travelled)
+    keep, k = [0], 0
+    while True:
+        nxt = np.searchsorted(d, d[k] + spacing_m * rng.uniform(0.5, 1.5))
+        if nxt >= len(d):
+            return t_scan[keep]
+        keep.append(int(nxt))
+        k = int(nxt)
+
+
+def gauss_markov(t_s: np.ndarray, sigma: float, tau_s: float, dims: int, rng: np.random.Generator) -> np.ndarray:
+    """(len(t_s), dims) first-order Gauss-Markov errors of stationary std ``sigma`` at irregular times."""
+    out = np.zeros((len(t_s), dims))
+    out[0] = rng.normal(0, sigma, dims)
+    for k in range(1, len(t_s)):
+        a = np.exp(-(t_s[k] - t_s[k - 1]) / tau_s)
+        out[k] = a * out[k - 1] + rng.normal(0, sigma * np.sqrt(1 - a * a), dims)
+    return out
+
+
+def write_prior(path: Path, p: Preset, stamps_s: np.ndarray, T_true: np.ndarray, rng: np.random.Generator) -> None:
+    """A prior trajectory of the vehicle at the scans (TUM): the truth with slowly varying horizontal and heading
+    errors (Gauss-Markov, ``prior_std_m`` / ``prior_std_deg``, ``prior_tau_s``). ``enu``: in ENU about the
+    simulator's origin; ``local``: in the frame of the vehicle's first pose (a SLAM trajectory starting at the
+    identity), its errors zero there."""
+    from stages.common.geometry import write_tum
+
+    e_en = gauss_markov(stamps_s, p.prior_std_m / np.sqrt(2), p.prior_tau_s, 2, rng)
+    e_yaw = np.radians(gauss_markov(stamps_s, p.prior_std_deg, p.prior_tau_s, 1, rng)[:, 0])
+    if p.prior == "local":
+        e_en, e_yaw = e_en - e_en[0], e_yaw - e_yaw[0]
+    T = T_true.copy()
+    c, s = np.cos(e_yaw), np.sin(e_yaw)
+    Rz = np.zeros((len(T), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    T[:, :3, :3] = Rz @ T_true[:, :3, :3]
+    T[:, :2, 3] += e_en
+    if p.prior == "local":
+        T = np.linalg.inv(T_true[0]) @ T
+    write_tum(path, stamps_s, T)
+
+
+def start_pose(p: Preset, T_first: np.ndarray, origin, rng: np.random.Generator) -> dict:
+    """The drive file's ``start:`` of a drive without GNSS: the first scan's true heading and position with errors
+    drawn at the stated stds (``start_heading_std_deg``, ``start_position_std_m``)."""
+    from stages.common.geodesy import enu_to_geodetic
+
+    yaw = np.arctan2(T_first[1, 0], T_first[0, 0]) + np.radians(rng.normal(0, p.start_heading_std_deg))
+    en = T_first[:2, 3] + rng.normal(0, p.start_position_std_m, 2)
+    lat, lon, h = enu_to_geodetic(np.array([[en[0], en[1], T_first[2, 3]]]), origin)[0]
+    return {"heading_deg": round(float((90.0 - np.degrees(yaw)) % 360.0), 4),
+            "heading_convention": "azimuth_cw_from_north", "std_heading_deg": p.start_heading_std_deg,
+            "position": {"lat_deg": round(float(lat), 9), "lon_deg": round(float(lon), 9), "h_m": round(float(h), 3)},
+            "std_m": max(p.start_position_std_m, 0.01)}
 
 
 def lidar_positions_en(states: np.ndarray, T_vehicle_lidar: np.ndarray) -> np.ndarray:

@@ -80,6 +80,15 @@ class Preset:
     balcony_share: float = 0.0  # share of buildings with balconies on their walls with windows
     facade_vegetation_share: float = 0.0  # share of walls with a hedge in front
     parked_tall_share: float = 0.0  # share of parked vehicles that are vans or SUVs (1.8-2.6 m instead of 1.5 m)
+    # issue 63: drives without GNSS, keyframe drives (defaults keep the presets as they were; docs/simulator.md)
+    gnss: bool = True  # False: no GNSS/INS file; the drive file states its start pose (start:) instead
+    prior: str = "none"  # a prior trajectory file (prior.txt, TUM) beside the scans: none | local | enu
+    prior_std_m: float = 0.2  # the prior's horizontal error (Gauss-Markov, prior_tau_s), stated as its std
+    prior_std_deg: float = 0.1  # the prior's heading error, stated as its std
+    prior_tau_s: float = 30.0  # correlation time of the prior's errors (a SLAM trajectory drifts slowly)
+    start_heading_std_deg: float = 0.3  # no GNSS: the start heading's error (drawn) and stated std
+    start_position_std_m: float = 0.05  # no GNSS: the start position's horizontal error (drawn) and stated std
+    keyframe_spacing_m: float = 0.0  # > 0: only keyframes, each 0.5-1.5 x this much travel after the previous
 
 
 PRESETS: dict[str, Preset] = {
@@ -133,7 +142,8 @@ PRESETS["kitti_city"] = Preset(
 SHARES = ("lead_vehicle_share", "queue_stop_share", "rounded_corner_share", "chamfered_corner_share",
           "mixed_pixel_share", "sector_dropout_scan_share", "window_share", "shopfront_share", "balcony_share",
           "facade_vegetation_share", "parked_tall_share")
-SENSOR_NAMES = ("hdl32e", "hdl64e")  # stages/simulate/sensor.py LIDARS
+SENSOR_NAMES = ("hdl32e", "hdl64e", "os1-64")  # stages/simulate/sensor.py LIDARS
+PRIOR_KINDS = ("none", "local", "enu")
 
 
 def get_preset(name: str, **overrides) -> Preset:
@@ -163,6 +173,8 @@ def get_preset(name: str, **overrides) -> Preset:
             bad.append(f"{k} must be a number; got {v!r}")
     if "sensor" in overrides and overrides["sensor"] not in SENSOR_NAMES:
         bad.append(f"sensor must be one of {list(SENSOR_NAMES)}; got {overrides['sensor']!r}")
+    if "prior" in overrides and overrides["prior"] not in PRIOR_KINDS:
+        bad.append(f"prior must be one of {list(PRIOR_KINDS)}; got {overrides['prior']!r}")
     if bad:
         raise ConfigError(f"simulate preset {name!r} overrides", bad)
     return replace(base, **overrides) if overrides else base

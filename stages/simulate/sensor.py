@@ -78,9 +78,19 @@ def _hdl64e_model() -> LidarModel:
     return LidarModel("hdl64e", HDL64E_KITTI_ELEVATION_DEG, lasers, 2000, SCAN_PERIOD_S / 2000 / 64)
 
 
+def _os1_64_model() -> LidarModel:
+    """Ouster OS1-64 (first generation): the 64 elevations of a real unit's metadata (``stages.common.beam_tables``
+    ``OS1_64_GEN1``, 33.2 deg), every laser of a column firing at once (ring = laser, lowest first), 1024 columns per
+    0.1 s revolution (the 1024x10 mode)."""
+    from stages.common.beam_tables import OS1_64_GEN1
+
+    return LidarModel("os1-64", np.asarray(OS1_64_GEN1[::-1], float), np.arange(64), 1024, 0.0)
+
+
 LIDARS: dict[str, LidarModel] = {
     "hdl32e": LidarModel("hdl32e", ELEVATION_DEG, LASER_TO_RING, N_AZIMUTH, FIRING_DT_S),
     "hdl64e": _hdl64e_model(),
+    "os1-64": _os1_64_model(),
 }
 
 

@@ -57,9 +57,11 @@ def write_gnss_csv(path: Path, week: int, gps_s: np.ndarray, llh: np.ndarray, ro
 
 
 def write_drive_yaml(path: Path, name: str, T_vehicle_lidar: np.ndarray, survey_crs: str | None,
-                     survey_dir: str = "survey", *, sensor: str = "hdl32e", gnss_attitude: bool = True) -> None:
+                     survey_dir: str = "survey", *, sensor: str = "hdl32e", gnss_attitude: bool = True,
+                     gnss: bool = True, start: dict | None = None, prior: dict | None = None) -> None:
     """The drive file; ``survey_crs`` None: no survey section; ``gnss_attitude`` False: the GNSS file has no roll
-    or pitch column (a receiver without an INS)."""
+    or pitch column (a receiver without an INS); ``gnss`` False: no gnss section (``start``: the drive's start:
+    section); ``prior``: its prior: section."""
     import yaml
 
     columns = {"lat": "latitude_deg", "lon": "longitude_deg", "height": "height_m", "roll": "roll_deg",
@@ -86,6 +88,12 @@ def write_drive_yaml(path: Path, name: str, T_vehicle_lidar: np.ndarray, survey_
                      "yaw_rate": "yaw_rate_radps"},
         "scan_times": {"source": "pcd_field"},
     }
+    if not gnss:
+        del doc["gnss"]
+        if start is not None:
+            doc["start"] = start
+    if prior is not None:
+        doc["prior"] = prior
     if survey_crs:
         doc["survey"] = {"file": f"../{survey_dir}/survey.las", "crs": survey_crs}
     under = "under the lidar" if not np.any(np.asarray(T_vehicle_lidar, float)[:2, 3]) else \

@@ -12,6 +12,7 @@ from stages.common.deskew import deskew_with_transform
 from stages.common.geometry import se3_inverse
 
 if TYPE_CHECKING:
+    from stages.common.records import PriorPoses
     from stages.posegraph.factors.wheel import WheelCalibration
 
 
@@ -35,6 +36,9 @@ class DriveInput:
     wheel_calibration: WheelCalibration | None = None  # applied to wheel_T (report)
     spans: SpanEdges | None = None  # odometry span edges (scans N apart), accepted ones only
     gnss_roll_pitch_known: np.ndarray | None = None  # (N,) bool; None: all known
+    prior: PriorPoses | None = None  # the drive's poses_prior rows (prior trajectory, start pose)
+    prior_T: np.ndarray | None = None  # (N,4,4) T_map_vehicle from the prior where prior_known (factors.prior)
+    prior_known: np.ndarray | None = None  # (N,) bool
 
     @property
     def n(self) -> int:
@@ -51,17 +55,26 @@ class SpanEdges:
     information: np.ndarray  # (M,6,6) gtsam order
 
 
+def absolute_poses(drive: DriveInput) -> tuple[np.ndarray, np.ndarray]:
+    """(N,4,4) T_map_vehicle and (N,) valid: the GNSS/INS poses; for a drive without any valid fix, its prior's
+    (``factors.prior.prior_in_map``: a prior trajectory, or the start pose alone)."""
+    if drive.gnss_valid.any() or drive.prior_known is None:
+        return drive.gnss_T, drive.gnss_valid
+    return drive.prior_T, drive.prior_known
+
+
 def has_wheel(drive: DriveInput, k: int) -> bool:
     return drive.wheel_ok is not None and bool(drive.wheel_ok[k])
 
 
 def bridge_increment(drive: DriveInput, k: int) -> np.ndarray:
-    """Relative pose k-1 -> k when ICP gave none: the wheel-odometry increment, else the GNSS/INS increment,
-    else the neighbouring edge."""
+    """Relative pose k-1 -> k when ICP gave none: the wheel-odometry increment, else the GNSS/INS increment (the
+    prior's without GNSS), else the neighbouring edge."""
     if has_wheel(drive, k):
         return drive.wheel_T[k]
-    if drive.gnss_valid[k] and drive.gnss_valid[k - 1]:
-        return se3_inverse(drive.gnss_T[k - 1]) @ drive.gnss_T[k]
+    T_abs, valid = absolute_poses(drive)
+    if valid[k] and valid[k - 1]:
+        return se3_inverse(T_abs[k - 1]) @ T_abs[k]
     ok = np.flatnonzero(drive.edge_ok)
     if len(ok) == 0:
         return np.eye(4)
@@ -96,24 +109,28 @@ def chain(start: np.ndarray, inc: np.ndarray) -> np.ndarray:
 
 
 def dead_reckoning(drive: DriveInput) -> np.ndarray:
-    """ICP-only poses, started at the first valid GNSS/INS pose (identity if the drive has none)."""
+    """ICP-only poses, started at the first valid GNSS/INS pose (without GNSS: the prior's; identity if the drive
+    has neither)."""
     inc = increments(drive)
-    valid = np.flatnonzero(drive.gnss_valid)
+    T_abs, known = absolute_poses(drive)
+    valid = np.flatnonzero(known)
     if len(valid) == 0:
         return chain(np.eye(4), inc)
     k0 = valid[0]
     T = chain(np.eye(4), inc)
-    return drive.gnss_T[k0] @ se3_inverse(T[k0]) @ T
+    return T_abs[k0] @ se3_inverse(T[k0]) @ T
 
 
 def initial_poses(drive: DriveInput) -> np.ndarray:
-    """GNSS/INS pose where valid; through outages, odometry from the last valid pose."""
+    """GNSS/INS pose where valid (without GNSS: the prior's); through outages, odometry from the last valid
+    pose."""
     inc = increments(drive)
     out = np.empty_like(inc)
     dr = dead_reckoning(drive)
+    T_abs, known = absolute_poses(drive)
     for k in range(drive.n):
-        if drive.gnss_valid[k]:
-            out[k] = drive.gnss_T[k]
+        if known[k]:
+            out[k] = T_abs[k]
         else:
             out[k] = out[k - 1] @ inc[k] if k > 0 else dr[0]
     return out

@@ -1,6 +1,7 @@
 """A drive that nothing places in the map's frame: drive check accepts the drive file and says in one line what it
-lacks; a build refuses it in one line before any scan is read (nothing committed), saying what to add. Run as a user
-would: the installed command, from a folder outside the checkout."""
+lacks; a build refuses it in one line before any stage runs (exit 3, nothing committed), saying what to add; a drive
+that starts at the map's origin needs --origin (exit 2 without). Run as a user would: the installed command, from a
+folder outside the checkout."""
 from __future__ import annotations
 
 import json
@@ -33,7 +34,7 @@ def test_what_places_a_drive(tmp_path):
     start = {"heading_deg": 30.0, "heading_convention": "azimuth_cw_from_north"}
     drive = _without_gnss(tmp_path / "b", start=start)
     src = frame_source(load_drive_file(drive))
-    assert src.kind == "start" and "a start heading with odometry alone is not built yet" in src.problem
+    assert src.kind == "start" and src.problem is None and src.needs_origin
     (tmp_path / "c").mkdir()
     (tmp_path / "c" / "p.txt").write_text("0 0 0 0 0 0 0 1\n")
     drive = _without_gnss(tmp_path / "c", prior={"file": "../p.txt", "format": "tum", "frame": "local"})
@@ -56,10 +57,39 @@ def test_check_accepts_and_build_refuses_in_one_line_before_any_stage_work(tmp_p
     build = subprocess.run(CORNERMAP + ["build", "--drive", str(drive), "--map", "m", "--root", str(root),
                                         "--origin", "37.5665,126.978,38", "--quiet"],
                            cwd=outside, capture_output=True, text=True, timeout=600)
-    assert build.returncode == 1, (build.stdout, build.stderr)
+    assert build.returncode == 3, (build.stdout, build.stderr)
     lines = [ln for ln in build.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and "its frame cannot be fixed" in lines[0], lines
     assert "add one of: a gnss section" in lines[0] and "Traceback" not in build.stderr
     committed = [p for p in (root / "datasets").rglob("_manifest.json")] if (root / "datasets").exists() else []
     assert committed == [], [str(p) for p in committed]
     assert not any(json.loads(p.read_text()).get("rows") for p in committed)
+
+
+def test_a_drive_starting_at_the_origin_needs_one(tmp_path):
+    start = {"heading_deg": 30.0, "heading_convention": "azimuth_cw_from_north"}
+    drive = _without_gnss(tmp_path / "drives", start=start)
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    root = tmp_path / "root"
+    build = subprocess.run(CORNERMAP + ["build", "--drive", str(drive), "--map", "m", "--root", str(root),
+                                        "--quiet"], cwd=outside, capture_output=True, text=True, timeout=600)
+    assert build.returncode == 2, (build.stdout, build.stderr)
+    lines = [ln for ln in build.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "starts at the map's origin" in lines[0] and "--origin" in lines[0], lines
+    assert not (root / "datasets").exists() or not list((root / "datasets").rglob("_manifest.json"))
+
+
+def test_a_keyframe_drive_with_a_start_heading_alone_is_not_placed(tmp_path):
+    start = {"heading_deg": 30.0, "heading_convention": "azimuth_cw_from_north"}
+    drive = _without_gnss(tmp_path / "k", start=start)
+    stamps = drive.parent / "scans" / "stamps.csv"
+    lines = stamps.read_text().splitlines()
+    head, rows = lines[0], [ln.split(",") for ln in lines[1:]]
+    col = head.split(",").index("gps_seconds")
+    for k, r in enumerate(rows):  # keyframes 1.5 s apart
+        r[col] = f"{float(rows[0][col]) + 1.5 * k:.6f}"
+    stamps.write_text("\n".join([head] + [",".join(r) for r in rows]) + "\n")
+    src = frame_source(load_drive_file(drive))
+    assert src.kind == "start" and "a keyframe drive (median 1.50 s between scans)" in src.problem
+    assert "add prior:" in src.problem

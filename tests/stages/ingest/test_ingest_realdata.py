@@ -54,7 +54,9 @@ def test_kitti_pcd_scans_give_64_monotone_rings_from_point_order(shared_data, tm
         medians = np.array([np.median(elev[ring == r]) for r in range(64)])
         assert np.all(np.diff(medians) > 0), "ring 0 lowest, elevation rising with the ring"
         assert medians[0] == pytest.approx(-24.0, abs=1.5) and medians[-1] == pytest.approx(2.5, abs=1.0)
-    assert out["poses_gnss"].num_rows == 0 and out["drive_info"]["origin_lat_deg"].is_null().to_pylist() == [False]
+    # no GNSS: one row per scan without a fix (the pose graph places the drive from poses_prior)
+    assert out["poses_gnss"].num_rows == 22 and not any(out["poses_gnss"]["valid"].to_pylist())
+    assert out["drive_info"]["origin_lat_deg"].is_null().to_pylist() == [False]
 
 
 def test_nuscenes_rings_from_file_agree_with_the_elevation_table(shared_data):

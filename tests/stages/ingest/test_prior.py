@@ -76,12 +76,12 @@ def _truth_at_scans(drive):
     return T
 
 
-def _ingest(drive, origin):
+def _ingest(drive, origin, **params):
     from stages.ingest.compute import DriveIngest
     from stages.ingest.drive_file import load_drive_file
     from stages.ingest.params import IngestParams
 
-    return DriveIngest("drive_0", load_drive_file(drive.drive_file), IngestParams(), origin)
+    return DriveIngest("drive_0", load_drive_file(drive.drive_file), IngestParams(**params), origin)
 
 
 def test_an_enu_prior_about_another_origin_lands_on_the_truth_and_is_the_drives_absolute_input(tmp_path):
@@ -96,7 +96,10 @@ def test_an_enu_prior_about_another_origin_lands_on_the_truth_and_is_the_drives_
     d = _gnss_free(tmp_path / "d", {"file": "../prior.txt", "format": "tum", "frame": "enu", "time": "stamps",
                                     "origin": {"lat_deg": other.lat_deg, "lon_deg": other.lon_deg,
                                                "h_m": other.h_m}, "std_m": [0.1, 0.1, 0.2]})
-    ingest = _ingest(d, drive.origin)
+    # by default poses_gnss holds the scans without a fix (the pose graph reads poses_prior)
+    default = _ingest(d, drive.origin).poses_table()
+    assert default.num_rows == 6 and not any(default["valid"].to_pylist())
+    ingest = _ingest(d, drive.origin, prior_as_gnss=True)
     prior = ingest.prior()
     assert prior.valid.all() and set(prior.frame) == {"map_enu"}
     # 1e-5 m: the TUM file's float64 seconds at GPS epoch magnitude (0.2 us) times 8 m/s
@@ -126,7 +129,7 @@ def test_a_local_prior_is_aligned_at_the_start_heading_with_std_growing_from_the
                    {"heading_deg": float(heading), "heading_convention": "azimuth_cw_from_north",
                     "std_heading_deg": 1.0, "position": {"lat_deg": float(lat), "lon_deg": float(lon),
                                                          "h_m": float(h)}, "std_m": 0.2})
-    ingest = _ingest(d, drive.origin)
+    ingest = _ingest(d, drive.origin, prior_as_gnss=True)
     rows = ingest.prior()
     assert list(rows.source) == ["prior_file"] * 6 + ["start"] and list(rows.frame) == ["local"] * 6 + ["map_enu"]
     poses = ingest.poses_table()

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from pipeline.errors import FormatError
-from stages.ingest import beam_tables as bt
+from stages.common import beam_tables as bt
 from stages.ingest.sensor_calibration import read_beam_calibration
 from stages.ingest.sensors import SENSORS
 

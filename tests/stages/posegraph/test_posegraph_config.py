@@ -7,7 +7,7 @@ import pytest
 from stages.posegraph.config import PosegraphConfig
 from stages.posegraph.params import PosegraphParams
 
-CHANGED = {"span_edge_kernel": "cauchy", "gnss_kernel": "cauchy", "loop_kernel": "gnc",
+CHANGED = {"span_edge_kernel": "cauchy", "gnss_kernel": "cauchy", "loop_kernel": "gnc", "prior_kernel": "cauchy",
            "gnss_lever_arm_m": (0.1, -0.2, 1.5), "icp_edge_sigma_along_m": 0.005,
            "icp_edge_sigma_cross_m": 0.005, "icp_edge_sigma_yaw_deg": 0.03}
 # the section each param's prefix belongs to (the first match wins)
@@ -15,7 +15,7 @@ SECTION = [("wheel_", "factors"), ("failed_edge_", "factors"), ("span_edge", "fa
            ("attitude_", "gnss"), ("unknown_roll_pitch", "gnss"), ("heading_", "gnss"), ("loop_", "loops"),
            ("survey_", "anchors"), ("parallel_min_items", "loops"), ("max_iterations", "solve"),
            ("lm_", "solve"), ("fixed_prior", "solve"), ("compute_marginals", "solve"),
-           ("error_kernel", "solve"), ("icp_edge_", "factors")]
+           ("error_kernel", "solve"), ("icp_edge_", "factors"), ("prior_", "prior")]
 
 
 def _changed(name: str, default):
