@@ -80,8 +80,7 @@ def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ, as_json: bool = opt
 
 
 def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
-                inbox: Path = typer.Option(..., "--inbox", help="Folder of drive folders (each with a drive.yaml); "
-                                           "bad ones move to INBOX/quarantine/."),
+                inbox: Path = opts.INBOX,
                 min_free_gib: float = typer.Option(2.0, "--min-free-gib", help="Free space required to start."),
                 quiet_period_min: float = typer.Option(10.0, "--quiet-period-min", help="A drive folder is taken "
                                                        "when nothing under it changed for this long (minutes), or at "
