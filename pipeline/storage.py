@@ -412,4 +412,5 @@ def s3_filesystem():
         from pipeline.errors import ConfigError
 
         raise ConfigError("s3://", [f"the s3fs package is missing ({exc}); reinstall cornermap"]) from exc
-    return s3fs.S3FileSystem(config_kwargs={"retries": {"max_attempts": 3, "mode": "standard"}})
+    return s3fs.S3FileSystem(use_listings_cache=False,
+                             config_kwargs={"retries": {"max_attempts": 3, "mode": "standard"}})
