@@ -55,10 +55,12 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                            reference=str(check_reference.resolve()) if check_reference else None)
     elif check_reference is not None:
         raise OptionError("--check-reference", ["applies to --check-drive only"])
+    from pipeline.storage import identity_file, map_dir
+
     ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check, max_radius_km)
     o = ident.enu_origin
     typer.echo(f"created map {map_name!r}: origin {o.lat_deg},{o.lon_deg},{o.h_m}, tiles {ident.tile_size_m} m, "
-               f"area {ident.max_radius_km:g} km -> {root / 'maps' / map_name / 'map.json'}")
+               f"area {ident.max_radius_km:g} km -> {identity_file(map_dir(Path(root), map_name))}")
 
 
 @maps_app.command("show")
@@ -155,8 +157,9 @@ def gc_cmd(root: Path = ROOT_REQ,
     """
     from pipeline.errors import ConfigError
     from pipeline.gc import apply_gc, plan_gc
+    from pipeline.storage import is_root_dir
 
-    if not any((root / sub).is_dir() for sub in ("datasets", "maps", "tmp")):  # a typo: "nothing to free", exit 0
+    if not is_root_dir(root):  # a typo: "nothing to free", exit 0
         raise ConfigError("--root", [f"{root} holds no datasets/, maps/ or tmp/ folder: not an output root"])
     plan = plan_gc(root, min_age_h)
     if apply:  # under the root's exclusive lock (exit 75 while a run writes): what a plan made there still lists

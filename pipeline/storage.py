@@ -14,6 +14,7 @@ every object of a root, for a local ``Path`` root and for the ``PurePosixPath`` 
     maps/<name>/gate/vNNNN.json                   the regression gate's comparison of candidate vNNNN
     locks/<key>.lock                              locks (local: flock; S3: lease objects, ``pipeline.leases``)
     tmp/                                          scratch of runs (ledgers, logs, staging)
+    workflows/build-<map>-<sha8>.yaml             the workflows `cornermap build` wrote
 
 Backends: a local folder is plain ``pathlib``/``os`` (the engine's hot paths are unchanged); S3 is ``s3fs`` (fsspec),
 chosen over ``pyarrow.fs`` by measurement (docs/storage.md: 100 small puts 0.43 s against 1.45 s, a 64 MB read
@@ -45,9 +46,11 @@ MAPS = "maps"
 LATEST = "LATEST"
 VERSION_MANIFEST = "manifest.json"
 IDENTITY = "map.json"
+PUBLISH_LOCK = ".publish.lock"  # a local collection's flock file (pipeline.versioned)
 GATE = "gate"
 LOCKS = "locks"
 TMP = "tmp"
+WORKFLOWS = "workflows"  # the build workflows `cornermap build` writes (one per map and drive set)
 FP_LEN = 16
 VERSION_RE = re.compile(r"^v(\d{4,})$")
 
@@ -131,6 +134,10 @@ def locks_dir(root: P) -> P:
 
 def tmp_dir(root: P, *parts: str) -> P:
     return root.joinpath(TMP, *parts)
+
+
+def workflows_dir(root: P) -> P:
+    return root / WORKFLOWS
 
 
 def is_root_dir(root: Path) -> bool:
