@@ -146,7 +146,7 @@ def _hours(value: float) -> float:
     return value
 
 
-def gc_cmd(root: Path = ROOT_REQ,
+def gc_cmd(root: Path = opts.ROOT_OR_URI,
            apply: bool = typer.Option(False, "--apply", help="Delete (default: a dry run that only prints)."),
            min_age_h: float = typer.Option(24.0, "--min-age-h", callback=_hours, help="Uncommitted dataset "
                                            "folders and scratch (ROOT/tmp) entries younger than this (runs in "
@@ -157,8 +157,17 @@ def gc_cmd(root: Path = ROOT_REQ,
     """
     from pipeline.errors import ConfigError
     from pipeline.gc import apply_gc, plan_gc
-    from pipeline.storage import is_root_dir
+    from pipeline.storage import is_root_dir, uri_scheme
 
+    if uri_scheme(root) is not None:  # an object-store root: only maps and locks live there so far
+        from pipeline.storage import Store
+        from pipeline.store_maps import gc_uncommitted
+
+        found = gc_uncommitted(Store.open(root), min_age_h, apply)
+        for uri, why in found:
+            typer.echo(f"{'remove' if apply else 'would remove'} {uri} ({why})")
+        typer.echo(f"{len(found)} object prefix(es) {'removed' if apply else 'to remove'}")
+        return
     if not is_root_dir(root):  # a typo: "nothing to free", exit 0
         raise ConfigError("--root", [f"{root} holds no datasets/, maps/ or tmp/ folder: not an output root"])
     plan = plan_gc(root, min_age_h)

@@ -184,3 +184,58 @@ def readable_root(root: str | Path, name: str | None, whole: Iterable[int] | str
         snapshot_map(store, name, Path(tmp), whole)
         prefix = str(Path(tmp))
         yield Path(tmp), (lambda text: text.replace(prefix, store.uri))
+
+
+def _newest_modified(store: Store, loc: PurePath) -> float:
+    """The newest modification time (unix s) of the objects under ``loc`` (0 when there is none)."""
+    import os as _os
+
+    if store.local:
+        times = [p.stat().st_mtime for p in Path(loc).rglob("*") if p.is_file()]
+        return max(times, default=0.0) if times else (_os.stat(loc).st_mtime if Path(loc).exists() else 0.0)
+    found = store.fs.find(loc.as_posix(), detail=True, withdirs=False)
+    stamps = [info.get("LastModified") for info in found.values()]
+    return max((s.timestamp() for s in stamps if s is not None), default=0.0)
+
+
+def gc_uncommitted(store: Store, min_age_h: float, apply: bool) -> list[tuple[str, str]]:
+    """``cornermap gc`` on an object-store root: the version prefixes without their manifest (uploads of a killed
+    push) untouched for ``min_age_h``, and lock records whose lease expired more than ``min_age_h`` ago. Deleting
+    holds the root's lock exclusive (a lease). Returns (URI, why) of what was (or would be) removed."""
+    import json
+    import time
+
+    from pipeline.locks import ROOT_KEY, locks_for
+
+    def plan() -> list[tuple[PurePath, str, str | None]]:
+        """(location, why, ETag of a lock record) of what is to go."""
+        now, out = time.time(), []
+        for name in map_names(store):
+            mdir = storage.map_dir(store.root, name)
+            for entry in store.listdir(mdir):
+                if not storage.VERSION_RE.match(entry) or store.exists(storage.version_manifest(mdir / entry)):
+                    continue
+                if now - _newest_modified(store, mdir / entry) >= min_age_h * 3600:
+                    out.append((mdir / entry, "uncommitted version: no manifest, a killed writer's uploads", None))
+        locks = storage.locks_dir(store.root)
+        for lock in store.listdir(locks):
+            for rec in store.listdir(locks / lock):
+                try:
+                    tag = store.etag(locks / lock / rec)
+                    expires = float(json.loads(store.read_bytes(locks / lock / rec)).get("expires_unix", 0.0))
+                except (FileNotFoundError, ValueError, AttributeError):
+                    continue
+                if tag is not None and now - expires >= min_age_h * 3600:
+                    out.append((locks / lock / rec, "lease expired: its holder is gone", tag))
+        return out
+
+    found = plan()
+    if apply and found:
+        with locks_for(store).hold(ROOT_KEY, exclusive=True, what="cornermap gc --apply"):
+            found = plan()  # again under the lock: only what is still there, still uncommitted, still expired
+            for loc, _, tag in found:
+                if tag is not None:
+                    store.delete_if(loc, tag)  # a lease renewed or taken over since has another ETag: kept
+                else:
+                    store.delete_tree(loc)
+    return [(store.url(loc), why) for loc, why, _ in found]

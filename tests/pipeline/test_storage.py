@@ -189,3 +189,16 @@ def test_a_lease_is_renewed_while_held(s3_root):
             other.hold("map-city", exclusive=True).__enter__()
     with other.hold("map-city", exclusive=True):
         pass
+
+
+def test_gc_removes_a_dead_holders_lease_and_keeps_a_live_one(s3_root):
+    from pipeline.store_maps import gc_uncommitted
+
+    store = Store.open(s3_root)
+    LeaseLocks(store, ttl_s=0.5, holder="dead")._acquire_exclusive("map-a", "killed")
+    with LeaseLocks(store, ttl_s=30, holder="live").hold("map-b", exclusive=True, what="alive"):
+        time.sleep(0.6)
+        found = gc_uncommitted(store, min_age_h=0, apply=True)
+        assert [why for _, why in found] == ["lease expired: its holder is gone"]
+        assert found[0][0].endswith("/locks/map-a.lock/x")
+        assert [k for k, _ in store.walk_files(storage.locks_dir(store.root))] == ["map-b.lock/x"]
