@@ -64,21 +64,26 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
 
 
 @maps_app.command("show")
-def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ, as_json: bool = opts.JSON) -> None:
+def show_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ, as_json: bool = opts.JSON) -> None:
     """Print a map's frame, its versions (LATEST, refused by the gate, candidate) and drives: when each was recorded
-    (first/last pose), when added, the versions holding it. Maps made by `cornermap build` too.
+    (first/last pose), when added, the versions holding it. Maps made by `cornermap build` too. The root may be
+    s3://BUCKET/PREFIX.
 
     Example: [b]cornermap maps show --root runs/maps --map kept[/b]
     """
     from pipeline.maps import map_dir
     from pipeline.maps_show import show_doc, show_lines
+    from pipeline.store_maps import readable_root
 
-    mdir = map_dir(root, map_name)
-    if as_json:
-        opts.echo_json(show_doc(mdir))
-        return
-    for line in show_lines(mdir):
-        typer.echo(line)
+    trajectories = lambda m: [str(d["trajectory"]) for d in m.get("source_drives", [])]  # noqa: E731
+    with readable_root(root, map_name, whole=(), pick=trajectories) as (local_root, shown):
+        mdir = map_dir(local_root, map_name)
+        if as_json:
+            doc = show_doc(mdir)
+            opts.echo_json({**doc, "path": shown(str(doc.get("path", mdir)))})
+            return
+        for line in show_lines(mdir):
+            typer.echo(shown(line))
 
 
 def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,

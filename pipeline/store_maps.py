@@ -133,10 +133,15 @@ def publish_version_to(store: Store, name: str, write: Callable[[Path], Mapping[
         return replace(pv, path=storage.version_dir(dst, pv.version))
 
 
-def snapshot_map(store: Store, name: str, dest: Path, whole: Iterable[int] | str = "latest") -> Path:
+def snapshot_map(store: Store, name: str, dest: Path, whole: Iterable[int] | str = "latest",
+                 pick: Callable[[dict], list[str]] | None = None) -> Path:
     """Download map ``name``'s LATEST, identity, gate records and every committed manifest into ``dest`` (a local
-    root), and the versions ``whole`` names in full (``"all"``, ``"latest"``, or numbers). Returns the local map
-    folder."""
+    root), the versions ``whole`` names in full (``"all"``, ``"latest"``, or numbers), and of the others the files
+    ``pick(manifest)`` names (a changelog, trajectories). Returns the local map folder."""
+    import json
+
+    from pipeline.names import inside
+
     src = storage.map_dir(store.root, name)
     mdir = storage.map_dir(Path(dest), name)
     mdir.mkdir(parents=True, exist_ok=True)
@@ -160,14 +165,24 @@ def snapshot_map(store: Store, name: str, dest: Path, whole: Iterable[int] | str
             store.download_tree(storage.version_dir(src, v), local_v)
         else:
             local_v.mkdir(parents=True, exist_ok=True)
-            storage.version_manifest(local_v).write_bytes(store.read_bytes(
-                storage.version_manifest(storage.version_dir(src, v))))
+            raw = store.read_bytes(storage.version_manifest(storage.version_dir(src, v)))
+            storage.version_manifest(local_v).write_bytes(raw)
+            try:
+                wanted = pick(json.loads(raw)) if pick is not None else []
+            except (ValueError, TypeError, KeyError, AttributeError):
+                wanted = []  # a malformed manifest: the reader names it
+            for rel in wanted:
+                target = inside(local_v, rel)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                with contextlib.suppress(FileNotFoundError):
+                    target.write_bytes(store.read_bytes(storage.version_dir(src, v) / rel))
     return mdir
 
 
 @contextlib.contextmanager
 def readable_root(root: str | Path, name: str | None, whole: Iterable[int] | str = "latest",
-                  version: str | int | None = None) -> Iterator[tuple[Path, Callable[[str], str]]]:
+                  version: str | int | None = None, pick: Callable[[dict], list[str]] | None = None
+                  ) -> Iterator[tuple[Path, Callable[[str], str]]]:
     """(a local root to read map ``name`` from, a function that turns local paths in messages back into the root's
     URIs). A local root is itself (no copy); an ``s3://`` root is a snapshot (``snapshot_map``) in a temporary
     folder, removed after. ``version`` ("LATEST", "v0003", 3) adds that version to ``whole``."""
@@ -181,7 +196,7 @@ def readable_root(root: str | Path, name: str | None, whole: Iterable[int] | str
             from pipeline.version_read import parse_version
 
             whole = whole if whole == "all" else [parse_version(version)]
-        snapshot_map(store, name, Path(tmp), whole)
+        snapshot_map(store, name, Path(tmp), whole, pick)
         prefix = str(Path(tmp))
         yield Path(tmp), (lambda text: text.replace(prefix, store.uri))
 

@@ -32,7 +32,8 @@ def test_a_uri_where_a_folder_is_expected_is_a_usage_error_naming_the_option(tmp
 
 
 def test_the_environment_root_is_checked_like_the_option(tmp_path):
-    res = cornermap("maps", "show", "--map", "city", cwd=tmp_path, CORNERMAP_ROOT="s3://maps/city-root")
+    res = cornermap("maps", "create", "--map", "city", "--origin", "37.5,127.0,57", cwd=tmp_path,
+                    CORNERMAP_ROOT="s3://maps/city-root")
     assert res.returncode == 2 and one_error_line(res).startswith("error: --root: "), res.stderr
     assert list(tmp_path.iterdir()) == []
 

@@ -140,15 +140,24 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
                   or "none"))
 
 
-def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+def log(root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT,
         as_json: bool = typer.Option(False, "--json", help="Print every version's changelog as JSON."),
         details: bool = typer.Option(False, "--details", help="Also list the ids of added, removed and moved "
                                      "corners and the changed tiles.")) -> None:
     """History of a map, oldest first: per version its drives, corners added / removed / moved (stable ids),
-    marking pixels changed and whether the frame stayed the same (each version's changelog.json).
+    marking pixels changed and whether the frame stayed the same (each version's changelog.json). The root may be
+    s3://BUCKET/PREFIX.
 
     Example: [b]cornermap tiles log --map tiny --root runs/tiny[/b]
     """
+    from pipeline.store_maps import readable_root
+
+    changelog = lambda m: [str(m["changelog"])] if m.get("changelog") else []  # noqa: E731
+    with readable_root(root, map_name, whole=(), pick=changelog) as (local_root, shown):
+        _log(local_root, map_name, as_json, details, shown)
+
+
+def _log(root: Path, map_name: Optional[str], as_json: bool, details: bool, shown) -> None:
     from mapformat.changelog import read_changelog, summary_line
     from pipeline.errors import ChecksumError, MapFormatError
     from pipeline.versioned import list_versions, read_latest, read_manifest, version_name
@@ -157,7 +166,7 @@ def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
     latest = read_latest(d)
     docs = []
     if not as_json:
-        typer.echo(f"{d}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
+        typer.echo(f"{shown(str(d))}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
     for v in list_versions(d):
         mark = "*" if v == latest else " "
         try:
