@@ -254,3 +254,32 @@ def gc_uncommitted(store: Store, min_age_h: float, apply: bool) -> list[tuple[st
                 else:
                     store.delete_tree(loc)
     return [(store.url(loc), why) for loc, why, _ in found]
+
+
+def rollback(store: Store, name: str, to: str | int) -> tuple[int | None, int]:
+    """Point the bucket's LATEST of map ``name`` at an older committed version after verifying its bytes (one PUT;
+    nothing is deleted), under the map's lease. Returns (previous LATEST, new LATEST); ChecksumError when the
+    version is not intact, UnknownNameError when it is not committed."""
+    from pipeline.errors import ChecksumError
+    from pipeline.locks import locks_for, map_key
+    from pipeline.version_read import parse_version, read_latest, read_manifest, verify_version, version_name
+
+    name = resolve_map(store, name)
+    number = parse_version(to)
+    mdir = storage.map_dir(store.root, name)
+    have = list_versions(store, mdir)
+    if number not in have:
+        raise UnknownNameError(f"{store.url(mdir)}: no version {version_name(number)}; have "
+                               f"{', '.join(version_name(v) for v in have) or 'none'}")
+    with locks_for(store).hold(map_key(name), exclusive=True), \
+            tempfile.TemporaryDirectory(prefix="cornermap-view-") as tmp:
+        local = snapshot_map(store, name, Path(tmp), [number])
+        vdir = storage.version_dir(local, number)
+        problems = verify_version(vdir)
+        if problems:
+            raise ChecksumError(f"{store.url(storage.version_dir(mdir, number))}: {len(problems)} integrity "
+                                f"problem(s), not rolled back to: {problems[0].replace(str(tmp), store.uri)}")
+        before = read_latest(local)
+        sha = read_manifest(vdir)[1]
+        store.put_bytes(storage.latest_file(mdir), f"{version_name(number)} {sha}\n".encode())
+    return before, number

@@ -16,7 +16,7 @@ REFUSED = [
     (("maps", "create", "--root", "s3://maps/city-root", "--map", "city", "--origin", "37.5,127.0,57"), "--root"),
     (("rebuild", "--root", "s3://maps/city-root", "--map", "city", "--inbox", "in"), "--root"),
     (("rebuild", "--root", "local", "--map", "city", "--inbox", "s3://maps/inbox"), "--inbox"),
-    (("tiles", "rollback", "--to", "v1", "--root", "s3://maps/city-root", "--map", "city"), "--root"),
+    (("tiles", "diff", "v1", "v2", "--root", "s3://maps/city-root", "--map", "city"), "--root"),
     (("tiles", "ls", "--root", "gs://maps/city-root"), "--root"),  # a scheme no command supports
 ]
 

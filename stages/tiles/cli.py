@@ -416,13 +416,20 @@ def push(root: Path = ROOT_OPT, map_name: str = opts.MAP,
 
 
 def rollback(to: str = typer.Option(..., "--to", help="The version LATEST should name (vNNNN or N)."),
-             root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
-    """Point LATEST back at an older, verified version (a new LATEST write; no version is deleted).
+             root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT) -> None:
+    """Point LATEST back at an older, verified version (a new LATEST write; no version is deleted). The root may be
+    s3://BUCKET/PREFIX (LATEST is one PUT, under the map's lease).
 
     Example: [b]cornermap tiles rollback --to v0001 --map city --root runs/maps[/b]
     """
     from pipeline.maps import rollback as rollback_latest
+    from pipeline.storage import Store, uri_scheme
     from pipeline.versioned import version_name
 
-    before, now = rollback_latest(map_dir_of(root, map_name), to)
+    if uri_scheme(root) is not None:
+        from pipeline.store_maps import rollback as rollback_remote
+
+        before, now = rollback_remote(Store.open(root), map_name, to)
+    else:
+        before, now = rollback_latest(map_dir_of(root, map_name), to)
     typer.echo(f"LATEST: {version_name(before) if before is not None else 'none'} -> {version_name(now)}")

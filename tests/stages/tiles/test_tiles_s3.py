@@ -121,6 +121,23 @@ def test_a_killed_commit_is_invisible_and_a_version_is_committed_once(local_root
         push_version(store, mdir, src, 2)
 
 
+def test_rollback_in_a_bucket_moves_latest_after_checking_the_version(local_root, s3_root, s3_env, tmp_path):
+    store = Store.open(s3_root)
+    push_map(local_root, "city", store)
+    mdir = storage.map_dir(store.root, "city")
+    res = _cm("tiles", "rollback", "--to", "v1", "--root", s3_root, "--map", "city", cwd=tmp_path, env=s3_env)
+    assert res.returncode == 0 and "LATEST: v0002 -> v0001" in res.stdout, res.stdout + res.stderr
+    v1 = store.read_bytes(storage.version_manifest(storage.version_dir(mdir, 1)))
+    import hashlib
+
+    assert store.read_bytes(storage.latest_file(mdir)) == f"v0001 {hashlib.sha256(v1).hexdigest()}\n".encode()
+    loc = storage.version_dir(mdir, 2) / "tiles" / "0_0" / "corners.parquet"
+    store.put_bytes(loc, store.read_bytes(loc)[:-1] + b"X")  # v0002 damaged in the bucket: refused
+    res = _cm("tiles", "rollback", "--to", "v2", "--root", s3_root, "--map", "city", cwd=tmp_path, env=s3_env)
+    assert res.returncode == 1 and f"{s3_root}/maps/city/v0002" in res.stderr, res.stderr
+    assert store.read_bytes(storage.latest_file(mdir)).startswith(b"v0001 ")
+
+
 def test_publishing_straight_to_a_bucket_continues_the_chain(local_root, s3_root, s3_env):
     store = Store.open(s3_root)
     push_map(local_root, "city", store)
