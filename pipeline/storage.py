@@ -19,9 +19,9 @@ every object of a root, for a local ``Path`` root and for the ``PurePosixPath`` 
 Backends: a local folder is plain ``pathlib``/``os`` (the engine's hot paths are unchanged); S3 is ``s3fs`` (fsspec),
 chosen over ``pyarrow.fs`` by measurement (docs/storage.md, ``bench/bench_store.py --backends``: 100 small PUTs
 0.74 s against 1.39 s, a 64 MB GET 0.35 s against 13.8 s on the local moto server), and because s3fs offers the
-conditional put ``If-None-Match`` that commit markers and lock objects need. Endpoint and credentials come from the standard AWS environment
-(``AWS_ENDPOINT_URL``, ``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, ``AWS_PROFILE``), so MinIO, Ceph and cloud
-buckets work alike.
+conditional put ``If-None-Match`` that commit markers and lock objects need. Endpoint and credentials come from the
+standard AWS environment (``AWS_ENDPOINT_URL``, ``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, ``AWS_PROFILE``),
+so MinIO, Ceph and cloud buckets work alike.
 
 Object-store semantics (``docs/storage.md``): an S3 object appears whole or not at all; a commit marker
 (``_manifest.json``, a version's ``manifest.json``) is written after every file it lists, with ``If-None-Match: *``
@@ -178,8 +178,10 @@ def refuse_uri(value: object, option: str, supported: str = "a local folder") ->
         return
     from pipeline.errors import OptionError
 
+    hint = ("write to a folder, then `cornermap tiles push --root FOLDER --map NAME --to s3://BUCKET/PREFIX` "
+            "publishes its map" if option == "--root" else "copy it to a local folder first")
     raise OptionError(option, [f"{normalise_uri(value)} is an object-store URI ({scheme}://); this command takes "
-                               f"{supported} here (object-store roots: docs/storage.md)"])
+                               f"{supported} here; hint: {hint} (docs/storage.md)"])
 
 
 def local_path(value: object, option: str) -> Path:
