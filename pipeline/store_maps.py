@@ -283,3 +283,14 @@ def rollback(store: Store, name: str, to: str | int) -> tuple[int | None, int]:
         sha = read_manifest(vdir)[1]
         store.put_bytes(storage.latest_file(mdir), f"{version_name(number)} {sha}\n".encode())
     return before, number
+
+
+def map_location(root: str | Path, name: str | None) -> str | Path:
+    """Where ``mapformat.loader.open_map`` finds map ``name`` of ``root``: ``ROOT/maps/NAME`` for a local root, its
+    ``s3://`` URI for a bucket (the only map when ``name`` is None; UnknownNameError otherwise)."""
+    store = Store.open(root)
+    if store.local:
+        from pipeline.names import published_map_dir
+
+        return published_map_dir(root, name, hint="pass --map NAME (and --root ROOT)")
+    return store.url(storage.map_dir(store.root, resolve_map(store, name)))

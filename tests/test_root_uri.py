@@ -16,7 +16,7 @@ REFUSED = [
     (("maps", "create", "--root", "s3://maps/city-root", "--map", "city", "--origin", "37.5,127.0,57"), "--root"),
     (("rebuild", "--root", "s3://maps/city-root", "--map", "city", "--inbox", "in"), "--root"),
     (("rebuild", "--root", "local", "--map", "city", "--inbox", "s3://maps/inbox"), "--inbox"),
-    (("tiles", "diff", "v1", "v2", "--root", "s3://maps/city-root", "--map", "city"), "--root"),
+    (("tiles", "bundle", "--from", "v1", "--to", "v2", "--out", "o", "--root", "s3://maps/r", "--map", "c"), "--root"),
     (("tiles", "ls", "--root", "gs://maps/city-root"), "--root"),  # a scheme no command supports
 ]
 

@@ -90,7 +90,7 @@ def _ls(root: Path, map_name: Optional[str], as_json: bool, shown) -> None:
 
 def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LATEST)."),
          version_b: str = typer.Argument(..., help="New version."),
-         root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+         root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT,
          significance: float = typer.Option(0.001, "--significance", help="A matched corner is moved when the "
                                             "chi-square test (2 dof) on its displacement with both covariances "
                                             "rejects 'unchanged' at this level; marking cells likewise."),
@@ -115,7 +115,9 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
             raise OptionError(opt, [f"{value}: expected 0 to 1000 m"])
     if not (0.0 < significance < 1.0):
         raise OptionError("--significance", [f"{significance}: expected a probability in (0, 1)"])
-    d = map_dir_of(root, map_name)
+    from pipeline.store_maps import map_location
+
+    d = map_location(root, map_name)  # a folder, or a bucket's map (each version downloaded and verified)
     a, b = open_map(d, version_a), open_map(d, version_b)
     diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m,
                       significance=significance)
@@ -281,7 +283,7 @@ def _verify(root: Path, map_name: Optional[str], version: str, all_versions: boo
         raise ChecksumError(f"{d}: {len(bad)} integrity problem(s) (listed above); hint: republish the version")
 
 
-def query(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
+def query(root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
           at: str = typer.Option(..., "--at", help="LAT,LON in degrees, WGS84."),
           radius_m: float = typer.Option(150.0, "--radius", help="Metres around --at (at most 10 km)."),
           heading_deg: Optional[float] = typer.Option(None, "--heading-deg", help="The vehicle's heading, degrees "
@@ -306,7 +308,9 @@ def query(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str
     if (heading_deg is None) != (fov_deg is None):
         raise typer.BadParameter("give --heading-deg and --fov-deg together", param_hint="--fov-deg")
     check_area(radius_m, fov_deg)
-    reader = open_map(map_dir_of(root, map_name), version)
+    from pipeline.store_maps import map_location
+
+    reader = open_map(map_location(root, map_name), version)
     q = query_latlon(reader, lat, lon, radius_m, heading_deg=heading_deg, fov_deg=fov_deg)
     doc = answer_json(reader, q)
     if as_json:

@@ -54,6 +54,14 @@ def test_push_ls_verify_export_and_load_from_a_bucket(local_root, s3_root, s3_en
         if isinstance(a, dict):
             assert a.pop("path") == f"{s3_root}/maps/city" and b.pop("path") == str(local_root / "maps/city")
         assert a == b and a, cmd
+    for cmd in (("tiles", "diff", "v1", "LATEST", "--json"),
+                ("tiles", "query", "--at", "37.4979,127.0276", "--radius", "300", "--json")):
+        remote = _cm(*cmd, "--root", s3_root, cwd=work, env=s3_env)
+        here = _cm(*cmd, "--root", str(local_root), cwd=work, env=s3_env)
+        assert remote.returncode == 0 and here.returncode == 0, remote.stderr + here.stderr
+        a, b = json.loads(remote.stdout), json.loads(here.stdout)
+        a.pop("path", None), b.pop("path", None)
+        assert a == b and a, cmd
     res = _cm("tiles", "verify", "--all", "--root", s3_root, "--map", "city", cwd=work, env=s3_env)
     assert res.returncode == 0 and "v0001: ok" in res.stdout and "v0002: ok" in res.stdout, res.stdout + res.stderr
     out = work / "city.geojson"
