@@ -28,11 +28,12 @@ from typing import Any
 from mapformat.schemas import validate
 from pipeline.errors import IntegrityError, MapFormatError, PublishConflictError, UnknownNameError
 from pipeline.names import inside
+from pipeline.storage import VERSION_MANIFEST
 
 BUNDLE_FILE = "bundle.json"
 BUNDLE_FORMAT = "cornermap-bundle"
 FILES_DIR = "files"
-MANIFEST = "manifest.json"
+MANIFEST = VERSION_MANIFEST  # files/manifest.json: the target version's manifest
 MAX_BUNDLE_JSON_BYTES = 64 << 20
 
 

@@ -21,6 +21,7 @@ from typing import Any, Iterator
 
 from pipeline.errors import DatasetIOError
 from pipeline.names import inside
+from pipeline.storage import datasets_dir
 from pipeline.store import FP_LEN, dataset_dir, read_manifest, verify_file
 
 
@@ -109,8 +110,8 @@ class VersionLineage:
         what = f"{dataset}" + (f" of drive {drive!r}" if drive is not None else "")
         gone = ", ".join(f"{d} {fp[:FP_LEN]}" for d, fp in self.missing[:3])
         gone += f" and {len(self.missing) - 3} more" if len(self.missing) > 3 else ""
-        why = (f"; recorded but not committed under {self.root / 'datasets'}: {gone} (removed by gc, or the map was "
-               "built in another root)") if gone else ""
+        why = (f"; recorded but not committed under {datasets_dir(Path(self.root))}: {gone} (removed by gc, or the "
+               "map was built in another root)") if gone else ""
         raise DatasetIOError(f"{self.label}: no committed {what} among the datasets it was built from{why}; hint: "
                              "export from the root that built this version (--root), or rebuild it")
 

@@ -468,7 +468,15 @@ def open_map(path: str | Path, version: str | int = "LATEST", cache_tiles: int =
     """Open ``ROOT/maps/NAME`` at ``version`` ("LATEST", "v0003", 3), or a version directory itself.
 
     Through ``ROOT/maps/NAME`` the manifest is checked against the digest chain that starts at LATEST (a
-    version directory opened directly has no digest outside itself: only its files are verified)."""
+    version directory opened directly has no digest outside itself: only its files are verified).
+
+    ``s3://BUCKET/ROOT/maps/NAME`` (endpoint and credentials from the AWS environment): LATEST, the manifests and the
+    version are downloaded to a temporary folder kept for this process (``pipeline.store_maps.snapshot_map``), then
+    opened and verified the same way; the bytes checked are the bucket's."""
+    from pipeline.storage import uri_scheme
+
+    if uri_scheme(path) is not None:
+        return _open_remote(str(path), version, cache_tiles, trust_files)
     path = Path(path)
     if (path / MANIFEST_NAME).is_file():
         return MapReader(path, cache_tiles, trust_files=trust_files)
@@ -477,3 +485,35 @@ def open_map(path: str | Path, version: str | int = "LATEST", cache_tiles: int =
     vdir = resolve_version(path, version)
     expected = trusted_manifest_digests(path).get(int(vdir.name[1:]))
     return MapReader(vdir, cache_tiles, manifest_sha256=expected, trust_files=trust_files)
+
+
+_SNAPSHOTS: list[Any] = []  # temporary folders of maps opened from an object store, removed at exit
+
+
+def _open_remote(uri: str, version: str | int, cache_tiles: int, trust_files: bool) -> MapReader:
+    import tempfile
+    from pathlib import PurePosixPath
+
+    from pipeline.storage import Store, normalise_uri, uri_scheme
+    from pipeline.store_maps import snapshot_map
+    from pipeline.version_read import parse_version
+
+    uri = normalise_uri(uri)
+    scheme = uri_scheme(uri)
+    loc = PurePosixPath(uri[len(scheme) + 3:])
+    if re_version(loc.name):
+        version, loc = loc.name, loc.parent
+    if loc.parent.name != "maps" or len(loc.parts) < 3:
+        raise UnknownNameError(f"{uri}: expected {scheme}://BUCKET/ROOT/maps/NAME (or .../maps/NAME/vNNNN)")
+    store = Store.open(f"{scheme}://{loc.parent.parent.as_posix()}")
+    tmp = tempfile.TemporaryDirectory(prefix="cornermap-map-")
+    _SNAPSHOTS.append(tmp)
+    latest = isinstance(version, str) and version.upper() == "LATEST"
+    mdir = snapshot_map(store, loc.name, Path(tmp.name), "latest" if latest else [parse_version(version)])
+    return open_map(mdir, version, cache_tiles, trust_files=trust_files)
+
+
+def re_version(name: str) -> bool:
+    from pipeline.storage import VERSION_RE
+
+    return VERSION_RE.match(name) is not None

@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
+from pipeline import storage
+
 if TYPE_CHECKING:
     from pipeline.declare import PartitionKey, StageContext
     from pipeline.plan import Plan
@@ -81,7 +83,7 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
             if skipped:
                 progress.event(f"committed by an earlier run, skipped: {', '.join(skipped)}")
             sched = Scheduler(scheduler or wf.spec.scheduler, workers=workers, host=dask_host,
-                              log_dir=Path(plan.root) / "tmp")
+                              log_dir=storage.tmp_dir(Path(plan.root)))
             try:
                 if sched.dashboard_link:
                     line = f"dask dashboard: {sched.dashboard_link} (log: {sched.log_file})"

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import yaml
 
+from pipeline import storage
 from pipeline.errors import ConfigError, OptionError
 
 
@@ -67,7 +68,7 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
     doc["drives"] = [{"name": Path(d).resolve().parent.name, "path": str(Path(d).resolve()), "role": "map"}
                      for d in drives]
     text = yaml.safe_dump(doc, sort_keys=False)
-    out = Path(root) / "workflows" / f"build-{map_name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}.yaml"
+    out = storage.workflows_dir(Path(root)) / f"build-{map_name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}.yaml"
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".yaml.tmp")
     tmp.write_text(text)

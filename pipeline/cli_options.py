@@ -25,9 +25,48 @@ from pipeline.errors import OptionError
 
 ROOT_HELP = "Output root holding datasets/ and maps/NAME/ (env CORNERMAP_ROOT)."
 
-ROOT = typer.Option(..., "--root", envvar="CORNERMAP_ROOT", show_envvar=False, help=ROOT_HELP)
+
+
+def _local_only(option: str):
+    """A callback refusing a URI (``s3://bucket/root``) with a usage error naming ``option``: a command that does not
+    read or write object storage must not take the URI for the relative folder ``s3:/bucket/root``."""
+
+    def check(ctx: typer.Context, param: Any, value: Any) -> Any:
+        if value is not None and not ctx.resilient_parsing:
+            from pipeline.storage import refuse_uri
+
+            refuse_uri(value, option)
+        return value
+
+    return check
+
+
+def _store_root(ctx: typer.Context, param: Any, value: Any) -> Any:
+    """A root that may be a local folder or an ``s3://`` URI: the URI kept whole (typer's ``Path`` would collapse
+    ``s3://`` to ``s3:/``); an unsupported scheme is a usage error."""
+    if value is None or ctx.resilient_parsing:
+        return value
+    from pipeline.storage import SCHEMES, normalise_uri, refuse_uri, uri_scheme
+
+    scheme = uri_scheme(value)
+    if scheme is None:
+        return Path(value)
+    if scheme not in SCHEMES:
+        refuse_uri(value, "--root", "a local folder or an s3://BUCKET/PREFIX URI")
+    return normalise_uri(value)
+
+
+ROOT = typer.Option(..., "--root", envvar="CORNERMAP_ROOT", show_envvar=False, help=ROOT_HELP,
+                    callback=_local_only("--root"))
 ROOT_OF_WORKFLOW = typer.Option(None, "--root", envvar="CORNERMAP_ROOT", show_envvar=False,
-                                help=ROOT_HELP + " Default: the workflow's root.")
+                                help=ROOT_HELP + " Default: the workflow's root.", callback=_local_only("--root"))
+# Commands that read a root on object storage too (tiles ls|verify|log|export, maps show): a str, not a Path.
+ROOT_OR_URI = typer.Option(..., "--root", envvar="CORNERMAP_ROOT", show_envvar=False, callback=_store_root,
+                           help="Output root holding datasets/ and maps/NAME/: a folder or s3://BUCKET/PREFIX "
+                           "(endpoint and credentials from the AWS environment; env CORNERMAP_ROOT).")
+INBOX = typer.Option(..., "--inbox", callback=_local_only("--inbox"),
+                     help="Folder of drive folders (each with a drive.yaml); "
+                     "bad ones move to INBOX/quarantine/.")
 MAP = typer.Option(..., "--map", "-m", help="Map name (ROOT/maps/NAME).")
 MAP_OR_ONLY = typer.Option(None, "--map", "-m", help="Map name (ROOT/maps/NAME); default: the only map there.")
 MAP_VERSION = typer.Option("LATEST", "--map-version", help="The map's version: LATEST, vNNNN or N.")

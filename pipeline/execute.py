@@ -15,6 +15,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable
 
+from pipeline import storage
 from pipeline.catalog import resolve_schema
 from pipeline.declare import Partitioning, PartitionKey, StageContext
 from pipeline.errors import CornermapError, StageError
@@ -77,7 +78,7 @@ def _ensure_extra_stages(spec: dict[str, Any]) -> None:
 
 def _part_marker(spec: dict[str, Any], key: str, label: str) -> Path:
     out = spec["outputs"][key]
-    return dataset_dir(Path(spec["root"]), out["dataset"], spec["fingerprint"]) / "_parts" / f"{label}.json"
+    return storage.part_marker(dataset_dir(Path(spec["root"]), out["dataset"], spec["fingerprint"]), label)
 
 
 def _cpu_s() -> tuple[float, float]:
@@ -136,8 +137,9 @@ def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
             return reused
     root = Path(spec["root"])
     token = uuid.uuid4().hex[:8]
-    scratch = root / "tmp" / f"{spec['stage']}-{label}-{token}"
-    staging = {k: dataset_dir(root, o["dataset"], spec["fingerprint"]) / "artifacts" / f".staging-{label}-{token}"
+    scratch = storage.tmp_dir(root, f"{spec['stage']}-{label}-{token}")
+    staging = {k: storage.artifacts_dir(dataset_dir(root, o["dataset"], spec["fingerprint"]),
+                                        f".staging-{label}-{token}")
                for k, o in spec["outputs"].items() if o["kind"] == "artifacts"}
     scratch.mkdir(parents=True, exist_ok=True)
     try:
@@ -151,7 +153,7 @@ def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
                 ds_dir = dataset_dir(root, out["dataset"], spec["fingerprint"])
                 where = f"stage {spec['stage']!r} partition {label} output {key!r} (dataset {out['dataset']!r})"
                 if out["kind"] == "artifacts":
-                    files = commit_artifacts(staging[key], ds_dir / "artifacts" / label)
+                    files = commit_artifacts(staging[key], storage.artifacts_dir(ds_dir, label))
                     outputs[key] = {"files": [], "artifacts": files}
                 else:
                     files = write_pieces(result.get(key), out_dir=ds_dir, label=label,
@@ -184,7 +186,7 @@ def _reuse_from_sibling(spec: dict[str, Any], label: str, partition: dict[str, A
     found = {}
     for key, out in spec["outputs"].items():
         own = dataset_dir(root, out["dataset"], spec["fingerprint"])
-        hit = find_committed(root / "datasets", out["dataset"], own, label, scope)
+        hit = find_committed(storage.datasets_dir(root), out["dataset"], own, label, scope)
         if hit is None:
             return None
         found[key] = (own, *hit)
@@ -218,7 +220,7 @@ def commit_stage(spec: dict[str, Any], parts: list[dict[str, Any]]) -> dict[str,
             "artifacts": artifacts, "extra": extra,
             "committed_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         }
-        atomic_write_json(dataset_dir(root, out["dataset"], spec["fingerprint"]) / "_manifest.json", manifest)
+        atomic_write_json(storage.dataset_manifest(dataset_dir(root, out["dataset"], spec["fingerprint"])), manifest)
         manifests[key] = {"dataset": out["dataset"], "rows": manifest["rows"], "files": len(files)}
     return manifests
 
@@ -227,7 +229,7 @@ def enumerate_partitions(plan: Plan, sp: StagePlan) -> list[PartitionKey]:
     if sp.partitions is not None:
         return sp.partitions
     spec = _task_spec(plan, sp)
-    ctx = _context(spec, PartitionKey(), plan.root / "tmp" / f"plan-{sp.name}", {})
+    ctx = _context(spec, PartitionKey(), storage.tmp_dir(plan.root, f"plan-{sp.name}"), {})
     if sp.decl.plan:
         from pipeline.declare import resolve
 

@@ -32,6 +32,7 @@ from concurrent.futures import FIRST_COMPLETED, CancelledError, Future, ThreadPo
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from pipeline import storage
 from pipeline.declare import Partitioning, PartitionKey
 from pipeline.errors import StageError
 from pipeline.execute import (
@@ -267,7 +268,7 @@ class Flow:
         if st.sp.partitions is not None:
             return [k for k in st.sp.partitions if k.drive == drive]
         src = st.sp.decl.partition_source
-        ctx = _context(st.spec, PartitionKey(), self.plan.root / "tmp" / f"plan-{st.name}", {}, provisional)
+        ctx = _context(st.spec, PartitionKey(), storage.tmp_dir(self.plan.root, f"plan-{st.name}"), {}, provisional)
         return sorted({PartitionKey(drive=k.drive, chunk=k.chunk) for k in ctx.inputs.partitions(src)
                        if k.drive == drive})
 
@@ -325,7 +326,7 @@ class Flow:
         with contextlib.ExitStack() as stack:
             stack.enter_context(one_thread_per_process(
                 self.scheduler.workers if self.scheduler.kind == "processes" else None))
-            ledger = self.plan.root / "tmp" / f"verified-{uuid.uuid4().hex[:12]}"
+            ledger = storage.tmp_dir(self.plan.root, f"verified-{uuid.uuid4().hex[:12]}")
             stack.callback(shutil.rmtree, ledger, ignore_errors=True)
             for st in self.stages.values():  # a file is verified once per run (pipeline.store.verify_file)
                 st.spec["verified_ledger"] = str(ledger)

@@ -14,6 +14,8 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pipeline import storage
+
 GATE_FIGURES = (("ekf", "rms_2d_m"), ("ekf", "p95_2d_m"), ("mcl", "rms_2d_m"), ("mcl", "p95_2d_m"))
 
 
@@ -77,7 +79,7 @@ def run_gate(mdir: Path, candidate: int, previous: int, drive: Path, reference: 
     from pipeline.store import atomic_write_json
     from pipeline.versioned import version_name
 
-    gate_dir = mdir / "gate"
+    gate_dir = storage.gate_dir(mdir)
     work = gate_dir / f".work-{version_name(candidate)}"
     try:
         report("gate", 0, 2)
@@ -89,7 +91,7 @@ def run_gate(mdir: Path, candidate: int, previous: int, drive: Path, reference: 
         shutil.rmtree(work, ignore_errors=True)
     verdict = compare(cand, prev, tol_m, tol_rel)
     finish("gate", "passed" if verdict.ok else "refused")
-    atomic_write_json(gate_dir / f"{version_name(candidate)}.json", {
+    atomic_write_json(storage.gate_file(mdir, candidate), {
         "candidate": candidate, "previous": previous, "check_drive": str(drive), "reference": reference or "map",
         "tol_m": tol_m, "tol_rel": tol_rel, "ok": verdict.ok, "rows": verdict.rows,
         "candidate_metrics": cand and cand.get("methods"), "previous_metrics": prev and prev.get("methods")})

@@ -29,7 +29,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipeline.store import FP_LEN
+from pipeline import storage
+from pipeline.storage import FP_LEN
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ class GcPlan:
 
 def _manifest(d: Path) -> dict | None:
     try:
-        return json.loads((d / "_manifest.json").read_text())
+        return json.loads(storage.dataset_manifest(d).read_text())
     except (OSError, ValueError):
         return None
 
@@ -56,15 +57,15 @@ def _version_roots(root: Path) -> tuple[set[str], set[tuple[str, int]]]:
     from pipeline.version_read import _VERSION_RE
 
     fps, versions = set(), set()
-    maps = root / "maps"
+    maps = storage.maps_dir(root)
     for mdir in sorted(maps.iterdir()) if maps.is_dir() else []:
         for vdir in sorted(mdir.iterdir()) if mdir.is_dir() else []:
             m = _VERSION_RE.match(vdir.name)
-            if not m or not (vdir / "manifest.json").is_file():
+            if not m or not storage.version_manifest(vdir).is_file():
                 continue
             versions.add((mdir.name, int(m.group(1))))
             try:
-                doc = json.loads((vdir / "manifest.json").read_text())
+                doc = json.loads(storage.version_manifest(vdir).read_text())
             except (OSError, ValueError):
                 continue
             for entry in (doc.get("inputs") or {}).values():
@@ -77,7 +78,7 @@ def _map_tiles_roots(root: Path, versions: set[tuple[str, int]]) -> set[str]:
     import pyarrow.parquet as pq
 
     out = set()
-    base = root / "datasets" / "map_tiles"
+    base = storage.datasets_dir(root) / "map_tiles"
     for d in sorted(base.iterdir()) if base.is_dir() else []:
         m = _manifest(d)
         for rec in (m or {}).get("files", []):
@@ -98,13 +99,13 @@ def _drive_set_roots(root: Path) -> set[str]:
     from pipeline.workflow import load_workflow
 
     out: set[str] = set()
-    maps = root / "maps"
+    maps = storage.maps_dir(root)
     for mdir in sorted(maps.iterdir()) if maps.is_dir() else []:
         ident = read_identity(mdir) if mdir.is_dir() else None
         if ident is None or not ident.drives:
             continue
         current = sorted(d.path for d in ident.drives)
-        files = sorted((root / "workflows").glob(f"build-{mdir.name}-*.yaml"), key=lambda p: p.stat().st_mtime)
+        files = sorted(storage.workflows_dir(root).glob(f"build-{mdir.name}-*.yaml"), key=lambda p: p.stat().st_mtime)
         for wf_path in reversed(files):
             doc = load_yaml_file(wf_path) or {}
             if sorted(d.get("path") for d in doc.get("drives", [])) != current:
@@ -132,7 +133,7 @@ def _newest_mtime_and_bytes(path: Path) -> tuple[float, int]:
 
 
 def _stale_scratch(root: Path, min_age_h: float) -> tuple[list[Path], int]:
-    tmp = root / "tmp"
+    tmp = storage.tmp_dir(root)
     stale, size, now = [], 0, time.time()
     for entry in sorted(tmp.iterdir()) if tmp.is_dir() else []:
         try:
@@ -151,7 +152,7 @@ def _read_by_path(manifest: dict, root: Path) -> set[str]:
     no manifest input, but a kept dataset was made from them."""
     paths = list((manifest.get("drives") or {}).values())
     paths += list(((manifest.get("settings") or {}).get("references") or {}).values())
-    base = (Path(root) / "datasets").resolve()
+    base = storage.datasets_dir(Path(root)).resolve()
     out = set()
     for p in paths:
         if not isinstance(p, str) or not p:
@@ -180,7 +181,7 @@ def check_min_age_h(min_age_h: float) -> float:
 def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
     root = Path(root)
     check_min_age_h(min_age_h)
-    dirs = sorted(d for d in (root / "datasets").glob("*/*") if d.is_dir())
+    dirs = sorted(d for d in storage.datasets_dir(root).glob("*/*") if d.is_dir())
     manifests = {d: _manifest(d) for d in dirs}
     roots, versions = _version_roots(root)
     kept = roots | _map_tiles_roots(root, versions) | _drive_set_roots(root)

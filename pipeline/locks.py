@@ -22,7 +22,7 @@ The one interface is ``locks_for(root).hold(key, exclusive=..., what=...)``: a c
 (``FileLocks``) is ``fcntl.flock`` on ``ROOT/locks/<key>.lock``, released by the kernel when its holder dies (a killed
 writer never wedges the next one); each holder also leaves a record ``pid host start what`` in
 ``ROOT/locks/<key>.holders/`` for the refusal line, removed when it releases (a record whose process is gone on
-this host is ignored). A store on S3 would implement ``hold`` with leases instead.
+this host is ignored). A root on S3 has ``LeaseLocks`` (``pipeline.leases``): lease objects with an expiry.
 """
 from __future__ import annotations
 
@@ -41,8 +41,8 @@ from typing import ContextManager, Iterator, Protocol
 
 from pipeline.errors import RunLockedError
 from pipeline.names import check_name
+from pipeline.storage import Store, locks_dir, root_of_map
 
-LOCKS_DIR = "locks"
 ROOT_KEY = "root"
 
 
@@ -80,7 +80,7 @@ class FileLocks:
     """``fcntl.flock`` locks under ``ROOT/locks/`` (local or NFS file systems)."""
 
     def __init__(self, root: Path | str):
-        self.dir = Path(root) / LOCKS_DIR
+        self.dir = locks_dir(Path(root))
 
     @contextmanager
     def hold(self, key: str, *, exclusive: bool, what: str | None = None) -> Iterator[None]:
@@ -176,9 +176,17 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def locks_for(root: Path | str) -> Locks:
-    """The lock service of output root ``root`` (a local folder; the only backend so far)."""
-    return FileLocks(root)
+def locks_for(root: Path | str | Store) -> Locks:
+    """The lock service of output root ``root``: ``flock`` files for a local folder, leases on an object store
+    (``pipeline.leases``)."""
+    store = root if isinstance(root, Store) else None
+    if store is None and isinstance(root, str) and "://" in root:
+        store = Store.open(root)
+    if store is None or store.local:
+        return FileLocks(store.root if store is not None else root)
+    from pipeline.leases import LeaseLocks
+
+    return LeaseLocks(store)
 
 
 @contextmanager
@@ -197,7 +205,7 @@ def writer_locks(root: Path | str, map_name: str | None, what: str | None = None
 def map_lock(mdir: Path, what: str | None = None) -> Iterator[None]:
     """Map ``ROOT/maps/NAME`` exclusive (publishing, moving LATEST), without the root lock (``tiles rollback``)."""
     mdir = Path(mdir)
-    with locks_for(mdir.parent.parent).hold(map_key(mdir.name), exclusive=True, what=what):
+    with locks_for(root_of_map(mdir)).hold(map_key(mdir.name), exclusive=True, what=what):
         yield
 
 

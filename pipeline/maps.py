@@ -24,12 +24,13 @@ from typing import Any, Iterator
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from pipeline import storage
 from pipeline.errors import ConfigError, DatasetIOError, UnknownNameError
 from pipeline.names import check_name
 
-IDENTITY_NAME = "map.json"
+IDENTITY_NAME = storage.IDENTITY
 IDENTITY_SCHEMA = "cornermap.map-identity/1"
-GATE_DIR = "gate"
+GATE_DIR = storage.GATE
 # A map's area: drives whose GNSS fixes lie farther from the origin are refused (exit 3). A local ENU frame is a
 # tangent plane: at distance d its up axis leans d / R from the local vertical and the ground falls d^2 / (2 R) below
 # its horizontal plane (R = 6371 km): 10 km -> 0.09 deg and 7.8 m; 70 km -> 0.63 deg and 385 m (docs/maintenance.md).
@@ -86,12 +87,12 @@ def utc_now() -> str:
 
 
 def map_dir(root: Path, name: str) -> Path:
-    return Path(root) / "maps" / check_name(name, "map", "--map")
+    return storage.map_dir(Path(root), check_name(name, "map", "--map"))
 
 
 def read_identity(mdir: Path) -> MapIdentity | None:
     """The map's identity, None when the map has none (an unpinned map); ConfigError when it is malformed."""
-    path = Path(mdir) / IDENTITY_NAME
+    path = storage.identity_file(Path(mdir))
     if not path.is_file():
         return None
     try:
@@ -157,7 +158,7 @@ def latest_origin(mdir: Path) -> dict[str, float] | None:
     """The ENU origin of the version LATEST names (None without one)."""
     from pipeline.version_read import read_latest, read_manifest, version_name
 
-    if not (Path(mdir) / "LATEST").is_file():
+    if not storage.latest_file(Path(mdir)).is_file():
         return None
     latest = read_latest(mdir)
     if latest is None:
@@ -196,7 +197,7 @@ def run_lock(mdir: Path) -> Iterator[None]:
     from pipeline.locks import writer_locks
 
     mdir = Path(mdir)
-    with writer_locks(mdir.parent.parent, mdir.name):
+    with writer_locks(storage.root_of_map(mdir), mdir.name):
         yield
 
 

@@ -55,33 +55,39 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                            reference=str(check_reference.resolve()) if check_reference else None)
     elif check_reference is not None:
         raise OptionError("--check-reference", ["applies to --check-drive only"])
+    from pipeline.storage import identity_file, map_dir
+
     ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check, max_radius_km)
     o = ident.enu_origin
     typer.echo(f"created map {map_name!r}: origin {o.lat_deg},{o.lon_deg},{o.h_m}, tiles {ident.tile_size_m} m, "
-               f"area {ident.max_radius_km:g} km -> {root / 'maps' / map_name / 'map.json'}")
+               f"area {ident.max_radius_km:g} km -> {identity_file(map_dir(Path(root), map_name))}")
 
 
 @maps_app.command("show")
-def show_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ, as_json: bool = opts.JSON) -> None:
+def show_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ, as_json: bool = opts.JSON) -> None:
     """Print a map's frame, its versions (LATEST, refused by the gate, candidate) and drives: when each was recorded
-    (first/last pose), when added, the versions holding it. Maps made by `cornermap build` too.
+    (first/last pose), when added, the versions holding it. Maps made by `cornermap build` too. The root may be
+    s3://BUCKET/PREFIX.
 
     Example: [b]cornermap maps show --root runs/maps --map kept[/b]
     """
     from pipeline.maps import map_dir
     from pipeline.maps_show import show_doc, show_lines
+    from pipeline.store_maps import readable_root
 
-    mdir = map_dir(root, map_name)
-    if as_json:
-        opts.echo_json(show_doc(mdir))
-        return
-    for line in show_lines(mdir):
-        typer.echo(line)
+    trajectories = lambda m: [str(d["trajectory"]) for d in m.get("source_drives", [])]  # noqa: E731
+    with readable_root(root, map_name, whole=(), pick=trajectories) as (local_root, shown):
+        mdir = map_dir(local_root, map_name)
+        if as_json:
+            doc = show_doc(mdir)
+            opts.echo_json({**doc, "path": shown(str(doc.get("path", mdir)))})
+            return
+        for line in show_lines(mdir):
+            typer.echo(shown(line))
 
 
 def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
-                inbox: Path = typer.Option(..., "--inbox", help="Folder of drive folders (each with a drive.yaml); "
-                                           "bad ones move to INBOX/quarantine/."),
+                inbox: Path = opts.INBOX,
                 min_free_gib: float = typer.Option(2.0, "--min-free-gib", help="Free space required to start."),
                 quiet_period_min: float = typer.Option(10.0, "--quiet-period-min", help="A drive folder is taken "
                                                        "when nothing under it changed for this long (minutes), or at "
@@ -145,7 +151,7 @@ def _hours(value: float) -> float:
     return value
 
 
-def gc_cmd(root: Path = ROOT_REQ,
+def gc_cmd(root: Path = opts.ROOT_OR_URI,
            apply: bool = typer.Option(False, "--apply", help="Delete (default: a dry run that only prints)."),
            min_age_h: float = typer.Option(24.0, "--min-age-h", callback=_hours, help="Uncommitted dataset "
                                            "folders and scratch (ROOT/tmp) entries younger than this (runs in "
@@ -156,8 +162,18 @@ def gc_cmd(root: Path = ROOT_REQ,
     """
     from pipeline.errors import ConfigError
     from pipeline.gc import apply_gc, plan_gc
+    from pipeline.storage import is_root_dir, uri_scheme
 
-    if not any((root / sub).is_dir() for sub in ("datasets", "maps", "tmp")):  # a typo: "nothing to free", exit 0
+    if uri_scheme(root) is not None:  # an object-store root: only maps and locks live there so far
+        from pipeline.storage import Store
+        from pipeline.store_maps import gc_uncommitted
+
+        found = gc_uncommitted(Store.open(root), min_age_h, apply)
+        for uri, why in found:
+            typer.echo(f"{'remove' if apply else 'would remove'} {uri} ({why})")
+        typer.echo(f"{len(found)} object prefix(es) {'removed' if apply else 'to remove'}")
+        return
+    if not is_root_dir(root):  # a typo: "nothing to free", exit 0
         raise ConfigError("--root", [f"{root} holds no datasets/, maps/ or tmp/ folder: not an output root"])
     plan = plan_gc(root, min_age_h)
     if apply:  # under the root's exclusive lock (exit 75 while a run writes): what a plan made there still lists

@@ -5,6 +5,7 @@ from __future__ import annotations
 from datetime import datetime, timezone
 from pathlib import Path
 
+from pipeline import storage
 from pipeline.names import inside
 
 
@@ -51,13 +52,12 @@ def version_states(mdir: Path) -> dict[int, str]:
     never gated (a rebuild stopped before its gate); ``""`` otherwise (an older version LATEST once named)."""
     import json
 
-    from pipeline.maps import GATE_DIR
-    from pipeline.version_read import list_versions, read_latest, version_name
+    from pipeline.version_read import list_versions, read_latest
 
-    latest = read_latest(mdir) if (Path(mdir) / "LATEST").exists() else None
+    latest = read_latest(mdir) if storage.latest_file(Path(mdir)).exists() else None
     out = {}
     for v in list_versions(mdir):
-        gate = Path(mdir) / GATE_DIR / f"{version_name(v)}.json"
+        gate = storage.gate_file(Path(mdir), v)
         try:
             ok = json.loads(gate.read_text(encoding="utf-8")).get("ok") if gate.is_file() else None
         except (OSError, ValueError, AttributeError):
@@ -75,11 +75,9 @@ def version_states(mdir: Path) -> dict[int, str]:
 
 def state_note(mdir: Path, version: int, state: str) -> str:
     """The words ``tiles ls`` and ``maps show`` print after a version in that standing."""
-    from pipeline.maps import GATE_DIR
-    from pipeline.version_read import version_name
 
     if state == "refused":
-        return f"REFUSED by the regression gate ({Path(mdir) / GATE_DIR / version_name(version)}.json); never LATEST"
+        return f"REFUSED by the regression gate ({storage.gate_file(Path(mdir), version)}); never LATEST"
     if state == "candidate":
         return "candidate, not gated (a rebuild stopped before its gate); never LATEST"
     return ""
@@ -102,8 +100,8 @@ def show_doc(mdir: Path) -> dict:
     ident = read_identity(mdir)
     versions = list_versions(mdir)
     if ident is None and not versions:
-        raise UnknownNameError(f"{mdir}: no map here (neither map.json nor a published version); hint: --root is "
-                               "the folder holding maps/NAME")
+        raise UnknownNameError(f"{mdir}: no map here (neither {storage.IDENTITY} nor a published version); hint: "
+                               "--root is the folder holding maps/NAME")
     doc: dict = {"map": Path(mdir).name, "path": str(mdir), "identity": None, "enu_origin": None,
                  "latest": None, "versions": [], "drives": drive_rows(mdir, ident)}
     if ident is not None:
@@ -111,9 +109,9 @@ def show_doc(mdir: Path) -> dict:
                            "created_utc": ident.created_utc,
                            "check_drive": ident.check_drive.model_dump() if ident.check_drive else None}
         doc["enu_origin"] = ident.enu_origin.model_dump()
-    elif (Path(mdir) / "LATEST").exists():
+    elif storage.latest_file(Path(mdir)).exists():
         doc["enu_origin"] = latest_origin(mdir)
-    if (Path(mdir) / "LATEST").exists():
+    if storage.latest_file(Path(mdir)).exists():
         latest = read_latest(mdir)
         doc["latest"] = version_name(latest) if latest is not None else None
     states = version_states(mdir)
@@ -166,7 +164,7 @@ def localizability_lines(mdir: Path, limit: int = 10) -> list[str]:
     from pipeline.version_read import read_latest, read_manifest, version_name
 
     try:
-        latest = read_latest(mdir) if (Path(mdir) / "LATEST").exists() else None
+        latest = read_latest(mdir) if storage.latest_file(Path(mdir)).exists() else None
         loc = read_manifest(Path(mdir) / version_name(latest))[0].get("localizability") if latest else None
     except CornermapError:
         return []

@@ -59,7 +59,9 @@ def published_map_dir(root: Path | str | None, name: str | None, hint: str = "pa
 
     if name is not None:
         check_name(name, "map", "--map")
-    maps = Path(root if root is not None else ".") / "maps"
+    from pipeline.storage import maps_dir
+
+    maps = maps_dir(Path(root if root is not None else "."))
     have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
     if name is None:
         if len(have) != 1:

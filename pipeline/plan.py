@@ -5,6 +5,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pipeline import storage
 from pipeline.declare import Partitioning, PartitionKey, StageDecl
 from pipeline.fingerprint import drive_fingerprint, file_key, stable_hash, stage_fingerprint
 from pipeline.store import dataset_dir, read_manifest
@@ -58,7 +59,8 @@ def _resolve_template(text: str, root: Path, producer_fp: dict[str, str], base_d
         if ds not in producer_fp:  # a stage upstream of the producer: the path is not available to it
             continue
         fp = producer_fp[ds]
-        text = text.replace("${" + ds + "}", str(dataset_dir(root, ds, fp) / "artifacts" / PartitionKey().label))
+        artifacts = storage.artifacts_dir(dataset_dir(root, ds, fp), PartitionKey().label)
+        text = text.replace("${" + ds + "}", str(artifacts))
         basis = f"{ds}:{fp}"
     path = Path(text).expanduser()
     return (path if path.is_absolute() else base_dir / path), basis

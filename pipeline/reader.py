@@ -13,6 +13,7 @@ import pyarrow.compute as pc
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
+from pipeline import storage
 from pipeline.declare import InputReader, PartitionKey
 from pipeline.errors import DatasetIOError
 from pipeline.names import inside
@@ -40,7 +41,7 @@ def provisional_manifest(out_dir: Path, labels: list[str], fingerprint: str) -> 
     slices it reads while the rest of the upstream stage still runs. Raises if a named partition is missing."""
     parts, files, artifacts = [], [], {}
     for label in sorted(labels):
-        marker = Path(out_dir) / "_parts" / f"{label}.json"
+        marker = storage.part_marker(Path(out_dir), label)
         try:
             doc = json.loads(marker.read_text())
         except (OSError, json.JSONDecodeError) as exc:
@@ -211,7 +212,7 @@ class StoreInputReader(InputReader):
         m = self._require(arg)
         dataset, fp = self._inputs[arg]
         label = (partition or PartitionKey()).label
-        path = inside(dataset_dir(self.root, dataset, fp), "artifacts", label)
+        path = inside(storage.artifacts_dir(dataset_dir(self.root, dataset, fp)), label)
         if label not in m.get("artifacts", {}):
             raise DatasetIOError(f"dataset {dataset!r} has no committed artifacts for partition {label!r}; "
                                  f"has {sorted(m.get('artifacts', {}))}")

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from pipeline import storage
 from pipeline.errors import ConfigError, DataQualityError, StageError
 from pipeline.inbox import DEFAULT_QUIET_PERIOD_S, QUARANTINE, Delivery, quarantine  # noqa: F401 - re-exported
 from pipeline.maps import MapDrive, check_free_disk, map_dir, require_identity, run_lock, utc_now, write_identity
@@ -310,6 +311,6 @@ def reuse_line(summary: dict) -> str:
 def _latest_text(mdir: Path) -> str:
     from pipeline.versioned import read_latest, version_name
 
-    v = read_latest(mdir) if (mdir / "LATEST").exists() else None
+    v = read_latest(mdir) if storage.latest_file(mdir).exists() else None
     return version_name(v) if v is not None else "none"
 

@@ -24,6 +24,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from pipeline import storage
 from pipeline.fingerprint import stable_hash
 from pipeline.names import inside
 
@@ -77,7 +78,7 @@ def find_committed(datasets_root: Path, dataset: str, own_dir: Path, label: str,
     for d in sorted(base.iterdir()):
         if d == own_dir or not d.is_dir():
             continue
-        marker = d / "_parts" / f"{label}.json"
+        marker = storage.part_marker(d, label)
         try:
             doc = json.loads(marker.read_text())
         except (OSError, ValueError):
@@ -86,7 +87,7 @@ def find_committed(datasets_root: Path, dataset: str, own_dir: Path, label: str,
             continue
         out = doc.get("output", {})
         files = [d / r["path"] for r in out.get("files", [])]
-        files += [d / "artifacts" / label / r["path"] for r in (out.get("artifacts") or [])]
+        files += [storage.artifacts_dir(d, label) / r["path"] for r in (out.get("artifacts") or [])]
         if all(f.is_file() for f in files):
             return d, doc
     return None
@@ -97,4 +98,5 @@ def link_partition(src_dir: Path, dst_dir: Path, label: str, output: dict[str, A
     for rec in output.get("files", []):
         _link(inside(src_dir, rec["path"]), inside(dst_dir, rec["path"]))
     for rec in output.get("artifacts") or []:
-        _link(inside(src_dir, "artifacts", label, rec["path"]), inside(dst_dir, "artifacts", label, rec["path"]))
+        _link(inside(storage.artifacts_dir(src_dir, label), rec["path"]),
+              inside(storage.artifacts_dir(dst_dir, label), rec["path"]))

@@ -1,11 +1,9 @@
 """The Parquet store: schema-validated, atomic writes; manifests as commit markers; readers see committed data.
 
-Layout under the output root::
-
-    datasets/<dataset>/<fp16>/_manifest.json          written last: the commit marker of the dataset
-    datasets/<dataset>/<fp16>/_parts/<label>.json      per-partition commit markers (resume after a kill)
-    datasets/<dataset>/<fp16>/data/drive=../chunk=../part-<label>-<seq>.parquet
-    datasets/<dataset>/<fp16>/artifacts/<label>/...   non-tabular files of a partition
+The layout under the output root is ``pipeline.storage``'s (the one module that spells it): a dataset's
+``_manifest.json`` is written last and is its commit marker; ``_parts/<label>.json`` are per-partition commit
+markers (resume after a kill); ``data/drive=../chunk=../part-<label>-<seq>.parquet`` the tables;
+``artifacts/<label>/`` a partition's non-tabular files.
 
 Verified reads: a stage reading a dataset first checks each Parquet file's sha256 against the dataset
 manifest (and each artifact file's, for manifests that record it); a mismatch is an ``IntegrityError``.
@@ -30,11 +28,12 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
+from pipeline import storage
 from pipeline.errors import DatasetIOError, IntegrityError, SchemaMismatchError
 from pipeline.fingerprint import file_sha256
 from pipeline.names import inside
+from pipeline.storage import FP_LEN  # noqa: F401 - re-exported
 
-FP_LEN = 16
 _VERIFIED: dict[tuple[str, int, int, int], str] = {}  # (path, size, mtime_ns, inode) -> sha256, this process
 _VERIFIED_LOCK = threading.Lock()
 
@@ -102,7 +101,7 @@ def _mark(entry: Path | None) -> None:
 
 
 def dataset_dir(root: Path, dataset: str, fingerprint: str) -> Path:
-    return Path(root) / "datasets" / dataset / fingerprint[:FP_LEN]
+    return storage.dataset_dir(Path(root), dataset, fingerprint)
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -300,7 +299,7 @@ def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path,
     order. A streamed output (an iterator of tables) is produced one piece ahead of the writes (``prefetched``),
     which ``WRITE_THREADS`` threads do. Each file written is entered in the run's ``ledger`` as verified
     (``record_verified``)."""
-    for stale in (out_dir / "data").glob(f"**/part-{label}-*.parquet"):
+    for stale in storage.data_dir(Path(out_dir)).glob(f"**/part-{label}-*.parquet"):
         stale.unlink()  # left by a killed attempt; never listed in a manifest
     if pieces is None:
         return []
@@ -329,7 +328,7 @@ def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path,
             if table.num_rows == 0:
                 continue
             for sub, parts, piece in _split_by_partition(table, partitioning):
-                path = inside(out_dir, "data", sub, f"part-{label}-{seq:05d}.parquet")
+                path = inside(storage.data_dir(Path(out_dir)), sub, f"part-{label}-{seq:05d}.parquet")
                 seq += 1
                 if len(in_flight) >= WRITE_THREADS:
                     records.append(in_flight.popleft().result())
@@ -340,7 +339,7 @@ def write_pieces(pieces: Iterable[pa.Table] | pa.Table | None, *, out_dir: Path,
 
 
 def read_manifest(out_dir: Path) -> dict[str, Any] | None:
-    path = out_dir / "_manifest.json"
+    path = storage.dataset_manifest(Path(out_dir))
     if not path.is_file():
         return None
     try:

@@ -12,21 +12,21 @@ import re
 from pathlib import Path
 from typing import Any
 
+from pipeline import storage
 from pipeline.errors import ChecksumError, DatasetIOError, MapFormatError, PathEscapeError, UnknownNameError
 from pipeline.fingerprint import file_sha256
 from pipeline.names import inside
 
 log = logging.getLogger("pipeline.versioned")
 
-MANIFEST_NAME = "manifest.json"
-LATEST_NAME = "LATEST"
-_VERSION_RE = re.compile(r"^v(\d{4,})$")
+MANIFEST_NAME = storage.VERSION_MANIFEST
+LATEST_NAME = storage.LATEST
+_VERSION_RE = storage.VERSION_RE
 _SHA_RE = re.compile(r"^[0-9a-f]{64}$")
 MAX_MANIFEST_BYTES = 64 << 20
 
 
-def version_name(version: int) -> str:
-    return f"v{int(version):04d}"
+version_name = storage.version_name
 
 
 def parse_version(text: str | int) -> int:

@@ -40,6 +40,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 from pipeline.errors import DatasetIOError, PublishConflictError
 from pipeline.fingerprint import file_sha256
+from pipeline.storage import PUBLISH_LOCK
 from pipeline.version_read import (  # noqa: F401 - re-exported: the publishing API in one module
     _VERSION_RE,
     LATEST_NAME,
@@ -59,7 +60,7 @@ from pipeline.version_read import (  # noqa: F401 - re-exported: the publishing 
 
 log = logging.getLogger(__name__)
 
-LOCK_NAME = ".publish.lock"
+LOCK_NAME = PUBLISH_LOCK
 _STAGING_PREFIX = ".staging-"
 _TRASH_PREFIX = ".trash-"
 

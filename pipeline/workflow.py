@@ -86,6 +86,11 @@ class Workflow:
         if override is not None:
             return Path(override).expanduser().resolve()
         if self.spec.root:
+            from pipeline.storage import uri_scheme
+
+            if uri_scheme(self.spec.root) is not None:
+                raise ConfigError(str(self.path), [f"root: {self.spec.root} is a URI; a workflow's root is a local "
+                                                   "folder (object-store roots: docs/storage.md)"])
             return self.resolve(self.spec.root).resolve()
         return (Path.cwd() / "runs" / self.spec.name).resolve()
 

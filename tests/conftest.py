@@ -69,3 +69,39 @@ def _published_versions_conform_to_the_schemas(tmp_path_factory, tmp_path):
     yield
     found = published_documents_problems(tmp_path_factory.getbasetemp())
     assert not found, "published documents break the map format's JSON Schemas:\n" + "\n".join(found[:20])
+
+
+@pytest.fixture(scope="session")
+def s3_env():
+    """A real S3 API server (moto's server mode) on 127.0.0.1, started by the test session itself
+    (``fixtures/s3server.py``); the standard AWS environment points at it for this process and its children."""
+    import os
+
+    from fixtures.s3server import s3_server
+
+    keys = ("AWS_ENDPOINT_URL", "AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION", "AWS_PROFILE")
+    saved = {k: os.environ.get(k) for k in keys}
+    with s3_server() as env:
+        os.environ.pop("AWS_PROFILE", None)
+        os.environ.update(env)
+        try:
+            yield env
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+
+
+@pytest.fixture
+def s3_root(s3_env, request) -> str:
+    """``s3://BUCKET/root`` in a new bucket of the test server."""
+    import re
+    import secrets
+
+    from fixtures.s3server import make_bucket
+
+    bucket = (re.sub(r"[^a-z0-9-]", "-", request.node.name.lower())[:40].strip("-") + "-" + secrets.token_hex(3))
+    make_bucket(s3_env, bucket)
+    return f"s3://{bucket}/root"

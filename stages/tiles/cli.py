@@ -26,7 +26,9 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles ls --map tiny --root runs/tiny --json\n\n"
             "  cornermap tiles query --at 37.4979,127.0276 --radius 150 --map tiny --root runs/tiny --json\n\n"
             "  cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny\n\n"
-            "  cornermap tiles apply runs/delta --map tiny --root /vehicle")
+            "  cornermap tiles apply runs/delta --map tiny --root /vehicle\n\n"
+            "  cornermap tiles push --map tiny --root runs/tiny --to s3://maps/city-root\n\n"
+            "  cornermap tiles verify --map tiny --root s3://maps/city-root")
 
 
 def map_dir_of(root: Path, name: Optional[str]) -> Path:
@@ -36,12 +38,19 @@ def map_dir_of(root: Path, name: Optional[str]) -> Path:
     return published_map_dir(root, name, hint="pass --map NAME (and --root ROOT)")
 
 
-def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, as_json: bool = opts.JSON) -> None:
+def ls(root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT, as_json: bool = opts.JSON) -> None:
     """List the versions of a map (* marks LATEST) with tiles, corners, parent and creation time; a candidate the
-    rebuild's regression gate refused, or one never gated, is marked so.
+    rebuild's regression gate refused, or one never gated, is marked so. The root may be s3://BUCKET/PREFIX.
 
     Example: [b]cornermap tiles ls --map tiny --root runs/tiny[/b]
     """
+    from pipeline.store_maps import readable_root
+
+    with readable_root(root, map_name, whole=()) as (local_root, shown):
+        _ls(local_root, map_name, as_json, shown)
+
+
+def _ls(root: Path, map_name: Optional[str], as_json: bool, shown) -> None:
     from pipeline.errors import MapFormatError
     from pipeline.maps_show import state_note, version_states
     from pipeline.versioned import list_versions, read_latest, read_manifest, version_name
@@ -51,7 +60,7 @@ def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, as_json: bool =
     states = version_states(d)
     rows = []
     if not as_json:
-        typer.echo(f"{d}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
+        typer.echo(f"{shown(str(d))}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
     for v in list_versions(d):
         mark = "*" if v == latest else " "
         try:
@@ -75,13 +84,13 @@ def ls(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, as_json: bool =
                        f"parent={version_name(parent) if parent is not None else '-'}  "
                        f"format={m.get('format_version')} sha256={sha[:12]}" + (f"  {note}" if note else ""))
     if as_json:
-        opts.echo_json({"map": d.name, "path": str(d), "latest": version_name(latest) if latest is not None else None,
-                        "versions": rows})
+        opts.echo_json({"map": d.name, "path": shown(str(d)),
+                        "latest": version_name(latest) if latest is not None else None, "versions": rows})
 
 
 def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LATEST)."),
          version_b: str = typer.Argument(..., help="New version."),
-         root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+         root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT,
          significance: float = typer.Option(0.001, "--significance", help="A matched corner is moved when the "
                                             "chi-square test (2 dof) on its displacement with both covariances "
                                             "rejects 'unchanged' at this level; marking cells likewise."),
@@ -106,7 +115,9 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
             raise OptionError(opt, [f"{value}: expected 0 to 1000 m"])
     if not (0.0 < significance < 1.0):
         raise OptionError("--significance", [f"{significance}: expected a probability in (0, 1)"])
-    d = map_dir_of(root, map_name)
+    from pipeline.store_maps import map_location
+
+    d = map_location(root, map_name)  # a folder, or a bucket's map (each version downloaded and verified)
     a, b = open_map(d, version_a), open_map(d, version_b)
     diffs = diff_maps(a, b, move_threshold_m=move_threshold_m, match_radius_m=match_radius_m,
                       significance=significance)
@@ -131,15 +142,24 @@ def diff(version_a: str = typer.Argument(..., help="Old version (vNNNN, N or LAT
                   or "none"))
 
 
-def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
+def log(root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT,
         as_json: bool = typer.Option(False, "--json", help="Print every version's changelog as JSON."),
         details: bool = typer.Option(False, "--details", help="Also list the ids of added, removed and moved "
                                      "corners and the changed tiles.")) -> None:
     """History of a map, oldest first: per version its drives, corners added / removed / moved (stable ids),
-    marking pixels changed and whether the frame stayed the same (each version's changelog.json).
+    marking pixels changed and whether the frame stayed the same (each version's changelog.json). The root may be
+    s3://BUCKET/PREFIX.
 
     Example: [b]cornermap tiles log --map tiny --root runs/tiny[/b]
     """
+    from pipeline.store_maps import readable_root
+
+    changelog = lambda m: [str(m["changelog"])] if m.get("changelog") else []  # noqa: E731
+    with readable_root(root, map_name, whole=(), pick=changelog) as (local_root, shown):
+        _log(local_root, map_name, as_json, details, shown)
+
+
+def _log(root: Path, map_name: Optional[str], as_json: bool, details: bool, shown) -> None:
     from mapformat.changelog import read_changelog, summary_line
     from pipeline.errors import ChecksumError, MapFormatError
     from pipeline.versioned import list_versions, read_latest, read_manifest, version_name
@@ -148,7 +168,7 @@ def log(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
     latest = read_latest(d)
     docs = []
     if not as_json:
-        typer.echo(f"{d}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
+        typer.echo(f"{shown(str(d))}  (LATEST = {version_name(latest) if latest is not None else 'none'})")
     for v in list_versions(d):
         mark = "*" if v == latest else " "
         try:
@@ -183,7 +203,7 @@ def export(
         ..., "--format", "-f", help="im2016-text | geojson | markings-geojson | autoware | geotiff | tum | kitti"
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Output file (a directory for autoware, geotiff, tum, kitti)."),
-    root: Path = ROOT_OPT,
+    root: Path = opts.ROOT_OR_URI,
     map_name: Optional[str] = MAP_OPT,
     version: str = VERSION_OPT,
     old_version: Optional[str] = opts.MOVED_VERSION,
@@ -203,21 +223,39 @@ def export(
 
     if fmt not in FORMATS:
         raise typer.BadParameter(f"{fmt!r}; expected one of {', '.join(FORMATS)}", param_hint="--format")
-    reader = open_map(map_dir_of(root, map_name), version)
-    with StageProgress(enabled=not quiet):
-        files = export_map(reader, fmt, out, root=root)
+    from pipeline.storage import refuse_uri
+    from pipeline.store_maps import readable_root
+
+    refuse_uri(out, "--out")
+    with readable_root(root, map_name, version=version) as (local_root, _):
+        reader = open_map(map_dir_of(local_root, map_name), version)
+        with StageProgress(enabled=not quiet):
+            files = export_map(reader, fmt, out, root=local_root)
     for path in files:
         typer.echo(f"wrote {path}")
 
 
-def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
+def verify(root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
            old_version: Optional[str] = opts.MOVED_VERSION,
            all_versions: bool = typer.Option(False, "--all", help="Verify every version, not only one."),
            as_json: bool = opts.JSON) -> None:
-    """Recompute every file's sha256 and compare with the manifest; exit 1 on any mismatch.
+    """Recompute every file's sha256 and compare with the manifest; exit 1 on any mismatch. On an s3:// root the
+    bytes checked are the bucket's (downloaded to a temporary folder).
 
     Example: [b]cornermap tiles verify --all --map tiny --root runs/tiny[/b]
     """
+    from pipeline.errors import ChecksumError
+    from pipeline.store_maps import readable_root
+
+    with readable_root(root, map_name, whole="all" if all_versions else "latest", version=version) \
+            as (local_root, shown):
+        try:
+            _verify(local_root, map_name, version, all_versions, as_json, shown)
+        except ChecksumError as exc:
+            raise ChecksumError(shown(str(exc))) from None
+
+
+def _verify(root: Path, map_name: Optional[str], version: str, all_versions: bool, as_json: bool, shown) -> None:
     from mapformat.verify import verify_map
     from pipeline.errors import ChecksumError, UnknownNameError
     from pipeline.versioned import list_versions, resolve_version, trusted_manifest_digests, version_name
@@ -231,21 +269,21 @@ def verify(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: st
     for vdir in dirs:
         expected = trusted.get(int(vdir.name[1:]))
         problems = verify_map(vdir, expected)
-        rows.append({"version": vdir.name, "ok": not problems, "problems": problems,
+        rows.append({"version": vdir.name, "ok": not problems, "problems": [shown(p) for p in problems],
                      "manifest_digest_recorded": bool(expected)})
         if not as_json:
             note = "" if expected else " (no digest recorded outside the manifest: only its files were checked)"
             typer.echo(f"{vdir.name}: {'ok' if not problems else f'{len(problems)} problem(s)'}{note}")
             for p in problems:
-                typer.echo(f"  - {p}")
+                typer.echo(f"  - {shown(p)}")
         bad += problems
     if as_json:
-        opts.echo_json({"map": d.name, "path": str(d), "ok": not bad, "versions": rows})
+        opts.echo_json({"map": d.name, "path": shown(str(d)), "ok": not bad, "versions": rows})
     if bad:
         raise ChecksumError(f"{d}: {len(bad)} integrity problem(s) (listed above); hint: republish the version")
 
 
-def query(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
+def query(root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,
           at: str = typer.Option(..., "--at", help="LAT,LON in degrees, WGS84."),
           radius_m: float = typer.Option(150.0, "--radius", help="Metres around --at (at most 10 km)."),
           heading_deg: Optional[float] = typer.Option(None, "--heading-deg", help="The vehicle's heading, degrees "
@@ -270,7 +308,9 @@ def query(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT, version: str
     if (heading_deg is None) != (fov_deg is None):
         raise typer.BadParameter("give --heading-deg and --fov-deg together", param_hint="--fov-deg")
     check_area(radius_m, fov_deg)
-    reader = open_map(map_dir_of(root, map_name), version)
+    from pipeline.store_maps import map_location
+
+    reader = open_map(map_location(root, map_name), version)
     q = query_latlon(reader, lat, lon, radius_m, heading_deg=heading_deg, fov_deg=fov_deg)
     doc = answer_json(reader, q)
     if as_json:
@@ -374,16 +414,45 @@ def register(app: typer.Typer, stage_app: typer.Typer | None = None) -> None:
     target.command("query")(query)
     target.command("bundle")(bundle)
     target.command("apply")(apply)
+    target.command("push")(push)
+
+
+def push(root: Path = ROOT_OPT, map_name: str = opts.MAP,
+         to: str = typer.Option(..., "--to", help="The root to publish to: s3://BUCKET/PREFIX (or a folder)."),
+         quiet: bool = opts.QUIET) -> None:
+    """Publish a map's versions to another root, e.g. the bucket vehicles download from: each version not yet there
+    (its files, then its manifest, created last and only if absent), the identity, then LATEST. Idempotent.
+
+    Example: [b]cornermap tiles push --root runs/maps --map city --to s3://maps/city-root[/b]
+    """
+    from pipeline.storage import SCHEMES, Store, normalise_uri, refuse_uri, uri_scheme
+    from pipeline.store_maps import push_map
+    from pipeline.versioned import version_name
+
+    if uri_scheme(to) is not None and uri_scheme(to) not in SCHEMES:
+        refuse_uri(to, "--to", "a folder or an s3://BUCKET/PREFIX URI")
+    store = Store.open(normalise_uri(to))
+    pushed = push_map(map_dir_of(root, map_name).parent.parent, map_name, store,
+                      say=None if quiet else typer.echo)
+    typer.echo(f"{store.uri}: map {map_name!r}: {len(pushed)} version(s) committed"
+               + (f" ({', '.join(version_name(v) for v in pushed)})" if pushed else " (already up to date)"))
 
 
 def rollback(to: str = typer.Option(..., "--to", help="The version LATEST should name (vNNNN or N)."),
-             root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT) -> None:
-    """Point LATEST back at an older, verified version (a new LATEST write; no version is deleted).
+             root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT) -> None:
+    """Point LATEST back at an older, verified version (a new LATEST write; no version is deleted). The root may be
+    s3://BUCKET/PREFIX (LATEST is one PUT, under the map's lease).
 
     Example: [b]cornermap tiles rollback --to v0001 --map city --root runs/maps[/b]
     """
     from pipeline.maps import rollback as rollback_latest
+    from pipeline.storage import Store, uri_scheme
     from pipeline.versioned import version_name
 
-    before, now = rollback_latest(map_dir_of(root, map_name), to)
+    if uri_scheme(root) is not None:
+        from pipeline.store_maps import rollback as rollback_remote
+
+        before, now = rollback_remote(Store.open(root), map_name, to)
+    else:
+        before, now = rollback_latest(map_dir_of(root, map_name), to)
     typer.echo(f"LATEST: {version_name(before) if before is not None else 'none'} -> {version_name(now)}")

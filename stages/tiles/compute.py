@@ -4,7 +4,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -14,6 +14,7 @@ from mapformat import layout
 from mapformat.changelog import write_changelog
 from mapformat.corner_ids import IdGates
 from mapformat.localizability import split_by_tile, summary
+from pipeline import storage
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
 from pipeline.names import check_name, inside
@@ -82,7 +83,7 @@ def compute(ctx: StageContext) -> dict[str, Any]:
     by_tile = split_by_tile(cells, params.localizability_cell_m, size_m) if cells is not None else None
     if cells is not None:
         fields["localizability"] = summary(cells, params.localizability_cell_m)
-    map_dir = inside(Path(ctx.settings["root"]) / "maps", check_name(name, "map", "tiles: settings.map_name"))
+    map_dir = inside(storage.maps_dir(Path(ctx.settings["root"])), check_name(name, "map", "tiles: settings.map_name"))
     origin = EnuOrigin.from_dict(fields["enu_origin"])
 
     def write(staging: Path) -> dict[str, Any]:  # runs under the map's publish lock: LATEST cannot move
@@ -104,15 +105,16 @@ def compute(ctx: StageContext) -> dict[str, Any]:
 
     pub = publish_version(map_dir, write, keep_last=params.keep_last, reuse=unchanged,
                           move_latest=not ctx.settings.get("hold_latest", False))
+    rel = storage.version_dir(storage.map_dir(PurePosixPath(), name), pub.version).as_posix()  # maps/NAME/vNNNN
     table = pa.table({
         "map_name": pa.array([name], pa.string()), "version": pa.array([pub.version], pa.int32()),
-        "path": pa.array([f"maps/{name}/{pub.name}"], pa.string()),  # relative to the root: a moved root still works
+        "path": pa.array([rel], pa.string()),  # relative to the root: a moved root still works
         "n_tiles": pa.array([int(pub.manifest["n_tiles"])], pa.int32()),
         "n_corners": pa.array([int(pub.manifest["n_corners"])], pa.int64()),
         "manifest_sha256": pa.array([pub.manifest_sha256], pa.string())}, schema=schema_of("map_tiles"))
     held = ctx.settings.get("hold_latest", False)
     what = "wrote candidate (LATEST not moved)" if held else "published"
-    outcome = [f"{what} map {name!r} version {pub.name}: {{root}}/maps/{name}/{pub.name} "
+    outcome = [f"{what} map {name!r} version {pub.name}: {{root}}/{rel} "
                f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles)"]
     return {"published": table, "_extra": {"outcome": outcome}}
 
