@@ -386,12 +386,13 @@ def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle
 def _vehicle_map_folder(root: Optional[Path], map_name: Optional[str]) -> Path:
     """ROOT/maps/NAME, or a copy's own folder when --map names one (a path holding LATEST) and --root is not given."""
     from pipeline.errors import OptionError
+    from pipeline.storage import latest_file
 
     if map_name is not None and ("/" in map_name or "\\" in map_name):
         folder = Path(map_name)
         if root is not None:
             raise OptionError("--map", [f"{map_name!r} is a folder; with --root, --map is a name (ROOT/maps/NAME)"])
-        if not (folder / "LATEST").is_file():
+        if not latest_file(folder).is_file():
             raise OptionError("--map", [f"{map_name!r} holds no LATEST: not a map folder; expected a name with "
                                         "--root ROOT (ROOT/maps/NAME) or a map's folder"])
         return folder
