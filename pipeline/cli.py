@@ -344,6 +344,12 @@ def run_command(argv: list[str] | None = None) -> int:
         typer.echo(f"error: {where}{exc.strerror or exc}", err=True)
         return 1
     except Exception as exc:  # noqa: BLE001 - the last line of defence: a bug, reported without a traceback
+        from pipeline.storage import object_store_error_line
+
+        line = object_store_error_line(exc)
+        if line is not None:  # the object store failed (unreachable, credentials, bucket): not a bug of ours
+            typer.echo(f"error: {line}", err=True)
+            return 1
         if logging.getLogger().isEnabledFor(logging.INFO):
             logging.getLogger("cornermap").exception("unexpected error")
         typer.echo(f"error: internal error {type(exc).__name__}: {exc} (a bug; rerun with -v for the traceback)",

@@ -412,6 +412,17 @@ def _precondition_failed(exc: BaseException) -> bool:
         or isinstance(exc, FileExistsError)
 
 
+def object_store_error_line(exc: BaseException) -> str | None:
+    """One line for a failure of the object store's client (endpoint unreachable, credentials missing or refused,
+    bucket absent), or None when ``exc`` is not one: botocore, aiobotocore and aiohttp errors are not OSErrors."""
+    clients = ("botocore", "aiobotocore", "aiohttp", "s3fs")
+    if not any(t.__module__.split(".")[0] in clients for t in type(exc).__mro__):
+        return None
+    endpoint = os.environ.get("AWS_ENDPOINT_URL") or "the AWS default endpoint"
+    return (f"the object store ({endpoint}) failed: {type(exc).__name__}: {exc}; hint: check AWS_ENDPOINT_URL, the "
+            "credentials (AWS_ACCESS_KEY_ID / AWS_PROFILE) and that the bucket exists")
+
+
 def s3_filesystem():
     """An ``s3fs`` file system configured from the standard AWS environment (``AWS_ENDPOINT_URL`` for MinIO, Ceph or
     a local server; credentials from the environment or ``AWS_PROFILE``). Cached per process by fsspec."""

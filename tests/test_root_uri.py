@@ -49,3 +49,20 @@ def test_a_workflow_whose_root_is_a_uri_is_refused(tmp_path):
     res = cornermap("run", str(tmp_path / "wf.yaml"), "--dry-run", cwd=tmp_path)
     assert res.returncode in (1, 2) and "URI" in res.stderr and "Traceback" not in res.stderr, res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["wf.yaml"]
+
+
+def test_an_object_store_that_cannot_be_reached_is_one_line_not_a_bug(tmp_path):
+    """An S3 root whose endpoint refuses the connection (no server on the port): exit 1, one line naming the endpoint
+    and what to check; before, ``error: internal error EndpointConnectionError ... (a bug; ...)``."""
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    endpoint = f"http://127.0.0.1:{port}"
+    env = {"AWS_ENDPOINT_URL": endpoint, "AWS_ACCESS_KEY_ID": "x", "AWS_SECRET_ACCESS_KEY": "x",
+           "AWS_DEFAULT_REGION": "us-east-1", "AWS_MAX_ATTEMPTS": "1"}
+    res = cornermap("tiles", "ls", "--root", "s3://maps/city-root", "--map", "city", cwd=tmp_path, **env)
+    assert res.returncode == 1, res.stderr
+    line = one_error_line(res)
+    assert endpoint in line and "AWS_ENDPOINT_URL" in line and "a bug" not in line, line
