@@ -274,14 +274,7 @@ class Store:
         """Write (or replace) one object atomically: a reader sees the old bytes or the new ones, never a part.
         Local: temporary file, fsync, ``os.replace``; S3: one PUT."""
         if self.local:
-            path = Path(loc)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
-            with open(tmp, "wb") as fh:
-                fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
+            atomic_write_bytes(Path(loc), data)
             return
         self.fs.pipe_file(loc.as_posix(), data)
 
@@ -410,6 +403,17 @@ def _precondition_failed(exc: BaseException) -> bool:
     text = f"{exc} {getattr(exc, '__cause__', '')}"
     return "PreconditionFailed" in text or "pre-condition" in text.lower() or "412" in text \
         or isinstance(exc, FileExistsError)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """A local file replaced atomically: a temporary file beside it, fsynced, then ``os.replace``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
 
 
 def object_store_error_line(exc: BaseException) -> str | None:
