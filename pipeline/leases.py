@@ -108,37 +108,24 @@ class LeaseLocks:
 
     @contextmanager
     def hold(self, key: str, *, exclusive: bool, what: str | None = None) -> Iterator[None]:
-        from pipeline.locks import this_command
+        from pipeline.locks import reentrant_hold, this_command
 
         what = what or this_command()
-        ident = (self.store.uri, key, self.holder)
-        with _HELD_LOCK:
-            lease = _HELD.get(ident)
-            if lease is not None:
-                if exclusive and not lease.exclusive:
-                    raise RuntimeError(f"{key}: held shared by this process; it cannot be made exclusive")
-                lease.count += 1
-        if lease is not None:
-            try:
-                yield
-            finally:
-                with _HELD_LOCK:
-                    lease.count -= 1
-            return
-        lease = self._acquire_exclusive(key, what) if exclusive else self._acquire_shared(key, what)
-        lease.thread = threading.Thread(target=self._renew, args=(lease, what), daemon=True,
-                                        name=f"lease-{key}")
-        lease.thread.start()
-        with _HELD_LOCK:
-            _HELD[ident] = lease
-        try:
-            yield
-        finally:
-            with _HELD_LOCK:
-                _HELD.pop(ident, None)
+
+        def acquire() -> _Lease:
+            lease = self._acquire_exclusive(key, what) if exclusive else self._acquire_shared(key, what)
+            lease.thread = threading.Thread(target=self._renew, args=(lease, what), daemon=True,
+                                            name=f"lease-{key}")
+            lease.thread.start()
+            return lease
+
+        def release(lease: _Lease) -> None:
             lease.stop.set()
             lease.thread.join()
             self._release(lease)
+
+        with reentrant_hold(_HELD, _HELD_LOCK, (self.store.uri, key, self.holder), exclusive, key, acquire, release):
+            yield
 
     def _acquire_exclusive(self, key: str, what: str) -> _Lease:
         base = self.dir / f"{key}.lock"

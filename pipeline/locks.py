@@ -37,7 +37,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import ContextManager, Iterator, Protocol
+from typing import Any, Callable, ContextManager, Iterator, Protocol
 
 from pipeline.errors import RunLockedError
 from pipeline.names import check_name
@@ -70,6 +70,37 @@ _HELD: dict[Path, _Held] = {}  # this process's locks, by lock file
 _HELD_LOCK = threading.Lock()
 
 
+@contextmanager
+def reentrant_hold(held: dict, guard: threading.Lock, ident: object, exclusive: bool, label: str,
+                   acquire: Callable[[], Any], release: Callable[[Any], None]) -> Iterator[None]:
+    """A process's holds of one lock nest: a second hold of ``ident`` (``held[ident]``, an object with ``exclusive``
+    and ``count``) inside the first shares it (a shared inside an exclusive one too; an exclusive inside a shared one
+    is a RuntimeError); the first one acquires (``acquire()``) and, at its end, releases (``release(h)``). Used by the
+    flock locks and by the lease locks (``pipeline.leases``)."""
+    with guard:
+        h = held.get(ident)
+        if h is not None:
+            if exclusive and not h.exclusive:
+                raise RuntimeError(f"{label}: held shared by this process; it cannot be made exclusive")
+            h.count += 1
+    if h is not None:
+        try:
+            yield
+        finally:
+            with guard:
+                h.count -= 1
+        return
+    h = acquire()
+    with guard:
+        held[ident] = h
+    try:
+        yield
+    finally:
+        with guard:
+            held.pop(ident, None)
+        release(h)
+
+
 def this_command() -> str:
     """What this process is, for a holder record: its command line (``cornermap build --map city ...``)."""
     argv = [Path(sys.argv[0]).name] + sys.argv[1:] if sys.argv and sys.argv[0] else ["python"]
@@ -85,29 +116,14 @@ class FileLocks:
     @contextmanager
     def hold(self, key: str, *, exclusive: bool, what: str | None = None) -> Iterator[None]:
         path = (self.dir / f"{key}.lock").absolute()
-        with _HELD_LOCK:
-            held = _HELD.get(path)
-            if held is not None:
-                if exclusive and not held.exclusive:
-                    raise RuntimeError(f"{path}: held shared by this process; it cannot be made exclusive")
-                held.count += 1
-        if held is not None:
-            try:
-                yield
-            finally:
-                with _HELD_LOCK:
-                    held.count -= 1
-            return
-        held = self._acquire(path, exclusive, what or this_command())
-        with _HELD_LOCK:
-            _HELD[path] = held
-        try:
-            yield
-        finally:
-            with _HELD_LOCK:
-                _HELD.pop(path, None)
+
+        def release(held: _Held) -> None:
             held.record.unlink(missing_ok=True)
             os.close(held.fd)
+
+        with reentrant_hold(_HELD, _HELD_LOCK, path, exclusive, str(path),
+                            lambda: self._acquire(path, exclusive, what or this_command()), release):
+            yield
 
     def _acquire(self, path: Path, exclusive: bool, what: str) -> _Held:
         self.dir.mkdir(parents=True, exist_ok=True)

@@ -202,3 +202,22 @@ def test_gc_removes_a_dead_holders_lease_and_keeps_a_live_one(s3_root):
         assert [why for _, why in found] == ["lease expired: its holder is gone"]
         assert found[0][0].endswith("/locks/map-a.lock/x")
         assert [k for k, _ in store.walk_files(storage.locks_dir(store.root))] == ["map-b.lock/x"]
+
+
+def test_nested_holds_of_one_process_share_the_lock_on_both_backends(tmp_path, s3_root):
+    """Within one process a hold nests in a hold of the same lock (shared in exclusive too) and releases with the
+    outer one; an exclusive hold inside a shared one is refused (it would deadlock against itself)."""
+    import pipeline.leases
+    import pipeline.locks
+    from pipeline.locks import FileLocks
+
+    for locks in (FileLocks(tmp_path / "root"), LeaseLocks(Store.open(s3_root), ttl_s=30, holder="A")):
+        with locks.hold("map-city", exclusive=True):
+            with locks.hold("map-city", exclusive=False):
+                pass
+        with locks.hold("map-city", exclusive=False):
+            with pytest.raises(RuntimeError, match="cannot be made exclusive"):
+                locks.hold("map-city", exclusive=True).__enter__()
+        assert not pipeline.locks._HELD and not pipeline.leases._HELD  # the outer holds released them
+    with LeaseLocks(Store.open(s3_root), ttl_s=30, holder="B").hold("map-city", exclusive=True):  # free for another
+        pass
