@@ -253,12 +253,42 @@ def nees(q_est: np.ndarray, P: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
 
 
-def nees_band(n_epochs: int, dof: int = 3, confidence: float = 0.95) -> tuple[float, float]:
-    """Two-sided chi-square band of the mean NEES over ``n_epochs`` independent epochs."""
+def nees_band(n_epochs: float, dof: int = 3, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided chi-square band of the mean NEES over ``n_epochs`` independent epochs (a float: an effective
+    number of epochs, ``effective_epochs``, when consecutive epochs are correlated)."""
     from scipy.stats import chi2
 
-    if n_epochs <= 0:
+    if not n_epochs or n_epochs <= 0:
         return float("nan"), float("nan")
     a = (1.0 - confidence) / 2.0
     k = dof * n_epochs
     return float(chi2.ppf(a, k) / n_epochs), float(chi2.ppf(1.0 - a, k) / n_epochs)
+
+
+def integrated_autocorr_time(x: np.ndarray, window_c: float = 5.0) -> float:
+    """Integrated autocorrelation time ``tau = 1 + 2 sum_k rho_k`` of a series (in samples), with Sokal's automatic
+    window: the sum stops at the first lag ``M >= window_c * tau(M)`` (the estimator of emcee's
+    ``autocorr.integrated_time`` and of Sokal 1997). ``N / tau`` independent samples carry the information of the
+    ``N`` correlated ones. Floored at 1 (an anti-correlated series is not counted as more than its samples); 1 for
+    fewer than 2 samples or a constant series."""
+    x = np.asarray(x, dtype=float)
+    n = len(x)
+    if n < 2:
+        return 1.0
+    d = x - x.mean()
+    f = np.fft.rfft(d, n=2 * n)  # zero-padded: the linear (not circular) autocovariance
+    acov = np.fft.irfft(f * np.conj(f))[:n]
+    if acov[0] <= 0:
+        return 1.0
+    taus = 2.0 * np.cumsum(acov / acov[0]) - 1.0  # tau(M) = 1 + 2 sum_{k=1..M} rho_k
+    m = np.arange(n) >= window_c * taus
+    tau = taus[int(np.argmax(m))] if m.any() else taus[-1]
+    return float(max(tau, 1.0))
+
+
+def effective_epochs(nees_series: np.ndarray) -> float:
+    """The number of independent epochs a NEES series (in time order) is worth: ``N / integrated_autocorr_time``.
+    An EKF's consecutive errors are correlated (the same map corners, the same drift), so the mean NEES spreads
+    far wider than the chi-square band of ``N`` independent epochs (``nees_band``) says."""
+    n = len(nees_series)
+    return n / integrated_autocorr_time(nees_series) if n else 0.0

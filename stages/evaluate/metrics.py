@@ -12,7 +12,7 @@ import numpy as np
 
 from stages.common.geometry import fit_rigid_2d, wrap_angle_rad
 from stages.common.trajectory_metrics import rms
-from stages.evaluate.ekf import nees, nees_band
+from stages.evaluate.ekf import effective_epochs, nees, nees_band
 
 METRIC_KEYS = ("rms_2d_m", "max_2d_m", "p95_2d_m", "p99_2d_m", "heading_rms_deg", "lateral_rms_m",
                "longitudinal_rms_m", "mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg", "nees_mean",
@@ -82,11 +82,12 @@ def summarize(errors: Errors) -> dict:
     ok = np.all(np.isfinite(errors.err_xy_m), axis=1) & np.isfinite(errors.err_yaw_rad)
     if not ok.any():
         return {key: None for key in METRIC_KEYS} | {"epochs": 0, "nees_band95": [None, None],
-                                                     "nees_share_below_q95": None}
+                                                     "nees_epochs_effective": 0.0, "nees_share_below_q95": None}
     h = np.hypot(errors.err_xy_m[ok, 0], errors.err_xy_m[ok, 1])
     yaw_deg = np.rad2deg(errors.err_yaw_rad[ok])
     nees_ok = errors.nees[ok][np.isfinite(errors.nees[ok])]
-    band = nees_band(len(nees_ok))
+    n_eff = effective_epochs(nees_ok)  # consecutive epochs are correlated: the band of the independent ones
+    band = nees_band(n_eff)
     out = {
         "rms_2d_m": rms(h), "max_2d_m": float(h.max()),
         "p95_2d_m": float(np.percentile(h, 95)), "p99_2d_m": float(np.percentile(h, 99)),
@@ -99,6 +100,7 @@ def summarize(errors: Errors) -> dict:
         "nees_mean": _json_float(float(np.mean(nees_ok))) if len(nees_ok) else None,
         "epochs": int(ok.sum()),
         "nees_band95": [_json_float(band[0]), _json_float(band[1])],
+        "nees_epochs_effective": round(n_eff, 1),
         "nees_share_below_q95": float(np.mean(nees_ok <= NEES_Q95_3DOF)) if len(nees_ok) else None,
     }
     return out
