@@ -208,6 +208,7 @@ def export(
     version: str = VERSION_OPT,
     old_version: Optional[str] = opts.MOVED_VERSION,
     quiet: bool = opts.QUIET,
+    as_json: bool = opts.JSON,
 ) -> None:
     """Export a version: Im 2016 Table 1 text, GeoJSON (WGS84 lon/lat), Autoware map folder, GeoTIFFs (COG) with a
     VRT per layer, or the version's trajectories (TUM, KITTI) with their frame stated.
@@ -229,10 +230,22 @@ def export(
     refuse_uri(out, "--out")
     with readable_root(root, map_name, version=version) as (local_root, _):
         reader = open_map(map_dir_of(local_root, map_name), version)
-        with StageProgress(enabled=not quiet):
+        with StageProgress(enabled=not quiet and not as_json):
             files = export_map(reader, fmt, out, root=local_root)
-    for path in files:
-        typer.echo(f"wrote {path}")
+    if as_json:
+        typer.echo(json.dumps({"format": fmt, "out": str(out), "files": [str(f) for f in files]}, indent=1))
+        return
+    typer.echo(exported_line(out, [Path(f) for f in files]))
+
+
+def exported_line(out: Path, files: list[Path], shown: int = 3) -> str:
+    """One line for an export: the file itself, or the folder with its file count and the first few names (an
+    Autoware folder holds one point-cloud file per tile; ``--json`` lists every file)."""
+    if len(files) == 1:
+        return f"wrote {files[0]}"
+    names = [str(f.relative_to(out)) if f.is_relative_to(out) else str(f) for f in files[:shown]]
+    more = f", ... ({len(files) - shown} more; --json lists them)" if len(files) > shown else ""
+    return f"wrote {len(files)} files under {out}: {', '.join(names)}{more}"
 
 
 def verify(root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT, version: str = VERSION_OPT,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import typer
@@ -51,6 +52,15 @@ def test_export_and_verify(app, root, tmp_path):
     assert res.exit_code == 0 and out.is_file()
     res = _run(app, "export", "--format", "shapefile", "--out", str(out), "--root", str(root))
     assert res.exit_code != 0 and "shapefile" in res.output
+    rasters = tmp_path / "rasters"  # a folder of many files: one line, and every file with --json
+    res = _run(app, "export", "-f", "geotiff", "-o", str(rasters), "--root", str(root), "--json")
+    assert res.exit_code == 0, res.output
+    files = json.loads(res.output)["files"]
+    assert len(files) > 3 and all(Path(f).is_file() and Path(f).is_relative_to(rasters) for f in files)
+    res = _run(app, "export", "-f", "geotiff", "-o", str(tmp_path / "again"), "--root", str(root))
+    wrote = [line for line in res.output.splitlines() if line.startswith("wrote")]  # (progress lines beside)
+    assert res.exit_code == 0 and len(wrote) == 1, res.output
+    assert wrote[0].startswith(f"wrote {len(files)} files under {tmp_path / 'again'}: "), res.output
     res = _run(app, "verify", "--all", "--root", str(root))
     assert res.exit_code == 0 and "v0001: ok" in res.output and "v0002: ok" in res.output
 
