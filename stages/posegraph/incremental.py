@@ -21,7 +21,7 @@ import numpy as np
 from stages.posegraph.config import PosegraphConfig
 from stages.posegraph.factors.base import base_problem
 from stages.posegraph.factors.drive import DriveInput
-from stages.posegraph.factors.graph import PosePrior, optimize
+from stages.posegraph.factors.graph import PosePrior, Problem, optimize
 from stages.posegraph.loops.candidates import find_candidates, keyframes_by_travel, loosely_anchored, travel_m
 from stages.posegraph.loops.verify import LoopRecord, verify_from_store
 from stages.posegraph.solve import Solution, anchored, horizontal_anchors, optimize_with_loops
@@ -45,6 +45,8 @@ def solve_increment(new: list[DriveInput], held: list[DriveInput], held_poses: n
     n = int(sum(d.n for d in new))
     if len(held_poses) != sum(d.n for d in held):
         raise ValueError(f"held poses: {len(held_poses)} rows for {sum(d.n for d in held)} scans of the held drives")
+    if n == 0:  # every map drive held: nothing to solve
+        return Solution(np.zeros((0, 4, 4)), Problem(0, np.zeros((0, 4, 4))), [])
     t0 = time.perf_counter()
     say("pass 1: odometry and GNSS of the new drives")
     problem, offsets = base_problem(new, cfg.factors, cfg.gnss, cfg.prior)

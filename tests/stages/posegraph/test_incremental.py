@@ -77,3 +77,12 @@ def test_a_held_solution_gone_is_named(tmp_path):
         read_held(tmp_path, {"fingerprint": "0123456789abcdef" * 4, "version": 3}, [])
     with pytest.raises(ConfigError, match="held_poses"):
         read_held(tmp_path, {"version": 3}, [])
+
+
+def test_nothing_new_is_nothing_to_solve(tmp_path):
+    from stages.posegraph.incremental import solve_increment
+
+    ctx, (d0, d1), cfg, load, _, _ = _setup(tmp_path)
+    held = np.tile(np.eye(4), (d0.n + d1.n, 1, 1))
+    sol = solve_increment([], [d0, d1], held, load, cfg)
+    assert sol.poses.shape == (0, 4, 4) and not sol.loops
