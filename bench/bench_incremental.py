@@ -76,15 +76,28 @@ def tile_changes(vdir: Path, parent: Path | None) -> dict:
 
 
 def corner_accuracy(vdir: Path, sim: Path) -> dict:
+    """The version's corners against the simulator's truth, absolute (no frame offset). ``precision``: the share of
+    map corners that are a truth corner (``bench_corner_vertex.label_corners``: within 0.3 m of a building corner's
+    wall intersection or chamfer vertex, on a rounded corner's arc, or within 0.5 m of a street-furniture corner);
+    ``rms_m``: the building corners' distance to the nearest such truth point. ``precision_sharp`` / ``rms_sharp_m``:
+    ``score_corner_map`` against the wall intersections alone (stricter: a chamfer vertex counts false)."""
+    from bench.bench_corner_vertex import label_corners, truth_sets
     from mapformat.loader import open_map
     from stages.cornermap.metrics import score_corner_map
 
     t = open_map(vdir).all_corners()
     en = np.column_stack([t["east_m"].to_numpy(), t["north_m"].to_numpy()])
     th = np.column_stack([t["theta1_rad"].to_numpy(), t["theta2_rad"].to_numpy()])
+    building, rounded, radius, furniture = truth_sets(sim)
+    labels = label_corners(en, building, rounded, radius, furniture)
+    b = en[labels == "building"]
+    dist = np.linalg.norm(b[:, None] - building[None], axis=2).min(axis=1) if len(b) else np.zeros(0)
     truth = np.loadtxt(sim / "truth" / "corners.csv", delimiter=",", skiprows=1, usecols=(1, 2, 3, 4)).reshape(-1, 4)
     s = score_corner_map(en, th, truth[:, :2], np.radians(truth[:, 2:4]), np.ones(len(truth), bool))
-    return {"n_corners": s["n_map"], "precision": round(s["precision"], 4), "rms_m": round(s["rms_pos_m"], 4),
+    return {"n_corners": len(en), "precision": round(float(np.mean(labels != "other")), 4) if len(en) else None,
+            "rms_m": round(float(np.sqrt(np.mean(dist ** 2))), 4) if len(dist) else None,
+            "labels": {k: int(np.sum(labels == k)) for k in ("building", "rounded", "furniture", "other")},
+            "precision_sharp": round(s["precision"], 4), "rms_sharp_m": round(s["rms_pos_m"], 4),
             "ids": t["corner_id"].to_numpy().tolist(), "en": en.tolist()}
 
 
@@ -151,7 +164,9 @@ def main(argv: list[str] | None = None) -> dict:
             nights.append(night)
             print(json.dumps({key: night[key] for key in ("night", "cpu_s", "wall_s", "stage_cpu_s", "tiles",
                                                           "corners")}), flush=True)
-        out = {"preset": a.preset, "seed": a.seed, "drives": a.drives, "mode": "full" if a.full else "incremental",
+        sim_doc = json.loads((sim / "simulation.json").read_text()) if (sim / "simulation.json").is_file() else {}
+        out = {"preset": sim_doc.get("preset", a.preset), "seed": sim_doc.get("seed", a.seed), "drives": a.drives,
+               "mode": "full" if a.full else "incremental",
                "machine": _machine(), "nights": nights}
         if not a.no_single:
             last = f"drive_{a.drives - 1}"
