@@ -238,7 +238,7 @@ def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_driv
                                            cfg.anchors, survey_matches,
                                            feature_load=scan_loader(ctx, ("intensity", "ring")),
                                            report_step=ctx.report_step)
-    sol = solve_increment(new, old, held_T, load, cfg, max_per_scan=ctx.params.incremental_max_per_scan,
+    sol = solve_increment(new, old, held_T, load, cfg, max_per_scan=cfg.loops.incremental_max_per_scan,
                           survey_priors=survey_cb, report_step=ctx.report_step)
     n = sum(d.n for d in new)
     if cfg.solve.compute_marginals and new:
