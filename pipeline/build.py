@@ -32,7 +32,8 @@ def parse_origin(text: str) -> dict[str, float]:
 
 def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: str, root: Path,
                          origin: dict[str, float] | None = None, tile_size_m: float | None = None,
-                         hold_latest: bool = False, max_radius_m: float | None = None) -> Path:
+                         hold_latest: bool = False, max_radius_m: float | None = None,
+                         held_poses: dict | None = None) -> Path:
     """The map workflow (a file or a packaged name) with these drives, map name, root and origin, written under
     ``ROOT/workflows/`` (absolute paths: the build's record of what it ran). ``hold_latest``: publish the
     version without moving LATEST (``cornermap rebuild`` moves it after its regression gate). ``max_radius_m``: the
@@ -58,6 +59,8 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
         doc["tile_size_m"] = float(tile_size_m)
     if hold_latest:
         doc["hold_latest"] = True
+    if held_poses:  # incremental pose graph: these published poses are held (stages/posegraph/incremental.py)
+        doc["held_poses"] = dict(held_poses)
     if max_radius_m is None:
         from pipeline.maps import map_dir, read_identity
 

@@ -97,6 +97,9 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                                                  "by max(this, --gate-tol-rel x previous) metres."),
                 gate_tol_rel: float = typer.Option(0.2, "--gate-tol-rel", help="Gate: relative tolerance."),
                 no_gate: bool = typer.Option(False, "--no-gate", help="Publish without the regression gate."),
+                full: bool = typer.Option(False, "--full", help="Solve every drive's poses jointly again (default: "
+                                          "incremental, the new drives solved against LATEST's poses held "
+                                          "fixed; docs/maintenance.md)."),
                 scheduler: Optional[str] = opts.SCHEDULER, workers: Optional[int] = opts.WORKERS,
                 dask_host: str = opts.DASK_HOST, params: Optional[Path] = opts.PARAMS,
                 workflow: str = typer.Option("map_rebuild", "--workflow", help="The map workflow."),
@@ -126,7 +129,7 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
     params = RebuildParams(min_free_gib=min_free_gib, gate=not no_gate, gate_tol_m=gate_tol_m,
                            gate_tol_rel=gate_tol_rel, workflow=workflow, scheduler=scheduler,
                            quiet_period_s=quiet_period_min * 60.0, params_file=params, workers=workers,
-                           dask_host=dask_host)
+                           dask_host=dask_host, full=full)
     with StageProgress(enabled=not quiet):
         # each line as it comes (a cron log keeps what was quarantined even when the build then fails)
         result = rebuild(root, map_name, inbox, params, say=None if as_json else typer.echo)

@@ -51,6 +51,9 @@ class RebuildParams:
     params_file: Path | None = None  # --params: {stage: {param: value}} over the workflow's
     workers: int | None = None
     dask_host: str = "127.0.0.1"
+    # False (the default): incremental, the new drives solved against LATEST's poses held fixed; True: every map
+    # drive solved jointly again (``--full``; ``held_solution`` is the hook a scheduled re-optimization uses)
+    full: bool = False
 
 
 @dataclass
@@ -258,9 +261,13 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
                                 f"({len(ident.drives)} drive(s), LATEST {_latest_text(mdir)})")
             return result
         drives = [Path(d.path) for d in ident.drives] + [dlv.drive_yaml for dlv, _, _ in sel.good]
+        held = None if params.full else held_solution(root, mdir)
+        if held is None and not params.full and ident.drives:
+            result.add("note: no published pose-graph solution to hold (LATEST none or its poses gone): every "
+                       "drive is solved jointly")
         wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=root,
                                   origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
-                                  hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0)
+                                  hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0, held_poses=held)
         run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
                                params_file=params.params_file, workers=params.workers, dask_host=params.dask_host)
         result.summary = run["summary"]
@@ -294,6 +301,29 @@ def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildP
         result.add(f"published map {name!r} {version_name(candidate)} (LATEST): {len(drives)} drive(s), "
                             f"added {', '.join(dlv.name for dlv, _, _ in sel.good)}")
         return result
+
+
+def held_solution(root: Path, mdir: Path) -> dict | None:
+    """``{fingerprint, version}`` of the pose-graph solution LATEST was published from (its manifest's ``poses``
+    input), which an incremental rebuild holds fixed; None without a LATEST, a manifest naming none, or when that
+    dataset is no longer committed under ROOT (the rebuild then solves every drive jointly)."""
+    from pipeline.store import dataset_dir, read_manifest
+    from pipeline.versioned import read_latest, version_name
+    from pipeline.versioned import read_manifest as read_version_manifest
+
+    if not storage.latest_file(mdir).exists():
+        return None
+    latest = read_latest(mdir)
+    if latest is None:
+        return None
+    manifest, _ = read_version_manifest(mdir / version_name(latest))
+    poses = (manifest.get("inputs") or {}).get("poses") or {}
+    fp = poses.get("fingerprint")
+    if poses.get("dataset") != "poses_optimized" or not fp:
+        return None
+    if read_manifest(dataset_dir(root, "poses_optimized", fp)) is None:
+        return None
+    return {"fingerprint": fp, "version": int(latest)}
 
 
 def reuse_line(summary: dict) -> str:

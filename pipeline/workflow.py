@@ -52,6 +52,9 @@ class WorkflowSpec(BaseModel):
     # the map's area: a map drive with a GNSS fix farther from enu_origin is refused (exit 3); null: unbounded
     max_radius_m: float | None = Field(10_000.0, gt=0)
     hold_latest: bool = False  # publish the new map version without moving LATEST (a later gate moves it)
+    # incremental pose graph (``cornermap rebuild``'s default): {fingerprint, version} of the published
+    # poses_optimized dataset whose map drives keep their poses; null: every map drive solved jointly
+    held_poses: dict[str, Any] | None = None
     # peak RSS a task may reach (MB): a stage over it is named after the run (summary and one line each);
     # null: no budget. 1536 MB is the design target of every stage (docs/performance.md).
     memory_budget_mb: float | None = Field(1536.0, gt=0)
@@ -106,7 +109,7 @@ class Workflow:
             "references": {d.name: d.reference for d in s.drives},
             "hold_latest": s.hold_latest,
             "max_radius_m": s.max_radius_m,
-        }
+        } | ({"held_poses": dict(s.held_poses)} if s.held_poses else {})
 
 
 def _pydantic_problems(where: str, exc: ValidationError) -> list[str]:

@@ -155,6 +155,9 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
     ctx.report_step("reading the drives")
     drives, ref_drives = read_drive_inputs(ctx)
     load = scan_loader(ctx)
+    held = read_held_solution(ctx, drives)
+    if held is not None:
+        return _compute_increment(ctx, cfg, drives, ref_drives, load, held)
     survey_cb, survey_matches = None, []
     if ctx.inputs.has("survey"):
         from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
@@ -204,6 +207,96 @@ def _compute(ctx: StageContext) -> dict[str, pa.Table]:
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
             "loop_closures": loops_table(loop_rows),
             "_extra": {"pose_error_correlation": kernel, "map_frame": frame}}
+
+
+def read_held_solution(ctx: StageContext, drives: list[DriveInput]):
+    """The published solution the workflow's ``held_poses`` setting names (``cornermap rebuild``'s incremental
+    default: ``{fingerprint, version}`` of the LATEST version's ``poses_optimized`` dataset), as a ``HeldSolution``;
+    None without the setting, or when none of the map drives is in it (a first build solves jointly)."""
+    from stages.posegraph.held import read_held
+
+    spec = ctx.settings.get("held_poses")
+    if not spec:
+        return None
+    held = read_held(ctx.settings["root"], spec, drives)
+    return held if held.drives else None
+
+
+def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_drives, load, held):
+    """The map drives of ``held`` keep their published rows (bit for bit); the others are solved against them
+    (``incremental.solve_increment``); reference drives as in the joint solve."""
+    from stages.posegraph.incremental import solve_increment
+
+    new = [d for d in drives if d.name not in held.drives]
+    old = [d for d in drives if d.name in held.drives]
+    held_T = np.concatenate([held.poses_T(d.name) for d in old])
+    survey_cb, survey_matches = None, []
+    if ctx.inputs.has("survey") and new:
+        from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
+
+        survey_cb = survey_anchor_callback(new, load, SurveySource(ctx.inputs, ctx.scratch_dir / "survey"),
+                                           cfg.anchors, survey_matches,
+                                           feature_load=scan_loader(ctx, ("intensity", "ring")),
+                                           report_step=ctx.report_step)
+    sol = solve_increment(new, old, held_T, load, cfg, max_per_scan=cfg.loops.incremental_max_per_scan,
+                          survey_priors=survey_cb, report_step=ctx.report_step)
+    n = sum(d.n for d in new)
+    if cfg.solve.compute_marginals and new:
+        ctx.report_step("marginal covariances of the new drives")
+        # the map poses the loops reach are held: the covariance is relative to the map already
+        cov = _marginals(sol.problem, np.concatenate([sol.poses, sol.problem.initial[n:]]), "the new drives")[:n]
+    else:
+        cov = np.zeros((n, 9))
+    offsets = np.cumsum([0] + [d.n for d in new])
+    solved = {d.name: (sol.poses[a:b], cov[a:b]) for d, a, b in zip(new, offsets[:-1], offsets[1:])}
+    all_T = {d.name: held_T[a:b] for d, a, b in zip(old, *_bounds(old))} | {k: v[0] for k, v in solved.items()}
+    optimized = [held.rows(d.name) if d.name in held.drives
+                 else poses_table("poses_optimized", d, *solved[d.name]) for d in drives]
+    odometry = [poses_table("poses_odometry", d, dead_reckoning(d)) for d in drives]
+    names_new = [(d.name, int(s)) for d in new for s in d.scan_ids] + \
+        [(d.name, int(s)) for d in old for s in d.scan_ids]
+    loop_rows = held.loop_rows() + _loop_rows(sol.loops, names_new)
+    map_T = np.concatenate([all_T[d.name] for d in drives])
+    refs = {}
+    for k, d in enumerate(ref_drives):
+        ctx.report_step(f"reference drive {d.name}", k, len(ref_drives))
+        ref = solve_reference(d, drives, map_T, load, cfg)
+        rcov = _marginals(ref.problem, np.concatenate([ref.poses, ref.problem.initial[d.n:]]), f"drive {d.name!r}"
+                          )[:d.n] if cfg.solve.compute_marginals else np.zeros((d.n, 9))
+        optimized.append(poses_table("poses_optimized", d, ref.poses, rcov))
+        odometry.append(poses_table("poses_odometry", d, dead_reckoning(d)))
+        loop_rows += _loop_rows(ref.loops, [(d.name, int(s)) for s in d.scan_ids] +
+                                [(m.name, int(s)) for m in drives for s in m.scan_ids])
+        refs[d.name] = (d, ref)
+    out_dir = ctx.artifact_dir("report")
+    for d in drives:
+        if d.name in held.drives and held.copy_report_file(f"{d.name}_optimized_tum.txt", out_dir) \
+                and held.copy_report_file(f"{d.name}_optimized_kitti.txt", out_dir):
+            pass
+        else:
+            write_tum(out_dir / f"{d.name}_optimized_tum.txt", d.stamps_ns * 1e-9, all_T[d.name])
+            write_kitti(out_dir / f"{d.name}_optimized_kitti.txt", all_T[d.name])
+        write_tum(out_dir / f"{d.name}_odometry_tum.txt", d.stamps_ns * 1e-9, dead_reckoning(d))
+    for name, (d, ref) in refs.items():
+        write_tum(out_dir / f"{name}_optimized_tum.txt", d.stamps_ns * 1e-9, ref.poses)
+        write_kitti(out_dir / f"{name}_optimized_kitti.txt", ref.poses)
+    ctx.report_step("the report")
+    from stages.posegraph.solve import Solution
+
+    new_sol = Solution(sol.poses, sol.problem, sol.loops, sol.timings_s, sol.survey_rounds)
+    frame, kernel = held.metadata.get("map_frame"), held.metadata.get("pose_error_correlation")
+    write_report(out_dir, new, new_sol, refs, loop_rows, survey_matches, kernel, frame,
+                 incremental={"held_version": held.version, "held_drives": [d.name for d in old],
+                              "new_drives": [d.name for d in new], **sol.timings_s})
+    return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
+            "loop_closures": loops_table(loop_rows),
+            "_extra": {"pose_error_correlation": kernel, "map_frame": frame,
+                       "incremental": {"held_version": held.version, "new_drives": [d.name for d in new]}}}
+
+
+def _bounds(drives):
+    offsets = np.cumsum([0] + [d.n for d in drives])
+    return offsets[:-1], offsets[1:]
 
 
 def frame_of_map(sol, drives: list[DriveInput], marginals_enu: np.ndarray):

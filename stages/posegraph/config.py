@@ -133,6 +133,7 @@ class LoopConfig(_Parallel):
     max_whitened_residual: float
     parallel_min_items: int
     reference_stride_m: float  # a reference drive's loop queries onto the fixed map, one per this travel
+    incremental_max_per_scan: int = 1  # incremental solve: loop targets per query scan of a new drive
 
 
 @dataclass(frozen=True)
@@ -255,7 +256,7 @@ class PosegraphConfig:
             max_per_scan=p.loop_max_per_scan, verify=verify, survey_window_m=p.loop_survey_window_m,
             survey_sigma_m=p.loop_survey_sigma_m, kernel=p.loop_kernel, kernel_k=p.loop_kernel_k,
             max_whitened_residual=p.loop_max_whitened_residual, parallel_min_items=p.parallel_min_items,
-            reference_stride_m=p.loop_reference_stride_m)
+            reference_stride_m=p.loop_reference_stride_m, incremental_max_per_scan=p.loop_incremental_max_per_scan)
         ground = GroundAnchorConfig(
             crop_m=p.survey_crop_m, max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,
             min_fitness=p.survey_min_fitness, max_rmse_m=p.survey_max_rmse_m, min_sigma_m=p.survey_min_sigma_m,

@@ -17,5 +17,5 @@ STAGE = StageDecl(
     partition=Partitioning.SINGLE,
     compute="stages.posegraph.compute:compute",
     optional_inputs=frozenset({"survey", "odometry", "span_edges", "prior"}),
-    settings_keys=frozenset({"map_drives", "eval_drives"}),
+    settings_keys=frozenset({"map_drives", "eval_drives", "held_poses"}),  # held_poses: incremental
 )

@@ -186,6 +186,9 @@ class PosegraphParams(Params):
                                          "lowers the error by less than this share (gangnam, 8448 poses: 1e-7 "
                                          "-> 15 iterations, 1e-5 -> 9, error 4889.71 vs 4889.73, docs/posegraph.md)")
     fixed_prior_sigma_m: float = Field(1e-3, gt=0, description="map poses held fixed for reference drives")
+    loop_incremental_max_per_scan: int = Field(1, ge=1, description="incremental solve (rebuild's default): "
+                                               "loop targets per query scan of a new drive; the map is held, one "
+                                               "pass of it ties the drive (stages/posegraph/incremental.py)")
     compute_marginals: bool = True
     error_kernel_pairs_per_bin: int = Field(60, ge=0, description="pose pairs per distance bin (0-15, 15-40, 40-80, "
                                             "80-150 m) whose joint marginals give the map's error-correlation "

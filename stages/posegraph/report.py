@@ -63,7 +63,8 @@ def _anchor_record(drives, offsets: np.ndarray, m) -> dict:
 
 
 def write_report(out_dir: Path, drives, sol, refs: dict, loop_rows: list[dict], survey_matches,
-                 error_kernel: dict | None = None, map_frame: dict | None = None) -> Path:
+                 error_kernel: dict | None = None, map_frame: dict | None = None,
+                 incremental: dict | None = None) -> Path:
     out_dir = Path(out_dir)
     offsets = np.cumsum([0] + [d.n for d in drives])
     report = {"map_drives": [d.name for d in drives], "reference_drives": sorted(refs),
@@ -74,7 +75,8 @@ def write_report(out_dir: Path, drives, sol, refs: dict, loop_rows: list[dict], 
                                  "horizontal_accepted": sum(bool(m.horizontal is not None and m.horizontal.accepted)
                                                             for m in survey_matches),
                                  "records": [_anchor_record(drives, offsets, m) for m in survey_matches]},
-              "loops": loop_rows, "pose_error_correlation": error_kernel, "map_frame": map_frame}
+              "loops": loop_rows, "pose_error_correlation": error_kernel, "map_frame": map_frame,
+              "incremental": incremental}
     path = out_dir / "posegraph_report.json"
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.write_text(json.dumps(report, indent=1, default=float))

@@ -54,7 +54,8 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         paths = [t.pose_xyz_qxyzw[:, :2] for t in trajectories]
         corner_tiles = set(core.group_by_tile(corners["east_m"].to_numpy(), corners["north_m"].to_numpy(), size_m))
         measured, failures = core.evaluate_gates(
-            corners.num_rows, sum(core.path_length_m(p) for p in paths), corner_tiles,
+            corners.num_rows, core.distinct_path_length_m(paths, params.path_step_m, params.distinct_path_radius_m),
+            corner_tiles,
             core.path_tiles(paths, size_m, params.path_step_m), params.min_corners_per_km,
             params.max_empty_path_tile_share)
         problems += failures

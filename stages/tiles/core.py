@@ -28,6 +28,28 @@ def path_length_m(xy_m: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(xy_m, axis=0), axis=1).sum())
 
 
+def distinct_path_length_m(paths_xy_m: list[np.ndarray], step_m: float, radius_m: float) -> float:
+    """Length of the streets the paths drove, each counted once: the paths in order, each segment of a path
+    (densified to ``step_m``) counted when its midpoint lies farther than ``radius_m`` from every earlier path. A
+    second lap of a street, in either lane, adds nothing; one path alone is its own length (to the densification)."""
+    from scipy.spatial import cKDTree
+
+    total, earlier = 0.0, []
+    for xy in paths_xy_m:
+        dense = densify_path(xy, step_m)
+        if len(dense) < 2:
+            continue
+        seg = np.linalg.norm(np.diff(dense, axis=0), axis=1)
+        if earlier:
+            mid = 0.5 * (dense[1:] + dense[:-1])
+            far = cKDTree(np.vstack(earlier)).query(mid, distance_upper_bound=radius_m)[0] > radius_m
+            total += float(seg[far].sum())
+        else:
+            total += float(seg.sum())
+        earlier.append(dense)
+    return total
+
+
 def densify_path(xy_m: np.ndarray, step_m: float) -> np.ndarray:
     """Insert points so that consecutive points are at most ``step_m`` apart (keeps the originals)."""
     xy_m = np.asarray(xy_m, float).reshape(-1, 2)

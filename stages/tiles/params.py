@@ -12,8 +12,13 @@ class TilesParams(Params):
                                                                "tiles line up with the marking rasters")
     keep_last: int = Field(5, ge=1, description="versions kept; older ones are deleted, never the LATEST one")
     gates_enabled: bool = Field(True, description="run the quality gates below before publishing")
-    min_corners_per_km: float = Field(10.0, ge=0, description="corners per km of optimized driven path "
-                                                              "(Im et al. 2016 report ~135/km in Gangnam)")
+    min_corners_per_km: float = Field(10.0, ge=0, description="corners per km of optimized driven path, each "
+                                                              "street counted once however many drives took it "
+                                                              "(distinct_path_radius_m; Im et al. 2016 report "
+                                                              "~135/km in Gangnam)")
+    distinct_path_radius_m: float = Field(10.0, gt=0, description="the corner density's driven km: a stretch "
+                                          "of a drive within this of an earlier drive's path is a street already "
+                                          "counted (a road's lanes both ways lie within it)")
     max_empty_path_tile_share: float = Field(0.5, ge=0, le=1, description="largest share of tiles along the "
                                                                           "driven path holding no corner")
     check_schema: bool = Field(True, description="gate: corner table matches corner_map, finite values, "

@@ -1,0 +1,106 @@
+"""Incremental pose graph: new drives solved against a published map whose poses are held fixed.
+
+The map's drives keep the poses of the last solution bit for bit; only the new drives are variables. The graph is
+the new drives' own (odometry, GNSS, prior trajectory or start pose, survey anchors) plus verified loops from their
+keyframes onto the map's scans and onto each other. A map pose that a loop reaches enters the graph as a variable
+held by a tight prior at its published value (``fixed_prior_sigma_m``), as for a reference drive
+(``solve.solve_reference``); it is never written back. The cost is the new drives' (their pass 1, anchors, loop
+candidates within ``loops.radius_m`` of their path, the solves over their poses), not the map's history.
+
+A full joint re-solve of every drive (``solve.solve_map``) stays what ``cornermap rebuild --full`` and a first
+build run; a later ``maps reoptimize`` (issue 59) is that solve, scheduled.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+
+from stages.posegraph.config import PosegraphConfig
+from stages.posegraph.factors.base import base_problem
+from stages.posegraph.factors.drive import DriveInput
+from stages.posegraph.factors.graph import PosePrior, Problem, optimize
+from stages.posegraph.loops.candidates import find_candidates, keyframes_by_travel, loosely_anchored, travel_m
+from stages.posegraph.loops.verify import LoopRecord, verify_from_store
+from stages.posegraph.solve import Solution, anchored, horizontal_anchors, optimize_with_loops
+
+log = logging.getLogger(__name__)
+
+
+def solve_increment(new: list[DriveInput], held: list[DriveInput], held_poses: np.ndarray, load, cfg: PosegraphConfig,
+                    *, max_per_scan: int | None = None, survey_priors: Callable | None = None,
+                    report_step: Callable[..., None] | None = None) -> Solution:
+    """The ``new`` drives' poses (one row per scan, drives in order) with the ``held`` drives' poses
+    (``held_poses``, (M,4,4), the held drives' rows in order) fixed. ``survey_priors(poses, offsets)``: the survey
+    anchors of the new drives (``anchors.survey_anchor.survey_anchor_callback`` built on ``new``). ``max_per_scan``:
+    loop targets per query scan (default the joint solve's ``loops.max_per_scan``): the nearest other passes, map
+    or new, so the loops a new drive verifies do not grow with the passes the map holds.
+
+    Returns a ``Solution`` whose ``poses`` are the new drives' (N,4,4) and whose ``problem`` holds N variables
+    followed by the map poses its loops reach (tightly held); loop indices: 0..N-1 the new drives' scans, N.. the
+    held drives' scans (N + row of ``held_poses``)."""
+    say = report_step or (lambda step, done=None, total=None: None)
+    n = int(sum(d.n for d in new))
+    if len(held_poses) != sum(d.n for d in held):
+        raise ValueError(f"held poses: {len(held_poses)} rows for {sum(d.n for d in held)} scans of the held drives")
+    if n == 0:  # every map drive held: nothing to solve
+        return Solution(np.zeros((0, 4, 4)), Problem(0, np.zeros((0, 4, 4))), [])
+    t0 = time.perf_counter()
+    say("pass 1: odometry and GNSS of the new drives")
+    problem, offsets = base_problem(new, cfg.factors, cfg.gnss, cfg.prior)
+    lc, lm = cfg.loops, cfg.solve.lm_kwargs()
+    poses = optimize(problem, **lm)
+    t1 = time.perf_counter()
+    rounds: list[dict] = []
+    if survey_priors is not None:
+        poses = anchored(problem, poses, offsets, survey_priors, cfg.anchors, rounds,
+                         lambda initial: optimize(problem, **lm, gnc_loops=lc.kernel == "gnc", initial=initial))
+    group_new = np.repeat(np.arange(len(new)), [d.n for d in new])
+    query = keyframes_by_travel(poses[:, :3, 3], group_new, lc.stride_m)
+    if survey_priors is not None:
+        idx, info_en = horizontal_anchors(problem.pose_priors)
+        query = loosely_anchored(query, idx, info_en, travel_m(poses[:, :3, 3], group_new), group_new,
+                                 lc.survey_window_m, lc.survey_sigma_m)
+    t2 = time.perf_counter()
+    say("loop candidates against the map")
+    all_drives = list(new) + list(held)
+    group = np.repeat(np.arange(len(all_drives)), [d.n for d in all_drives])
+    positions = np.concatenate([poses[:, :3, 3], held_poses[:, :3, 3]]) if len(held_poses) else poses[:, :3, 3]
+    stamps_s = np.concatenate([d.stamps_ns for d in all_drives]) * 1e-9
+    cands = find_candidates(positions, stamps_s, group, query, radius_m=lc.radius_m,
+                            min_separation_s=lc.min_separation_s, max_per_scan=max_per_scan or lc.max_per_scan)
+    all_offsets = np.cumsum([0] + [d.n for d in all_drives])
+    wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
+    fixed = {int(g): held_poses[g - n] for g in wanted if g >= n}
+    step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
+    loops = verify_from_store(cands, poses, all_drives, all_offsets, load, lc, fixed=fixed, progress=step) \
+        if cands else []
+    t3 = time.perf_counter()
+    # the map poses a loop reaches: variables held at their published values by tight priors
+    extra = sorted({g for r in loops if r.accepted for g in (r.i, r.j) if g >= n})
+    remap = {g: n + m for m, g in enumerate(extra)}
+    problem.n_poses = n + len(extra)
+    problem.initial = np.concatenate([problem.initial] + [held_poses[g - n][None] for g in extra])
+    sigma_m = cfg.solve.fixed_prior_sigma_m
+    tight = np.diag([(sigma_m / 10.0) ** -2] * 3 + [sigma_m ** -2] * 3)
+    problem.pose_priors += [PosePrior(remap[g], held_poses[g - n], tight, "fixed") for g in extra]
+    local = [LoopRecord(remap.get(r.i, r.i), remap.get(r.j, r.j), r.prior_distance_m, r.fitness, r.inlier_rmse_m,
+                        r.T_i_j, r.accepted, r.reason, r.information) for r in loops]
+    solve_times: list[float] = []
+    start = np.concatenate([poses] + [held_poses[g - n][None] for g in extra])
+    if local or survey_priors is None:
+        say(f"passes 2-3: solving the new drives with {sum(r.accepted for r in loops)} loops")
+        poses = optimize_with_loops(problem, local, lc, cfg.solve, solve_times_s=solve_times, initial=start)[:n]
+    for r_local, r in zip(local, loops):  # pass 3's decisions back onto the global indices
+        r.accepted, r.reason = r_local.accepted, r_local.reason
+    t4 = time.perf_counter()
+    log.info("posegraph (incremental): %d new poses against %d held, %d loop query poses, %d candidates, "
+             "%d loops accepted, %d map poses reached", n, len(held_poses), len(query), len(cands),
+             sum(r.accepted for r in loops), len(extra))
+    return Solution(poses, problem, loops, {"pass1_s": t1 - t0, "survey_s": t2 - t1, "loops_s": t3 - t2,
+                                            "pass23_s": t4 - t3, "n_loop_solves": len(solve_times),
+                                            "loop_solve_max_s": max(solve_times, default=0.0),
+                                            "n_held_poses": len(held_poses), "n_map_poses_reached": len(extra)},
+                    rounds)
