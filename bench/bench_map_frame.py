@@ -67,8 +67,38 @@ def frame_error(est_en: np.ndarray, true_en: np.ndarray, yaw_err: np.ndarray, we
     return g, e - np.einsum("nak,k->na", G, g)
 
 
-def solved(workflow: Path, root: Path | None, overrides: list[str]) -> tuple[MapDrives, Path]:
-    """The map drives solved in process (no survey anchoring) with their frame split."""
+def replace_fixes(drives, sim: Path, mode: str, white_m: float = 0.05, window_s: float = 15.0, seed: int = 0) -> None:
+    """Diagnosis: the drives' GNSS positions (in place) replaced by ``truth`` (the true position + white noise of
+    ``white_m``: no bias, no multipath) or ``slow`` (the true position + the fixes' own error under a running median
+    of ``window_s``: the slowly varying bias kept, multipath jumps and white noise removed)."""
+    from bench.bench_posegraph import truth_poses
+
+    rng = np.random.default_rng(seed)
+    for d in drives:
+        tx = truth_poses(sim, d.name, d.stamps_ns)[:, :3, 3]
+        v = d.gnss_valid
+        err = d.gnss_T[:, :3, 3] - tx
+        if mode == "truth":
+            new = tx + rng.normal(size=tx.shape) * white_m
+        elif mode == "slow":
+            from scipy.ndimage import median_filter
+
+            t_s = d.stamps_ns * 1e-9
+            n_win = max(1, int(round(window_s / max(np.median(np.diff(t_s)), 1e-3))))
+            smooth = err.copy()
+            smooth[v] = median_filter(err[v], size=(n_win, 1), mode="nearest")
+            new = tx + smooth
+        else:
+            raise ValueError(f"--fixes {mode!r}: expected asis | truth | slow")
+        d.gnss_T = d.gnss_T.copy()
+        d.gnss_T[v, :3, 3] = new[v]
+
+
+def solved(workflow: Path, root: Path | None, overrides: list[str], fixes: str = "asis", sim: Path | None = None,
+           loops_cache: Path | None = None) -> tuple[MapDrives, Path]:
+    """The map drives solved in process (no survey anchoring) with their frame split. ``fixes``: see
+    ``replace_fixes``; ``loops_cache``: the accepted loops of a first run are stored there and reused as they are
+    by later runs (no candidate search, no verification: the diagnosis varies the GNSS, not the loops)."""
     from bench.bench_posegraph import _overrides
     from pipeline.api import stage_context
     from pipeline.plan import make_plan
@@ -82,7 +112,26 @@ def solved(workflow: Path, root: Path | None, overrides: list[str]) -> tuple[Map
     root = wf.root_dir(root)
     ctx = stage_context(make_plan(wf, root), "posegraph", Path(tempfile.mkdtemp(prefix="bench-frame-")))
     drives, _ = read_drive_inputs(ctx)
-    sol = solve_map(drives, scan_loader(ctx), PosegraphConfig.from_params(ctx.params))
+    if fixes != "asis":
+        from bench.roots import simulator_dir
+
+        replace_fixes(drives, sim or simulator_dir(root), fixes)
+    cfg = PosegraphConfig.from_params(ctx.params)
+    if loops_cache is not None and loops_cache.is_file():
+        import dataclasses
+        import pickle
+
+        cached = pickle.loads(loops_cache.read_bytes())
+        for r in cached:
+            r.accepted = True
+        no_search = dataclasses.replace(cfg, loops=dataclasses.replace(cfg.loops, radius_m=0.0))
+        sol = solve_map(drives, scan_loader(ctx), no_search, extra_loops=cached)
+    else:
+        sol = solve_map(drives, scan_loader(ctx), cfg)
+        if loops_cache is not None:
+            import pickle
+
+            loops_cache.write_bytes(pickle.dumps([r for r in sol.loops if r.accepted]))
     split = frame_of_map(sol, drives, marginal_cov_xy_yaw(sol.problem, sol.poses).reshape(-1, 3, 3))
     cat = np.concatenate
     return MapDrives([d.name for d in drives], sol.poses, split.cov_relative, split.cov_frame, split.reference_en_m,
@@ -139,6 +188,18 @@ def report(m: MapDrives, sim: Path, bias_tau_s: float, label: str) -> None:
           f"heading RMS {np.degrees(np.sqrt(np.mean(resid[:, 2]**2))):.3f} deg; stated relative RMS "
           f"{np.sqrt(np.mean(np.trace(rel[:, :2, :2], axis1=1, axis2=2))):.3f} m; NEES (2 dof) mean {nees.mean():.2f}, "
           f"{np.mean(nees < 5.991):.2f} under its 95 % quantile")
+    from stages.posegraph.map_frame import _fit_operator, frame_basis
+
+    G4 = frame_basis(truth[:, :2, 3], m.reference_en_m, scale=True)
+    e = np.column_stack([m.est[:, :2, 3] - truth[:, :2, 3], wrap_angle_rad(yaw(m.est) - yaw(truth))])
+    g4 = np.einsum("nak,na->k", _fit_operator(G4, w), e)
+    h4 = np.linalg.norm((e - np.einsum("nak,k->na", G4, g4))[:, :2], axis=1)
+    fwd = np.column_stack([np.cos(yaw(truth)), np.sin(yaw(truth))])
+    along, cross = np.sum(resid[:, :2] * fwd, axis=1), fwd[:, 0] * resid[:, 1] - fwd[:, 1] * resid[:, 0]
+    print(f"shape after a similarity fit (+ scale {g4[3] * 1e6:+.0f} ppm): horizontal RMS "
+          f"{np.sqrt(np.mean(h4**2)):.3f} m, max {h4.max():.3f} m; "
+          f"the rigid fit's residual along / across the road RMS "
+          f"{np.sqrt(np.mean(along**2)):.3f} / {np.sqrt(np.mean(cross**2)):.3f} m")
     for k, name in enumerate(m.names):
         sel = m.group == k
         v, gx, tx = m.gnss_valid[sel], m.gnss_T[sel][:, :2, 3], truth[sel][:, :2, 3]
@@ -166,6 +227,11 @@ def main() -> None:
     ap.add_argument("--sim", type=Path, default=None, help="the simulator's folder (default: the root's)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="posegraph param override")
     ap.add_argument("--bias-tau-s", type=float, default=90.0)
+    ap.add_argument("--fixes", choices=["asis", "truth", "slow"], default="asis",
+                    help="diagnosis (with -w): the GNSS positions as they are, the truth + 0.05 m white noise, or the "
+                         "truth + the fixes' error under a 15 s running median (bias without multipath)")
+    ap.add_argument("--loops-cache", type=Path, default=None,
+                    help="with -w: store the accepted loops here, or reuse them when the file exists")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     from bench.roots import simulator_dir
@@ -173,7 +239,7 @@ def main() -> None:
     if args.workflow is None and args.root is None:
         ap.error("give -w WORKFLOW (solve in process) or --root ROOT (its committed poses)")
     if args.workflow is not None:
-        drives, root = solved(args.workflow, args.root, args.set)
+        drives, root = solved(args.workflow, args.root, args.set, args.fixes, args.sim, args.loops_cache)
         label = f"root {root}, solved in process"
     else:
         root = args.root
