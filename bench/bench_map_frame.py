@@ -95,7 +95,7 @@ def replace_fixes(drives, sim: Path, mode: str, white_m: float = 0.05, window_s:
 
 
 def solved(workflow: Path, root: Path | None, overrides: list[str], fixes: str = "asis", sim: Path | None = None,
-           loops_cache: Path | None = None) -> tuple[MapDrives, Path]:
+           loops_cache: Path | None = None, wheel_scale: str = "stage") -> tuple[MapDrives, Path]:
     """The map drives solved in process (no survey anchoring) with their frame split. ``fixes``: see
     ``replace_fixes``; ``loops_cache``: the accepted loops of a first run are stored there and reused as they are
     by later runs (no candidate search, no verification: the diagnosis varies the GNSS, not the loops)."""
@@ -116,6 +116,22 @@ def solved(workflow: Path, root: Path | None, overrides: list[str], fixes: str =
         from bench.roots import simulator_dir
 
         replace_fixes(drives, sim or simulator_dir(root), fixes)
+    if wheel_scale == "consecutive":  # the calibration before the span edges' scale (diagnosis)
+        import copy
+
+        from stages.posegraph.factors.wheel import calibrate_wheel
+
+        for d in drives:
+            if d.wheel_T is None or d.wheel_calibration is None:
+                continue
+            raw = copy.copy(d)
+            raw.wheel_T = d.wheel_T.copy()
+            raw.wheel_T[:, :2, 3] /= d.wheel_calibration.scale
+            s_old = calibrate_wheel(raw, from_spans=False).scale
+            d.wheel_T = raw.wheel_T
+            d.wheel_T[:, :2, 3] *= s_old
+            print(f"{d.name}: wheel scale {s_old:.6f} from the consecutive edges (the stage's: "
+                  f"{d.wheel_calibration.scale:.6f} from the {d.wheel_calibration.scale_source})")
     cfg = PosegraphConfig.from_params(ctx.params)
     if loops_cache is not None and loops_cache.is_file():
         import dataclasses
@@ -230,6 +246,9 @@ def main() -> None:
     ap.add_argument("--fixes", choices=["asis", "truth", "slow"], default="asis",
                     help="diagnosis (with -w): the GNSS positions as they are, the truth + 0.05 m white noise, or the "
                          "truth + the fixes' error under a 15 s running median (bias without multipath)")
+    ap.add_argument("--wheel-scale", choices=["stage", "consecutive"], default="stage",
+                    help="with -w: the wheel scale as the stage calibrates it, or from the consecutive ICP edges "
+                         "(the calibration before the span edges' scale)")
     ap.add_argument("--loops-cache", type=Path, default=None,
                     help="with -w: store the accepted loops here, or reuse them when the file exists")
     args = ap.parse_args()
@@ -239,7 +258,8 @@ def main() -> None:
     if args.workflow is None and args.root is None:
         ap.error("give -w WORKFLOW (solve in process) or --root ROOT (its committed poses)")
     if args.workflow is not None:
-        drives, root = solved(args.workflow, args.root, args.set, args.fixes, args.sim, args.loops_cache)
+        drives, root = solved(args.workflow, args.root, args.set, args.fixes, args.sim, args.loops_cache,
+                              args.wheel_scale)
         label = f"root {root}, solved in process"
     else:
         root = args.root
