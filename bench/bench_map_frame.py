@@ -41,6 +41,7 @@ class MapDrives:
     gnss_T: np.ndarray  # (N,4,4)
     gnss_valid: np.ndarray  # (N,)
     loops: str = ""
+    scale_std: float = float("nan")  # the frame's stated scale std (a 4-dof similarity fit)
 
 
 def gnss_frame_bound(t_s: np.ndarray, en_m: np.ndarray, sigma_axis_m: float, tau_s: float, white_m: float,
@@ -153,7 +154,7 @@ def solved(workflow: Path, root: Path | None, overrides: list[str], fixes: str =
     return MapDrives([d.name for d in drives], sol.poses, split.cov_relative, split.cov_frame, split.reference_en_m,
                      np.repeat(np.arange(len(drives)), [d.n for d in drives]), cat([d.stamps_ns for d in drives]),
                      cat([d.gnss_T for d in drives]), cat([d.gnss_valid for d in drives]),
-                     f"; loops accepted {sum(r.accepted for r in sol.loops)}"), root
+                     f"; loops accepted {sum(r.accepted for r in sol.loops)}", split.scale_std), root
 
 
 def committed(root: Path) -> MapDrives:
@@ -179,7 +180,8 @@ def committed(root: Path) -> MapDrives:
                       Trajectory.from_table(g, name).T[keep], g["valid"].to_numpy(zero_copy_only=False)[keep]))
     cat = lambda i: np.concatenate([p[i] for p in parts])  # noqa: E731
     return MapDrives(names, cat(0), cat(1), np.asarray(frame["cov_shift_rotation"], float),
-                     np.asarray(frame["reference_en_m"], float), cat(2), cat(3), cat(4), cat(5))
+                     np.asarray(frame["reference_en_m"], float), cat(2), cat(3), cat(4), cat(5), "",
+                     float(frame.get("std_scale", np.nan)))
 
 
 def report(m: MapDrives, sim: Path, bias_tau_s: float, label: str) -> None:
@@ -212,7 +214,8 @@ def report(m: MapDrives, sim: Path, bias_tau_s: float, label: str) -> None:
     h4 = np.linalg.norm((e - np.einsum("nak,k->na", G4, g4))[:, :2], axis=1)
     fwd = np.column_stack([np.cos(yaw(truth)), np.sin(yaw(truth))])
     along, cross = np.sum(resid[:, :2] * fwd, axis=1), fwd[:, 0] * resid[:, 1] - fwd[:, 1] * resid[:, 0]
-    print(f"shape after a similarity fit (+ scale {g4[3] * 1e6:+.0f} ppm): horizontal RMS "
+    print(f"shape after a similarity fit (+ scale {g4[3] * 1e6:+.0f} ppm, stated std {m.scale_std * 1e6:.0f} ppm): "
+          f"horizontal RMS "
           f"{np.sqrt(np.mean(h4**2)):.3f} m, max {h4.max():.3f} m; "
           f"the rigid fit's residual along / across the road RMS "
           f"{np.sqrt(np.mean(along**2)):.3f} / {np.sqrt(np.mean(cross**2)):.3f} m")
