@@ -95,8 +95,32 @@ def replace_fixes(drives, sim: Path, mode: str, white_m: float = 0.05, window_s:
         d.gnss_T[v, :3, 3] = new[v]
 
 
+def consecutive_scale_against_spans(d, min_chord_m: float = 5.0) -> float | None:
+    """Least-squares ratio of the consecutive edges composed over each accepted span to the span's chord (planar),
+    over the spans whose consecutive edges were all accepted; None without 10 such spans."""
+    sp = d.spans
+    if sp is None:
+        return None
+    num = den = 0.0
+    used = 0
+    for i, j, T in zip(sp.i, sp.j, sp.T_i_j):
+        if not d.edge_ok[i + 1:j + 1].all():
+            continue
+        C = np.eye(4)
+        for k in range(i + 1, j + 1):
+            C = C @ d.edge_T[k]
+        cc, cs = C[:2, 3], np.asarray(T[:2, 3], float)
+        if np.linalg.norm(cs) < min_chord_m:
+            continue
+        num += float(cc @ cs)
+        den += float(cs @ cs)
+        used += 1
+    return num / den if used >= 10 and den > 0 else None
+
+
 def solved(workflow: Path, root: Path | None, overrides: list[str], fixes: str = "asis", sim: Path | None = None,
-           loops_cache: Path | None = None, wheel_scale: str = "stage") -> tuple[MapDrives, Path]:
+           loops_cache: Path | None = None, wheel_scale: str = "stage",
+           icp_scale_from_spans: bool = False) -> tuple[MapDrives, Path]:
     """The map drives solved in process (no survey anchoring) with their frame split. ``fixes``: see
     ``replace_fixes``; ``loops_cache``: the accepted loops of a first run are stored there and reused as they are
     by later runs (no candidate search, no verification: the diagnosis varies the GNSS, not the loops)."""
@@ -133,6 +157,13 @@ def solved(workflow: Path, root: Path | None, overrides: list[str], fixes: str =
             d.wheel_T[:, :2, 3] *= s_old
             print(f"{d.name}: wheel scale {s_old:.6f} from the consecutive edges (the stage's: "
                   f"{d.wheel_calibration.scale:.6f} from the {d.wheel_calibration.scale_source})")
+    if icp_scale_from_spans:  # diagnosis: the consecutive edges' along-track scale corrected on the span edges
+        for d in drives:
+            r = consecutive_scale_against_spans(d)
+            if r is not None:
+                d.edge_T = d.edge_T.copy()
+                d.edge_T[:, :3, 3] /= r
+                print(f"{d.name}: consecutive edges {(r - 1) * 1e6:+.0f} ppm against the span edges; divided out")
     cfg = PosegraphConfig.from_params(ctx.params)
     if loops_cache is not None and loops_cache.is_file():
         import dataclasses
@@ -252,6 +283,9 @@ def main() -> None:
     ap.add_argument("--wheel-scale", choices=["stage", "consecutive"], default="stage",
                     help="with -w: the wheel scale as the stage calibrates it, or from the consecutive ICP edges "
                          "(the calibration before the span edges' scale)")
+    ap.add_argument("--icp-scale-from-spans", action="store_true",
+                    help="with -w (diagnosis): divide the consecutive edges' translations by their ratio to the span "
+                         "edges")
     ap.add_argument("--loops-cache", type=Path, default=None,
                     help="with -w: store the accepted loops here, or reuse them when the file exists")
     args = ap.parse_args()
@@ -262,7 +296,7 @@ def main() -> None:
         ap.error("give -w WORKFLOW (solve in process) or --root ROOT (its committed poses)")
     if args.workflow is not None:
         drives, root = solved(args.workflow, args.root, args.set, args.fixes, args.sim, args.loops_cache,
-                              args.wheel_scale)
+                              args.wheel_scale, args.icp_scale_from_spans)
         label = f"root {root}, solved in process"
     else:
         root = args.root
