@@ -148,6 +148,9 @@ def main() -> None:
                     help="delete the survey: section of every simulated drive file before building")
     ap.add_argument("--sim-set", nargs="+", default=[], metavar="KEY=VALUE",
                     help="simulator preset fields (as `cornermap simulate --set`), e.g. gnss_target_rms_m=1.5")
+    ap.add_argument("--only", nargs="+", default=None, metavar="STAGE",
+                    help="run only these stages (e.g. the stages before the pose graph while its code changes); "
+                         "no tables")
     args = ap.parse_args()
 
     from pipeline.api import execute_workflow
@@ -165,10 +168,13 @@ def main() -> None:
                 shutil.rmtree(run_dir / "datasets" / ds, ignore_errors=True)
         t0 = time.perf_counter()
         try:
-            execute_workflow(wf, root=None, scheduler=None, only=None, dry_run=False, quiet=True)
+            execute_workflow(wf, root=None, scheduler=None, only=args.only, dry_run=False, quiet=True)
         except CornermapError as exc:  # a build that publishes no map is a result too: reported, not skipped
             print(f"seed {seed}: FAILED after {time.perf_counter() - t0:.0f} s: {str(exc).splitlines()[0]} "
                   f"{' '.join(str(exc).splitlines()[1:2])}", flush=True)
+            continue
+        if args.only:
+            print(f"seed {seed}: {' '.join(args.only)} done in {time.perf_counter() - t0:.0f} s, {run_dir}", flush=True)
             continue
         doc = latest_metrics(run_dir)
         print(f"seed {seed}: {time.perf_counter() - t0:.0f} s, {run_dir}", flush=True)
