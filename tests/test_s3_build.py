@@ -99,7 +99,45 @@ def test_a_map_built_into_a_bucket_lists_verifies_exports_and_rebuilds_nothing(s
     again = build(short_drive, s3_root, cwd, **env)
     assert again.returncode == 0, again.stderr
     assert {s["decision"] for s in json.loads(again.stdout)["stages"].values()} == {"skipped"}
+    # gc keeps every dataset the published version was built from
+    gc = cornermap("gc", "--root", s3_root, "--min-age-h", "0", cwd=cwd, **env)
+    assert gc.returncode == 0 and "0 dataset folder(s)" in gc.stdout, gc.stdout + gc.stderr
     _no_local_root(cwd)
+
+
+def test_gc_on_a_bucket_removes_unreferenced_datasets_and_keeps_the_rest(s3_env, s3_root, tmp_path):
+    """``cornermap gc`` on an s3:// root: a dataset a kept version was built from stays with its upstream; one
+    nothing references goes (manifest first, then its objects); an uncommitted folder stays while young."""
+    from pipeline.storage import Store, dataset_dir, dataset_manifest, map_dir, version_dir, version_manifest
+
+    store = Store.open(s3_root)
+    fps = {"used": "a" * 16, "upstream": "b" * 16, "orphan": "c" * 16, "young": "d" * 16}
+
+    def dataset(name: str, fp: str, inputs: dict, committed: bool = True) -> None:
+        ddir = dataset_dir(store.root, name, fp)
+        store.put_bytes(ddir / "data" / "part-all-00000.parquet", b"x" * 1000)
+        if committed:
+            store.put_bytes(dataset_manifest(ddir), json.dumps({"dataset": name, "fingerprint": fp, "files": [],
+                                                                 "inputs": inputs}).encode())
+
+    dataset("corner_map", fps["used"], {"scans": {"dataset": "scans_raw", "fingerprint": fps["upstream"]}})
+    dataset("scans_raw", fps["upstream"], {})
+    dataset("scans_raw", fps["orphan"], {})
+    dataset("odometry_raw", fps["young"], {}, committed=False)
+    vdir = version_dir(map_dir(store.root, "city"), 1)
+    store.put_bytes(version_manifest(vdir), json.dumps({"version": 1, "inputs": {
+        "corner_map": {"dataset": "corner_map", "fingerprint": fps["used"]}}}).encode())
+    dry = cornermap("gc", "--root", s3_root, "--min-age-h", "1", cwd=tmp_path, **s3_env)
+    assert dry.returncode == 0, dry.stderr
+    assert f"would remove {s3_root}/datasets/scans_raw/{fps['orphan']}" in dry.stdout, dry.stdout
+    assert "1 dataset folder(s)" in dry.stdout and "3 kept" in dry.stdout, dry.stdout
+    assert store.exists(dataset_dir(store.root, "scans_raw", fps["orphan"]) / "_manifest.json")  # a dry run
+    res = cornermap("gc", "--root", s3_root, "--min-age-h", "1", "--apply", cwd=tmp_path, **s3_env)
+    assert res.returncode == 0, res.stderr
+    left = {"/".join(k.split("/")[:3]) for k in _objects(s3_root) if k.startswith("datasets/")}
+    assert left == {f"datasets/corner_map/{fps['used']}", f"datasets/scans_raw/{fps['upstream']}",
+                    f"datasets/odometry_raw/{fps['young']}"}, left
+    _no_local_root(tmp_path)
 
 
 def test_an_uncommitted_dataset_in_the_bucket_is_not_read_as_committed(s3_env, s3_root, tmp_path):
