@@ -64,8 +64,14 @@ def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
 
 
 def _ledger(spec: dict[str, Any]) -> Path | None:
-    """The run's verification ledger (``pipeline.store.verify_file``), None outside a run."""
-    return Path(spec["verified_ledger"]) if spec.get("verified_ledger") else None
+    """The run's verification ledger (``pipeline.store.verify_file``), None outside a run. On an object-store root
+    the ledger is named, not placed: each process keeps it in its own local copy of the root (the processes of one
+    machine sharing a scratch folder share it; a worker on another machine has its own)."""
+    name = spec.get("verified_ledger")
+    if not name:
+        return None
+    droot = data_root(spec["root"])
+    return storage.tmp_dir(droot.local, Path(name).name) if droot.remote else Path(name)
 
 
 def _ensure_extra_stages(spec: dict[str, Any]) -> None:
