@@ -125,7 +125,6 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any],
 
 def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
                    provisional: dict[str, list[str]] | None) -> dict[str, Any]:
-
     _ensure_extra_stages(spec)
     pk = PartitionKey(**partition)
     label = pk.label

@@ -205,6 +205,39 @@ def test_a_corrupt_local_copy_is_fetched_again_and_a_corrupt_object_is_refused(s
         os.environ.pop("CORNERMAP_SCRATCH", None)
 
 
+def test_a_drives_committed_partition_is_reused_from_a_sibling_by_a_server_side_copy(s3_env, s3_root, tmp_path):
+    """Drive-scoped reuse on a bucket: a sibling fingerprint folder whose part marker records the same scope and whose
+    files are all there is found, and its files are copied within the bucket into the new folder; a sibling missing
+    one of its files, or of another scope, is not."""
+    from pipeline.reuse import find_committed, link_partition
+    from pipeline.storage import Store, artifacts_dir, dataset_dir
+    from pipeline.store import DataRoot
+
+    store = Store.open(s3_root)
+    os.environ["CORNERMAP_SCRATCH"] = str(tmp_path)
+    try:
+        root = DataRoot(s3_root)
+        output = {"files": [{"path": "data/drive=d0/part-drive0-00000.parquet"}],
+                  "artifacts": [{"path": "trajectory.txt"}]}
+        for fp, scope, complete in (("1" * 16, "other", True), ("2" * 16, "s1", False), ("3" * 16, "s1", True)):
+            ddir = dataset_dir(store.root, "scans_raw", fp)
+            store.put_bytes(ddir / output["files"][0]["path"], f"rows of {fp}".encode())
+            if complete:
+                store.put_bytes(artifacts_dir(ddir, "drive0") / "trajectory.txt", f"poses of {fp}".encode())
+            root.put_part("scans_raw", fp, "drive0", {"output": output, "scope": scope})
+        own = "f" * 16
+        hit = find_committed(root, "scans_raw", own, "drive0", "s1")
+        assert hit is not None and hit[0] == "3" * 16
+        assert find_committed(root, "scans_raw", own, "drive0", "nowhere") is None
+        link_partition(root, "scans_raw", hit[0], own, "drive0", hit[1]["output"])
+        ddir = dataset_dir(store.root, "scans_raw", own)
+        assert store.read_bytes(ddir / output["files"][0]["path"]) == b"rows of " + b"3" * 16
+        assert store.read_bytes(artifacts_dir(ddir, "drive0") / "trajectory.txt") == b"poses of " + b"3" * 16
+        assert not list(tmp_path.rglob("*.parquet")), "a server-side copy passes no bytes through the task"
+    finally:
+        os.environ.pop("CORNERMAP_SCRATCH", None)
+
+
 @contextlib.contextmanager
 def _dask_cluster(tmp_path: Path, env: dict[str, str]):
     """A ``dask scheduler`` and two ``dask worker`` processes started apart, each worker in its own folder."""
