@@ -220,6 +220,9 @@ def local_path(value: object, option: str) -> Path:
     return Path(str(value))
 
 
+TRANSFERS = 4  # files an S3 upload or download moves at a time (Store.upload_files, download_files)
+
+
 # --- one face over both backends -----------------------------------------------------------------------------------
 class Store:
     """An output root on a local folder or an object store. ``root`` is where the layout functions start: a ``Path``
@@ -404,14 +407,15 @@ class Store:
         self.fs.put_file(str(local), loc.as_posix())
 
     def upload_files(self, pairs: list[tuple[Path, PurePath]]) -> None:
-        """Upload local files to their locations (S3: one batched, concurrent call)."""
+        """Upload local files to their locations (S3: ``TRANSFERS`` at a time: s3fs reads a file below its 50 MB
+        chunk whole, so a batch of all of a drive's scans held them all in memory: 3.2 GB in a demo ingest task)."""
         if not pairs:
             return
         if self.local or len(pairs) == 1:
             for local, loc in pairs:
                 self.upload_file(local, loc)
             return
-        self.fs.put([str(a) for a, _ in pairs], [b.as_posix() for _, b in pairs])
+        self.fs.put([str(a) for a, _ in pairs], [b.as_posix() for _, b in pairs], batch_size=TRANSFERS)
 
     def download_files(self, pairs: list[tuple[PurePath, Path]]) -> None:
         """Copy objects into local files, each written under a temporary name and renamed into place (a reader of
@@ -428,7 +432,7 @@ class Store:
                 for (loc, _), t in zip(pairs, tmps):
                     shutil.copyfile(loc, t)
             else:
-                self.fs.get([loc.as_posix() for loc, _ in pairs], [str(t) for t in tmps])
+                self.fs.get([loc.as_posix() for loc, _ in pairs], [str(t) for t in tmps], batch_size=TRANSFERS)
             for (_, dest), t in zip(pairs, tmps):
                 os.replace(t, dest)
         finally:
