@@ -7,6 +7,7 @@ every process (pool workers and spawned processes included), scans per second en
     .venv/bin/python -m bench.bench_build --preset kitti --max-scans 154                       # real HDL-64E scans
     .venv/bin/python -m bench.bench_build --preset demo --cluster-workers 2    # on a dask LocalCluster of 2 workers
     .venv/bin/python -m bench.bench_build --preset demo --params P.yaml        # other settings, the same code
+    .venv/bin/python -m bench.bench_build --preset tiny --s3                   # the root on a local S3 server
 
 The simulation is made once per preset and seed and cached (``--cache``, default ``~/.cache/cornermap-bench``);
 simulate and evaluation are not timed. Every run builds into a fresh root (deleted afterwards unless ``--keep``).
@@ -20,6 +21,10 @@ partition tasks (their threads and the pools they started). RSS is sampled every
 nannies, their environment, a scheduler in a process of its own) before the clock starts and builds on it
 (``--scheduler`` its address); its workers descend from this process, so their memory is in the RSS figures. The
 speed-up of 2 workers against 1 is the ratio of two such runs' walls.
+
+``--s3`` builds into ``s3://bench/root`` on moto's S3 server (``fixtures/s3server.py``) started here on 127.0.0.1, the
+tasks' local copies in the run's folder (``CORNERMAP_SCRATCH``). The server's own CPU and memory are left out of the
+figures (a real bucket runs elsewhere) and reported apart (``s3_server_cpu_s``, ``s3_server_peak_rss_mb``).
 """
 from __future__ import annotations
 
@@ -72,6 +77,17 @@ class RssSampler(threading.Thread):
     def stop(self) -> None:
         self._halt.set()
         self.join()
+
+
+def _cpu_of(proc) -> float:
+    """CPU seconds of one process (0 for None or a process gone)."""
+    if proc is None:
+        return 0.0
+    try:
+        t = proc.cpu_times()
+    except Exception:  # noqa: BLE001 - psutil.NoSuchProcess and alike
+        return 0.0
+    return t.user + t.system
 
 
 def tree_cpu_s() -> float:
@@ -158,14 +174,37 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keep", action="store_true", help="keep the build root")
     ap.add_argument("--cluster-workers", type=int, default=None,
                     help="build on a dask LocalCluster of this many single-threaded worker processes")
+    ap.add_argument("--s3", action="store_true", help="the root on a local S3 server (moto, started here)")
     ap.add_argument("--params", type=Path, default=None,
                     help="a params file over the stages' defaults (as `cornermap run --params`): two settings on "
                          "the same code side by side")
     args = ap.parse_args(argv)
-    with local_cluster(args.cluster_workers) as address:
+    with s3_root(args.s3) as server, local_cluster(args.cluster_workers) as address:
+        args.s3_server = server
         if address:
             args.scheduler = address
         return _bench(args)
+
+
+@contextlib.contextmanager
+def s3_root(enabled: bool):
+    """With ``enabled``: moto's S3 server on 127.0.0.1 with the bucket ``bench``, the AWS environment pointing at it
+    for the block; yields the server's ``psutil.Process`` (its CPU and memory are reported apart), else None."""
+    if not enabled:
+        yield None
+        return
+    import os
+
+    import psutil
+
+    from fixtures.s3server import make_bucket, s3_server
+
+    before = {p.pid for p in psutil.Process().children()}
+    with s3_server() as env:
+        os.environ.update(env)
+        make_bucket(env, "bench")
+        server = next(p for p in psutil.Process().children() if p.pid not in before)
+        yield server
 
 
 @contextlib.contextmanager
@@ -211,19 +250,28 @@ def _bench(args) -> int:
         drives = args.drives or ["drive_0", "drive_1"]
     work = Path(tempfile.mkdtemp(prefix="bench-build-"))
     wf = write_workflow(work, sim, drives, work / "root", args.scheduler)
+    server = getattr(args, "s3_server", None)
+    root = None
+    if server is not None:
+        import os
+
+        os.environ["CORNERMAP_SCRATCH"] = str(work / "scratch")  # the tasks' local copies of the bucket's root
+        root = f"s3://bench/root-{time.time_ns()}"
     sampler = RssSampler()
     sampler.start()
+    server_cpu0 = _cpu_of(server)
     cpu0 = tree_cpu_s()
     t0 = time.perf_counter()
     try:
         try:
-            result = execute_workflow(wf, root=None, scheduler=args.scheduler, only=None, dry_run=False, quiet=True,
+            result = execute_workflow(wf, root=root, scheduler=args.scheduler, only=None, dry_run=False, quiet=True,
                                       params_file=args.params, workers=args.workers)
         except CornermapError as exc:  # a quality gate or a bad input: the product's one-line message and exit code
             print(f"error: {exc}", file=sys.stderr)
             return exc.exit_code
         wall = time.perf_counter() - t0
-        cpu = tree_cpu_s() - cpu0
+        server_cpu = _cpu_of(server) - server_cpu0
+        cpu = tree_cpu_s() - cpu0 - server_cpu
         keep = ("wall_s", "cpu_s", "started_s", "ended_s", "peak_rss_mb")
         stages = {k: {c: v.get(c) for c in keep} for k, v in result["summary"].items()}
     finally:
@@ -235,16 +283,21 @@ def _bench(args) -> int:
 
     cores = default_workers()  # the usable cores
     peaks = sorted(sampler.peaks.values(), key=lambda x: -x[1])
+    server_peak = next((rss for name, rss in peaks if "moto" in name), 0)
+    peaks = [(name, rss) for name, rss in peaks if "moto" not in name]
     doc = {"preset": args.preset, "seed": args.seed, "max_scans": args.max_scans, "drives": drives, "scans": n_scans,
            "scheduler": args.scheduler,
            "workers": args.workers, "cluster_workers": args.cluster_workers,
-           "params": str(args.params) if args.params else None,
+           "params": str(args.params) if args.params else None, "root_on": "s3" if server else "local disk",
+           "s3_server_cpu_s": round(server_cpu, 1) if server else None,
+           "s3_server_peak_rss_mb": round(server_peak / 2**20) if server else None,
            "wall_s": round(wall, 1), "scans_per_s": round(n_scans / wall, 1),
            "cpu_s": round(cpu, 1), "cores": cores, "cpu_floor_s": round(cpu / cores, 1),
            "busy_share": round(cpu / (cores * wall), 3), "stages": stages,
            "peak_rss_mb_max": round(peaks[0][1] / 2**20) if peaks else None,
            "peak_rss_mb_by_process": [(name, round(rss / 2**20)) for name, rss in peaks[:8]]}
-    print(f"{args.preset} seed {args.seed}, {', '.join(drives)}: {n_scans} scans, {wall:.1f} s wall, "
+    print(f"{args.preset} seed {args.seed}, {', '.join(drives)} (root on {doc['root_on']}): {n_scans} scans, "
+          f"{wall:.1f} s wall, "
           f"{n_scans / wall:.1f} scans/s end to end, peak RSS {doc['peak_rss_mb_max']} MB (largest process)")
     print(f"CPU {cpu:.1f} s over the process tree on {cores} cores: floor {cpu / cores:.1f} s (the wall of this CPU "
           f"with every core busy), cores busy {100 * doc['busy_share']:.0f} % of the wall")

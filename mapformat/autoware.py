@@ -257,7 +257,7 @@ def map_drives(reader: "MapReader") -> list[str]:
     return seen or sorted(d["drive"] for d in reader.manifest.get("source_drives", []))
 
 
-def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float = 20.0, voxel_m: float = 0.2,
+def export_autoware(reader: "MapReader", out: Path, root: "Path | str", *, grid_m: float = 20.0, voxel_m: float = 0.2,
                     batch_points: int = BATCH_POINTS, write: Callable[[Path, bytes], None]) -> list[Path]:
     """Write the Autoware folder (module docstring) under ``out`` from the datasets ``reader``'s version records
     (``mapformat.lineage``: never the newest of a name); returns the files written."""
@@ -270,7 +270,7 @@ def export_autoware(reader: "MapReader", out: Path, root: Path, *, grid_m: float
     out = Path(out)
     drives = map_drives(reader)
     label = f"map {reader.manifest.get('map_name')!r} v{reader.version:04d} ({reader.path})"
-    lineage = VersionLineage(Path(root), reader.manifest, label)
+    lineage = VersionLineage(root, reader.manifest, label)  # a folder or an s3:// root: the datasets' store
     xyz, inten, stats = accumulate_map_cloud(lineage, drives, voxel_m=voxel_m, batch_points=batch_points)
     log.info("autoware point cloud: %s", stats)
     h0 = float(reader.origin.h_m)

@@ -181,5 +181,5 @@ def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = Non
         return export_trajectories(reader, fmt, out, write=_atomic_write)
     from mapformat.autoware import export_autoware
 
-    return export_autoware(reader, out, Path(root) if root is not None else reader.path.parents[2],
+    return export_autoware(reader, out, root if root is not None else reader.path.parents[2],
                            write=_atomic_write)

@@ -22,7 +22,7 @@ from typing import Any, Iterator
 from pipeline.errors import DatasetIOError
 from pipeline.names import inside
 from pipeline.storage import datasets_dir
-from pipeline.store import FP_LEN, dataset_dir, read_manifest, verify_file
+from pipeline.store import FP_LEN, DataRoot, data_root, verify_file
 
 
 @dataclass(frozen=True)
@@ -31,15 +31,19 @@ class Committed:
 
     dataset: str
     fingerprint: str  # as recorded (full length)
-    path: Path
+    path: Path  # local: on an object-store root, the local copy's directory
     manifest: dict[str, Any]
+    source: DataRoot | None = None  # the root it was found in (an object store: files are fetched from it)
 
     def files(self, drive: str | None = None) -> list[Path]:
-        """The dataset's files (of ``drive``), confined to its directory and sha256-verified against the manifest."""
+        """The dataset's files (of ``drive``), confined to its directory and sha256-verified against the manifest
+        (on an object-store root, downloaded into the local copy first)."""
+        recs = [rec for rec in self.manifest.get("files", [])
+                if drive is None or (rec.get("partition") or {}).get("drive") == drive]
+        if self.source is not None:
+            self.source.fetch(self.dataset, self.fingerprint, [(r["path"], r.get("bytes")) for r in recs])
         out = []
-        for rec in self.manifest.get("files", []):
-            if drive is not None and (rec.get("partition") or {}).get("drive") != drive:
-                continue
+        for rec in recs:
             path = inside(self.path, rec["path"])
             verify_file(path, rec.get("sha256"), self.dataset)
             out.append(path)
@@ -49,8 +53,9 @@ class Committed:
 class VersionLineage:
     """The datasets reachable from a version's recorded inputs under ``root`` (breadth-first, nearest first)."""
 
-    def __init__(self, root: Path, version_manifest: dict[str, Any], label: str):
-        self.root, self.label = Path(root), label
+    def __init__(self, root: "Path | str", version_manifest: dict[str, Any], label: str):
+        self.source = data_root(root if isinstance(root, str) and "://" in root else Path(root))
+        self.root, self.label = self.source.uri, label
         inputs = version_manifest.get("inputs")
         if not isinstance(inputs, dict) or not inputs:
             raise DatasetIOError(f"{label}: its manifest records no inputs, so the datasets it was built from cannot "
@@ -69,12 +74,11 @@ class VersionLineage:
             if (dataset, fp[:FP_LEN]) in seen:
                 continue
             seen.add((dataset, fp[:FP_LEN]))
-            path = dataset_dir(self.root, dataset, fp)
-            manifest = read_manifest(path)
+            manifest = self.source.manifest(dataset, fp)
             if manifest is None:
                 self.missing.append((dataset, fp))
                 continue
-            nodes.append(Committed(dataset, fp, path, manifest))
+            nodes.append(Committed(dataset, fp, self.source.dir(dataset, fp), manifest, self.source))
             for v in (manifest.get("inputs") or {}).values():
                 if isinstance(v, dict) and v.get("fingerprint"):
                     queue.append((str(v["dataset"]), str(v["fingerprint"])))
@@ -83,12 +87,11 @@ class VersionLineage:
 
     def _sibling(self, node: Committed, dataset: str) -> Committed | None:
         """``dataset`` written by the same stage run as ``node`` (same stage, same fingerprint), if committed."""
-        path = dataset_dir(self.root, dataset, node.fingerprint)
-        m = read_manifest(path)
+        m = self.source.manifest(dataset, node.fingerprint)
         if m is None or m.get("stage") != node.manifest.get("stage") \
                 or str(m.get("fingerprint", ""))[:FP_LEN] != node.fingerprint[:FP_LEN]:
             return None
-        return Committed(dataset, str(m["fingerprint"]), path, m)
+        return Committed(dataset, str(m["fingerprint"]), self.source.dir(dataset, node.fingerprint), m, self.source)
 
     def candidates(self, dataset: str) -> list[Committed]:
         """Every committed ``dataset`` of the lineage, nearest the version first (unique by fingerprint)."""
@@ -110,7 +113,8 @@ class VersionLineage:
         what = f"{dataset}" + (f" of drive {drive!r}" if drive is not None else "")
         gone = ", ".join(f"{d} {fp[:FP_LEN]}" for d, fp in self.missing[:3])
         gone += f" and {len(self.missing) - 3} more" if len(self.missing) > 3 else ""
-        why = (f"; recorded but not committed under {datasets_dir(Path(self.root))}: {gone} (removed by gc, or the "
+        where = self.source.store.url(datasets_dir(self.source.store.root))
+        why = (f"; recorded but not committed under {where}: {gone} (removed by gc, or the "
                "map was built in another root)") if gone else ""
         raise DatasetIOError(f"{self.label}: no committed {what} among the datasets it was built from{why}; hint: "
                              "export from the root that built this version (--root), or rebuild it")

@@ -68,15 +68,16 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
                 raise UnknownNameError(f"--only {name!r}: not a stage of {workflow_path}{suggest(name, wf.stages)}")
     from pipeline.locks import workflow_locks
 
-    with workflow_locks(wf, wf.root_dir(root), only, dry_run=dry_run):  # from planning on: gc keeps what it finds
-        plan = make_plan(wf, wf.root_dir(root), only=only)
+    root = wf.root_dir(root)
+    with workflow_locks(wf, root, only, dry_run=dry_run):  # from planning on: gc keeps what it finds
+        plan = make_plan(wf, root, only=only)
         if not dry_run:
             run_preflights(plan)
         if dry_run:
             rows = describe_plan(plan)
             if not quiet_plan:
-                print_plan(rows, plan.root)
-            return {"dry_run": True, "root": str(plan.root), "stages": rows}
+                print_plan(rows, plan.uri)
+            return {"dry_run": True, "root": plan.uri, "stages": rows}
         t0, cpu0 = time.perf_counter(), _cpu_s()
         with StageProgress(enabled=not quiet) as progress:
             skipped = [n for n, sp in plan.stages.items() if sp.selected and sp.committed]
@@ -119,17 +120,20 @@ def published_version(plan: "Plan") -> int | None:
     """The map version the plan's tiles stage published (its committed ``map_tiles`` dataset), None without one."""
     import pyarrow.parquet as pq
 
-    from pipeline.store import dataset_dir, read_manifest
+    from pipeline.names import inside
+    from pipeline.store import data_root
 
     sp = next((sp for sp in plan.stages.values() if "map_tiles" in sp.outputs.values()), None)
     if sp is None:
         return None
-    d = dataset_dir(plan.root, "map_tiles", sp.fingerprint)
-    m = read_manifest(d)
+    droot = data_root(plan.uri)
+    m = droot.manifest("map_tiles", sp.fingerprint)
     if not m:
         return None
+    droot.fetch("map_tiles", sp.fingerprint, [(f["path"], f.get("bytes")) for f in m["files"]])
+    d = droot.dir("map_tiles", sp.fingerprint)
     for f in m["files"]:
-        rows = pq.read_table(d / f["path"], columns=["version"]).to_pylist()
+        rows = pq.read_table(inside(d, f["path"]), columns=["version"]).to_pylist()
         if rows:
             return int(rows[0]["version"])
     return None

@@ -30,16 +30,20 @@ def parse_origin(text: str) -> dict[str, float]:
     return {"lat_deg": lat, "lon_deg": lon, "h_m": h}
 
 
-def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: str, root: Path,
+def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: str, root: Path | str,
                          origin: dict[str, float] | None = None, tile_size_m: float | None = None,
                          hold_latest: bool = False, max_radius_m: float | None = None,
-                         held_poses: dict | None = None) -> Path:
+                         held_poses: dict | None = None, map_root: Path | None = None) -> Path:
     """The map workflow (a file or a packaged name) with these drives, map name, root and origin, written under
     ``ROOT/workflows/`` (absolute paths: the build's record of what it ran). ``hold_latest``: publish the
     version without moving LATEST (``cornermap rebuild`` moves it after its regression gate). ``max_radius_m``: the
-    map's area (default: its identity's ``max_radius_km``, else the workflow's own)."""
+    map's area (default: its identity's ``max_radius_km``, else the workflow's own). An object-store root
+    (``s3://``): the workflow is written in its local copy (``storage.mirror_dir``) and uploaded to
+    ``ROOT/workflows/``; it names no root (the run is given it); ``map_root`` is where the map's identity was
+    downloaded (default: ``root``)."""
     from pipeline.resources import resolve_workflow
     from pipeline.safe_yaml import load_yaml_file
+    from pipeline.storage import Store, mirror_dir, uri_scheme
 
     path = resolve_workflow(template)
     doc = load_yaml_file(path)
@@ -52,7 +56,11 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
     if catalog:  # keep a template's own catalog where it is once the workflow is written elsewhere
         doc["catalog"] = [str((path.parent / c).resolve()) for c in catalog]
     doc["map_name"] = map_name
-    doc["root"] = str(Path(root).resolve())
+    remote = uri_scheme(root) is not None
+    if remote:
+        doc.pop("root", None)
+    else:
+        doc["root"] = str(Path(root).resolve())
     if origin is not None:
         doc["enu_origin"] = dict(origin)
     if tile_size_m is not None:
@@ -64,16 +72,20 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
     if max_radius_m is None:
         from pipeline.maps import map_dir, read_identity
 
-        ident = read_identity(map_dir(root, map_name))
+        ident = read_identity(map_dir(map_root if map_root is not None else root, map_name))
         max_radius_m = ident.max_radius_km * 1000.0 if ident is not None else None
     if max_radius_m is not None:
         doc["max_radius_m"] = float(max_radius_m)
     doc["drives"] = [{"name": Path(d).resolve().parent.name, "path": str(Path(d).resolve()), "role": "map"}
                      for d in drives]
     text = yaml.safe_dump(doc, sort_keys=False)
-    out = storage.workflows_dir(Path(root)) / f"build-{map_name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}.yaml"
+    name = f"build-{map_name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}.yaml"
+    out = storage.workflows_dir(mirror_dir(str(root)) if remote else Path(root)) / name
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".yaml.tmp")
     tmp.write_text(text)
     tmp.replace(out)
+    if remote:
+        store = Store.open(str(root))
+        store.put_bytes(storage.workflows_dir(store.root) / name, text.encode("utf-8"))
     return out

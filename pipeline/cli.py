@@ -68,12 +68,12 @@ def report_run(result: dict, as_json: bool, *, extra: dict | None = None, notes:
     plan = result["plan"]
     outcomes = outcome_lines(plan)
     if as_json:
-        opts.echo_json({"root": str(plan.root), "workflow": plan.workflow.spec.name, **(extra or {}),
+        opts.echo_json({"root": plan.uri, "workflow": plan.workflow.spec.name, **(extra or {}),
                         "outcomes": outcomes, "wall_s": result["wall_s"], "cpu_s": result["cpu_s"],
                         "stages": result["summary"], "dask_dashboard": result.get("dashboard"),
                         "dask_log": result.get("dask_log")})
     else:
-        for line in outcomes + summary_lines(result["summary"], plan.root, result["wall_s"], result["cpu_s"]):
+        for line in outcomes + summary_lines(result["summary"], plan.uri, result["wall_s"], result["cpu_s"]):
             typer.echo(line)
     for line in notes:
         typer.echo(line, err=True)
@@ -82,7 +82,7 @@ def report_run(result: dict, as_json: bool, *, extra: dict | None = None, notes:
 @app.command("run")
 def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a packaged workflow's name "
                                                      "(demo, tiny, gangnam, map_rebuild)"),
-            root: Optional[Path] = opts.ROOT_OF_WORKFLOW, scheduler: Optional[str] = opts.SCHEDULER,
+            root: Optional[Path] = opts.ROOT_OF_WORKFLOW_OR_URI, scheduler: Optional[str] = opts.SCHEDULER,
             only: Optional[list[str]] = typer.Option(None, "--only", help="Run only these stages (repeatable)."),
             dry_run: bool = typer.Option(False, "--dry-run", help="Print order, partitions, fingerprints, decisions."),
             quiet: bool = opts.QUIET, params: Optional[Path] = opts.PARAMS,
@@ -108,7 +108,7 @@ def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a 
 def build_cmd(
     drive: list[Path] = typer.Option(..., "--drive", help="drive.yaml of a map drive (repeatable)."),
     map_name: str = opts.MAP,
-    root: Path = opts.ROOT,
+    root: Path = opts.ROOT_OR_URI,
     origin: Optional[str] = typer.Option(
         None,
         "--origin",
@@ -140,11 +140,13 @@ def build_cmd(
     from pipeline.build import parse_origin, write_build_workflow
     from pipeline.maps import pinned_frame, stale_latest_note
     from pipeline.names import check_name
+    from pipeline.store_maps import map_view
 
     check_name(map_name, "map", "--map")
-    pinned, tile_size_m = pinned_frame(root, map_name, parse_origin(origin) if origin else None)
-    path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root, origin=pinned,
-                                tile_size_m=tile_size_m)
+    with map_view(root, map_name) as local_root:  # an object-store root: its map's identity and LATEST, downloaded
+        pinned, tile_size_m = pinned_frame(local_root, map_name, parse_origin(origin) if origin else None)
+        path = write_build_workflow(workflow, drives=drive, map_name=map_name, root=root, origin=pinned,
+                                    tile_size_m=tile_size_m, map_root=local_root)
     result = execute_workflow(path, root=root, scheduler=scheduler, only=None, dry_run=False, quiet=quiet,
                               params_file=params, workers=workers, dask_host=dask_host)
     version = published_version(result["plan"])

@@ -60,6 +60,9 @@ ROOT = typer.Option(..., "--root", envvar="CORNERMAP_ROOT", show_envvar=False, h
                     callback=_local_only("--root"))
 ROOT_OF_WORKFLOW = typer.Option(None, "--root", envvar="CORNERMAP_ROOT", show_envvar=False,
                                 help=ROOT_HELP + " Default: the workflow's root.", callback=_local_only("--root"))
+ROOT_OF_WORKFLOW_OR_URI = typer.Option(None, "--root", envvar="CORNERMAP_ROOT", show_envvar=False, callback=_store_root,
+                                       help=ROOT_HELP + " A folder or s3://BUCKET/PREFIX (endpoint and credentials "
+                                       "from the AWS environment). Default: the workflow's root.")
 # Commands that read a root on object storage too (tiles ls|verify|log|export, maps show): a str, not a Path.
 ROOT_OR_URI = typer.Option(..., "--root", envvar="CORNERMAP_ROOT", show_envvar=False, callback=_store_root,
                            help="Output root holding datasets/ and maps/NAME/: a folder or s3://BUCKET/PREFIX "

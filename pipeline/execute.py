@@ -12,7 +12,7 @@ import os
 import shutil
 import time
 import uuid
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Callable
 
 from pipeline import storage
@@ -23,7 +23,7 @@ from pipeline.memory import trim_threshold_mb
 from pipeline.plan import Plan, StagePlan
 from pipeline.reader import StoreInputReader, merge_part_extras
 from pipeline.registry import get_stage
-from pipeline.store import atomic_write_json, commit_artifacts, dataset_dir, write_pieces
+from pipeline.store import commit_artifacts, data_root, write_pieces
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +34,7 @@ def _task_spec(plan: Plan, sp: StagePlan) -> dict[str, Any]:
     return {
         "stage": sp.name,
         "fingerprint": sp.fingerprint,
-        "root": str(plan.root),
+        "root": plan.uri,  # a local folder or an object-store URI: a task reads and writes through it
         "params": sp.params,
         "inputs": {a: list(v) for a, v in sp.inputs.items()},
         "input_schemas": {a: (ds_spec(ds).schema_ref if ds_spec(ds) else None) for a, (ds, _) in sp.inputs.items()},
@@ -54,7 +54,7 @@ _STEP_PROGRESS: dict[str, Callable[[str, int, int], None]] = {}  # stage -> disp
 def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
              artifact_dirs: dict[str, Path], provisional: dict[str, list[str]] | None = None) -> StageContext:
     decl = get_stage(spec["stage"])
-    reader = StoreInputReader(Path(spec["root"]), {a: tuple(v) for a, v in spec["inputs"].items()},
+    reader = StoreInputReader(spec["root"], {a: tuple(v) for a, v in spec["inputs"].items()},
                               {a: resolve_schema(r) for a, r in spec["input_schemas"].items()}, provisional,
                               _ledger(spec))
     return StageContext(stage=spec["stage"], partition=partition, params=decl.params.model_validate(spec["params"]),
@@ -64,8 +64,14 @@ def _context(spec: dict[str, Any], partition: PartitionKey, scratch: Path,
 
 
 def _ledger(spec: dict[str, Any]) -> Path | None:
-    """The run's verification ledger (``pipeline.store.verify_file``), None outside a run."""
-    return Path(spec["verified_ledger"]) if spec.get("verified_ledger") else None
+    """The run's verification ledger (``pipeline.store.verify_file``), None outside a run. On an object-store root
+    the ledger is named, not placed: each process keeps it in its own local copy of the root (the processes of one
+    machine sharing a scratch folder share it; a worker on another machine has its own)."""
+    name = spec.get("verified_ledger")
+    if not name:
+        return None
+    droot = data_root(spec["root"])
+    return storage.tmp_dir(droot.local, Path(name).name) if droot.remote else Path(name)
 
 
 def _ensure_extra_stages(spec: dict[str, Any]) -> None:
@@ -76,9 +82,10 @@ def _ensure_extra_stages(spec: dict[str, Any]) -> None:
         load_stages.cache_clear()
 
 
-def _part_marker(spec: dict[str, Any], key: str, label: str) -> Path:
-    out = spec["outputs"][key]
-    return storage.part_marker(dataset_dir(Path(spec["root"]), out["dataset"], spec["fingerprint"]), label)
+def _parts(spec: dict[str, Any], label: str) -> dict[str, dict[str, Any] | None]:
+    """Output key -> partition ``label``'s part marker (None when not committed)."""
+    root, fp = data_root(spec["root"]), spec["fingerprint"]
+    return {k: root.part(o["dataset"], fp, label) for k, o in spec["outputs"].items()}
 
 
 def _cpu_s() -> tuple[float, float]:
@@ -118,28 +125,25 @@ def run_partition(spec: dict[str, Any], partition: dict[str, Any],
 
 def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
                    provisional: dict[str, list[str]] | None) -> dict[str, Any]:
-    import json
-
     _ensure_extra_stages(spec)
     pk = PartitionKey(**partition)
     label = pk.label
-    markers = {k: _part_marker(spec, k, label) for k in spec["outputs"]}
-    if markers and all(m.is_file() for m in markers.values()):
+    markers = _parts(spec, label)
+    if markers and all(m is not None for m in markers.values()):
         log.info("%s %s: already committed by an earlier run; reused", spec["stage"], label)
-        first = json.loads(next(iter(markers.values())).read_text())
-        return {"label": label, "partition": partition, "outputs": {k: json.loads(m.read_text())["output"]
-                                                                   for k, m in markers.items()},
+        first = next(iter(markers.values()))
+        return {"label": label, "partition": partition, "outputs": {k: m["output"] for k, m in markers.items()},
                 "extra": first.get("extra", {}), "reused": True}
     scope = spec.get("drive_scope", {}).get(pk.drive) if pk.drive is not None else None
     if scope and markers:
-        reused = _reuse_from_sibling(spec, label, partition, scope, markers)
+        reused = _reuse_from_sibling(spec, label, partition, scope)
         if reused is not None:
             return reused
-    root = Path(spec["root"])
+    droot = data_root(spec["root"])
+    root, fp = droot.local, spec["fingerprint"]  # on an object-store root: this process's local copy
     token = uuid.uuid4().hex[:8]
     scratch = storage.tmp_dir(root, f"{spec['stage']}-{label}-{token}")
-    staging = {k: storage.artifacts_dir(dataset_dir(root, o["dataset"], spec["fingerprint"]),
-                                        f".staging-{label}-{token}")
+    staging = {k: storage.artifacts_dir(droot.dir(o["dataset"], fp), f".staging-{label}-{token}")
                for k, o in spec["outputs"].items() if o["kind"] == "artifacts"}
     scratch.mkdir(parents=True, exist_ok=True)
     try:
@@ -150,7 +154,7 @@ def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
             extra = result.pop("_extra", {}) or {}
             outputs: dict[str, Any] = {}
             for key, out in spec["outputs"].items():
-                ds_dir = dataset_dir(root, out["dataset"], spec["fingerprint"])
+                ds_dir = droot.dir(out["dataset"], fp)
                 where = f"stage {spec['stage']!r} partition {label} output {key!r} (dataset {out['dataset']!r})"
                 if out["kind"] == "artifacts":
                     files = commit_artifacts(staging[key], storage.artifacts_dir(ds_dir, label))
@@ -166,9 +170,13 @@ def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
         except Exception as exc:  # noqa: BLE001 - wrapped with where it happened, cause kept
             raise StageError(f"stage {spec['stage']!r} partition {label} failed: {type(exc).__name__}: {exc}") \
                 from exc
-        for key, marker in markers.items():
-            atomic_write_json(marker, {"label": label, "partition": partition, "output": outputs[key],
-                                       "extra": extra, "scope": scope})
+        for key, out in spec["outputs"].items():  # an object store: the files first, then the part marker
+            art = storage.artifacts_dir(PurePosixPath(), label)
+            droot.upload(out["dataset"], fp, [f["path"] for f in outputs[key]["files"]]
+                         + [(art / f["path"]).as_posix() for f in outputs[key]["artifacts"] or []])
+        for key, out in spec["outputs"].items():
+            droot.put_part(out["dataset"], fp, label, {"label": label, "partition": partition,
+                                                       "output": outputs[key], "extra": extra, "scope": scope})
         return {"label": label, "partition": partition, "outputs": outputs, "extra": extra, "reused": False}
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -176,34 +184,34 @@ def _run_partition(spec: dict[str, Any], partition: dict[str, Any],
             shutil.rmtree(path, ignore_errors=True)
 
 
-def _reuse_from_sibling(spec: dict[str, Any], label: str, partition: dict[str, Any], scope: str,
-                        markers: dict[str, Path]) -> dict[str, Any] | None:
-    """The partition linked from another build's committed copy with the same drive-scope fingerprint
-    (pipeline/reuse.py), or None when no complete copy exists."""
+def _reuse_from_sibling(spec: dict[str, Any], label: str, partition: dict[str, Any],
+                        scope: str) -> dict[str, Any] | None:
+    """The partition linked (a local root) or copied within the store (an object store: server-side) from another
+    build's committed copy with the same drive-scope fingerprint (pipeline/reuse.py), or None when no complete copy
+    exists."""
     from pipeline.reuse import find_committed, link_partition
 
-    root = Path(spec["root"])
+    droot, fp = data_root(spec["root"]), spec["fingerprint"]
     found = {}
     for key, out in spec["outputs"].items():
-        own = dataset_dir(root, out["dataset"], spec["fingerprint"])
-        hit = find_committed(storage.datasets_dir(root), out["dataset"], own, label, scope)
+        hit = find_committed(droot, out["dataset"], fp, label, scope)
         if hit is None:
             return None
-        found[key] = (own, *hit)
-    for key, (own, src, doc) in found.items():
-        link_partition(src, own, label, doc["output"])
+        found[key] = (out["dataset"], *hit)
+    for key, (ds, src, doc) in found.items():
+        link_partition(droot, ds, src, fp, label, doc["output"])
     extra = next(iter(found.values()))[2].get("extra", {})
-    for key, (own, src, doc) in found.items():
-        atomic_write_json(markers[key], {"label": label, "partition": partition, "output": doc["output"],
-                                         "extra": doc.get("extra", {}), "scope": scope, "linked_from": src.name})
-    log.info("%s %s: reused the drive's committed work from %s", spec["stage"], label, src.name)
+    for key, (ds, src, doc) in found.items():
+        droot.put_part(ds, fp, label, {"label": label, "partition": partition, "output": doc["output"],
+                                       "extra": doc.get("extra", {}), "scope": scope, "linked_from": src})
+    log.info("%s %s: reused the drive's committed work from %s", spec["stage"], label, src)
     return {"label": label, "partition": partition, "outputs": {k: d["output"] for k, (_, _, d) in found.items()},
             "extra": extra, "reused": True}
 
 
 def commit_stage(spec: dict[str, Any], parts: list[dict[str, Any]]) -> dict[str, Any]:
     """Write each output dataset's manifest last: the commit marker that readers look for."""
-    root = Path(spec["root"])
+    droot = data_root(spec["root"])
     extra = merge_part_extras(parts)
     manifests = {}
     for key, out in spec["outputs"].items():
@@ -220,7 +228,9 @@ def commit_stage(spec: dict[str, Any], parts: list[dict[str, Any]]) -> dict[str,
             "artifacts": artifacts, "extra": extra,
             "committed_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         }
-        atomic_write_json(storage.dataset_manifest(dataset_dir(root, out["dataset"], spec["fingerprint"])), manifest)
+        if not droot.commit(out["dataset"], spec["fingerprint"], manifest):
+            log.info("%s: committed by another writer first; its manifest stands",
+                     droot.where(out["dataset"], spec["fingerprint"]))
         manifests[key] = {"dataset": out["dataset"], "rows": manifest["rows"], "files": len(files)}
     return manifests
 
@@ -229,7 +239,7 @@ def enumerate_partitions(plan: Plan, sp: StagePlan) -> list[PartitionKey]:
     if sp.partitions is not None:
         return sp.partitions
     spec = _task_spec(plan, sp)
-    ctx = _context(spec, PartitionKey(), storage.tmp_dir(plan.root, f"plan-{sp.name}"), {})
+    ctx = _context(spec, PartitionKey(), storage.tmp_dir(plan.root, f"plan-{sp.name}"), {})  # plan.root: local
     if sp.decl.plan:
         from pipeline.declare import resolve
 

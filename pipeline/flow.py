@@ -49,7 +49,7 @@ from pipeline.execute import (
 )
 from pipeline.parallel import process_pool
 from pipeline.plan import Plan, StagePlan
-from pipeline.store import dataset_dir, read_manifest
+from pipeline.store import data_root
 
 log = logging.getLogger(__name__)
 STREAMING = (Partitioning.PER_DRIVE, Partitioning.PER_SCAN_CHUNK)
@@ -220,10 +220,10 @@ class Flow:
             for arg, (ds, fp) in sp.inputs.items():
                 if (ds, fp) in producers:
                     st.producers[arg] = producers[(ds, fp)]
-                elif fp and read_manifest(dataset_dir(plan.root, ds, fp)) is None \
+                elif fp and data_root(plan.uri).manifest(ds, fp) is None \
                         and arg not in sp.decl.optional_inputs:
                     raise StageError(f"stage {name!r} input {arg!r}: dataset {ds!r} (fingerprint {fp[:8]}) is not "
-                                     f"committed under {plan.root}; hint: run its producer (drop --only)")
+                                     f"committed under {plan.uri}; hint: run its producer (drop --only)")
             st.after = {producers[key] for key in sp.path_inputs if key in producers}
             self.stages[name] = st
 

@@ -259,3 +259,67 @@ def apply_gc(root: Path, plan: GcPlan, min_age_h: float = 24.0) -> GcPlan:
                 entry.unlink(missing_ok=True)
             log.info("gc: removed %s", entry)
     return done
+
+
+def plan_gc_store(store, min_age_h: float = 24.0) -> tuple[list, int, list]:
+    """``plan_gc`` on an object-store root: the same rules, judged on a local snapshot of what they read (every
+    dataset manifest, the ``map_tiles`` files, every map's manifests and identity, the build workflows), each
+    uncommitted dataset folder dated by its newest object. Returns (locations to remove, their bytes, locations
+    kept)."""
+    import os
+    import tempfile
+    from pathlib import PurePosixPath
+
+    from pipeline.store_maps import _newest_modified, map_names, snapshot_map
+
+    check_min_age_h(min_age_h)
+    with tempfile.TemporaryDirectory(prefix="cornermap-gc-", dir=storage.scratch_base()) as tmp:
+        local = Path(tmp)
+        base = storage.datasets_dir(store.root)
+        for ds in store.listdir(base):
+            for fp in store.listdir(base / ds):
+                loc, d = base / ds / fp, storage.datasets_dir(local) / ds / fp
+                d.mkdir(parents=True)
+                try:
+                    raw = store.read_bytes(storage.dataset_manifest(loc))
+                except FileNotFoundError:
+                    stamp = _newest_modified(store, loc) or time.time()
+                    os.utime(d, (stamp, stamp))  # an uncommitted folder: as old as its newest object
+                    continue
+                storage.dataset_manifest(d).write_bytes(raw)
+                if ds == "map_tiles":  # its rows name the versions it published
+                    with_files = json.loads(raw).get("files", [])
+                    store.download_files([(loc / PurePosixPath(r["path"]).as_posix(), d / r["path"])
+                                          for r in with_files])
+        for name in map_names(store):
+            snapshot_map(store, name, local, whole=())
+        wf = storage.workflows_dir(store.root)
+        found = store.fs.find(wf.as_posix(), detail=True, withdirs=False) if not store.local else {}
+        for key, info in found.items():
+            target = storage.workflows_dir(local) / PurePosixPath(key).name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(store.read_bytes(PurePosixPath(key)))
+            stamp = info.get("LastModified")
+            if stamp is not None:  # the newest build workflow of a map is the one that counts
+                os.utime(target, (stamp.timestamp(), stamp.timestamp()))
+        plan = plan_gc(local, min_age_h)
+        to_loc = lambda d: store.root / d.relative_to(local).as_posix()  # noqa: E731
+        remove = [to_loc(d) for d in plan.remove]
+        keep = [to_loc(d) for d in plan.keep + plan.young_uncommitted]
+    freed = sum(size for loc in remove for _, size in store.walk_files(loc))
+    return remove, freed, keep
+
+
+def apply_gc_store(store, remove: list, min_age_h: float = 24.0) -> list:
+    """Delete the dataset folders ``remove`` lists that a plan made now, under the root's exclusive lease, still
+    lists: each manifest first (the dataset stops being committed at once), then its objects. Returns what went."""
+    from pipeline.locks import root_exclusive
+
+    with root_exclusive(store, what="cornermap gc --apply"):
+        now = set(plan_gc_store(store, min_age_h)[0])
+        done = [loc for loc in remove if loc in now]
+        for loc in done:
+            store.delete(storage.dataset_manifest(loc))
+            store.delete_tree(loc)
+            log.info("gc: removed %s", store.url(loc))
+    return done

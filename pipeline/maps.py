@@ -241,20 +241,29 @@ def stale_latest_note(plan: Any, name: str) -> str | None:
     drive set's version has been published since), the line that says so; None when it is LATEST."""
     import pyarrow.parquet as pq
 
-    from pipeline.store import dataset_dir, read_manifest
+    from pipeline.names import inside
+    from pipeline.store import data_root
     from pipeline.versioned import read_latest, version_name
 
     for sp in plan.stages.values():
         for ds in sp.outputs.values():
             if ds != "map_tiles":
                 continue
-            ddir = dataset_dir(plan.root, ds, sp.fingerprint)
-            m = read_manifest(ddir)
+            droot = data_root(getattr(plan, "uri", None) or plan.root)  # a Plan, or what names its root
+            m = droot.manifest(ds, sp.fingerprint)
             if not m or not m["files"]:
                 return None
-            table = pq.read_table(ddir / m["files"][0]["path"], columns=["map_name", "version"]).to_pylist()
+            first = m["files"][0]
+            droot.fetch(ds, sp.fingerprint, [(first["path"], first.get("bytes"))])
+            table = pq.read_table(inside(droot.dir(ds, sp.fingerprint), first["path"]),
+                                  columns=["map_name", "version"]).to_pylist()
             mine = next((int(r["version"]) for r in table if r["map_name"] == name), None)
-            latest = read_latest(map_dir(plan.root, name))
+            if droot.remote:
+                from pipeline.store_maps import read_latest_number
+
+                latest = read_latest_number(droot.store, name)
+            else:
+                latest = read_latest(map_dir(plan.root, name))
             if mine is None or latest is None or latest == mine:
                 return None
             return (f"note: map {name!r}: this drive set is version {version_name(mine)} (published by an earlier "

@@ -167,14 +167,22 @@ def gc_cmd(root: Path = opts.ROOT_OR_URI,
     from pipeline.gc import apply_gc, plan_gc
     from pipeline.storage import is_root_dir, uri_scheme
 
-    if uri_scheme(root) is not None:  # an object-store root: only maps and locks live there so far
+    if uri_scheme(root) is not None:  # an object-store root: datasets, map versions, leases
+        from pipeline.gc import apply_gc_store, plan_gc_store
         from pipeline.storage import Store
         from pipeline.store_maps import gc_uncommitted
 
-        found = gc_uncommitted(Store.open(root), min_age_h, apply)
+        store = Store.open(root)
+        remove, freed, keep = plan_gc_store(store, min_age_h)
+        if apply and remove:
+            remove = apply_gc_store(store, remove, min_age_h)
+        for loc in remove:
+            typer.echo(f"{'remove' if apply else 'would remove'} {store.url(loc)}")
+        found = gc_uncommitted(store, min_age_h, apply)
         for uri, why in found:
             typer.echo(f"{'remove' if apply else 'would remove'} {uri} ({why})")
-        typer.echo(f"{len(found)} object prefix(es) {'removed' if apply else 'to remove'}")
+        typer.echo(f"{len(remove)} dataset folder(s), {freed / 2**20:.1f} MiB {'freed' if apply else 'to free'}; "
+                   f"{len(keep)} kept; {len(found)} other object prefix(es) {'removed' if apply else 'to remove'}")
         return
     if not is_root_dir(root):  # a typo: "nothing to free", exit 0
         raise ConfigError("--root", [f"{root} holds no datasets/, maps/ or tmp/ folder: not an output root"])

@@ -8,7 +8,7 @@ from typing import Any
 from pipeline import storage
 from pipeline.declare import Partitioning, PartitionKey, StageDecl
 from pipeline.fingerprint import drive_fingerprint, file_key, stable_hash, stage_fingerprint
-from pipeline.store import dataset_dir, read_manifest
+from pipeline.store import data_root, dataset_dir
 from pipeline.workflow import TEMPLATE, Workflow
 
 
@@ -46,8 +46,12 @@ class StagePlan:
 @dataclass
 class Plan:
     workflow: Workflow
-    root: Path
+    root: Path  # a local folder: the root itself, or an object-store root's local copy in this process's scratch
     stages: dict[str, StagePlan] = field(default_factory=dict)
+    uri: str = ""  # the root as named: the folder, or s3://BUCKET/PREFIX
+
+    def __post_init__(self) -> None:
+        self.uri = self.uri or str(self.root)
 
 
 def _resolve_template(text: str, root: Path, producer_fp: dict[str, str], base_dir: Path
@@ -66,6 +70,17 @@ def _resolve_template(text: str, root: Path, producer_fp: dict[str, str], base_d
     return (path if path.is_absolute() else base_dir / path), basis
 
 
+def _local_templates_only(droot, text: str) -> None:
+    """A drive or reference path into a committed dataset (``${dataset}``) is a local path: refused on an
+    object-store root, whose datasets a task reads through the store (ConfigError naming the template)."""
+    if droot.remote:
+        from pipeline.errors import ConfigError
+
+        raise ConfigError(droot.uri, [f"{text}: a drive or reference path into a dataset (${{dataset}}) is not "
+                                      "supported on an object-store root; build into a local root, or name the "
+                                      "drive's own files"])
+
+
 def _reference_key(text: str | None, path: Path | None, basis: str | None) -> Any:
     """A reference trajectory in a fingerprint, without its location: the template and the fingerprint of the
     dataset it points into, else the file's content."""
@@ -79,11 +94,12 @@ def _reference_key(text: str | None, path: Path | None, basis: str | None) -> An
 def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> Plan:
     """Fingerprints and decisions. Nothing that names a location enters a fingerprint (the root, absolute drive
     or reference paths): a moved root or drive folder keeps its committed work."""
-    root = Path(root).resolve()
-    plan = Plan(workflow, root)
+    droot = data_root(root if storage.uri_scheme(root) else Path(root).resolve())
+    root = droot.local
+    plan = Plan(workflow, root, uri=droot.uri)
     dataset_fp: dict[str, str] = {}
     dataset_scope: dict[str, dict[str, str]] = {}  # dataset -> drive -> scope fingerprint (drive-scoped work)
-    base_settings = workflow.settings(root)
+    base_settings = workflow.settings(droot.uri)
     drive_fp_cache: dict[Path, str] = {}
     for name, decl in workflow.stages.items():
         # Resolve drives and references with the fingerprints of upstream producers known so far.
@@ -94,6 +110,7 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
             if decl.drive_role and d.role != decl.drive_role:
                 continue
             if TEMPLATE.search(d.path):
+                _local_templates_only(droot, d.path)
                 path, basis = _resolve_template(d.path, root, dataset_fp, workflow.base_dir)
                 drive_fps[d.name] = stable_hash({"template": d.path, "basis": basis})
                 bases.add(basis)
@@ -104,6 +121,9 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
                 drive_fps[d.name] = drive_fp_cache[path]
             drives[d.name] = path.resolve()
         settings = dict(base_settings)
+        for d in workflow.spec.drives:
+            if d.reference and TEMPLATE.search(d.reference):
+                _local_templates_only(droot, d.reference)
         refs = {d.name: _resolve_template(d.reference, root, dataset_fp, workflow.base_dir) if d.reference else
                 (None, None) for d in workflow.spec.drives}
         settings["references"] = {n: (str(p) if p is not None else None) for n, (p, _) in refs.items()}
@@ -131,7 +151,7 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
         for ds in decl.outputs.values():
             dataset_fp[ds] = fp
             dataset_scope[ds] = scope if scope else None
-        committed = all(read_manifest(dataset_dir(root, ds, fp)) is not None for ds in decl.outputs.values())
+        committed = all(droot.manifest(ds, fp) is not None for ds in decl.outputs.values())
         sp = StagePlan(name, decl, fp, params, inputs, dict(decl.outputs), drives, settings, committed,
                        selected=(only is None or name in only), drive_scope=scope,
                        path_inputs={tuple(b.split(":", 1)) for b in bases if b})

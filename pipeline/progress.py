@@ -413,20 +413,20 @@ def outcome_lines(plan) -> list[str]:
     """What stages said about their products (a published map version, a report path), once per stage.
     ``{root}`` in a stage's line is the plan's root (stages store root-relative paths: a moved root still prints
     true paths); a stage skipped as committed says its line is from an earlier run."""
-    from pipeline.store import dataset_dir, read_manifest
+    from pipeline.store import data_root
 
     out = []
     for sp in plan.stages.values():
         if not sp.selected:
             continue
         for ds in sp.outputs.values():
-            m = read_manifest(dataset_dir(plan.root, ds, sp.fingerprint))
+            m = data_root(plan.uri).manifest(ds, sp.fingerprint)
             if not m:
                 continue
             parts = (m.get("extra") or {}).get("partitions") or {}
             for label in sorted(parts):
                 for line in parts[label].get("outcome", []):
-                    line = line.replace("{root}", str(plan.root))
+                    line = line.replace("{root}", plan.uri)
                     out.append(line if sp.ran else f"unchanged (committed by an earlier run): {line}")
             break
     return out

@@ -4,8 +4,7 @@ manifest lets a partition read upstream partitions committed before their stage 
 from __future__ import annotations
 
 import bisect
-import json
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import pyarrow as pa
@@ -15,9 +14,9 @@ import pyarrow.parquet as pq
 
 from pipeline import storage
 from pipeline.declare import InputReader, PartitionKey
-from pipeline.errors import DatasetIOError
+from pipeline.errors import DatasetIOError, IntegrityError
 from pipeline.names import inside
-from pipeline.store import dataset_dir, read_manifest, verify_file
+from pipeline.store import DataRoot, data_root, verify_file
 
 OPEN_FILES = 2  # a reader keeps at most this many Parquet files open (``StoreInputReader._parquet_file``): each held
 # ~2 MB of decoding buffers (32 open: +65 MB resident over 30 reads of 20 gangnam scans); reads come in scan order
@@ -35,17 +34,16 @@ def merge_part_extras(parts: list[dict[str, Any]]) -> dict[str, Any]:
     return extra
 
 
-def provisional_manifest(out_dir: Path, labels: list[str], fingerprint: str) -> dict[str, Any]:
+def provisional_manifest(root: DataRoot, dataset: str, labels: list[str], fingerprint: str) -> dict[str, Any]:
     """A manifest of some committed partitions of a dataset whose stage has not committed yet, read from their
     part markers (each written atomically after its partition's files): lets a downstream partition start on the
     slices it reads while the rest of the upstream stage still runs. Raises if a named partition is missing."""
     parts, files, artifacts = [], [], {}
     for label in sorted(labels):
-        marker = storage.part_marker(Path(out_dir), label)
-        try:
-            doc = json.loads(marker.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise DatasetIOError(f"{marker}: partition {label!r} is not committed ({exc})") from exc
+        doc = root.part(dataset, fingerprint, label)
+        if doc is None:
+            raise DatasetIOError(f"{root.where(dataset, fingerprint)}: partition {label!r} is not committed (no "
+                                 "readable part marker)")
         parts.append({"label": label, "extra": doc.get("extra", {})})
         files.extend(doc["output"]["files"])
         if doc["output"].get("artifacts") is not None:
@@ -63,9 +61,11 @@ def _matches(record_partition: dict[str, Any], partition: PartitionKey | None) -
 class StoreInputReader(InputReader):
     """Reads committed datasets through their manifests (never by listing directories)."""
 
-    def __init__(self, root: Path, inputs: dict[str, tuple[str, str]], schemas: dict[str, pa.Schema | None],
-                 provisional: dict[str, list[str]] | None = None, ledger: Path | None = None):
-        self.root = Path(root)
+    def __init__(self, root: "Path | str | DataRoot", inputs: dict[str, tuple[str, str]],
+                 schemas: dict[str, pa.Schema | None], provisional: dict[str, list[str]] | None = None,
+                 ledger: Path | None = None):
+        self._root = data_root(root)  # an object-store root: files are fetched into this process's local copy
+        self.root = self._root.local
         self._ledger = None if ledger is None else Path(ledger)  # the run's verification ledger (verify_file)
         self._inputs = inputs  # arg -> (dataset, fingerprint) ; fingerprint "" = absent optional input
         self._schemas = schemas
@@ -79,18 +79,22 @@ class StoreInputReader(InputReader):
 
     def __getstate__(self) -> dict:
         """Picklable (a stage may hand its reader to worker processes): caches are rebuilt where it lands."""
-        return {"root": self.root, "_inputs": self._inputs, "_schemas": self._schemas,
+        return {"_root": self._root.uri, "root": self.root, "_inputs": self._inputs, "_schemas": self._schemas,
                 "_provisional": self._provisional, "_ledger": self._ledger, "_manifests": {}, "_row_groups": {},
                 "_parquet_files": {}, "_paths": {}}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._root = data_root(state["_root"])
+        self.root = self._root.local
 
     def _manifest(self, arg: str) -> dict | None:
         if arg not in self._manifests:
             dataset, fp = self._inputs.get(arg, ("", ""))
             if fp and arg in self._provisional:
-                self._manifests[arg] = provisional_manifest(dataset_dir(self.root, dataset, fp),
-                                                            self._provisional[arg], fp)
+                self._manifests[arg] = provisional_manifest(self._root, dataset, self._provisional[arg], fp)
             else:
-                self._manifests[arg] = read_manifest(dataset_dir(self.root, dataset, fp)) if fp else None
+                self._manifests[arg] = self._root.manifest(dataset, fp) if fp else None
         return self._manifests[arg]
 
     def has(self, arg: str) -> bool:
@@ -100,7 +104,7 @@ class StoreInputReader(InputReader):
         m = self._manifest(arg)
         if m is None:
             dataset = self._inputs.get(arg, ("?", ""))[0]
-            raise DatasetIOError(f"input {arg!r} (dataset {dataset!r}) has no committed data under {self.root}; "
+            raise DatasetIOError(f"input {arg!r} (dataset {dataset!r}) has no committed data under {self._root.uri}; "
                                  f"hint: run the stage that produces it first")
         return m
 
@@ -114,16 +118,29 @@ class StoreInputReader(InputReader):
         dataset, fp = self._inputs[arg]
         key = (arg, None if partition is None else tuple(sorted(partition.as_dict().items())))
         if key not in self._paths:
-            base = dataset_dir(self.root, dataset, fp)
-            self._paths[key] = [(str(inside(base, r["path"])), r.get("sha256")) for r in m["files"]
-                                if _matches(r.get("partition", {}), partition)]
+            base = self._root.dir(dataset, fp)
+            records = [r for r in m["files"] if _matches(r.get("partition", {}), partition)]
+            self._root.fetch(dataset, fp, [(r["path"], r.get("bytes")) for r in records])
+            self._paths[key] = [(str(inside(base, r["path"])), r.get("sha256")) for r in records]
         for path, sha256 in self._paths[key]:
-            verify_file(Path(path), sha256, dataset, self._ledger)
+            self._verify(Path(path), sha256, dataset, fp)
         return [path for path, _ in self._paths[key]]
+
+    def _verify(self, path: Path, sha256: str | None, dataset: str, fp: str) -> None:
+        """``verify_file``; on an object-store root a local copy that fails is fetched again once (a copy left by an
+        earlier attempt of the same fingerprint), then must pass."""
+        try:
+            verify_file(path, sha256, dataset, self._ledger)
+        except (IntegrityError, DatasetIOError):
+            if not self._root.remote:
+                raise
+            rel = path.relative_to(self._root.dir(dataset, fp)).as_posix()
+            self._root.fetch(dataset, fp, [(rel, None)], force=True)
+            verify_file(path, sha256, dataset, self._ledger)
 
     def read(self, arg, *, partition=None, columns=None, filters=None) -> pa.Table:
         dataset, fp = self._inputs.get(arg, ("?", ""))
-        base = dataset_dir(self.root, dataset, fp)
+        base = self._root.where(dataset, fp) if fp else "?"
         files = self._files(arg, partition)
         schema = self._schemas[arg]
         if not files:
@@ -212,10 +229,13 @@ class StoreInputReader(InputReader):
         m = self._require(arg)
         dataset, fp = self._inputs[arg]
         label = (partition or PartitionKey()).label
-        path = inside(storage.artifacts_dir(dataset_dir(self.root, dataset, fp)), label)
+        path = inside(storage.artifacts_dir(self._root.dir(dataset, fp)), label)
         if label not in m.get("artifacts", {}):
             raise DatasetIOError(f"dataset {dataset!r} has no committed artifacts for partition {label!r}; "
                                  f"has {sorted(m.get('artifacts', {}))}")
-        for rec in m["artifacts"][label] or []:
-            verify_file(inside(path, rec["path"]), rec.get("sha256"), dataset, self._ledger)
+        recs = m["artifacts"][label] or []
+        rel = storage.artifacts_dir(PurePosixPath(), label)
+        self._root.fetch(dataset, fp, [((rel / r["path"]).as_posix(), r.get("bytes")) for r in recs])
+        for rec in recs:
+            self._verify(inside(path, rec["path"]), rec.get("sha256"), dataset, fp)
         return path

@@ -11,22 +11,25 @@ only choose an origin otherwise). Such a partition gets a *drive-scope fingerpri
 
 recorded in its part marker. When a new dataset directory needs partition ``label`` of drive D, a sibling
 directory of the same dataset holding a committed part marker with the same scope fingerprint is reused:
-its files are hard-linked (copied across file systems) into the new directory and a marker is written, in
-place of computing. Parquet and artifact files are immutable once committed, so links are safe and the
-drive's scans are stored once however many versions use them.
+its files are hard-linked (copied across file systems; on an object store copied server-side, no bytes through
+the task) into the new directory and a marker is written, in place of computing. Parquet and artifact files are
+immutable once committed, so links are safe and the drive's scans are stored once however many versions use them
+(on an object store: twice, as copies).
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
-from pathlib import Path
-from typing import Any
+from pathlib import Path, PurePosixPath
+from typing import TYPE_CHECKING, Any
 
 from pipeline import storage
 from pipeline.fingerprint import stable_hash
 from pipeline.names import inside
+
+if TYPE_CHECKING:
+    from pipeline.store import DataRoot
 
 log = logging.getLogger(__name__)
 
@@ -69,34 +72,43 @@ def _link(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def find_committed(datasets_root: Path, dataset: str, own_dir: Path, label: str, scope: str
-                   ) -> tuple[Path, dict[str, Any]] | None:
-    """A sibling dataset directory whose part marker ``label`` records ``scope`` and whose files exist."""
-    base = datasets_root / dataset
-    if not base.is_dir():
-        return None
-    for d in sorted(base.iterdir()):
-        if d == own_dir or not d.is_dir():
+def _files_of(output: dict[str, Any], label: str) -> list[str]:
+    """A partition's files (tables and artifacts), relative to its dataset directory."""
+    art = storage.artifacts_dir(PurePosixPath(), label)
+    return [r["path"] for r in output.get("files", [])] + [(art / r["path"]).as_posix()
+                                                           for r in (output.get("artifacts") or [])]
+
+
+def find_committed(root: "DataRoot", dataset: str, own_fp: str, label: str, scope: str
+                   ) -> tuple[str, dict[str, Any]] | None:
+    """(fingerprint folder, part marker) of a sibling dataset directory whose part marker ``label`` records
+    ``scope`` and whose files exist."""
+    own = own_fp[:storage.FP_LEN]
+    for fp in root.siblings(dataset):
+        if fp == own or fp.startswith("."):
             continue
-        marker = storage.part_marker(d, label)
-        try:
-            doc = json.loads(marker.read_text())
-        except (OSError, ValueError):
+        doc = root.part(dataset, fp, label)
+        if doc is None or doc.get("scope") != scope:
             continue
-        if doc.get("scope") != scope:
-            continue
-        out = doc.get("output", {})
-        files = [d / r["path"] for r in out.get("files", [])]
-        files += [storage.artifacts_dir(d, label) / r["path"] for r in (out.get("artifacts") or [])]
-        if all(f.is_file() for f in files):
-            return d, doc
+        rels = _files_of(doc.get("output", {}), label)
+        if root.remote:
+            have = {rel for rel, _ in root.store.walk_files(root.loc(dataset, fp))}
+            present = all(rel in have for rel in rels)
+        else:
+            base = root.dir(dataset, fp)
+            present = all(inside(base, rel).is_file() for rel in rels)
+        if present:
+            return fp, doc
     return None
 
 
-def link_partition(src_dir: Path, dst_dir: Path, label: str, output: dict[str, Any]) -> None:
-    """Hard-link one partition's committed files (tables and artifacts) from src_dir into dst_dir."""
-    for rec in output.get("files", []):
-        _link(inside(src_dir, rec["path"]), inside(dst_dir, rec["path"]))
-    for rec in output.get("artifacts") or []:
-        _link(inside(storage.artifacts_dir(src_dir, label), rec["path"]),
-              inside(storage.artifacts_dir(dst_dir, label), rec["path"]))
+def link_partition(root: "DataRoot", dataset: str, src_fp: str, dst_fp: str, label: str,
+                   output: dict[str, Any]) -> None:
+    """One partition's committed files (tables and artifacts) from fingerprint folder ``src_fp`` into ``dst_fp``:
+    hard links on a local root (copies across file systems), server-side copies on an object store (no bytes
+    through the task)."""
+    for rel in _files_of(output, label):
+        if root.remote:
+            root.store.copy(root.loc(dataset, src_fp) / rel, root.loc(dataset, dst_fp) / rel)
+        else:
+            _link(inside(root.dir(dataset, src_fp), rel), inside(root.dir(dataset, dst_fp), rel))

@@ -21,7 +21,7 @@ import threading
 import uuid
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Iterable, Iterator
 
 import pyarrow as pa
@@ -352,3 +352,133 @@ def commit_artifacts(staging: Path, final: Path) -> list[dict[str, Any]]:
     os.replace(staging, final)
     return [{"path": str(p.relative_to(final)), "bytes": p.stat().st_size, "sha256": file_sha256(p)}
             for p in sorted(final.rglob("*")) if p.is_file()]
+
+
+class DataRoot:
+    """The committed datasets of one output root as the engine reads and writes them (``pipeline.execute``,
+    ``pipeline.reader``, ``pipeline.flow``).
+
+    A local root is itself: files are read and written in place. An object-store root (``s3://bucket/prefix``) has
+    a *local copy* in this process's scratch (``storage.mirror_dir``: a dask worker's ``--local-directory``): a task
+    fetches the files it reads into it (``fetch``; each is then sha256-verified as on a local root), writes its
+    outputs there, uploads them (``upload``), then its part marker (``put_part``); the stage's manifest is created
+    last, with a conditional put (``commit``). Manifests and part markers are always read from the store, never
+    from the copy: the store alone says what is committed."""
+
+    def __init__(self, uri: "str | Path | storage.Store"):
+        self.store = storage.Store.open(uri)
+        self.uri = self.store.uri
+        self.remote = not self.store.local
+        self.local = storage.mirror_dir(self.uri) if self.remote else Path(self.store.root)
+
+    def __repr__(self) -> str:
+        return f"DataRoot({self.uri!r})"
+
+    def dir(self, dataset: str, fingerprint: str) -> Path:
+        """The dataset's local directory (on an object-store root: its local copy)."""
+        return storage.dataset_dir(self.local, dataset, fingerprint)
+
+    def loc(self, dataset: str, fingerprint: str):
+        """The dataset's location on the store."""
+        return storage.dataset_dir(self.store.root, dataset, fingerprint)
+
+    def where(self, dataset: str, fingerprint: str) -> str:
+        return self.store.url(self.loc(dataset, fingerprint))
+
+    def _json(self, loc) -> dict[str, Any] | None:
+        try:
+            raw = self.store.read_bytes(loc)
+        except FileNotFoundError:
+            return None
+        try:
+            return json.loads(raw)
+        except ValueError as exc:
+            raise DatasetIOError(f"{self.store.url(loc)}: unreadable JSON ({exc}); delete the dataset directory to "
+                                 "rebuild") from exc
+
+    def manifest(self, dataset: str, fingerprint: str) -> dict[str, Any] | None:
+        """The dataset's committed manifest, None when it is not committed."""
+        if not self.remote:
+            return read_manifest(self.dir(dataset, fingerprint))
+        return self._json(storage.dataset_manifest(self.loc(dataset, fingerprint)))
+
+    def part(self, dataset: str, fingerprint: str, label: str) -> dict[str, Any] | None:
+        """Partition ``label``'s part marker (its commit record), None when absent or unreadable."""
+        if not self.remote:
+            try:
+                return json.loads(storage.part_marker(self.dir(dataset, fingerprint), label).read_text())
+            except (OSError, ValueError):
+                return None
+        try:
+            return self._json(storage.part_marker(self.loc(dataset, fingerprint), label))
+        except DatasetIOError:
+            return None
+
+    def put_part(self, dataset: str, fingerprint: str, label: str, doc: dict[str, Any]) -> None:
+        """Write partition ``label``'s part marker (after its files are in place)."""
+        raw = json.dumps(doc, indent=1, sort_keys=True, default=str).encode("utf-8")
+        if not self.remote:
+            storage.atomic_write_bytes(storage.part_marker(self.dir(dataset, fingerprint), label), raw)
+        else:
+            self.store.put_bytes(storage.part_marker(self.loc(dataset, fingerprint), label), raw)
+
+    def commit(self, dataset: str, fingerprint: str, manifest: dict[str, Any]) -> bool:
+        """Write the dataset's manifest, its commit marker, last. On an object store a conditional put: False when
+        another writer committed the same fingerprint first (its manifest stays; the data are the same stage's on
+        the same inputs)."""
+        if not self.remote:
+            atomic_write_json(storage.dataset_manifest(self.dir(dataset, fingerprint)), manifest)
+            return True
+        raw = json.dumps(manifest, indent=1, sort_keys=True, default=str).encode("utf-8")
+        return self.store.create(storage.dataset_manifest(self.loc(dataset, fingerprint)), raw)
+
+    def fetch(self, dataset: str, fingerprint: str, records: Iterable[tuple[str, int | None]],
+              force: bool = False) -> None:
+        """Make the dataset's files ``records`` ((path relative to the dataset directory, bytes)) present in the
+        local copy: those absent or of another size are downloaded (whole, renamed into place). A local root holds
+        them already."""
+        if not self.remote:
+            return
+        base = self.dir(dataset, fingerprint)
+        pairs = []
+        for rel, size in records:
+            target = inside(base, rel)
+            if not force:
+                try:
+                    if size is None or target.stat().st_size == int(size):
+                        continue
+                except FileNotFoundError:
+                    pass
+            pairs.append((self.loc(dataset, fingerprint) / PurePosixPath(rel).as_posix(), target))
+        if pairs:
+            try:
+                self.store.download_files(pairs)
+            except FileNotFoundError as exc:
+                raise DatasetIOError(f"{self.where(dataset, fingerprint)}: a file listed in its manifest is missing "
+                                     f"from the store ({exc}); hint: delete the dataset directory to rebuild it") \
+                    from exc
+
+    def upload(self, dataset: str, fingerprint: str, rels: Iterable[str]) -> None:
+        """Upload the local copy's files ``rels`` (relative to the dataset directory) to the store."""
+        if not self.remote:
+            return
+        base, loc = self.dir(dataset, fingerprint), self.loc(dataset, fingerprint)
+        self.store.upload_files([(inside(base, rel), loc / PurePosixPath(rel).as_posix()) for rel in rels])
+
+    def siblings(self, dataset: str) -> list[str]:
+        """The fingerprint folders of ``dataset`` on the store."""
+        return self.store.listdir(storage.datasets_dir(self.store.root) / dataset)
+
+
+_DATA_ROOTS: dict[str, DataRoot] = {}
+
+
+def data_root(uri: "str | Path | DataRoot") -> DataRoot:
+    """The ``DataRoot`` of ``uri`` (one per root and process)."""
+    if isinstance(uri, DataRoot):
+        return uri
+    key = str(uri)
+    root = _DATA_ROOTS.get(key)
+    if root is None:
+        root = _DATA_ROOTS[key] = DataRoot(uri)
+    return root

@@ -111,18 +111,36 @@ def push_map(local_root: Path, name: str, store: Store, say: Callable[[str], Non
     return pushed
 
 
-def publish_version_to(store: Store, name: str, write: Callable[[Path], Mapping[str, Any]], **kwargs: Any):
+def read_latest_number(store: Store, name: str) -> int | None:
+    """The version map ``name``'s LATEST names on ``store``, None before the first publish."""
+    from pipeline.version_read import read_latest
+
+    with tempfile.TemporaryDirectory(prefix="cornermap-latest-") as tmp:
+        try:
+            raw = store.read_bytes(storage.latest_file(storage.map_dir(store.root, name)))
+        except FileNotFoundError:
+            return None
+        mdir = storage.map_dir(Path(tmp), name)
+        mdir.mkdir(parents=True)
+        storage.latest_file(mdir).write_bytes(raw)
+        return read_latest(mdir)  # its parser and its one-line errors
+
+
+def publish_version_to(store: Store, name: str, write: Callable[[Path], Mapping[str, Any]], *,
+                       locked: bool = False, whole: Iterable[int] | str = (), **kwargs: Any):
     """``pipeline.versioned.publish_version`` onto ``store``: the version is written and checked in a local staging
-    collection that holds the map's current LATEST and manifests (so numbering and the digest chain continue), then
-    committed with ``push_version`` and LATEST moved, under the map's lease. Returns the ``PublishedVersion``."""
+    collection that holds the map's current LATEST and manifests (so numbering and the digest chain continue), and
+    the versions ``whole`` names in full (``"latest"``: what a writer reading its parent needs), then committed with
+    ``push_version`` and LATEST moved, under the map's lease (``locked``: the caller's run holds it already, as a
+    build's task does). ``write(staging)``'s map folder is ``staging.parent``. Returns the ``PublishedVersion``."""
     from pipeline.locks import locks_for, map_key
     from pipeline.versioned import publish_version
 
     dst = storage.map_dir(store.root, name)
-    with locks_for(store).hold(map_key(name), exclusive=True), \
-            tempfile.TemporaryDirectory(prefix="cornermap-publish-") as tmp:
+    hold = contextlib.nullcontext() if locked else locks_for(store).hold(map_key(name), exclusive=True)
+    with hold, tempfile.TemporaryDirectory(prefix="cornermap-publish-", dir=storage.scratch_base()) as tmp:
         local_mdir = storage.map_dir(Path(tmp), name)
-        snapshot_map(store, name, Path(tmp), whole=())
+        snapshot_map(store, name, Path(tmp), whole=whole)
         pv = publish_version(local_mdir, write, **kwargs)
         if pv.created:
             push_version(store, dst, pv.path, pv.version)
@@ -294,3 +312,29 @@ def map_location(root: str | Path, name: str | None) -> str | Path:
 
         return published_map_dir(root, name, hint="pass --map NAME (and --root ROOT)")
     return store.url(storage.map_dir(store.root, resolve_map(store, name)))
+
+
+def publish_map_version(root: str | Path, name: str, write: Callable[[Path], Mapping[str, Any]], **kwargs: Any):
+    """A build's publish of map ``name`` on its output root (a stage's task: the run holds the map's lock):
+    ``pipeline.versioned.publish_version`` in ``ROOT/maps/NAME`` on a local root; on an object store
+    ``publish_version_to`` with LATEST's version downloaded whole (a writer reads its parent). ``write(staging)``'s
+    map folder (its parent's files) is ``staging.parent``. Returns the ``PublishedVersion``."""
+    store = Store.open(root)
+    if store.local:
+        from pipeline.versioned import publish_version
+
+        return publish_version(storage.map_dir(Path(root), name), write, **kwargs)
+    return publish_version_to(store, name, write, locked=True, whole="latest", **kwargs)
+
+
+@contextlib.contextmanager
+def map_view(root: str | Path, name: str) -> Iterator[Path]:
+    """A local root to read map ``name``'s identity and LATEST version from before a build: the root itself, or for
+    an object store a snapshot in a temporary folder (empty for a map not yet on the store)."""
+    store = Store.open(root)
+    if store.local:
+        yield Path(root)
+        return
+    with tempfile.TemporaryDirectory(prefix="cornermap-view-") as tmp:
+        snapshot_map(store, name, Path(tmp), whole="latest")
+        yield Path(tmp)

@@ -83,10 +83,15 @@ class Workflow:
         p = Path(relative).expanduser()
         return p if p.is_absolute() else self.base_dir / p
 
-    def root_dir(self, override: str | Path | None = None) -> Path:
-        """The output root: ``override`` (a command-line path, relative to the current directory), else the
-        workflow's ``root`` (relative to the workflow file), else ``runs/<workflow name>`` in the current directory."""
+    def root_dir(self, override: str | Path | None = None) -> Path | str:
+        """The output root: ``override`` (a command-line path, relative to the current directory, or an object-store
+        URI ``s3://BUCKET/PREFIX``, returned as a str), else the workflow's ``root`` (relative to the workflow file),
+        else ``runs/<workflow name>`` in the current directory."""
         if override is not None:
+            from pipeline.storage import normalise_uri, uri_scheme
+
+            if uri_scheme(override) is not None:
+                return normalise_uri(override)
             return Path(override).expanduser().resolve()
         if self.spec.root:
             from pipeline.storage import uri_scheme

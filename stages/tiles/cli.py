@@ -224,14 +224,15 @@ def export(
 
     if fmt not in FORMATS:
         raise typer.BadParameter(f"{fmt!r}; expected one of {', '.join(FORMATS)}", param_hint="--format")
-    from pipeline.storage import refuse_uri
+    from pipeline.storage import refuse_uri, uri_scheme
     from pipeline.store_maps import readable_root
 
     refuse_uri(out, "--out")
     with readable_root(root, map_name, version=version) as (local_root, _):
         reader = open_map(map_dir_of(local_root, map_name), version)
         with StageProgress(enabled=not quiet and not as_json):
-            files = export_map(reader, fmt, out, root=local_root)
+            # the datasets a version was built from (the Autoware point cloud) are read from the root itself
+            files = export_map(reader, fmt, out, root=root if uri_scheme(root) else local_root)
     if as_json:
         typer.echo(json.dumps({"format": fmt, "out": str(out), "files": [str(f) for f in files]}, indent=1))
         return

@@ -17,8 +17,8 @@ from mapformat.localizability import split_by_tile, summary
 from pipeline import storage
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
-from pipeline.names import check_name, inside
-from pipeline.versioned import publish_version
+from pipeline.names import check_name
+from pipeline.store_maps import publish_map_version
 from stages.common.geodesy import EnuOrigin
 from stages.tiles import core
 from stages.tiles.decl import STAGE
@@ -84,11 +84,12 @@ def compute(ctx: StageContext) -> dict[str, Any]:
     by_tile = split_by_tile(cells, params.localizability_cell_m, size_m) if cells is not None else None
     if cells is not None:
         fields["localizability"] = summary(cells, params.localizability_cell_m)
-    map_dir = inside(storage.maps_dir(Path(ctx.settings["root"])), check_name(name, "map", "tiles: settings.map_name"))
+    check_name(name, "map", "tiles: settings.map_name")
     origin = EnuOrigin.from_dict(fields["enu_origin"])
 
     def write(staging: Path) -> dict[str, Any]:  # runs under the map's publish lock: LATEST cannot move
-        _, doc = carry_history(map_dir, corners, origin, size_m, staging,
+        # the map's folder (its parent version): ROOT/maps/NAME, or its local copy when the root is an object store
+        _, doc = carry_history(staging.parent, corners, origin, size_m, staging,
                                lambda table: write_map_files(staging, table, size_m, rasters, trajectories, by_tile),
                                gates=IdGates(params.id_max_dist_m, params.id_max_angle_deg),
                                move_threshold_m=params.changelog_move_threshold_m,
@@ -104,7 +105,7 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         return (all(fps) and latest.get("inputs") == inputs and latest.get("params") == resolved
                 and latest.get("code_version") == STAGE.code_version)
 
-    pub = publish_version(map_dir, write, keep_last=params.keep_last, reuse=unchanged,
+    pub = publish_map_version(ctx.settings["root"], name, write, keep_last=params.keep_last, reuse=unchanged,
                           move_latest=not ctx.settings.get("hold_latest", False))
     rel = storage.version_dir(storage.map_dir(PurePosixPath(), name), pub.version).as_posix()  # maps/NAME/vNNNN
     table = pa.table({

@@ -112,12 +112,12 @@ def test_a_killed_commit_is_invisible_and_a_version_is_committed_once(local_root
     assert _cm("tiles", "verify", "--root", s3_root, cwd=tmp_path, env=s3_env).returncode == 0
     # gc: young leftovers are kept; old enough (--min-age-h 0) they go, the committed version stays
     res = _cm("gc", "--root", s3_root, cwd=tmp_path, env=s3_env)
-    assert res.returncode == 0 and "0 object prefix(es) to remove" in res.stdout, res.stdout + res.stderr
+    assert res.returncode == 0 and "0 other object prefix(es) to remove" in res.stdout, res.stdout + res.stderr
     res = _cm("gc", "--root", s3_root, "--min-age-h", "0", cwd=tmp_path, env=s3_env)
     assert f"would remove {s3_root}/maps/city/v0002 (uncommitted" in res.stdout, res.stdout + res.stderr
     assert list(store.walk_files(storage.version_dir(mdir, 2)))  # a dry run
     res = _cm("gc", "--root", s3_root, "--min-age-h", "0", "--apply", cwd=tmp_path, env=s3_env)
-    assert res.returncode == 0 and "1 object prefix(es) removed" in res.stdout, res.stdout + res.stderr
+    assert res.returncode == 0 and "1 other object prefix(es) removed" in res.stdout, res.stdout + res.stderr
     assert list(store.walk_files(storage.version_dir(mdir, 2))) == [] and list_versions(store, mdir) == [1]
     assert list(store.walk_files(storage.locks_dir(store.root))) == []  # gc's own lease released
     for p in sorted(src.rglob("*")):  # killed again
