@@ -22,9 +22,9 @@ from stages.posegraph.config import PosegraphConfig
 from stages.posegraph.factors.base import base_problem
 from stages.posegraph.factors.drive import DriveInput
 from stages.posegraph.factors.graph import PosePrior, Problem, optimize
-from stages.posegraph.loops.candidates import find_candidates, keyframes_by_travel, loosely_anchored, travel_m
+from stages.posegraph.loops.candidates import find_candidates
 from stages.posegraph.loops.verify import LoopRecord, verify_from_store
-from stages.posegraph.solve import Solution, anchored, horizontal_anchors, optimize_with_loops
+from stages.posegraph.solve import Solution, anchored_query, optimize_with_loops
 
 log = logging.getLogger(__name__)
 
@@ -54,15 +54,8 @@ def solve_increment(new: list[DriveInput], held: list[DriveInput], held_poses: n
     poses = optimize(problem, **lm)
     t1 = time.perf_counter()
     rounds: list[dict] = []
-    if survey_priors is not None:
-        poses = anchored(problem, poses, offsets, survey_priors, cfg.anchors, rounds,
-                         lambda initial: optimize(problem, **lm, gnc_loops=lc.kernel == "gnc", initial=initial))
     group_new = np.repeat(np.arange(len(new)), [d.n for d in new])
-    query = keyframes_by_travel(poses[:, :3, 3], group_new, lc.stride_m)
-    if survey_priors is not None:
-        idx, info_en = horizontal_anchors(problem.pose_priors)
-        query = loosely_anchored(query, idx, info_en, travel_m(poses[:, :3, 3], group_new), group_new,
-                                 lc.survey_window_m, lc.survey_sigma_m)
+    poses, query = anchored_query(problem, poses, offsets, group_new, survey_priors, cfg, rounds)
     t2 = time.perf_counter()
     say("loop candidates against the map")
     all_drives = list(new) + list(held)

@@ -100,6 +100,24 @@ def _as_accepted(r: LoopRecord) -> LoopRecord:
                       r.information)
 
 
+def anchored_query(problem: Problem, poses: np.ndarray, offsets, group: np.ndarray,
+                   survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None, cfg: PosegraphConfig,
+                   rounds: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """The survey anchoring rounds (``anchored``, when ``survey_priors`` is given; ``rounds`` collects them), then
+    the scans that look for loops: keyframes every ``cfg.loops.stride_m`` of travel per drive (``group``), with
+    anchors only those the anchors leave loose (``loosely_anchored``). Returns (poses, query indices)."""
+    lc, lm = cfg.loops, cfg.solve.lm_kwargs()
+    if survey_priors is not None:
+        poses = anchored(problem, poses, offsets, survey_priors, cfg.anchors, rounds,
+                         lambda initial: optimize(problem, **lm, gnc_loops=lc.kernel == "gnc", initial=initial))
+    query = keyframes_by_travel(poses[:, :3, 3], group, lc.stride_m)
+    if survey_priors is not None:
+        held, info_en = horizontal_anchors(problem.pose_priors)
+        query = loosely_anchored(query, held, info_en, travel_m(poses[:, :3, 3], group), group,
+                                 lc.survey_window_m, lc.survey_sigma_m)
+    return poses, query
+
+
 def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, *, extra_loops: list[LoopRecord] = (),
               survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None = None,
               report_step: Callable[..., None] | None = None) -> Solution:
@@ -122,14 +140,7 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     group = np.repeat(np.arange(len(drives)), [d.n for d in drives])
     stamps_s = np.concatenate([d.stamps_ns for d in drives]) * 1e-9
     rounds: list[dict] = []
-    if survey_priors is not None:
-        poses = anchored(problem, poses, offsets, survey_priors, cfg.anchors, rounds,
-                         lambda initial: optimize(problem, **lm, gnc_loops=lc.kernel == "gnc", initial=initial))
-    query = keyframes_by_travel(poses[:, :3, 3], group, lc.stride_m)
-    if survey_priors is not None:
-        held, info_en = horizontal_anchors(problem.pose_priors)
-        query = loosely_anchored(query, held, info_en, travel_m(poses[:, :3, 3], group), group,
-                                 lc.survey_window_m, lc.survey_sigma_m)
+    poses, query = anchored_query(problem, poses, offsets, group, survey_priors, cfg, rounds)
     t2 = time.perf_counter()
     say("loop candidates")
     cands = find_candidates(poses[:, :3, 3], stamps_s, group, query, radius_m=lc.radius_m,
