@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-ORIGIN = {"lat_deg": 37.4979, "lon_deg": 127.0276, "h_m": 57.0}  # the simulator's origin
+from bench.bench_rebuild import ORIGIN, deliver, simulated
 
 
 def rebuild_night(root: Path, inbox: Path, full: bool, params: Path | None = None) -> dict:
@@ -101,13 +101,6 @@ def corner_accuracy(vdir: Path, sim: Path) -> dict:
             "ids": t["corner_id"].to_numpy().tolist(), "en": en.tolist()}
 
 
-def _copy_drive(sim: Path, name: str, inbox: Path) -> None:
-    if (sim / "survey").is_dir() and not (inbox / "survey").exists():
-        shutil.copytree(sim / "survey", inbox / "survey")
-    shutil.copytree(sim / name, inbox / name)  # copy2 keeps modification times
-    (inbox / name / "READY").touch()
-
-
 def ids_kept(prev: dict, cur: dict, radius_m: float = 0.05) -> dict:
     """Of the parent's corners, how many the new version holds within ``radius_m`` under the same id."""
     from scipy.spatial import cKDTree
@@ -137,12 +130,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     work = a.work or Path(tempfile.mkdtemp(prefix="bench-incremental-"))
     try:
-        sim = a.sim or work / "sim"
-        if a.sim is None:
-            subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--preset", a.preset, "--seed", str(a.seed),
-                            "--drives", str(a.drives), "--out", str(sim)], check=True, capture_output=True)
+        sim = simulated(a.sim, work, a.preset, a.seed, a.drives)
         root, inbox = work / "root", work / "inbox"
-        inbox.mkdir(parents=True, exist_ok=True)
         params = None
         if a.min_corners_per_km is not None:
             params = work / "params.json"
@@ -150,7 +139,7 @@ def main(argv: list[str] | None = None) -> dict:
         create_map(root, "city", ORIGIN)
         nights, prev_acc = [], None
         for k in range(a.drives):
-            _copy_drive(sim, f"drive_{k}", inbox)
+            deliver(sim, [f"drive_{k}"], inbox, ready=True)
             night = rebuild_night(root, inbox, a.full, params)
             vdir = root / "maps" / "city" / night["version"]
             parent = root / "maps" / "city" / f"v{int(night['version'][1:]) - 1:04d}" if k else None
@@ -171,9 +160,8 @@ def main(argv: list[str] | None = None) -> dict:
         if not a.no_single:
             last = f"drive_{a.drives - 1}"
             root1, inbox1 = work / "root1", work / "inbox1"
-            inbox1.mkdir(parents=True)
             create_map(root1, "city", ORIGIN)
-            _copy_drive(sim, last, inbox1)
+            deliver(sim, [last], inbox1, ready=True)
             out["one_drive_build"] = rebuild_night(root1, inbox1, False, params)
         if len(nights) >= 2:
             out["ratio_last_over_night2"] = round(nights[-1]["cpu_s"] / nights[1]["cpu_s"], 3)

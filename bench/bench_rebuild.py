@@ -31,12 +31,27 @@ def _stage_walls(summary: dict) -> dict[str, float]:
     return {s: float(v.get("wall_s", 0.0)) for s, v in summary.items()}
 
 
-def _inbox(sim: Path, names: list[str], inbox: Path) -> Path:
-    inbox.mkdir(parents=True)
-    if (sim / "survey").is_dir():
-        shutil.copytree(sim / "survey", inbox / "survey")  # drive files name ../survey/survey.las
+def simulated(sim: Path | None, work: Path, preset: str, seed: int, drives: int) -> Path:
+    """``sim`` when given (simulated drives to reuse), else ``drives`` drives of (preset, seed) simulated into
+    WORK/sim by the CLI."""
+    if sim is not None:
+        return sim
+    out = work / "sim"
+    subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--preset", preset, "--seed", str(seed),
+                    "--drives", str(drives), "--out", str(out)], check=True, capture_output=True)
+    return out
+
+
+def deliver(sim: Path, names: list[str], inbox: Path, ready: bool = False) -> Path:
+    """Copy the drive folders ``names`` of a simulation into ``inbox`` (with the shared ``survey/`` once: drive files
+    name ../survey/survey.las); ``ready``: each with its READY file (the inbox's delivery protocol)."""
+    inbox.mkdir(parents=True, exist_ok=True)
+    if (sim / "survey").is_dir() and not (inbox / "survey").exists():
+        shutil.copytree(sim / "survey", inbox / "survey")
     for n in names:
         shutil.copytree(sim / n, inbox / n)  # copy2 keeps modification times: same drive fingerprints
+        if ready:
+            (inbox / n / "READY").touch()
     return inbox
 
 
@@ -62,17 +77,14 @@ def main(argv: list[str] | None = None) -> dict:
 
     work = a.work or Path(tempfile.mkdtemp(prefix="bench-rebuild-"))
     try:
-        sim = a.sim or work / "sim"
-        if a.sim is None:
-            subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--preset", a.preset, "--seed", str(a.seed),
-                            "--drives", str(a.drives), "--out", str(sim)], check=True, capture_output=True)
+        sim = simulated(a.sim, work, a.preset, a.seed, a.drives)
         names = [f"drive_{k}" for k in range(a.drives)]
         old, new = names[:-1], names[-1]
         create_map(work / "A", "city", ORIGIN)
-        sum_a, _, _ = _rebuild(work / "A", _inbox(sim, old, work / "inbox_A"), gate=False)
+        sum_a, _, _ = _rebuild(work / "A", deliver(sim, old, work / "inbox_A"), gate=False)
         create_map(work / "B", "city", ORIGIN)
-        sum_b, _, _ = _rebuild(work / "B", _inbox(sim, [new], work / "inbox_B"), gate=False)
-        shutil.copytree(sim / new, work / "inbox_A" / new)
+        sum_b, _, _ = _rebuild(work / "B", deliver(sim, [new], work / "inbox_B"), gate=False)
+        deliver(sim, [new], work / "inbox_A")
         sum_c, wall_c, lines_c = _rebuild(work / "A", work / "inbox_A", gate=a.gate)
         wa, wb, wc = _stage_walls(sum_a), _stage_walls(sum_b), _stage_walls(sum_c)
         per_drive_b = sum(wb.get(s, 0.0) for s in PER_DRIVE)
