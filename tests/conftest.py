@@ -75,23 +75,13 @@ def _published_versions_conform_to_the_schemas(tmp_path_factory, tmp_path):
 def s3_env():
     """A real S3 API server (moto's server mode) on 127.0.0.1, started by the test session itself
     (``fixtures/s3server.py``); the standard AWS environment points at it for this process and its children."""
-    import os
-
     from fixtures.s3server import s3_server
 
-    keys = ("AWS_ENDPOINT_URL", "AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION", "AWS_PROFILE")
-    saved = {k: os.environ.get(k) for k in keys}
-    with s3_server() as env:
-        os.environ.pop("AWS_PROFILE", None)
-        os.environ.update(env)
-        try:
-            yield env
-        finally:
-            for k, v in saved.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
+    with s3_server() as env, pytest.MonkeyPatch.context() as mp:  # the environment restored after the session
+        mp.delenv("AWS_PROFILE", raising=False)
+        for k, v in env.items():
+            mp.setenv(k, v)
+        yield env
 
 
 @pytest.fixture
