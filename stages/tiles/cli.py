@@ -207,6 +207,8 @@ def export(
     map_name: Optional[str] = MAP_OPT,
     version: str = VERSION_OPT,
     old_version: Optional[str] = opts.MOVED_VERSION,
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing non-empty --out folder as a whole "
+                                   "(a folder export is refused there otherwise)."),
     quiet: bool = opts.QUIET,
     as_json: bool = opts.JSON,
 ) -> None:
@@ -216,7 +218,9 @@ def export(
     Examples: [b]cornermap tiles export -f im2016-text -o runs/city.txt --map city --root runs/maps[/b];
     [b]cornermap tiles export -f markings-geojson -o runs/markings.geojson --map city --root runs/maps[/b]; an
     Autoware map folder (point cloud map tiles, projector info, Lanelet2 lanelets and markings): -f autoware -o DIR
-    (reads the scans and poses the version was built from under --root); trajectories: -f tum -o DIR, -f kitti -o DIR
+    (reads the scans and poses the version was built from under --root); trajectories: -f tum -o DIR, -f kitti -o DIR.
+    A folder is written beside --out and renamed into place when complete; an existing non-empty folder is refused
+    (exit 1) unless --overwrite.
     """
     from mapformat.export import FORMATS, export_map
     from mapformat.loader import open_map
@@ -232,7 +236,7 @@ def export(
         reader = open_map(map_dir_of(local_root, map_name), version)
         with StageProgress(enabled=not quiet and not as_json):
             # the datasets a version was built from (the Autoware point cloud) are read from the root itself
-            files = export_map(reader, fmt, out, root=root if uri_scheme(root) else local_root)
+            files = export_map(reader, fmt, out, root=root if uri_scheme(root) else local_root, overwrite=overwrite)
     if as_json:
         typer.echo(json.dumps({"format": fmt, "out": str(out), "files": [str(f) for f in files]}, indent=1))
         return
