@@ -21,12 +21,12 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles diff v0001 LATEST --map tiny --root runs/tiny\n\n"
             "  cornermap tiles log --map tiny --root runs/tiny\n\n"
             "  cornermap tiles export --format geojson --out runs/city.geojson --map city --root runs/maps\n\n"
-            "  cornermap tiles export --format geotiff --out runs/rasters --map city --root runs/maps\n\n"
+            "  cornermap tiles export --format geotiff --out runs/rasters --overwrite --map city --root runs/maps\n\n"
             "  cornermap tiles verify --all --map tiny --root runs/tiny\n\n"
             "  cornermap tiles ls --map tiny --root runs/tiny --json\n\n"
             "  cornermap tiles query --at 37.4979,127.0276 --radius 150 --map tiny --root runs/tiny --json\n\n"
-            "  cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny\n\n"
-            "  cornermap tiles apply runs/delta --map tiny --root /vehicle\n\n"
+            "  cornermap tiles bundle --from v0001 --to v0002 --out runs/city-delta --map city --root runs/maps\n\n"
+            "  cornermap tiles apply runs/city-delta --map city --root runs/vehicle\n\n"
             "  cornermap tiles push --map tiny --root runs/tiny --to s3://maps/city-root\n\n"
             "  cornermap tiles verify --map tiny --root s3://maps/city-root")
 
@@ -360,7 +360,7 @@ def bundle(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
     """Write a delta bundle: the files of --to whose bytes --from does not have, the target's manifest and a bundle
     manifest naming every file of the target with its sha256 and both versions' manifest digests.
 
-    Example: [b]cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny[/b]
+    Example: [b]cornermap tiles bundle --from v0001 --to v0002 --out runs/city-delta --map city --root runs/maps[/b]
     """
     from mapformat.bundle import make_bundle
 
@@ -385,7 +385,7 @@ def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle
     the copy's LATEST must name the bundle's base; the target is built and checked file by file in a staging
     folder, renamed into place, then named by LATEST.
 
-    Example: [b]cornermap tiles apply runs/delta --map tiny --root /vehicle[/b]
+    Example: [b]cornermap tiles apply runs/city-delta --map city --root runs/vehicle[/b]
     """
     from mapformat.bundle import apply_bundle
 
