@@ -20,6 +20,7 @@ simulate stage; the truth and the drive folders stay in ``sim/``, where ``bench.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shutil
 import time
@@ -87,7 +88,7 @@ def write_workflow(preset: str, seed: int, run_dir: Path, methods: list[str] | N
     if no_survey:
         simulate_without_survey(preset, seed, run_dir / "sim", sim_overrides)
         spec = without_simulate(spec, run_dir / "sim")
-    path = run_dir / f"workflow-{abs(hash(yaml.safe_dump(spec))) % 10**8}.yaml"
+    path = run_dir / f"workflow-{hashlib.sha256(yaml.safe_dump(spec).encode()).hexdigest()[:8]}.yaml"  # stable name
     run_dir.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
     return path

@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 import pyarrow as pa
@@ -93,6 +94,10 @@ def autoware_projector_yaml(origin: EnuOrigin) -> str:
             "  altitude: 0.0\n")
 
 
+class ExportTargetError(DatasetIOError, FileExistsError):
+    """A folder export's ``--out`` already holds files (another export's would mix with this one's)."""
+
+
 def pcd_bytes(xyz_m: np.ndarray, intensity: np.ndarray) -> bytes:
     """Binary PCD v0.7 with float32 x y z intensity (what Autoware's map loader reads)."""
     n = len(xyz_m)
@@ -125,12 +130,16 @@ def check_export_target(out: Path, map_dir: Path) -> None:
                                    "(it could replace LATEST or a published file). hint: choose another --out")
 
 
-def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = None) -> list[Path]:
+def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = None, *,
+               overwrite: bool = False) -> list[Path]:
     """Write ``reader``'s map in ``fmt`` to ``out`` (a file for text/geojson, a directory for the others).
 
     Each export reads the version directory only, except ``autoware``, which reads the scans, poses and extrinsics
     the version was built from under ``root`` through the fingerprints its manifest records
-    (``mapformat.lineage``; default root: the one holding the map's ROOT/maps/NAME/vNNNN directory)."""
+    (``mapformat.lineage``; default root: the one holding the map's ROOT/maps/NAME/vNNNN directory).
+
+    A folder export (``DIRECTORY_FORMATS``) is written into a hidden sibling and renamed into place when complete;
+    an existing non-empty ``out`` is refused (``ExportTargetError``) unless ``overwrite``, which replaces it whole."""
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {', '.join(FORMATS)}")
     out = Path(out)
@@ -138,6 +147,41 @@ def export_map(reader: "MapReader", fmt: str, out: Path, root: Path | None = Non
     if fmt in DIRECTORY_FORMATS:
         if out.exists() and not out.is_dir():
             raise DatasetIOError(f"{out}: not a directory; the {fmt} export writes a directory")
+        held = sum(1 for _ in out.iterdir()) if out.is_dir() else 0
+        if held and not overwrite:
+            entries = f"{held} entr{'y' if held == 1 else 'ies'}"
+            raise ExportTargetError(
+                f"{out}: a folder holding {entries}; a {fmt} export writes a folder of its own (another export's "
+                "files would mix with this one's). hint: choose a new --out, or pass --overwrite to replace the "
+                "folder as a whole")
+        return _staged_folder(out, lambda stage: _export_files(reader, fmt, stage, root))
+    return _export_files(reader, fmt, out, root)
+
+
+def _staged_folder(out: Path, write_into: Callable[[Path], list[Path]]) -> list[Path]:
+    """Run ``write_into`` on a hidden sibling of ``out`` and put it in place of ``out`` when it is complete: a
+    reader of ``out`` sees the old folder or the new one, never a half-written or mixed one (a folder rename;
+    between the two renames ``out`` is briefly absent). Returns the written files under ``out``."""
+    stage = out.with_name(f".{out.name}.export-{os.getpid()}")
+    old = out.with_name(f".{out.name}.replaced-{os.getpid()}")
+    shutil.rmtree(stage, ignore_errors=True)
+    try:
+        stage.mkdir(parents=True)
+        files = write_into(stage)
+        if out.exists():
+            os.replace(out, old)
+        os.replace(stage, out)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if old.exists() and not out.exists():
+            os.replace(old, out)  # the earlier folder stays as it was
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    return [out / Path(f).relative_to(stage) for f in files]
+
+
+def _export_files(reader: "MapReader", fmt: str, out: Path, root: Path | None) -> list[Path]:
+    """Write the files of one export format under (or at) ``out``."""
     corners = reader.all_corners()
     if fmt == "im2016-text":
         text = format_im2016_text(

@@ -92,6 +92,7 @@ def _cases(r: Path) -> list[tuple[int, tuple[str, ...]]]:
         (1, ("tiles", "export", "-f", "geotiff", "-o", f"{R}/a_file", "--root", R)),
         (1, ("tiles", "export", "-f", "markings-geojson", "-o", R, "--root", R)),
         (1, ("tiles", "export", "-f", "autoware", "-o", f"{R}/a_file", "--root", R)),
+        (1, ("tiles", "export", "-f", "tum", "-o", f"{R}/empty_map", "--root", R)),  # non-empty, no --overwrite
         (1, ("tiles", "verify", "--root", f"{R}/empty_map", "--all")),
         (2, ("tiles", "export", "-f", "geojson", "-o", f"{R}/g.json", "--root", R, "--version", "v1")),  # --map-version
         (2, ("tiles", "verify", "--version", "v1", "--root", R)),

@@ -21,12 +21,12 @@ EXAMPLES = ("Examples:\n\n"
             "  cornermap tiles diff v0001 LATEST --map tiny --root runs/tiny\n\n"
             "  cornermap tiles log --map tiny --root runs/tiny\n\n"
             "  cornermap tiles export --format geojson --out runs/city.geojson --map city --root runs/maps\n\n"
-            "  cornermap tiles export --format geotiff --out runs/rasters --map city --root runs/maps\n\n"
+            "  cornermap tiles export --format geotiff --out runs/rasters --overwrite --map city --root runs/maps\n\n"
             "  cornermap tiles verify --all --map tiny --root runs/tiny\n\n"
             "  cornermap tiles ls --map tiny --root runs/tiny --json\n\n"
             "  cornermap tiles query --at 37.4979,127.0276 --radius 150 --map tiny --root runs/tiny --json\n\n"
-            "  cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny\n\n"
-            "  cornermap tiles apply runs/delta --map tiny --root /vehicle\n\n"
+            "  cornermap tiles bundle --from v0001 --to v0002 --out runs/city-delta --map city --root runs/maps\n\n"
+            "  cornermap tiles apply runs/city-delta --map city --root runs/vehicle\n\n"
             "  cornermap tiles push --map tiny --root runs/tiny --to s3://maps/city-root\n\n"
             "  cornermap tiles verify --map tiny --root s3://maps/city-root")
 
@@ -207,6 +207,8 @@ def export(
     map_name: Optional[str] = MAP_OPT,
     version: str = VERSION_OPT,
     old_version: Optional[str] = opts.MOVED_VERSION,
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing non-empty --out folder as a whole "
+                                   "(a folder export is refused there otherwise)."),
     quiet: bool = opts.QUIET,
     as_json: bool = opts.JSON,
 ) -> None:
@@ -216,7 +218,9 @@ def export(
     Examples: [b]cornermap tiles export -f im2016-text -o runs/city.txt --map city --root runs/maps[/b];
     [b]cornermap tiles export -f markings-geojson -o runs/markings.geojson --map city --root runs/maps[/b]; an
     Autoware map folder (point cloud map tiles, projector info, Lanelet2 lanelets and markings): -f autoware -o DIR
-    (reads the scans and poses the version was built from under --root); trajectories: -f tum -o DIR, -f kitti -o DIR
+    (reads the scans and poses the version was built from under --root); trajectories: -f tum -o DIR, -f kitti -o DIR.
+    A folder is written beside --out and renamed into place when complete; an existing non-empty folder is refused
+    (exit 1) unless --overwrite.
     """
     from mapformat.export import FORMATS, export_map
     from mapformat.loader import open_map
@@ -232,7 +236,7 @@ def export(
         reader = open_map(map_dir_of(local_root, map_name), version)
         with StageProgress(enabled=not quiet and not as_json):
             # the datasets a version was built from (the Autoware point cloud) are read from the root itself
-            files = export_map(reader, fmt, out, root=root if uri_scheme(root) else local_root)
+            files = export_map(reader, fmt, out, root=root if uri_scheme(root) else local_root, overwrite=overwrite)
     if as_json:
         typer.echo(json.dumps({"format": fmt, "out": str(out), "files": [str(f) for f in files]}, indent=1))
         return
@@ -356,7 +360,7 @@ def bundle(root: Path = ROOT_OPT, map_name: Optional[str] = MAP_OPT,
     """Write a delta bundle: the files of --to whose bytes --from does not have, the target's manifest and a bundle
     manifest naming every file of the target with its sha256 and both versions' manifest digests.
 
-    Example: [b]cornermap tiles bundle --from v0001 --to v0002 --out runs/delta --map tiny --root runs/tiny[/b]
+    Example: [b]cornermap tiles bundle --from v0001 --to v0002 --out runs/city-delta --map city --root runs/maps[/b]
     """
     from mapformat.bundle import make_bundle
 
@@ -381,7 +385,7 @@ def apply(bundle_dir: Path = typer.Argument(..., help="The bundle folder (bundle
     the copy's LATEST must name the bundle's base; the target is built and checked file by file in a staging
     folder, renamed into place, then named by LATEST.
 
-    Example: [b]cornermap tiles apply runs/delta --map tiny --root /vehicle[/b]
+    Example: [b]cornermap tiles apply runs/city-delta --map city --root runs/vehicle[/b]
     """
     from mapformat.bundle import apply_bundle
 

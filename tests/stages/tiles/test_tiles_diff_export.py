@@ -150,3 +150,31 @@ def test_im2016_text_malformed_lines_name_the_line():
         parse_im2016_text(good.replace("132.00", "abc"))
     with pytest.raises(FormatError, match="not symmetric"):
         parse_im2016_text(good.replace("9.00e-04\t2.90e-03", "1.00e-04\t2.90e-03"))
+
+
+def _tree(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_folder_export_never_mixes_with_or_half_replaces_an_existing_folder(two_builds, tmp_path):
+    from mapformat.export import ExportTargetError
+    from pipeline.errors import DatasetIOError
+
+    v1, v2 = two_builds[0], two_builds[1]
+    out = tmp_path / "rasters"
+    export_map(v1, "geotiff", out)
+    before = _tree(out)
+    with pytest.raises(ExportTargetError, match=r"rasters: a folder holding \d+ entries; .*--overwrite"):
+        export_map(v2, "geotiff", out)
+    assert _tree(out) == before
+    (out / "stale.tif").write_bytes(b"an earlier export's file")
+    files = export_map(v2, "geotiff", out, overwrite=True)
+    export_map(v2, "geotiff", tmp_path / "fresh")
+    assert _tree(out) == _tree(tmp_path / "fresh") != before  # replaced whole: the stale file is gone
+    assert sorted(files) == sorted(p for p in out.rglob("*") if p.is_file())
+    # a failing export (the Autoware one needs build datasets this root does not hold) leaves the folder as it was
+    replaced = _tree(out)
+    with pytest.raises(DatasetIOError, match="recorded but not committed"):
+        export_map(v2, "autoware", out, root=tmp_path, overwrite=True)
+    assert _tree(out) == replaced
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fresh", "rasters"]  # no staging folder left behind
