@@ -28,7 +28,7 @@ from stages.simulate.mesh import Scene, build_building_soup, build_static_soup
 from stages.simulate.presets import Preset, get_preset, preset_overrides
 from stages.simulate.sensor import LIDARS, LaserCalibration, build_beam_table, mount_matrix
 from stages.simulate.survey import generate_survey
-from stages.simulate.trajectory import choose_loop_cells, loop_nodes
+from stages.simulate.trajectory import choose_loop_cells, loop_nodes, out_and_back_nodes
 from stages.simulate.truth import building_corners, city_description, count_visible_scans
 
 log = logging.getLogger(__name__)
@@ -110,7 +110,7 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     static = Scene(build_static_soup(city, component_rng(seed, "mesh")))
     buildings = Scene(build_building_soup(city))
     cells = choose_loop_cells(p.n_rows, p.n_cols, city.nodes_en, p.lap_length_m, component_rng(seed, "route"))
-    loop = loop_nodes(cells)
+    loop = loop_nodes(cells) if p.route == "loop" else out_and_back_nodes(p.n_rows, p.n_cols)
     T_vehicle_lidar = preset_mount(p)
     lidar = LIDARS[p.sensor]
     beams = build_beam_table(lidar, T_vehicle_lidar)
