@@ -92,7 +92,8 @@ class Preset:
     # issue 63: an out-and-back street whose two passes a drifting estimate puts tens of metres apart
     route: str = "loop"  # loop: around blocks; out_and_back: along one street to its end and back (U-turns)
     prior_heading_walk_deg: float = 0.0  # > 0: the prior's heading also random-walks, this std per sqrt(km) of
-    # travel, its positions integrate it (a SLAM without loop closures drifts); the stated std stays prior_std_*
+    # travel, its positions integrate it (a SLAM without loop closures drifts); the stated std adds the walk's spread
+    # at the drive's end
 
 
 PRESETS: dict[str, Preset] = {

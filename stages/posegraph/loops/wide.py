@@ -70,12 +70,15 @@ def capped_relative(chain: ChainCovariance, q: int, targets: np.ndarray, loops: 
 def find_wide_candidates(chain: ChainCovariance, stamps_s: np.ndarray, query: np.ndarray, travel: np.ndarray,
                          cfg: LoopConfig, loops: list[LoopRecord] = (), tried: set = frozenset()
                          ) -> list[WideCandidate]:
-    """Per query pose of a loosely held drive, up to ``cfg.wide_max_per_scan`` targets of other passes beyond the
-    fixed radius and inside the Mahalanobis gate (module docstring), nearest in Mahalanobis distance first, at least
-    ``cfg.wide_target_spacing_m`` of travel apart on their pass; pairs in ``tried`` are skipped."""
+    """Per query pose of a loosely held drive, up to ``cfg.wide_max_per_scan`` targets of other passes inside the
+    Mahalanobis gate (module docstring) where the relative std exceeds ``cfg.wide_min_sigma_m`` (within the fixed
+    radius too: the estimate is metres off there, the ordinary verification's correction envelope would refuse the
+    true loop), nearest in Mahalanobis distance first, at least ``cfg.wide_target_spacing_m`` of travel apart on
+    their pass; pairs in ``tried`` are skipped."""
     pos = chain.positions_en
     n = len(pos)
     out: list[WideCandidate] = []
+    seen: set = set()
     accepted = [r for r in loops if r.accepted]
     for q in np.asarray(query, np.int64):
         if chain.absolute[q]:
@@ -85,15 +88,13 @@ def find_wide_candidates(chain: ChainCovariance, stamps_s: np.ndarray, query: np
         t = t[other]
         v = pos[t] - pos[q]
         d = np.linalg.norm(v, axis=1)
-        far = d > cfg.radius_m
-        t, v, d = t[far], v[far], d[far]
         if len(t) == 0:
             continue
         cov = capped_relative(chain, int(q), t, accepted)
         a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
         big = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)
         wide = big >= cfg.wide_min_sigma_m ** 2
-        shrunk = v * (1.0 - cfg.radius_m / d)[:, None]
+        shrunk = v * np.maximum(0.0, 1.0 - cfg.radius_m / np.maximum(d, 1e-9))[:, None]
         det = a * c - b * b
         det = np.where(det > 1e-12, det, 1e-12)
         m2 = (c * shrunk[:, 0] ** 2 - 2 * b * shrunk[:, 0] * shrunk[:, 1] + a * shrunk[:, 1] ** 2) / det
@@ -109,7 +110,8 @@ def find_wide_candidates(chain: ChainCovariance, stamps_s: np.ndarray, query: np
                 continue
             chosen.append(int(tt))
             pair = (min(int(q), int(tt)), max(int(q), int(tt)))
-            if pair not in tried:
+            if pair not in tried and pair not in seen:
+                seen.add(pair)
                 yaw_var = float(chain.s0[pair[1]] - chain.s0[pair[0]]) if chain.group[q] == chain.group[tt] \
                     else float(chain.s0[q] - chain.s0[chain.start[q]] + chain.s0[tt] - chain.s0[chain.start[tt]]
                                + chain.start_var_rad2[q] + chain.start_var_rad2[tt])
@@ -232,7 +234,8 @@ def close_wide_loops(problem, poses: np.ndarray, drives, load, cfg: LoopConfig, 
         q2 = keyframes_by_travel(poses[:, :3, 3], group, cfg.stride_m)
         fixed = [c for c in find_candidates(poses[:, :3, 3], stamps_s, group, q2[loose[group[q2]]],
                                             radius_m=cfg.radius_m, min_separation_s=cfg.min_separation_s,
-                                            max_per_scan=cfg.max_per_scan) if (c.i, c.j) not in tried]
+                                            max_per_scan=cfg.max_per_scan)
+                 if (c.i, c.j) not in tried and _held_pair(chain, c, loops, cfg.wide_min_sigma_m)]
         tried |= {(c.i, c.j) for c in wide} | {(c.i, c.j) for c in fixed}
         new = verify_wide_fn(wide, poses) + (verify_fn(fixed, poses) if fixed else [])
         summary["rounds"] += 1
@@ -289,6 +292,13 @@ def close_wide_loops(problem, poses: np.ndarray, drives, load, cfg: LoopConfig, 
         poses = solve(loops, poses)
         problem.betweens = base  # the solve leaves its loop factors in the problem: the caller adds them again
     return loops, poses, summary
+
+
+def _held_pair(chain: ChainCovariance, c: Candidate, loops: list[LoopRecord], min_sigma_m: float) -> bool:
+    """Whether the estimate holds the pair's relative position to less than ``min_sigma_m`` (the ordinary
+    verification from the estimate applies; else the pair is the wide search's)."""
+    cov = capped_relative(chain, c.i, np.array([c.j]), [r for r in loops if r.accepted])[0]
+    return float(np.linalg.eigvalsh(cov)[-1]) < min_sigma_m ** 2
 
 
 def apply_pcm(loops: list[LoopRecord], pass1: np.ndarray, chain: ChainCovariance, loose_pose: np.ndarray,
