@@ -151,7 +151,7 @@ def test_a_wrong_loop_is_rejected_by_the_consistency_check(case):
     loops, poses, _ = run(problem, drive, T_true, cfg, verify_bad)
     assert calls["wrong_proposed"]
     bad = next(r for r in loops if (r.i, r.j) == wrong)
-    assert not bad.accepted and "inconsistent" in bad.reason
+    assert not bad.accepted and "pairwise consistency" in bad.reason, bad.reason
     assert passes_gap_error(poses, T_true) < 1.0
 
 
