@@ -134,6 +134,19 @@ class LoopConfig(_Parallel):
     parallel_min_items: int
     reference_stride_m: float  # a reference drive's loop queries onto the fixed map, one per this travel
     incremental_max_per_scan: int = 1  # incremental solve: loop targets per query scan of a new drive
+    # the wide search where nothing absolute holds a drive (``loops/wide.py``)
+    wide: bool = True
+    wide_sigmas: float = 3.0  # Mahalanobis gate of the estimated offset less radius_m
+    wide_min_sigma_m: float = 3.0  # only where the relative position's std exceeds this
+    wide_stride_m: float = 15.0  # one wide query per this much travel
+    wide_max_per_scan: int = 4
+    wide_target_spacing_m: float = 8.0  # a query's wide targets at least this far apart along their pass
+    wide_rounds: int = 3
+    wide_global_voxel_m: float = 1.0  # FPFH + RANSAC voxel
+    wide_yaw_slack_deg: float = 5.0  # added in quadrature to the chain's heading std in the global match's gate
+    wide_min_consistent: int = 2  # a consistent set smaller than this is not accepted
+    pcm_probability: float = 0.99  # chi-square gate (3 dof) of a loop pair's cycle
+    pcm_window_m: float = 100.0  # pairs checked only when both odometry segments are shorter (travel)
 
 
 @dataclass(frozen=True)
@@ -256,7 +269,13 @@ class PosegraphConfig:
             max_per_scan=p.loop_max_per_scan, verify=verify, survey_window_m=p.loop_survey_window_m,
             survey_sigma_m=p.loop_survey_sigma_m, kernel=p.loop_kernel, kernel_k=p.loop_kernel_k,
             max_whitened_residual=p.loop_max_whitened_residual, parallel_min_items=p.parallel_min_items,
-            reference_stride_m=p.loop_reference_stride_m, incremental_max_per_scan=p.loop_incremental_max_per_scan)
+            reference_stride_m=p.loop_reference_stride_m, incremental_max_per_scan=p.loop_incremental_max_per_scan,
+            wide=p.loop_wide, wide_sigmas=p.loop_wide_sigmas, wide_min_sigma_m=p.loop_wide_min_sigma_m,
+            wide_stride_m=p.loop_wide_stride_m, wide_max_per_scan=p.loop_wide_max_per_scan,
+            wide_target_spacing_m=p.loop_wide_target_spacing_m, wide_rounds=p.loop_wide_rounds,
+            wide_global_voxel_m=p.loop_wide_global_voxel_m, wide_yaw_slack_deg=p.loop_wide_yaw_slack_deg,
+            wide_min_consistent=p.loop_wide_min_consistent, pcm_probability=p.loop_pcm_probability,
+            pcm_window_m=p.loop_pcm_window_m)
         ground = GroundAnchorConfig(
             crop_m=p.survey_crop_m, max_height_m=p.survey_max_height_m, voxel_m=p.loop_voxel_m / 2,
             min_fitness=p.survey_min_fitness, max_rmse_m=p.survey_max_rmse_m, min_sigma_m=p.survey_min_sigma_m,

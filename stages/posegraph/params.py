@@ -92,6 +92,32 @@ class PosegraphParams(Params):
     loop_survey_sigma_m: float = Field(0.05, gt=0, description=(
         "a query scan is held when those anchors' summed horizontal information gives a std below this in its "
         "weaker direction (lane lines alone fix the position across the road, not along it)"))
+    loop_wide: bool = Field(True, description=(
+        "the wide loop search (stages/posegraph/loops/wide.py): where no GNSS fix, ENU prior or survey anchor holds a "
+        "drive, the search region is the odometry's accumulated uncertainty of the relative position (a Mahalanobis "
+        "gate), candidates are matched by a global registration (FPFH + RANSAC) then GICP, kept only when pairwise "
+        "consistent (PCM), and the search runs again on the solved estimate. Drives with GNSS are searched as before"))
+    loop_wide_sigmas: float = Field(3.0, gt=0, description="wide search: a target is a candidate when its estimated "
+                                    "offset less loop_radius_m is within this many sigma")
+    loop_wide_min_sigma_m: float = Field(3.0, gt=0, description="wide search only where the relative position's std "
+                                         "exceeds this (below it loop_radius_m covers loop_wide_sigmas sigma)")
+    loop_wide_stride_m: float = Field(15.0, gt=0, description="wide search: one query scan per this much travel")
+    loop_wide_max_per_scan: int = Field(4, ge=1, description="wide search: targets per query scan")
+    loop_wide_target_spacing_m: float = Field(8.0, ge=0, description="wide search: a query's targets at least this "
+                                              "far apart along their pass")
+    loop_wide_rounds: int = Field(3, ge=1, description="wide search: rounds of search, verification and solve")
+    loop_wide_global_voxel_m: float = Field(1.0, gt=0, description="wide search: voxel of the global registration "
+                                            "(FPFH radius 5x, RANSAC correspondence 1.5x)")
+    loop_wide_yaw_slack_deg: float = Field(5.0, ge=0, description="wide search: the global match's heading may differ "
+                                           "from the estimate's by 3 sigma of the chain's heading std and this in "
+                                           "quadrature")
+    loop_wide_min_consistent: int = Field(2, ge=1, description="wide search: the loosely held drives' loops are "
+                                          "accepted only as a pairwise-consistent set of at least this many")
+    loop_pcm_probability: float = Field(0.99, gt=0, lt=1, description="pairwise consistency: chi-square gate (3 dof) "
+                                        "of a loop pair's cycle through the odometry")
+    loop_pcm_window_m: float = Field(100.0, gt=0, description="pairwise consistency: two loops are checked only when "
+                                     "both odometry segments between them are shorter than this travel (longer ones: "
+                                     "the odometry's biases exceed its covariance)")
     loop_coarse_voxel_m: float = Field(1.0, gt=0, description="first GICP stage (pulls in a 1-2 m prior)")
     loop_coarse_corr_m: float = Field(3.0, gt=0)
     loop_voxel_m: float = Field(0.4, gt=0, description="fine GICP stages (max_corr, then max_corr / 2)")

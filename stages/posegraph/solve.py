@@ -148,6 +148,14 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
     loops = (verify_from_store(cands, poses, drives, offsets, load, lc, progress=step) if cands else []) \
         + list(extra_loops)
+    if lc.wide:  # drives nothing absolute holds: the search widened by their uncertainty (loops/wide.py)
+        from stages.posegraph.loops.wide import close_wide_loops
+
+        loops, poses, wide = close_wide_loops(
+            problem, poses, drives, load, lc, loops, say=say,
+            solve=lambda ls, init: optimize_with_loops(problem, ls, lc, cfg.solve, initial=init))
+        if wide["rounds"]:
+            log.info("posegraph: wide loop search: %s", wide)
     t3 = time.perf_counter()
     solve_times: list[float] = []
     if loops or survey_priors is None:

@@ -28,7 +28,7 @@ from stages.simulate.mesh import Scene, build_building_soup, build_static_soup
 from stages.simulate.presets import Preset, get_preset, preset_overrides
 from stages.simulate.sensor import LIDARS, LaserCalibration, build_beam_table, mount_matrix
 from stages.simulate.survey import generate_survey
-from stages.simulate.trajectory import choose_loop_cells, loop_nodes
+from stages.simulate.trajectory import choose_loop_cells, loop_nodes, out_and_back_nodes
 from stages.simulate.truth import building_corners, city_description, count_visible_scans
 
 log = logging.getLogger(__name__)
@@ -110,7 +110,7 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     static = Scene(build_static_soup(city, component_rng(seed, "mesh")))
     buildings = Scene(build_building_soup(city))
     cells = choose_loop_cells(p.n_rows, p.n_cols, city.nodes_en, p.lap_length_m, component_rng(seed, "route"))
-    loop = loop_nodes(cells)
+    loop = loop_nodes(cells) if p.route == "loop" else out_and_back_nodes(p.n_rows, p.n_cols)
     T_vehicle_lidar = preset_mount(p)
     lidar = LIDARS[p.sensor]
     beams = build_beam_table(lidar, T_vehicle_lidar)
@@ -137,7 +137,7 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
         writers.write_drive_yaml(drive_dir / "drive.yaml", name, T_vehicle_lidar, f"EPSG:{epsg}" if p.survey else None,
                                  dated.SURVEY_DIR if changed else "survey", sensor=p.sensor,
                                  gnss_attitude=p.gnss_attitude, gnss=p.gnss, start=result.start,
-                                 prior=prior_section(p, origin))
+                                 prior=prior_section(p, origin, _travel_km(result.scan_positions_en)))
         names.append(name)
         n_scans[name] = result.n_scans
         stats[name] = result.gnss_stats
@@ -170,14 +170,25 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     return summary
 
 
-def prior_section(p, origin) -> dict | None:
+def _travel_km(positions_en: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(positions_en, axis=0), axis=1).sum()) / 1000.0
+
+
+def prior_section(p, origin, travel_km: float = 0.0) -> dict | None:
     """The drive file's ``prior:`` of a simulated prior trajectory (``drive.write_prior``), its stated std the
-    simulated errors' (horizontal per axis, heading; height, roll and pitch carry none: 0.1 m / 0.1 deg stated)."""
+    simulated errors' (horizontal per axis, heading; height, roll and pitch carry none: 0.1 m / 0.1 deg stated). With
+    ``prior_heading_walk_deg`` the walk's spread at the drive's end (``travel_km``) is added in quadrature: heading
+    walk x sqrt(km), position travel x that heading std / sqrt(3) per axis (a random walk's integral)."""
     if p.prior == "none":
         return None
+    std_m, std_deg = p.prior_std_m / np.sqrt(2), p.prior_std_deg
+    if p.prior_heading_walk_deg > 0:
+        walk_deg = p.prior_heading_walk_deg * np.sqrt(travel_km)
+        std_deg = float(np.hypot(std_deg, walk_deg))
+        std_m = float(np.hypot(std_m, 1000.0 * travel_km * np.radians(walk_deg) / np.sqrt(3)))
     doc = {"file": "prior.txt", "format": "tum", "frame": p.prior, "time": "stamps", "body": "vehicle",
-           "std_m": [round(float(p.prior_std_m / np.sqrt(2)), 4)] * 2 + [0.1],
-           "std_deg": [0.1, 0.1, float(p.prior_std_deg)]}
+           "std_m": [round(float(std_m), 4)] * 2 + [0.1],
+           "std_deg": [0.1, 0.1, round(float(std_deg), 4)]}
     if p.prior == "enu":
         doc["origin"] = {"lat_deg": origin.lat_deg, "lon_deg": origin.lon_deg, "h_m": origin.h_m}
     return doc

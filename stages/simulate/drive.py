@@ -165,6 +165,9 @@ def write_prior(path: Path, p: Preset, stamps_s: np.ndarray, T_true: np.ndarray,
 
     e_en = gauss_markov(stamps_s, p.prior_std_m / np.sqrt(2), p.prior_tau_s, 2, rng)
     e_yaw = np.radians(gauss_markov(stamps_s, p.prior_std_deg, p.prior_tau_s, 1, rng)[:, 0])
+    if p.prior_heading_walk_deg > 0:
+        walk_en, walk_yaw = heading_walk(T_true[:, :2, 3], p.prior_heading_walk_deg, rng)
+        e_en, e_yaw = e_en + walk_en, e_yaw + walk_yaw
     if p.prior == "local":
         e_en, e_yaw = e_en - e_en[0], e_yaw - e_yaw[0]
     T = T_true.copy()
@@ -176,6 +179,22 @@ def write_prior(path: Path, p: Preset, stamps_s: np.ndarray, T_true: np.ndarray,
     if p.prior == "local":
         T = np.linalg.inv(T_true[0]) @ T
     write_tum(path, stamps_s, T)
+
+
+def heading_walk(positions_en: np.ndarray, deg_per_sqrt_km: float, rng: np.random.Generator
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A drifting trajectory's errors ((N,2) east/north m, (N,) heading rad, zero at the first pose): its heading
+    random-walks ``deg_per_sqrt_km`` per sqrt(km) of travel, and each step's displacement is turned by the heading
+    error accumulated so far, so the position error is the heading error integrated along the path (a lidar
+    odometry or SLAM without loop closures)."""
+    step = np.diff(positions_en, axis=0)
+    d_km = np.linalg.norm(step, axis=1) / 1000.0
+    yaw = np.concatenate([[0.0], np.cumsum(rng.normal(0.0, 1.0, len(step)) * np.radians(deg_per_sqrt_km)
+                                           * np.sqrt(d_km))])
+    c, s = np.cos(yaw[:-1]), np.sin(yaw[:-1])
+    turned = np.column_stack([c * step[:, 0] - s * step[:, 1], s * step[:, 0] + c * step[:, 1]])
+    drifted = positions_en[0] + np.concatenate([np.zeros((1, 2)), np.cumsum(turned, axis=0)])
+    return drifted - positions_en, yaw
 
 
 def start_pose(p: Preset, T_first: np.ndarray, origin, rng: np.random.Generator) -> dict:

@@ -89,6 +89,11 @@ class Preset:
     start_heading_std_deg: float = 0.3  # no GNSS: the start heading's error (drawn) and stated std
     start_position_std_m: float = 0.05  # no GNSS: the start position's horizontal error (drawn) and stated std
     keyframe_spacing_m: float = 0.0  # > 0: only keyframes, each 0.5-1.5 x this much travel after the previous
+    # issue 63: an out-and-back street whose two passes a drifting estimate puts tens of metres apart
+    route: str = "loop"  # loop: around blocks; out_and_back: along one street to its end and back (U-turns)
+    prior_heading_walk_deg: float = 0.0  # > 0: the prior's heading also random-walks, this std per sqrt(km) of
+    # travel, its positions integrate it (a SLAM without loop closures drifts); the stated std adds the walk's spread
+    # at the drive's end
 
 
 PRESETS: dict[str, Preset] = {
@@ -144,6 +149,7 @@ SHARES = ("lead_vehicle_share", "queue_stop_share", "rounded_corner_share", "cha
           "facade_vegetation_share", "parked_tall_share")
 SENSOR_NAMES = ("hdl32e", "hdl64e", "os1-64")  # stages/simulate/sensor.py LIDARS
 PRIOR_KINDS = ("none", "local", "enu")
+ROUTES = ("loop", "out_and_back")
 
 
 def get_preset(name: str, **overrides) -> Preset:
@@ -175,6 +181,8 @@ def get_preset(name: str, **overrides) -> Preset:
         bad.append(f"sensor must be one of {list(SENSOR_NAMES)}; got {overrides['sensor']!r}")
     if "prior" in overrides and overrides["prior"] not in PRIOR_KINDS:
         bad.append(f"prior must be one of {list(PRIOR_KINDS)}; got {overrides['prior']!r}")
+    if "route" in overrides and overrides["route"] not in ROUTES:
+        bad.append(f"route must be one of {list(ROUTES)}; got {overrides['route']!r}")
     if bad:
         raise ConfigError(f"simulate preset {name!r} overrides", bad)
     return replace(base, **overrides) if overrides else base

@@ -78,6 +78,15 @@ def loop_nodes(cells: set[tuple[int, int]]) -> list[tuple[int, int]] | None:
     return loop if len(loop) == len(edges) else None
 
 
+def out_and_back_nodes(n_rows: int, n_cols: int, row: int | None = None) -> list[tuple[int, int]]:
+    """An out-and-back route (``route: out_and_back``): along the east-west street of node row ``row`` (default the
+    middle one) from its west end to its east end and back, a U-turn at each end; as a closed node list (the U-turn
+    nodes once each) that ``lane_polyline`` turns into the two legs, each in its own lane of the same street."""
+    j = n_rows // 2 if row is None else int(row)
+    out = [(j, i) for i in range(n_cols + 1)]
+    return out + out[-2:0:-1]
+
+
 def _perimeter_m(cells, nodes_en) -> float:
     return float(sum(np.linalg.norm(nodes_en[b] - nodes_en[a]) for a, b in _boundary_edges(cells)))
 
@@ -98,6 +107,12 @@ def lane_polyline(city: City, loop: list[tuple[int, int]], lane: int) -> tuple[n
         p2, d2 = pts[k] + right[k] * off[k], t[k]
         cross = d1[0] * d2[1] - d1[1] * d2[0]
         phi = float(np.arctan2(cross, d1 @ d2))
+        if abs(phi) > np.radians(175):  # a U-turn (out-and-back): a left half circle about the node
+            centre = pts[k]
+            ang0 = np.arctan2(*(p1 - centre)[::-1])
+            angs = ang0 + np.linspace(0, np.pi, max(8, int(np.pi * off[k - 1] / 0.5)))
+            corner_pieces.append(centre + off[k - 1] * np.column_stack([np.cos(angs), np.sin(angs)]))
+            continue
         if abs(phi) < np.radians(3):
             corner_pieces.append(np.array([0.5 * (p1 + p2)]))
             continue
