@@ -23,11 +23,12 @@ def test_the_frame_error_grows_with_the_distance_from_its_reference_point():
     assert FrameError.from_map(None) is None
     doc = {"reference_en_m": np.array([1.0, 2.0]), "cov_shift_rotation": cov, "source": "GNSS/INS"}
     np.testing.assert_allclose(FrameError.from_map(doc).cov, cov)
-    # the raster's local error: the map's stated relative pose error where it exceeds the params' floor
+    # the raster's local error: the map's stated relative pose error, above or below the params' value; the params'
+    # value where the map states none
     ekf = EvaluateParams().ekf_config()
-    loose = FrameError.from_map({**doc, "relative_std_m": 0.05, "relative_std_deg": 0.01}).marking_offset(ekf)
-    assert loose.marking_map_sigma_m == pytest.approx(0.05)
-    assert loose.marking_map_sigma_yaw_rad == pytest.approx(ekf.marking_map_sigma_yaw_rad)
+    stated = FrameError.from_map({**doc, "relative_std_m": 0.05, "relative_std_deg": 0.01}).marking_offset(ekf)
+    assert stated.marking_map_sigma_m == pytest.approx(0.05)
+    assert stated.marking_map_sigma_yaw_rad == pytest.approx(np.radians(0.01))
     assert FrameError.from_map(doc).marking_offset(ekf) == ekf
 
 
