@@ -183,8 +183,7 @@ def test_killed_rebuilds_on_a_bucket_leave_latest_complete(s3_env, s3_root, sim,
 
     bucket = s3_root.rsplit("/", 1)[0]
     inbox = f"{bucket}/inbox"
-    env = {**os.environ, **s3_env, "PYTHONPATH": str(REPO), "CORNERMAP_SCRATCH": str(tmp_path / "scratch"),
-           "CORNERMAP_LEASE_TTL_S": "2"}
+    env = {**s3_env, "CORNERMAP_SCRATCH": str(tmp_path / "scratch"), "CORNERMAP_LEASE_TTL_S": "2"}
     cwd = tmp_path
     assert cornermap("maps", "create", "--root", s3_root, "--map", "city", "--origin", ORIGIN, cwd=cwd,
                      **env).returncode == 0
@@ -205,7 +204,8 @@ def test_killed_rebuilds_on_a_bucket_leave_latest_complete(s3_env, s3_root, sim,
     rng = random.Random(58)
     for _ in range(3):
         p = subprocess.Popen([sys.executable, "-m", "pipeline", *args], stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL, env=env, cwd=cwd, start_new_session=True)
+                             stderr=subprocess.DEVNULL, env={**os.environ, **env, "PYTHONPATH": str(REPO)}, cwd=cwd,
+                             start_new_session=True)
         time.sleep(rng.uniform(5.0, 45.0))
         os.killpg(p.pid, signal.SIGKILL)
         p.wait()
