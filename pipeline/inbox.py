@@ -12,6 +12,8 @@ The delivery protocol (``docs/maintenance.md``, "Delivering drives"):
     the folder (nor a file it names outside it, e.g. ``../survey/``) changed for the quiet period (default 10 min).
     A change is a modification or status change (mtime or ctime: a copy that keeps the sender's modification times
     still sets the status-change time).
+An inbox in a bucket (``s3://BUCKET/PREFIX``) follows the same protocol on objects: ``StoreInbox`` (``open_inbox``
+gives the one a ``--inbox`` value names).
 """
 from __future__ import annotations
 

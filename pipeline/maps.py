@@ -8,6 +8,8 @@ Files under ``ROOT/maps/NAME/`` besides the versions (``pipeline/versioned.py``)
     gate/vNNNN.json the regression gate's comparison for candidate vNNNN
 
 A writer of the map holds ``pipeline.locks.writer_locks`` (the root shared, the map exclusive; ``run_lock``).
+``MapHome`` is the map as a writer sees it on a local root or an ``s3://`` one alike (identity, LATEST, versions,
+gate records, locks).
 
 Knows nothing about LiDAR: a drive is a ``drive.yaml`` path and its ``pipeline.fingerprint.drive_fingerprint``.
 """

@@ -17,6 +17,10 @@ another writer holds either):
   7. LATEST moves to the verified candidate, then the identity records the new drives.
 A run killed at any point leaves LATEST naming a complete version; the next run finds the same drives new
 and completes from the committed work (a candidate LATEST already names is only recorded).
+The root and the inbox may be ``s3://`` URIs: the map's identity, LATEST, gate records and locks (leases) are then
+the bucket's (``pipeline.maps.MapHome``), the free-disk check is the local scratch folder's, the gate evaluates on a
+local snapshot of both versions, and drives delivered to a bucket are read from a local copy
+(``pipeline.inbox.StoreInbox``; docs/maintenance.md).
 This module calls the stages through the command line (``python -m pipeline ...``), never by import; those child
 processes end themselves when the rebuild is gone (``pipeline.progress.run_cornermap``).
 """
