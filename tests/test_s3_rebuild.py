@@ -144,9 +144,11 @@ def test_a_lease_held_on_the_bucket_is_exit_75(s3_env, s3_root, sim, tmp_path):
 
 
 def test_a_drive_still_arriving_waits_and_one_naming_files_outside_the_inbox_is_quarantined(s3_env, s3_root, sim,
-                                                                                            tmp_path):
+                                                                                            tmp_path, monkeypatch):
     from pipeline.inbox import StoreInbox
-    from pipeline.storage import Store
+    from pipeline.storage import SCRATCH_ENV, Store
+
+    monkeypatch.setenv(SCRATCH_ENV, str(tmp_path / "scratch"))  # the inbox's local copy
 
     bucket = s3_root.rsplit("/", 1)[0]
     inbox = f"{bucket}/inbox"
