@@ -2,6 +2,7 @@
 
     .venv/bin/python -m bench.bench_rebuild --preset tiny --drives 3 [--sim DIR] [--json out.json] [--gate]
     .venv/bin/python -m bench.bench_rebuild --preset demo --drives 4
+    .venv/bin/python -m bench.bench_rebuild --preset tiny --drives 3 --s3   # roots and inboxes in a local S3 bucket
 
 Simulates ``--drives`` K drives (or takes them from ``--sim``), then in fresh roots:
   A. a map of the first K-1 drives (``maps create`` + ``rebuild`` from an inbox holding them);
@@ -9,7 +10,11 @@ Simulates ``--drives`` K drives (or takes them from ``--sim``), then in fresh ro
   C. drive K added to map A (``rebuild``): the old drives' per-drive work is reused.
 Reported: per-stage wall seconds of A, B, C, partitions reused in C and the ratio
 ``C / (per-drive work of B + joint steps of C)`` (issue target <= 1.3). The gate is off unless ``--gate``
-(its evaluation is timed apart). Wall times depend on the machine's load: state it with the numbers.
+(its evaluation is timed apart). Wall times depend on the machine's load: state it with the numbers. CPU seconds
+of each rebuild (this process and its pool processes; ``A_cpu_s``, ``B_cpu_s``, ``C_cpu_s``) are measured as
+``bench.bench_build`` does. ``--s3``: the roots are ``s3://bench/...`` and the inboxes ``s3://bench/inbox-*`` on moto's
+S3 server started here (``bench_build.s3_root``; its own CPU is left out and reported apart, ``s3_server_cpu_s``);
+drives are uploaded with a READY object (the upload is not counted).
 """
 from __future__ import annotations
 
@@ -55,12 +60,33 @@ def deliver(sim: Path, names: list[str], inbox: Path, ready: bool = False) -> Pa
     return inbox
 
 
-def _rebuild(root: Path, inbox: Path, gate: bool) -> tuple[dict, float, list[str]]:
+def deliver_s3(sim: Path, names: list[str], inbox: str) -> str:
+    """``deliver`` into a bucket inbox: each drive's files under ``INBOX/NAME/``, then its READY object."""
+    from pipeline.storage import Store
+
+    store = Store.open(inbox)
+
+    def upload(folder: Path, name: str) -> None:
+        store.upload_files([(p, store.root / name / p.relative_to(folder).as_posix())
+                            for p in sorted(folder.rglob("*")) if p.is_file()])
+
+    if (sim / "survey").is_dir() and not store.exists(store.root / "survey"):
+        upload(sim / "survey", "survey")
+    for n in names:
+        upload(sim / n, n)
+        time.sleep(1.1)  # S3 stamps are whole seconds: READY after the last object
+        store.put_bytes(store.root / n / "READY", b"")
+    return inbox
+
+
+def _rebuild(root, inbox, gate: bool, server=None) -> tuple[dict, float, list[str], float]:
+    """(summary, wall s, lines, CPU s of this process tree less the S3 server's)."""
+    from bench.bench_build import _cpu_of, tree_cpu_s
     from pipeline.rebuild import RebuildParams, rebuild
 
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), tree_cpu_s() - _cpu_of(server)
     res = rebuild(root, "city", inbox, RebuildParams(gate=gate, min_free_gib=0.5, quiet_period_s=0.0))  # copied now
-    return res.summary, time.perf_counter() - t0, res.lines
+    return res.summary, time.perf_counter() - t0, res.lines, tree_cpu_s() - _cpu_of(server) - cpu0
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -72,20 +98,37 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", type=Path, help="work folder (default: a temporary one, deleted)")
     ap.add_argument("--gate", action="store_true", help="run the regression gate in C")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--s3", action="store_true", help="roots and inboxes on a local S3 server (moto, started here)")
     a = ap.parse_args(argv)
+    from bench.bench_build import s3_root
+
+    with s3_root(a.s3) as server:
+        return _bench(a, server)
+
+
+def _bench(a, server) -> dict:
+    from bench.bench_build import _cpu_of
     from pipeline.maps import create_map
 
     work = a.work or Path(tempfile.mkdtemp(prefix="bench-rebuild-"))
+    server_cpu0 = _cpu_of(server)
     try:
         sim = simulated(a.sim, work, a.preset, a.seed, a.drives)
         names = [f"drive_{k}" for k in range(a.drives)]
         old, new = names[:-1], names[-1]
-        create_map(work / "A", "city", ORIGIN)
-        sum_a, _, _ = _rebuild(work / "A", deliver(sim, old, work / "inbox_A"), gate=False)
-        create_map(work / "B", "city", ORIGIN)
-        sum_b, _, _ = _rebuild(work / "B", deliver(sim, [new], work / "inbox_B"), gate=False)
-        deliver(sim, [new], work / "inbox_A")
-        sum_c, wall_c, lines_c = _rebuild(work / "A", work / "inbox_A", gate=a.gate)
+        if server is not None:
+            stamp = time.time_ns()
+            root_a, root_b = f"s3://bench/A-{stamp}", f"s3://bench/B-{stamp}"
+            inbox_a, inbox_b = f"s3://bench/inbox-A-{stamp}", f"s3://bench/inbox-B-{stamp}"
+            put = deliver_s3
+        else:
+            root_a, root_b, inbox_a, inbox_b, put = work / "A", work / "B", work / "inbox_A", work / "inbox_B", deliver
+        create_map(root_a, "city", ORIGIN)
+        sum_a, _, _, cpu_a = _rebuild(root_a, put(sim, old, inbox_a), gate=False, server=server)
+        create_map(root_b, "city", ORIGIN)
+        sum_b, _, _, cpu_b = _rebuild(root_b, put(sim, [new], inbox_b), gate=False, server=server)
+        put(sim, [new], inbox_a)
+        sum_c, wall_c, lines_c, cpu_c = _rebuild(root_a, inbox_a, gate=a.gate, server=server)
         wa, wb, wc = _stage_walls(sum_a), _stage_walls(sum_b), _stage_walls(sum_c)
         per_drive_b = sum(wb.get(s, 0.0) for s in PER_DRIVE)
         joint_c = sum(wc.get(s, 0.0) for s in JOINT)
@@ -98,7 +141,9 @@ def main(argv: list[str] | None = None) -> dict:
                "B_per_drive_s": round(per_drive_b, 1), "C_joint_s": round(joint_c, 1),
                "ratio_C_over_B_per_drive_plus_C_joint": round(build_c / max(per_drive_b + joint_c, 1e-9), 3),
                "C_rebuild_wall_s": round(wall_c, 1), "gate_s": round(wall_c - build_c, 1) if a.gate else None,
-               "C_lines": lines_c}
+               "C_lines": lines_c, "root_on": "s3" if server is not None else "local disk",
+               "A_cpu_s": round(cpu_a, 1), "B_cpu_s": round(cpu_b, 1), "C_cpu_s": round(cpu_c, 1),
+               "s3_server_cpu_s": round(_cpu_of(server) - server_cpu0, 1) if server is not None else None}
         print(json.dumps(out, indent=1))
         if a.json:
             a.json.write_text(json.dumps(out, indent=1))

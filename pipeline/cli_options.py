@@ -41,7 +41,20 @@ def _local_only(option: str):
     return check
 
 
+def _store_uri(option: str):
+    """``_store_root`` for another option than ``--root`` (``--inbox``)."""
+
+    def check(ctx: typer.Context, param: Any, value: Any) -> Any:
+        return _store_value(ctx, value, option)
+
+    return check
+
+
 def _store_root(ctx: typer.Context, param: Any, value: Any) -> Any:
+    return _store_value(ctx, value, "--root")
+
+
+def _store_value(ctx: typer.Context, value: Any, option: str) -> Any:
     """A root that may be a local folder or an ``s3://`` URI: the URI kept whole (typer's ``Path`` would collapse
     ``s3://`` to ``s3:/``); an unsupported scheme is a usage error."""
     if value is None or ctx.resilient_parsing:
@@ -52,7 +65,7 @@ def _store_root(ctx: typer.Context, param: Any, value: Any) -> Any:
     if scheme is None:
         return Path(value)
     if scheme not in SCHEMES:
-        refuse_uri(value, "--root", "a local folder or an s3://BUCKET/PREFIX URI")
+        refuse_uri(value, option, "a local folder or an s3://BUCKET/PREFIX URI")
     return normalise_uri(value)
 
 
@@ -70,6 +83,9 @@ ROOT_OR_URI = typer.Option(..., "--root", envvar="CORNERMAP_ROOT", show_envvar=F
 INBOX = typer.Option(..., "--inbox", callback=_local_only("--inbox"),
                      help="Folder of drive folders (each with a drive.yaml); "
                      "bad ones move to INBOX/quarantine/.")
+INBOX_OR_URI = typer.Option(..., "--inbox", callback=_store_uri("--inbox"),
+                            help="Folder of drive folders (each with a drive.yaml), or s3://BUCKET/PREFIX of drive "
+                            "prefixes; bad ones move to INBOX/quarantine/.")
 MAP = typer.Option(..., "--map", "-m", help="Map name (ROOT/maps/NAME).")
 MAP_OR_ONLY = typer.Option(None, "--map", "-m", help="Map name (ROOT/maps/NAME); default: the only map there.")
 MAP_VERSION = typer.Option("LATEST", "--map-version", help="The map's version: LATEST, vNNNN or N.")

@@ -12,6 +12,8 @@ The delivery protocol (``docs/maintenance.md``, "Delivering drives"):
     the folder (nor a file it names outside it, e.g. ``../survey/``) changed for the quiet period (default 10 min).
     A change is a modification or status change (mtime or ctime: a copy that keeps the sender's modification times
     still sets the status-change time).
+An inbox in a bucket (``s3://BUCKET/PREFIX``) follows the same protocol on objects: ``StoreInbox`` (``open_inbox``
+gives the one a ``--inbox`` value names).
 """
 from __future__ import annotations
 
@@ -192,3 +194,232 @@ def quarantine(entry: Path, inbox: Path, reason: str) -> Path:
     tmp.write_text(f"{utc_now()} quarantined by cornermap rebuild: {reason.strip()}\n", encoding="utf-8")
     tmp.replace(qdir / f"{dst.name}.reason.txt")
     return dst
+
+
+# --- the inbox as one face: a local folder, or a prefix in a bucket ------------------------------------------------
+class LocalInbox:
+    """A folder of drive folders (the protocol above)."""
+
+    local = True
+
+    def __init__(self, path: Path):
+        self.path = Path(path).resolve()
+
+    def __str__(self) -> str:
+        return str(self.path)
+
+    def exists(self) -> bool:
+        return self.path.is_dir()
+
+    def scan(self) -> tuple[list[Delivery], list[tuple[Path, str]]]:
+        return scan_inbox(self.path)
+
+    def recorded(self, delivery: Delivery) -> str:
+        """What the map's identity records for a drive taken from here: its drive file's absolute path."""
+        return str(delivery.drive_yaml)
+
+    def waiting_reason(self, delivery: Delivery, quiet_period_s: float) -> str | None:
+        return waiting_reason(delivery, quiet_period_s)
+
+    def containment_problem(self, delivery: Delivery) -> str | None:
+        return containment_problem(delivery, self.path)
+
+    def fetch(self, delivery: Delivery) -> None:
+        """Make the drive's files readable at ``delivery.drive_yaml`` (here: they are)."""
+
+    def quarantine(self, entry: Path, reason: str) -> str:
+        return str(quarantine(entry, self.path, reason))
+
+
+@dataclass(frozen=True)
+class StoreDelivery:
+    """One drive prefix found in an object-store inbox: ``INBOX/<name>/drive.yaml``; ``folder`` is its local copy (in
+    this process's scratch, ``storage.drive_copy_dir``), filled by ``StoreInbox.fetch``."""
+
+    entry: str  # s3://bucket/inbox/NAME
+    folder: Path  # the local copy of the drive's folder
+    name: str
+
+    @property
+    def drive_yaml(self) -> Path:
+        return self.folder / "drive.yaml"
+
+
+class StoreInbox:
+    """An inbox in a bucket (``s3://BUCKET/PREFIX``): drives delivered as prefixes ``PREFIX/NAME/`` holding
+    ``drive.yaml``, by the protocol of the local inbox. ``quarantine/`` and hidden names are not looked at; there are
+    no links, so containment is only that every path the drive file names stays inside the inbox (and outside its
+    quarantine); complete is a ``READY`` object with no object under the drive's prefix (nor under a prefix the drive
+    file names outside it) modified after it, or nothing modified for the quiet period (objects' LastModified). A
+    taken drive stays where it was delivered (the map's identity records its ``s3://`` URI); its files are read from
+    a local copy (``fetch``: the drive's prefix and what its drive file names, each file's modification time set to
+    its object's, so that the drive's fingerprint is the same in every copy). A bad drive's objects are copied to
+    ``quarantine/NAME/`` (server-side), with ``quarantine/NAME.reason.txt``, then deleted from the inbox (a run
+    killed in between leaves the drive in the inbox: the next run quarantines it again)."""
+
+    local = False
+
+    def __init__(self, uri: str):
+        from pipeline.storage import Store, drive_copy_dir
+
+        self.store = Store.open(uri)
+        self.base = self.store.root
+        self.uri = self.store.uri
+        self.copy = drive_copy_dir(self.uri)
+        from pipeline.store import use_local_copy
+
+        use_local_copy(self.copy)
+        self._objects: dict[str, tuple[int, float]] | None = None
+
+    def __str__(self) -> str:
+        return self.uri
+
+    def exists(self) -> bool:
+        return bool(self.objects())
+
+    def objects(self, refresh: bool = False) -> dict[str, tuple[int, float]]:
+        """{path relative to the inbox: (bytes, modified unix s)} outside its quarantine, listed once per scan."""
+        if self._objects is None or refresh:
+            self._objects = {rel: v for rel, v in self.store.walk_objects(self.base).items()
+                             if not rel.startswith(QUARANTINE + "/")}
+        return self._objects
+
+    def scan(self) -> tuple[list[StoreDelivery], list[tuple[str, str]]]:
+        objs = self.objects(refresh=True)
+        names = sorted({rel.split("/", 1)[0] for rel in objs if "/" in rel})
+        found = [StoreDelivery(f"{self.uri}/{n}", self.copy / n, n) for n in names
+                 if not n.startswith(".") and n != QUARANTINE and f"{n}/drive.yaml" in objs]
+        return found, []
+
+    def recorded(self, delivery: StoreDelivery) -> str:
+        return f"{delivery.entry}/drive.yaml"
+
+    def _refs(self, delivery: StoreDelivery) -> list[str] | None:
+        """The paths the drive file names, relative to the inbox and normalised (``..`` resolved); None for one that
+        leaves the inbox."""
+        import posixpath
+        import tempfile
+
+        from pipeline.errors import ConfigError
+        from pipeline.safe_yaml import MAX_YAML_BYTES
+
+        size = self.objects().get(f"{delivery.name}/drive.yaml", (0, 0.0))[0]
+        if size > MAX_YAML_BYTES:
+            return []
+        try:
+            raw = self.store.read_bytes(self.base / delivery.name / "drive.yaml")
+        except FileNotFoundError:
+            return []
+        with tempfile.TemporaryDirectory(prefix="cornermap-inbox-") as tmp:
+            path = Path(tmp) / delivery.name / "drive.yaml"
+            path.parent.mkdir()
+            path.write_bytes(raw)
+            try:
+                refs = referenced_paths(path)
+            except ConfigError:
+                return []
+            out = []
+            for ref in refs:
+                try:
+                    rel = posixpath.normpath(posixpath.join(delivery.name, ref.relative_to(path.parent).as_posix()))
+                except ValueError:  # an absolute path
+                    return None
+                if rel == ".." or rel.startswith("../") or rel.startswith("/") or rel.split("/", 1)[0] == QUARANTINE:
+                    return None
+                out.append(rel)
+            return out
+
+    def _keys(self, delivery: StoreDelivery, refs: list[str]) -> list[str]:
+        """The inbox's objects of the drive: under its prefix and under every path its drive file names."""
+        objs = self.objects()
+        tops = [delivery.name] + [r for r in refs if not (r + "/").startswith(delivery.name + "/")]
+        return sorted(k for k in objs if any(k == t or k.startswith(t + "/") for t in tops))
+
+    def containment_problem(self, delivery: StoreDelivery) -> str | None:
+        if self._refs(delivery) is None:
+            return (f"{self.recorded(delivery)} names a path outside the inbox {self.uri} (or in its quarantine); "
+                    "refused: a delivered drive holds its own files")
+        return None
+
+    def waiting_reason(self, delivery: StoreDelivery, quiet_period_s: float, now: float | None = None) -> str | None:
+        now = time.time() if now is None else now
+        objs = self.objects()
+        keys = self._keys(delivery, self._refs(delivery) or [])
+        marker = f"{delivery.name}/{READY_MARKER}"
+        if marker in objs:
+            marked = objs[marker][1]
+            newest = max((objs[k][1] for k in keys if k != marker), default=marked)
+            if newest > marked + CLOCK_SLACK_S:
+                return (f"{delivery.entry} changed {newest - marked:.0f} s after its {READY_MARKER} marker; taken "
+                        f"once {READY_MARKER} is written again after the copy")
+            return None
+        age = now - max((objs[k][1] for k in keys), default=0.0)
+        if age >= quiet_period_s:
+            return None
+        return (f"{delivery.entry} changed {max(age, 0):.0f} s ago; taken after {quiet_period_s / 60:g} min without "
+                f"a change (--quiet-period-min), or at once with a {READY_MARKER} object in it written after the "
+                "copy")
+
+    def fetch(self, delivery: StoreDelivery) -> None:
+        """Download the drive's objects absent from the local copy, or of another size or time, into it; each
+        file's modification time is its object's."""
+        objs = self.objects()
+        pairs, stamps = [], {}
+        for key in self._keys(delivery, self._refs(delivery) or []):
+            if key.endswith("/" + READY_MARKER) and key.count("/") == 1:
+                continue
+            size, stamp = objs[key]
+            target = self.copy / key
+            try:
+                st = target.stat()
+                if st.st_size == size and abs(st.st_mtime - stamp) < 1e-3:
+                    os.utime(target, ns=(time.time_ns(), st.st_mtime_ns))  # read now: the last to go when pruned
+                    continue
+            except FileNotFoundError:
+                pass
+            pairs.append((self.base / key, target))
+            stamps[target] = stamp
+        self.store.download_files(pairs)
+        for target, stamp in stamps.items():
+            os.utime(target, (time.time(), stamp))
+
+    def quarantine(self, entry: str, reason: str) -> str:
+        from pipeline.maps import utc_now
+
+        name = entry.rstrip("/").rsplit("/", 1)[-1]
+        qbase = self.base / QUARANTINE
+        taken = set(self.store.listdir(qbase))
+        dst = name if name not in taken else f"{name}-{utc_now().replace(':', '')}"
+        keys = [k for k in self.objects() if k.startswith(name + "/")]
+        for key in keys:
+            self.store.copy(self.base / key, qbase / dst / key[len(name) + 1:])
+        self.store.put_bytes(qbase / f"{dst}.reason.txt",
+                             f"{utc_now()} quarantined by cornermap rebuild: {reason.strip()}\n".encode())
+        for key in keys:
+            self.store.delete(self.base / key)
+        return self.store.url(qbase / dst)
+
+
+def open_inbox(value: "str | Path") -> "LocalInbox | StoreInbox":
+    """The inbox ``--inbox`` names: a local folder, or ``s3://BUCKET/PREFIX``."""
+    from pipeline.storage import uri_scheme
+
+    return StoreInbox(str(value)) if uri_scheme(value) is not None else LocalInbox(Path(value))
+
+
+def local_drive_file(recorded: str) -> Path | None:
+    """The local drive file of a map drive as its identity records it: the path itself, or for an ``s3://.../NAME/
+    drive.yaml`` its local copy, fetched now; None when it is gone."""
+    from pipeline.storage import uri_scheme
+
+    if uri_scheme(recorded) is None:
+        return Path(recorded) if Path(recorded).is_file() else None
+    base, name, leaf = recorded.rstrip("/").rsplit("/", 2)
+    if leaf != "drive.yaml":
+        return None
+    inbox = StoreInbox(base)
+    if f"{name}/drive.yaml" not in inbox.objects():
+        return None
+    delivery = StoreDelivery(f"{inbox.uri}/{name}", inbox.copy / name, name)
+    inbox.fetch(delivery)
+    return delivery.drive_yaml

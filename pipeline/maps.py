@@ -8,6 +8,8 @@ Files under ``ROOT/maps/NAME/`` besides the versions (``pipeline/versioned.py``)
     gate/vNNNN.json the regression gate's comparison for candidate vNNNN
 
 A writer of the map holds ``pipeline.locks.writer_locks`` (the root shared, the map exclusive; ``run_lock``).
+``MapHome`` is the map as a writer sees it on a local root or an ``s3://`` one alike (identity, LATEST, versions,
+gate records, locks).
 
 Knows nothing about LiDAR: a drive is a ``drive.yaml`` path and its ``pipeline.fingerprint.drive_fingerprint``.
 """
@@ -20,7 +22,7 @@ import shutil
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, ContextManager, Iterable, Iterator
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -96,15 +98,24 @@ def read_identity(mdir: Path) -> MapIdentity | None:
     if not path.is_file():
         return None
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
+        raw = path.read_bytes()
+    except OSError as exc:
         raise ConfigError(str(path), [f"not readable JSON: {exc}"]) from exc
+    return parse_identity(raw, str(path))
+
+
+def parse_identity(raw: bytes, where: str) -> MapIdentity:
+    """An identity document's bytes -> MapIdentity; ConfigError naming ``where`` when malformed."""
+    try:
+        doc = json.loads(raw.decode("utf-8"))
+    except ValueError as exc:
+        raise ConfigError(where, [f"not readable JSON: {exc}"]) from exc
     if isinstance(doc, dict) and doc.get("schema") != IDENTITY_SCHEMA:
-        raise ConfigError(str(path), [f"schema {doc.get('schema')!r}; expected {IDENTITY_SCHEMA!r}"])
+        raise ConfigError(where, [f"schema {doc.get('schema')!r}; expected {IDENTITY_SCHEMA!r}"])
     try:
         return MapIdentity.model_validate(doc)
     except ValidationError as exc:
-        raise ConfigError(str(path), [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()]) from None
+        raise ConfigError(where, [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()]) from None
 
 
 def require_identity(mdir: Path) -> MapIdentity:
@@ -126,21 +137,27 @@ def write_identity(mdir: Path, ident: MapIdentity) -> None:
     os.replace(tmp, mdir / IDENTITY_NAME)
 
 
-def create_map(root: Path, name: str, origin: dict[str, float], tile_size_m: float = 100.0,
+def create_map(root: "Path | str", name: str, origin: dict[str, float], tile_size_m: float = 100.0,
                check_drive: CheckDrive | None = None, max_radius_km: float = DEFAULT_MAX_RADIUS_KM) -> MapIdentity:
-    """Write a new map's identity; refuses a map that already has one, or versions in another frame."""
-    mdir = map_dir(root, name)
-    if (mdir / IDENTITY_NAME).exists():
-        raise ConfigError(f"cornermap maps create --map {name}", [f"{mdir / IDENTITY_NAME} exists; a map's frame "
-                                                                  "is never changed (make a new map)"])
+    """Write a new map's identity (a local root or an ``s3://`` one: ``MapHome``); refuses a map that already has
+    one, or versions in another frame."""
+    home = MapHome(root, name)
+    where = home.store.url(storage.identity_file(home.mdir))
+    if home.identity() is not None:
+        raise ConfigError(f"cornermap maps create --map {name}", [f"{where} exists; a map's frame is never changed "
+                                                                  "(make a new map)"])
     ident = MapIdentity(name=name, enu_origin=Origin(**origin), tile_size_m=tile_size_m, created_utc=utc_now(),
                         check_drive=check_drive, max_radius_km=max_radius_km)
-    published = latest_origin(mdir)
+    with home.view(whole=()) as view:
+        published = latest_origin(view)
     if published is not None and not same_origin(published, ident.enu_origin.model_dump()):
         raise ConfigError(f"cornermap maps create --map {name}",
                           [f"its published versions are in the frame {fmt_origin(published)}, not "
                            f"{fmt_origin(origin)}; pass that origin or make a new map"])
-    write_identity(mdir, ident)
+    if home.local:
+        write_identity(Path(home.mdir), ident)
+    elif not home.store.create(storage.identity_file(home.mdir), (json.dumps(ident.dump(), indent=1) + "\n").encode()):
+        raise ConfigError(f"cornermap maps create --map {name}", [f"{where} exists; a map's frame is never changed"])
     return ident
 
 
@@ -270,3 +287,121 @@ def stale_latest_note(plan: Any, name: str) -> str | None:
                     f"run), but LATEST is {version_name(latest)}; `cornermap tiles rollback --to "
                     f"{version_name(mine)}` serves it, `cornermap rebuild` adds drives to the map")
     return None
+
+
+class MapHome:
+    """Map NAME of an output root as a writer (``cornermap rebuild``, ``maps create``) sees it, on a local folder or
+    an object store alike: its identity, LATEST, committed versions, gate records and writer locks. A local root is
+    read and written in place (``ROOT/maps/NAME``); an ``s3://`` root through its ``Store`` (the identity and LATEST
+    one PUT each, versions read from a local snapshot, ``pipeline.store_maps``)."""
+
+    def __init__(self, root: "str | Path", name: str):
+        from pipeline.storage import Store, uri_scheme
+
+        check_name(name, "map", "--map")
+        self.store = Store.open(root if uri_scheme(root) is not None else Path(root).resolve())
+        self.name = name
+        self.mdir = storage.map_dir(self.store.root, name)  # a Path (local) or bucket/prefix location
+
+    @property
+    def local(self) -> bool:
+        return self.store.local
+
+    @property
+    def root(self) -> "str | Path":
+        """The root as the engine takes it: a local ``Path`` or the ``s3://`` URI."""
+        return Path(self.store.root) if self.local else self.store.uri
+
+    def where(self) -> str:
+        return self.store.url(self.mdir)
+
+    def identity(self) -> MapIdentity | None:
+        if self.local:
+            return read_identity(Path(self.mdir))
+        loc = storage.identity_file(self.mdir)
+        try:
+            raw = self.store.read_bytes(loc)
+        except FileNotFoundError:
+            return None
+        return parse_identity(raw, self.store.url(loc))
+
+    def require_identity(self) -> MapIdentity:
+        ident = self.identity()
+        if ident is None:
+            raise UnknownNameError(f"{self.where()}: no {IDENTITY_NAME}; hint: cornermap maps create --root ROOT "
+                                   f"--map {self.name} --origin LAT,LON,H")
+        return ident
+
+    def write_identity(self, ident: MapIdentity) -> None:
+        """Replace the identity atomically (a reader sees the old one or the new one)."""
+        if self.local:
+            write_identity(Path(self.mdir), ident)
+        else:
+            self.store.put_bytes(storage.identity_file(self.mdir), (json.dumps(ident.dump(), indent=1) + "\n").encode())
+
+    def latest(self) -> int | None:
+        from pipeline.version_read import read_latest
+
+        if self.local:
+            return read_latest(Path(self.mdir)) if storage.latest_file(Path(self.mdir)).exists() else None
+        from pipeline.store_maps import read_latest_number
+
+        return read_latest_number(self.store, self.name)
+
+    def run_lock(self) -> "ContextManager[None]":
+        """``run_lock``: the root shared, the map exclusive (flock locally, leases on a store); exit 75 when held."""
+        from pipeline.locks import writer_locks
+
+        return writer_locks(self.store.root if self.local else self.store.uri, self.name)
+
+    @contextmanager
+    def view(self, whole: "Iterable[int] | str" = ()) -> Iterator[Path]:
+        """A local map folder to read from: ``ROOT/maps/NAME`` itself, or on a store a snapshot (LATEST, identity,
+        gate records, every committed manifest, the versions ``whole`` names in full) in a temporary folder of this
+        process's scratch, removed after."""
+        if self.local:
+            yield Path(self.mdir)
+            return
+        import tempfile
+
+        from pipeline.store_maps import snapshot_map
+
+        with tempfile.TemporaryDirectory(prefix="cornermap-view-", dir=_scratch()) as tmp:
+            yield snapshot_map(self.store, self.name, Path(tmp), whole=whole)
+
+    def put_gate(self, local_mdir: Path, version: int) -> None:
+        """Upload the gate record of ``version`` written in the local view ``local_mdir`` (on a store)."""
+        if not self.local:
+            self.store.put_bytes(storage.gate_file(self.mdir, version),
+                                 storage.gate_file(Path(local_mdir), version).read_bytes())
+
+    def move_latest(self, version: int) -> None:
+        """Verify ``version``'s bytes (files against its manifest) and point LATEST at it; DataQualityError (LATEST
+        unchanged) when it is not intact. The caller holds the map's lock."""
+        from pipeline.errors import DataQualityError
+        from pipeline.version_read import read_manifest, verify_version, version_name
+
+        if self.local:
+            from pipeline.versioned import publish_lock, write_latest
+
+            mdir = Path(self.mdir)
+            with publish_lock(mdir):
+                problems = verify_version(storage.version_dir(mdir, version))
+                if problems:
+                    raise DataQualityError(f"{storage.version_dir(mdir, version)}: {problems[0]}; LATEST unchanged")
+                write_latest(mdir, version)
+            return
+        with self.view(whole=[version]) as local:
+            vdir = storage.version_dir(local, version)
+            problems = verify_version(vdir)
+            if problems:
+                where = self.store.url(storage.version_dir(self.mdir, version))
+                raise DataQualityError(f"{where}: {problems[0].replace(str(local), self.where())}; LATEST unchanged")
+            sha = read_manifest(vdir)[1]
+        self.store.put_bytes(storage.latest_file(self.mdir), f"{version_name(version)} {sha}\n".encode())
+
+
+def _scratch() -> Path:
+    base = storage.scratch_base()
+    base.mkdir(parents=True, exist_ok=True)
+    return base

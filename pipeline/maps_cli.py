@@ -22,7 +22,7 @@ MAP_REQ = opts.MAP
 
 
 @maps_app.command("create")
-def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
+def create_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ,
                origin: str = typer.Option(..., "--origin", help="The map's ENU origin LAT,LON,H (degrees, degrees, "
                                           "metres WGS84), fixed for every version."),
                tile_size_m: float = typer.Option(100.0, "--tile-size-m", help="Tile edge in metres, fixed."),
@@ -34,7 +34,8 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                                                           "regression gate localizes (default: the newest drive)."),
                check_reference: Optional[Path] = typer.Option(None, "--check-reference", help="Truth TUM of "
                                                               "--check-drive (default: its own pose graph).")) -> None:
-    """Write a map's identity (ROOT/maps/NAME/map.json): every build and rebuild of NAME uses this frame.
+    """Write a map's identity (ROOT/maps/NAME/map.json): every build and rebuild of NAME uses this frame. The root
+    may be s3://BUCKET/PREFIX.
 
     Example: [b]cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57[/b]
     """
@@ -55,12 +56,14 @@ def create_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
                            reference=str(check_reference.resolve()) if check_reference else None)
     elif check_reference is not None:
         raise OptionError("--check-reference", ["applies to --check-drive only"])
-    from pipeline.storage import identity_file, map_dir
+    from pipeline.maps import MapHome
+    from pipeline.storage import identity_file
 
     ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check, max_radius_km)
+    home = MapHome(root, map_name)
     o = ident.enu_origin
     typer.echo(f"created map {map_name!r}: origin {o.lat_deg},{o.lon_deg},{o.h_m}, tiles {ident.tile_size_m} m, "
-               f"area {ident.max_radius_km:g} km -> {identity_file(map_dir(Path(root), map_name))}")
+               f"area {ident.max_radius_km:g} km -> {home.store.url(identity_file(home.mdir))}")
 
 
 @maps_app.command("show")
@@ -86,8 +89,8 @@ def show_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ, as_json: bo
             typer.echo(shown(line))
 
 
-def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
-                inbox: Path = opts.INBOX,
+def rebuild_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ,
+                inbox: Path = opts.INBOX_OR_URI,
                 min_free_gib: float = typer.Option(2.0, "--min-free-gib", help="Free space required to start."),
                 quiet_period_min: float = typer.Option(10.0, "--quiet-period-min", help="A drive folder is taken "
                                                        "when nothing under it changed for this long (minutes), or at "
@@ -113,6 +116,10 @@ def rebuild_cmd(root: Path = ROOT_REQ, map_name: str = MAP_REQ,
     Exit codes: 0 published or nothing to do, 3 gate refused or a drive outside the map's area (LATEST unchanged),
     1 error, 2 usage, 75 another writer of the map or root holds its lock, 130/143 interrupted/terminated (LATEST
     unchanged unless the candidate was already published).
+
+    ROOT and INBOX may be s3://BUCKET/PREFIX (docs/storage.md): drives are then prefixes INBOX/NAME/ with a
+    drive.yaml, complete with a READY object (or quiet for --quiet-period-min), read from a local copy in the
+    scratch folder; the free-space check applies to that scratch folder.
 
     Example: [b]cornermap rebuild --root runs/maps --map kept --inbox runs/sim[/b] (drive folders in runs/sim)
     """

@@ -17,6 +17,10 @@ another writer holds either):
   7. LATEST moves to the verified candidate, then the identity records the new drives.
 A run killed at any point leaves LATEST naming a complete version; the next run finds the same drives new
 and completes from the committed work (a candidate LATEST already names is only recorded).
+The root and the inbox may be ``s3://`` URIs: the map's identity, LATEST, gate records and locks (leases) are then
+the bucket's (``pipeline.maps.MapHome``), the free-disk check is the local scratch folder's, the gate evaluates on a
+local snapshot of both versions, and drives delivered to a bucket are read from a local copy
+(``pipeline.inbox.StoreInbox``; docs/maintenance.md).
 This module calls the stages through the command line (``python -m pipeline ...``), never by import; those child
 processes end themselves when the rebuild is gone (``pipeline.progress.run_cornermap``).
 """
@@ -30,9 +34,9 @@ from pathlib import Path
 from typing import Callable
 
 from pipeline import storage
-from pipeline.errors import ConfigError, DataQualityError, StageError
+from pipeline.errors import ConfigError, StageError
 from pipeline.inbox import DEFAULT_QUIET_PERIOD_S, QUARANTINE, Delivery, quarantine  # noqa: F401 - re-exported
-from pipeline.maps import MapDrive, check_free_disk, map_dir, require_identity, run_lock, utc_now, write_identity
+from pipeline.maps import MapDrive, check_free_disk, utc_now
 
 log = logging.getLogger(__name__)
 
@@ -122,15 +126,18 @@ def check_delivery(drive_yaml: Path) -> DriveCheck:
 def check_map_drives(ident) -> tuple[object, list[str], list[str]]:
     """(identity, problems, notes): every map drive must be where it was with the fingerprint it had, or, when only
     the fingerprint changed (files around it touched, copied or added), the same content of what its drive file
-    references; such a drive's fingerprint is updated in the returned identity."""
+    references; such a drive's fingerprint is updated in the returned identity. A drive delivered to a bucket
+    (``s3://.../NAME/drive.yaml``) is checked on its local copy (``pipeline.inbox.local_drive_file``)."""
     from pipeline.fingerprint import drive_fingerprint
+    from pipeline.inbox import local_drive_file
 
     problems, notes, drives = [], [], []
     for d in ident.drives:
-        if not Path(d.path).is_file():
+        local = local_drive_file(d.path)
+        if local is None:
             problems.append(f"map drive {d.name}: {d.path} is gone; the map needs every drive it was built from")
-        elif (fp := drive_fingerprint(Path(d.path))) != d.fingerprint:
-            check = check_delivery(Path(d.path)) if d.content else None
+        elif (fp := drive_fingerprint(local)) != d.fingerprint:
+            check = check_delivery(local) if d.content else None
             if check is not None and check.content == d.content:
                 notes.append(f"note: map drive {d.name}: files in its folder changed, what its drive file references "
                              "did not (same content)")
@@ -145,42 +152,54 @@ def check_map_drives(ident) -> tuple[object, list[str], list[str]]:
 @dataclass
 class Selection:
     good: list[tuple[Delivery, str, str | None]] = field(default_factory=list)  # (drive, fingerprint, content)
-    bad: list[tuple[Path, str]] = field(default_factory=list)  # (inbox entry, reason): quarantined
+    bad: list[tuple[Path | str, str]] = field(default_factory=list)  # (inbox entry, reason): quarantined
     lines: list[str] = field(default_factory=list)  # waiting, already in the map, duplicates
 
 
-def select_new_drives(ident, inbox: Path, quiet_period_s: float = DEFAULT_QUIET_PERIOD_S):
-    """(Selection, identity with the content of older map drives filled in where it had to be computed)."""
+def select_new_drives(ident, inbox, quiet_period_s: float = DEFAULT_QUIET_PERIOD_S):
+    """(Selection, identity with the content of older map drives filled in where it had to be computed). ``inbox``:
+    a folder, or a ``pipeline.inbox.LocalInbox`` / ``StoreInbox`` (a bucket: a drive is fetched into its local copy
+    once it is complete and stays inside the inbox)."""
     from pipeline.fingerprint import drive_fingerprint
-    from pipeline.inbox import containment_problem, scan_inbox, waiting_reason
+    from pipeline.inbox import LocalInbox
     from pipeline.names import name_problem
     from pipeline.progress import finish, report
 
+    if isinstance(inbox, (str, Path)):
+        inbox = LocalInbox(Path(inbox))
     by_fp = {d.fingerprint: d for d in ident.drives}
-    by_path = {str(Path(d.path)): d for d in ident.drives}
+    by_path = {d.path if "://" in d.path else str(Path(d.path)): d for d in ident.drives}
     names = {d.name for d in ident.drives}
     sel = Selection()
-    deliveries, refused = scan_inbox(inbox)
+    deliveries, refused = inbox.scan()
     sel.bad += refused
     content_of: dict[str, str] = {}  # map drive name -> content (recorded, or computed now for older identities)
     taken: dict[str, Delivery] = {}  # content -> the delivery taken this run
     for i, dlv in enumerate(deliveries):
-        report("inbox", i, len(deliveries), step=f"checking {dlv.entry.name}")
-        fp = drive_fingerprint(dlv.drive_yaml)
-        known = by_path.get(str(dlv.drive_yaml)) or by_fp.get(fp)
+        report("inbox", i, len(deliveries), step=f"checking {dlv.name}")
+        fp = drive_fingerprint(dlv.drive_yaml) if inbox.local else None  # a bucket's drive: once it is fetched
+        known = by_path.get(inbox.recorded(dlv)) or (by_fp.get(fp) if fp else None)
         if known is not None:
-            if str(dlv.drive_yaml) != str(Path(known.path)):
+            if inbox.recorded(dlv) != known.path:
                 sel.lines.append(f"already in the map as {known.name}: {dlv.entry} (the same files) left alone")
             continue
-        waiting = waiting_reason(dlv, quiet_period_s)
+        waiting = inbox.waiting_reason(dlv, quiet_period_s)
         if waiting:
             sel.lines.append(f"waiting: {waiting}")
             continue
-        outside = containment_problem(dlv, inbox)
+        outside = inbox.containment_problem(dlv)
         if outside:
             sel.bad.append((dlv.entry, outside))
             continue
+        if fp is None:
+            inbox.fetch(dlv)
+            fp = drive_fingerprint(dlv.drive_yaml)
+            if fp in by_fp:
+                sel.lines.append(f"already in the map as {by_fp[fp].name}: {dlv.entry} (the same files) left alone")
+                continue
         check = check_delivery(dlv.drive_yaml)
+        if not inbox.local:  # the check names the local copy: name the bucket's objects instead
+            check = DriveCheck(check.ok, check.content, check.reason.replace(str(inbox.copy), inbox.uri))
         if check.content is not None:
             if not content_of:
                 content_of = _map_contents(ident)
@@ -215,100 +234,112 @@ def select_new_drives(ident, inbox: Path, quiet_period_s: float = DEFAULT_QUIET_
 
 def _map_contents(ident) -> dict[str, str]:
     """Map drive name -> content: the identity's, else computed now (identities written before it was recorded)."""
+    from pipeline.inbox import local_drive_file
+
     out = {}
     for d in ident.drives:
         if d.content:
             out[d.name] = d.content
-        elif Path(d.path).is_file():
-            content = check_delivery(Path(d.path)).content
+        elif (local := local_drive_file(d.path)) is not None:
+            content = check_delivery(local).content
             if content:
                 out[d.name] = content
     return out
 
 
-def rebuild(root: Path, name: str, inbox: Path, params: RebuildParams = RebuildParams(),
+def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildParams = RebuildParams(),
             say: Callable[[str], None] | None = None) -> RebuildResult:
     """One rebuild (module docstring); ``say(line)`` gets each line of the result as it is made, so that what was
-    quarantined or left alone is told even when the build then fails."""
+    quarantined or left alone is told even when the build then fails. ``root`` and ``inbox`` are local folders or
+    ``s3://`` URIs (``pipeline.maps.MapHome``, ``pipeline.inbox.StoreInbox``)."""
     from pipeline.api import execute_workflow, published_version
     from pipeline.build import write_build_workflow
     from pipeline.gate import run_gate
-    from pipeline.versioned import publish_lock, read_latest, verify_version, version_name, write_latest
+    from pipeline.inbox import open_inbox
+    from pipeline.maps import MapHome
+    from pipeline.versioned import version_name
 
-    root, inbox = Path(root).resolve(), Path(inbox).resolve()
-    mdir = map_dir(root, name)
-    require_identity(mdir)
-    if not inbox.is_dir():
-        raise ConfigError("--inbox", [f"{inbox}: not a directory"])
-    with run_lock(mdir):
-        ident = require_identity(mdir)  # read again under the lock: the last writer's
+    home = MapHome(root, name)
+    home.require_identity()
+    box = open_inbox(inbox)
+    if not box.exists():
+        raise ConfigError("--inbox", [f"{box}: not a directory" if box.local else f"{box}: no object under it"])
+    with home.run_lock():
+        ident = home.require_identity()  # read again under the lock: the last writer's
         before = ident
-        check_free_disk(root, params.min_free_gib)
+        check_free_disk(home.root if home.local else storage.scratch_base(), params.min_free_gib)
         ident, problems, notes = check_map_drives(ident)
         if problems:
             raise ConfigError(f"map {name!r}", problems)
-        sel, ident = select_new_drives(ident, inbox, params.quiet_period_s)
+        sel, ident = select_new_drives(ident, box, params.quiet_period_s)
         result = RebuildResult("nothing", say=say)
         result.add(*notes, *sel.lines)
         for entry, reason in sel.bad:
-            dst = quarantine(entry, inbox, reason)
-            result.quarantined.append(entry.name)
-            result.add(f"quarantined {entry.name} -> {dst} ({reason[:300]})")
+            dst = box.quarantine(entry, reason)
+            entry_name = entry.name if isinstance(entry, Path) else entry.rstrip("/").rsplit("/", 1)[-1]
+            result.quarantined.append(entry_name)
+            result.add(f"quarantined {entry_name} -> {dst} ({reason[:300]})")
         if not sel.good:
             if ident != before:  # fingerprints or contents brought up to date
-                write_identity(mdir, ident)
-            result.add(f"nothing to do: no new drive in {inbox} for map {name!r} "
-                                f"({len(ident.drives)} drive(s), LATEST {_latest_text(mdir)})")
+                home.write_identity(ident)
+            result.add(f"nothing to do: no new drive in {box} for map {name!r} "
+                       f"({len(ident.drives)} drive(s), LATEST {_latest_text(home)})")
             return result
-        drives = [Path(d.path) for d in ident.drives] + [dlv.drive_yaml for dlv, _, _ in sel.good]
-        held = None if params.full else held_solution(root, mdir)
+        from pipeline.inbox import local_drive_file
+
+        drives = [local_drive_file(d.path) for d in ident.drives] + [dlv.drive_yaml for dlv, _, _ in sel.good]
+        with home.view(whole=()) as view:
+            held = None if params.full else held_solution(home.root, view)
         if held is None and not params.full and ident.drives:
             result.add("note: no published pose-graph solution to hold (LATEST none or its poses gone): every "
                        "drive is solved jointly")
-        wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=root,
+        wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=home.root,
                                   origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
                                   hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0, held_poses=held)
-        run = execute_workflow(wf, root=root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
+        run = execute_workflow(wf, root=home.root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
                                params_file=params.params_file, workers=params.workers, dask_host=params.dask_host)
         result.summary = run["summary"]
         result.add(reuse_line(run["summary"]))
         candidate = published_version(run["plan"])
         if candidate is None:
             raise StageError(f"rebuild of map {name!r}: the build committed no map_tiles rows (no version published)")
-        previous = read_latest(mdir)
+        previous = home.latest()
         if candidate != previous and previous is not None and params.gate:
             check = ident.check_drive
-            drive, reference = (Path(check.path), check.reference) if check else (sel.good[-1][0].drive_yaml, None)
-            verdict = run_gate(mdir, candidate, previous, drive, reference, params.gate_tol_m, params.gate_tol_rel)
+            drive = local_drive_file(check.path) if check else sel.good[-1][0].drive_yaml
+            if drive is None:
+                raise ConfigError(f"map {name!r}", [f"its check drive {check.path} is gone"])
+            reference = check.reference if check else None
+            with home.view(whole=[candidate, previous]) as view:
+                verdict = run_gate(view, candidate, previous, drive, reference, params.gate_tol_m,
+                                   params.gate_tol_rel)
+                home.put_gate(view, candidate)
             result.add(*verdict.table)
             if not verdict.ok:
                 result.status, result.version = "refused", candidate
                 result.add(f"refused: {version_name(candidate)} is worse than {version_name(previous)} on "
-                                    f"{drive.parent.name}; LATEST stays {version_name(previous)}")
+                           f"{drive.parent.name}; LATEST stays {version_name(previous)}")
                 if ident != before:
-                    write_identity(mdir, ident)
+                    home.write_identity(ident)
                 return result
         if candidate != previous:
-            with publish_lock(mdir):
-                problems = verify_version(mdir / version_name(candidate))
-                if problems:
-                    raise DataQualityError(f"{mdir / version_name(candidate)}: {problems[0]}; LATEST unchanged")
-                write_latest(mdir, candidate)
-        added = [MapDrive(name=dlv.name, path=str(dlv.drive_yaml), fingerprint=fp, content=content,
+            home.move_latest(candidate)
+        added = [MapDrive(name=dlv.name, path=box.recorded(dlv), fingerprint=fp, content=content,
                           added_utc=utc_now(), added_in=candidate) for dlv, fp, content in sel.good]
-        write_identity(mdir, ident.model_copy(update={"drives": list(ident.drives) + added}))
+        home.write_identity(ident.model_copy(update={"drives": list(ident.drives) + added}))
         result.status, result.version = "published", candidate
         result.add(f"published map {name!r} {version_name(candidate)} (LATEST): {len(drives)} drive(s), "
-                            f"added {', '.join(dlv.name for dlv, _, _ in sel.good)}")
+                   f"added {', '.join(dlv.name for dlv, _, _ in sel.good)}")
         return result
 
 
-def held_solution(root: Path, mdir: Path) -> dict | None:
+def held_solution(root: "Path | str", mdir: Path) -> dict | None:
     """``{fingerprint, version}`` of the pose-graph solution LATEST was published from (its manifest's ``poses``
     input), which an incremental rebuild holds fixed; None without a LATEST, a manifest naming none, or when that
-    dataset is no longer committed under ROOT (the rebuild then solves every drive jointly)."""
-    from pipeline.store import dataset_dir, read_manifest
-    from pipeline.versioned import read_latest, version_name
+    dataset is no longer committed under ROOT (the rebuild then solves every drive jointly). ``mdir``: the map's
+    local folder (on an object-store root, a snapshot of it: ``MapHome.view``)."""
+    from pipeline.store import data_root
+    from pipeline.versioned import read_latest
     from pipeline.versioned import read_manifest as read_version_manifest
 
     if not storage.latest_file(mdir).exists():
@@ -316,12 +347,12 @@ def held_solution(root: Path, mdir: Path) -> dict | None:
     latest = read_latest(mdir)
     if latest is None:
         return None
-    manifest, _ = read_version_manifest(mdir / version_name(latest))
+    manifest, _ = read_version_manifest(storage.version_dir(mdir, latest))
     poses = (manifest.get("inputs") or {}).get("poses") or {}
     fp = poses.get("fingerprint")
     if poses.get("dataset") != "poses_optimized" or not fp:
         return None
-    if read_manifest(dataset_dir(root, "poses_optimized", fp)) is None:
+    if data_root(root if storage.uri_scheme(root) else Path(root).resolve()).manifest("poses_optimized", fp) is None:
         return None
     return {"fingerprint": fp, "version": int(latest)}
 
@@ -338,9 +369,8 @@ def reuse_line(summary: dict) -> str:
     return "build: " + ", ".join(parts)
 
 
-def _latest_text(mdir: Path) -> str:
-    from pipeline.versioned import read_latest, version_name
+def _latest_text(home) -> str:
+    from pipeline.versioned import version_name
 
-    v = read_latest(mdir) if storage.latest_file(mdir).exists() else None
+    v = home.latest()
     return version_name(v) if v is not None else "none"
-

@@ -144,6 +144,9 @@ def workflows_dir(root: P) -> P:
 
 SCRATCH_ENV = "CORNERMAP_SCRATCH"  # a process's local scratch folder (default: a dask worker's, else the system's)
 CACHE = "cornermap-cache"  # under the scratch: local copies of object-store roots, one folder per root URI
+DRIVE_CACHE = "cornermap-drives"  # under the scratch: local copies of drives delivered to a bucket, one per inbox URI
+CACHE_GIB_ENV = "CORNERMAP_CACHE_GIB"  # the size cap of those local copies (``store.prune_local_copies``)
+DEFAULT_CACHE_GIB = 10.0
 
 
 def scratch_base() -> Path:
@@ -168,6 +171,25 @@ def mirror_dir(uri: str) -> Path:
     """The local copy of an object-store root in this process's scratch (the files its tasks read and write): named
     by a hash of the root's URI, never after the URI itself."""
     return scratch_base() / CACHE / hashlib.sha256(normalise_uri(uri).encode()).hexdigest()[:16]
+
+
+def drive_copy_dir(inbox_uri: str) -> Path:
+    """The local copy of an object-store inbox's drives in this process's scratch (what a build reads): named by a
+    hash of the inbox's URI."""
+    return scratch_base() / DRIVE_CACHE / hashlib.sha256(normalise_uri(inbox_uri).encode()).hexdigest()[:16]
+
+
+def local_copy_bases() -> list[Path]:
+    """The folders of this process's scratch that hold local copies of object-store roots and inboxes."""
+    return [scratch_base() / CACHE, scratch_base() / DRIVE_CACHE]
+
+
+def join_uri(root: object, rel: str) -> "str | Path":
+    """``rel`` (a relative path as a dataset row records it) under a root: a ``Path`` for a local root, the object's
+    URI for an object-store root."""
+    if uri_scheme(root) is None:
+        return Path(str(root)) / rel
+    return f"{normalise_uri(root)}/{PurePosixPath(rel).as_posix()}"
 
 
 def is_root_dir(root: Path) -> bool:
@@ -302,6 +324,23 @@ class Store:
         for key in sorted(found):
             if key.startswith(prefix):
                 yield key[len(prefix):], int(found[key].get("size") or 0)
+
+    def walk_objects(self, loc: PurePath) -> dict[str, tuple[int, float]]:
+        """{path relative to ``loc``: (bytes, modification time in unix s)} of every object under ``loc``."""
+        if self.local:
+            out = {}
+            for rel, _ in self.walk_files(loc):
+                st = (Path(loc) / rel).lstat()
+                out[rel] = (st.st_size, max(st.st_mtime, st.st_ctime))
+            return out
+        prefix = loc.as_posix().rstrip("/") + "/"
+        found = self.fs.find(loc.as_posix(), detail=True, withdirs=False)
+        out = {}
+        for key, info in found.items():
+            if key.startswith(prefix):
+                stamp = info.get("LastModified")
+                out[key[len(prefix):]] = (int(info.get("size") or 0), stamp.timestamp() if stamp is not None else 0.0)
+        return out
 
     def put_bytes(self, loc: PurePath, data: bytes) -> None:
         """Write (or replace) one object atomically: a reader sees the old bytes or the new ones, never a part.

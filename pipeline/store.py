@@ -15,9 +15,12 @@ inside the dataset directory (``PathEscapeError`` otherwise). Reading is ``pipel
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
+import sys
 import threading
+import time
 import uuid
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -370,6 +373,8 @@ class DataRoot:
         self.uri = self.store.uri
         self.remote = not self.store.local
         self.local = storage.mirror_dir(self.uri) if self.remote else Path(self.store.root)
+        if self.remote:
+            use_local_copy(self.local)
 
     def __repr__(self) -> str:
         return f"DataRoot({self.uri!r})"
@@ -445,7 +450,9 @@ class DataRoot:
             target = inside(base, rel)
             if not force:
                 try:
-                    if size is None or target.stat().st_size == int(size):
+                    st = target.stat()
+                    if size is None or st.st_size == int(size):
+                        _touch(target, st)  # read now: the last to go when the copies are pruned
                         continue
                 except FileNotFoundError:
                     pass
@@ -471,6 +478,122 @@ class DataRoot:
 
 
 _DATA_ROOTS: dict[str, DataRoot] = {}
+
+# --- the local copies, bounded ---------------------------------------------------------------------------------------
+# The local copies of object-store roots and inboxes (``storage.local_copy_bases``: ``cornermap-cache/`` and
+# ``cornermap-drives/`` in the scratch folder) are a cache: an LRU with a size cap. A process using a copy holds a
+# shared flock on ``<copy>.inuse`` for its life; when a command ends (the process that is no one's child: not a
+# pool process, not a dask worker), it prunes the copies no running process uses, least recently read file first
+# (``fetch`` sets a file's access time when it is read again), until they hold at most ``CORNERMAP_CACHE_GIB``
+# (default 10; 0: every idle copy is removed at the end of each command). A command killed with SIGKILL prunes
+# nothing; the next one that ends does.
+_IN_USE: dict[Path, int] = {}  # copy folder -> the fd of its shared flock, this process
+_PRUNE_AT_EXIT: list[bool] = []
+
+
+def _touch(path: Path, st: os.stat_result) -> None:
+    try:
+        os.utime(path, ns=(time.time_ns(), st.st_mtime_ns))
+    except OSError:
+        pass
+
+
+def _inuse_file(copy: Path) -> Path:
+    return copy.with_name(copy.name + ".inuse")
+
+
+def use_local_copy(copy: Path) -> None:
+    """Mark the local copy folder ``copy`` as used by this process (a shared flock, released when it exits) and, in a
+    command's own process, prune the idle copies when it ends (``prune_local_copies``)."""
+    import atexit
+    import fcntl
+    import multiprocessing
+
+    copy = Path(copy)
+    if copy in _IN_USE:
+        return
+    copy.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(_inuse_file(copy), os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_SH)  # waits while a pruner removes this copy (exclusive, short)
+    _IN_USE[copy] = fd
+    if not _PRUNE_AT_EXIT and multiprocessing.parent_process() is None and not _in_dask_worker():
+        _PRUNE_AT_EXIT.append(True)
+        atexit.register(_prune_at_exit)
+
+
+def _in_dask_worker() -> bool:
+    if "distributed" not in sys.modules:
+        return False
+    try:
+        from distributed import get_worker
+
+        get_worker()
+        return True
+    except (ImportError, ValueError, AttributeError):
+        return False
+
+
+def cache_cap_bytes() -> float:
+    try:
+        gib = float(os.environ.get(storage.CACHE_GIB_ENV, storage.DEFAULT_CACHE_GIB))
+    except ValueError:
+        gib = storage.DEFAULT_CACHE_GIB
+    return max(gib, 0.0) * 2**30
+
+
+def _prune_at_exit() -> None:
+    for copy in list(_IN_USE):
+        os.close(_IN_USE.pop(copy))
+    try:
+        prune_local_copies()
+    except OSError as exc:  # a cache: never fail a command's exit over it
+        logging.getLogger(__name__).warning("pruning the local copies failed: %s", exc)
+
+
+def prune_local_copies(cap_bytes: float | None = None) -> tuple[int, int]:
+    """Remove files of the local copies no running process uses, least recently read first, until all copies hold
+    at most ``cap_bytes`` (default ``cache_cap_bytes()``); a copy left empty is removed whole. Returns (files removed,
+    bytes left)."""
+    import fcntl
+
+    cap = cache_cap_bytes() if cap_bytes is None else cap_bytes
+    held: list[int] = []
+    files: list[tuple[float, int, Path]] = []
+    busy_bytes = 0
+    idle: list[Path] = []
+    try:
+        for base in storage.local_copy_bases():
+            if not base.is_dir():
+                continue
+            for copy in sorted(p for p in base.iterdir() if p.is_dir()):
+                fd = os.open(_inuse_file(copy), os.O_RDWR | os.O_CREAT, 0o644)
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    os.close(fd)
+                    busy_bytes += sum(p.stat().st_size for p in copy.rglob("*") if p.is_file())
+                    continue
+                held.append(fd)
+                idle.append(copy)
+                for p in copy.rglob("*"):
+                    if p.is_file() and not p.is_symlink():
+                        st = p.stat()
+                        files.append((st.st_atime, st.st_size, p))
+        total = busy_bytes + sum(size for _, size, _ in files)
+        removed = 0
+        for _, size, p in sorted(files, key=lambda f: f[0]):
+            if total <= cap:
+                break
+            p.unlink(missing_ok=True)
+            total -= size
+            removed += 1
+        for copy in idle:
+            if removed and not any(p.is_file() for p in copy.rglob("*")):
+                shutil.rmtree(copy, ignore_errors=True)
+        return removed, int(total)
+    finally:
+        for fd in held:
+            os.close(fd)
 
 
 def data_root(uri: "str | Path | DataRoot") -> DataRoot:

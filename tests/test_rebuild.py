@@ -109,7 +109,9 @@ def test_rebuild_story(sim, tmp_path):
     res = subprocess.run(_cmd(*args), capture_output=True, text=True, env=_env())
     assert res.returncode == 0, res.stdout + res.stderr
     latest = _latest_is_verified(mdir)
-    assert latest >= 2 and f"published map 'city' {version_name(latest)}" in res.stdout
+    # a killed run may have got to the end before its kill (a fast machine): the next one then has nothing to do
+    done = f"published map 'city' {version_name(latest)}" in res.stdout or res.stdout.startswith("nothing to do")
+    assert latest >= 2 and done, res.stdout
     assert [d.name for d in read_identity(mdir).drives] == ["drive_0", "drive_1", "drive_2"]
     gate = json.loads((mdir / "gate" / f"{version_name(latest)}.json").read_text())
     assert gate["ok"] and gate["previous"] == 1

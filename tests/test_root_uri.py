@@ -13,9 +13,9 @@ REFUSED = [
     (("run", "tiny", "--root", "gs://maps/city-root"), "--root"),
     (("corners", "run", "--workflow", "tiny", "--root", "s3://maps/city-root"), "--root"),
     (("gc", "--root", "gs://maps/city-root"), "--root"),  # gc reads s3:// roots, not others
-    (("maps", "create", "--root", "s3://maps/city-root", "--map", "city", "--origin", "37.5,127.0,57"), "--root"),
-    (("rebuild", "--root", "s3://maps/city-root", "--map", "city", "--inbox", "in"), "--root"),
-    (("rebuild", "--root", "local", "--map", "city", "--inbox", "s3://maps/inbox"), "--inbox"),
+    (("maps", "create", "--root", "gs://maps/city-root", "--map", "city", "--origin", "37.5,127.0,57"), "--root"),
+    (("rebuild", "--root", "gs://maps/city-root", "--map", "city", "--inbox", "in"), "--root"),  # s3:// rebuilds
+    (("rebuild", "--root", "local", "--map", "city", "--inbox", "gs://maps/inbox"), "--inbox"),
     (("tiles", "bundle", "--from", "v1", "--to", "v2", "--out", "o", "--root", "s3://maps/r", "--map", "c"), "--root"),
     (("tiles", "ls", "--root", "gs://maps/city-root"), "--root"),  # a scheme no command supports
 ]
@@ -33,7 +33,7 @@ def test_a_uri_where_a_folder_is_expected_is_a_usage_error_naming_the_option(tmp
 
 def test_the_environment_root_is_checked_like_the_option(tmp_path):
     res = cornermap("maps", "create", "--map", "city", "--origin", "37.5,127.0,57", cwd=tmp_path,
-                    CORNERMAP_ROOT="s3://maps/city-root")
+                    CORNERMAP_ROOT="gs://maps/city-root")
     assert res.returncode == 2 and one_error_line(res).startswith("error: --root: "), res.stderr
     assert list(tmp_path.iterdir()) == []
 

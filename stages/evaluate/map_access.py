@@ -1,9 +1,10 @@
 """Access to the published map for the evaluation: the map input of the stage, the corners over a drive's extent
 and the marking raster as the MCL's likelihood field.
 
-The map is read ONLY through the product's public consumer API ``mapformat.loader.open_map`` (imported
-lazily, the one documented exception to "stages never import each other": the loader is what a vehicle links
-against, and evaluating through it is the point of this stage).
+The map is read ONLY through the store (a version path relative to the run's root is that root's: a local
+folder, or an ``s3://`` bucket that the loader reads from) and the product's public consumer API
+``mapformat.loader.open_map`` (imported lazily, the one documented exception to "stages never import each
+other": the loader is what a vehicle links against, and evaluating through it is the point of this stage).
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from pipeline.declare import StageContext
 from pipeline.errors import DatasetIOError
+from pipeline.storage import join_uri, uri_scheme
 from stages.evaluate import mcl
 from stages.evaluate.config import FieldConfig
 from stages.evaluate.localize_ekf import CornerMap
@@ -24,9 +26,9 @@ def open_published_map(ctx: StageContext):
     row = ctx.inputs.read("map").to_pylist()
     if not row:
         raise DatasetIOError("input 'map' (map_tiles) has no published version; hint: run the tiles stage first")
-    path = Path(row[-1]["path"])
-    if not path.is_absolute():
-        path = Path(ctx.settings["root"]) / path
+    path = row[-1]["path"]
+    if not Path(path).is_absolute() and uri_scheme(path) is None:  # root-relative: on the run's store
+        path = join_uri(ctx.settings["root"], path)  # a local path, or the s3:// URI open_map reads from the bucket
     return open_map(path)
 
 
