@@ -145,8 +145,11 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     run (``pipeline.parallel.shared_pool``): its processes start once, and keep the survey's indices between the
     anchoring rounds."""
     from pipeline.parallel import shared_pool
+    from stages.posegraph.regions import RegionParams, partitioned
 
-    with shared_pool():
+    p = ctx.params
+    with shared_pool(), partitioned(RegionParams(p.region_max_poses, p.region_rounds, p.region_tol_m,
+                                                 p.region_tol_m * 0.1)):
         return _compute(ctx)
 
 
@@ -241,6 +244,7 @@ def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_driv
     sol = solve_increment(new, old, held_T, load, cfg, max_per_scan=cfg.loops.incremental_max_per_scan,
                           survey_priors=survey_cb, report_step=ctx.report_step)
     n = sum(d.n for d in new)
+    drift = increment_drift(sol, n, held_T)
     if cfg.solve.compute_marginals and new:
         ctx.report_step("marginal covariances of the new drives")
         # the map poses the loops reach are held: the covariance is relative to the map already
@@ -287,11 +291,26 @@ def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_driv
     frame, kernel = held.metadata.get("map_frame"), held.metadata.get("pose_error_correlation")
     write_report(out_dir, new, new_sol, refs, loop_rows, survey_matches, kernel, frame,
                  incremental={"held_version": held.version, "held_drives": [d.name for d in old],
-                              "new_drives": [d.name for d in new], **sol.timings_s})
+                              "new_drives": [d.name for d in new], **sol.timings_s, "drift": drift})
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
             "loop_closures": loops_table(loop_rows),
             "_extra": {"pose_error_correlation": kernel, "map_frame": frame,
-                       "incremental": {"held_version": held.version, "new_drives": [d.name for d in new]}}}
+                       "incremental": {"held_version": held.version, "new_drives": [d.name for d in new],
+                                       "drift": drift}}}
+
+
+def increment_drift(sol, n: int, held_T: np.ndarray, **drift_kw) -> dict | None:
+    """``drift.loop_drift`` of an incremental solution: the map poses its loops reach are the graph's poses n.. (held
+    by ``fixed`` priors at their published values), found back among ``held_T`` by position."""
+    from stages.posegraph.drift import loop_drift
+
+    if n == 0 or not len(held_T):
+        return None
+    row_of = {tuple(np.round(T[:3, 3], 9)): k for k, T in enumerate(held_T)}
+    held_rows = {p.i: row_of[tuple(np.round(p.T_map_vehicle[:3, 3], 9))] for p in sol.problem.pose_priors
+                 if p.kind == "fixed" and p.i >= n}
+    poses = np.concatenate([sol.poses, sol.problem.initial[n:]])
+    return loop_drift(sol.problem, poses, n, held_rows, held_T[:, :2, 3], **drift_kw)
 
 
 def _bounds(drives):
