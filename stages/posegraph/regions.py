@@ -175,7 +175,7 @@ class RegionResult:
     region: int
     poses: np.ndarray  # (P,4,4) local poses after the interior solve (separators as given)
     biases: np.ndarray  # (B,3) local bias values (the negated bias the graph holds)
-    keys: list[tuple[str, int]]  # separator variables of the Schur complement, in its order: ("x"|"b", global), ("l", k)
+    keys: list[tuple[str, int]]  # the Schur complement's variables in order: ("x"|"b", global), ("l", local)
     H: np.ndarray  # Schur complement on the separators (information)
     eta: np.ndarray  # its information vector: the Gauss-Newton step solves H d = eta
     error: float  # the region's factors' error after its interior solve
