@@ -145,12 +145,15 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     run (``pipeline.parallel.shared_pool``): its processes start once, and keep the survey's indices between the
     anchoring rounds."""
     from pipeline.parallel import shared_pool
-    from stages.posegraph.regions import RegionParams, partitioned
+    from stages.posegraph.regions import RegionParams, partitioned, solves_summary
 
     p = ctx.params
     with shared_pool(), partitioned(RegionParams(p.region_max_poses, p.region_rounds, p.region_tol_m,
-                                                 p.region_tol_m * 0.1)):
-        return _compute(ctx)
+                                                 p.region_tol_m * 0.1)) as solves:
+        out = _compute(ctx)
+    if solves:  # solved region by region (``maps reoptimize``): its figures in the dataset's metadata
+        out["_extra"]["region_solve"] = solves_summary(solves)
+    return out
 
 
 def _compute(ctx: StageContext) -> dict[str, pa.Table]:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator
 
@@ -288,6 +289,7 @@ def optimize_regions(problem: Problem, params: RegionParams, *, initial: np.ndar
     """The joint optimum of ``problem`` (as ``factors.graph.optimize`` finds it) solved region by region (module
     docstring). ``map_fn(fn, items)``: how the regions of a round run side by side (default
     ``pipeline.parallel.parallel_map`` with ``params.workers``)."""
+    t0 = time.perf_counter()
     poses = np.array(problem.initial if initial is None else initial, float)
     labels = partition_poses(poses[:, :2, 3], params.max_poses)
     part = partition_problem(problem, labels)
@@ -331,7 +333,10 @@ def optimize_regions(problem: Problem, params: RegionParams, *, initial: np.ndar
         log.debug("regions round %d: error %.6g, separators moved %.2e m / %.2e rad", rnd + 1, error, moved, turned)
         if moved <= params.tol_m and turned <= params.tol_rad:
             break
-    stats = dict(part.stats) | {"rounds": len(rounds), "last_moved_m": rounds[-1]["moved_m"] if rounds else 0.0}
+    stats = dict(part.stats) | {"poses": problem.n_poses, "rounds": len(rounds),
+                                "last_moved_m": rounds[-1]["moved_m"] if rounds else 0.0,
+                                "wall_s": round(time.perf_counter() - t0, 3)}
+    record(stats)
     log.info("posegraph (regions): %d poses in %d regions (largest %d), %d separator poses, %d separator bias "
              "states; %d rounds, last separator step %.1e m", problem.n_poses, stats["regions"],
              stats["largest_region_poses"], stats["separator_poses"], stats["separator_biases"], stats["rounds"],
@@ -361,19 +366,39 @@ def _apply(step, slot, poses, biases, levers, part) -> tuple[float, float]:
     return moved, turned
 
 
-_PARTITIONED: list[RegionParams] = []
+_PARTITIONED: list[tuple[RegionParams, list[dict]]] = []
 
 
 @contextlib.contextmanager
-def partitioned(params: RegionParams) -> Iterator[None]:
+def partitioned(params: RegionParams) -> Iterator[list[dict]]:
     """Within the block, ``factors.graph.optimize`` (every solve of the pose-graph passes) runs region by region
-    (``optimize_regions``) when the graph has more than ``params.max_poses`` poses."""
-    _PARTITIONED.append(params)
+    (``optimize_regions``) when the graph has more than ``params.max_poses`` poses; the block's value collects each
+    such solve's figures (regions, separators, rounds, seconds)."""
+    entry: tuple[RegionParams, list[dict]] = (params, [])
+    _PARTITIONED.append(entry)
     try:
-        yield
+        yield entry[1]
     finally:
-        _PARTITIONED.remove(params)
+        _PARTITIONED.remove(entry)
 
 
 def active() -> RegionParams | None:
-    return _PARTITIONED[-1] if _PARTITIONED else None
+    return _PARTITIONED[-1][0] if _PARTITIONED else None
+
+
+def record(stats: dict) -> None:
+    """Add one region solve's figures to the innermost ``partitioned`` block's list."""
+    if _PARTITIONED:
+        _PARTITIONED[-1][1].append(stats)
+
+
+def solves_summary(solves: list[dict]) -> dict | None:
+    """The figures of a stage's region solves, for its metadata: how many, the largest region and separator, rounds
+    (total and most), and the last solve's."""
+    if not solves:
+        return None
+    return {"solves": len(solves), "regions_max": max(s["regions"] for s in solves),
+            "largest_region_poses": max(s["largest_region_poses"] for s in solves),
+            "separator_poses_max": max(s["separator_poses"] for s in solves),
+            "rounds_total": sum(s["rounds"] for s in solves), "rounds_max": max(s["rounds"] for s in solves),
+            "last": solves[-1]}
