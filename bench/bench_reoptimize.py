@@ -6,12 +6,13 @@ its cost on 1 and 2 dask workers.
 
 ``W`` holds ``root`` (map ``city`` after the nights) and ``sim`` (the drives and their truth). Each measurement runs on
 its own copy of the root (so that no run reuses another's committed pose graph): ``maps reoptimize --no-gate
---workers K`` in a child process (CPU = user + system seconds of the child and every process it waited for; peak
-RSS = the largest of them, ``RUSAGE_CHILDREN``), then ``--region-max-poses 0`` (one joint graph: the solve of
-``rebuild --full``) as the reference. Per run: CPU s, wall s, peak MB, the pose graph stage's wall / CPU s, the
-region solve's figures (regions, separator poses, rounds) and the corners against the truth (``corner_accuracy``:
-absolute, precision and RMS m); the region solve's poses against the joint's (mm, RMS and max over every pose) and
-the incremental map's (LATEST before) corners. CPU and wall depend on the machine and its load: state both.
+--scheduler distributed --workers K`` (a local dask cluster of K one-thread workers) in a child process (CPU = user
++ system seconds of the child and every process it waited for; peak RSS = the largest of them, ``RUSAGE_CHILDREN``),
+then ``--region-max-poses 0`` (one joint graph: the solve of ``rebuild --full``) as the reference. Per run: CPU s,
+wall s, peak MB, the pose graph stage's wall / CPU s, the region solve's figures (regions, separator poses, rounds)
+and the corners against the truth (``corner_accuracy``: absolute, precision and RMS m); the region solve's poses
+against the joint's (mm, RMS and max over every pose) and the incremental map's (LATEST before) corners. CPU and
+wall depend on the machine and its load: state both.
 """
 from __future__ import annotations
 
@@ -33,8 +34,8 @@ from bench.bench_incremental import _machine, corner_accuracy
 def reoptimize_run(root: Path, workers: int, region_max_poses: int) -> dict:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     cmd = [sys.executable, "-m", "pipeline", "maps", "reoptimize", "--root", str(root), "--map", "city", "--no-gate",
-           "--min-free-gib", "0.5", "--workers", str(workers), "--region-max-poses", str(region_max_poses), "--json",
-           "-q"]
+           "--min-free-gib", "0.5", "--scheduler", "distributed", "--workers", str(workers),
+           "--region-max-poses", str(region_max_poses), "--json", "-q"]
     t0 = time.perf_counter()
     res = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
