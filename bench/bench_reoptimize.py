@@ -88,8 +88,9 @@ def main(argv: list[str] | None = None) -> dict:
     a = ap.parse_args(argv)
     base, sim = a.work / "root", a.work / "sim"
     mbase = base / "maps" / "city"
-    latest = (mbase / "LATEST").read_text().strip()
-    latest = latest if latest.startswith("v") else f"v{int(latest):04d}"
+    from pipeline.versioned import read_latest, version_name
+
+    latest = version_name(read_latest(mbase))
     out = {"machine": _machine(), "work": str(a.work), "incremental_version": latest,
            "incremental": {k: v for k, v in corner_accuracy(mbase / latest, sim).items() if k not in ("ids", "en")},
            "runs": []}
