@@ -250,10 +250,8 @@ def solve_region(spec: RegionSpec, poses: np.ndarray, biases: np.ndarray, levers
         dims = [6 if k[0] == "x" else 3 for k in keys]
         if all(key in present for key in sep_keys):
             H, eta = remaining.hessian(sep_order)
-        else:  # a separator only in the interior's eliminated factors cannot happen; keep the shape regardless
-            H, eta = np.zeros((sum(dims),) * 2), np.zeros(sum(dims))
-            if present:
-                H, eta = _partial_hessian(remaining, sep_keys, dims, present)
+        else:  # defensive: each separator is named by a factor of the region, so it stays in ``remaining``
+            H, eta = _partial_hessian(remaining, sep_keys, dims, present)
     else:
         H, eta = np.zeros((0, 0)), np.zeros(0)
     return RegionResult(spec.region, out_poses, out_biases, keys, np.asarray(H), np.asarray(eta).ravel(),
@@ -261,6 +259,10 @@ def solve_region(spec: RegionSpec, poses: np.ndarray, biases: np.ndarray, levers
 
 
 def _partial_hessian(remaining, sep_keys, dims, present):
+    """``remaining.hessian`` over the separators it names, zero rows and columns for the others."""
+    H, eta = np.zeros((sum(dims),) * 2), np.zeros(sum(dims))
+    if not present:
+        return H, eta
     order = gtsam.Ordering()
     for key in sep_keys:
         if key in present:
@@ -268,7 +270,6 @@ def _partial_hessian(remaining, sep_keys, dims, present):
     h, e = remaining.hessian(order)
     offsets = np.cumsum([0] + dims)
     idx = np.concatenate([np.arange(offsets[n], offsets[n + 1]) for n, key in enumerate(sep_keys) if key in present])
-    H, eta = np.zeros((offsets[-1],) * 2), np.zeros(offsets[-1])
     H[np.ix_(idx, idx)] = h
     eta[idx] = np.asarray(e).ravel()
     return H, eta
