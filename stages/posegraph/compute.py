@@ -147,9 +147,8 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     from pipeline.parallel import shared_pool
     from stages.posegraph.regions import RegionParams, partitioned, solves_summary
 
-    p = ctx.params
-    with shared_pool(), partitioned(RegionParams(p.region_max_poses, p.region_rounds, p.region_tol_m,
-                                                 p.region_tol_m * 0.1)) as solves:
+    r = PosegraphConfig.from_params(ctx.params).regions
+    with shared_pool(), partitioned(RegionParams(r.max_poses, r.rounds, r.tol_m, r.tol_m * 0.1)) as solves:
         out = _compute(ctx)
     if solves:  # solved region by region (``maps reoptimize``): its figures in the dataset's metadata
         out["_extra"]["region_solve"] = solves_summary(solves)
