@@ -210,6 +210,9 @@ def gc_cmd(root: Path = opts.ROOT_OR_URI,
 
 
 def register(app: typer.Typer) -> None:
+    from pipeline.reoptimize_cli import reoptimize_cmd  # issue 59 item 2: maps reoptimize
+
+    maps_app.command("reoptimize")(reoptimize_cmd)
     app.add_typer(maps_app, name="maps")
     app.command("rebuild")(rebuild_cmd)
     app.command("gc")(gc_cmd)

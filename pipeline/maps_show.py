@@ -114,6 +114,7 @@ def show_doc(mdir: Path) -> dict:
     if storage.latest_file(Path(mdir)).exists():
         latest = read_latest(mdir)
         doc["latest"] = version_name(latest) if latest is not None else None
+    doc["drift"] = latest_drift(mdir)
     states = version_states(mdir)
     for v in versions:
         try:
@@ -148,6 +149,7 @@ def show_lines(mdir: Path) -> list[str]:
         n = "?" if v["drives"] is None else str(v["drives"])
         lines.append(f"{v['version']:9s} {v['created_utc']:20s} {n:>6s}  {note}".rstrip())
     lines += localizability_lines(mdir)
+    lines += drift_lines(doc["drift"])
     rows = doc["drives"]
     lines.append(f"{'drive':16s} {'first pose':20s} {'last pose':20s} {'added (UTC)':20s} versions")
     lines += [f"{r['name']:16s} {r['first']:20s} {r['last']:20s} {r['added']:20s} {r['versions']}" for r in rows]
@@ -214,3 +216,45 @@ def drive_rows(mdir: Path, ident) -> list[dict]:
         rows.append({"name": name, "first": _when(first, base), "last": _when(last, base), "added": added,
                      "versions": " ".join(held.get(name, [])) or "-"})
     return rows
+
+
+def latest_drift(mdir: Path) -> dict | None:
+    """The drift statistic of LATEST's pose graph (``stages/posegraph/drift.py``; written by an incremental rebuild
+    into its ``poses_optimized`` dataset's metadata), with ``version``; None for a joint or reoptimized solve, a
+    version without it, or a dataset not under the map's root."""
+    from pipeline.errors import CornermapError
+    from pipeline.store import dataset_dir, read_manifest
+    from pipeline.version_read import read_latest, version_name
+    from pipeline.version_read import read_manifest as read_version_manifest
+
+    try:
+        latest = read_latest(mdir) if storage.latest_file(Path(mdir)).exists() else None
+        if latest is None:
+            return None
+        poses = (read_version_manifest(Path(mdir) / version_name(latest))[0].get("inputs") or {}).get("poses") or {}
+        if poses.get("dataset") != "poses_optimized" or not poses.get("fingerprint"):
+            return None
+        m = read_manifest(dataset_dir(Path(mdir).parent.parent, "poses_optimized", poses["fingerprint"]))
+    except (CornermapError, OSError, ValueError):
+        return None
+    drift = (((m or {}).get("extra") or {}).get("incremental") or {}).get("drift")
+    return {**drift, "version": version_name(latest)} if isinstance(drift, dict) else None
+
+
+def drift_lines(drift: dict | None) -> list[str]:
+    """``reoptimize advised: region R ...`` per region whose statistic exceeds its threshold, else one line saying
+    none is (with the largest share of its threshold); nothing without a statistic."""
+    if not drift:
+        return []
+    rows = [r for r in drift.get("regions", []) if r.get("loops")]
+    where = f"{drift['version']}'s incremental solve, chi2 of the new drives' loops onto the map per region"
+    advised = [r for r in rows if r.get("advised")]
+    if advised:
+        return [f"reoptimize advised: region {r['region']} at ENU ({r['center_en_m'][0]:.0f}, "
+                f"{r['center_en_m'][1]:.0f}) m, statistic {r['chi2']:.1f} > threshold {r['threshold']:.1f} "
+                f"({r['loops']} loops; {where}); run `cornermap maps reoptimize`" for r in advised]
+    if not rows:
+        return [f"drift: no loop of the new drives reached the map ({drift['version']}); nothing to test"]
+    worst = max(rows, key=lambda r: r["chi2"] / r["threshold"])
+    return [f"drift: no region advised for reoptimize ({where}: largest {worst['chi2']:.1f} of threshold "
+            f"{worst['threshold']:.1f}, region {worst['region']}, {worst['loops']} loops)"]

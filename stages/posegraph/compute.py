@@ -145,9 +145,14 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     run (``pipeline.parallel.shared_pool``): its processes start once, and keep the survey's indices between the
     anchoring rounds."""
     from pipeline.parallel import shared_pool
+    from stages.posegraph.regions import RegionParams, partitioned, solves_summary
 
-    with shared_pool():
-        return _compute(ctx)
+    r = PosegraphConfig.from_params(ctx.params).regions
+    with shared_pool(), partitioned(RegionParams(r.max_poses, r.rounds, r.tol_m, r.tol_m * 0.1)) as solves:
+        out = _compute(ctx)
+    if solves:  # solved region by region (``maps reoptimize``): its figures in the dataset's metadata
+        out["_extra"]["region_solve"] = solves_summary(solves)
+    return out
 
 
 def _compute(ctx: StageContext) -> dict[str, pa.Table]:
@@ -241,6 +246,7 @@ def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_driv
     sol = solve_increment(new, old, held_T, load, cfg, max_per_scan=cfg.loops.incremental_max_per_scan,
                           survey_priors=survey_cb, report_step=ctx.report_step)
     n = sum(d.n for d in new)
+    drift = increment_drift(sol, n, held_T)
     if cfg.solve.compute_marginals and new:
         ctx.report_step("marginal covariances of the new drives")
         # the map poses the loops reach are held: the covariance is relative to the map already
@@ -287,11 +293,26 @@ def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_driv
     frame, kernel = held.metadata.get("map_frame"), held.metadata.get("pose_error_correlation")
     write_report(out_dir, new, new_sol, refs, loop_rows, survey_matches, kernel, frame,
                  incremental={"held_version": held.version, "held_drives": [d.name for d in old],
-                              "new_drives": [d.name for d in new], **sol.timings_s})
+                              "new_drives": [d.name for d in new], **sol.timings_s, "drift": drift})
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
             "loop_closures": loops_table(loop_rows),
             "_extra": {"pose_error_correlation": kernel, "map_frame": frame,
-                       "incremental": {"held_version": held.version, "new_drives": [d.name for d in new]}}}
+                       "incremental": {"held_version": held.version, "new_drives": [d.name for d in new],
+                                       "drift": drift}}}
+
+
+def increment_drift(sol, n: int, held_T: np.ndarray, **drift_kw) -> dict | None:
+    """``drift.loop_drift`` of an incremental solution: the map poses its loops reach are the graph's poses n.. (held
+    by ``fixed`` priors at their published values), found back among ``held_T`` by position."""
+    from stages.posegraph.drift import loop_drift
+
+    if n == 0 or not len(held_T):
+        return None
+    row_of = {tuple(np.round(T[:3, 3], 9)): k for k, T in enumerate(held_T)}
+    held_rows = {p.i: row_of[tuple(np.round(p.T_map_vehicle[:3, 3], 9))] for p in sol.problem.pose_priors
+                 if p.kind == "fixed" and p.i >= n}
+    poses = np.concatenate([sol.poses, sol.problem.initial[n:]])
+    return loop_drift(sol.problem, poses, n, held_rows, held_T[:, :2, 3], **drift_kw)
 
 
 def _bounds(drives):

@@ -230,6 +230,16 @@ class SolveConfig:
 
 
 @dataclass(frozen=True)
+class RegionConfig:
+    """The region-wise solve (``regions.py``; ``cornermap maps reoptimize``): most poses of a region (0: one joint
+    solve), most separator updates, the separator move that ends it (m; a tenth of it in rad)."""
+
+    max_poses: int = 0
+    rounds: int = 20
+    tol_m: float = 1e-4
+
+
+@dataclass(frozen=True)
 class PosegraphConfig:
     factors: FactorConfig
     gnss: GnssConfig
@@ -237,6 +247,7 @@ class PosegraphConfig:
     anchors: AnchorConfig
     solve: SolveConfig
     prior: PriorConfig
+    regions: RegionConfig = RegionConfig()
 
     @classmethod
     def from_params(cls, p: PosegraphParams) -> PosegraphConfig:
@@ -298,4 +309,5 @@ class PosegraphConfig:
                             error_kernel_pairs_per_bin=p.error_kernel_pairs_per_bin)
         prior = PriorConfig(every_s=p.prior_every_s, kernel=p.prior_kernel, kernel_k=p.prior_kernel_k,
                             unknown_roll_pitch_sigma_rad=p.unknown_roll_pitch_sigma_rad)
-        return cls(factors, gnss, loops, anchors, solve, prior)
+        regions = RegionConfig(p.region_max_poses, p.region_rounds, p.region_tol_m)
+        return cls(factors, gnss, loops, anchors, solve, prior, regions)

@@ -220,3 +220,10 @@ class PosegraphParams(Params):
                                             "80-150 m) whose joint marginals give the map's error-correlation "
                                             "kernel (error_correlation.py; the map publishes it for localizers); "
                                             "0: none")
+    # region-wise solve (``cornermap maps reoptimize``; stages/posegraph/regions.py)
+    region_max_poses: int = Field(0, ge=0, description="most poses of one region when the graph is solved region "
+                                  "by region (recursive bisection, a condensed separator between regions, the same "
+                                  "optimum); 0: one joint solve (build, rebuild)")
+    region_rounds: int = Field(20, ge=1, description="region solve: most separator updates")
+    region_tol_m: float = Field(1e-4, gt=0, description="region solve: a round that moves no separator more than "
+                                "this (and 0.1 of it in radians) ends it")

@@ -227,7 +227,14 @@ def optimize(problem: Problem, *, max_iterations: int = 100, gnc_loops: bool = F
              initial: np.ndarray | None = None, relative_error_tol: float = 1e-7) -> np.ndarray:
     """Levenberg-Marquardt (or GNC for the loop factors, all others known inliers) -> (N,4,4) poses, from
     ``initial`` when given (else ``problem.initial``); LM stops when an iteration lowers the error by less
-    than ``relative_error_tol`` of it."""
+    than ``relative_error_tol`` of it. Inside ``regions.partitioned`` a graph larger than its ``max_poses`` is
+    solved region by region (``regions.optimize_regions``: the same optimum)."""
+    from stages.posegraph import regions  # here: regions builds on this module
+
+    part = regions.active()
+    if part is not None and not gnc_loops and 0 < part.max_poses < problem.n_poses:
+        return regions.optimize_regions(problem, part, initial=initial, max_iterations=max_iterations,
+                                        relative_error_tol=relative_error_tol).poses
     graph, values, tags = build_graph(problem, initial)
     if gnc_loops:
         opts = gtsam.GncLMParams()

@@ -15,7 +15,7 @@ SECTION = [("wheel_", "factors"), ("failed_edge_", "factors"), ("span_edge", "fa
            ("attitude_", "gnss"), ("unknown_roll_pitch", "gnss"), ("heading_", "gnss"), ("loop_", "loops"),
            ("survey_", "anchors"), ("parallel_min_items", "loops"), ("max_iterations", "solve"),
            ("lm_", "solve"), ("fixed_prior", "solve"), ("compute_marginals", "solve"),
-           ("error_kernel", "solve"), ("icp_edge_", "factors"), ("prior_", "prior")]
+           ("error_kernel", "solve"), ("icp_edge_", "factors"), ("prior_", "prior"), ("region_", "regions")]
 
 
 def _changed(name: str, default):
