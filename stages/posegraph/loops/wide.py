@@ -250,48 +250,6 @@ def close_wide_loops(problem, poses: np.ndarray, drives, load, cfg: LoopConfig, 
         if not any(r.accepted for r in new):
             break
     return loops, poses, summary
-    offsets = np.cumsum([0] + [d.n for d in drives])
-    if verify_wide_fn is None:
-        verify_wide_fn = lambda c, p: verify_wide_from_store(c, p, drives, offsets, load, cfg)  # noqa: E731
-    if verify_fn is None:
-        verify_fn = lambda c, p: verify_from_store(c, p, drives, offsets, load, cfg) if c else []  # noqa: E731
-    group = np.repeat(np.arange(len(drives)), [d.n for d in drives])
-    stamps_s = np.concatenate([d.stamps_ns for d in drives]) * 1e-9
-    pass1 = poses
-    chain1 = chain_covariance(problem, pass1, offsets, ~loose)
-    loops = list(loops)
-    tried = {(r.i, r.j) for r in loops}
-    for rnd in range(cfg.wide_rounds):
-        chain = chain_covariance(problem, poses, offsets, ~loose)
-        travel = travel_m(poses[:, :3, 3], group)
-        query = keyframes_by_travel(poses[:, :3, 3], group, cfg.wide_stride_m)
-        query = query[loose[group[query]]]
-        say(f"wide loop search, round {rnd + 1}")
-        wide = find_wide_candidates(chain, stamps_s, query, travel, cfg, loops, tried)
-        fixed: list[Candidate] = []
-        if rnd > 0:  # the tighter estimate: the fixed radius again, loosely held drives' queries only
-            q2 = keyframes_by_travel(poses[:, :3, 3], group, cfg.stride_m)
-            fixed = [c for c in find_candidates(poses[:, :3, 3], stamps_s, group, q2[loose[group[q2]]],
-                                                radius_m=cfg.radius_m, min_separation_s=cfg.min_separation_s,
-                                                max_per_scan=cfg.max_per_scan) if (c.i, c.j) not in tried]
-        tried |= {(c.i, c.j) for c in wide} | {(c.i, c.j) for c in fixed}
-        new = verify_wide_fn(wide, poses) + (verify_fn(fixed, poses) if fixed else [])
-        summary["rounds"] += 1
-        summary["wide_candidates"] += len(wide)
-        summary["fixed_candidates"] += len(fixed)
-        summary["wide_accepted"] += sum(r.accepted for r in new[:len(wide)])
-        loops += new
-        summary["pcm_rejected"] += apply_pcm(loops, pass1, chain1, loose[group], cfg)
-        n_new = sum(r.accepted for r in new)
-        log.info("wide loop search round %d: %d wide and %d fixed-radius candidates, %d accepted before the "
-                 "consistency check; %d loops accepted in all", rnd + 1, len(wide), len(fixed), n_new,
-                 sum(r.accepted for r in loops))
-        if not any(r.accepted for r in new):
-            break
-        base = list(problem.betweens)
-        poses = solve(loops, poses)
-        problem.betweens = base  # the solve leaves its loop factors in the problem: the caller adds them again
-    return loops, poses, summary
 
 
 def _held_pair(chain: ChainCovariance, c: Candidate, loops: list[LoopRecord], min_sigma_m: float) -> bool:
