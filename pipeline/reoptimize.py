@@ -20,8 +20,8 @@ from typing import Callable
 import yaml
 
 from pipeline import storage
-from pipeline.errors import ConfigError, DataQualityError, StageError
-from pipeline.maps import check_free_disk, map_dir, require_identity, run_lock, write_identity
+from pipeline.errors import ConfigError, StageError
+from pipeline.maps import MapHome, check_free_disk, map_dir, require_identity, run_lock, write_identity
 from pipeline.rebuild import RebuildResult, check_map_drives, reuse_line
 
 DEFAULT_REGION_MAX_POSES = 600  # tiny (5 drives, ~3000 poses): 6-8 regions; a region's solve stays a few seconds
@@ -65,7 +65,7 @@ def reoptimize(root: Path, name: str, params: ReoptimizeParams = ReoptimizeParam
     from pipeline.api import execute_workflow, published_version
     from pipeline.build import write_build_workflow
     from pipeline.gate import run_gate
-    from pipeline.versioned import publish_lock, read_latest, verify_version, version_name, write_latest
+    from pipeline.versioned import read_latest, version_name
 
     if params.region_max_poses < 0:
         raise ConfigError("--region-max-poses", [f"expected >= 0 (0: one joint solve); got {params.region_max_poses}"])
@@ -117,11 +117,7 @@ def reoptimize(root: Path, name: str, params: ReoptimizeParams = ReoptimizeParam
                 if ident != before:
                     write_identity(mdir, ident)
                 return result
-        with publish_lock(mdir):
-            problems = verify_version(mdir / version_name(candidate))
-            if problems:
-                raise DataQualityError(f"{mdir / version_name(candidate)}: {problems[0]}; LATEST unchanged")
-            write_latest(mdir, candidate)
+        MapHome(root, name).move_latest(candidate)  # verified under the publish lock, as a rebuild publishes
         if ident != before:
             write_identity(mdir, ident)
         result.status, result.version = "published", candidate
