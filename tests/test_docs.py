@@ -189,3 +189,24 @@ def test_every_parameter_table_is_checked(page):
     tables = [n for n, *_ in param_tables(page)]
     assert not tables or page.name in PARAM_PAGES, (
         f"{page.name}: parameter tables at lines {tables} are not checked; name their owner in PARAM_PAGES")
+
+
+# Pages that are reference pages (issue 61): what a thing does, its inputs, outputs and params, and its current
+# figures with the command; the history of the figures is in CHANGELOG.md and git. Add a page once it is converted.
+REFERENCE_PAGES = ["README.md", "docs/architecture.md", "docs/cornermap.md", "docs/drive-file.md", "docs/ingest.md",
+                   "docs/markings.md", "docs/performance.md", "docs/posegraph.md", "docs/security.md"]
+MAX_DATED_SHARE = 0.15
+
+
+@pytest.mark.parametrize("name", REFERENCE_PAGES)
+def test_reference_pages_hold_no_measurement_history(name):
+    from bench.docs_history import page_share, sections
+
+    page = ROOT / name
+    share = page_share(page)
+    dated = [f"line {s.first_line} {s.heading!r}: {', '.join(s.markers)}"
+             for s in sections(page.read_text(encoding="utf-8")) if s.dated]
+    assert share.share < MAX_DATED_SHARE, (
+        f"{name}: {share.dated_lines} of {share.lines} lines in dated measurement sections "
+        f"(python -m bench.docs_history --sections {name}); state the current figure with its command and a "
+        f"'last measured' column, and leave the history to CHANGELOG.md and git: {dated}")
