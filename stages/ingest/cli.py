@@ -111,23 +111,33 @@ def register(app: typer.Typer) -> None:
         of the scan times, rings per scan, odometry, survey CRS, what places the drive). Exit 1 with every problem
         listed; with --placed, exit 3 when nothing places the drive in a map's frame.
 
+        A drive in a bucket (s3://BUCKET/.../drive.yaml; relative paths resolve in the same bucket; endpoint and
+        credentials from the AWS environment) is fetched into the local scratch and checked there.
+
         Example: cornermap drive check runs/sim/drive_0/drive.yaml
         """
+        from pipeline.drive_store import is_uri, local_drive
         from pipeline.errors import ConfigError, DataQualityError
+        from pipeline.storage import normalise_uri
         from stages.ingest.drive_check import check_drive
 
+        if is_uri(drive_file):
+            shown = normalise_uri(drive_file)
+            drive_file = local_drive(drive_file)
+        else:
+            shown = str(drive_file)
         result = check_drive(drive_file, content=content)
         for line in result.summary:
             typer.echo(line)
         for line in result.warnings:
             typer.echo(f"warning: {line}")
         if result.problems:
-            raise ConfigError(str(drive_file), result.problems)
+            raise ConfigError(shown, result.problems)
         if placed:
             from stages.ingest.drive_file import load_drive_file
             from stages.ingest.frame import frame_source
 
             frame = frame_source(load_drive_file(drive_file))
             if frame.problem:
-                raise DataQualityError(f"{frame.problem} ({drive_file})")
-        typer.echo(f"ok: {drive_file}")
+                raise DataQualityError(f"{frame.problem} ({shown})")
+        typer.echo(f"ok: {shown}")
