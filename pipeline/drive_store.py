@@ -95,7 +95,7 @@ def _referenced(store: storage.Store, loc: PurePosixPath, raw: bytes) -> dict[st
     file that names an object or a prefix relative to its folder, in the same bucket."""
     bucket = loc.parts[0]
     folder = loc.parent.as_posix()
-    found: dict[str, dict[str, tuple[int, str]]] = {}
+    found: dict[str, dict[str, tuple[int, str, float]]] = {}
     for value in _strings(_load(raw, storage.normalise_uri(f"s3://{loc.as_posix()}"))):
         target = posixpath.normpath(posixpath.join(folder, value))
         if target == bucket or not target.startswith(bucket + "/"):
@@ -169,8 +169,9 @@ def local_drive(value: "str | Path") -> Path:
                     continue
             except FileNotFoundError:
                 pass
-            pairs.append((src, target))
-            stamps[target] = stamp
+            if target not in stamps:  # one object named twice (``scans`` and ``scans/stamps.csv``) is fetched once
+                pairs.append((src, target))
+                stamps[target] = stamp
     try:
         store.download_files(pairs)
     except FileNotFoundError as exc:
