@@ -106,7 +106,11 @@ def run_preflights(plan: "Plan") -> None:
 
     for sp in plan.stages.values():
         if sp.selected and not sp.committed and sp.decl.preflight:
-            resolve(sp.decl.preflight)({n: p for n, p in sp.drives.items() if p.is_file()}, dict(sp.settings))
+            from pipeline.drive_store import preflight_path
+
+            drives = {n: preflight_path(p) for n, p in sp.drives.items()}
+            resolve(sp.decl.preflight)({n: p for n, p in drives.items() if p is not None and p.is_file()},
+                                       dict(sp.settings))
 
 
 def _cpu_s() -> float:

@@ -43,13 +43,15 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
     downloaded (default: ``root``)."""
     from pipeline.resources import resolve_workflow
     from pipeline.safe_yaml import load_yaml_file
-    from pipeline.storage import Store, mirror_dir, uri_scheme
+    from pipeline.storage import Store, mirror_dir, normalise_uri, uri_scheme
 
     path = resolve_workflow(template)
     doc = load_yaml_file(path)
     if not isinstance(doc, dict):
         raise ConfigError(str(path), ["the map workflow is not a mapping"])
-    missing = [str(d) for d in drives if not Path(d).is_file()]
+    from pipeline.drive_store import drive_exists, drive_name, is_uri
+
+    missing = [str(normalise_uri(d)) for d in drives if not drive_exists(d)]
     if missing:
         raise ConfigError("cornermap build", [f"drive file not found: {m}" for m in missing])
     catalog = doc.get("catalog")
@@ -76,8 +78,8 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
         max_radius_m = ident.max_radius_km * 1000.0 if ident is not None else None
     if max_radius_m is not None:
         doc["max_radius_m"] = float(max_radius_m)
-    doc["drives"] = [{"name": Path(d).resolve().parent.name, "path": str(Path(d).resolve()), "role": "map"}
-                     for d in drives]
+    doc["drives"] = [{"name": drive_name(d), "path": _drive_path(d, root) if remote or is_uri(d)
+                      else str(Path(d).resolve()), "role": "map"} for d in drives]
     text = yaml.safe_dump(doc, sort_keys=False)
     name = f"build-{map_name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}.yaml"
     out = storage.workflows_dir(mirror_dir(str(root)) if remote else Path(root)) / name
@@ -89,3 +91,20 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
         store = Store.open(str(root))
         store.put_bytes(storage.workflows_dir(store.root) / name, text.encode("utf-8"))
     return out
+
+
+def _drive_path(drive: "str | Path", root: "str | Path") -> str:
+    """What the workflow of a build names a drive by when its tasks must read it from the store: a drive given by
+    URI as is; a local copy of a drive delivered to a bucket (``pipeline.inbox``) by its URI; any other local drive
+    (on an object-store root) staged into the root (``pipeline.drive_store.stage_drive``: uploaded once, by
+    content)."""
+    from pipeline.drive_store import is_uri, stage_drive
+    from pipeline.inbox import source_of_copy
+    from pipeline.storage import normalise_uri
+
+    if is_uri(drive):
+        return normalise_uri(drive)
+    source = source_of_copy(Path(drive))
+    if source is not None:
+        return source
+    return stage_drive(str(root), Path(drive))

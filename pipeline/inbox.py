@@ -382,6 +382,7 @@ class StoreInbox:
         self.store.download_files(pairs)
         for target, stamp in stamps.items():
             os.utime(target, (time.time(), stamp))
+        _COPIES[os.path.abspath(delivery.drive_yaml)] = self.recorded(delivery)
 
     def quarantine(self, entry: str, reason: str) -> str:
         from pipeline.maps import utc_now
@@ -393,11 +394,23 @@ class StoreInbox:
         keys = [k for k in self.objects() if k.startswith(name + "/")]
         for key in keys:
             self.store.copy(self.base / key, qbase / dst / key[len(name) + 1:])
+        moved = self.store.url(qbase / dst)  # the reason's hints (`cornermap drive check URI`) name where it now is
+        reason = reason.replace(f"{self.uri}/{name}/", f"{moved}/")
         self.store.put_bytes(qbase / f"{dst}.reason.txt",
                              f"{utc_now()} quarantined by cornermap rebuild: {reason.strip()}\n".encode())
         for key in keys:
             self.store.delete(self.base / key)
         return self.store.url(qbase / dst)
+
+
+_COPIES: dict[str, str] = {}  # local copy of a delivered drive.yaml -> its s3:// URI, this process
+
+
+def source_of_copy(drive_yaml: Path) -> str | None:
+    """The ``s3://`` URI of a drive file this process fetched from an object-store inbox into its local copy
+    (``StoreInbox.fetch``), None for any other path: a build names the drive by it, so that its tasks read the
+    drive from the bucket, never from this process's copy."""
+    return _COPIES.get(os.path.abspath(drive_yaml))
 
 
 def open_inbox(value: "str | Path") -> "LocalInbox | StoreInbox":

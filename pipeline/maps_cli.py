@@ -82,10 +82,10 @@ def show_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ, as_json: bo
     with readable_root(root, map_name, whole=(), pick=trajectories) as (local_root, shown):
         mdir = map_dir(local_root, map_name)
         if as_json:
-            doc = show_doc(mdir)
+            doc = show_doc(mdir, root)
             opts.echo_json({**doc, "path": shown(str(doc.get("path", mdir)))})
             return
-        for line in show_lines(mdir):
+        for line in show_lines(mdir, root):
             typer.echo(shown(line))
 
 

@@ -26,10 +26,15 @@ GPS_EPOCH = datetime(1980, 1, 6, tzinfo=timezone.utc)
 
 def _time_base(drive_yaml: str) -> str:
     """The drive's time base (``gnss.time.base`` of its drive file: gps by default, docs/drive-file.md)."""
-    from pipeline.safe_yaml import load_yaml_file
+    from pipeline.safe_yaml import load_yaml, load_yaml_file
 
     try:
-        doc = load_yaml_file(Path(drive_yaml)) or {}
+        if storage.uri_scheme(drive_yaml) is not None:  # a drive in a bucket: its drive file read from there
+            from pipeline.drive_store import read_drive_file
+
+            doc = load_yaml(read_drive_file(drive_yaml), drive_yaml) or {}
+        else:
+            doc = load_yaml_file(Path(drive_yaml)) or {}
     except Exception:  # noqa: BLE001 - a drive file gone or unreadable: the dates are shown as unknown
         return "?"
     gnss = doc.get("gnss") if isinstance(doc, dict) else None
@@ -89,10 +94,11 @@ def _mark(version: int, state: str) -> str:
     return version_name(version) + {"LATEST": "*", "refused": "(refused)", "candidate": "(candidate)"}.get(state, "")
 
 
-def show_doc(mdir: Path) -> dict:
+def show_doc(mdir: Path, root: "str | Path | None" = None) -> dict:
     """What ``cornermap maps show`` says, as data (its ``--json``): the frame (``identity`` None for a map made by
     ``cornermap build``), each version with its standing, each drive; UnknownNameError for a folder with neither an
-    identity nor a version."""
+    identity nor a version. ``root``: the output root the datasets are read from when ``mdir`` is a local view of a
+    map on an object store (default: the root holding ``mdir``)."""
     from pipeline.errors import CornermapError, UnknownNameError
     from pipeline.maps import latest_origin, read_identity
     from pipeline.version_read import list_versions, read_latest, read_manifest, version_name
@@ -114,7 +120,7 @@ def show_doc(mdir: Path) -> dict:
     if storage.latest_file(Path(mdir)).exists():
         latest = read_latest(mdir)
         doc["latest"] = version_name(latest) if latest is not None else None
-    doc["drift"] = latest_drift(mdir)
+    doc["drift"] = latest_drift(mdir, root)
     states = version_states(mdir)
     for v in versions:
         try:
@@ -127,9 +133,9 @@ def show_doc(mdir: Path) -> dict:
     return doc
 
 
-def show_lines(mdir: Path) -> list[str]:
+def show_lines(mdir: Path, root: "str | Path | None" = None) -> list[str]:
     """The text of ``cornermap maps show`` (``show_doc`` in words)."""
-    doc = show_doc(mdir)
+    doc = show_doc(mdir, root)
     o, ident = doc["enu_origin"], doc["identity"]
     lines = []
     if ident is not None:
@@ -218,12 +224,13 @@ def drive_rows(mdir: Path, ident) -> list[dict]:
     return rows
 
 
-def latest_drift(mdir: Path) -> dict | None:
+def latest_drift(mdir: Path, root: "str | Path | None" = None) -> dict | None:
     """The drift statistic of LATEST's pose graph (``stages/posegraph/drift.py``; written by an incremental rebuild
     into its ``poses_optimized`` dataset's metadata), with ``version``; None for a joint or reoptimized solve, a
-    version without it, or a dataset not under the map's root."""
+    version without it, or a dataset not under the map's root (``root``, default the one holding ``mdir``; an
+    ``s3://`` root's manifest is read from the bucket)."""
     from pipeline.errors import CornermapError
-    from pipeline.store import dataset_dir, read_manifest
+    from pipeline.store import data_root
     from pipeline.version_read import read_latest, version_name
     from pipeline.version_read import read_manifest as read_version_manifest
 
@@ -234,7 +241,8 @@ def latest_drift(mdir: Path) -> dict | None:
         poses = (read_version_manifest(Path(mdir) / version_name(latest))[0].get("inputs") or {}).get("poses") or {}
         if poses.get("dataset") != "poses_optimized" or not poses.get("fingerprint"):
             return None
-        m = read_manifest(dataset_dir(Path(mdir).parent.parent, "poses_optimized", poses["fingerprint"]))
+        m = data_root(root if root is not None else storage.root_of_map(Path(mdir))).manifest(
+            "poses_optimized", poses["fingerprint"])
     except (CornermapError, OSError, ValueError):
         return None
     drift = (((m or {}).get("extra") or {}).get("incremental") or {}).get("drift")

@@ -114,6 +114,15 @@ def make_plan(workflow: Workflow, root: Path, only: list[str] | None = None) -> 
                 path, basis = _resolve_template(d.path, root, dataset_fp, workflow.base_dir)
                 drive_fps[d.name] = stable_hash({"template": d.path, "basis": basis})
                 bases.add(basis)
+            elif storage.uri_scheme(d.path) is not None:  # a drive in a bucket: tasks fetch it (pipeline.drive_store)
+                from pipeline.drive_store import remote_drive_fingerprint
+
+                path = Path(storage.normalise_uri(d.path))
+                if path not in drive_fp_cache:
+                    drive_fp_cache[path] = remote_drive_fingerprint(d.path)
+                drive_fps[d.name] = drive_fp_cache[path]
+                drives[d.name] = path
+                continue
             else:
                 path = workflow.resolve(d.path)
                 if path not in drive_fp_cache:

@@ -15,6 +15,8 @@ every object of a root, for a local ``Path`` root and for the ``PurePosixPath`` 
     locks/<key>.lock                              locks (local: flock; S3: lease objects, ``pipeline.leases``)
     tmp/                                          scratch of runs (ledgers, logs, staging)
     workflows/build-<map>-<sha8>.yaml             the workflows `cornermap build` wrote
+    drives/<fp16>/...                             local drives a build on an object-store root staged into it
+    drives/<fp16>/_staged.json                    the staged drive's commit marker, written last
 
 Backends: a local folder is plain ``pathlib``/``os`` (the engine's hot paths are unchanged); S3 is ``s3fs`` (fsspec),
 chosen over ``pyarrow.fs`` by measurement (docs/storage.md, ``bench/bench_store.py --backends``: 100 small PUTs
@@ -53,6 +55,8 @@ GATE = "gate"
 LOCKS = "locks"
 TMP = "tmp"
 WORKFLOWS = "workflows"  # the build workflows `cornermap build` writes (one per map and drive set)
+DRIVES = "drives"  # local drives staged into an object-store root (pipeline.drive_store), by content
+STAGED_MARKER = "_staged.json"
 FP_LEN = 16
 VERSION_RE = re.compile(r"^v(\d{4,})$")
 
@@ -140,6 +144,15 @@ def tmp_dir(root: P, *parts: str) -> P:
 
 def workflows_dir(root: P) -> P:
     return root / WORKFLOWS
+
+
+def staged_drive_dir(root: P, fingerprint: str) -> P:
+    """Where a local drive staged into an object-store root lives: ``drives/<fp16>`` (its drive fingerprint)."""
+    return root / DRIVES / fingerprint[:FP_LEN]
+
+
+def staged_marker(sdir: P) -> P:
+    return sdir / STAGED_MARKER
 
 
 SCRATCH_ENV = "CORNERMAP_SCRATCH"  # a process's local scratch folder (default: a dask worker's, else the system's)
@@ -324,6 +337,31 @@ class Store:
         for key in sorted(found):
             if key.startswith(prefix):
                 yield key[len(prefix):], int(found[key].get("size") or 0)
+
+    def objects_under(self, loc: PurePath) -> dict[str, tuple[int, str, float]]:
+        """{path relative to ``loc``: (bytes, version tag, modification time in unix s)} of the object ``loc`` itself
+        (the key ``""``) or of every object under it; {} when there is none. The tag is the S3 ETag (local: size and
+        mtime in ns)."""
+        if self.local:
+            base = Path(loc)
+            paths = {"": base} if base.is_file() else {rel: base / rel for rel, _ in self.walk_files(base)}
+            out = {}
+            for rel, p in paths.items():
+                st = p.stat()
+                out[rel] = (st.st_size, f"{st.st_mtime_ns}-{st.st_size}", st.st_mtime)
+            return out
+        key = loc.as_posix().rstrip("/")
+        try:
+            found = self.fs.find(key, detail=True, withdirs=False)
+        except FileNotFoundError:
+            return {}
+        out = {}
+        for k, info in found.items():
+            if k == key or k.startswith(key + "/"):
+                stamp = info.get("LastModified")
+                out[k[len(key) + 1:]] = (int(info.get("size") or 0), str(info.get("ETag") or stamp),
+                                         stamp.timestamp() if stamp is not None else 0.0)
+        return out
 
     def walk_objects(self, loc: PurePath) -> dict[str, tuple[int, float]]:
         """{path relative to ``loc``: (bytes, modification time in unix s)} of every object under ``loc``."""

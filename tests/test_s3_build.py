@@ -92,6 +92,14 @@ def test_a_map_built_into_a_bucket_lists_verifies_exports_and_rebuilds_nothing(s
     assert doc["root"] == s3_root and doc["map_version"] == "v0001"
     assert all(s["decision"] == "ran" for s in doc["stages"].values())
     _check_bucket(s3_root, cwd, env)
+    # the drive was staged into the bucket (by content) and the build's tasks read it from there
+    staged = [k for k in _objects(s3_root) if k.startswith("drives/") and k.endswith("/drive_0/drive.yaml")]
+    assert len(staged) == 1, staged
+    # evaluate reads the map from the bucket (its LATEST, verified there)
+    ev = cornermap("evaluate", "--root", s3_root, "--map", "city", "--drive", str(short_drive), "--reference", "gnss",
+                   "--out", str(tmp_path / "eval"), "-q", "--json", cwd=cwd, timeout=600, **env)
+    assert ev.returncode in (0, 3), ev.stderr
+    assert json.loads(ev.stdout)["map_version"] == "v0001" and (tmp_path / "eval" / "metrics.json").is_file()
     # the scratch copy is a cache: removed, the next run reads the bucket (and finds everything committed)
     import shutil
 
@@ -300,6 +308,8 @@ def test_a_cluster_sharing_only_the_bucket_builds_the_map(s3_env, s3_root, short
         scans = "**/cornermap-cache/*/datasets/scans_raw/*/data/**/*.parquet"
         assert any(list(f.glob(scans)) for f in folders), "no worker wrote its local copy under its folder"
         assert not list((client_dir / "scratch").glob(scans)), "the scans were written or read by the client"
+        # the drive reached the workers through the bucket: staged there by the client, fetched by a worker
+        assert any(list(f.glob("**/cornermap-drives/*/**/drives/*/drive_0/scans/*.pcd")) for f in folders)
     _check_bucket(s3_root, client_dir, s3_env)
     for folder in folders:
         _no_local_root(folder)

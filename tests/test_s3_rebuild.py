@@ -102,6 +102,12 @@ def test_two_nights_on_a_bucket(s3_env, s3_root, sim, tmp_path):
     assert "inbox/quarantine/drive_bad/drive.yaml" in have and not any(k.startswith("inbox/drive_bad/") for k in have)
     reason = store.read_bytes(store.root / "quarantine" / "drive_bad.reason.txt").decode()
     assert "drive check" in reason and "gnss_inspva.csv" in reason, reason
+    # the reason's hint runs as written: `cornermap drive check` reads the quarantined drive from the bucket
+    hint = reason.split("run `cornermap ", 1)[1].split("`", 1)[0].split()
+    assert hint[:2] == ["drive", "check"] and hint[-1] == f"{inbox}/quarantine/drive_bad/drive.yaml", reason
+    checked = cornermap(*hint, cwd=cwd, **env)
+    assert checked.returncode == 1 and hint[-1] in checked.stderr, checked.stdout + checked.stderr
+    assert str(tmp_path / "scratch") not in checked.stderr + checked.stdout, checked.stderr  # the bucket's names
     root = Store.open(s3_root)
     assert root.read_bytes(root.root / "maps/city/LATEST").decode().startswith("v0002 ")
     gate = json.loads(root.read_bytes(root.root / "maps/city/gate/v0002.json"))
@@ -118,6 +124,13 @@ def test_two_nights_on_a_bucket(s3_env, s3_root, sim, tmp_path):
     again = cornermap(*rebuild_args(s3_root, inbox, sim), cwd=cwd, timeout=600, **env)
     assert again.returncode == 0 and again.stdout.startswith("nothing to do") and "LATEST v0002" in again.stdout, \
         again.stdout + again.stderr
+    # maps show reads the drives' files and the pose graph's drift through the store
+    show = cornermap("maps", "show", "--root", s3_root, "--map", "city", "--json", cwd=cwd, **env)
+    assert show.returncode == 0, show.stderr
+    shown = json.loads(show.stdout)
+    assert [(r["name"], r["first"][-3:], r["last"][-3:]) for r in shown["drives"]] == [
+        ("drive_0", "GPS", "GPS"), ("drive_1", "GPS", "GPS")], shown["drives"]
+    assert shown["drift"] is not None and shown["drift"]["version"] == "v0002", shown["drift"]
     ver = cornermap("tiles", "verify", "--root", s3_root, "--map", "city", "--all", "--json", cwd=cwd, **env)
     assert ver.returncode == 0 and [r["ok"] for r in json.loads(ver.stdout)["versions"]] == [True, True], ver.stdout
     assert not (cwd / "s3:").exists() and not list(cwd.glob("**/s3:*")), "a local folder named after the root"

@@ -29,8 +29,12 @@ def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: di
     def safe(name: str, default: str) -> str:  # a generated drive/map name must pass pipeline.names
         return re.sub(r"[^A-Za-z0-9_.-]", "_", name).lstrip("._-")[:64] or default
 
+    from pipeline.drive_store import drive_name, is_uri
+    from pipeline.storage import normalise_uri
+
     stages = ["ingest", "odometry", "corners"] + (["posegraph"] if reference in (None, "map") else [])
-    entry = {"name": safe(drive.resolve().parent.name, "drive"), "path": str(drive.resolve()), "role": "eval"}
+    path = normalise_uri(drive) if is_uri(drive) else str(drive.resolve())  # a drive in a bucket: its tasks fetch it
+    entry = {"name": safe(drive_name(drive), "drive"), "path": path, "role": "eval"}
     if reference not in (None, "map", "gnss"):
         entry["reference"] = str(Path(reference).resolve())
     doc = {"name": f"evaluate-{entry['name']}", "root": str((out / "work").resolve()),
@@ -46,14 +50,19 @@ def _write_workflow(out: Path, drive: Path, reference: Optional[str], origin: di
 
 def open_named_map(root: Path, map_arg: Optional[str], version: str):
     """The map named as on every command: ``--root ROOT --map NAME [--map-version vNNNN]`` (the only map under
-    ROOT/maps without ``--map``)."""
+    ROOT/maps without ``--map``); a root in a bucket (``s3://BUCKET/PREFIX``) is read from the bucket (the loader
+    downloads the version and checks it there)."""
     from mapformat.loader import open_map
     from pipeline.errors import OptionError
     from pipeline.names import published_map_dir
+    from pipeline.storage import uri_scheme
+    from pipeline.store_maps import map_location
 
     if map_arg is not None and ("/" in map_arg or "\\" in map_arg):
         raise OptionError("--map", [f"{map_arg!r} is a path; a map is named: --root ROOT --map NAME "
                                     "(ROOT/maps/NAME), its version --map-version vNNNN"])
+    if uri_scheme(root) is not None:
+        return open_map(map_location(root, map_arg), version)
     return open_map(published_map_dir(root, map_arg), version)
 
 
@@ -81,7 +90,7 @@ def _evaluate_params(params_file: Optional[Path], methods: list[str], reference_
 
 def evaluate_cmd(
     drive: Path = typer.Option(..., "--drive", help="drive.yaml of the evaluation drive."),
-    root: Path = opts.ROOT,
+    root: Path = opts.ROOT_OR_URI,
     map_arg: Optional[str] = opts.MAP_OR_ONLY,
     version: str = opts.MAP_VERSION,
     old_version: Optional[str] = opts.MOVED_VERSION,
@@ -118,8 +127,10 @@ def evaluate_cmd(
         raise OptionError("--method", [f"expected ekf, mcl or both; got {method!r}"])
     if reference_frame is not None and reference in (None, "map", "gnss"):
         raise OptionError("--reference-frame", ["applies to a --reference TRAJ.tum file only"])
+    from pipeline.drive_store import drive_exists
+
     problems = []
-    if not drive.is_file():
+    if not drive_exists(drive):
         problems.append(f"--drive: no such file {drive}")
     if reference not in (None, "map", "gnss") and not Path(reference).is_file():
         problems.append(f"--reference: expected a TUM file, 'map' or 'gnss'; no such file {reference}")
@@ -132,7 +143,7 @@ def evaluate_cmd(
     reader = open_named_map(root, map_arg, version)
     out.mkdir(parents=True, exist_ok=True)
     def summary(doc: dict) -> dict:
-        return {"map": reader.path.parent.name, "map_version": f"v{reader.version:04d}", "drive": str(drive),
+        return {"map": reader.path.parent.name, "map_version": f"v{reader.version:04d}", "drive": _shown(drive),
                 "verdict": doc.get("verdict"), "methods": doc.get("methods"),
                 "report": str((out / "report.html").resolve()), "metrics": str((out / "metrics.json").resolve())}
 
@@ -148,6 +159,12 @@ def evaluate_cmd(
     typer.echo(metrics_table_text(doc))
     typer.echo(verdict_line(doc["verdict"]))
     typer.echo(f"report: {(out / 'report.html').resolve()}")
+
+
+def _shown(drive: Path) -> str:
+    from pipeline.storage import normalise_uri
+
+    return normalise_uri(drive)
 
 
 def run_evaluation(reader, drive: Path, reference: Optional[str], p, out: Path, quiet: bool,

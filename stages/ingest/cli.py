@@ -111,23 +111,46 @@ def register(app: typer.Typer) -> None:
         of the scan times, rings per scan, odometry, survey CRS, what places the drive). Exit 1 with every problem
         listed; with --placed, exit 3 when nothing places the drive in a map's frame.
 
+        A drive in a bucket (s3://BUCKET/.../drive.yaml; relative paths resolve in the same bucket; endpoint and
+        credentials from the AWS environment) is fetched into the local scratch and checked there.
+
         Example: cornermap drive check runs/sim/drive_0/drive.yaml
         """
-        from pipeline.errors import ConfigError, DataQualityError
+        from pipeline.drive_store import is_uri, local_drive
+        from pipeline.errors import ConfigError, CornermapError, DataQualityError
+        from pipeline.storage import normalise_uri
         from stages.ingest.drive_check import check_drive
 
-        result = check_drive(drive_file, content=content)
+        words = lambda text: text  # noqa: E731 - a local drive's lines as they are
+        if is_uri(drive_file):
+            from pipeline.storage import drive_copy_dir
+
+            shown = normalise_uri(drive_file)
+            bucket = "/".join(shown.split("/", 3)[:3])
+            copy = str(drive_copy_dir(bucket))
+            words = lambda text: text.replace(copy, bucket)  # noqa: E731 - the bucket's names, not the local copy's
+            drive_file = local_drive(drive_file)
+        else:
+            shown = str(drive_file)
+        try:
+            result = check_drive(drive_file, content=content)
+        except CornermapError as exc:
+            if words(str(exc)) == str(exc):
+                raise
+            if isinstance(exc, DataQualityError):
+                raise DataQualityError(words(str(exc))) from exc
+            raise ConfigError(shown, [words(str(exc))]) from exc
         for line in result.summary:
-            typer.echo(line)
+            typer.echo(words(line))
         for line in result.warnings:
-            typer.echo(f"warning: {line}")
+            typer.echo(f"warning: {words(line)}")
         if result.problems:
-            raise ConfigError(str(drive_file), result.problems)
+            raise ConfigError(shown, [words(p) for p in result.problems])
         if placed:
             from stages.ingest.drive_file import load_drive_file
             from stages.ingest.frame import frame_source
 
             frame = frame_source(load_drive_file(drive_file))
             if frame.problem:
-                raise DataQualityError(f"{frame.problem} ({drive_file})")
-        typer.echo(f"ok: {drive_file}")
+                raise DataQualityError(f"{frame.problem} ({shown})")
+        typer.echo(f"ok: {shown}")

@@ -332,16 +332,22 @@ def compute(ctx: StageContext) -> dict:
     if drive not in ctx.drives:
         raise ConfigError(f"ingest partition {drive!r}", [f"no drive file for {drive!r}; drives: "
                                                           f"{', '.join(ctx.drives)}"])
-    spec = load_drive_file(ctx.drives[drive])
+    from pipeline.drive_store import is_uri, local_drive
+    from pipeline.storage import normalise_uri
+
+    recorded = ctx.drives[drive]
+    spec = load_drive_file(local_drive(recorded))  # a drive in a bucket: fetched into this task's scratch
+    if is_uri(recorded):
+        recorded = normalise_uri(recorded)
     frame = frame_source(spec)
     placed = set(ctx.settings.get("map_drives") or []) | set(ctx.settings.get("eval_drives") or [])
     if frame.problem and drive in placed:  # before anything is read: a map or evaluation drive that cannot be placed
         raise ConfigError(f"ingest {drive}", [frame.problem])  # in the map's frame stops the build here, in one line
     if spec.name != drive:
-        log.warning("drive file %s names the drive %r; the workflow calls it %r (used)", ctx.drives[drive],
+        log.warning("drive file %s names the drive %r; the workflow calls it %r (used)", recorded,
                     spec.name, drive)
-    origin = resolve_enu_origin(ctx.settings.get("enu_origin"), list(ctx.drives.values()))
-    ingest = DriveIngest(drive, spec, ctx.params, origin, str(ctx.drives[drive]))
+    origin = resolve_enu_origin(ctx.settings.get("enu_origin"), (local_drive(p) for p in ctx.drives.values()))
+    ingest = DriveIngest(drive, spec, ctx.params, origin, str(recorded))
     if ingest.gnss is not None and drive in ctx.settings.get("map_drives", [drive]):
         # before any scan is read: a map drive outside the map's area is refused (exit 3); an evaluation drive is
         # localized anyway (far off, its verdict is "no coverage")
