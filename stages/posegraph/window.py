@@ -81,7 +81,10 @@ def frame_prior_at(prior: FramePrior, point_en_m: np.ndarray) -> np.ndarray:
     out[np.ix_(idx, idx)] = c
     out[0, 0] = out[1, 1] = _TILT_RAD ** 2
     out[5, 5] = prior.std_up_m ** 2
-    return 0.5 * (out + out.T)
+    out = 0.5 * (out + out.T)
+    if np.linalg.eigvalsh(out).min() <= 0.0:  # a degenerate statement (a frame fixed exactly): floor it
+        out += np.diag([_FLOOR_RAD ** 2] * 3 + [_FLOOR_M ** 2] * 3)
+    return out
 
 
 def window_cap(n_new: int) -> int:

@@ -126,3 +126,14 @@ def test_maps_show_prints_the_frame_test():
     assert lines[0].startswith("reoptimize advised: the held map's frame moved (+0.120, -0.030) m")
     ok = drift_lines({"version": "v0003", "regions": [], "frame": frame | {"chi2": 2.0, "advised": False}})
     assert ok[0].startswith("drift: frame consistent") and "2.0 of threshold 16.3" in ok[0]
+
+
+def test_the_frame_prior_moves_with_its_reference_point_and_is_never_singular():
+    from stages.posegraph.window import frame_prior_at
+
+    prior = FramePrior(np.zeros(2), np.diag([0.01, 0.04, 1e-4]), 0.1, "map_frame")
+    c = frame_prior_at(prior, np.array([100.0, 0.0]))  # 100 m east: a rotation moves the point north
+    assert np.isclose(c[3, 3], 0.01) and np.isclose(c[4, 4], 0.04 + 1e-4 * 100.0 ** 2)
+    assert np.isclose(c[4, 2], 1e-4 * 100.0)
+    flat = frame_prior_at(FramePrior(np.zeros(2), np.zeros((3, 3)), 0.0, "map_frame"), np.ones(2))
+    assert np.linalg.eigvalsh(flat).min() > 0
