@@ -1,11 +1,14 @@
-"""Incremental pose graph: new drives solved against a published map whose poses are held fixed.
+"""Incremental pose graph: new drives solved against a published map whose poses are held, but for a window.
 
-The map's drives keep the poses of the last solution bit for bit; only the new drives are variables. The graph is
-the new drives' own (odometry, GNSS, prior trajectory or start pose, survey anchors) plus verified loops from their
-keyframes onto the map's scans and onto each other. A map pose that a loop reaches enters the graph as a variable
-held by a tight prior at its published value (``fixed_prior_sigma_m``), as for a reference drive
-(``solve.solve_reference``); it is never written back. The cost is the new drives' (their pass 1, anchors, loop
-candidates within ``loops.radius_m`` of their path, the solves over their poses), not the map's history.
+The graph is the new drives' own (odometry, GNSS, prior trajectory or start pose, survey anchors) plus verified loops
+from their keyframes onto the map's scans and onto each other. With the held solution's frame covariance
+(``frame``), the map poses within reach of the new drives' path form a window that moves with one rigid correction
+of the map's frame (``window.py``): a map pose a loop reaches is a variable tied to the frame anchor; the window's
+poses are written back moved by the correction, every other map pose keeps its published value bit for bit.
+Without it, a map pose a loop reaches is held by a tight prior at its published value (``fixed_prior_sigma_m``), as
+for a reference drive (``solve.solve_reference``), and never written back. The cost is the new drives' (their pass
+1, anchors, loop candidates within ``loops.radius_m`` of their path, the solves over their poses, one more variable
+and its marginal), not the map's history.
 
 A full joint re-solve of every drive (``solve.solve_map``) stays what ``cornermap rebuild --full`` and a first
 build run; a later ``maps reoptimize`` (issue 59) is that solve, scheduled.
@@ -46,7 +49,9 @@ def solve_increment(new: list[DriveInput], held: list[DriveInput], held_poses: n
                     report_step: Callable[..., None] | None = None, frame: FramePrior | None = None,
                     held_cov: np.ndarray | None = None, held_drive_of_row: np.ndarray | None = None) -> Solution:
     """The ``new`` drives' poses (one row per scan, drives in order) with the ``held`` drives' poses
-    (``held_poses``, (M,4,4), the held drives' rows in order) fixed. ``survey_priors(poses, offsets)``: the survey
+    (``held_poses``, (M,4,4), the held drives' rows in order) held: fixed, or with ``frame`` (the held solution's
+    frame covariance), ``held_cov`` ((M,9) their published ``cov_xy_yaw``) and ``held_drive_of_row`` ((M,) the held
+    drive of each row; default from ``held``) moved in the window (``window.py``; the result in ``extra["window"]``). ``survey_priors(poses, offsets)``: the survey
     anchors of the new drives (``anchors.survey_anchor.survey_anchor_callback`` built on ``new``). ``max_per_scan``:
     loop targets per query scan (default the joint solve's ``loops.max_per_scan``): the nearest other passes, map
     or new, so the loops a new drive verifies do not grow with the passes the map holds.
@@ -116,7 +121,9 @@ def solve_increment(new: list[DriveInput], held: list[DriveInput], held_poses: n
         say("the window: the held map's frame correction")
         A_sol = solved[win.anchor]
         cov_post = anchor_marginal(problem, solved, win.anchor)
-        corrected = correct_window(held_poses, win, A_sol, held_drive_of_row)
+        drive_of_row = np.repeat(np.arange(len(held)), [d.n for d in held]) if held_drive_of_row is None \
+            else held_drive_of_row
+        corrected = correct_window(held_poses, win, A_sol, drive_of_row)
         test = frame_test(log_pose(np.linalg.inv(win.A_pub) @ A_sol), win.cov_prior, cov_post)
         window = {"graph": win, "A_sol": A_sol, "cov_post": cov_post, "held_T": corrected,
                   "record": frame_record(win, A_sol, cov_post, len(held_poses), frame, test),
