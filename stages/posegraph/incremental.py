@@ -51,7 +51,8 @@ def solve_increment(new: list[DriveInput], held: list[DriveInput], held_poses: n
     """The ``new`` drives' poses (one row per scan, drives in order) with the ``held`` drives' poses
     (``held_poses``, (M,4,4), the held drives' rows in order) held: fixed, or with ``frame`` (the held solution's
     frame covariance), ``held_cov`` ((M,9) their published ``cov_xy_yaw``) and ``held_drive_of_row`` ((M,) the held
-    drive of each row; default from ``held``) moved in the window (``window.py``; the result in ``extra["window"]``). ``survey_priors(poses, offsets)``: the survey
+    drive of each row; default from ``held``) moved in the window (``window.py``; the result in ``extra["window"]``).
+    ``survey_priors(poses, offsets)``: the survey
     anchors of the new drives (``anchors.survey_anchor.survey_anchor_callback`` built on ``new``). ``max_per_scan``:
     loop targets per query scan (default the joint solve's ``loops.max_per_scan``): the nearest other passes, map
     or new, so the loops a new drive verifies do not grow with the passes the map holds.
