@@ -124,6 +124,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-single", action="store_true", help="skip the one-drive build of the last drive")
     ap.add_argument("--min-corners-per-km", type=float, help="the tiles quality gate's corner density (default: the "
                     "stage's); tiny maps of 5+ laps of one short loop fall under it (corners over summed laps)")
+    ap.add_argument("--joint", action="store_true", help="also build every drive in one night on a fresh map (the "
+                    "joint solve of the same drives) and score its corners: the incremental map's reference")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
     from pipeline.maps import create_map
@@ -148,11 +150,12 @@ def main(argv: list[str] | None = None) -> dict:
             if prev_acc is not None:
                 night["corner_ids"] = ids_kept(prev_acc, acc)
             night["corners"] = {key: v for key, v in acc.items() if key not in ("ids", "en")}
+            night["drift"] = drift_summary(root / "maps" / "city")
             prev_acc = acc
             night["night"], night["drives"] = k + 1, k + 1
             nights.append(night)
             print(json.dumps({key: night[key] for key in ("night", "cpu_s", "wall_s", "stage_cpu_s", "tiles",
-                                                          "corners")}), flush=True)
+                                                          "corners", "drift")}), flush=True)
         sim_doc = json.loads((sim / "simulation.json").read_text()) if (sim / "simulation.json").is_file() else {}
         out = {"preset": sim_doc.get("preset", a.preset), "seed": sim_doc.get("seed", a.seed), "drives": a.drives,
                "mode": "full" if a.full else "incremental",
@@ -163,6 +166,15 @@ def main(argv: list[str] | None = None) -> dict:
             create_map(root1, "city", ORIGIN)
             deliver(sim, [last], inbox1, ready=True)
             out["one_drive_build"] = rebuild_night(root1, inbox1, False, params)
+        if a.joint:
+            rootj, inboxj = work / "rootj", work / "inboxj"
+            create_map(rootj, "city", ORIGIN)
+            deliver(sim, [f"drive_{k}" for k in range(a.drives)], inboxj, ready=True)
+            joint = rebuild_night(rootj, inboxj, False, params)
+            acc = corner_accuracy(rootj / "maps" / "city" / joint["version"], sim)
+            joint["corners"] = {key: v for key, v in acc.items() if key not in ("ids", "en")}
+            out["joint_build"] = joint
+            print(json.dumps({"joint_corners": joint["corners"]}), flush=True)
         if len(nights) >= 2:
             out["ratio_last_over_night2"] = round(nights[-1]["cpu_s"] / nights[1]["cpu_s"], 3)
         if "one_drive_build" in out:
@@ -174,6 +186,23 @@ def main(argv: list[str] | None = None) -> dict:
     finally:
         if a.work is None:
             shutil.rmtree(work, ignore_errors=True)
+
+
+def drift_summary(mdir: Path) -> dict | None:
+    """LATEST's drift statistic (``maps show``'s): the frame test of the window and the largest region's share of
+    its threshold."""
+    from pipeline.maps_show import latest_drift
+
+    d = latest_drift(mdir)
+    if not d:
+        return None
+    rows = [r for r in d.get("regions", []) if r.get("loops")]
+    f = d.get("frame") or {}
+    return {"region_share_max": round(max((r["chi2"] / r["threshold"] for r in rows), default=0.0), 3),
+            "frame_chi2": f.get("chi2"), "frame_threshold": f.get("threshold"), "frame_dof": f.get("dof"),
+            "window_poses": f.get("window_poses"), "held_poses": f.get("held_poses"),
+            "anchor_moved_m": f.get("anchor_moved_m"), "prior_std_en_m": f.get("prior_std_en_m"),
+            "posterior_std_en_m": f.get("posterior_std_en_m"), "advised": d.get("advised")}
 
 
 def _machine() -> dict:

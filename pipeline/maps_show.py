@@ -254,6 +254,24 @@ def drift_lines(drift: dict | None) -> list[str]:
     none is (with the largest share of its threshold); nothing without a statistic."""
     if not drift:
         return []
+    return _frame_lines(drift) + _region_lines(drift)
+
+
+def _frame_lines(drift: dict) -> list[str]:
+    """The window's frame test (``stages/posegraph/window.py``): is the held map's frame where it says it is?"""
+    f = drift.get("frame")
+    if not isinstance(f, dict) or not f.get("dof"):
+        return []
+    what = (f"the held map's frame moved ({f['shift_en_m'][0]:+.3f}, {f['shift_en_m'][1]:+.3f}) m, "
+            f"{f['rotation_deg']:+.3f} deg in {drift['version']}'s window of {f['window_poses']} poses; "
+            f"statistic {f['chi2']:.1f}")
+    if f.get("advised"):
+        return [f"reoptimize advised: {what} > threshold {f['threshold']:.1f} (the map is off by more than its frame "
+                "covariance states; poses outside the window keep it); run `cornermap maps reoptimize`"]
+    return [f"drift: frame consistent ({what} of threshold {f['threshold']:.1f})"]
+
+
+def _region_lines(drift: dict) -> list[str]:
     rows = [r for r in drift.get("regions", []) if r.get("loops")]
     where = f"{drift['version']}'s incremental solve, chi2 of the new drives' loops onto the map per region"
     advised = [r for r in rows if r.get("advised")]

@@ -243,21 +243,43 @@ def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_driv
                                            cfg.anchors, survey_matches,
                                            feature_load=scan_loader(ctx, ("intensity", "ring")),
                                            report_step=ctx.report_step)
+    frame_prior, held_cov, drive_of_row = None, None, None
+    if cfg.solve.compute_marginals:  # the window needs the held map's frame covariance (window.py)
+        from stages.posegraph.window import frame_prior_of
+
+        frame_prior = frame_prior_of(held.metadata)
+        held_cov = np.concatenate([_held_cov(held.rows(d.name)) for d in old])
+        drive_of_row = np.repeat(np.arange(len(old)), [d.n for d in old])
     sol = solve_increment(new, old, held_T, load, cfg, max_per_scan=cfg.loops.incremental_max_per_scan,
-                          survey_priors=survey_cb, report_step=ctx.report_step)
+                          survey_priors=survey_cb, report_step=ctx.report_step, frame=frame_prior, held_cov=held_cov,
+                          held_drive_of_row=drive_of_row)
     n = sum(d.n for d in new)
+    window = sol.extra.get("window")
     drift = increment_drift(sol, n, held_T)
+    if window is not None:
+        drift = (drift or {}) | {"frame": window["record"]}
+        if window["record"]["advised"]:
+            drift["advised"] = list(drift.get("advised", [])) + ["frame"]
     if cfg.solve.compute_marginals and new:
         ctx.report_step("marginal covariances of the new drives")
-        # the map poses the loops reach are held: the covariance is relative to the map already
-        cov = _marginals(sol.problem, np.concatenate([sol.poses, sol.problem.initial[n:]]), "the new drives")[:n]
+        # the map poses the loops reach (and the window's frame) held: the covariance is relative to the map
+        if window is None:
+            cov = _marginals(sol.problem, np.concatenate([sol.poses, sol.problem.initial[n:]]), "the new drives")[:n]
+        else:
+            cov = _marginals(window["problem_frame_held"], window["solved"], "the new drives")[:n]
     else:
         cov = np.zeros((n, 9))
     offsets = np.cumsum([0] + [d.n for d in new])
     solved = {d.name: (sol.poses[a:b], cov[a:b]) for d, a, b in zip(new, offsets[:-1], offsets[1:])}
+    moved: set[str] = set()
+    if window is not None:  # the window's held poses moved by the frame correction; the others kept bit for bit
+        corrected = window["held_T"]
+        moved = {d.name for d, a, b in zip(old, *_bounds(old)) if not np.array_equal(corrected[a:b], held_T[a:b])}
+        held_T = corrected
     all_T = {d.name: held_T[a:b] for d, a, b in zip(old, *_bounds(old))} | {k: v[0] for k, v in solved.items()}
-    optimized = [held.rows(d.name) if d.name in held.drives
-                 else poses_table("poses_optimized", d, *solved[d.name]) for d in drives]
+    optimized = [held.rows(d.name) if d.name in held.drives and d.name not in moved
+                 else poses_table("poses_optimized", d, all_T[d.name], _held_cov(held.rows(d.name)))
+                 if d.name in held.drives else poses_table("poses_optimized", d, *solved[d.name]) for d in drives]
     odometry = [poses_table("poses_odometry", d, dead_reckoning(d)) for d in drives]
     names_new = [(d.name, int(s)) for d in new for s in d.scan_ids] + \
         [(d.name, int(s)) for d in old for s in d.scan_ids]
@@ -276,7 +298,8 @@ def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_driv
         refs[d.name] = (d, ref)
     out_dir = ctx.artifact_dir("report")
     for d in drives:
-        if d.name in held.drives and held.copy_report_file(f"{d.name}_optimized_tum.txt", out_dir) \
+        kept = d.name in held.drives and d.name not in moved
+        if kept and held.copy_report_file(f"{d.name}_optimized_tum.txt", out_dir) \
                 and held.copy_report_file(f"{d.name}_optimized_kitti.txt", out_dir):
             pass
         else:
@@ -289,16 +312,33 @@ def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_driv
     ctx.report_step("the report")
     from stages.posegraph.solve import Solution
 
-    new_sol = Solution(sol.poses, sol.problem, sol.loops, sol.timings_s, sol.survey_rounds)
+    # the frame covariance the next night starts from: this night's window's record, else the held one's
+    frame_rec = window["record"] if window is not None else (held.metadata.get("incremental") or {}).get("frame")
+    report_problem = sol.problem
+    if window is not None:  # the report's residuals are the new drives' factors: without the window's frame ties
+        from dataclasses import replace
+
+        report_problem = replace(sol.problem, betweens=[b for b in sol.problem.betweens if b.kind != "frame"])
+    new_sol = Solution(sol.poses, report_problem, sol.loops, sol.timings_s, sol.survey_rounds)
     frame, kernel = held.metadata.get("map_frame"), held.metadata.get("pose_error_correlation")
     write_report(out_dir, new, new_sol, refs, loop_rows, survey_matches, kernel, frame,
                  incremental={"held_version": held.version, "held_drives": [d.name for d in old],
-                              "new_drives": [d.name for d in new], **sol.timings_s, "drift": drift})
+                              "new_drives": [d.name for d in new], **sol.timings_s, "drift": drift,
+                              "moved_drives": sorted(moved)})
     return {"poses_odometry": pa.concat_tables(odometry), "poses_optimized": pa.concat_tables(optimized),
             "loop_closures": loops_table(loop_rows),
             "_extra": {"pose_error_correlation": kernel, "map_frame": frame,
                        "incremental": {"held_version": held.version, "new_drives": [d.name for d in new],
-                                       "drift": drift}}}
+                                       "drift": drift, "moved_drives": sorted(moved),
+                                       **({"frame": frame_rec} if frame_rec else {})}}}
+
+
+def _held_cov(rows: pa.Table) -> np.ndarray:
+    """(N,9) published ``cov_xy_yaw`` of held rows (zeros where the column is absent or null)."""
+    if "cov_xy_yaw" not in rows.column_names or rows["cov_xy_yaw"].null_count:
+        return np.zeros((rows.num_rows, 9))
+    return np.asarray(rows["cov_xy_yaw"].combine_chunks().flatten().to_numpy(zero_copy_only=False),
+                      float).reshape(-1, 9)
 
 
 def increment_drift(sol, n: int, held_T: np.ndarray, **drift_kw) -> dict | None:
@@ -308,10 +348,14 @@ def increment_drift(sol, n: int, held_T: np.ndarray, **drift_kw) -> dict | None:
 
     if n == 0 or not len(held_T):
         return None
-    row_of = {tuple(np.round(T[:3, 3], 9)): k for k, T in enumerate(held_T)}
-    held_rows = {p.i: row_of[tuple(np.round(p.T_map_vehicle[:3, 3], 9))] for p in sol.problem.pose_priors
-                 if p.kind == "fixed" and p.i >= n}
-    poses = np.concatenate([sol.poses, sol.problem.initial[n:]])
+    if "held_of" in sol.extra:  # solve_increment's: graph pose -> held row
+        held_rows = dict(sol.extra["held_of"])
+    else:  # a solution without it: its held poses are the ``fixed`` priors, found back among held_T by position
+        row_of = {tuple(np.round(T[:3, 3], 9)): k for k, T in enumerate(held_T)}
+        held_rows = {p.i: row_of[tuple(np.round(p.T_map_vehicle[:3, 3], 9))] for p in sol.problem.pose_priors
+                     if p.kind == "fixed" and p.i >= n}
+    window = sol.extra.get("window")
+    poses = window["solved"] if window is not None else np.concatenate([sol.poses, sol.problem.initial[n:]])
     return loop_drift(sol.problem, poses, n, held_rows, held_T[:, :2, 3], **drift_kw)
 
 

@@ -29,6 +29,7 @@ class Solution:
     loops: list[LoopRecord] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
     survey_rounds: list[dict] = field(default_factory=list)  # one record per anchoring round (``anchored``)
+    extra: dict = field(default_factory=dict)  # the incremental solve's: held rows of its map poses, its window
 
 
 def optimize_with_loops(problem: Problem, loops: list[LoopRecord], loop_cfg: LoopConfig, solve_cfg: SolveConfig,

@@ -86,3 +86,33 @@ def test_nothing_new_is_nothing_to_solve(tmp_path):
     held = np.tile(np.eye(4), (d0.n + d1.n, 1, 1))
     sol = solve_increment([], [d0, d1], held, load, cfg)
     assert sol.poses.shape == (0, 4, 4) and not sol.loops
+
+
+def test_with_a_frame_prior_the_window_moves_the_held_map_rigidly_and_the_loops_still_place_the_drive(tmp_path):
+    """The window (window.py) on the raycast street: d0's frame stated loose (1 m), so the two drives' GNSS share
+    the offset between them; d1 still lands on d0 through the loops (relative oracle), d0's window poses move
+    rigidly (their relative geometry kept), the rows outside the window keep their values."""
+    from stages.posegraph.incremental import solve_increment
+    from stages.posegraph.solve import solve_map
+    from stages.posegraph.window import FramePrior
+
+    ctx, (d0, d1), cfg, load, T0, T1 = _setup(tmp_path)
+    held = solve_map([d0], load, cfg).poses
+    frame = FramePrior(held[:, :2, 3].mean(0), np.diag([1.0, 1.0, 1e-4]), 1.0, "map_frame")
+    cov = np.tile(np.diag([1e-5, 1e-5, 1e-7]).reshape(9), (d0.n, 1))
+    sol = solve_increment([d1], [d0], held, load, cfg, max_per_scan=1, frame=frame, held_cov=cov,
+                          held_drive_of_row=np.zeros(d0.n, int))
+    win = sol.extra["window"]
+    assert win is not None and len(win["graph"].rows) > 0
+    moved = win["held_T"]
+    out = np.setdiff1d(np.arange(d0.n), win["graph"].rows)
+    assert np.array_equal(moved[out], held[out])
+    full = win["graph"].rows  # the street: d0 lies within reach of d1 from end to end (no taper)
+    assert len(full) == d0.n
+    d_before = np.linalg.norm(held[full, :3, 3] - held[full[0], :3, 3], axis=1)
+    d_after = np.linalg.norm(moved[full, :3, 3] - moved[full[0], :3, 3], axis=1)
+    assert np.max(np.abs(d_after - d_before)) < 1e-6  # rigid where the correction applies whole: distances kept
+    assert _offset_error_m(moved, sol.poses, T0, T1) < 0.05
+    rec = win["record"]
+    assert rec["window_poses"] == len(win["graph"].rows) and rec["dof"] >= 1
+
