@@ -1,6 +1,7 @@
 """The growing city (issue 59): ``route: districts`` gives drive k its own loop around one block row and two block
 columns; the first drives sweep the grid west to east with each window sharing a street with an earlier one; the
 survey covers every drive's route; the changes are placed along the first changed drive's window."""
+
 from __future__ import annotations
 
 import json
