@@ -283,8 +283,8 @@ def main(argv: list[str] | None = None) -> dict:
                 _save(a, out, rows, load_before)
         _save(a, out, rows, load_before)
         keys = (
-            "last_over_added_to_one",
-            "last_over_one_drive_build",
+            "ref_over_added_to_one",
+            "ref_over_one_drive_build",
             "download_ratio_max",
             "republished_untouched_total",
         )
