@@ -15,6 +15,7 @@ another writer holds either):
   6. the regression gate (``pipeline.gate``) localizes the check drive (the identity's, else the newest new
      drive) on the candidate and on LATEST; worse beyond tolerance: exit 3, LATEST unchanged;
   7. LATEST moves to the verified candidate, then the identity records the new drives.
+Steps 6-7 are ``gate_and_publish``, which ``maps reoptimize`` (pipeline/reoptimize.py) publishes through too.
 A run killed at any point leaves LATEST naming a complete version; the next run finds the same drives new
 and completes from the committed work (a candidate LATEST already names is only recorded).
 The root and the inbox may be ``s3://`` URIs: the map's identity, LATEST, gate records and locks (leases) are then
@@ -252,9 +253,8 @@ def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildP
     """One rebuild (module docstring); ``say(line)`` gets each line of the result as it is made, so that what was
     quarantined or left alone is told even when the build then fails. ``root`` and ``inbox`` are local folders or
     ``s3://`` URIs (``pipeline.maps.MapHome``, ``pipeline.inbox.StoreInbox``)."""
-    from pipeline.api import execute_workflow, published_version
+    from pipeline.api import execute_workflow
     from pipeline.build import write_build_workflow
-    from pipeline.gate import run_gate
     from pipeline.inbox import open_inbox
     from pipeline.maps import MapHome
     from pipeline.versioned import version_name
@@ -300,30 +300,10 @@ def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildP
                                params_file=params.params_file, workers=params.workers, dask_host=params.dask_host)
         result.summary = run["summary"]
         result.add(reuse_line(run["summary"]))
-        candidate = published_version(run["plan"])
-        if candidate is None:
-            raise StageError(f"rebuild of map {name!r}: the build committed no map_tiles rows (no version published)")
-        previous = home.latest()
-        if candidate != previous and previous is not None and params.gate:
-            check = ident.check_drive
-            drive = local_drive_file(check.path) if check else sel.good[-1][0].drive_yaml
-            if drive is None:
-                raise ConfigError(f"map {name!r}", [f"its check drive {check.path} is gone"])
-            reference = check.reference if check else None
-            with home.view(whole=[candidate, previous]) as view:
-                verdict = run_gate(view, candidate, previous, drive, reference, params.gate_tol_m,
-                                   params.gate_tol_rel)
-                home.put_gate(view, candidate)
-            result.add(*verdict.table)
-            if not verdict.ok:
-                result.status, result.version = "refused", candidate
-                result.add(f"refused: {version_name(candidate)} is worse than {version_name(previous)} on "
-                           f"{drive.parent.name}; LATEST stays {version_name(previous)}")
-                if ident != before:
-                    home.write_identity(ident)
-                return result
-        if candidate != previous:
-            home.move_latest(candidate)
+        candidate, _ = gate_and_publish(home, run, ident, before, params, result, "rebuild",
+                                        fallback_drive=sel.good[-1][0].drive_yaml)
+        if result.status == "refused":
+            return result
         added = [MapDrive(name=dlv.name, path=box.recorded(dlv), fingerprint=fp, content=content,
                           added_utc=utc_now(), added_in=candidate) for dlv, fp, content in sel.good]
         home.write_identity(ident.model_copy(update={"drives": list(ident.drives) + added}))
@@ -331,6 +311,66 @@ def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildP
         result.add(f"published map {name!r} {version_name(candidate)} (LATEST): {len(drives)} drive(s), "
                    f"added {', '.join(dlv.name for dlv, _, _ in sel.good)}")
         return result
+
+
+def gate_and_publish(home, run: dict, ident, before, params, result: RebuildResult, what: str,
+                     fallback_drive: Path) -> tuple[int, int | None]:
+    """The publishing half of a run that wrote a candidate version with ``hold_latest`` (``rebuild``, ``maps
+    reoptimize``), on a local root or an ``s3://`` one alike (``MapHome``), under the map's lock the caller holds:
+    the candidate is the version the run's plan published (StageError naming ``what`` when it committed none); when it
+    is not already LATEST and a LATEST exists, the regression gate (``pipeline.gate.run_gate`` on a local view of both
+    versions; its record written to the map) localizes the identity's check drive (else ``fallback_drive``) on both;
+    a refusal sets ``result`` refused (exit 3), writes ``ident`` when it differs from ``before`` (fingerprints brought
+    up to date) and leaves LATEST; otherwise LATEST moves to the candidate (``MapHome.move_latest``: verified under
+    the publish lock). Returns (candidate, the LATEST before); the caller records what the run adds to the
+    identity."""
+    from pipeline.api import published_version
+    from pipeline.gate import run_gate
+    from pipeline.inbox import local_drive_file
+    from pipeline.versioned import version_name
+
+    candidate = published_version(run["plan"])
+    if candidate is None:
+        raise StageError(f"{what} of map {home.name!r}: the build committed no map_tiles rows (no version published)")
+    previous = home.latest()
+    if candidate != previous and previous is not None and params.gate:
+        check = ident.check_drive
+        drive = local_drive_file(check.path) if check else Path(fallback_drive)
+        if drive is None:
+            raise ConfigError(f"map {home.name!r}", [f"its check drive {check.path} is gone"])
+        reference = check.reference if check else None
+        with home.view(whole=_gate_versions(home, candidate, previous)) as view:
+            verdict = run_gate(view, candidate, previous, drive, reference, params.gate_tol_m, params.gate_tol_rel)
+            home.put_gate(view, candidate)
+        result.add(*verdict.table)
+        if not verdict.ok:
+            result.status, result.version = "refused", candidate
+            result.add(f"refused: {version_name(candidate)} is worse than {version_name(previous)} on "
+                       f"{drive.parent.name}; LATEST stays {version_name(previous)}")
+            if ident != before:
+                home.write_identity(ident)
+            return candidate, previous
+    if candidate != previous:
+        home.move_latest(candidate)
+    return candidate, previous
+
+
+def _gate_versions(home, candidate: int, previous: int) -> list[int]:
+    """The versions the gate reads in full: both, and the parent of each (``cornermap evaluate`` also localizes on a
+    version's parent, ``stages/evaluate/compare.py``). On a local root every version is in place; on a bucket the
+    parents are found in a snapshot of the manifests (without them the gate of a third version failed reading its
+    previous version's parent)."""
+    from pipeline.version_read import read_manifest
+
+    wanted = {candidate, previous}
+    if home.local:
+        return sorted(wanted)
+    with home.view(whole=()) as manifests:
+        for v in (candidate, previous):
+            parent = read_manifest(storage.version_dir(manifests, v))[0].get("parent_version")
+            if isinstance(parent, int):
+                wanted.add(parent)
+    return sorted(wanted)
 
 
 def held_solution(root: "Path | str", mdir: Path) -> dict | None:

@@ -10,7 +10,7 @@ import typer
 from pipeline import cli_options as opts
 
 
-def reoptimize_cmd(root: Path = opts.ROOT, map_name: str = opts.MAP,
+def reoptimize_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = opts.MAP,
                    region_max_poses: int = typer.Option(600, "--region-max-poses", min=0, help="Most poses of one "
                                                         "region (the cost of one region's solve); 0: one joint "
                                                         "solve, as rebuild --full."),
@@ -28,7 +28,8 @@ def reoptimize_cmd(root: Path = opts.ROOT, map_name: str = opts.MAP,
     What `rebuild --full` solves (every pass, every loop), each pose-graph solve split into regions of at most
     --region-max-poses poses that run side by side on the dask workers (--workers, --scheduler tcp://...), with the
     borders between them solved exactly (a condensed separator); then the regression gate and LATEST as a rebuild.
-    Run it when `cornermap maps show` advises it, or on a schedule (docs/maintenance.md).
+    Run it when `cornermap maps show` advises it, or on a schedule (docs/maintenance.md). --root may be an
+    s3://BUCKET/PREFIX URI (the map's identity, LATEST, gate records and locks in the bucket), as for rebuild.
 
     Exit codes: 0 published (or LATEST is already the result), 3 gate refused (LATEST unchanged), 1 error, 2 usage,
     75 another writer of the map or root holds its lock, 130/143 interrupted/terminated.

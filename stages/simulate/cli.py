@@ -29,7 +29,8 @@ def register(app: typer.Typer) -> None:
 
 
 def simulate_command(
-    preset: str = typer.Option("tiny", help="tiny | demo | gangnam | tiny_consumer | demo_consumer | kitti_city"),
+    preset: str = typer.Option("tiny", help="tiny | demo | gangnam | tiny_consumer | demo_consumer | kitti_city | "
+                               "growing"),
     seed: int = typer.Option(0, help="random seed; same preset and seed give identical files"),
     out: Path = typer.Option(..., help="output directory (drive_K/, survey/, truth/)"),
     drives: int = typer.Option(None, help="number of drives (drive 0 maps, later ones evaluate); default 2"),

@@ -28,7 +28,7 @@ from stages.simulate.mesh import Scene, build_building_soup, build_static_soup
 from stages.simulate.presets import Preset, get_preset, preset_overrides
 from stages.simulate.sensor import LIDARS, LaserCalibration, build_beam_table, mount_matrix
 from stages.simulate.survey import generate_survey
-from stages.simulate.trajectory import choose_loop_cells, loop_nodes, out_and_back_nodes
+from stages.simulate.trajectory import choose_loop_cells, district_loop, loop_nodes, out_and_back_nodes
 from stages.simulate.truth import building_corners, city_description, count_visible_scans
 
 log = logging.getLogger(__name__)
@@ -118,14 +118,19 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
     corners = building_corners(city)
     worlds = {False: (city, static, buildings, marks)}  # dated variants: False = as generated
     plan = None
+    # route districts: every drive its own loop (trajectory.district_loop); the changes along the first changed drive's
+    loops = [district_loop(p.n_rows, p.n_cols, k) for k in range(n_drives)] if p.route == "districts" else None
     if changes:
+        if loops is not None:
+            first = n_drives - 1 if changes_from_drive is None else int(changes_from_drive)
+            loop = loops[min(max(first, 0), n_drives - 1)]  # out of range: changed_world names the problem
         plan, *worlds[True] = dated.changed_world(city, loop, p.sidewalk_m, marks, n_drives, changes_from_drive,
                                                   component_rng(seed, "changes"), component_rng(seed, "mesh"))
 
     names, n_scans, stats, visible, ahead = [], {}, {}, {}, {}
     route0 = None
     for k in range(n_drives):
-        spec = DriveSpec.for_index(k, loop, p, city, seed)
+        spec = DriveSpec.for_index(k, loop if loops is None else loops[k], p, city, seed)
         name = f"drive_{k}"
         drive_dir = out_dir / name
         changed = plan is not None and k >= plan.from_drive  # the drive sees the city as of its date
@@ -144,6 +149,8 @@ def simulate(preset: str | Preset, seed: int, out_dir: Path, n_drives: int | Non
         visible[name] = count_visible_scans(corners, w_static, result.scan_positions_en, p.lidar_z_m)
         if k == 0:
             route0 = result.route_en
+        if loops is not None:  # the survey covers every drive's route
+            route0 = [*(route0 if isinstance(route0, list) else []), result.route_en]
         ahead[name] = result.lead_scan_share
         log.info("%s: %d scans, GNSS horizontal RMS %.2f m, a vehicle ahead in %.0f%% of the scans", name,
                  result.n_scans, result.gnss_stats["rms_m"], 100 * result.lead_scan_share)

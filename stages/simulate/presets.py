@@ -90,7 +90,8 @@ class Preset:
     start_position_std_m: float = 0.05  # no GNSS: the start position's horizontal error (drawn) and stated std
     keyframe_spacing_m: float = 0.0  # > 0: only keyframes, each 0.5-1.5 x this much travel after the previous
     # issue 63: an out-and-back street whose two passes a drifting estimate puts tens of metres apart
-    route: str = "loop"  # loop: around blocks; out_and_back: along one street to its end and back (U-turns)
+    route: str = "loop"  # loop: around blocks; out_and_back: along one street to its end and back (U-turns);
+    # districts: drive k around its own window of 1 x 2 blocks (trajectory.district_loop; issue 59, preset growing)
     prior_heading_walk_deg: float = 0.0  # > 0: the prior's heading also random-walks, this std per sqrt(km) of
     # travel, its positions integrate it (a SLAM without loop closures drifts); the stated std adds the walk's spread
     # at the drive's end
@@ -144,12 +145,19 @@ PRESETS["kitti_city"] = Preset(
     gps_week=1655, survey=False, sensor="hdl64e", lidar_x_m=0.81, lidar_y_m=-0.32, lidar_z_m=1.73,
     window_share=0.9, shopfront_share=0.8, balcony_share=0.3, facade_vegetation_share=0.4, parked_tall_share=0.25)
 
+# Issue 59: a city that grows. A grid of 5 x 3 tiny blocks; drive k loops around its own window of one block row and
+# two block columns (``route: districts``, trajectory.district_loop): the first 12 drives sweep the grid west to east,
+# each sharing streets with earlier ones, later drives revisit them; the survey covers every drive's route. With
+# ``--changes --changes-from-drive K`` the city changes along drive K's window (bench/bench_growing.py).
+PRESETS["growing"] = replace(PRESETS["tiny"], name="growing", n_cols=5, n_rows=3, route="districts",
+                             default_drives=20, max_scans_per_drive=300)
+
 SHARES = ("lead_vehicle_share", "queue_stop_share", "rounded_corner_share", "chamfered_corner_share",
           "mixed_pixel_share", "sector_dropout_scan_share", "window_share", "shopfront_share", "balcony_share",
           "facade_vegetation_share", "parked_tall_share")
 SENSOR_NAMES = ("hdl32e", "hdl64e", "os1-64")  # stages/simulate/sensor.py LIDARS
 PRIOR_KINDS = ("none", "local", "enu")
-ROUTES = ("loop", "out_and_back")
+ROUTES = ("loop", "out_and_back", "districts")
 
 
 def get_preset(name: str, **overrides) -> Preset:

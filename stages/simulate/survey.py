@@ -33,17 +33,18 @@ def _rect_polys(boxes: np.ndarray) -> list[np.ndarray]:
 
 def generate_survey(city: City, route_en: np.ndarray, corridor_m: float, markings: Raster, albedo: Raster,
                     rng: np.random.Generator, spacing_m: float = 0.095) -> tuple[np.ndarray, np.ndarray]:
-    """Points (N, 3) ENU and calibrated reflectance (N,) within ``corridor_m`` of the route polyline."""
+    """Points (N, 3) ENU and calibrated reflectance (N,) within ``corridor_m`` of the route polyline (or of any of a
+    list of them: ``route: districts`` surveys every drive's route)."""
     import cv2
 
     west, south, east, north = city.bounds_en
     res = spacing_m
     shape = (int(np.ceil((north - south) / res)), int(np.ceil((east - west) / res)))
     corridor = np.zeros(shape, np.uint8)
-    px = np.round(np.column_stack([(route_en[:, 0] - west) / res, (north - route_en[:, 1]) / res]) * 16).astype(
-        np.int32
-    )
-    cv2.polylines(corridor, [px], False, 1, thickness=int(2 * corridor_m / res), shift=4)
+    routes = list(route_en) if isinstance(route_en, (list, tuple)) else [route_en]  # several drives' routes
+    px = [np.round(np.column_stack([(r[:, 0] - west) / res, (north - r[:, 1]) / res]) * 16).astype(np.int32)
+          for r in routes]
+    cv2.polylines(corridor, px, False, 1, thickness=int(2 * corridor_m / res), shift=4)
     sidewalk = np.zeros(shape, np.uint8)
     _fill(sidewalk, city.curbs_en, west, north, res)
     blocked = np.zeros(shape, np.uint8)

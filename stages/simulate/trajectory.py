@@ -87,6 +87,20 @@ def out_and_back_nodes(n_rows: int, n_cols: int, row: int | None = None) -> list
     return out + out[-2:0:-1]
 
 
+def district_loop(n_rows: int, n_cols: int, k: int) -> list[tuple[int, int]]:
+    """Drive ``k``'s route of ``route: districts``: the loop around a window of one block row and two block columns,
+    row ``k mod n_rows``, first column ``(k // n_rows) mod (n_cols - 1)``. Drives 0 .. n_rows (n_cols - 1) - 1 sweep
+    the grid west to east (each new window shares a street with an earlier one: the map grows district by
+    district), later drives revisit the same windows."""
+    if n_cols < 2:
+        raise ValueError(f"route districts needs 2 or more block columns; got {n_cols}")
+    j = k % n_rows
+    i = (k // n_rows) % (n_cols - 1)
+    loop = loop_nodes({(j, i), (j, i + 1)})
+    assert loop is not None
+    return loop
+
+
 def _perimeter_m(cells, nodes_en) -> float:
     return float(sum(np.linalg.norm(nodes_en[b] - nodes_en[a]) for a, b in _boundary_edges(cells)))
 
