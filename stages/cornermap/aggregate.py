@@ -66,11 +66,78 @@ def _inv_spd(m: np.ndarray) -> np.ndarray:
     return np.linalg.inv(m + _COV_FLOOR_M2 * np.eye(2))
 
 
+def lag_one_correlation(labels: np.ndarray, drive_code: np.ndarray, stamp_ns: np.ndarray, en_m: np.ndarray,
+                        min_obs: int = 4) -> tuple[float, int]:
+    """(rho, pairs): the lag-1 autocorrelation of the observations' deviations from their pass mean (one pass: one
+    cluster seen by one drive), consecutive in time, pooled over every pass of at least ``min_obs`` observations:
+    ``sum d_k . d_k+1 / sum d_k . d_k`` (2-D), each pass's deviations divided by their RMS. 0 with no such pass."""
+    if not len(labels):
+        return 0.0, 0
+    key = labels.astype(np.int64) * (int(drive_code.max()) + 1 if len(drive_code) else 1) + drive_code
+    _, g = np.unique(key, return_inverse=True)
+    n_g = np.bincount(g)
+    mean = _sum2(g, en_m, len(n_g)) / n_g[:, None]
+    d = en_m - mean[g]
+    # each pass's deviations in units of its own spread: a wide cluster (rejected later) does not outweigh the rest
+    spread = np.sqrt(np.bincount(g, np.sum(d**2, axis=1), minlength=len(n_g)) / n_g)
+    d = d / np.where(spread > 0, spread, 1.0)[g, None]
+    use = n_g[g] >= min_obs
+    order = np.lexsort((stamp_ns, g))
+    order = order[use[order]]
+    if len(order) < 2:
+        return 0.0, 0
+    same = g[order[1:]] == g[order[:-1]]
+    num = float(np.sum(np.einsum("ni,ni->n", d[order[1:]], d[order[:-1]])[same]))
+    den = float(np.sum(d[order] ** 2))
+    if den <= 0 or not same.any():
+        return 0.0, int(same.sum())
+    # deviations from the pass's own mean bias the estimate low by about (1 + 3 rho) / n (Kendall): undone with the
+    # passes' mean 1 / n over the pairs
+    inv_n = float(np.mean(1.0 / n_g[g[order[1:]][same]]))
+    r = num / den
+    return float(min((r + inv_n) / max(1.0 - 3.0 * inv_n, 1e-3), 0.99)), int(same.sum())
+
+
+def effective_samples(n_obs: np.ndarray, rho: float) -> np.ndarray:
+    """Independent samples among ``n_obs`` observations of an AR(1) sequence with lag-1 correlation ``rho``: the
+    variance of their mean is the single variance over ``n (1 - rho) / (1 + rho)`` (large n), between 1 and n."""
+    r = float(np.clip(rho, 0.0, 0.99))
+    return np.clip(np.asarray(n_obs, float) * (1.0 - r) / (1.0 + r), 1.0, np.maximum(n_obs, 1))
+
+
+def shared_pose_part(labels: np.ndarray, drive_code: np.ndarray, obs: EnuObservations, W: np.ndarray,
+                     W_sum: np.ndarray, k: int) -> np.ndarray:
+    """(K,2,2) the pose-graph part of each cluster mean's covariance when one pass's poses share their error (one
+    pass: one cluster seen by one drive; passes of different drives independent). The mean is
+    ``W_sum^-1 sum_i W_i x_i``; a pose error ``d`` (east, north, yaw) common to a pass moves it by
+    ``W_sum^-1 (sum_i W_i J_i) d``, whose covariance is ``A Sigma A^T`` with ``A = W_sum^-1 sum_pass W_i J_i`` and
+    ``Sigma`` the pass's mean pose covariance. A yaw error thus acts through the lever arm from the weighted mean of
+    the observing poses to the corner, not through each observation's own lever arm (averaging ``J_i Sigma J_i^T``
+    counts the lever arm of a corner seen from 40 m ahead and 40 m behind twice, where the two cancel)."""
+    key = labels.astype(np.int64) * (int(drive_code.max()) + 1 if len(drive_code) else 1) + drive_code
+    pass_keys, g = np.unique(key, return_inverse=True)
+    p = len(pass_keys)
+    cluster_of_pass = np.zeros(p, np.int64)
+    cluster_of_pass[g] = labels
+    WJ = np.einsum("nij,njk->nik", W, obs.J_pose)  # (N,2,3)
+    sum_WJ = np.stack([np.stack([np.bincount(g, WJ[:, a, b], minlength=p) for b in range(3)], -1)
+                       for a in range(2)], -2)  # (P,2,3)
+    n_pass = np.bincount(g, minlength=p)
+    sig = np.stack([np.stack([np.bincount(g, obs.cov_pose_xy_yaw[:, a, b], minlength=p) for b in range(3)], -1)
+                    for a in range(3)], -2) / n_pass[:, None, None]
+    A = np.linalg.solve(W_sum[cluster_of_pass], sum_WJ)  # (P,2,3)
+    per_pass = np.einsum("pij,pjk,plk->pil", A, sig, A)
+    return _sum2x2(cluster_of_pass, per_pass, k)
+
+
 def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.ndarray, drive_names: list[str],
                        stamp_ns: np.ndarray, interior_angle_rad: np.ndarray, convex: np.ndarray,
-                       scatter_per_drive: bool = False) -> ClusterSummary:
+                       scatter_per_drive: bool = False, pass_rho: float | None = None,
+                       pose_shared_per_pass: bool = False) -> ClusterSummary:
     """Summarise observations grouped by ``labels`` (0..K-1); ``drive_code`` indexes ``drive_names``;
-    ``scatter_per_drive``: the empirical extraction part counts one independent sample per drive."""
+    ``scatter_per_drive``: the empirical extraction part counts one independent sample per drive, or, with
+    ``pass_rho`` (the lag-1 correlation of a pass's observations, ``lag_one_correlation``), each drive's
+    ``effective_samples`` of its observations."""
     k = int(labels.max()) + 1 if len(labels) else 0
     n_obs = np.bincount(labels, minlength=k)
 
@@ -99,16 +166,30 @@ def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.
     split_at = np.cumsum(n_drives)[:-1]
     drives = [",".join(drive_names[c] for c in codes) for codes in np.split(pairs[:, 1], split_at)] if k else []
 
-    cov_pose_mean = _sum2x2(labels, obs.cov_pose_m2, k) / n_obs[:, None, None] / n_drives[:, None, None]
+    if pose_shared_per_pass and obs.J_pose is not None:
+        cov_pose_mean = shared_pose_part(labels, drive_code, obs, W, W_sum, k)
+    else:
+        cov_pose_mean = _sum2x2(labels, obs.cov_pose_m2, k) / n_obs[:, None, None] / n_drives[:, None, None]
     extract_info = np.linalg.inv(_sum2x2(labels, _inv_spd(obs.cov_corner_m2), k))
 
-    def extraction_part(n_independent: np.ndarray) -> np.ndarray:
-        standard_error = scatter / n_independent[:, None, None]
+    def extraction_part(se_factor: np.ndarray) -> np.ndarray:
+        standard_error = scatter * se_factor[:, None, None]
         use_empirical = np.trace(standard_error, axis1=1, axis2=2) > np.trace(extract_info, axis1=1, axis2=2)
         return np.where(use_empirical[:, None, None], standard_error, extract_info)
 
-    extract_mean = extraction_part(n_obs)
-    cov_map = cov_pose_mean + (extraction_part(n_drives) if scatter_per_drive else extract_mean)
+    extract_mean = extraction_part(1.0 / n_obs)
+    if scatter_per_drive and pass_rho is not None:
+        per_pass = np.unique(np.column_stack([labels, drive_code]), axis=0, return_counts=True)
+        n_eff = np.bincount(per_pass[0][:, 0], effective_samples(per_pass[1], pass_rho), minlength=k)
+        # correlated views scatter less about their mean than their own spread: E[scatter] = var (n - n / n_eff) /
+        # (n - 1), so the mean's variance var / n_eff is scatter (n - 1) / (n (n_eff - 1)); never above one
+        # sample per drive
+        with np.errstate(divide="ignore", invalid="ignore"):
+            factor = np.where(n_eff > 1.0, (n_obs - 1.0) / (n_obs * (n_eff - 1.0)), np.inf)
+        se = np.minimum(factor, 1.0 / n_drives)
+    else:
+        se = 1.0 / (n_drives if scatter_per_drive else n_obs)
+    cov_map = cov_pose_mean + extraction_part(np.broadcast_to(se, (k,)).astype(float))
     cov_map = 0.5 * (cov_map + cov_map.transpose(0, 2, 1)) + _COV_FLOOR_M2 * np.eye(2)
 
     first_seen = np.full(k, np.iinfo(np.int64).max)

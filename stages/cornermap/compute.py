@@ -11,7 +11,7 @@ from pipeline.errors import DataQualityError
 from schemas import SCHEMAS
 from stages.common.drive_tables import select_drives
 from stages.common.records import Extrinsics, pose_matrices
-from stages.cornermap.aggregate import aggregate_clusters
+from stages.cornermap.aggregate import aggregate_clusters, lag_one_correlation
 from stages.cornermap.clustering import cluster_observations
 from stages.cornermap.filtering import FilterThresholds, reject_reasons
 from stages.cornermap.merge import merge_duplicates
@@ -107,9 +107,15 @@ def compute(ctx) -> dict[str, Any]:
                                   max_cov_trace_m2=p.max_cov_trace_m2,
                                   max_angle_spread_rad=np.radians(p.max_angle_spread_deg))
 
+    rho = None
+    if p.extraction_error_per_drive and p.pass_autocorrelation:
+        rho, n_pairs = lag_one_correlation(labels, drive_code, col("stamp_ns"), obs.en_m)
+        extra["cornermap"]["pass_lag_one_correlation"] = {"rho": rho, "pairs": n_pairs}
+
     def summarise(lab):
         return aggregate_clusters(lab, obs, drive_code, drive_names, col("stamp_ns"), col("interior_angle_rad"),
-                                  col("convex"), scatter_per_drive=p.extraction_error_per_drive)
+                                  col("convex"), scatter_per_drive=p.extraction_error_per_drive, pass_rho=rho,
+                                  pose_shared_per_pass=p.pose_shared_per_pass)
 
     summary = summarise(labels)
     duplicate, n_merged = np.zeros(len(summary.n_obs), bool), 0

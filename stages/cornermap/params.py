@@ -41,6 +41,14 @@ class CornerMapParams(Params):
                                              "is the observations' scatter over the number of drives (one pass's "
                                              "views share their extraction error); false: over the number of "
                                              "observations")
+    pass_autocorrelation: bool = Field(True, description="with extraction_error_per_drive: a pass counts the "
+                                       "effective number of independent samples among its views, n (1 - rho) / "
+                                       "(1 + rho), rho the lag-1 correlation of the views' deviations measured on "
+                                       "the map's own passes (aggregate.lag_one_correlation); false: one per pass")
+    pose_shared_per_pass: bool = Field(True, description="the pose part of a corner's covariance: a pass's poses "
+                                       "share their error, propagated through the weighted mean's Jacobian "
+                                       "(aggregate.shared_pose_part); false: each view's propagated pose "
+                                       "covariance averaged")
     max_angle_spread_deg: float = Field(6.0, gt=0.0, description="circular std of either wall direction")
 
     @model_validator(mode="after")

@@ -28,6 +28,8 @@ class EnuObservations:
     theta_enu_rad: np.ndarray  # (N,2) canonical wall directions, CCW from east
     cov_corner_m2: np.ndarray  # (N,2,2) extraction noise rotated into ENU
     cov_pose_m2: np.ndarray  # (N,2,2) pose uncertainty propagated to the corner
+    J_pose: np.ndarray | None = None  # (N,2,3) d(east, north) / d(pose east, north, yaw)
+    cov_pose_xy_yaw: np.ndarray | None = None  # (N,3,3) the observing pose's covariance
 
     @property
     def cov_m2(self) -> np.ndarray:
@@ -68,4 +70,5 @@ def transform_to_enu(xy_lidar_m: np.ndarray, theta_lidar_rad: np.ndarray, cov_li
     dirs_en = np.einsum("nij,nkj->nki", A, dirs)
     theta_enu = canonicalize_pairs(np.arctan2(dirs_en[..., 1], dirs_en[..., 0]))
     sym = lambda m: 0.5 * (m + m.transpose(0, 2, 1))  # noqa: E731 - remove round-off asymmetry
-    return EnuObservations(en, theta_enu, sym(cov_corner), sym(cov_pose))
+    return EnuObservations(en, theta_enu, sym(cov_corner), sym(cov_pose), J,
+                           sym(np.asarray(cov_pose_xy_yaw, float)))
