@@ -29,6 +29,7 @@ from typing import Any
 
 from pipeline import storage
 from pipeline.errors import ConfigError, DatasetIOError
+from pipeline.fingerprint import relative_strings
 
 _STAGED: dict[tuple[str, str], str] = {}  # (root URI, local drive.yaml) -> staged drive.yaml URI, this process
 
@@ -43,23 +44,6 @@ def _split(uri: str) -> tuple[str, str]:
     scheme, rest = uri.split("://", 1)
     bucket, _, key = rest.partition("/")
     return f"{scheme}://{bucket}", key
-
-
-def _strings(doc: Any) -> list[str]:
-    out: list[str] = []
-
-    def walk(node: Any) -> None:
-        if isinstance(node, dict):
-            for v in node.values():
-                walk(v)
-        elif isinstance(node, (list, tuple)):
-            for v in node:
-                walk(v)
-        elif isinstance(node, str) and node and len(node) < 4096 and not node.startswith("/") and "://" not in node:
-            out.append(node)
-
-    walk(doc)
-    return sorted(set(out))
 
 
 def _load(raw: bytes, where: str) -> Any:
@@ -96,7 +80,7 @@ def _referenced(store: storage.Store, loc: PurePosixPath, raw: bytes) -> dict[st
     bucket = loc.parts[0]
     folder = loc.parent.as_posix()
     found: dict[str, dict[str, tuple[int, str, float]]] = {}
-    for value in _strings(_load(raw, storage.normalise_uri(f"s3://{loc.as_posix()}"))):
+    for value in relative_strings(_load(raw, storage.normalise_uri(f"s3://{loc.as_posix()}"))):
         target = posixpath.normpath(posixpath.join(folder, value))
         if target == bucket or not target.startswith(bucket + "/"):
             continue  # outside the bucket: not a drive input (ingest names a missing file)

@@ -44,9 +44,11 @@ def folder_key(folder: Path) -> list:
     return out
 
 
-def _referenced_paths(doc: Any, folder: Path) -> dict[str, Path]:
-    """Every string value of a YAML document that names an existing file or folder relative to ``folder``."""
-    found: dict[str, Path] = {}
+def relative_strings(doc: Any) -> list[str]:
+    """Every string value of a YAML document that could name a path relative to its folder: not absolute, not a
+    URI, shorter than 4096 characters; sorted, once each (a drive file's inputs: ``pipeline.drive_store`` resolves
+    them in a bucket, ``_referenced_paths`` in a folder)."""
+    out: set[str] = set()
 
     def walk(node: Any) -> None:
         if isinstance(node, dict):
@@ -55,15 +57,23 @@ def _referenced_paths(doc: Any, folder: Path) -> dict[str, Path]:
         elif isinstance(node, (list, tuple)):
             for v in node:
                 walk(v)
-        elif isinstance(node, str) and node and len(node) < 4096 and not Path(node).is_absolute():
-            candidate = folder / node
-            try:
-                if candidate.exists():
-                    found[node] = candidate
-            except OSError:  # a string that is not a usable path (too long, bad characters)
-                pass
+        elif isinstance(node, str) and node and len(node) < 4096 and not node.startswith("/") and "://" not in node:
+            out.add(node)
 
     walk(doc)
+    return sorted(out)
+
+
+def _referenced_paths(doc: Any, folder: Path) -> dict[str, Path]:
+    """Every string value of a YAML document that names an existing file or folder relative to ``folder``."""
+    found: dict[str, Path] = {}
+    for node in relative_strings(doc):
+        candidate = folder / node
+        try:
+            if candidate.exists():
+                found[node] = candidate
+        except OSError:  # a string that is not a usable path (too long, bad characters)
+            pass
     return found
 
 
