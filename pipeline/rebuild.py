@@ -150,6 +150,18 @@ def check_map_drives(ident) -> tuple[object, list[str], list[str]]:
     return ident.model_copy(update={"drives": drives}), problems, notes
 
 
+def checked_identity(home, min_free_gib: float) -> tuple[object, object, list[str]]:
+    """(identity as read, identity with updated drive fingerprints, notes) of a map, under its run lock: the
+    identity read again (the last writer's), the free disk checked, every map drive checked (``check_map_drives``);
+    its problems raise ``ConfigError`` naming the map. What a rebuild and a reoptimize do first."""
+    before = home.require_identity()  # read again under the lock: the last writer's
+    check_free_disk(home.root if home.local else storage.scratch_base(), min_free_gib)
+    ident, problems, notes = check_map_drives(before)
+    if problems:
+        raise ConfigError(f"map {home.name!r}", problems)
+    return before, ident, notes
+
+
 @dataclass
 class Selection:
     good: list[tuple[Delivery, str, str | None]] = field(default_factory=list)  # (drive, fingerprint, content)
@@ -265,12 +277,7 @@ def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildP
     if not box.exists():
         raise ConfigError("--inbox", [f"{box}: not a directory" if box.local else f"{box}: no object under it"])
     with home.run_lock():
-        ident = home.require_identity()  # read again under the lock: the last writer's
-        before = ident
-        check_free_disk(home.root if home.local else storage.scratch_base(), params.min_free_gib)
-        ident, problems, notes = check_map_drives(ident)
-        if problems:
-            raise ConfigError(f"map {name!r}", problems)
+        before, ident, notes = checked_identity(home, params.min_free_gib)
         sel, ident = select_new_drives(ident, box, params.quiet_period_s)
         result = RebuildResult("nothing", say=say)
         result.add(*notes, *sel.lines)

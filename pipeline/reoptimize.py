@@ -24,8 +24,8 @@ import yaml
 
 from pipeline import storage
 from pipeline.errors import ConfigError
-from pipeline.maps import MapHome, check_free_disk
-from pipeline.rebuild import RebuildResult, check_map_drives, gate_and_publish, reuse_line
+from pipeline.maps import MapHome
+from pipeline.rebuild import RebuildResult, checked_identity, gate_and_publish, reuse_line
 
 DEFAULT_REGION_MAX_POSES = 600  # tiny (5 drives, ~3000 poses): 6-8 regions; a region's solve stays a few seconds
 
@@ -78,12 +78,7 @@ def reoptimize(root: "Path | str", name: str, params: ReoptimizeParams = Reoptim
     home = MapHome(root, name)
     home.require_identity()
     with home.run_lock():
-        ident = home.require_identity()  # read again under the lock: the last writer's
-        before = ident
-        check_free_disk(home.root if home.local else storage.scratch_base(), params.min_free_gib)
-        ident, problems, notes = check_map_drives(ident)
-        if problems:
-            raise ConfigError(f"map {name!r}", problems)
+        before, ident, notes = checked_identity(home, params.min_free_gib)
         result = RebuildResult("nothing", say=say)
         result.add(*notes)
         if not ident.drives:
