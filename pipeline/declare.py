@@ -7,22 +7,45 @@ column of its dataset.
 """
 from __future__ import annotations
 
+import difflib
 import importlib
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Mapping
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 if TYPE_CHECKING:  # pragma: no cover
     import pyarrow as pa
 
 
 class Params(BaseModel):
-    """Base of every stage's params: defaults in code, unknown keys rejected, immutable."""
+    """Base of every stage's params and of their sections: defaults in code, immutable, unknown keys refused with
+    the nearest known name, and a key that moved (``renamed``: old key -> its place now, e.g. ``"loops.radius_m"``)
+    refused with the place to write it. Sections are fields whose type is itself a ``Params``."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+    renamed: ClassVar[Mapping[str, str]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _refuse_unknown_keys(cls, data: Any) -> Any:
+        if isinstance(data, Mapping):
+            problems = [unknown_key_problem(cls, key) for key in data if key not in cls.model_fields]
+            if problems:
+                raise ValueError("; ".join(problems))
+        return data
+
+
+def unknown_key_problem(params: type[Params], key: Any) -> str:
+    """One line for a key ``params`` does not have: where it moved, or the nearest known key."""
+    if key in params.renamed:
+        return f"{key!r} has moved: write it as {params.renamed[key]!r}"
+    known = sorted(params.model_fields)
+    close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"unknown key {key!r}{hint}; known: {', '.join(known) or '(none)'}"
 
 
 class Partitioning(str, Enum):

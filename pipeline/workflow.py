@@ -12,7 +12,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pipeline.catalog import Catalog, load_catalog
-from pipeline.declare import Params, StageDecl
+from pipeline.declare import Params, StageDecl, unknown_key_problem
 from pipeline.errors import ConfigError
 from pipeline.names import name_problem
 from pipeline.registry import load_stages, suggest
@@ -124,17 +124,14 @@ def _pydantic_problems(where: str, exc: ValidationError) -> list[str]:
         if err["type"] == "extra_forbidden":
             out.append(f"{where}: unknown key {loc!r}")
         else:
-            out.append(f"{where}: {loc}: {err['msg']}")
+            msg = err["msg"].removeprefix("Value error, ")
+            out.append(f"{where}: {loc}: {msg}" if loc else f"{where}: {msg}")
     return out
 
 
 def validate_params(stage: StageDecl, overrides: dict[str, Any], where: str) -> tuple[Params | None, list[str]]:
-    problems = []
-    known = set(stage.params.model_fields)
-    for key in overrides:
-        if key not in known:
-            problems.append(f"{where}: stage {stage.name!r} has no param {key!r}{suggest(key, known)}; "
-                            f"known: {', '.join(sorted(known)) or '(none)'}")
+    problems = [f"{where}: params of {stage.name!r}: {unknown_key_problem(stage.params, key)}"
+                for key in overrides if key not in stage.params.model_fields]
     if problems:
         return None, problems
     try:
