@@ -14,7 +14,8 @@ import numpy as np
 
 from pipeline.errors import CornermapError, FormatError
 from stages.ingest.drive_file import DriveSpec
-from stages.ingest.scan_formats import SCAN_SUFFIXES, ScanPoints, drop_invalid_points, read_scan
+from stages.ingest.scan_format_table import SCAN_SUFFIXES
+from stages.ingest.scan_formats import ScanPoints, drop_invalid_points, read_scan
 from stages.ingest.sensors import SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order
 
 log = logging.getLogger(__name__)
