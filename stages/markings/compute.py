@@ -22,19 +22,18 @@ from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.common.records import Extrinsics, decode_scans_raw, pose_matrices
 from stages.common.survey_parts import distinct_survey_partitions
-from stages.common.tiling import tile_bounds, tile_key_of, tile_shape_px, tiles_touching
+from stages.common.tiling import resolve_tile_size_m, tile_bounds, tile_key_of, tile_shape_px, tiles_touching
 from stages.markings.accumulate import scans_to_enu
 from stages.markings.params import MarkingParams
 from stages.markings.raster_io import TileRasters, write_tile_rasters
 
 log = logging.getLogger(__name__)
-DEFAULT_TILE_SIZE_M = 100.0
 SCANS_PER_PIECE = 16  # scans read and placed at once (a 120k-point HDL-64E scan: ~16 MB per piece member)
 _POSE_COLUMNS = ["drive", "scan_id", "stamp_ns", "x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 
 
 def _tile_size_m(ctx) -> float:
-    return float(ctx.settings.get("tile_size_m") or DEFAULT_TILE_SIZE_M)
+    return resolve_tile_size_m(ctx.settings.get("tile_size_m"))
 
 
 def survey_available(inputs) -> bool:

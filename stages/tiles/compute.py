@@ -20,6 +20,7 @@ from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
 from pipeline.names import check_name
 from pipeline.store_maps import publish_map_version
 from stages.common.geodesy import EnuOrigin
+from stages.common.tiling import resolve_tile_size_m
 from stages.tiles import core
 from stages.tiles.decl import STAGE
 from stages.tiles.history import carry_history
@@ -37,7 +38,7 @@ def compute(ctx: StageContext) -> dict[str, Any]:
     from schemas import schema_of
 
     params = ctx.params
-    size_m = float(params.tile_size_m or ctx.settings.get("tile_size_m") or 100.0)
+    size_m = resolve_tile_size_m(params.tile_size_m, ctx.settings.get("tile_size_m"))
     corners = ctx.inputs.read("corner_map")
     poses = ctx.inputs.read("poses").sort_by([("drive", "ascending"), ("stamp_ns", "ascending")])
     drive_info = ctx.inputs.read("drive_info")
