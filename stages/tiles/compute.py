@@ -34,8 +34,7 @@ _RASTER_META = ("origin_east_m", "origin_north_m", "cell_m", "width_px", "height
 
 
 def compute(ctx: StageContext) -> dict[str, Any]:
-    import schemas.tiles  # noqa: F401  registers map_tiles
-    from schemas import schema_of
+    from schemas import schema_of  # the registry holds every schema of schemas/ (map_tiles: schemas/tiles.py)
 
     params = ctx.params
     size_m = resolve_tile_size_m(params.tile_size_m, ctx.settings.get("tile_size_m"))
