@@ -73,7 +73,7 @@ def scans_in_map(root: Path, poses, every: int = 2) -> np.ndarray:
     out = []
     for k in range(0, len(ids), every):
         s = read(root, "scans_raw", columns=["x_m", "y_m", "z_m"], filter=pc.field("scan_id") == int(ids[k]))
-        p = decode_scans_raw(s).xyz_lidar_m.astype(float)
+        p = decode_scans_raw(s, by_scan=False).xyz_lidar_m.astype(float)
         out.append(p @ (T[k] @ T_vl)[:3, :3].T + (T[k] @ T_vl)[:3, 3])
     return np.concatenate(out)
 
