@@ -80,9 +80,11 @@ def write_workflow(preset: str, seed: int, run_dir: Path, methods: list[str] | N
     if methods:
         spec["params"].setdefault("evaluate", {})["methods"] = methods
     if ekf_motion:
-        spec["params"].setdefault("evaluate", {})["ekf_motion"] = ekf_motion
+        spec["params"].setdefault("evaluate", {}).setdefault("ekf", {})["motion"] = ekf_motion
     if evaluate_params:
-        spec["params"].setdefault("evaluate", {}).update(evaluate_params)
+        from bench.params_args import merged
+
+        spec["params"]["evaluate"] = merged(spec["params"].get("evaluate", {}), evaluate_params)
     if sim_overrides and not no_survey:
         spec["params"]["simulate"]["preset_overrides"] = dict(sim_overrides)
     if no_survey:

@@ -17,3 +17,14 @@ def nested(dotted: Mapping[str, Any], base: Mapping[str, Any] | None = None) -> 
             node = node.setdefault(part, {})
         node[last] = value
     return out
+
+
+def merged(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``override`` laid over it, section by section (a nested mapping merges, a value replaces)."""
+    out = copy.deepcopy(dict(base))
+    for key, value in override.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = merged(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
