@@ -76,15 +76,19 @@ def test_straight_drive_past_two_corners_converges():
     assert np.all(np.linalg.eigvalsh(run.P[-1]) < np.linalg.eigvalsh(P0).min())
 
 
+# the association's gates: 60 m, chi-square 2 dof at 99 %, 15 deg between wall directions, global nearest neighbour
+GATES = {"sensor_range_m": 60.0, "gate_chi2": 9.21, "angle_tol_rad": np.deg2rad(15.0), "method": "gnn"}
+
+
 def test_mirrored_corner_is_rejected_by_the_angle_gate():
     q, P = np.array([0.0, 0.0, 0.0]), np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2])
     map_en = np.array([[15.0, 8.0]])
     map_dirs = np.array([[0.0, np.pi / 2]])  # walls east and north of the corner
     xy = np.array([[15.0, 8.0]])
     cov = np.eye(2)[None] * 0.01
-    good = associate(q, P, xy, cov, map_dirs, map_en, cov, map_dirs)
-    mirrored = associate(q, P, xy, cov, map_dirs + np.pi, map_en, cov, map_dirs)
-    swapped = associate(q, P, xy, cov, map_dirs[:, ::-1], map_en, cov, map_dirs)  # unordered walls
+    good = associate(q, P, xy, cov, map_dirs, map_en, cov, map_dirs, **GATES)
+    mirrored = associate(q, P, xy, cov, map_dirs + np.pi, map_en, cov, map_dirs, **GATES)
+    swapped = associate(q, P, xy, cov, map_dirs[:, ::-1], map_en, cov, map_dirs, **GATES)  # unordered walls
     assert len(good.meas_idx) == 1 and len(swapped.meas_idx) == 1
     assert len(mirrored.meas_idx) == 0
 
@@ -98,10 +102,10 @@ def test_angle_gate_picks_the_right_of_two_close_corners():
     map_dirs = np.array([[np.pi, -np.pi / 2], [0.0, -np.pi / 2]])  # A's walls west+south, B's east+south
     xy_a = map_en[:1] - q_true[:2]
     cov = np.eye(2)[None] * 0.01
-    a = associate(q_est, P, xy_a, cov, map_dirs[:1], map_en, np.tile(cov, (2, 1, 1)), map_dirs)
+    a = associate(q_est, P, xy_a, cov, map_dirs[:1], map_en, np.tile(cov, (2, 1, 1)), map_dirs, **GATES)
     assert a.map_idx.tolist() == [0]
     blind = associate(q_est, P, xy_a, cov, map_dirs[:1], map_en, np.tile(cov, (2, 1, 1)), map_dirs,
-                      angle_tol_rad=np.pi)
+                      **{**GATES, "angle_tol_rad": np.pi})
     assert blind.map_idx.tolist() == [1]  # without the angle gate, position alone picks the wrong one
 
 
