@@ -222,7 +222,7 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     else:
         icp = icp_raw
         odo, odo_inc = None, increments_without_wheel(icp, gnss_q)
-        icp_raw = None  # the wheel/gyro motion model (ekf_motion wheel_bias) needs wheels: the ICP model runs
+        icp_raw = None  # the wheel/gyro motion model (ekf.motion wheel_bias) needs wheels: the ICP model runs
         log.warning("evaluate %s: no wheel odometry; the EKF runs on ICP increments alone, the MCL on ICP "
                     "increments (GNSS/INS pose differences where ICP failed: %d of %d epochs), features not deskewed",
                     drive, int((~np.all(np.isfinite(icp[1:]), axis=1)).sum()), len(stamps))
