@@ -139,7 +139,8 @@ def _update(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, feats
 def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_m: np.ndarray,
             fetch: RasterFetcher, q0: np.ndarray, start_epoch: int, rng: np.random.Generator,
             cfg: MclConfig = MclConfig(), stamps_ns: np.ndarray | None = None,
-            likelihood: MarkingLikelihood = MarkingLikelihood()) -> MclRun:
+            likelihood: MarkingLikelihood = MarkingLikelihood(),
+            init_spread: tuple[float, float] | None = None) -> MclRun:
     """Run the particle filter from ``start_epoch`` (particles drawn about q0) to the last epoch.
 
     Each epoch: predict with the wheel + gyro increment through every particle's calibration (a standstill holds
@@ -149,6 +150,8 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
     when the effective sample size drops, then roughen. When the scans stop fitting, candidates about the estimate
     may replace some particles (guarded Augmented MCL). ``stamps_ns`` (E,) give the time steps of the gyro bias;
     without them every step is ``cfg.epoch_s``. ``likelihood``: the road markings' (``evaluate.markings``).
+    ``init_spread``: the initial (position std m, heading std rad) instead of the section's (a start wider than
+    the section states, e.g. by the map frame's error).
     """
     lk, rec = likelihood, cfg.recovery
     n = len(increments)
@@ -160,12 +163,13 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
     n_feat = np.zeros(n, dtype=np.int32)
     off = np.searchsorted(feature_epoch, np.arange(n + 1))
     dt = np.full(n, cfg.epoch_s) if stamps_ns is None else np.r_[cfg.epoch_s, np.diff(stamps_ns) * 1e-9]
-    particles = mcl.init_particles(q0, cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad, cfg.n_particles, rng)
+    init_xy_m, init_yaw_rad = init_spread or (cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad)
+    particles = mcl.init_particles(q0, init_xy_m, init_yaw_rad, cfg.n_particles, rng)
     calib = mcl.init_calibration(cfg.n_particles, cfg.init_sigma_scale, cfg.init_sigma_gyro_bias_radps, rng,
                                  cfg.init_sigma_gyro_gain)
     weights = np.full(cfg.n_particles, 1.0 / cfg.n_particles)
     raster = _window_around(q0, fetch, cfg)
-    margin = lk.feature_range_m + 3.0 * cfg.init_sigma_xy_m
+    margin = lk.feature_range_m + 3.0 * init_xy_m
     travel = np.inf  # since the last update; the first scan is a full measurement
     s_slow = s_fast = np.nan
     injected = np.zeros(n, dtype=np.int32)

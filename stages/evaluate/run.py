@@ -180,14 +180,14 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
     if "mcl" in cfg.methods and fetch is not None:
         t0 = time.perf_counter()
-        mcl_cfg = cfg.mcl
+        spread = None
         if frame is not None:  # the particles spread over the frame's error too
             F = frame.at(q0[:2])
-            mcl_cfg = mcl_cfg.model_copy(update={
-                "init_sigma_xy_m": float(np.sqrt(mcl_cfg.init_sigma_xy_m**2 + np.linalg.eigvalsh(F[:2, :2])[-1])),
-                "init_sigma_yaw_deg": float(np.rad2deg(np.hypot(mcl_cfg.init_sigma_yaw_rad, np.sqrt(F[2, 2]))))})
+            spread = (float(np.sqrt(cfg.mcl.init_sigma_xy_m**2 + np.linalg.eigvalsh(F[:2, :2])[-1])),
+                      float(np.hypot(cfg.mcl.init_sigma_yaw_rad, np.sqrt(F[2, 2]))))
         r = run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, k0,
-                    np.random.default_rng(cfg.mcl.seed), mcl_cfg, stamps_ns=d.stamps_ns, likelihood=cfg.markings)
+                    np.random.default_rng(cfg.mcl.seed), cfg.mcl, stamps_ns=d.stamps_ns, likelihood=cfg.markings,
+                    init_spread=spread)
         runs["mcl"] = MethodRun(r.q, r.P, r.n_features, time.perf_counter() - t0)
         log.info("mcl: %d epochs in %.2f s", n - k0, runs["mcl"].seconds)
     return runs
