@@ -116,12 +116,19 @@ def _rows(page: Path, owners: tuple[str, ...]):
 
 
 def _stage_default(stage: str, name: str):
+    """A stage param's default; a dotted name (``ekf.icp.sigma_frac``) is a field of a section."""
     from pipeline.registry import get_stage
 
-    fields = get_stage(stage).params.model_fields
-    if name not in fields:
+    model, *path, last = [get_stage(stage).params, *name.split(".")]
+    for part in path:
+        info = model.model_fields.get(part)
+        if info is None or not isinstance(info.annotation, type):
+            return KeyError
+        model = info.annotation
+    fields = model.model_fields
+    if last not in fields:
         return KeyError
-    return fields[name].get_default(call_default_factory=True)
+    return fields[last].get_default(call_default_factory=True)
 
 
 def _preset_defaults(name: str):
