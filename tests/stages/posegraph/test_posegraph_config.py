@@ -1,6 +1,7 @@
 """The posegraph params are nested sections: every key of the flat params of before is refused with its new place,
 that place exists and a value written there reaches the section the algorithm receives; dotted keys and nested
 mappings say the same."""
+
 from __future__ import annotations
 
 import functools
@@ -57,8 +58,11 @@ def test_the_new_place_reaches_its_section(old):
 
 
 def test_sections_derive_the_algorithm_values():
-    p = PosegraphParams(factors={"wheel": {"bridges": False}, "registration": {"yaw_deg": 0.5}},
-                        anchors={"use_markings": False}, gnss={"lever_arm_m": [0.5, 0, 1]})
+    p = PosegraphParams(
+        factors={"wheel": {"bridges": False}, "registration": {"yaw_deg": 0.5}},
+        anchors={"use_markings": False},
+        gnss={"lever_arm_m": [0.5, 0, 1]},
+    )
     assert p.factors.wheel_bridge is None and p.factors.wheel_fusion is not None and p.factors.uses_wheel
     assert p.factors.wheel_fusion.height_sigma_m == p.factors.wheel.height_sigma_m
     assert p.factors.registration_sigma.yaw_rad == pytest.approx(0.5 * 3.141592653589793 / 180)
