@@ -119,16 +119,12 @@ def _stage_default(stage: str, name: str):
     """A stage param's default; a dotted name (``ekf.icp.sigma_frac``) is a field of a section."""
     from pipeline.registry import get_stage
 
-    model, *path, last = [get_stage(stage).params, *name.split(".")]
-    for part in path:
-        info = model.model_fields.get(part)
-        if info is None or not isinstance(info.annotation, type):
+    value = get_stage(stage).params()  # a dotted name is a key of a section (``loops.radius_m``)
+    for part in name.split("."):
+        if not hasattr(type(value), "model_fields") or part not in type(value).model_fields:
             return KeyError
-        model = info.annotation
-    fields = model.model_fields
-    if last not in fields:
-        return KeyError
-    return fields[last].get_default(call_default_factory=True)
+        value = getattr(value, part)
+    return value
 
 
 def _preset_defaults(name: str):
