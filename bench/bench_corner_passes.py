@@ -13,6 +13,7 @@ true corner (its extraction bias) and the views' scatter about it. Over the corn
   the map's ``pass_lag_one_correlation``): the part a pass's views share that another pass does not, over ``var(a)``
   the ``pass_shared_fraction`` of ``stages/cornermap/aggregate.pass_mean_factor`` a localizer needs.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -51,10 +52,14 @@ def pass_biases(root: Path, drive: str, match_m: float):
     k = np.clip(np.searchsorted(traj.stamp_ns, st), 1, len(traj.stamp_ns) - 1)
     k = np.where(np.abs(traj.stamp_ns[k - 1] - st) < np.abs(traj.stamp_ns[k] - st), k - 1, k)
     T_vl = cc._extrinsics(roots.read(root, "drive_info"), [drive])[np.zeros(len(st), int)]
-    obs = transform_to_enu(np.column_stack([col("x_m"), col("y_m")]),
-                           np.column_stack([col("theta1_rad"), col("theta2_rad")]),
-                           covariance_from_components(col("cov_xx_m2"), col("cov_xy_m2"), col("cov_yy_m2")),
-                           T_true[k], T_vl, np.zeros((len(st), 3, 3)))
+    obs = transform_to_enu(
+        np.column_stack([col("x_m"), col("y_m")]),
+        np.column_stack([col("theta1_rad"), col("theta2_rad")]),
+        covariance_from_components(col("cov_xx_m2"), col("cov_xy_m2"), col("cov_yy_m2")),
+        T_true[k],
+        T_vl,
+        np.zeros((len(st), 3, 3)),
+    )
     d, j = cKDTree(truth_c).query(obs.en_m)
     ok = d < match_m
     r, lab, K = obs.en_m[ok] - truth_c[j[ok]], j[ok], len(truth_c)
@@ -96,12 +101,16 @@ def main(argv: list[str] | None = None) -> None:
         pass_only = np.mean((a - b) ** 2, axis=1) / 2 - ar
         common = float(np.mean(a * b))  # per axis: the covariance of the two drives' biases
         print(f"{root}: {int(both.sum())} corners seen >= {args.min_views} times by both drives, rho {rho:.2f}")
-        print(f"  bias of a pass mean, RMS per axis: {np.sqrt(np.mean(a**2)):.4f} / {np.sqrt(np.mean(b**2)):.4f} m; "
-              f"the two drives' biases correlate {np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b)):+.2f}")
-        print(f"  per axis, m^2: views' own var(a) {np.mean(var_a):.2e}, AR(1) part of a pass mean {np.mean(ar):.2e}, "
-              f"shared by every drive {common:.2e} ({common / np.mean(var_a):.3f} var(a)), shared by one pass only "
-              f"{np.mean(pass_only):+.2e} (pass_shared_fraction {np.mean(pass_only) / np.mean(var_a):+.3f}, median "
-              f"per corner {np.median(pass_only / var_a):+.3f})")
+        print(
+            f"  bias of a pass mean, RMS per axis: {np.sqrt(np.mean(a**2)):.4f} / {np.sqrt(np.mean(b**2)):.4f} m; "
+            f"the two drives' biases correlate {np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b)):+.2f}"
+        )
+        print(
+            f"  per axis, m^2: views' own var(a) {np.mean(var_a):.2e}, AR(1) part of a pass mean {np.mean(ar):.2e}, "
+            f"shared by every drive {common:.2e} ({common / np.mean(var_a):.3f} var(a)), shared by one pass only "
+            f"{np.mean(pass_only):+.2e} (pass_shared_fraction {np.mean(pass_only) / np.mean(var_a):+.3f}, median "
+            f"per corner {np.median(pass_only / var_a):+.3f})"
+        )
 
 
 if __name__ == "__main__":
