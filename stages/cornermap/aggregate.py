@@ -130,14 +130,35 @@ def shared_pose_part(labels: np.ndarray, drive_code: np.ndarray, obs: EnuObserva
     return _sum2x2(cluster_of_pass, per_pass, k)
 
 
+def pass_mean_factor(n_obs: np.ndarray, n_eff: np.ndarray, n_drives: np.ndarray,
+                     shared_fraction: float = 0.0) -> np.ndarray:
+    """(K,) the variance of a cluster's mean over its scatter (the views' sample covariance about the mean) when each
+    pass's view errors are a constant part ``c`` shared by the pass plus an AR(1) part ``a`` (``n_eff`` effective
+    samples summed over the passes), ``var(c) = shared_fraction var(a)``, passes independent.
+
+    Correlated views scatter less about their mean than their own spread: ``E[scatter] = var(a) (n - n / n_eff) /
+    (n - 1)`` (the constant part does not scatter at all), so ``var(a) = scatter (n - 1) n_eff / (n (n_eff - 1))``
+    and the AR(1) part of the mean's variance, ``var(a) / n_eff``, is ``scatter (n - 1) / (n (n_eff - 1))``, never
+    above one sample per drive (``scatter / n_drives``, which ``rho`` -> 1 gives). The shared part adds
+    ``shared_fraction var(a) / n_drives``: it does not average down within a pass, only across drives."""
+    n = np.asarray(n_obs, float)
+    n_eff = np.asarray(n_eff, float)
+    d = np.maximum(np.asarray(n_drives, float), 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ar1 = np.where(n_eff > 1.0, (n - 1.0) / (n * (n_eff - 1.0)), np.inf)
+        var_a = np.where(n_eff > 1.0, (n - 1.0) * n_eff / (n * (n_eff - 1.0)), 1.0)
+    return np.minimum(ar1, 1.0 / d) + float(shared_fraction) * var_a / d
+
+
 def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.ndarray, drive_names: list[str],
                        stamp_ns: np.ndarray, interior_angle_rad: np.ndarray, convex: np.ndarray,
                        scatter_per_drive: bool = False, pass_rho: float | None = None,
-                       pose_shared_per_pass: bool = False) -> ClusterSummary:
+                       pose_shared_per_pass: bool = False, pass_shared_fraction: float = 0.0) -> ClusterSummary:
     """Summarise observations grouped by ``labels`` (0..K-1); ``drive_code`` indexes ``drive_names``;
     ``scatter_per_drive``: the empirical extraction part counts one independent sample per drive, or, with
     ``pass_rho`` (the lag-1 correlation of a pass's observations, ``lag_one_correlation``), each drive's
-    ``effective_samples`` of its observations."""
+    ``effective_samples`` of its observations plus a part shared by the pass whose variance is
+    ``pass_shared_fraction`` of the views' own (``pass_mean_factor``)."""
     k = int(labels.max()) + 1 if len(labels) else 0
     n_obs = np.bincount(labels, minlength=k)
 
@@ -181,12 +202,7 @@ def aggregate_clusters(labels: np.ndarray, obs: EnuObservations, drive_code: np.
     if scatter_per_drive and pass_rho is not None:
         per_pass = np.unique(np.column_stack([labels, drive_code]), axis=0, return_counts=True)
         n_eff = np.bincount(per_pass[0][:, 0], effective_samples(per_pass[1], pass_rho), minlength=k)
-        # correlated views scatter less about their mean than their own spread: E[scatter] = var (n - n / n_eff) /
-        # (n - 1), so the mean's variance var / n_eff is scatter (n - 1) / (n (n_eff - 1)); never above one
-        # sample per drive
-        with np.errstate(divide="ignore", invalid="ignore"):
-            factor = np.where(n_eff > 1.0, (n_obs - 1.0) / (n_obs * (n_eff - 1.0)), np.inf)
-        se = np.minimum(factor, 1.0 / n_drives)
+        se = pass_mean_factor(n_obs, n_eff, n_drives, pass_shared_fraction)
     else:
         se = 1.0 / (n_drives if scatter_per_drive else n_obs)
     cov_map = cov_pose_mean + extraction_part(np.broadcast_to(se, (k,)).astype(float))

@@ -115,7 +115,8 @@ def compute(ctx) -> dict[str, Any]:
     def summarise(lab):
         return aggregate_clusters(lab, obs, drive_code, drive_names, col("stamp_ns"), col("interior_angle_rad"),
                                   col("convex"), scatter_per_drive=p.extraction_error_per_drive, pass_rho=rho,
-                                  pose_shared_per_pass=p.pose_shared_per_pass)
+                                  pose_shared_per_pass=p.pose_shared_per_pass,
+                                  pass_shared_fraction=p.pass_shared_fraction)
 
     summary = summarise(labels)
     duplicate, n_merged = np.zeros(len(summary.n_obs), bool), 0

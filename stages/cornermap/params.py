@@ -45,6 +45,10 @@ class CornerMapParams(Params):
                                        "effective number of independent samples among its views, n (1 - rho) / "
                                        "(1 + rho), rho the lag-1 correlation of the views' deviations measured on "
                                        "the map's own passes (aggregate.lag_one_correlation); false: one per pass")
+    pass_shared_fraction: float = Field(0.0, ge=0.0, le=10.0, description="with pass_autocorrelation: the "
+                                        "variance of a part of a pass's extraction error its views share (the "
+                                        "same walls; it does not decorrelate with lag and does not scatter) over "
+                                        "the variance of the views' own part (aggregate.pass_mean_factor); 0: none")
     pose_shared_per_pass: bool = Field(True, description="the pose part of a corner's covariance: a pass's poses "
                                        "share their error, propagated through the weighted mean's Jacobian "
                                        "(aggregate.shared_pose_part); false: each view's propagated pose "

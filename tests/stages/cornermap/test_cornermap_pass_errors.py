@@ -97,3 +97,48 @@ def test_shared_pose_error_acts_through_the_mean_lever_arm():
     means = aggregate(moved, np.repeat(np.arange(k), n)).en_m
     np.testing.assert_allclose(np.cov(means.T), shared, rtol=0.08, atol=2e-5)
     assert averaged[1, 1] > 3.0 * shared[1, 1]  # along the road: the lever arms ahead and behind cancel
+
+
+def test_a_part_shared_by_the_pass_is_stated_beside_the_ar1_part():
+    """Passes whose views' errors are a constant part shared by the pass (var f s^2, it does not scatter) plus an
+    AR(1) part (var s^2, rho 0.7): with ``pass_shared_fraction`` f the stated variance of a pass mean matches the
+    Monte-Carlo spread of the means; without it (the AR(1) count alone) it understates that spread by about the
+    shared part. With two drives per corner (independent passes) the shared part halves."""
+    rng = np.random.default_rng(17)
+    k, n, rho, sigma, f = 400, 40, 0.7, 0.03, 0.25
+
+    def views(n_drives):
+        labels = np.repeat(np.arange(k), n * n_drives)
+        code = np.tile(np.repeat(np.arange(n_drives), n), k)
+        centres = rng.uniform(-100, 100, (k, 2))
+        shared = rng.normal(size=(k * n_drives, 2)) * sigma * np.sqrt(f)
+        err = np.concatenate([_ar1(rng, n, rho, sigma) for _ in range(k * n_drives)]) + np.repeat(shared, n, axis=0)
+        en = centres[labels] + err
+        stamp = np.tile(np.arange(n * n_drives, dtype=np.int64), k)
+        return labels, code, stamp, en, centres
+
+    for n_drives in (1, 2):
+        labels, code, stamp, en, centres = views(n_drives)
+        est, _ = lag_one_correlation(labels, code, stamp, en)
+        assert abs(est - rho) < 0.06, est  # the shared part does not show in the deviations from the pass mean
+        obs = EnuObservations(en, canonicalize_pairs(np.tile([0.0, 1.5], (len(en), 1))),
+                              np.tile(np.eye(2) * 1e-6, (len(en), 1, 1)), np.zeros((len(en), 2, 2)))
+        common = (labels, obs, code, [f"d{i}" for i in range(n_drives)], stamp, np.full(len(en), np.pi / 2),
+                  np.ones(len(en), bool))
+        s = aggregate_clusters(*common, scatter_per_drive=True, pass_rho=est, pass_shared_fraction=f)
+        true_var = float(np.mean((s.en_m - centres) ** 2))
+        stated = float(np.mean(s.cov_map_m2[:, [0, 1], [0, 1]]))
+        without = float(np.mean(aggregate_clusters(*common, scatter_per_drive=True, pass_rho=est)
+                                .cov_map_m2[:, [0, 1], [0, 1]]))
+        assert 0.8 < stated / true_var < 1.25, (n_drives, stated, true_var)
+        assert without / true_var < 0.6, (n_drives, without, true_var)
+
+
+def test_pass_mean_factor_reduces_to_the_ar1_count_and_caps_it():
+    from stages.cornermap.aggregate import pass_mean_factor
+
+    n, n_eff, d = np.array([40.0, 40.0, 5.0]), np.array([8.0, 8.0, 1.0]), np.array([1, 2, 1])
+    np.testing.assert_allclose(pass_mean_factor(n, n_eff, d), [39 / (40 * 7), 39 / (40 * 7), 1.0])
+    var_a = 39 * 8 / (40 * 7)
+    np.testing.assert_allclose(pass_mean_factor(n, n_eff, d, 0.5), [39 / 280 + 0.5 * var_a, 39 / 280 + 0.25 * var_a,
+                                                                     1.5])
