@@ -26,7 +26,7 @@ started them is gone (``ORPHAN_POLL_S``). Why: a run stopped by SIGKILL (a job s
 or by a SIGTERM that reaches only the engine's process, otherwise leaves its pool processes waiting in a queue read
 that never ends, with their memory (a demo build killed in its pose graph: 4 processes, 2.35 GB). They ignore
 SIGINT: a terminal's Ctrl-C reaches the whole process group, and the process that started them ends them
-(``pipeline.cli``: exit 130, one line) where each would otherwise print a KeyboardInterrupt traceback. Their log
+(``mapservice.cli``: exit 130, one line) where each would otherwise print a KeyboardInterrupt traceback. Their log
 records go to the starting process, which shows them as its own (``_log_relay``).
 """
 from __future__ import annotations
@@ -114,12 +114,12 @@ def exit_when_orphaned(parent_pid: int, poll_s: float = ORPHAN_POLL_S) -> None:
     os._exit(ORPHAN_EXIT_CODE)
 
 
-EXIT_WITH_PARENT_VARIABLE = "CORNERMAP_EXIT_WITH_PARENT"  # set by pipeline.progress.run_cornermap for its child
+EXIT_WITH_PARENT_VARIABLE = "CORNERMAP_EXIT_WITH_PARENT"  # set by mapservice.child.run_cornermap for its child
 
 
 def exit_with_parent_from_env(variable: str = EXIT_WITH_PARENT_VARIABLE) -> None:
     """When ``variable`` names this process's parent pid, watch it like a pool process does (``exit_when_orphaned``,
-    in a daemon thread): the command a parent started (``pipeline.progress.run_cornermap``: the rebuild's drive
+    in a daemon thread): the command a parent started (``mapservice.child.run_cornermap``: the rebuild's drive
     checks, the regression gate's evaluations)
     ends within ``ORPHAN_POLL_S`` once that parent is gone, and its own pool processes follow it."""
     value = os.environ.pop(variable, "")
