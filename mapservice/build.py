@@ -11,23 +11,14 @@ from pipeline.errors import ConfigError, OptionError
 
 
 def parse_origin(text: str) -> dict[str, float]:
-    """``LAT,LON,H`` (degrees, degrees, metres above the WGS84 ellipsoid) -> an ``enu_origin`` mapping."""
-    parts = [p.strip() for p in text.split(",")]
+    """``--origin LAT,LON,H`` (degrees, degrees, metres above the WGS84 ellipsoid) -> an ``enu_origin`` mapping;
+    OptionError (exit 2) naming every problem (``stages.common.geodesy.EnuOrigin.parse``)."""
+    from stages.common.geodesy import EnuOrigin, OriginError
+
     try:
-        lat, lon, h = (float(p) for p in parts)
-    except ValueError:
-        raise OptionError("--origin", [f"expected LAT,LON,H (three numbers: degrees, degrees, metres), got "
-                                       f"{text!r}"]) from None
-    problems = []
-    if not -90.0 <= lat <= 90.0:
-        problems.append(f"latitude {lat} is outside -90..90 degrees")
-    if not -180.0 <= lon <= 180.0:
-        problems.append(f"longitude {lon} is outside -180..180 degrees")
-    if not -1000.0 <= h <= 10000.0:
-        problems.append(f"height {h} m is outside -1000..10000 m")
-    if problems:
-        raise OptionError("--origin", problems)
-    return {"lat_deg": lat, "lon_deg": lon, "h_m": h}
+        return EnuOrigin.parse(text).plain()
+    except OriginError as exc:
+        raise OptionError("--origin", exc.problems) from None
 
 
 def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: str, root: Path | str,

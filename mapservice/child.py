@@ -1,5 +1,6 @@
 """``cornermap ARGS`` in a child process (``python -m mapservice``): the rebuild's drive checks and the gate's runs of
 stage commands, with the child's progress relayed to the parent's display (``pipeline.progress.run_child``)."""
+
 from __future__ import annotations
 
 import subprocess

@@ -78,7 +78,7 @@ def show_doc(mdir: Path, root: "str | Path | None" = None) -> dict:
         doc["identity"] = {"tile_size_m": ident.tile_size_m, "max_radius_km": ident.max_radius_km,
                            "created_utc": ident.created_utc,
                            "check_drive": ident.check_drive.model_dump() if ident.check_drive else None}
-        doc["enu_origin"] = ident.enu_origin.model_dump()
+        doc["enu_origin"] = ident.enu_origin.plain()
     elif storage.latest_file(Path(mdir)).exists():
         doc["enu_origin"] = latest_origin(mdir)
     if storage.latest_file(Path(mdir)).exists():
@@ -108,11 +108,12 @@ def show_lines(mdir: Path, root: "str | Path | None" = None) -> list[str]:
                      f"{ident['created_utc']}"
                      + (f", check drive {ident['check_drive']['path']}" if ident["check_drive"] else ""))
     else:
-        from mapservice.maps import fmt_origin
+        from stages.common.geodesy import EnuOrigin
 
         lines.append(f"map {doc['map']}: no identity (made by `cornermap build`; `cornermap maps create` pins "
-                     "its frame for rebuilds)" + (f"; origin {fmt_origin(o)} (WGS84) of LATEST {doc['latest']}"
-                                                  if o and doc["latest"] else ""))
+                     "its frame for rebuilds)"
+                     + (f"; origin {EnuOrigin.validate(o).text()} (WGS84) of LATEST {doc['latest']}"
+                        if o and doc["latest"] else ""))
     lines.append(f"{'version':9s} {'created (UTC)':20s} {'drives':>6s}  standing")
     for v in doc["versions"]:
         note = "LATEST" if v["standing"] == "LATEST" else (v["note"] or "")

@@ -301,7 +301,7 @@ def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildP
             result.add("note: no published pose-graph solution to hold (LATEST none or its poses gone): every "
                        "drive is solved jointly")
         wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=home.root,
-                                  origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
+                                  origin=ident.enu_origin.plain(), tile_size_m=ident.tile_size_m,
                                   hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0, held_poses=held)
         run = execute_workflow(wf, root=home.root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
                                params_file=params.params_file, workers=params.workers, dask_host=params.dask_host)

@@ -89,7 +89,7 @@ def reoptimize(root: "Path | str", name: str, params: ReoptimizeParams = Reoptim
         drives = [local_drive_file(d.path) for d in ident.drives]
         pfile = region_params_file(home.root, name, params)
         wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=home.root,
-                                  origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
+                                  origin=ident.enu_origin.plain(), tile_size_m=ident.tile_size_m,
                                   hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0, held_poses=None)
         run = execute_workflow(wf, root=home.root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
                                params_file=pfile, workers=params.workers, dask_host=params.dask_host)

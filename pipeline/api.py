@@ -61,7 +61,7 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
     wf = load_workflow(workflow_path, param_overrides=load_param_file(params_file))
     if only:
         from pipeline.errors import UnknownNameError
-        from pipeline.registry import suggest
+        from pipeline.names import suggest
 
         for name in only:
             if name not in wf.stages:
@@ -153,7 +153,7 @@ def stage_context(plan: "Plan", stage: str, scratch_dir: Path, *, partition: "Pa
 
     if stage not in plan.stages:
         from pipeline.errors import UnknownNameError
-        from pipeline.registry import suggest
+        from pipeline.names import suggest
 
         raise UnknownNameError(f"stage {stage!r} is not in the plan of {plan.root}{suggest(stage, plan.stages)}")
     return _context(_task_spec(plan, plan.stages[stage]), partition or PartitionKey(), Path(scratch_dir),
