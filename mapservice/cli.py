@@ -96,8 +96,7 @@ def build_cmd(
     [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
     """
     from mapservice.build import parse_origin, write_build_workflow
-    from mapservice.maps import pinned_frame, stale_latest_note
-    from pipeline.api import published_version
+    from mapservice.maps import pinned_frame, published_version, stale_latest_note
     from pipeline.names import check_name
     from pipeline.store_maps import map_view
 
@@ -114,6 +113,8 @@ def build_cmd(
                extra={"map": map_name, "map_version": f"v{version:04d}" if version is not None else None})
 
 
+# The stages in the order data flows through them: the order `cornermap --help` lists their commands.
+STAGE_ORDER = ("simulate", "ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "tiles", "evaluate")
 _REGISTERED: list[bool] = []
 
 
@@ -124,7 +125,7 @@ def _register_stages() -> None:
     from mapservice.maps_cli import register as register_maps
 
     register_maps(app)
-    register_stages(app)
+    register_stages(app, STAGE_ORDER)
 
 
 EXIT_USAGE = 2  # the command line is wrong (click's and argparse's code)

@@ -211,6 +211,29 @@ def check_free_disk(root: Path, min_free_gib: float) -> None:
                              "hint: cornermap gc --root ROOT --apply, or free space, or lower --min-free-gib")
 
 
+def published_version(plan: Any) -> int | None:
+    """The map version the plan's tiles stage published (its committed ``map_tiles`` dataset), None without one."""
+    import pyarrow.parquet as pq
+
+    from pipeline.names import inside
+    from pipeline.store import data_root
+
+    sp = next((sp for sp in plan.stages.values() if "map_tiles" in sp.outputs.values()), None)
+    if sp is None:
+        return None
+    droot = data_root(plan.uri)
+    m = droot.manifest("map_tiles", sp.fingerprint)
+    if not m:
+        return None
+    droot.fetch("map_tiles", sp.fingerprint, [(f["path"], f.get("bytes")) for f in m["files"]])
+    d = droot.dir("map_tiles", sp.fingerprint)
+    for f in m["files"]:
+        rows = pq.read_table(inside(d, f["path"]), columns=["version"]).to_pylist()
+        if rows:
+            return int(rows[0]["version"])
+    return None
+
+
 def stale_latest_note(plan: Any, name: str) -> str | None:
     """When the version this run's drive set published is not LATEST (an earlier run published it, and another
     drive set's version has been published since), the line that says so; None when it is LATEST."""

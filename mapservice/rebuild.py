@@ -333,7 +333,7 @@ def gate_and_publish(home, run: dict, ident, before, params, result: RebuildResu
     identity."""
     from mapservice.gate import run_gate
     from mapservice.inbox import local_drive_file
-    from pipeline.api import published_version
+    from mapservice.maps import published_version
     from pipeline.versioned import version_name
 
     candidate = published_version(run["plan"])

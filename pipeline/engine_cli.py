@@ -7,7 +7,7 @@ Heavy imports happen inside commands so ``--help`` is instant. Shared options: `
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import typer
 
@@ -98,15 +98,16 @@ def catalog_validate(
     typer.echo(f"ok: {len(cat.datasets)} datasets" + (f", {len(workflows)} workflow(s)" if workflows else ""))
 
 
-def register_stages(app: typer.Typer) -> None:
-    """Every registered stage's sub-app on ``app``; a stage with a CLI module (``StageDecl.cli``) also adds its own
-    commands through that module's ``register``."""
+def register_stages(app: typer.Typer, order: Sequence[str] = ()) -> None:
+    """Every registered stage's sub-app on ``app``, those named in ``order`` first in that order, the others by name;
+    a stage with a CLI module (``StageDecl.cli``) also adds its own commands through that module's ``register``."""
     import importlib
     import inspect
 
     from pipeline.registry import load_stages
 
-    for name, decl in load_stages().items():
+    rank = {n: i for i, n in enumerate(order)}
+    for name, decl in sorted(load_stages().items(), key=lambda kv: (rank.get(kv[0], len(rank)), kv[0])):
         sub = stage_app(decl)
         if decl.cli:
             register = importlib.import_module(decl.cli).register

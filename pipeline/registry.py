@@ -15,7 +15,6 @@ from pipeline.errors import ConfigError, UnknownNameError
 from pipeline.names import name_problem, suggest
 
 log = logging.getLogger(__name__)
-STAGE_ORDER = ("simulate", "ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "tiles", "evaluate")
 
 
 @lru_cache(maxsize=1)
@@ -42,8 +41,7 @@ def load_stages() -> dict[str, StageDecl]:
         stages[decl.name] = decl
     if problems:
         raise ConfigError("stage declarations", problems)
-    order = {n: i for i, n in enumerate(STAGE_ORDER)}
-    return dict(sorted(stages.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
+    return dict(sorted(stages.items()))  # by name; the app lists them in its own order (``register_stages``)
 
 
 def get_stage(name: str) -> StageDecl:

@@ -324,6 +324,7 @@ def _fake_build(monkeypatch, tmp_path, cand_ekf_rms: float, prev_ekf_rms: float 
     """rebuild's orchestration with the build and the evaluations replaced: the build publishes a held candidate
     (real publisher), the evaluations return known figures; the gate's comparison, LATEST and identity are real."""
     import mapservice.gate
+    import mapservice.maps
     import mapservice.rebuild
     import pipeline.api
 
@@ -342,7 +343,7 @@ def _fake_build(monkeypatch, tmp_path, cand_ekf_rms: float, prev_ekf_rms: float 
     new = mapservice.rebuild.Selection(good=[(mapservice.rebuild.Delivery(drive.parent, drive.parent), "f" * 64, None)])
     monkeypatch.setattr(mapservice.rebuild, "select_new_drives", lambda ident, inbox, quiet_s: (new, ident))
     monkeypatch.setattr(pipeline.api, "execute_workflow", execute_workflow)
-    monkeypatch.setattr(pipeline.api, "published_version", lambda plan: published["v"])
+    monkeypatch.setattr(mapservice.maps, "published_version", lambda plan: published["v"])
     monkeypatch.setattr(mapservice.gate, "_evaluate", evaluate)
 
 
