@@ -28,9 +28,9 @@ import pyarrow.dataset as ds
 
 from bench.bench_cornermap import chamfer_vertices, truth_rows
 from bench.roots import dataset, simulator_dir
-from stages.common.records import Extrinsics, Trajectory
+from stages.common.records import Extrinsics, Trajectory, decode_scans_raw
 from stages.common.wheel_odometry import track_from_table
-from stages.corners.compute import SCAN_COLUMNS, split_scans
+from stages.corners.compute import SCAN_COLUMNS
 from stages.corners.core import select_scan_layers, trace_corners, vertex_gaps_spacings
 from stages.corners.params import CornerParams
 
@@ -91,10 +91,10 @@ def main(argv=None) -> None:
                     .to_numpy())[:: args.every]
     table = scans.to_table(columns=SCAN_COLUMNS, filter=(ds.field("drive") == args.drive)
                            & ds.field("scan_id").isin(ids))
-    order, bounds = split_scans(table["scan_id"].to_numpy())
-    xyz = np.column_stack([table[c].to_numpy() for c in ("x_m", "y_m", "z_m")])[order]
-    ring, stamp = table["ring"].to_numpy()[order], table["stamp_ns"].to_numpy()[order]
-    t_s = table["time_offset_s"].to_numpy()[order].astype(np.float64)
+    rows = decode_scans_raw(table)
+    _, bounds = rows.scan_rows()
+    xyz, ring, stamp = rows.xyz_lidar_m, rows.ring, rows.stamp_ns
+    t_s = rows.time_offset_s.astype(np.float64)
     layers = select_scan_layers(xyz, ring, params)
     rows = {k: [] for k in ("label", "gap_sp", "range_m", "interior_deg")}
     for a, b in zip(bounds[:-1], bounds[1:]):

@@ -86,9 +86,10 @@ def _build(drive_yaml: Path, name: str, root: Path, params: dict):
     from bench.bench_posegraph_eval import committed
     from fixtures.keyframes import SIM_ORIGIN
     from pipeline.api import execute_workflow
+    from stages.common.tiling import DEFAULT_TILE_SIZE_M
 
     wf = {"name": f"keyframes-{name}", "root": str(root), "map_name": "keyframes", "scheduler": "sync",
-          "enu_origin": SIM_ORIGIN, "tile_size_m": 100.0,
+          "enu_origin": SIM_ORIGIN, "tile_size_m": DEFAULT_TILE_SIZE_M,
           "drives": [{"name": name, "path": str(drive_yaml), "role": "map"}],
           "stages": ["ingest", "odometry", "posegraph"], "params": params}
     path = root / "workflow.yaml"

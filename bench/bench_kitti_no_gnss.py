@@ -65,7 +65,7 @@ def scans_in_map(root: Path, poses, every: int = 2) -> np.ndarray:
     """(N,3) map-frame points of every ``every``-th scan (vehicle frame moved by the optimised poses)."""
     import pyarrow.compute as pc
 
-    from stages.common.records import Extrinsics, Trajectory
+    from stages.common.records import Extrinsics, Trajectory, decode_scans_raw
 
     T = Trajectory.from_table(poses, "k0048").T
     T_vl = Extrinsics.from_table(read(root, "drive_info")).of("k0048")
@@ -73,7 +73,7 @@ def scans_in_map(root: Path, poses, every: int = 2) -> np.ndarray:
     out = []
     for k in range(0, len(ids), every):
         s = read(root, "scans_raw", columns=["x_m", "y_m", "z_m"], filter=pc.field("scan_id") == int(ids[k]))
-        p = np.column_stack([s[c].to_numpy() for c in ("x_m", "y_m", "z_m")]).astype(float)
+        p = decode_scans_raw(s, by_scan=False).xyz_lidar_m.astype(float)
         out.append(p @ (T[k] @ T_vl)[:3, :3].T + (T[k] @ T_vl)[:3, 3])
     return np.concatenate(out)
 

@@ -55,12 +55,13 @@ def observed_fn(reader):
 class RasterDirReader:
     """The loader calls the bench uses, served from a ``marking_rasters`` dataset (tile+IIII+JJJJ directories)."""
 
-    def __init__(self, dataset_dir: Path, tile_size_m: float = 100.0):
+    def __init__(self, dataset_dir: Path):
         import cv2
 
-        self.path, self.tile_size_m, self._tiles = dataset_dir, tile_size_m, {}
+        self.path, self.tile_size_m, self._tiles = dataset_dir, None, {}
         for d in sorted((dataset_dir / "artifacts").glob("tile*")):
             meta = json.loads((d / "raster.json").read_text())
+            self.tile_size_m = tile_size_m = float(meta["tile_size_m"])  # the markings stage states its tile size
             key = (int(round(meta["origin_east_m"] / tile_size_m)), int(round(meta["origin_north_m"] / tile_size_m)))
             self._tiles[key] = {"dir": d, "marking": meta, "n_marking_px": 0,
                                 "mask": cv2.imread(str(d / "marking_mask.png"), cv2.IMREAD_GRAYSCALE),

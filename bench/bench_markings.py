@@ -37,6 +37,7 @@ import pyarrow as pa
 
 from pipeline.testing import make_context
 from schemas import SCHEMAS
+from stages.common.tiling import DEFAULT_TILE_SIZE_M
 from stages.markings.compute import compute, plan_tiles
 from stages.markings.metrics import match_masks
 from stages.markings.params import MarkingParams
@@ -304,7 +305,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--amsterdam", action="store_true", help="run the real Amsterdam tile only")
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "amsterdam_mls_laz")
     ap.add_argument("--figure", type=Path, help="write the documentation figure here")
-    ap.add_argument("--tile-size", type=float, default=100.0, help="tile size for --sim, metres")
+    ap.add_argument("--tile-size", type=float, default=DEFAULT_TILE_SIZE_M, help="tile size for --sim, metres")
     ap.add_argument("--cell", type=float, default=0.1, help="cell size, metres")
     ap.add_argument("--rasters", type=Path, help="a pipeline's marking_rasters dataset folder (with --sim): score "
                                                  "its tiles instead of running the stage on the survey")

@@ -23,10 +23,11 @@ from mapformat.loader import open_map
 from pipeline.declare import PartitionKey
 from pipeline.testing import make_context
 from schemas import SCHEMAS
+from stages.common.tiling import DEFAULT_TILE_SIZE_M
 from stages.tiles.compute import compute
 from stages.tiles.params import TilesParams
 
-TILE_M = 100.0
+TILE_M = DEFAULT_TILE_SIZE_M
 PITCH_M = 60.0
 ORIGIN = {"lat_deg": 37.4979, "lon_deg": 127.0276, "h_m": 38.0}
 

@@ -34,7 +34,7 @@ from stages.common.pointcloud_map import (
     merge_counts,
     scan_to_map,
 )
-from stages.common.records import Extrinsics
+from stages.common.records import Extrinsics, decode_scans_raw
 
 if TYPE_CHECKING:  # pragma: no cover
     from mapformat.loader import MapReader
@@ -225,10 +225,10 @@ def accumulate_map_cloud(lineage: VersionLineage, drives: list[str], *, voxel_m:
         for batch in lineage.batches("scans_raw", drive, cols, batch_points):
             report("autoware", done, total, step=f"point cloud of {drive}: scan points")
             done += batch.num_rows
-            lidar = np.column_stack([batch.column(c).to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
+            rows = decode_scans_raw(batch, by_scan=False)
+            lidar = rows.xyz_lidar_m.astype(float)
             rng = np.linalg.norm(lidar, axis=1)
-            t_ns = batch.column("stamp_ns").to_numpy() + np.round(
-                batch.column("time_offset_s").to_numpy().astype(float) * 1e9).astype(np.int64)
+            t_ns = rows.stamp_ns + np.round(rows.time_offset_s.astype(float) * 1e9).astype(np.int64)
             ok = (rng > 1.0) & (rng < max_range_m) & (t_ns >= stamps[0]) & (t_ns <= stamps[-1])
             if not ok.any():
                 continue
@@ -237,7 +237,7 @@ def accumulate_map_cloud(lineage: VersionLineage, drives: list[str], *, voxel_m:
             pid = k * 1_000_000 + (t_ns[ok] - stamps[0]) // int(pass_s * 1e9)
             evidence.add(*free_space_evidence(pts, origins, pid, gz, voxel_m=free_voxel_m,
                                               ground_clear_m=GROUND_CLEAR_M, first_index=n_in))
-            sums.add(pts, batch.column("intensity").to_numpy()[ok].astype(float), pts[:, 2] > gz + GROUND_CLEAR_M)
+            sums.add(pts, rows.intensity[ok].astype(float), pts[:, 2] > gz + GROUND_CLEAR_M)
             n_in += len(pts)
     report("autoware", len(drives), len(drives))
     report("autoware", step="dynamic points, voxel centroids")

@@ -494,7 +494,8 @@ def _open_remote(uri: str, version: str | int, cache_tiles: int, trust_files: bo
     import tempfile
     from pathlib import PurePosixPath
 
-    from pipeline.storage import Store, normalise_uri, uri_scheme
+    from pipeline.errors import ObjectStoreError
+    from pipeline.storage import Store, normalise_uri, object_store_error_line, uri_scheme
     from pipeline.store_maps import snapshot_map
     from pipeline.version_read import parse_version
 
@@ -509,7 +510,13 @@ def _open_remote(uri: str, version: str | int, cache_tiles: int, trust_files: bo
     tmp = tempfile.TemporaryDirectory(prefix="cornermap-map-")
     _SNAPSHOTS.append(tmp)
     latest = isinstance(version, str) and version.upper() == "LATEST"
-    mdir = snapshot_map(store, loc.name, Path(tmp.name), "latest" if latest else [parse_version(version)])
+    try:
+        mdir = snapshot_map(store, loc.name, Path(tmp.name), "latest" if latest else [parse_version(version)])
+    except Exception as exc:  # the client's own errors (botocore, aiohttp) are no OSError: name them
+        line = object_store_error_line(exc)
+        if line is None:
+            raise
+        raise ObjectStoreError(f"{uri}: {line}") from exc
     return open_map(mdir, version, cache_tiles, trust_files=trust_files)
 
 

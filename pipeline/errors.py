@@ -47,6 +47,11 @@ class DatasetIOError(CornermapError, OSError):
     """A dataset or file could not be read or written."""
 
 
+class ObjectStoreError(DatasetIOError):
+    """The object store could not be reached or refused the request (endpoint down, credentials missing or
+    refused, bucket absent); the message names the URI and the endpoint."""
+
+
 class FormatError(CornermapError, ValueError):
     """A raw file is malformed (truncated, header lies, garbage bytes, wrong columns)."""
 

@@ -194,8 +194,9 @@ def test_every_parameter_table_is_checked(page):
 # Pages that are reference pages (issue 61): what a thing does, its inputs, outputs and params, and its current
 # figures with the command; the history of the figures is in CHANGELOG.md and git. Add a page once it is converted.
 REFERENCE_PAGES = ["README.md", "docs/architecture.md", "docs/cornermap.md", "docs/corners.md", "docs/drive-file.md",
-                   "docs/evaluation.md", "docs/ingest.md", "docs/markings.md", "docs/performance.md",
-                   "docs/posegraph.md", "docs/security.md", "docs/simulator.md"]
+                   "docs/evaluation.md", "docs/ingest.md", "docs/maintenance.md", "docs/map-format.md",
+                   "docs/markings.md", "docs/performance.md", "docs/posegraph.md", "docs/security.md",
+                   "docs/simulator.md", "docs/storage.md"]
 MAX_DATED_SHARE = 0.15
 
 

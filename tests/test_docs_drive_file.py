@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
 import yaml
 
 from stages.ingest.drive_file import DriveSpec, _semantic_problems
@@ -42,3 +43,27 @@ def test_every_schema_key_is_documented():
     text = DOC.read_text()
     missing = [k for k in sorted(_keys(DriveSpec)) if f"`{k}`" not in text and f".{k.split('.')[-1]}`" not in text]
     assert missing == [], f"keys missing from docs/drive-file.md: {missing}"
+
+
+def test_the_scans_format_row_is_the_scan_format_table():
+    from stages.ingest.scan_format_table import SCAN_FORMATS
+
+    row = next(line for line in DOC.read_text().splitlines() if line.startswith("| `scans.format` |"))
+    cells = [c.strip() for c in re.split(r"(?<!\\)\|", row)[1:-1]]
+    assert cells[1] == r" \| ".join(f"`{f.name}`" for f in SCAN_FORMATS)
+    assert cells[4] == "; ".join(f.layout for f in SCAN_FORMATS)
+
+
+def test_every_format_of_the_table_has_its_reader_and_is_a_drive_file_value():
+    import pydantic
+
+    from stages.ingest import scan_formats
+    from stages.ingest.drive_file import ScansSpec
+    from stages.ingest.scan_format_table import SCAN_FORMATS
+
+    for f in SCAN_FORMATS:
+        assert callable(getattr(scan_formats, f.reader)), f.reader
+        assert ScansSpec(folder="s", format=f.name).format == f.name
+    with pytest.raises(pydantic.ValidationError) as exc:
+        ScansSpec(folder="s", format="ply")
+    assert all(f"'{f.name}'" in str(exc.value) for f in SCAN_FORMATS)

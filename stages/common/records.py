@@ -9,6 +9,8 @@
   naming file and line; ``poses_prior`` rows <-> ``PriorPoses``.
 - ``drive_info.T_vehicle_lidar`` (16 floats, row-major 4x4; maps lidar points into the vehicle frame) <->
   ``Extrinsics`` (one matrix per drive), with a named error for a short or non-rigid row or a missing drive.
+- ``scans_raw`` rows (one row per LiDAR point in the lidar frame, see schemas/raw.py) <-> ``RawScanPoints``:
+  ``encode_scans_raw`` / ``decode_scans_raw``, points grouped by scan (``scan_rows``, ``rows_of``).
 
 Quaternions are (x, y, z, w) (scipy's order). No algorithms here.
 """
@@ -255,3 +257,103 @@ class Extrinsics:
         if T.shape != (4, 4):
             raise FormatError(f"T_vehicle_lidar must be 4x4, got shape {T.shape}")
         return T.ravel().tolist()
+
+
+SCANS_RAW_POINT_COLUMNS = ("x_m", "y_m", "z_m", "intensity", "ring", "time_offset_s")
+_XYZ = ("x_m", "y_m", "z_m")
+
+
+@dataclass(frozen=True)
+class RawScanPoints:
+    """``scans_raw`` rows as per-point arrays in their stored dtypes (points float32): point ``k`` belongs to scan
+    ``scan_id[k]``, started at ``stamp_ns[k]``, lies at ``xyz_lidar_m[k]`` in the lidar frame and was measured
+    ``time_offset_s[k]`` after the scan start by laser ``ring[k]``. A column that was not read is None. Decoded
+    with ``by_scan`` the rows are grouped by scan (a stable sort by scan_id): ``scan_rows`` gives each scan's rows.
+    """
+
+    scan_id: np.ndarray  # (N,) int64
+    stamp_ns: np.ndarray | None = None  # (N,) int64, the scan's start
+    xyz_lidar_m: np.ndarray | None = None  # (N,3)
+    intensity: np.ndarray | None = None  # (N,)
+    ring: np.ndarray | None = None  # (N,)
+    time_offset_s: np.ndarray | None = None  # (N,)
+
+    def __len__(self) -> int:
+        return len(self.scan_id)
+
+    def scan_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(S,) scan ids in row order and (S+1,) row bounds: scan ``ids[k]`` is rows ``bounds[k]:bounds[k+1]``
+        (rows grouped by scan, as ``decode_scans_raw(by_scan=True)`` gives them)."""
+        sid = self.scan_id
+        if sid.size == 0:
+            return np.zeros(0, np.int64), np.zeros(1, np.int64)
+        starts = np.r_[0, np.flatnonzero(sid[1:] != sid[:-1]) + 1]
+        return sid[starts], np.r_[starts, sid.size]
+
+    def rows_of(self, scan_ids) -> list[slice]:
+        """The row slice of each of ``scan_ids`` (empty for a scan without rows); rows sorted by scan_id."""
+        wanted = np.asarray(scan_ids, np.int64)
+        lo = np.searchsorted(self.scan_id, wanted, "left")
+        hi = np.searchsorted(self.scan_id, wanted, "right")
+        return [slice(int(a), int(b)) for a, b in zip(lo, hi)]
+
+
+def encode_scans_raw(drive: str, chunk: int, points: RawScanPoints) -> pa.Table:
+    """``scans_raw`` rows of one drive's chunk; every point column is required (``time_offset_s`` None: zeros)."""
+    from schemas import SCHEMAS
+
+    n = len(points)
+    for name in ("stamp_ns", "xyz_lidar_m", "intensity", "ring"):
+        value = getattr(points, name)
+        if value is None or len(value) != n:
+            raise FormatError(f"scans_raw of drive {drive!r} chunk {chunk}: {name} must hold {n} rows (one per "
+                              f"point), got {None if value is None else len(value)}")
+    xyz = np.asarray(points.xyz_lidar_m).reshape(n, 3)
+    t_s = points.time_offset_s if points.time_offset_s is not None else np.zeros(n, np.float32)
+    return pa.table({
+        "drive": pa.repeat(pa.scalar(drive, pa.string()), n),
+        "chunk": np.full(n, chunk, np.int32),
+        "scan_id": np.asarray(points.scan_id).astype(np.int64, copy=False),
+        "stamp_ns": np.asarray(points.stamp_ns).astype(np.int64, copy=False),
+        **{c: np.ascontiguousarray(xyz[:, j], np.float32) for j, c in enumerate(_XYZ)},
+        "intensity": np.asarray(points.intensity).astype(np.float32, copy=False),
+        "ring": np.asarray(points.ring).astype(np.int16, copy=False),
+        "time_offset_s": np.asarray(t_s).astype(np.float32, copy=False),
+    }, schema=SCHEMAS["scans_raw"])
+
+
+def decode_scans_raw(table: "pa.Table | pa.RecordBatch", *, by_scan: bool = True) -> RawScanPoints:
+    """``scans_raw`` rows (any subset of columns holding ``scan_id``, or ``x_m, y_m, z_m`` all three or none) ->
+    ``RawScanPoints``. ``by_scan``: rows grouped by scan (stable sort by scan_id when they are not already in scan
+    order, as ingest writes them); otherwise in the table's order (``scan_id`` may then be absent: zeros).
+    FormatError naming the column for a partial point triple, and naming the scan when the rows of one scan carry
+    different ``stamp_ns``."""
+    names = set(table.schema.names)
+    if by_scan and "scan_id" not in names:
+        raise FormatError(f"scans_raw rows: no scan_id column (columns {sorted(names)}); expected scan_id to group "
+                          "points by scan")
+    missing = [c for c in _XYZ if c not in names]
+    if missing and len(missing) < 3:
+        raise FormatError(f"scans_raw rows: {', '.join(missing)} missing next to the other point coordinates; "
+                          "expected x_m, y_m, z_m together")
+    sid = (table.column("scan_id").to_numpy() if "scan_id" in names else np.zeros(table.num_rows, np.int64))
+    order = None
+    if by_scan and sid.size and np.any(sid[1:] < sid[:-1]):
+        order = np.argsort(sid, kind="stable")
+        sid = sid[order]
+
+    def col(name: str) -> np.ndarray | None:
+        if name not in names:
+            return None
+        a = table.column(name).to_numpy()
+        return a if order is None else a[order]
+
+    xyz = None if missing else np.column_stack([col(c) for c in _XYZ])
+    out = RawScanPoints(sid, col("stamp_ns"), xyz, col("intensity"), col("ring"), col("time_offset_s"))
+    if by_scan and out.stamp_ns is not None and sid.size:
+        bad = np.flatnonzero((sid[1:] == sid[:-1]) & (out.stamp_ns[1:] != out.stamp_ns[:-1]))
+        if bad.size:
+            k = int(bad[0]) + 1
+            raise FormatError(f"scans_raw rows of scan {int(sid[k])}: stamp_ns {int(out.stamp_ns[k])} and "
+                              f"{int(out.stamp_ns[k - 1])}; expected one scan start per scan")
+    return out

@@ -17,6 +17,18 @@ import numpy as np
 
 from pipeline.errors import ConfigError
 
+DEFAULT_TILE_SIZE_M = 100.0  # the tile edge when neither the tiles params nor the workflow (or map.json) state one
+
+
+def resolve_tile_size_m(*stated: float | None) -> float:
+    """The first stated tile size (a stage param, the workflow's ``tile_size_m`` setting, which a map's identity
+    ``map.json`` pins), else ``DEFAULT_TILE_SIZE_M``. A map's published versions state theirs in the manifest
+    (``MapReader.tile_size_m``): readers take it from there, never from here."""
+    for value in stated:
+        if value:
+            return float(value)
+    return DEFAULT_TILE_SIZE_M
+
 
 def _check_positive(size_m: float, what: str) -> None:
     if not (np.isfinite(size_m) and size_m > 0):

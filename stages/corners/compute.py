@@ -9,7 +9,7 @@ import pyarrow.compute as pc
 
 from pipeline.declare import StageContext
 from schemas.registry import schema_of
-from stages.common.records import Extrinsics
+from stages.common.records import Extrinsics, decode_scans_raw
 from stages.common.wheel_odometry import OdometryTrack, track_from_table
 from stages.corners.core import extract_corners, select_scan_layers
 from stages.corners.determine import Corners
@@ -19,16 +19,6 @@ log = logging.getLogger(__name__)
 
 SCAN_COLUMNS = ["scan_id", "stamp_ns", "x_m", "y_m", "z_m", "ring", "time_offset_s"]
 GEOMETRY_COLUMNS = ["x_m", "y_m", "z_m", "ring"]
-
-
-def split_scans(scan_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Stable order grouping rows by scan, and the boundaries (start offsets, length n_scans + 1)."""
-    order = np.argsort(scan_id, kind="stable")
-    if scan_id.size == 0:
-        return order, np.zeros(1, np.int64)
-    sorted_ids = scan_id[order]
-    bounds = np.r_[0, np.flatnonzero(sorted_ids[1:] != sorted_ids[:-1]) + 1, sorted_ids.size]
-    return order, bounds
 
 
 def corners_table(drive: str, chunk: int, scan_ids: list[int], stamps_ns: list[int], corners: list[Corners]
@@ -87,9 +77,9 @@ def read_layer_points(ctx: StageContext, params: CornerParams) -> tuple[pa.Table
     geometry = ctx.inputs.read("scans", partition=ctx.partition, columns=GEOMETRY_COLUMNS)
     if not geometry.num_rows:
         return ctx.inputs.read("scans", partition=ctx.partition, columns=SCAN_COLUMNS), np.zeros(0, np.intp)
-    xyz = np.column_stack([geometry[c].to_numpy() for c in ("x_m", "y_m", "z_m")])
-    layers = select_scan_layers(xyz, geometry["ring"].to_numpy(), params)
-    del geometry, xyz
+    rows = decode_scans_raw(geometry, by_scan=False)
+    layers = select_scan_layers(rows.xyz_lidar_m, rows.ring, params)
+    del geometry, rows
     ring_type = schema_of("scans_raw").field("ring").type
     wanted = pc.field("ring").isin(pa.array(np.asarray(layers).tolist(), ring_type))
     return ctx.inputs.read("scans", partition=ctx.partition, columns=SCAN_COLUMNS, filters=wanted), layers
@@ -100,18 +90,16 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     table, layers = read_layer_points(ctx, params)
     drive = ctx.partition.drive or ""
     chunk = ctx.partition.chunk if ctx.partition.chunk is not None else 0
-    scan_id = table["scan_id"].to_numpy()
-    order, bounds = split_scans(scan_id)
-    xyz = np.column_stack([table[c].to_numpy() for c in ("x_m", "y_m", "z_m")])[order]
-    ring = table["ring"].to_numpy()[order]
-    stamp = table["stamp_ns"].to_numpy()[order]
-    t_s = table["time_offset_s"].to_numpy()[order].astype(np.float64)
+    rows = decode_scans_raw(table)
     del table
+    ids, bounds = rows.scan_rows()
+    xyz, ring, stamp = rows.xyz_lidar_m, rows.ring, rows.stamp_ns
+    t_s = rows.time_offset_s.astype(np.float64)
     track = _odometry_track(ctx, params)
     T_vehicle_lidar = _extrinsic(ctx) if track is not None else None
     scan_ids, stamps, corners, n_deskewed = [], [], [], 0
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        scan_ids.append(int(scan_id[order[a]]))
+    for sid, a, b in zip(ids, bounds[:-1], bounds[1:]):
+        scan_ids.append(int(sid))
         stamps.append(int(stamp[a]))
         pts = None if track is None else track.deskew_scan(xyz[a:b], t_s[a:b], stamps[-1], T_vehicle_lidar)
         if pts is not None:

@@ -16,7 +16,7 @@ import pyarrow.compute as pc
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import DataQualityError
 from stages.common.geometry import wrap_angle_rad
-from stages.common.records import Extrinsics, yaw_rad
+from stages.common.records import Extrinsics, decode_scans_raw, yaw_rad
 from stages.common.road_features import extract_road_features
 from stages.common.wheel_odometry import OdometryTrack, track_from_table
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, corners_to_vehicle
@@ -117,17 +117,9 @@ def _chunk_features(t: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar: np
                     track: OdometryTrack | None, epochs: list, points: list) -> int:
     """Road features of the scans of one chunk's rows; returns how many scans were not deskewed. A function of its
     own so that the chunk's arrays are freed before the next chunk is read."""
-    sid = t["scan_id"].to_numpy()
-    order = None if np.all(sid[1:] >= sid[:-1]) else np.argsort(sid, kind="stable")
-
-    def col(name: str) -> np.ndarray:
-        a = t[name].to_numpy()
-        return a if order is None else a[order]
-
-    sid = col("scan_id")
-    xyz = np.column_stack([col(c) for c in ("x_m", "y_m", "z_m")])
-    inten, ring, stamp = col("intensity"), col("ring"), col("stamp_ns")
-    t_s = col("time_offset_s").astype(np.float64)
+    rows = decode_scans_raw(t)
+    sid, xyz, inten, ring, stamp = rows.scan_id, rows.xyz_lidar_m, rows.intensity, rows.ring, rows.stamp_ns
+    t_s = rows.time_offset_s.astype(np.float64)
     bounds = np.flatnonzero(np.diff(sid)) + 1
     n_raw = 0
     for lo, hi in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(sid)]])):

@@ -8,10 +8,20 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
+    from stages.ingest.scan_format_table import DEFAULT_FORMAT_OF_UNKNOWN_SUFFIX as guess
+    from stages.ingest.scan_format_table import (
+        SCAN_FORMAT_NAMES,
+        format_of_file,
+        formats_help,
+        scan_format,
+        suffixes_help,
+    )
+
+    fmt_help = f"{formats_help()} (default: from the suffix; {scan_format(guess).suffixes[0]} means {guess})"
+
     @app.command("inspect")
-    def inspect(path: Path = typer.Argument(..., help="a scan file (.pcd, .bin, .las/.laz)"),
-                fmt: str = typer.Option("", "--format", help="pcd | kitti_bin | nuscenes_bin | las (default: "
-                                                             "from the suffix; .bin means kitti_bin)"),
+    def inspect(path: Path = typer.Argument(..., help=f"a scan file ({suffixes_help()})"),
+                fmt: str = typer.Option("", "--format", help=fmt_help),
                 sensor: str = typer.Option("hdl64e", help="sensor model for rings when the file has none")) -> None:
         """Print a scan file's header, point count, drops and ring coverage.
 
@@ -28,9 +38,8 @@ def register(app: typer.Typer) -> None:
         from stages.ingest.scan_formats import drop_invalid_points, read_scan
         from stages.ingest.sensors import SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order
 
-        name = path.name.lower()
-        kind = fmt or ("pcd" if name.endswith(".pcd") else "las" if name.endswith((".las", ".laz")) else "kitti_bin")
-        kinds = ("pcd", "kitti_bin", "nuscenes_bin", "las")
+        kinds = SCAN_FORMAT_NAMES
+        kind = fmt or format_of_file(path.name)
         if kind not in kinds:
             raise OptionError("--format", [f"{kind!r}: expected one of {', '.join(kinds)}{suggest(kind, kinds)}"])
         if sensor not in SENSORS:

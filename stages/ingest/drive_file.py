@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from pipeline.errors import ConfigError, DatasetIOError
+from stages.ingest.scan_format_table import SCAN_FORMAT_NAMES
 
 MAX_DRIVE_FILE_BYTES = 1 << 20  # a drive file is a few kB
 TIME_UNIT_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}  # gnss.time.unit, odometry.time_unit
@@ -25,7 +26,7 @@ class _Strict(BaseModel):
 
 class ScansSpec(_Strict):
     folder: str
-    format: Literal["pcd", "kitti_bin", "nuscenes_bin", "las"]
+    format: Literal[SCAN_FORMAT_NAMES]  # type: ignore[valid-type]  # the scan format table's names
     ring_from: Literal["auto", "file", "elevation_table", "point_order"] = "auto"
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from stages.ingest.drive_init_csv import draft_csvs, draft_prior
 from stages.ingest.drive_init_sensor import collect_evidence, find_calibration, guess_sensor
+from stages.ingest.scan_format_table import suffix_groups, suffixes_help
 from stages.ingest.scan_formats import read_scan
 
 
@@ -51,14 +52,15 @@ class Draft:
         self.lines.append(f"{text}  # TODO: {what}")
 
 
-def find_scan_folder(folder: Path) -> tuple[Path, str, list[Path]] | None:
-    """The folder (the drive folder or a sub-folder) holding the most scan files, its format and files."""
+def find_scan_folder(folder: Path) -> tuple[Path, tuple[str, ...], list[Path]] | None:
+    """The folder (the drive folder or a sub-folder) holding the most scan files, the formats their suffix may be
+    (the scan format table's group: ``.bin`` is kitti_bin or nuscenes_bin) and the files."""
     best = None
     for d in [folder] + sorted(p for p in folder.rglob("*") if p.is_dir()):
-        for fmt, suffixes in (("pcd", (".pcd",)), ("bin", (".bin",)), ("las", (".las", ".laz"))):
+        for suffixes, formats in suffix_groups():
             files = sorted(p for p in d.iterdir() if p.is_file() and p.name.lower().endswith(suffixes))
             if files and (best is None or len(files) > len(best[2])):
-                best = (d, fmt, files)
+                best = (d, formats, files)
     return best
 
 
@@ -97,18 +99,18 @@ def draft_drive_file(folder: Path, out: Path | None = None) -> Draft:
 def _draft_scans(folder: Path, d: Draft) -> str | None:
     """The scans, sensor and scan_times sections; returns the scan format (None: no sensor-frame scans)."""
     found = find_scan_folder(folder)
-    if found is not None and found[1] == "las" and _georeferenced(found[2][0]):
+    if found is not None and found[1] == ("las",) and _georeferenced(found[2][0]):
         d.unknown("scans: {folder: scans, format: pcd}", f"{len(found[2])} LAS/LAZ files in "
                   f"{found[0].relative_to(folder).as_posix() or '.'} are georeferenced clouds (a survey), not "
                   f"sensor-frame scans; no scan folder found")
         found = None
     elif found is None:
-        d.unknown("scans: {folder: scans, format: pcd}", "no folder with .pcd/.bin/.las scan files found")
+        d.unknown("scans: {folder: scans, format: pcd}", f"no folder with {suffixes_help()} scan files found")
     if found is None:
         d.unknown("sensor: generic", "sensor model")
         return None
-    scan_dir, kind, files = found
-    fmt = {"pcd": "pcd", "las": "las", "bin": bin_format(files[0])}[kind]
+    scan_dir, formats, files = found
+    fmt = formats[0] if len(formats) == 1 else bin_format(files[0])
     sample = [files[0], files[len(files) // 2], files[-1]]
     ev = collect_evidence(sample, fmt)
     has_ring = has_time = False

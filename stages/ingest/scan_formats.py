@@ -1,7 +1,7 @@
 """Scan file formats -> ``ScanPoints`` (float32 x/y/z in the sensor frame, intensity, optional ring and time).
 
-Formats: PCD v0.7 (see ``pcd.py``), KITTI ``.bin`` (float32 x y z reflectance), nuScenes-style ``.bin``
-(float32 x y z intensity ring), LAS/LAZ (laspy). Every malformed file raises ``FormatError`` naming it.
+Formats: the table of ``scan_format_table.py`` (PCD v0.7, see ``pcd.py``; KITTI ``.bin``; nuScenes-style ``.bin``;
+LAS/LAZ via laspy), each row naming its reader here. Every malformed file raises ``FormatError`` naming it.
 """
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import numpy as np
 
 from pipeline.errors import DatasetIOError, FormatError
 from stages.ingest.pcd import MAX_POINTS, PcdCloud, read_pcd
+from stages.ingest.scan_format_table import SCAN_FORMAT_NAMES, scan_format
 
-SCAN_SUFFIXES = {"pcd": (".pcd",), "kitti_bin": (".bin",), "nuscenes_bin": (".bin",), "las": (".las", ".laz")}
 _INTENSITY = ("intensity", "reflectance", "i")
 _RING = ("ring", "ring_index", "laser_id", "line")
 _TIME = ("time", "time_offset", "timestamp", "t", "offset_time")  # float: seconds; integer: nanoseconds
@@ -216,15 +216,16 @@ def read_las_points(path: Path) -> ScanPoints:
     return ScanPoints(*xyz, np.asarray(las.intensity, np.float32), None, *time)
 
 
+def read_pcd_points(path: Path) -> ScanPoints:
+    return points_from_pcd(read_pcd(path), str(path))
+
+
 def read_scan(path: str | Path, fmt: str) -> ScanPoints:
-    """Read one scan file of format ``pcd | kitti_bin | nuscenes_bin | las``."""
+    """Read one scan file of a format of the table (``scan_format_table.SCAN_FORMATS``) with its reader."""
     path = Path(path)
-    if fmt == "pcd":
-        return points_from_pcd(read_pcd(path), str(path))
-    readers = {"kitti_bin": read_kitti_bin, "nuscenes_bin": read_nuscenes_bin, "las": read_las_points}
-    if fmt not in readers:
-        raise FormatError(f"{path}: unknown scan format {fmt!r}; expected one of pcd, {', '.join(readers)}")
-    return readers[fmt](path)
+    if fmt not in SCAN_FORMAT_NAMES:
+        raise FormatError(f"{path}: unknown scan format {fmt!r}; expected one of {', '.join(SCAN_FORMAT_NAMES)}")
+    return globals()[scan_format(fmt).reader](path)
 
 
 def drop_invalid_points(points: ScanPoints, min_range_m: float = 0.0) -> tuple[ScanPoints, dict[str, int]]:

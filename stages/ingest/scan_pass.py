@@ -14,7 +14,8 @@ import numpy as np
 
 from pipeline.errors import CornermapError, FormatError
 from stages.ingest.drive_file import DriveSpec
-from stages.ingest.scan_formats import SCAN_SUFFIXES, ScanPoints, drop_invalid_points, read_scan
+from stages.ingest.scan_format_table import SCAN_SUFFIXES
+from stages.ingest.scan_formats import ScanPoints, drop_invalid_points, read_scan
 from stages.ingest.sensors import SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order
 
 log = logging.getLogger(__name__)
@@ -144,9 +145,7 @@ def process_scan(scan: ScanFile, spec: DriveSpec, chunk: int, min_range_m: float
 
 
 def points_table(drive: str, chunk: int, results: list[ScanResult]):
-    import pyarrow as pa
-
-    from schemas import SCHEMAS
+    from stages.common.records import RawScanPoints, encode_scans_raw
 
     ok = [r for r in results if r.points is not None]
     n = [len(r.points) for r in ok]
@@ -155,18 +154,17 @@ def points_table(drive: str, chunk: int, results: list[ScanResult]):
     def cat(get, dtype) -> np.ndarray:
         return np.concatenate([get(r) for r in ok]).astype(dtype, copy=False) if ok else np.zeros(0, dtype)
 
+    xyz = np.empty((total, 3), np.float32, order="F")  # column-major: each coordinate one contiguous column
+    for j, c in enumerate(("x_m", "y_m", "z_m")):
+        xyz[:, j] = cat(lambda r: getattr(r.points, c), np.float32)
     zeros = lambda r: np.zeros(len(r.points), np.float32)  # noqa: E731
-    return pa.table({
-        "drive": pa.repeat(pa.scalar(drive, pa.string()), total),
-        "chunk": np.full(total, chunk, np.int32),
-        "scan_id": np.repeat([r.index_row["scan_id"] for r in ok], n).astype(np.int64),
-        "stamp_ns": np.repeat([r.index_row["stamp_ns"] for r in ok], n).astype(np.int64),
-        "x_m": cat(lambda r: r.points.x_m, np.float32), "y_m": cat(lambda r: r.points.y_m, np.float32),
-        "z_m": cat(lambda r: r.points.z_m, np.float32), "intensity": cat(lambda r: r.points.intensity, np.float32),
-        "ring": cat(lambda r: r.ring, np.int16),
-        "time_offset_s": cat(lambda r: r.points.time_offset_s if r.points.time_offset_s is not None else zeros(r),
-                             np.float32),
-    }, schema=SCHEMAS["scans_raw"])
+    points = RawScanPoints(
+        scan_id=np.repeat([r.index_row["scan_id"] for r in ok], n).astype(np.int64),
+        stamp_ns=np.repeat([r.index_row["stamp_ns"] for r in ok], n).astype(np.int64),
+        xyz_lidar_m=xyz, intensity=cat(lambda r: r.points.intensity, np.float32), ring=cat(lambda r: r.ring, np.int16),
+        time_offset_s=cat(lambda r: r.points.time_offset_s if r.points.time_offset_s is not None else zeros(r),
+                          np.float32))
+    return encode_scans_raw(drive, chunk, points)
 
 
 def iter_scan_results(scans: list[ScanFile], spec: DriveSpec, chunk_size: int, min_range_m: float,

@@ -21,21 +21,20 @@ from stages.common.drive_tables import select_drives
 from stages.common.geodesy import EnuOrigin
 from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
-from stages.common.records import Extrinsics, pose_matrices
+from stages.common.records import Extrinsics, decode_scans_raw, pose_matrices
 from stages.common.survey_parts import distinct_survey_partitions
-from stages.common.tiling import tile_bounds, tile_key_of, tile_shape_px, tiles_touching
+from stages.common.tiling import resolve_tile_size_m, tile_bounds, tile_key_of, tile_shape_px, tiles_touching
 from stages.markings.accumulate import scans_to_enu
 from stages.markings.params import MarkingParams
 from stages.markings.raster_io import TileRasters, write_tile_rasters
 
 log = logging.getLogger(__name__)
-DEFAULT_TILE_SIZE_M = 100.0
 SCANS_PER_PIECE = 16  # scans read and placed at once (a 120k-point HDL-64E scan: ~16 MB per piece member)
 _POSE_COLUMNS = ["drive", "scan_id", "stamp_ns", "x_m", "y_m", "z_m", "qx", "qy", "qz", "qw"]
 
 
 def _tile_size_m(ctx) -> float:
-    return float(ctx.settings.get("tile_size_m") or DEFAULT_TILE_SIZE_M)
+    return resolve_tile_size_m(ctx.settings.get("tile_size_m"))
 
 
 def survey_available(inputs) -> bool:
@@ -124,13 +123,13 @@ def _drive_pieces(ctx, e0: float, n0: float, e1: float, n1: float) -> Iterator[t
                 table = table.filter(pc.equal(table["drive"], drive))
                 if table.num_rows == 0:
                     continue
-                pts = np.column_stack([table[c].to_numpy().astype(float) for c in ("x_m", "y_m", "z_m")])
+                rows = decode_scans_raw(table, by_scan=False)
                 # each point at its own time in the sweep, between its scan's optimized pose and the next's
-                enu, keep = scans_to_enu(pts, table["scan_id"].to_numpy(), ids, T_map_vehicle, T_vehicle_lidar,
-                                         min_range_m=params.min_range_m, max_range_m=params.max_range_m,
-                                         time_offset_s=table["time_offset_s"].to_numpy().astype(float),
-                                         pose_stamps_ns=stamps)
-                yield enu, table["intensity"].to_numpy().astype(float)[keep]
+                enu, keep = scans_to_enu(rows.xyz_lidar_m.astype(float), rows.scan_id, ids, T_map_vehicle,
+                                         T_vehicle_lidar, min_range_m=params.min_range_m,
+                                         max_range_m=params.max_range_m,
+                                         time_offset_s=rows.time_offset_s.astype(float), pose_stamps_ns=stamps)
+                yield enu, rows.intensity.astype(float)[keep]
 
 
 def _map_drive_poses(ctx, columns: list[str]) -> pa.Table:

@@ -12,6 +12,7 @@ import pyarrow as pa
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError
 from stages.common.geometry import write_kitti, write_tum
+from stages.common.records import decode_scans_raw
 from stages.posegraph.config import PosegraphConfig
 from stages.posegraph.factors.drive import DriveInput, dead_reckoning
 from stages.posegraph.factors.graph import marginal_cov_xy_yaw
@@ -45,20 +46,12 @@ class ScanLoader:
             ids = sorted({s for d, s in requests if d == drive})
             tab = self.inputs.read_in("scans", "scan_id", ids, partition=PartitionKey(drive=drive),
                                       columns=["scan_id", "x_m", "y_m", "z_m", "time_offset_s", *extra])
-            sid = tab["scan_id"].to_numpy()
-            columns = {c: tab[c].to_numpy() for c in ("x_m", "y_m", "z_m", "time_offset_s", *extra)}
+            rows = decode_scans_raw(tab)  # the store's row groups come in scan order; sorted once otherwise
             del tab
-            if np.any(sid[1:] < sid[:-1]):  # the store's row groups come in scan order; sort once otherwise
-                order = np.argsort(sid, kind="stable")
-                sid = sid[order]
-                columns = {c: v[order] for c, v in columns.items()}
-            wanted = np.asarray(ids)
-            for s, a, b in zip(ids, np.searchsorted(sid, wanted, "left"), np.searchsorted(sid, wanted, "right")):
-                xyz = np.empty((b - a, 3), np.float64)  # each scan's own arrays, float64
-                for j, c in enumerate(("x_m", "y_m", "z_m")):
-                    xyz[:, j] = columns[c][a:b]
-                t = columns["time_offset_s"][a:b].astype(np.float64)
-                out[(drive, s)] = (xyz, t if np.any(t != 0) else None, *(columns[c][a:b].copy() for c in extra))
+            for s, r in zip(ids, rows.rows_of(ids)):
+                xyz = rows.xyz_lidar_m[r].astype(np.float64)  # each scan's own arrays, float64
+                t = rows.time_offset_s[r].astype(np.float64)
+                out[(drive, s)] = (xyz, t if np.any(t != 0) else None, *(getattr(rows, c)[r].copy() for c in extra))
         return out
 
 

@@ -18,10 +18,11 @@ from pipeline import storage
 from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError, DatasetIOError
 from pipeline.names import check_name
+from pipeline.registry import get_stage
 from pipeline.store_maps import publish_map_version
 from stages.common.geodesy import EnuOrigin
+from stages.common.tiling import resolve_tile_size_m
 from stages.tiles import core
-from stages.tiles.decl import STAGE
 from stages.tiles.history import carry_history
 from stages.tiles.writer import DriveTrajectory, RasterTile, write_map_files
 
@@ -33,11 +34,10 @@ _RASTER_META = ("origin_east_m", "origin_north_m", "cell_m", "width_px", "height
 
 
 def compute(ctx: StageContext) -> dict[str, Any]:
-    import schemas.tiles  # noqa: F401  registers map_tiles
-    from schemas import schema_of
+    from schemas import schema_of  # the registry holds every schema of schemas/ (map_tiles: schemas/tiles.py)
 
     params = ctx.params
-    size_m = float(params.tile_size_m or ctx.settings.get("tile_size_m") or 100.0)
+    size_m = resolve_tile_size_m(params.tile_size_m, ctx.settings.get("tile_size_m"))
     corners = ctx.inputs.read("corner_map")
     poses = ctx.inputs.read("poses").sort_by([("drive", "ascending"), ("stamp_ns", "ascending")])
     drive_info = ctx.inputs.read("drive_info")
@@ -66,13 +66,14 @@ def compute(ctx: StageContext) -> dict[str, Any]:
                                "unchanged:\n" + "\n".join(f"  - {p}" for p in problems))
 
     name = str(ctx.settings["map_name"])
-    inputs = {arg: {"dataset": STAGE.inputs[arg], "fingerprint": ctx.inputs.metadata(arg).get("fingerprint")}
+    decl = get_stage(ctx.stage)  # the declaration the engine runs this stage under
+    inputs = {arg: {"dataset": decl.inputs[arg], "fingerprint": ctx.inputs.metadata(arg).get("fingerprint")}
               for arg in _INPUT_ARGS if arg in ("corner_map", "poses", "drive_info") or ctx.inputs.has(arg)}
     resolved = {**params.model_dump(mode="json"), "tile_size_m": size_m}
     fields = {"format": layout.FORMAT_NAME, "format_version": layout.FORMAT_VERSION, "map_name": name,
               "enu_origin": _enu_origin(ctx, drive_info).as_dict(), "tile_size_m": size_m,
               "n_corners": corners.num_rows, "corner_columns": list(layout.CORNER_COLUMNS),
-              "stage": STAGE.name, "code_version": STAGE.code_version, "params": resolved, "inputs": inputs,
+              "stage": decl.name, "code_version": decl.code_version, "params": resolved, "inputs": inputs,
               "quality": measured,
               # how the corners' errors correlate with distance: the pose graph's figure (posegraph
               # error_correlation.py) for localizers that hold several corners at once; None: not stated
@@ -103,7 +104,7 @@ def compute(ctx: StageContext) -> dict[str, Any]:
     def unchanged(latest: dict[str, Any]) -> bool:
         fps = [v["fingerprint"] for v in inputs.values()]
         return (all(fps) and latest.get("inputs") == inputs and latest.get("params") == resolved
-                and latest.get("code_version") == STAGE.code_version)
+                and latest.get("code_version") == decl.code_version)
 
     pub = publish_map_version(ctx.settings["root"], name, write, keep_last=params.keep_last, reuse=unchanged,
                           move_latest=not ctx.settings.get("hold_latest", False))

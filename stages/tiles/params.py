@@ -4,12 +4,14 @@ from __future__ import annotations
 from pydantic import Field
 
 from pipeline.declare import Params
+from stages.common.tiling import DEFAULT_TILE_SIZE_M
 
 
 class TilesParams(Params):
     tile_size_m: float | None = Field(None, gt=0, description="tile edge in metres; None = the workflow's "
-                                                               "tile_size_m setting (100 m when unset), so "
-                                                               "tiles line up with the marking rasters")
+                                                               f"tile_size_m setting ({DEFAULT_TILE_SIZE_M:g} m "
+                                                               "when unset), so tiles line up with the marking "
+                                                               "rasters")
     keep_last: int = Field(5, ge=1, description="versions kept; older ones are deleted, never the LATEST one")
     gates_enabled: bool = Field(True, description="run the quality gates below before publishing")
     min_corners_per_km: float = Field(10.0, ge=0, description="corners per km of optimized driven path, each "

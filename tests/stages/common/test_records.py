@@ -1,4 +1,5 @@
-"""Pose rows and drive_info extrinsics: round trips through Arrow, cross-checked against scipy, and named errors."""
+"""Pose rows, drive_info extrinsics and scans_raw rows: round trips through Arrow, cross-checked against scipy,
+and named errors."""
 from __future__ import annotations
 
 import numpy as np
@@ -90,3 +91,68 @@ def test_extrinsics_round_trip_and_named_errors():
         Extrinsics.from_table(pa.table({"drive": ["y"], "T_vehicle_lidar": [Extrinsics.to_column(sheared)]}))
     with pytest.raises(FormatError, match="4x4"):
         Extrinsics.to_column(np.eye(3))
+
+
+def _scan_points(n_scans: int, seed: int):
+    from stages.common.records import RawScanPoints
+
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, 40, n_scans)
+    n = int(counts.sum())
+    ids = np.arange(n_scans, dtype=np.int64) * 3 + 5
+    return RawScanPoints(np.repeat(ids, counts), np.repeat(ids * 100_000_000 + 7, counts),
+                         rng.normal(0, 30, (n, 3)).astype(np.float32), rng.uniform(0, 255, n).astype(np.float32),
+                         rng.integers(0, 32, n).astype(np.int16), rng.uniform(0, 0.1, n).astype(np.float32)), counts
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 12), st.integers(0, 2**31))
+def test_scans_raw_rows_round_trip(n_scans, seed):
+    from schemas import SCHEMAS
+    from stages.common.records import decode_scans_raw, encode_scans_raw
+
+    p, counts = _scan_points(n_scans, seed)
+    table = encode_scans_raw("d0", 3, p)
+    assert table.schema.equals(SCHEMAS["scans_raw"], check_metadata=True)
+    assert table["chunk"].to_pylist() == [3] * len(p) and set(table["drive"].to_pylist()) <= {"d0"}
+    back = decode_scans_raw(table)
+    for name in ("scan_id", "stamp_ns", "xyz_lidar_m", "intensity", "ring", "time_offset_s"):
+        assert np.array_equal(getattr(back, name), getattr(p, name)), name
+    ids, bounds = back.scan_rows()
+    kept = counts > 0
+    assert np.array_equal(ids, (np.arange(n_scans) * 3 + 5)[kept]) and np.array_equal(np.diff(bounds), counts[kept])
+    for sid, r in zip(np.arange(n_scans) * 3 + 5, back.rows_of(np.arange(n_scans) * 3 + 5)):
+        assert np.all(back.scan_id[r] == sid) and r.stop - r.start == counts[(sid - 5) // 3]
+
+
+def test_scans_raw_decode_groups_shuffled_rows_by_scan_stably_and_keeps_them_in_table_order_on_request():
+    from stages.common.records import decode_scans_raw, encode_scans_raw
+
+    p, _ = _scan_points(6, 11)
+    table = encode_scans_raw("d0", 0, p)
+    perm = np.random.default_rng(2).permutation(table.num_rows)
+    shuffled = table.take(pa.array(perm))
+    back = decode_scans_raw(shuffled)
+    stable = np.argsort(p.scan_id[perm], kind="stable")
+    assert np.array_equal(back.xyz_lidar_m, p.xyz_lidar_m[perm][stable])
+    assert np.array_equal(back.scan_id, p.scan_id)  # grouped by scan again
+    as_read = decode_scans_raw(shuffled.select(["x_m", "y_m", "z_m", "intensity"]), by_scan=False)
+    assert np.array_equal(as_read.xyz_lidar_m, p.xyz_lidar_m[perm]) and as_read.ring is None
+    assert np.array_equal(as_read.intensity, p.intensity[perm])
+
+
+def test_malformed_scans_raw_rows_are_named_errors():
+    from stages.common.records import RawScanPoints, decode_scans_raw, encode_scans_raw
+
+    p, _ = _scan_points(4, 5)
+    table = encode_scans_raw("d0", 0, p)
+    stamps = table["stamp_ns"].to_numpy().copy()
+    stamps[-1] += 1  # the last scan's last point claims another scan start
+    with pytest.raises(FormatError, match=rf"scan {int(p.scan_id[-1])}: stamp_ns"):
+        decode_scans_raw(table.set_column(table.schema.get_field_index("stamp_ns"), "stamp_ns", pa.array(stamps)))
+    with pytest.raises(FormatError, match="z_m missing"):
+        decode_scans_raw(table.select(["scan_id", "x_m", "y_m"]))
+    with pytest.raises(FormatError, match="no scan_id column"):
+        decode_scans_raw(table.select(["x_m", "y_m", "z_m"]))
+    with pytest.raises(FormatError, match="ring must hold"):
+        encode_scans_raw("d0", 0, RawScanPoints(p.scan_id, p.stamp_ns, p.xyz_lidar_m, p.intensity, p.ring[:-1]))

@@ -163,3 +163,26 @@ def test_publishing_straight_to_a_bucket_continues_the_chain(local_root, s3_root
 
     assert manifest["parent_version"] == 2 and manifest["parent_manifest_sha256"] == hashlib.sha256(v2).hexdigest()
     assert store.read_bytes(storage.latest_file(mdir)).split()[0] == b"v0003"
+
+
+def test_open_map_on_an_unreachable_store_raises_a_named_error(monkeypatch) -> None:
+    """A localizer loading from a bucket whose endpoint is down gets ObjectStoreError naming the URI and the
+    endpoint (an OSError), not the client's own exception."""
+    import socket
+
+    from mapformat.loader import open_map
+    from pipeline.errors import DatasetIOError, ObjectStoreError
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{port}")
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
+    monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
+    with pytest.raises(ObjectStoreError) as err:
+        open_map("s3://hcmaps/root/maps/city")
+    text = str(err.value)
+    assert isinstance(err.value, (DatasetIOError, OSError))
+    assert text.startswith("s3://hcmaps/root/maps/city: the object store") and f"127.0.0.1:{port}" in text
+    assert "\n" not in text
