@@ -29,6 +29,7 @@ from pipeline import storage
 from pipeline.errors import ConfigError, DatasetIOError, UnknownNameError
 from pipeline.names import check_name
 from stages.common.geodesy import EnuOrigin
+from stages.common.tiling import DEFAULT_TILE_SIZE_M
 
 IDENTITY_NAME = storage.IDENTITY
 IDENTITY_SCHEMA = "cornermap.map-identity/1"
@@ -66,7 +67,7 @@ class MapIdentity(BaseModel):
     schema_: str = Field(IDENTITY_SCHEMA, alias="schema")
     name: str
     enu_origin: Origin
-    tile_size_m: float = Field(100.0, gt=0, le=10000)
+    tile_size_m: float = Field(DEFAULT_TILE_SIZE_M, gt=0, le=10000)
     max_radius_km: float = Field(DEFAULT_MAX_RADIUS_KM, gt=0, le=MAX_RADIUS_LIMIT_KM)
     created_utc: str
     check_drive: CheckDrive | None = None
@@ -129,7 +130,7 @@ def write_identity(mdir: Path, ident: MapIdentity) -> None:
     os.replace(tmp, mdir / IDENTITY_NAME)
 
 
-def create_map(root: "Path | str", name: str, origin: dict[str, float], tile_size_m: float = 100.0,
+def create_map(root: "Path | str", name: str, origin: dict[str, float], tile_size_m: float = DEFAULT_TILE_SIZE_M,
                check_drive: CheckDrive | None = None, max_radius_km: float = DEFAULT_MAX_RADIUS_KM) -> MapIdentity:
     """Write a new map's identity (a local root or an ``s3://`` one: ``MapHome``); refuses a map that already has
     one, or versions in another frame."""

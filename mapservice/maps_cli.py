@@ -12,6 +12,7 @@ from typing import Optional
 import typer
 
 from pipeline import cli_options as opts
+from stages.common.tiling import DEFAULT_TILE_SIZE_M
 
 maps_app = typer.Typer(no_args_is_help=True, help="A map's identity: pinned frame, tile size, drive set.\n\n"
                        "Examples:\n\n  cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57"
@@ -25,7 +26,8 @@ MAP_REQ = opts.MAP
 def create_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ,
                origin: str = typer.Option(..., "--origin", help="The map's ENU origin LAT,LON,H (degrees, degrees, "
                                           "metres WGS84), fixed for every version."),
-               tile_size_m: float = typer.Option(100.0, "--tile-size-m", help="Tile edge in metres, fixed."),
+               tile_size_m: float = typer.Option(DEFAULT_TILE_SIZE_M, "--tile-size-m",
+                                                 help="Tile edge in metres, fixed."),
                max_radius_km: float = typer.Option(10.0, "--max-radius-km", help="The map's area: drives with a GNSS "
                                                    "fix farther from the origin are refused (exit 3). 10 km: the ENU "
                                                    "up axis leans 0.09 deg there and the ground lies 7.8 m below its "

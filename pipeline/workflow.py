@@ -42,7 +42,7 @@ class WorkflowSpec(BaseModel):
     # the map's frame ({lat_deg, lon_deg, h_m}): carried, not interpreted; the stages that read it validate it
     # (``stages.common.geodesy.EnuOrigin.validate``); null: the stages choose it (ingest: the first GNSS fix)
     enu_origin: dict[str, float] | None = None
-    tile_size_m: float = 100.0
+    tile_size_m: float | None = Field(None, gt=0)  # null: the stages' default (stages.common.tiling)
     # the map's area: a map drive with a GNSS fix farther from enu_origin is refused (exit 3); null: unbounded
     max_radius_m: float | None = Field(10_000.0, gt=0)
     hold_latest: bool = False  # publish the new map version without moving LATEST (a later gate moves it)
