@@ -29,6 +29,7 @@ the GNSS bias bends is off by more than ``MATCH_M`` somewhere whatever the rigid
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 from pathlib import Path
 
@@ -46,16 +47,20 @@ GATES = ("redundancy", "walls", "vertex", "near", "short_object")
 def gate_steps(params: CornerParams) -> list[CornerParams]:
     """``params`` with its gates switched on one after the other: [all off (>= 2 layers), + redundancy, + walls,
     + vertex, + near, + short object (= params)]."""
+    from bench.params_args import nested
+
     p = params.model_dump()
-    off = {**p, "min_layers": 2, "min_wall_length_m": 0.0, "min_long_wall_length_m": 0.0,
-           "min_obtuse_wall_length_m": 0.0, "max_vertex_gap_spacings": 0.0, "min_corner_range_m": 0.0,
-           "max_passover_height_m": 0.0}
-    steps = [dict(off)]
-    for keys in (["min_layers"], ["min_wall_length_m", "min_long_wall_length_m", "min_obtuse_wall_length_m"],
-                 ["max_vertex_gap_spacings"], ["min_corner_range_m"], ["max_passover_height_m"]):
-        off.update({k: p[k] for k in keys})
-        steps.append(dict(off))
-    return [CornerParams(**s) for s in steps]
+    gates = ([("clusters", "min_layers")],
+             [("checks", "min_wall_length_m"), ("checks", "min_long_wall_length_m"),
+              ("checks", "min_obtuse_wall_length_m")],
+             [("checks", "max_vertex_gap_spacings")], [("checks", "min_corner_range_m")],
+             [("checks", "max_passover_height_m")])
+    off = nested({"clusters.min_layers": 2, **{f"{s}.{k}": 0.0 for keys in gates[1:] for s, k in keys}}, p)
+    steps = [copy.deepcopy(off)]
+    for keys in gates:
+        off = nested({f"{s}.{k}": p[s][k] for s, k in keys}, off)
+        steps.append(copy.deepcopy(off))
+    return [CornerParams.model_validate(s) for s in steps]
 
 
 def gate_profile(scans, params: CornerParams, labeller=None) -> dict:
@@ -401,7 +406,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="a corners param (repeatable)")
     ap.add_argument("--data", type=Path, default=DATA)
     args = ap.parse_args(argv)
-    params = CornerParams(**{k: json.loads(v) for k, v in (p.split("=", 1) for p in args.param)})
+    from bench.params_args import nested
+
+    params = CornerParams.model_validate(nested({k: json.loads(v) for k, v in (p.split("=", 1) for p in args.param)}))
     if args.kitti:
         sl = slice(*[int(v) if v else None for v in args.scans.split(":")])
         print_profile(f"KITTI 0048 HDL-64E scans [{args.scans}]", gate_profile(kitti_scans(args.data, sl), params))

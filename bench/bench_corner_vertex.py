@@ -15,7 +15,7 @@ placed with the drive's true poses and labelled: ``building`` (within 0.3 m of a
 chamfer vertex), ``rounded`` (within the arc's reach of a rounded corner), ``furniture`` (within 0.5 m of a
 street-furniture corner), ``other``. Prints, per label, the count and the quantiles of the vertex gap (the
 smaller of the two facing-end gaps in point spacings of its line, the best layer), and how many corners of each
-label a limit would drop. ``--set max_vertex_gap_spacings=0`` shows the corners the rule removes.
+label a limit would drop. ``--set checks.max_vertex_gap_spacings=0`` shows the corners the rule removes.
 """
 from __future__ import annotations
 
@@ -75,9 +75,12 @@ def main(argv=None) -> None:
     ap.add_argument("--root", type=Path, required=True)
     ap.add_argument("--drive", default="drive_0")
     ap.add_argument("--every", type=int, default=10, help="trace every N-th scan")
-    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="corners params overrides")
+    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE",
+                    help="corners params overrides, e.g. checks.max_vertex_gap_spacings=2")
     args = ap.parse_args(argv)
-    params = CornerParams(**{k: float(v) for k, v in (s.split("=", 1) for s in args.set)})
+    from bench.params_args import nested
+
+    params = CornerParams.model_validate(nested({k: float(v) for k, v in (s.split("=", 1) for s in args.set)}))
     truth_dir = simulator_dir(args.root)
     building, rounded, radius, furniture = truth_sets(truth_dir)
     truth = Trajectory.from_tum(truth_dir / "truth" / f"{args.drive}_poses_tum.txt")

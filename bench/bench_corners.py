@@ -262,7 +262,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeat", type=int, default=20)
     ap.add_argument("--no-throughput", action="store_true")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="override a CornerParams field for the accuracy run (repeatable), e.g. min_layers=4")
+                    help="override a CornerParams field for the accuracy run (repeatable), e.g. clusters.min_layers=4")
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     args = ap.parse_args(argv)
     if not args.no_throughput:
@@ -271,7 +271,9 @@ def main(argv: list[str] | None = None) -> None:
         import json
 
         overrides = {k: json.loads(v) for k, v in (p.split("=", 1) for p in args.param)}
-        bench_accuracy(args.sim, args.drive, args.max_scans, CornerParams(**overrides))
+        from bench.params_args import nested
+
+        bench_accuracy(args.sim, args.drive, args.max_scans, CornerParams.model_validate(nested(overrides)))
     if args.root:
         bench_stage_output(args.root, args.drive)
 

@@ -33,24 +33,24 @@ def main() -> None:
           f"python {platform.python_version()}")
     rng = np.random.default_rng(args.seed)
     d, cmap, fetch, truth, stamps = synthetic_drive(args.epochs, rng, outage_s=(20.0, 30.0))
-    p = EvaluateParams(n_particles=args.particles)
+    p = EvaluateParams(mcl={"n_particles": args.particles})
     q0, P0 = d.gnss_q[0], np.diag([0.36, 0.36, np.deg2rad(0.5) ** 2])
     n_corners = len(d.corners.epoch)
 
     best = np.inf
     for _ in range(3):
         t0 = time.perf_counter()
-        run_ekf(d.icp_increments, d.corners, cmap, q0, P0, 0, p.ekf_config())
+        run_ekf(d.icp_increments, d.corners, cmap, q0, P0, 0, p.ekf)
         best = min(best, time.perf_counter() - t0)
     print(f"EKF: {args.epochs} epochs, {n_corners} extracted corners ({n_corners / args.epochs:.1f}/epoch), "
           f"{len(cmap.en_m)} map corners: {args.epochs / best:.0f} epochs/s (best of 3; target >= 1000)")
 
     t0 = time.perf_counter()
     run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, 0, np.random.default_rng(0),
-            p.mcl_config())
+            p.mcl, likelihood=p.markings)
     dt = time.perf_counter() - t0
-    print(f"MCL: {args.particles} particles, <= {p.mcl_max_features} features/epoch: {args.epochs / dt:.0f} epochs/s "
-          "(features precomputed; target >= 50)")
+    print(f"MCL: {args.particles} particles, <= {p.markings.max_features} features/epoch: "
+          f"{args.epochs / dt:.0f} epochs/s (features precomputed; target >= 50)")
 
     mask, origin = paint_markings(300.0, 40.0, 0.1, road_y_m=20.0, crosswalks_x_m=(150.0,))
     T = np.eye(4)
@@ -64,7 +64,7 @@ def main() -> None:
           f"{np.mean(n_feat):.0f} features/scan")
 
     t0 = time.perf_counter()
-    ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth)}, p.evaluation_config())
+    ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth)}, p)
     print(f"accuracy on the synthetic road ({args.epochs} epochs, 30 s GNSS outage at 20 s; "
           f"{time.perf_counter() - t0:.1f} s):")
     print(metrics_table_text(metrics_document(ev, "synthetic", {})))

@@ -57,7 +57,7 @@ def _odometry_in_memory(drive_yaml: Path, name: str, odometry_params: dict):
     import pyarrow as pa
 
     from fixtures.keyframes import SIM_ORIGIN
-    from pipeline.declare import PartitionKey
+    from pipeline.declare import PartitionKey, nested
     from pipeline.testing import make_context
     from stages.ingest.compute import compute as ingest
     from stages.ingest.params import IngestParams
@@ -75,7 +75,7 @@ def _odometry_in_memory(drive_yaml: Path, name: str, odometry_params: dict):
     chunks = sorted(set(tables["scans"]["chunk"].to_pylist()))
     edges = []
     for c in chunks:
-        octx = make_context("odometry", OdometryParams(**odometry_params), tables,
+        octx = make_context("odometry", OdometryParams.model_validate(nested(odometry_params)), tables,
                             partition=PartitionKey(drive=name, chunk=c))
         edges.append(odometry(octx)["edges"])
     return pa.concat_tables(edges)

@@ -1,7 +1,8 @@
 """Loop measurements against the simulator's truth: each loop of the map drive verified again from the truth's
 relative pose and from the estimate's, registered whole (the stage's default) and on the structure with height,
-roll and pitch from the two road planes (``verify_once`` with ``ground_split``), and as ``loop_ground_split: true``
-verifies it (the structure's result where it moves the whole clouds' less than 0.3 m), from the estimate.
+roll and pitch from the two road planes (``verify_once`` with ``ground_split``), and as
+``loops.verify.ground_split: true`` verifies it (the structure's result where it moves the whole clouds' less than
+0.3 m), from the estimate.
 
     .venv/bin/python -m bench.bench_loop_bias -w BUILD/bench_build.yaml --sim SIM [--params P.yaml] [--drive drive_0]
 
@@ -14,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +42,6 @@ def main() -> int:
     from stages.common.geometry import se3_inverse
     from stages.common.records import Trajectory
     from stages.posegraph.compute import ScanLoader, read_drive_inputs
-    from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.loops.clouds import vehicle_clouds
     from stages.posegraph.loops.verify import verify_loop, verify_once
 
@@ -68,12 +67,12 @@ def main() -> int:
         raise SystemExit(f"no loop of {args.drive} onto itself in this run")
     index = {int(s): k for k, s in enumerate(opt.scan_id)}
     pairs = [(index[r["scan_a"]], index[r["scan_b"]]) for r in rows]
-    cfg = PosegraphConfig.from_params(params).loops.verify
+    cfg = params.loops.verify
     clouds = vehicle_clouds([d], np.array([0, d.n]), np.array(sorted({k for p in pairs for k in p})),
                             ScanLoader(ins), cfg.voxel_m)
     print(f"{args.drive}: {len(pairs)} loops onto itself ({sum(r['accepted'] for r in rows)} accepted in the run)")
     print("| scans | true offset along m | whole, from truth: along / across cm | whole, from estimate | "
-          "structure + road, from truth | structure + road, from estimate | loop_ground_split, from estimate |"
+          "structure + road, from truth | structure + road, from estimate | loops.verify.ground_split, from estimate |"
           "\n|---|---|---|---|---|---|---|")
     errs: dict[str, list] = {}
     for (i, j), r in zip(pairs, rows):
@@ -84,8 +83,8 @@ def main() -> int:
                 ("whole", "estimate", lambda p: verify_once(clouds[i], clouds[j], p, cfg, False), estimate),
                 ("structure + road", "truth", lambda p: verify_once(clouds[i], clouds[j], p, cfg, True), truth),
                 ("structure + road", "estimate", lambda p: verify_once(clouds[i], clouds[j], p, cfg, True), estimate),
-                ("loop_ground_split", "estimate",
-                 lambda p: verify_loop(clouds[i], clouds[j], p, replace(cfg, ground_split=True)), estimate)]
+                ("loops.verify.ground_split", "estimate",
+                 lambda p: verify_loop(clouds[i], clouds[j], p, cfg.updated({"ground_split": True})), estimate)]
         along = truth[:2, 3] / max(np.linalg.norm(truth[:2, 3]), 1e-9)  # the direction of the offset
         for name, start, verify, prior in runs:
             v = verify(prior)

@@ -1,5 +1,5 @@
 """A published corner map's errors against the simulator's truth: how honest its stored covariances are and how its
-corners' errors correlate with distance (the EKF's ``ekf_map_corr_share`` / ``ekf_map_corr_length_m``).
+corners' errors correlate with distance (the EKF's ``ekf.map.corr_share`` / ``ekf.map.corr_length_m``).
 
     .venv/bin/python -m bench.bench_map_errors --root ROOT [--map NAME] [--map-version vNNNN]
 

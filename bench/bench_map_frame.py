@@ -129,7 +129,6 @@ def solved(workflow: Path, root: Path | None, overrides: list[str], fixes: str =
     from pipeline.plan import make_plan
     from pipeline.workflow import load_workflow
     from stages.posegraph.compute import frame_of_map, read_drive_inputs, scan_loader
-    from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.factors.graph import marginal_cov_xy_yaw
     from stages.posegraph.solve import solve_map
 
@@ -164,15 +163,14 @@ def solved(workflow: Path, root: Path | None, overrides: list[str], fixes: str =
                 d.edge_T = d.edge_T.copy()
                 d.edge_T[:, :3, 3] /= r
                 print(f"{d.name}: consecutive edges {(r - 1) * 1e6:+.0f} ppm against the span edges; divided out")
-    cfg = PosegraphConfig.from_params(ctx.params)
+    cfg = ctx.params
     if loops_cache is not None and loops_cache.is_file():
-        import dataclasses
         import pickle
 
         cached = pickle.loads(loops_cache.read_bytes())
         for r in cached:
             r.accepted = True
-        no_search = dataclasses.replace(cfg, loops=dataclasses.replace(cfg.loops, radius_m=0.0))
+        no_search = cfg.model_copy(update={"loops": cfg.loops.model_copy(update={"radius_m": 0.0})})
         sol = solve_map(drives, scan_loader(ctx), no_search, extra_loops=cached)
     else:
         sol = solve_map(drives, scan_loader(ctx), cfg)

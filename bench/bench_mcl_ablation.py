@@ -17,10 +17,10 @@ import numpy as np
 
 VARIANTS = {
     "final": {},
-    "blurred_raster": {"raster_field": "blur"},
-    "no_scale_bias_state": {"mcl_init_sigma_scale": 0.0, "mcl_sigma_scale_per_sqrt_m": 0.0,
-                            "mcl_init_sigma_gyro_bias_deg_s": 0.0, "mcl_sigma_gyro_bias_deg_s_per_sqrt_s": 0.0},
-    "no_deskew": {"feature_deskew": False},
+    "blurred_raster": {"markings": {"field": "blur"}},
+    "no_scale_bias_state": {"mcl": {"init_sigma_scale": 0.0, "sigma_scale_per_sqrt_m": 0.0,
+                                    "init_sigma_gyro_bias_deg_s": 0.0, "sigma_gyro_bias_deg_s_per_sqrt_s": 0.0}},
+    "no_deskew": {"features": {"deskew": False}},
 }
 KEYS = ("mean_abs_x_m", "mean_abs_y_m", "mean_abs_heading_deg")
 
@@ -48,7 +48,8 @@ def main() -> None:
     for name in args.variants:
         rows = []
         for seed in args.seeds:
-            p = EvaluateParams(methods=["mcl"], seed=seed, **VARIANTS[name])
+            v = VARIANTS[name]
+            p = EvaluateParams(methods=["mcl"], **{**v, "mcl": {**v.get("mcl", {}), "seed": seed}})
             doc = run_evaluation(reader, args.drive, str(args.reference), p, args.out, True)
             truth = doc["methods"]["mcl"]["absolute"] or {}
             rows.append([np.nan if truth.get(k) is None else float(truth[k]) for k in KEYS])

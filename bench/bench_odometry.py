@@ -249,19 +249,22 @@ def acceptance_lines(results: list[tuple[Run, int]], rebased: list[np.ndarray], 
 
 
 def _overrides(pairs: list[str]) -> dict:
-    """KEY=VALUE strings -> dict (JSON values where they parse, else strings); validated by OdometryParams."""
+    """KEY=VALUE strings -> dict (JSON values where they parse, else strings; a dotted KEY names a section's key);
+    validated by OdometryParams."""
+    from pipeline.declare import nested
     from stages.odometry.params import OdometryParams
 
     out = {}
     for kv in pairs:
         key, sep, value = kv.partition("=")
         if not sep:
-            raise SystemExit(f"--set {kv!r}: expected KEY=VALUE, e.g. --set voxel_m=0.5")
+            raise SystemExit(f"--set {kv!r}: expected KEY=VALUE, e.g. --set prepare.voxel_m=0.5")
         try:
             out[key] = json.loads(value)
         except json.JSONDecodeError:
             out[key] = value
-    OdometryParams(**out)  # unknown keys and bad values fail here, before any run
+    out = nested(out)
+    OdometryParams.model_validate(out)  # unknown keys and bad values fail here, before any run
     return out
 
 
@@ -275,7 +278,7 @@ def main() -> None:
     ap.add_argument("--scans", type=int, default=None, help="first N scans of the simulated drive (default all)")
     ap.add_argument("--threads", default="1,2", help="thread counts to time, comma-separated (first: comparisons)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="override one of our OdometryParams (repeatable), e.g. --set voxel_m=0.5")
+                    help="override one of our OdometryParams (repeatable), e.g. --set prepare.voxel_m=0.5")
     ap.add_argument("--repeat", type=int, default=1, help="time each measurement N times, report the best")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()

@@ -51,7 +51,7 @@ def run(sim: Path, drive: str, n: int, tolerance: float, raw: bool) -> str:
             sample.append((src, tgt, np.array(T, float), kw))
         return register(src, tgt, T, **kw)
     core.register_clouds = recorded
-    out, e, total = sim_odometry(sim, drive, n, guided_relative_tolerance=tolerance)
+    out, e, total = sim_odometry(sim, drive, n, **{"icp.guided_relative_tolerance": tolerance})
     iters = _iterations(register, sample[:150])
     return (f"| {sim.name} | {'raw' if raw else 'corrected'} | {tolerance:g} | {e['edges']} | "
             f"{e['edge_xy_rms_mm']:.2f} | {e['edge_yaw_rms_deg']:.4f} | {e['end_xy_m']:.3f} | "

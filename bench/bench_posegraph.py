@@ -48,8 +48,11 @@ def ingest(sim: Path, drives: list[str]) -> dict[str, pa.Table]:
 
 
 def _overrides(pairs: list[str]) -> dict:
-    """KEY=VALUE strings -> dict (values parsed as JSON when possible, else kept as strings)."""
+    """KEY=VALUE strings -> dict (values parsed as JSON when possible, else kept as strings); a dotted KEY names a
+    section's key (``loops.radius_m=20`` -> ``{"loops": {"radius_m": 20}}``)."""
     import json
+
+    from pipeline.declare import nested
 
     out = {}
     for kv in pairs:
@@ -58,7 +61,7 @@ def _overrides(pairs: list[str]) -> dict:
             out[key] = json.loads(value)
         except json.JSONDecodeError:
             out[key] = value
-    return out
+    return nested(out)
 
 
 def run_odometry(tables, overrides: dict | None = None) -> tuple[pa.Table, float, int]:
@@ -95,14 +98,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--sim", type=Path, default=None)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a posegraph param (repeatable), e.g. --set gnss_every_s=2")
+                    help="override a posegraph param (repeatable), e.g. --set gnss.every_s=2")
     ap.add_argument("--odometry-set", action="append", default=[], metavar="KEY=VALUE",
                     help="override an odometry param (repeatable)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     from stages.common import trajectory_metrics as M
     from stages.posegraph.anchors.survey_anchor import SurveyArrays, survey_anchor_callback
-    from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.factors.drive import dead_reckoning
     from stages.posegraph.factors.graph import marginal_cov_xy_yaw
     from stages.posegraph.loops.verify import LoopRecord
@@ -122,7 +124,7 @@ def main() -> None:
     edges, dt, n = run_odometry(tables, _overrides(args.odometry_set))
     print(
         f"odometry: {n} edges in {dt:.1f} s = {n / dt:.1f} scans/s incl. in-memory table filtering "
-        f"(GICP, {OdometryParams().voxel_m} m voxels)"
+        f"(GICP, {OdometryParams().prepare.voxel_m} m voxels)"
     )
     tables["edges"] = edges
     scans = tables["scans"]
@@ -140,7 +142,7 @@ def main() -> None:
                 out[(d, s)] = (xyz[m], toff[m] if np.any(toff[m] != 0) else None)
         return out
 
-    cfg = PosegraphConfig.from_params(PosegraphParams(**_overrides(args.set)))
+    cfg = PosegraphParams.model_validate(_overrides(args.set))
     map_d = [drive_input(drives[0], tables["poses_gnss"], edges, tables["drive_info"])]
     truth = truth_poses(sim, drives[0], map_d[0].stamps_ns)
     stamps_s = map_d[0].stamps_ns * 1e-9

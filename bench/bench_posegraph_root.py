@@ -42,7 +42,6 @@ def main() -> None:
     from pipeline.workflow import load_workflow
     from stages.common import trajectory_metrics as M
     from stages.posegraph.compute import read_drive_inputs, scan_loader
-    from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.factors.drive import dead_reckoning
     from stages.posegraph.loops.verify import LoopRecord
     from stages.posegraph.solve import solve_map
@@ -56,7 +55,7 @@ def main() -> None:
     if missing:
         raise SystemExit(f"{root}: no committed input for posegraph: {', '.join(missing)}; run the upstream stages")
     ctx = stage_context(plan, "posegraph", Path(tempfile.mkdtemp(prefix="bench-pg-")))
-    cfg = PosegraphConfig.from_params(ctx.params)
+    cfg = ctx.params
     drives, _ = read_drive_inputs(ctx)
     sim = dataset_dir(plan.root, "raw_drives", plan.stages["simulate"].fingerprint) / "artifacts" / "all"
     truth = truth_poses(sim, drives[0].name, drives[0].stamps_ns)

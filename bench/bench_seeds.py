@@ -80,9 +80,11 @@ def write_workflow(preset: str, seed: int, run_dir: Path, methods: list[str] | N
     if methods:
         spec["params"].setdefault("evaluate", {})["methods"] = methods
     if ekf_motion:
-        spec["params"].setdefault("evaluate", {})["ekf_motion"] = ekf_motion
+        spec["params"].setdefault("evaluate", {}).setdefault("ekf", {})["motion"] = ekf_motion
     if evaluate_params:
-        spec["params"].setdefault("evaluate", {}).update(evaluate_params)
+        from bench.params_args import merged
+
+        spec["params"]["evaluate"] = merged(spec["params"].get("evaluate", {}), evaluate_params)
     if sim_overrides and not no_survey:
         spec["params"]["simulate"]["preset_overrides"] = dict(sim_overrides)
     if no_survey:
@@ -144,7 +146,8 @@ def main() -> None:
     ap.add_argument("--ekf-motion", choices=["wheel_bias", "icp"], default=None,
                     help="the EKF motion model (default: the evaluate params' default)")
     ap.add_argument("--set", nargs="+", default=[], metavar="NAME=VALUE",
-                    help="evaluate params for calibration runs (only on calibration seeds)")
+                    help="evaluate params for calibration runs (only on calibration seeds), by their place in the "
+                         "sections, e.g. ekf.map.consider=false")
     ap.add_argument("--no-survey", action="store_true",
                     help="delete the survey: section of every simulated drive file before building")
     ap.add_argument("--sim-set", nargs="+", default=[], metavar="KEY=VALUE",
@@ -154,6 +157,7 @@ def main() -> None:
                          "no tables")
     args = ap.parse_args()
 
+    from bench.params_args import nested
     from pipeline.api import execute_workflow
     from pipeline.errors import CornermapError
     from stages.simulate.cli import parse_overrides
@@ -162,7 +166,7 @@ def main() -> None:
     for seed in args.seeds:
         run_dir = (args.root / f"{args.preset}-{seed}").resolve()
         wf = write_workflow(args.preset, seed, run_dir, args.methods, args.ekf_motion,
-                            {k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.set)},
+                            nested({k: yaml.safe_load(v) for k, v in (a.split("=", 1) for a in args.set)}),
                             no_survey=args.no_survey, sim_overrides=parse_overrides(args.sim_set))
         if args.fresh_evaluate:
             for ds in ("eval_epochs", "eval_report"):

@@ -9,7 +9,7 @@ Per seed: ``cornermap simulate --preset demo --drives 1 --set route=out_and_back
 back in the other direction's lane, ~145 Ouster keyframes 3-9 m apart, placed by a start pose and a SLAM-like local
 prior whose heading random-walks W deg per sqrt(km), stated as 7 m / 2 deg; the drive file's wheel odometry removed:
 a keyframe dataset has none), then ``cornermap build`` per variant into one root (the stages before the pose graph are
-built once): ``fixed`` with ``loop_wide: false`` (the fixed loop_radius_m alone), ``wide`` with the defaults.
+built once): ``fixed`` with ``loops.wide.enabled: false`` (the fixed loops.radius_m alone), ``wide`` with the defaults.
 
 Measured on the pose graph's committed poses: for each pose, the truly nearest pose of the other pass (30 s or more
 apart, within 15 m in truth): the estimate's offset between the two against the truth's ("passes' error": median and
@@ -120,7 +120,8 @@ def main(argv: list[str] | None = None) -> None:
         sim = simulate(work, seed, args.walk_deg, args.spacing_m, args.prior_std_m, args.prior_std_deg)
         for variant in args.variants:
             params = work / f"params_{variant}.yaml"
-            params.write_text("posegraph:\n  loop_wide: false\n" if variant == "fixed" else "posegraph: {}\n")
+            params.write_text("posegraph:\n  loops: {wide: {enabled: false}}\n" if variant == "fixed"
+                              else "posegraph: {}\n")
             root = work / f"root{seed}"
             t0 = time.perf_counter()
             cornermap(["build", "--drive", str(sim / "drive_0" / "drive.yaml"), "--map", "m", "--root", str(root),

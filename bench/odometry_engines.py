@@ -46,13 +46,14 @@ def chain(increments: Iterable[np.ndarray]) -> np.ndarray:
 def odometry_ours(chunks: Iterable[list], T_vehicle_lidar: np.ndarray, track=None, threads: int = 0,
                   engine: str = "ours", **overrides) -> Run:
     """Our odometry stage's algorithm, chunk by chunk as the stage runs it, without GNSS/INS (ICP-only);
-    wheel deskew and wheel guides where ``track`` is given and the params say deskew='odometry'."""
+    wheel deskew and wheel guides where ``track`` is given and the params say deskew='odometry'. ``overrides``: our
+    params' keys, dotted for a section's (``**{"prepare.voxel_m": 0.5}``)."""
+    from pipeline.declare import nested
     from stages.odometry.compute import deskew_with_wheel_odometry, wheel_guides
     from stages.odometry.core import estimate_edges
     from stages.odometry.params import OdometryParams
 
-    p = OdometryParams(**overrides)
-    cfg = p.edge_config()
+    p = cfg = OdometryParams.model_validate(nested(overrides))
     edges, seconds, prev = [], 0.0, None
     for chunk in chunks:
         scans = ([prev] if prev is not None else []) + chunk

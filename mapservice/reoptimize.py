@@ -49,10 +49,12 @@ def region_params_file(root: "Path | str", name: str, params: ReoptimizeParams) 
     under ``ROOT/workflows/`` (an ``s3://`` root: its local copy's, ``storage.mirror_dir``, as the build's workflow)
     so that a killed run's next run plans the same fingerprints."""
     from pipeline.api import load_param_file
+    from pipeline.declare import nested
 
     doc = load_param_file(params.params_file)
-    doc = {k: dict(v) for k, v in doc.items()}
-    doc.setdefault("posegraph", {})["region_max_poses"] = int(params.region_max_poses)
+    doc = {k: nested(v) for k, v in doc.items()}
+    posegraph = doc.setdefault("posegraph", {})
+    posegraph["regions"] = {**posegraph.get("regions", {}), "max_poses": int(params.region_max_poses)}
     text = yaml.safe_dump(doc, sort_keys=True)
     base = storage.mirror_dir(str(root)) if storage.uri_scheme(root) is not None else Path(root)
     out = storage.workflows_dir(base) / f"reoptimize-{name}-{hashlib.sha256(text.encode()).hexdigest()[:8]}.yaml"

@@ -28,6 +28,11 @@ class Params(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     renamed: ClassVar[Mapping[str, str]] = {}
 
+    def updated(self, values: Mapping[str, Any]) -> "Params":
+        """A copy with ``values`` over this one's values (dotted keys or nested mappings, as ``nested`` reads them:
+        ``{"loops.radius_m": 20.0}``), validated as the workflow's keys are."""
+        return type(self).model_validate(merged(self.model_dump(), nested(values)))
+
     @model_validator(mode="before")
     @classmethod
     def _refuse_unknown_keys(cls, data: Any) -> Any:
@@ -46,6 +51,31 @@ def unknown_key_problem(params: type[Params], key: Any) -> str:
     close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     return f"unknown key {key!r}{hint}; known: {', '.join(known) or '(none)'}"
+
+
+def nested(values: Mapping[str, Any]) -> dict[str, Any]:
+    """``values`` with each dotted key as nested mappings: ``{"loops.radius_m": 20, "loops": {"stride_m": 4}}`` ->
+    ``{"loops": {"radius_m": 20, "stride_m": 4}}`` (merged as ``merged`` does, in the given order; the workflow's
+    ``params`` and ``--params`` files may name a section's key either way)."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(key, str) and "." in key:
+            head, _, rest = key.partition(".")
+            value, key = {rest: value}, head
+        value = nested(value) if isinstance(value, Mapping) else value
+        out[key] = merged(out[key], value) if isinstance(out.get(key), Mapping) and isinstance(value, Mapping) \
+            else value
+    return out
+
+
+def merged(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over``'s values over it, section by section (a mapping in both is merged, any other value of
+    ``over`` replaces ``base``'s)."""
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = merged(out[key], value) if isinstance(out.get(key), Mapping) and isinstance(value, Mapping) \
+            else value
+    return out
 
 
 class Partitioning(str, Enum):

@@ -12,7 +12,7 @@ from typing import Optional, Sequence
 import typer
 
 from pipeline import cli_options as opts
-from pipeline.declare import StageDecl
+from pipeline.declare import Params, StageDecl
 
 catalog_app = typer.Typer(no_args_is_help=True, help="Inspect and validate the data catalog.")
 
@@ -120,10 +120,17 @@ def register_stages(app: typer.Typer, order: Sequence[str] = ()) -> None:
 
 def format_params(decl: StageDecl) -> str:
     lines = [f"# {decl.name} params (defaults); override in a workflow's params.{decl.name} or --params FILE"]
-    for name, f in decl.params.model_fields.items():
-        default = f.get_default(call_default_factory=True)
-        doc = f" # {f.description}" if f.description else ""
-        lines.append(f"{name}: {default!r}{doc}")
+
+    def walk(params: type[Params], indent: str) -> None:
+        for name, f in params.model_fields.items():
+            doc = f" # {f.description}" if f.description else ""
+            if isinstance(f.annotation, type) and issubclass(f.annotation, Params):  # a section: its keys below
+                lines.append(f"{indent}{name}:{doc}")
+                walk(f.annotation, indent + "  ")
+            else:
+                lines.append(f"{indent}{name}: {f.get_default(call_default_factory=True)!r}{doc}")
+
+    walk(decl.params, "")
     return "\n".join(lines)
 
 

@@ -12,7 +12,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from pipeline.catalog import Catalog, load_catalog
-from pipeline.declare import Params, StageDecl, unknown_key_problem
+from pipeline.declare import Params, StageDecl, merged, nested, unknown_key_problem
 from pipeline.errors import ConfigError
 from pipeline.names import name_problem, suggest
 from pipeline.registry import load_stages
@@ -166,9 +166,9 @@ def load_workflow(path: Path | str, *, param_overrides: dict[str, dict[str, Any]
         else:
             stages[name] = registry[name]
 
-    overrides = {k: dict(v) for k, v in spec.params.items()}
+    overrides = {k: nested(v) for k, v in spec.params.items()}
     for stage_name, extra in (param_overrides or {}).items():
-        overrides.setdefault(stage_name, {}).update(extra)
+        overrides[stage_name] = merged(overrides.get(stage_name, {}), nested(extra))
     params: dict[str, Params] = {}
     for stage_name, values in overrides.items():
         if stage_name not in stages:

@@ -116,12 +116,15 @@ def _rows(page: Path, owners: tuple[str, ...]):
 
 
 def _stage_default(stage: str, name: str):
+    """A stage param's default; a dotted name (``ekf.icp.sigma_frac``) is a field of a section."""
     from pipeline.registry import get_stage
 
-    fields = get_stage(stage).params.model_fields
-    if name not in fields:
-        return KeyError
-    return fields[name].get_default(call_default_factory=True)
+    value = get_stage(stage).params()  # a dotted name is a key of a section (``loops.radius_m``)
+    for part in name.split("."):
+        if not hasattr(type(value), "model_fields") or part not in type(value).model_fields:
+            return KeyError
+        value = getattr(value, part)
+    return value
 
 
 def _preset_defaults(name: str):

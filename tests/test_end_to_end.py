@@ -96,14 +96,13 @@ def test_loops_verified_from_the_store_in_blocks_equal_those_on_preloaded_clouds
     import numpy as np
 
     from stages.posegraph.compute import scan_loader
-    from stages.posegraph.config import PosegraphConfig
     from stages.posegraph.loops.candidates import Candidate, keyframes_by_travel
     from stages.posegraph.loops.clouds import vehicle_clouds
     from stages.posegraph.loops.verify import verify_candidates, verify_from_store
     from tests.stages.posegraph.tiny_setup import pass1_on_tiny
 
     ctx, drives, cfg, offsets, poses = pass1_on_tiny(tiny_sync[0], REPO / "workflows" / "tiny.yaml", "test-loops",
-                                                     parallel_min_items=10_000)
+                                                     {"loops.parallel_min_items": 10_000})
     keys = keyframes_by_travel(poses[:, :3, 3], np.zeros(len(poses), int), 5.0)
     # consecutive keyframes as stand-in candidates (the tiny drive has too few revisits): some pairs overlap,
     # some do not, and scans recur across candidates and blocks
@@ -113,7 +112,7 @@ def test_loops_verified_from_the_store_in_blocks_equal_those_on_preloaded_clouds
     wanted = np.unique([c.i for c in cands] + [c.j for c in cands]).astype(np.int64)
     clouds = vehicle_clouds(drives, offsets, wanted, load, cfg.loops.verify.voxel_m)
     reference = verify_candidates(cands, poses, clouds, cfg.loops)
-    pooled = PosegraphConfig.from_params(ctx.params.model_copy(update={"parallel_min_items": 2})).loops
+    pooled = ctx.params.updated({"loops.parallel_min_items": 2}).loops
     for got in (verify_from_store(cands, poses, drives, offsets, load, cfg.loops),
                 verify_from_store(cands, poses, drives, offsets, load, pooled, block=2)):
         assert [(r.i, r.j) for r in got] == [(c.i, c.j) for c in cands]
@@ -131,16 +130,15 @@ def test_survey_anchors_in_parallel_processes_equal_the_serial_ones(tiny_sync):
 
     from stages.posegraph.anchors.survey_anchor import survey_anchor_callback
     from stages.posegraph.compute import SurveySource, scan_loader
-    from stages.posegraph.config import PosegraphConfig
     from tests.stages.posegraph.tiny_setup import pass1_on_tiny
 
     ctx, drives, _, offsets, poses = pass1_on_tiny(tiny_sync[0], REPO / "workflows" / "tiny.yaml", "test-anchors")
     results = []
-    for params in (ctx.params.model_copy(update={"parallel_min_items": 10_000}),
-                   ctx.params.model_copy(update={"parallel_min_items": 2, "survey_marking_block": 3})):
+    for params in (ctx.params.updated({"anchors.parallel_min_items": 10_000}),
+                   ctx.params.updated({"anchors.parallel_min_items": 2, "anchors.block": 3})):
         matches: list = []
         survey_anchor_callback(drives, scan_loader(ctx), SurveySource(ctx.inputs),
-                               PosegraphConfig.from_params(params).anchors, matches,
+                               params.anchors, matches,
                                feature_load=scan_loader(ctx, ("intensity", "ring")))(poses, offsets)
         results.append(matches)
     serial, parallel = results
@@ -175,7 +173,7 @@ def test_a_second_anchoring_round_reuses_what_does_not_depend_on_the_estimate(ti
     from tests.stages.posegraph.tiny_setup import pass1_on_tiny
 
     ctx, drives, cfg, offsets, poses = pass1_on_tiny(tiny_sync[0], REPO / "workflows" / "tiny.yaml", "test-rounds",
-                                                     parallel_min_items=10_000)
+                                                     {"anchors.parallel_min_items": 10_000})
     moved = poses.copy()
     moved[:, :2, 3] += [0.3, -0.2]  # what an anchoring round does to a GNSS-level estimate
     ground, features = _CountingLoader(scan_loader(ctx)), _CountingLoader(scan_loader(ctx, ("intensity", "ring")))

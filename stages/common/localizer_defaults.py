@@ -1,8 +1,9 @@
 """The localizers' measurement and motion noise, stated once.
 
-The evaluate stage's params (``stages/evaluate/params.py``) take their defaults from here, and the tiles stage's
-localizability layer (``stages/common/localizability.py``) predicts with the same values, so a prediction follows
-the filters it predicts: change a default here and both move (each stage's code digest follows this module).
+The evaluate stage's params sections (``stages/evaluate/ekf_params.py``, ``mcl_params.py``) take their defaults
+from here, and the tiles stage's localizability layer (``stages/common/localizability.py``) predicts with the same
+values, so a prediction follows the filters it predicts: change a default here and both move (each stage's code
+digest follows this module).
 Units in the names; angles in degrees as the params state them.
 """
 from __future__ import annotations
@@ -12,7 +13,7 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class CornerEkfNoise:
-    """The corner EKF's (Im et al. 2016 s.4) noise, as ``evaluate``'s params of the same names."""
+    """The corner EKF's (Im et al. 2016 s.4) noise: the defaults of ``evaluate``'s ``ekf`` section."""
 
     sensor_range_m: float = 60.0  # map corners farther than this are not predicted
     range_sigma_floor_m: float = 0.05  # added to an extracted corner's range std

@@ -61,7 +61,7 @@ def _extrinsic(ctx: StageContext) -> np.ndarray | None:
 
 
 def _odometry_track(ctx: StageContext, params: CornerParams) -> OdometryTrack | None:
-    if not (params.deskew and ctx.inputs.has("odometry")):
+    if not (params.layers.deskew and ctx.inputs.has("odometry")):
         return None
     odo = ctx.inputs.read("odometry", partition=ctx.partition, columns=["stamp_ns", "speed_mps", "yaw_rate_radps"])
     return track_from_table(odo)

@@ -34,8 +34,8 @@ class CornerTrace:
 def select_scan_layers(points_xyz: np.ndarray, ring: np.ndarray, params: CornerParams | None = None) -> np.ndarray:
     """The upper-layer ring ids of a scan (or of several scans of one sensor concatenated)."""
     p = params or CornerParams()
-    return select_layers(points_xyz, ring, mode=p.layer_selection, n_upper_layers=p.n_upper_layers,
-                         min_elevation_deg=p.min_elevation_deg, min_range_m=p.min_range_m)
+    return select_layers(points_xyz, ring, mode=p.layers.layer_selection, n_upper_layers=p.layers.n_upper_layers,
+                         min_elevation_deg=p.layers.min_elevation_deg, min_range_m=p.layers.min_range_m)
 
 
 def _select_and_order(pts: np.ndarray, ring: np.ndarray, layers_used: np.ndarray, min_range_m: float,
@@ -144,43 +144,44 @@ def trace_corners(points_xyz: np.ndarray, ring: np.ndarray, params: CornerParams
     ``time_offset_s``: per point, its time after the scan start; gives each corner the time it was seen.
     """
     p = params or CornerParams()
+    lay, ln, cl, ck = p.layers, p.lines, p.clusters, p.checks
     pts = np.asarray(points_xyz)
     ring = np.asarray(ring).astype(np.intp, copy=False)
     if pts.ndim != 2 or pts.shape[1] < 3 or ring.shape != (pts.shape[0],):
         raise ValueError(f"extract_corners: expected points (N, 3) and ring (N,); got points {pts.shape} and "
                          f"ring {ring.shape}")
     layers_used = select_scan_layers(pts, ring, p) if layers is None else np.asarray(layers, np.intp)
-    xy, layer, az, src = _select_and_order(pts, ring, layers_used, p.min_range_m, p.max_range_m)
-    run_starts = find_run_starts(xy, layer, break_incidence_deg=p.break_incidence_deg,
-                                 range_sigma_m=p.range_sigma_m, max_azimuth_gap_deg=p.max_azimuth_gap_deg,
+    xy, layer, az, src = _select_and_order(pts, ring, layers_used, lay.min_range_m, lay.max_range_m)
+    run_starts = find_run_starts(xy, layer, break_incidence_deg=ln.break_incidence_deg,
+                                 range_sigma_m=ln.range_sigma_m, max_azimuth_gap_deg=ln.max_azimuth_gap_deg,
                                  azimuth_rad=az)
-    lines = extract_lines(xy, layer, run_starts, split_distance_m=p.split_distance_m, min_points=p.min_points,
-                          merge_max_angle_rad=np.radians(p.merge_max_angle_deg), end_trim_points=p.end_trim_points)
-    label = remove_outlier_lines(lines, max_residual_var_m2=p.max_residual_var_m2, min_points=p.min_points,
-                                 min_length_m=p.min_length_m)
+    lines = extract_lines(xy, layer, run_starts, split_distance_m=ln.split_distance_m, min_points=ln.min_points,
+                          merge_max_angle_rad=np.radians(ln.merge_max_angle_deg), end_trim_points=ln.end_trim_points)
+    label = remove_outlier_lines(lines, max_residual_var_m2=ln.max_residual_var_m2, min_points=ln.min_points,
+                                 min_length_m=ln.min_length_m)
     good = np.flatnonzero(label == LINE)
-    cand = find_corner_candidates(lines.take(good), xy, max_corner_gap_m=p.max_corner_gap_m,
-                                  min_interior_angle_rad=np.radians(p.min_interior_angle_deg),
-                                  max_interior_angle_rad=np.radians(p.max_interior_angle_deg),
-                                  line_sigma_floor_m=p.min_sigma_m)
+    cand = find_corner_candidates(lines.take(good), xy, max_corner_gap_m=p.candidates.max_corner_gap_m,
+                                  min_interior_angle_rad=np.radians(p.candidates.min_interior_angle_deg),
+                                  max_interior_angle_rad=np.radians(p.candidates.max_interior_angle_deg),
+                                  line_sigma_floor_m=cl.min_sigma_m)
     cand = CornerCandidates(**{**cand.__dict__, "line_a": good[cand.line_a], "line_b": good[cand.line_b]})
     cand_t = None
     if time_offset_s is not None:  # the time of a candidate: its two facing end points
         t_s = np.asarray(time_offset_s, np.float64).take(src)
         cand_t = 0.5 * (t_s[lines.stop[cand.line_a]] + t_s[lines.start[cand.line_b]])
-    corners, corner_of = determine_corners(cand, cluster_radius_m=p.cluster_radius_m,
-                                           cluster_max_angle_rad=np.radians(p.cluster_max_angle_deg),
-                                           min_layers=p.min_layers, min_sigma_m=p.min_sigma_m,
-                                           time_offset_s=cand_t, angular_sigma_rad=p.angular_sigma_mrad * 1e-3)
+    corners, corner_of = determine_corners(cand, cluster_radius_m=cl.cluster_radius_m,
+                                           cluster_max_angle_rad=np.radians(cl.cluster_max_angle_deg),
+                                           min_layers=cl.min_layers, min_sigma_m=cl.min_sigma_m,
+                                           time_offset_s=cand_t, angular_sigma_rad=cl.angular_sigma_mrad * 1e-3)
     corners, corner_of = _drop_short_walls(
         corners, corner_of, lines.length_m[cand.line_a], lines.length_m[cand.line_b],
-        min_wall_length_m=p.min_wall_length_m, min_long_wall_length_m=p.min_long_wall_length_m,
-        obtuse_angle_deg=p.obtuse_angle_deg, min_obtuse_wall_length_m=p.min_obtuse_wall_length_m)
+        min_wall_length_m=ck.min_wall_length_m, min_long_wall_length_m=ck.min_long_wall_length_m,
+        obtuse_angle_deg=ck.obtuse_angle_deg, min_obtuse_wall_length_m=ck.min_obtuse_wall_length_m)
     corners, corner_of = _drop_unsupported(corners, corner_of, cand.vertex_gap_spacings,
-                                           max_vertex_gap_spacings=p.max_vertex_gap_spacings)
+                                           max_vertex_gap_spacings=ck.max_vertex_gap_spacings)
     corners, corner_of = _drop_unverifiable(corners, corner_of, cand.layer, pts, xy, layer, az, src, layers_used,
-                                            min_corner_range_m=p.min_corner_range_m,
-                                            max_passover_height_m=p.max_passover_height_m)
+                                            min_corner_range_m=ck.min_corner_range_m,
+                                            max_passover_height_m=ck.max_passover_height_m)
     return CornerTrace(xy_m=xy, layer=layer, layers_used=layers_used, lines=lines, line_label=label,
                        candidates=cand, candidate_corner=corner_of, corners=corners)
 

@@ -31,7 +31,7 @@ def _robust_tan_elevation(tan_el: np.ndarray, ring: np.ndarray, size: int) -> np
     return np.where(count2 > 0, second, first), count
 
 
-def estimate_ring_elevation_deg(points_xyz: np.ndarray, ring: np.ndarray, *, min_range_m: float = 2.0,
+def estimate_ring_elevation_deg(points_xyz: np.ndarray, ring: np.ndarray, *, min_range_m: float,
                                 max_points: int = ELEVATION_SAMPLE_POINTS) -> tuple[np.ndarray, np.ndarray]:
     """Per ring: its elevation atan2(z, hypot(x, y)) [deg] in the sensor frame, a robust mean of its points.
 
@@ -74,8 +74,8 @@ def _tan_elevation(pts: np.ndarray, r: np.ndarray, size: int, min_range_m: float
     return _robust_tan_elevation(z[keep] / horiz[keep], r[keep], size)  # tan(elevation): no per-point arctan
 
 
-def select_layers(points_xyz: np.ndarray, ring: np.ndarray, *, mode: str = "elevation", n_upper_layers: int = 8,
-                  min_elevation_deg: float = -1.0, min_range_m: float = 2.0) -> np.ndarray:
+def select_layers(points_xyz: np.ndarray, ring: np.ndarray, *, mode: str, n_upper_layers: int,
+                  min_elevation_deg: float, min_range_m: float) -> np.ndarray:
     """Ring ids of the upper layers, highest first.
 
     ``mode="top_n"``: the ``n_upper_layers`` highest ring indices (ring 0 = lowest beam).

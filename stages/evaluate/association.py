@@ -122,8 +122,8 @@ def assign(costs: np.ndarray, method: str = "gnn") -> tuple[np.ndarray, np.ndarr
 
 def associate(q: np.ndarray, P: np.ndarray, xy_vehicle_m: np.ndarray, cov_vehicle_m2: np.ndarray,
               dirs_vehicle_rad: np.ndarray, map_en_m: np.ndarray, map_cov_m2: np.ndarray,
-              map_dirs_enu_rad: np.ndarray, *, sensor_range_m: float = 60.0, gate_chi2: float = 9.21,
-              angle_tol_rad: float = np.deg2rad(15.0), method: str = "gnn",
+              map_dirs_enu_rad: np.ndarray, *, sensor_range_m: float, gate_chi2: float, angle_tol_rad: float,
+              method: str,
               noise_floor_rb: np.ndarray | None = None) -> Association:
     """Associate M extracted corners (vehicle frame) with the map corners in sensor range of the estimate.
 

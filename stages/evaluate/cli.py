@@ -78,7 +78,7 @@ def _evaluate_params(params_file: Optional[Path], methods: list[str], reference_
     mine = dict(overrides.get("evaluate", {}))
     mine["methods"] = methods
     if reference_frame is not None:
-        mine["reference_frame"] = reference_frame
+        mine["reference"] = {**mine.get("reference", {}), "frame": reference_frame}
     if fail_on_targets:
         mine["fail_on_targets"] = True
     try:

@@ -27,7 +27,7 @@ from stages.evaluate.run import DriveArrays, FrameError, evaluate_drive
 
 log = logging.getLogger(__name__)
 
-# Road-feature points are read up to feature_max_range_m plus the extrinsic's lever arm plus this: a scan's own
+# Road-feature points are read up to markings.feature_range_m plus the extrinsic's lever arm plus this: a scan's own
 # motion while it is deskewed (0.1 s at up to 50 m/s).
 FEATURE_READ_MARGIN_M = 5.0
 
@@ -130,10 +130,10 @@ def _chunk_features(t: pa.Table, epoch_scan_ids: np.ndarray, T_vehicle_lidar: np
         if pts is None:
             pts, n_raw = xyz[lo:hi], n_raw + 1
         f = extract_road_features(pts, inten[lo:hi], ring[lo:hi], T_vehicle_lidar,
-                                  voxel_m=p.feature_voxel_m, window_m=p.feature_window_m,
-                                  offset_sigma=p.feature_offset_sigma, ground_band_m=p.feature_ground_band_m,
-                                  ground_model=p.feature_ground_model,
-                                  max_range_m=p.feature_max_range_m)
+                                  voxel_m=p.features.voxel_m, window_m=p.features.window_m,
+                                  offset_sigma=p.features.offset_sigma, ground_band_m=p.features.ground_band_m,
+                                  ground_model=p.features.ground_model,
+                                  max_range_m=p.markings.feature_range_m)
         epochs.append(np.full(len(f), k)), points.append(f)
     return n_raw
 
@@ -151,7 +151,7 @@ def extract_features(ctx: StageContext, drive: str, epoch_scan_ids: np.ndarray, 
     """
     epochs, points = [], []
     cols = ["scan_id", "x_m", "y_m", "z_m", "intensity", "ring", "time_offset_s", "stamp_ns"]
-    reach = p.feature_max_range_m + float(np.hypot(*np.asarray(T_vehicle_lidar)[:2, 3])) + FEATURE_READ_MARGIN_M
+    reach = p.markings.feature_range_m + float(np.hypot(*np.asarray(T_vehicle_lidar)[:2, 3])) + FEATURE_READ_MARGIN_M
     near = pc.field("x_m") * pc.field("x_m") + pc.field("y_m") * pc.field("y_m") <= reach * reach
     n_raw = 0
     parts = [part for part in ctx.inputs.partitions("scans") if part.drive == drive]
@@ -210,17 +210,17 @@ def read_drive(ctx: StageContext, drive: str, p: EvaluateParams) -> tuple[DriveA
     if odo is not None and odo.num_rows >= 2:
         odo_inc = odometry_increments(odo["stamp_ns"].to_numpy(), odo["speed_mps"].to_numpy(),
                                       odo["yaw_rate_radps"].to_numpy(), stamps)
-        icp = fall_back_on_wheel(icp_raw, odo_inc, np.deg2rad(p.icp_wheel_gate_deg))
+        icp = fall_back_on_wheel(icp_raw, odo_inc, np.deg2rad(p.ekf.icp.wheel_gate_deg))
     else:
         icp = icp_raw
         odo, odo_inc = None, increments_without_wheel(icp, gnss_q)
-        icp_raw = None  # the wheel/gyro motion model (ekf_motion wheel_bias) needs wheels: the ICP model runs
+        icp_raw = None  # the wheel/gyro motion model (ekf.motion wheel_bias) needs wheels: the ICP model runs
         log.warning("evaluate %s: no wheel odometry; the EKF runs on ICP increments alone, the MCL on ICP "
                     "increments (GNSS/INS pose differences where ICP failed: %d of %d epochs), features not deskewed",
                     drive, int((~np.all(np.isfinite(icp[1:]), axis=1)).sum()), len(stamps))
     corners = read_corners(_rows_of(ctx, "corners", drive), scan_ids, T_vl)
-    deskewed = bool(p.feature_deskew and odo is not None)  # the EKF uses road features only deskewed
-    if "mcl" in p.methods or ("ekf" in p.methods and p.ekf_markings and deskewed):
+    deskewed = bool(p.features.deskew and odo is not None)  # the EKF uses road features only deskewed
+    if "mcl" in p.methods or ("ekf" in p.methods and p.ekf.markings.enabled and deskewed):
         track = track_from_table(odo) if deskewed else None
         f_ep, f_xy = extract_features(ctx, drive, scan_ids, T_vl, p, track)
     else:
@@ -252,7 +252,7 @@ def read_references(ctx: StageContext, drive: str, map_origin, p: EvaluateParams
                                                                        yaw_rad(t)]))
     truth = (ctx.settings.get("references") or {}).get(drive)
     if truth:
-        ref = read_reference(Path(truth), map_origin, parse_reference_frame(p.reference_frame))
+        ref = read_reference(Path(truth), map_origin, parse_reference_frame(p.reference.frame))
         refs["truth"] = (ref.stamps_ns, ref.q)
         truth_corners = read_truth_corners(Path(truth), ref.T_map_origin_ref)
         fit = align_truth_to_map(cmap.en_m, truth_corners) if cmap is not None and truth_corners is not None else None
@@ -281,16 +281,16 @@ def compute(ctx: StageContext) -> dict:
     reader = open_published_map(ctx)
     p_map = with_map_correlation(p, reader)
     where_q, where_ok = d.roughly
-    cmap, fetch = map_inputs(reader, np.where(where_ok[:, None], where_q, np.nan), sensor_range_m=p.sensor_range_m,
-                             field=p.field_config(),
-                            coverage_margin_m=p.coverage_margin_m())
+    cmap, fetch = map_inputs(reader, np.where(where_ok[:, None], where_q, np.nan),
+                             sensor_range_m=p.ekf.corners.sensor_range_m, field=p.markings,
+                             coverage_margin_m=p.markings.coverage_margin())
     frame = FrameError.from_map(getattr(reader, "map_frame", None))
-    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p_map.evaluation_config(),
+    ev = evaluate_drive(d, cmap, fetch, read_references(ctx, drive, reader.origin, p, cmap), p_map,
                         frame)
     ekf = ev.runs.get("ekf")
     cov = coverage(where_q, where_ok, cmap.en_m, ekf.n_associated if ekf is not None else None, first_fix(d),
-                   p.sensor_range_m, p.coverage_min_in_range, p.coverage_min_associated)
-    v = verdict(ev.metrics, cov, p.target_config())
+                   p.ekf.corners.sensor_range_m, p.coverage.min_in_range, p.coverage.min_associated)
+    v = verdict(ev.metrics, cov, p.targets)
     ctx.report_step("the previous version")
     comparison, prev_ev = compare_with_previous(ctx, drive, reader, d, cmap, ev, p)
     ctx.report_step("writing the report")
@@ -299,8 +299,8 @@ def compute(ctx: StageContext) -> dict:
     write_report(out, ev, cmap, fetch, drive=drive, verdict=v, comparison=comparison, previous=prev_ev,
                  map_info={"name": name, "path": str(reader.path), "version": reader.version,
                            "enu_origin": reader.origin.as_dict(),
-                           "corner_error_correlation": {"share": p_map.ekf_map_corr_share,
-                                                        "length_m": p_map.ekf_map_corr_length_m,
+                           "corner_error_correlation": {"share": p_map.ekf.map.corr_share,
+                                                        "length_m": p_map.ekf.map.corr_length_m,
                                                         "from": "map" if p_map is not p else "params"}})
     table = epochs_table(ev, drive)
     pq.write_table(table, out / "epochs.parquet")  # the per-epoch table beside the report, for DIR users
@@ -317,12 +317,12 @@ def compute(ctx: StageContext) -> dict:
 
 def with_map_correlation(p: EvaluateParams, reader) -> EvaluateParams:
     """The params with the map's own corner-error correlation (``MapReader.corner_error_correlation``) when
-    ``ekf_map_corr_source`` is ``map`` and the map states one; else ``p`` itself."""
+    ``ekf.map.corr_source`` is ``map`` and the map states one; else ``p`` itself."""
     stated = getattr(reader, "corner_error_correlation", None)
-    if p.ekf_map_corr_source != "map" or stated is None:
+    if p.ekf.map.corr_source != "map" or stated is None:
         return p
     log.info("evaluate: the map states its corners' errors correlate %.2f exp(-d^2 / 2 (%.0f m)^2)", *stated)
-    return p.model_copy(update={"ekf_map_corr_share": stated[0], "ekf_map_corr_length_m": stated[1]})
+    return p.model_copy(update={"ekf": p.ekf.replace(map={"corr_share": stated[0], "corr_length_m": stated[1]})})
 
 
 def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays, cmap: CornerMap, ev, p):
@@ -334,9 +334,9 @@ def compare_with_previous(ctx: StageContext, drive: str, reader, d: DriveArrays,
     prev = previous_version(reader)
     if prev is None:
         return None, None
-    prev_cmap, prev_fetch = map_inputs(prev, d.gnss_q, sensor_range_m=p.sensor_range_m, field=p.field_config(),
-                                      coverage_margin_m=p.coverage_margin_m())
-    cfg_prev = with_map_correlation(p, prev).model_copy(update={"methods": ["ekf"]}).evaluation_config()
+    prev_cmap, prev_fetch = map_inputs(prev, d.gnss_q, sensor_range_m=p.ekf.corners.sensor_range_m, field=p.markings,
+                                      coverage_margin_m=p.markings.coverage_margin())
+    cfg_prev = with_map_correlation(p, prev).model_copy(update={"methods": ["ekf"]})
     ev_prev = evaluate_drive(d, prev_cmap, prev_fetch, read_references(ctx, drive, reader.origin, p, prev_cmap),
                              cfg_prev, FrameError.from_map(getattr(prev, "map_frame", None)))
     ref = judged_reference(ev.metrics, "ekf")

@@ -13,66 +13,11 @@ import numpy as np
 
 from stages.common.geometry import wrap_angle_rad
 from stages.evaluate import mcl
+from stages.evaluate.mcl_params import MarkingLikelihood, MclConfig
 
 log = logging.getLogger(__name__)
 
 RasterFetcher = Callable[[float, float, float, float], mcl.Raster]
-
-
-@dataclass(frozen=True)
-class MclConfig:
-    """Defaults tuned on the simulator's demo drives 0 and 1 (a demo map built from drive 0, 6 filter seeds each;
-    calibration data: demo seed 1) and checked on the synthetic road of the tests (issue 10, MCL pass).
-
-    The measurement gain ``sharpness * effective_points`` = 300 is where single scans' posteriors about the truth are
-    consistent on demo drive 1 (distance field, sigma 0.2 m: NEES per axis ~1 between gains 240 and 480; the errors
-    of consecutive scans correlate 0.13 along track, 0.43 across).
-    """
-
-    n_particles: int = 1000
-    init_sigma_xy_m: float = 1.0
-    init_sigma_yaw_rad: float = np.deg2rad(1.0)
-    # Motion noise on top of each particle's calibration. Measured wheel + gyro error per 0.1 s scan on demo drive 1:
-    # 0.0015 m along track (after the scale), 0.00005 m across, 0.0053 deg heading (after the bias); the synthetic
-    # road of the tests has 0.02 m along track. The floors cover both, and the heading floor lets the particles
-    # follow a gyro bias that their bias states have not found yet (0.2 deg/s on the synthetic road).
-    sigma_frac: float = 0.005  # along-track std per metre travelled
-    sigma_lateral_frac: float = 0.002  # across-track std per metre travelled
-    sigma_xy_m: float = 0.02  # translation std floor per moving step
-    sigma_yaw_rad: float = np.deg2rad(0.03)  # heading std per moving step
-    sigma_yaw_frac: float = 0.01  # heading std per radian turned (gyro scale error)
-    # Per-particle odometry calibration (the simulator draws the wheel scale error from N(0, 1 %), the gyro bias
-    # from N(0, 0.002 rad/s) plus a Gauss-Markov drift of 0.0005 rad/s over 300 s).
-    init_sigma_scale: float = 0.01  # wheel-speed scale factor std about 1
-    sigma_scale_per_sqrt_m: float = 1e-3  # its random walk (lets a scale that an early stretch got wrong recover)
-    init_sigma_gyro_bias_radps: float = np.deg2rad(0.115)  # gyro bias std about 0 (0.002 rad/s)
-    sigma_gyro_bias_per_sqrt_s: float = np.deg2rad(0.0057)  # its random walk [rad/s per sqrt(s)], 1e-4
-    init_sigma_gyro_gain: float = 0.005  # gyro gain (scale factor) std about 1 per particle (0 = not a state)
-    epoch_s: float = 0.1  # scan period, used when the epoch stamps are not given
-    # Measurement: log-likelihood = alpha * sharpness * min(F, effective_points) * correlation
-    standstill_m: float = 1e-3  # a step shorter than this is a standstill: pose held, no update
-    decorrelation_m: float = 0.5  # alpha = min(1, travel since the last update / this)
-    sharpness: float = 5.0  # log-likelihood gain per effective feature point at full correlation
-    effective_points: float = 60.0
-    max_features: int = 400
-    # Resampling, progressive correction, roughening
-    resample_neff_ratio: float = 0.5
-    min_ess_ratio: float = 0.05  # an update that would leave fewer effective particles is applied in pieces
-    max_corrections: int = 6  # pieces of one update at most
-    roughen_xy_m: float = 0.005
-    roughen_yaw_rad: float = np.deg2rad(0.005)
-    # Recovery (Augmented MCL, Thrun et al. Table 8.3, guarded; see _inject)
-    score_fast: float = 0.2  # smoothing of the short-term mean correlation score
-    score_slow: float = 0.01  # ... and of the long-term one
-    inject_ratio: float = 0.8  # candidates are drawn while short-term / long-term falls below this
-    max_inject: float = 0.3  # share of the particles replaced at most per scan (0 = no injection)
-    inject_margin: float = 0.2  # a candidate must beat every particle by this share of the long-term score
-    inject_sigma_xy_m: float = 1.0  # candidates: drawn about the estimate with these std
-    inject_sigma_yaw_rad: float = np.deg2rad(1.0)
-    # Raster windows
-    window_m: float = 240.0  # side of a fetched raster window
-    feature_range_m: float = 30.0
-    min_features: int = 10
 
 
 @dataclass(frozen=True)
@@ -121,7 +66,7 @@ def _predict(particles: np.ndarray, calib: np.ndarray, increment: np.ndarray, st
     """Wheel + gyro prediction through each particle's calibration, then the calibration's own random walk."""
     particles = mcl.predict_particles(particles, increment, cfg.sigma_frac, cfg.sigma_xy_m, cfg.sigma_yaw_rad, rng,
                                       calib, dt_s, cfg.sigma_lateral_frac, cfg.sigma_yaw_frac)
-    walk = [cfg.sigma_scale_per_sqrt_m * np.sqrt(step_m), cfg.sigma_gyro_bias_per_sqrt_s * np.sqrt(dt_s)]
+    walk = [cfg.sigma_scale_per_sqrt_m * np.sqrt(step_m), cfg.sigma_gyro_bias_rad_s_per_sqrt_s * np.sqrt(dt_s)]
     calib = calib + rng.standard_normal(calib.shape) * (walk + [0.0] * (calib.shape[1] - 2))  # the gain is constant
     return particles, calib
 
@@ -148,12 +93,13 @@ def _inject(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, share
     if m <= 0:
         return particles, calib, weights, 0
     q, _ = mcl.estimate(particles, weights)
-    candidates = mcl.init_particles(q, cfg.inject_sigma_xy_m, cfg.inject_sigma_yaw_rad, m, rng)
+    candidates = mcl.init_particles(q, cfg.recovery.inject_sigma_xy_m, cfg.recovery.inject_sigma_yaw_rad, m, rng)
     best = mcl.correlation_scores(candidates, feats, raster).max()
     current = mcl.correlation_scores(particles, feats, raster).max()
     log.debug("mcl injection test: best candidate %.3f, best particle %.3f, long-term %.3f", best, current,
               long_term_score)
-    if best < cfg.inject_ratio * long_term_score or best < current + cfg.inject_margin * long_term_score:
+    rec = cfg.recovery
+    if best < rec.inject_ratio * long_term_score or best < current + rec.inject_margin * long_term_score:
         return particles, calib, weights, 0
     idx = rng.choice(cfg.n_particles, m, replace=False)
     particles, calib, weights = particles.copy(), calib.copy(), weights.copy()
@@ -164,7 +110,7 @@ def _inject(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, share
 
 
 def _update(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, feats: np.ndarray, raster: mcl.Raster,
-            alpha: float, cfg: MclConfig, rng: np.random.Generator
+            alpha: float, cfg: MclConfig, likelihood: MarkingLikelihood, rng: np.random.Generator
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Weight by ``alpha`` times the scan's log-likelihood; when that would leave fewer than ``min_ess_ratio * N``
     effective particles, apply it in pieces with a resample and a regularisation move in between."""
@@ -176,7 +122,7 @@ def _update(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, feats
         scores = mcl.correlation_scores(particles, feats, raster)
         if piece == 0:
             prior_score = float(weights @ scores)
-        loglik = mcl.log_likelihood(scores, len(feats), cfg.sharpness, cfg.effective_points)
+        loglik = mcl.log_likelihood(scores, len(feats), likelihood.sharpness, likelihood.effective_points)
         last = piece == cfg.max_corrections - 1
         beta = remaining if last else mcl.tempering_step(log_w, loglik, remaining, min_ess)
         weights = mcl.normalized_weights(log_w + beta * loglik)
@@ -192,7 +138,9 @@ def _update(particles: np.ndarray, calib: np.ndarray, weights: np.ndarray, feats
 
 def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_m: np.ndarray,
             fetch: RasterFetcher, q0: np.ndarray, start_epoch: int, rng: np.random.Generator,
-            cfg: MclConfig = MclConfig(), stamps_ns: np.ndarray | None = None) -> MclRun:
+            cfg: MclConfig = MclConfig(), stamps_ns: np.ndarray | None = None,
+            likelihood: MarkingLikelihood = MarkingLikelihood(),
+            init_spread: tuple[float, float] | None = None) -> MclRun:
     """Run the particle filter from ``start_epoch`` (particles drawn about q0) to the last epoch.
 
     Each epoch: predict with the wheel + gyro increment through every particle's calibration (a standstill holds
@@ -201,8 +149,11 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
     evidence), in pieces when it is much narrower than the cloud (progressive correction); resample (low variance)
     when the effective sample size drops, then roughen. When the scans stop fitting, candidates about the estimate
     may replace some particles (guarded Augmented MCL). ``stamps_ns`` (E,) give the time steps of the gyro bias;
-    without them every step is ``cfg.epoch_s``.
+    without them every step is ``cfg.epoch_s``. ``likelihood``: the road markings' (``evaluate.markings``).
+    ``init_spread``: the initial (position std m, heading std rad) instead of the section's (a start wider than
+    the section states, e.g. by the map frame's error).
     """
+    lk, rec = likelihood, cfg.recovery
     n = len(increments)
     q_out = np.full((n, 3), np.nan)
     P_out = np.full((n, 3, 3), np.nan)
@@ -212,12 +163,13 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
     n_feat = np.zeros(n, dtype=np.int32)
     off = np.searchsorted(feature_epoch, np.arange(n + 1))
     dt = np.full(n, cfg.epoch_s) if stamps_ns is None else np.r_[cfg.epoch_s, np.diff(stamps_ns) * 1e-9]
-    particles = mcl.init_particles(q0, cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad, cfg.n_particles, rng)
+    init_xy_m, init_yaw_rad = init_spread or (cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad)
+    particles = mcl.init_particles(q0, init_xy_m, init_yaw_rad, cfg.n_particles, rng)
     calib = mcl.init_calibration(cfg.n_particles, cfg.init_sigma_scale, cfg.init_sigma_gyro_bias_radps, rng,
                                  cfg.init_sigma_gyro_gain)
     weights = np.full(cfg.n_particles, 1.0 / cfg.n_particles)
     raster = _window_around(q0, fetch, cfg)
-    margin = cfg.feature_range_m + 3.0 * cfg.init_sigma_xy_m
+    margin = lk.feature_range_m + 3.0 * init_xy_m
     travel = np.inf  # since the last update; the first scan is a full measurement
     s_slow = s_fast = np.nan
     injected = np.zeros(n, dtype=np.int32)
@@ -227,26 +179,27 @@ def run_mcl(increments: np.ndarray, feature_epoch: np.ndarray, features_vehicle_
             particles, calib = _predict(particles, calib, increments[k], step, float(dt[k]), cfg, rng)
             travel += step
         feats = features_vehicle_m[off[k]:off[k + 1]]
-        alpha = min(1.0, travel / cfg.decorrelation_m) if cfg.decorrelation_m > 0 else 1.0
+        alpha = min(1.0, travel / lk.decorrelation_m) if lk.decorrelation_m > 0 else 1.0
         if len(feats) >= cfg.min_features and alpha > 0:
             lo, hi = particles[:, :2].min(axis=0) - margin, particles[:, :2].max(axis=0) + margin
             if not raster.contains(lo[0], lo[1], hi[0], hi[1]):
                 raster = _window_around(np.average(particles, axis=0, weights=weights), fetch, cfg)
             if raster.observed is not None:
                 feats = feats[mcl.observed_features(feats, mcl.estimate(particles, weights)[0], raster)]
-        if len(feats) > cfg.max_features:
-            feats = feats[rng.choice(len(feats), cfg.max_features, replace=False)]
+        if len(feats) > lk.max_features:
+            feats = feats[rng.choice(len(feats), lk.max_features, replace=False)]
         n_feat[k] = len(feats)
         if len(feats) >= cfg.min_features and alpha > 0:
-            if np.isfinite(s_slow) and s_fast < cfg.inject_ratio * s_slow:
-                share = min(cfg.max_inject, 1.0 - s_fast / (cfg.inject_ratio * s_slow) + 1.0 / cfg.n_particles)
+            if np.isfinite(s_slow) and s_fast < rec.inject_ratio * s_slow:
+                share = min(rec.max_inject, 1.0 - s_fast / (rec.inject_ratio * s_slow) + 1.0 / cfg.n_particles)
                 particles, calib, weights, injected[k] = _inject(particles, calib, weights, share, feats, raster,
                                                                  s_slow, cfg, rng)
                 s_fast = s_slow if injected[k] else s_fast
-            particles, calib, weights, score_out[k] = _update(particles, calib, weights, feats, raster, alpha, cfg, rng)
+            particles, calib, weights, score_out[k] = _update(particles, calib, weights, feats, raster, alpha, cfg, lk,
+                                                                   rng)
             if np.isfinite(score_out[k]):
-                s_slow = score_out[k] if np.isnan(s_slow) else s_slow + cfg.score_slow * (score_out[k] - s_slow)
-                s_fast = score_out[k] if np.isnan(s_fast) else s_fast + cfg.score_fast * (score_out[k] - s_fast)
+                s_slow = score_out[k] if np.isnan(s_slow) else s_slow + rec.score_slow * (score_out[k] - s_slow)
+                s_fast = score_out[k] if np.isnan(s_fast) else s_fast + rec.score_fast * (score_out[k] - s_fast)
             travel = 0.0
             ess_out[k] = mcl.effective_sample_size(weights)
             if ess_out[k] < cfg.resample_neff_ratio * cfg.n_particles:

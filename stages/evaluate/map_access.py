@@ -16,8 +16,8 @@ from pipeline.declare import StageContext
 from pipeline.errors import DatasetIOError
 from pipeline.storage import join_uri, uri_scheme
 from stages.evaluate import mcl
-from stages.evaluate.config import FieldConfig
 from stages.evaluate.localize_ekf import CornerMap
+from stages.evaluate.mcl_params import MarkingLikelihood
 
 
 def open_published_map(ctx: StageContext):
@@ -32,9 +32,9 @@ def open_published_map(ctx: StageContext):
     return open_map(path)
 
 
-def marking_field(mask: np.ndarray, cell_m: float, cfg: FieldConfig) -> np.ndarray:
-    """The MCL's likelihood field of a marking window (row 0 south), of the kind ``cfg.kind``."""
-    if cfg.kind == "distance":
+def marking_field(mask: np.ndarray, cell_m: float, cfg: MarkingLikelihood) -> np.ndarray:
+    """The MCL's likelihood field of a marking window (row 0 south), of the kind ``cfg.field``."""
+    if cfg.field == "distance":
         return mcl.distance_likelihood_field(mask, cell_m, cfg.sigma_m)
     return mcl.smooth_marking_mask(mask, cell_m, cfg.blur_m)
 
@@ -60,7 +60,7 @@ def observed_area(observed: np.ndarray, cell_m: float, margin_m: float) -> np.nd
     return m.astype(bool)
 
 
-def map_inputs(reader, gnss_q: np.ndarray, *, sensor_range_m: float, field: FieldConfig,
+def map_inputs(reader, gnss_q: np.ndarray, *, sensor_range_m: float, field: MarkingLikelihood,
                coverage_margin_m: float | None = None):
     """Corner map over the drive's extent (plus ``sensor_range_m`` and 200 m), and a raster fetcher (row 0 south,
     the likelihood field ``field``) when the map has markings. With ``coverage_margin_m`` the windows carry where

@@ -3,7 +3,7 @@
 A truth file states its frame (``stages.common.trajectory_frame``: a header line or a sidecar JSON); it is moved
 into the map's frame by geodesy (ENU about its origin -> ECEF -> ENU about the map's origin, full 3-D rotation)
 before any yaw is taken from it. A file that states no frame is refused unless the caller says which frame it is
-in (``reference_frame``: 'map' or 'LAT,LON,H'): comparing in two frames gave 15-216 m "errors" (issue 28).
+in (``reference.frame``: 'map' or 'LAT,LON,H'): comparing in two frames gave 15-216 m "errors" (issue 28).
 """
 from __future__ import annotations
 

@@ -8,14 +8,15 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from stages.evaluate.config import EvaluationConfig
-from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, dead_reckon, run_ekf
+from stages.evaluate.ekf_params import EkfConfig
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, dead_reckon, run_ekf
 from stages.evaluate.localize_mcl import RasterFetcher, run_mcl
 from stages.evaluate.metrics import JUDGE_ORDER, compute_errors, interpolate_poses, summarize, summarize_localized
+from stages.evaluate.params import EvaluateParams
 
 log = logging.getLogger(__name__)
 
@@ -52,13 +53,13 @@ class FrameError:
     """How far the map's frame may sit from the true ENU frame, as the map states it (its manifest's ``map_frame``):
     a shift at ``reference_en_m`` and a rotation about it, covariance ``cov`` of (shift east m, shift north m,
     rotation rad). A GNSS/INS fix is in the true frame; placed in the map's, its error gains this. Beside it, the
-    map's poses' own error relative to the frame (``relative_std_m`` per axis, ``relative_std_rad``): what a layer
+    map's poses' own error relative to the frame (``relative_std_m`` per axis, ``relative_std_deg``): what a layer
     painted from them, the marking raster, is locally off by."""
 
     reference_en_m: np.ndarray  # (2,)
     cov: np.ndarray  # (3,3)
     relative_std_m: float = 0.0
-    relative_std_rad: float = 0.0
+    relative_std_deg: float = 0.0
 
     def at(self, en_m: np.ndarray) -> np.ndarray:
         """(3,3) covariance of the frame's displacement of a pose at ``en_m`` (east, north, yaw)."""
@@ -72,7 +73,7 @@ class FrameError:
         if doc is None:
             return None
         return cls(np.asarray(doc["reference_en_m"], float), np.asarray(doc["cov_shift_rotation"], float),
-                   float(doc.get("relative_std_m") or 0.0), float(np.radians(doc.get("relative_std_deg") or 0.0)))
+                   float(doc.get("relative_std_m") or 0.0), float(doc.get("relative_std_deg") or 0.0))
 
     def marking_offset(self, cfg: EkfConfig) -> EkfConfig:
         """The EKF's section with the marking raster's local error set to the map's stated relative pose error (a
@@ -82,10 +83,10 @@ class FrameError:
         its error at every epoch (tiny calibration seeds 201-203 without a survey: the raster's persistent offset
         at the true pose 0.009-0.019 m across and 0.018-0.060 deg, the maps state 0.011-0.021 m and 0.050-0.068 deg;
         position NEES 0.45-0.69 of 2 with the floor; docs/evaluation.md, "NEES")."""
-        return replace(cfg, marking_map_sigma_m=(self.relative_std_m if self.relative_std_m > 0
-                                                 else cfg.marking_map_sigma_m),
-                       marking_map_sigma_yaw_rad=(self.relative_std_rad if self.relative_std_rad > 0
-                                                  else cfg.marking_map_sigma_yaw_rad))
+        m = cfg.markings
+        return cfg.replace(markings={"map_sigma_m": self.relative_std_m if self.relative_std_m > 0 else m.map_sigma_m,
+                                     "map_sigma_deg": (self.relative_std_deg if self.relative_std_deg > 0
+                                                       else m.map_sigma_deg)})
 
 
 @dataclass
@@ -128,18 +129,18 @@ def first_fix(d: DriveArrays) -> int:
     return int(np.argmax(ok))
 
 
-def initial_covariance(d: DriveArrays, k0: int, cfg: EvaluationConfig, frame: FrameError | None) -> np.ndarray:
+def initial_covariance(d: DriveArrays, k0: int, cfg: EkfConfig, frame: FrameError | None) -> np.ndarray:
     """(3,3) the filters' start: the fix's own std (floored: urban GNSS/INS understates it) and, in the map's frame,
     the map frame's error at the fix (``frame``; a map that states none holds it in its corner covariances)."""
     P0 = np.diag(np.maximum(d.gnss_std[k0], [cfg.init_sigma_xy_m, cfg.init_sigma_xy_m, cfg.init_sigma_yaw_rad]) ** 2)
     return P0 if frame is None else P0 + frame.at(d.gnss_q[k0, :2])
 
 
-def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None, cfg: EvaluationConfig,
+def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None, cfg: EvaluateParams,
                 frame: FrameError | None = None) -> dict[str, MethodRun]:
     k0 = first_fix(d)
     q0 = d.gnss_q[k0]
-    P0 = initial_covariance(d, k0, cfg, frame)
+    P0 = initial_covariance(d, k0, cfg.ekf, frame)
     runs: dict[str, MethodRun] = {}
     n = len(d.stamps_ns)
     valid = d.gnss_valid[:, None] & np.isfinite(d.gnss_q)
@@ -150,21 +151,22 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
     if "ekf" in cfg.methods and cmap is not None:
         t0 = time.perf_counter()
         marks = {}
-        if cfg.ekf.markings and fetch is not None and len(d.feature_epoch) and d.features_deskewed:
+        if cfg.ekf.markings.enabled and fetch is not None and len(d.feature_epoch) and d.features_deskewed:
             marks = {"feature_epoch": d.feature_epoch, "features_vehicle_m": d.features_vehicle_m, "fetch": fetch}
-        elif cfg.ekf.markings:
+        elif cfg.ekf.markings.enabled:
             # a scan's points are up to 0.1 s late: not deskewed, they place the paint up to 0.8 m behind at 8 m/s
             # (tiny seed 7 without deskew: EKF RMS 0.053 -> 0.204 m, NEES 14)
             why = ("map has no marking raster" if fetch is None else "drive has no road features"
                    if not len(d.feature_epoch) else "road features are not deskewed (no wheel odometry)")
             log.warning("ekf: the road-marking measurement is on, but the %s; the EKF runs on corners alone", why)
-        ekf_cfg = cfg.ekf if marks or not cfg.ekf.markings else replace(cfg.ekf, markings=False)
+        ekf_cfg = cfg.ekf if marks or not cfg.ekf.markings.enabled else cfg.ekf.replace(markings={"enabled": False})
+        marks["likelihood"] = cfg.markings
         if frame is not None:
             ekf_cfg = frame.marking_offset(ekf_cfg)
-        if cfg.ekf_motion == "wheel_bias" and d.icp_raw_increments is not None:
+        if cfg.ekf.motion == "wheel_bias" and d.icp_raw_increments is not None:
             r = run_ekf(d.icp_raw_increments, d.corners, cmap, q0, P0, k0, ekf_cfg,
                         wheel_increments=d.odo_increments, stamps_ns=d.stamps_ns, icp_cov=d.icp_cov, **marks)
-        elif (cfg.ekf.icp_gyro_gate_chi2 > 0 and cfg.ekf.icp_gyro_fusion and cfg.ekf.icp_gyro_bias_state
+        elif (cfg.ekf.icp.gyro_gate_chi2 > 0 and cfg.ekf.icp.gyro_fusion and cfg.ekf.icp.gyro_bias_state
               and d.icp_raw_increments is not None):
             failed = ~np.all(np.isfinite(d.icp_raw_increments), axis=1)  # the gate is the filter's, not the angle
             inc = np.where(failed[:, None], d.odo_increments, d.icp_raw_increments)
@@ -178,35 +180,35 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
     if "mcl" in cfg.methods and fetch is not None:
         t0 = time.perf_counter()
-        mcl_cfg = cfg.mcl
+        spread = None
         if frame is not None:  # the particles spread over the frame's error too
             F = frame.at(q0[:2])
-            mcl_cfg = replace(mcl_cfg, init_sigma_xy_m=float(np.sqrt(mcl_cfg.init_sigma_xy_m**2
-                                                                     + np.linalg.eigvalsh(F[:2, :2])[-1])),
-                              init_sigma_yaw_rad=float(np.hypot(mcl_cfg.init_sigma_yaw_rad, np.sqrt(F[2, 2]))))
+            spread = (float(np.sqrt(cfg.mcl.init_sigma_xy_m**2 + np.linalg.eigvalsh(F[:2, :2])[-1])),
+                      float(np.hypot(cfg.mcl.init_sigma_yaw_rad, np.sqrt(F[2, 2]))))
         r = run_mcl(d.odo_increments, d.feature_epoch, d.features_vehicle_m, fetch, q0, k0,
-                    np.random.default_rng(cfg.seed), mcl_cfg, stamps_ns=d.stamps_ns)
+                    np.random.default_rng(cfg.mcl.seed), cfg.mcl, stamps_ns=d.stamps_ns, likelihood=cfg.markings,
+                    init_spread=spread)
         runs["mcl"] = MethodRun(r.q, r.P, r.n_features, time.perf_counter() - t0)
         log.info("mcl: %d epochs in %.2f s", n - k0, runs["mcl"].seconds)
     return runs
 
 
 def evaluate_drive(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | None,
-                   references: dict[str, tuple[np.ndarray, np.ndarray]], cfg: EvaluationConfig,
+                   references: dict[str, tuple[np.ndarray, np.ndarray]], cfg: EvaluateParams,
                    frame: FrameError | None = None) -> Evaluation:
     """Run the methods and score them. ``references``: name ('map', 'truth', 'truth_in_map') -> (stamps_ns, (R,3)
     x y yaw). The primary reference (per-epoch errors, targets) is the first of ``JUDGE_ORDER`` given. With
-    ``cfg.ekf_judge_after_startup`` the EKF is scored from its first map-corner association on
+    ``cfg.targets.ekf_judge_after_startup`` the EKF is scored from its first map-corner association on
     (``metrics.summarize_localized``). ``frame``: the map frame's stated error (``FrameError.from_map``), added to
     the filters' start."""
     runs = run_methods(d, cmap, fetch, cfg, frame)
-    gap = int(cfg.reference_max_gap_s * 1e9)
+    gap = int(cfg.reference.max_gap_s * 1e9)
     refs = {name: interpolate_poses(d.stamps_ns, st, q, gap) for name, (st, q) in references.items() if len(st)}
     k0 = first_fix(d)
 
     def score(method: str, r: MethodRun, ref: np.ndarray) -> dict:
         errors = compute_errors(r.q, ref, r.P)
-        if method == "ekf" and cfg.ekf_judge_after_startup:
+        if method == "ekf" and cfg.targets.ekf_judge_after_startup:
             return summarize_localized(errors, r.n_associated, d.stamps_ns, k0)
         return summarize(errors)
 

@@ -19,7 +19,7 @@ import numpy as np
 from stages.evaluate.metrics import JUDGE_ORDER
 
 if TYPE_CHECKING:
-    from stages.evaluate.config import TargetConfig
+    from stages.evaluate.params import TargetConfig
 
 
 
@@ -102,7 +102,7 @@ def verdict(metrics: dict[str, dict[str, dict]], cov: dict, targets_cfg: TargetC
         if ref is None:
             continue
         refs[m] = ref
-        targets[m] = judge_method(m, metrics[m][ref], limits[m], targets_cfg.min_nees_share_below_q95)
+        targets[m] = judge_method(m, metrics[m][ref], limits[m], targets_cfg.nees_share_below_q95)
         for key, t in targets[m].items():
             if not t["ok"]:
                 state = f"{nees_words(t)}, " if key == "nees_consistent" else ""

@@ -173,7 +173,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     prior = prior_from_table(ctx.inputs.read("prior", partition=PartitionKey(drive=drive))
                              if ctx.inputs.has("prior") else None, drive)
     release_memory()  # the Arrow table the scans were split from (0.4 GB for 100 real HDL-64E scans)
-    edges = estimate_edges(scans, T_vehicle_lidar, poses_from_table(gnss_tab), p.edge_config(),
+    edges = estimate_edges(scans, T_vehicle_lidar, poses_from_table(gnss_tab), p,
                            guide_increments=guides, release_points=True, prior=prior)
     spans = [e for e in edges if e.span > 1]
     edges = [e for e in edges if e.span == 1]

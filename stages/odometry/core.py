@@ -20,7 +20,8 @@ from stages.common.registration import (
     plane_hessian,
     register_clouds,
 )
-from stages.odometry.config import EdgeConfig, GateConfig, PrepareConfig
+from stages.odometry.config import GateConfig, PrepareConfig
+from stages.odometry.params import OdometryParams
 from stages.odometry.prepare import PreparedScan, prepare_scan, prepare_scans
 
 
@@ -124,7 +125,7 @@ class _Pairs:
 
 def pair_scans(scans: list[Scan], gnss_poses: dict[int, np.ndarray],
                guide_increments: dict[int, np.ndarray] | None, prior: PriorPoses | None = None,
-               cfg: EdgeConfig | None = None) -> _Pairs:
+               cfg: OdometryParams | None = None) -> _Pairs:
     """Step 2: the consecutive pairs (ids k-1, k), their reference increments and the gate's limits."""
     pairs = [k for k in range(1, len(scans)) if scans[k].scan_id == scans[k - 1].scan_id + 1]
     dt_s = {k: (scans[k].stamp_ns - scans[k - 1].stamp_ns) * 1e-9 for k in pairs}
@@ -150,7 +151,7 @@ def pair_scans(scans: list[Scan], gnss_poses: dict[int, np.ndarray],
     return _Pairs(pairs, dt_s, reference, guided, limits, keyframe)
 
 
-def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar: np.ndarray, cfg: EdgeConfig,
+def register_pairs(prepared: list[PreparedScan], pairs: _Pairs, T_vehicle_lidar: np.ndarray, cfg: OdometryParams,
                    guesses_l: dict[int, np.ndarray] | None = None) -> dict[int, RegistrationResult]:
     """Step 3: register every pair's structure clouds. Initial guess: ``guesses_l`` (lidar frame) when given,
     else the reference increment, else constant velocity from the last converged pair.
@@ -240,7 +241,7 @@ def deskew_own_sweep(prepared: list[PreparedScan], pairs: _Pairs, results: dict[
 
 
 def vehicle_edge(src: PreparedScan, tgt: PreparedScan, res: RegistrationResult, T_vehicle_lidar: np.ndarray,
-                 cfg: EdgeConfig) -> tuple[np.ndarray, np.ndarray]:
+                 cfg: OdometryParams) -> tuple[np.ndarray, np.ndarray]:
     """Vehicle-frame increment (road planes applied) and its information: the structure's point-to-plane
     Hessian, plus the ground's on the target's road plane where the road planes were used (height, roll, pitch;
     ``registration.plane_hessian``); floored; a rotation term in turns."""
@@ -258,7 +259,7 @@ def vehicle_edge(src: PreparedScan, tgt: PreparedScan, res: RegistrationResult, 
 
 
 def consecutive_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _Pairs,
-                      results: dict[int, RegistrationResult], T_vehicle_lidar: np.ndarray, cfg: EdgeConfig
+                      results: dict[int, RegistrationResult], T_vehicle_lidar: np.ndarray, cfg: OdometryParams
                       ) -> list[Edge]:
     """Step 5: every pair's vehicle edge with the gate's decision (guided pairs: the planar guide gate)."""
     from stages.odometry.keyframes import keyframe_information, plausible_motion, widened_limits
@@ -284,7 +285,7 @@ def consecutive_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _P
 
 
 def span_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _Pairs, edges: list[Edge],
-               T_vehicle_lidar: np.ndarray, cfg: EdgeConfig) -> list[Edge]:
+               T_vehicle_lidar: np.ndarray, cfg: OdometryParams) -> list[Edge]:
     """Step 6 (``span_scans``): each scan at a position i that is a multiple of N registered onto the scan N
     positions before, from the chain of the N accepted consecutive edges between them and gated against it."""
     g = cfg.gate
@@ -313,7 +314,7 @@ def span_edges(scans: list[Scan], prepared: list[PreparedScan], pairs: _Pairs, e
 
 
 def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: dict[int, np.ndarray],
-                   cfg: EdgeConfig, guide_increments: dict[int, np.ndarray] | None = None, *,
+                   cfg: OdometryParams, guide_increments: dict[int, np.ndarray] | None = None, *,
                    release_points: bool = False, prior: PriorPoses | None = None) -> list[Edge]:
     """Register each scan onto its predecessor (``scans`` sorted by id; pairs need consecutive ids).
 
@@ -343,7 +344,7 @@ def estimate_edges(scans: list[Scan], T_vehicle_lidar: np.ndarray, gnss_poses: d
         scans[:] = [Scan(s.scan_id, s.stamp_ns, np.zeros((0, 3)), None) for s in scans]
     pairs = pair_scans(scans, gnss_poses, guide_increments, prior, cfg)
     results = register_pairs(prepared, pairs, T_vehicle_lidar, cfg)
-    if cfg.deskew and any(p.time_offset_s is not None for p in prepared):
+    if cfg.own_sweep_deskew and any(p.time_offset_s is not None for p in prepared):
         prepared, motion = deskew_own_sweep(prepared, pairs, results, T_vehicle_lidar, cfg.prepare, with_cov)
         results = register_pairs(prepared, pairs, T_vehicle_lidar, cfg, guesses_l=motion)
     edges = consecutive_edges(scans, prepared, pairs, results, T_vehicle_lidar, cfg)

@@ -23,7 +23,8 @@ import numpy as np
 
 from stages.common.ground_plane import split_road
 from stages.common.registration import RegistrationResult, floor_information, register_coarse_to_fine
-from stages.odometry.config import EdgeConfig, KeyframeConfig
+from stages.odometry.config import KeyframeConfig
+from stages.odometry.params import OdometryParams
 from stages.odometry.prepare import PreparedScan
 
 
@@ -34,7 +35,7 @@ def structure_points(scan: PreparedScan, T_vehicle_lidar: np.ndarray, tolerance_
     return split_road(scan.points_m, T_vehicle_lidar, tolerance_m).structure_m
 
 
-def global_guess_l(src: PreparedScan, tgt: PreparedScan, T_vehicle_lidar: np.ndarray, cfg: EdgeConfig,
+def global_guess_l(src: PreparedScan, tgt: PreparedScan, T_vehicle_lidar: np.ndarray, cfg: OdometryParams,
                    seed: int = 0) -> np.ndarray:
     """T_target_source (lidar frame) of a pair with no reference: FPFH + RANSAC on the structure clouds."""
     from stages.common.registration_global import register_global
@@ -48,7 +49,7 @@ def global_guess_l(src: PreparedScan, tgt: PreparedScan, T_vehicle_lidar: np.nda
 
 
 def register_keyframe_pair(src: PreparedScan, tgt: PreparedScan, guess_l: np.ndarray, T_vehicle_lidar: np.ndarray,
-                           cfg: EdgeConfig) -> RegistrationResult:
+                           cfg: OdometryParams) -> RegistrationResult:
     """Coarse-to-fine GICP of the structure clouds from ``guess_l`` (lidar frame)."""
     i = cfg.information
     tol = cfg.prepare.ground_tolerance_m

@@ -13,9 +13,9 @@ from pipeline.declare import PartitionKey, StageContext
 from pipeline.errors import ConfigError, DataQualityError
 from stages.common.geometry import write_kitti, write_tum
 from stages.common.records import decode_scans_raw
-from stages.posegraph.config import PosegraphConfig
 from stages.posegraph.factors.drive import DriveInput, dead_reckoning
 from stages.posegraph.factors.graph import marginal_cov_xy_yaw
+from stages.posegraph.params import PosegraphParams
 from stages.posegraph.report import write_report
 from stages.posegraph.solve import solve_map, solve_reference
 from stages.posegraph.tables import drive_input, loops_table, poses_table
@@ -78,7 +78,7 @@ def read_drive_inputs(ctx: StageContext) -> tuple[list[DriveInput], list[DriveIn
     edges = ctx.inputs.read("edges")
     info = ctx.inputs.read("drive_info")
     wheel = ctx.inputs.read("odometry", columns=["drive", "stamp_ns", "speed_mps", "yaw_rate_radps"]) \
-        if ctx.inputs.has("odometry") and (p.wheel_bridges or p.wheel_fusion) else None
+        if ctx.inputs.has("odometry") and p.factors.uses_wheel else None
     all_drives = sorted(set(gnss["drive"].to_pylist()))
     map_names = list(ctx.settings.get("map_drives") or all_drives)
     eval_names = [d for d in (ctx.settings.get("eval_drives") or []) if d not in map_names]
@@ -86,7 +86,7 @@ def read_drive_inputs(ctx: StageContext) -> tuple[list[DriveInput], list[DriveIn
     if missing:
         raise ConfigError("posegraph settings", [f"drive {d!r} has no poses_gnss rows; have {all_drives}"
                                                  for d in missing])
-    spans = ctx.inputs.read("span_edges") if p.span_edges and ctx.inputs.has("span_edges") else None
+    spans = ctx.inputs.read("span_edges") if p.factors.span_edges and ctx.inputs.has("span_edges") else None
     prior = ctx.inputs.read("prior") if ctx.inputs.has("prior") else None
     return ([drive_input(d, gnss, edges, info, wheel, spans, prior) for d in map_names],
             [drive_input(d, gnss, edges, info, wheel, spans, prior) for d in eval_names])
@@ -140,8 +140,8 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
     from pipeline.parallel import shared_pool
     from stages.posegraph.regions import RegionParams, partitioned, solves_summary
 
-    r = PosegraphConfig.from_params(ctx.params).regions
-    with shared_pool(), partitioned(RegionParams(r.max_poses, r.rounds, r.tol_m, r.tol_m * 0.1)) as solves:
+    r = ctx.params.regions
+    with shared_pool(), partitioned(RegionParams(**dict(r))) as solves:
         out = _compute(ctx)
     if solves:  # solved region by region (``maps reoptimize``): its figures in the dataset's metadata
         out["_extra"]["region_solve"] = solves_summary(solves)
@@ -149,7 +149,7 @@ def compute(ctx: StageContext) -> dict[str, pa.Table]:
 
 
 def _compute(ctx: StageContext) -> dict[str, pa.Table]:
-    cfg = PosegraphConfig.from_params(ctx.params)
+    cfg: PosegraphParams = ctx.params
     ctx.report_step("reading the drives")
     drives, ref_drives = read_drive_inputs(ctx)
     load = scan_loader(ctx)
@@ -220,7 +220,7 @@ def read_held_solution(ctx: StageContext, drives: list[DriveInput]):
     return held if held.drives else None
 
 
-def _compute_increment(ctx: StageContext, cfg: PosegraphConfig, drives, ref_drives, load, held):
+def _compute_increment(ctx: StageContext, cfg: PosegraphParams, drives, ref_drives, load, held):
     """The map drives of ``held`` keep their published rows (bit for bit); the others are solved against them
     (``incremental.solve_increment``); reference drives as in the joint solve."""
     from stages.posegraph.incremental import solve_increment

@@ -21,12 +21,12 @@ from typing import Callable
 
 import numpy as np
 
-from stages.posegraph.config import PosegraphConfig
 from stages.posegraph.factors.base import base_problem
 from stages.posegraph.factors.drive import DriveInput
 from stages.posegraph.factors.graph import PosePrior, Problem, optimize
 from stages.posegraph.loops.candidates import find_candidates
 from stages.posegraph.loops.verify import LoopRecord, verify_from_store
+from stages.posegraph.params import PosegraphParams
 from stages.posegraph.solve import Solution, anchored_query, optimize_with_loops
 from stages.posegraph.window import (
     FramePrior,
@@ -44,7 +44,7 @@ from stages.posegraph.window import (
 log = logging.getLogger(__name__)
 
 
-def solve_increment(new: list[DriveInput], held: list[DriveInput], held_poses: np.ndarray, load, cfg: PosegraphConfig,
+def solve_increment(new: list[DriveInput], held: list[DriveInput], held_poses: np.ndarray, load, cfg: PosegraphParams,
                     *, max_per_scan: int | None = None, survey_priors: Callable | None = None,
                     report_step: Callable[..., None] | None = None, frame: FramePrior | None = None,
                     held_cov: np.ndarray | None = None, held_drive_of_row: np.ndarray | None = None) -> Solution:

@@ -31,6 +31,7 @@ from typing import Callable, Iterator
 import gtsam
 import numpy as np
 
+from stages.posegraph.config import RegionConfig
 from stages.posegraph.factors import graph as fg
 from stages.posegraph.factors.graph import Problem
 
@@ -44,17 +45,17 @@ _HOLD_SIGMA_RAD = 1e-7
 INTERIOR_RELATIVE_TOL = 1e-9
 
 
-@dataclass(frozen=True)
-class RegionParams:
-    """``max_poses``: the most poses one region holds (0: one region, the joint solve); ``rounds``: most separator
-    updates; ``tol_m`` / ``tol_rad``: a round moving no separator more ends the solve; ``workers``: regions solved
-    at a time (None: ``parallel_map``'s default, the usable cores or the cluster)."""
+class RegionParams(RegionConfig):
+    """The stage's region settings (``RegionConfig``: ``max_poses``, ``rounds``, ``tol_m``) and how the solve runs:
+    ``workers``, regions solved at a time (None: ``parallel_map``'s default, the usable cores or the cluster); a
+    round moving no separator more than ``tol_m`` nor turning one more than ``tol_rad`` (a tenth of it) ends the
+    solve."""
 
-    max_poses: int = 600
-    rounds: int = 20
-    tol_m: float = 1e-4
-    tol_rad: float = 1e-5
     workers: int | None = None
+
+    @property
+    def tol_rad(self) -> float:
+        return self.tol_m * 0.1
 
 
 def partition_poses(xy: np.ndarray, max_poses: int) -> np.ndarray:

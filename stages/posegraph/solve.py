@@ -11,13 +11,14 @@ from typing import Callable
 
 import numpy as np
 
-from stages.posegraph.config import LoopConfig, PosegraphConfig, SolveConfig
+from stages.posegraph.config import LoopConfig, SolveConfig
 from stages.posegraph.factors.base import base_problem
 from stages.posegraph.factors.drive import DriveInput
 from stages.posegraph.factors.graph import Between, PosePrior, Problem, between_residuals, optimize
 from stages.posegraph.loops.candidates import find_candidates, keyframes_by_travel, loosely_anchored, travel_m
 from stages.posegraph.loops.clouds import ScanLoader
 from stages.posegraph.loops.verify import LoopRecord, loop_betweens, verify_from_store
+from stages.posegraph.params import PosegraphParams
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +103,7 @@ def _as_accepted(r: LoopRecord) -> LoopRecord:
 
 
 def anchored_query(problem: Problem, poses: np.ndarray, offsets, group: np.ndarray,
-                   survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None, cfg: PosegraphConfig,
+                   survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None, cfg: PosegraphParams,
                    rounds: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     """The survey anchoring rounds (``anchored``, when ``survey_priors`` is given; ``rounds`` collects them), then
     the scans that look for loops: keyframes every ``cfg.loops.stride_m`` of travel per drive (``group``), with
@@ -119,7 +120,7 @@ def anchored_query(problem: Problem, poses: np.ndarray, offsets, group: np.ndarr
     return poses, query
 
 
-def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, *, extra_loops: list[LoopRecord] = (),
+def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphParams, *, extra_loops: list[LoopRecord] = (),
               survey_priors: Callable[[np.ndarray, np.ndarray], list[PosePrior]] | None = None,
               report_step: Callable[..., None] | None = None) -> Solution:
     """All map drives in one graph: pass 1 (odometry + GNSS); with ``survey_priors(poses, offsets)`` (absolute
@@ -149,7 +150,7 @@ def solve_map(drives: list[DriveInput], load: ScanLoader, cfg: PosegraphConfig, 
     step = (lambda done, total: report_step("loops verified", done, total)) if report_step else None
     loops = (verify_from_store(cands, poses, drives, offsets, load, lc, progress=step) if cands else []) \
         + list(extra_loops)
-    if lc.wide:  # drives nothing absolute holds: the search widened by their uncertainty (loops/wide.py)
+    if lc.wide.enabled:  # drives nothing absolute holds: the search widened by their uncertainty (loops/wide.py)
         from stages.posegraph.loops.wide import close_wide_loops
 
         loops, poses, wide = close_wide_loops(
@@ -217,7 +218,7 @@ def anchored(problem, poses: np.ndarray, offsets: np.ndarray,
 
 
 def solve_reference(drive: DriveInput, map_drives: list[DriveInput], map_poses: np.ndarray, load: ScanLoader,
-                    cfg: PosegraphConfig) -> Solution:
+                    cfg: PosegraphParams) -> Solution:
     """One eval drive in the map's frame: its odometry + GNSS, plus loops onto map scans held fixed."""
     problem, _ = base_problem([drive], cfg.factors, cfg.gnss, cfg.prior)
     lc = cfg.loops

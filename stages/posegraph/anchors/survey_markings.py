@@ -5,7 +5,7 @@ pitch but slides horizontally (``survey_anchor.vertical_part``). Its painted mar
 position: around a keyframe, the road-marking points of a few consecutive scans (per-ring adaptive threshold,
 Kim et al. s.2.2, deskewed, placed with the current pose estimate) are matched against the survey's marking
 mask (the shared adaptive threshold of ``stages.common.marking_raster``, Kim et al. s.2.1, with the pose graph's
-own ``survey_marking_raster`` settings) by ``marking_match.match_markings``,
+own ``anchors.markings.raster`` settings) by ``marking_match.match_markings``,
 whose peak shape says which directions the markings fix (lane lines: across only).
 Pure functions on arrays; the scans come through the caller's loader.
 """
@@ -75,7 +75,7 @@ def survey_marking_window(index: SurveyMarkingIndex, centre_en_m: np.ndarray, ha
                           raster: MarkingRasterSettings) -> tuple[np.ndarray, tuple[float, float]]:
     """The survey's marking mask (rows north-first) over a square window around ``centre_en_m``; returns (mask,
     south-west origin). The mask is the survey's, not the window's: it is computed with the shared marking rasterizer
-    (elevation grid + adaptive threshold) and the pose graph's own raster settings (``survey_marking_raster``) once
+    (elevation grid + adaptive threshold) and the pose graph's own raster settings (``anchors.markings.raster``) once
     per ``TILE_M`` tile of a fixed grid (each with the rasterizer's halo, so that tiles agree at their borders), kept
     in the index (the ``MAX_TILES`` last used), and cut out here. Every keyframe and every anchoring round sees the
     same mask where their windows overlap (windows of 96 m every 10 m of travel: each place was rasterized about 10

@@ -17,7 +17,7 @@ def base_problem(drives: list[DriveInput], factors: FactorConfig, gnss_cfg: Gnss
                  prior_cfg: PriorConfig | None = None) -> tuple[Problem, np.ndarray]:
     """Odometry + bridges + GNSS + attitude for all drives in one graph, and the prior trajectory and start pose of
     a drive without GNSS (``prior_cfg``; None: the defaults); returns it and the drive offsets."""
-    prior_cfg = prior_cfg or PriorConfig(1.0, "huber", 1.345, gnss_cfg.unknown_roll_pitch_sigma_rad)
+    prior_cfg = prior_cfg or PriorConfig(unknown_roll_pitch_sigma_rad=gnss_cfg.unknown_roll_pitch_sigma_rad)
     offsets = np.cumsum([0] + [d.n for d in drives])
     initial = np.concatenate([initial_poses(d) for d in drives]) if drives else np.zeros((0, 4, 4))
     problem = Problem(int(offsets[-1]), initial)

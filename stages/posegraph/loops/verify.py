@@ -170,7 +170,7 @@ def verify_once(points_i_vehicle: np.ndarray, points_j_vehicle: np.ndarray, T_i_
     they are, and the two final results are compared as before. The fine stages are four fifths of a start's
     GICP time (demo seed 1: 33 of 40 ms).
 
-    With ``ground_split`` (``verify_loop`` with ``loop_ground_split``, off by default: docs/posegraph.md) the GICP
+    With ``ground_split`` (``loops.verify.ground_split``, off by default: docs/posegraph.md) the GICP
     registers the structure above each scan's road plane only, and the two road planes give height, roll and pitch
     (``ground_plane.align_ground_planes``, as the odometry's edges). The road's noise is centred on each sensor (a
     divergent beam spreads its range along the ray on oblique ground), and it pulled a registration of two scans a

@@ -1,5 +1,5 @@
 """The wide loop search: where nothing absolute has held a drive for a while (no GNSS fix, no ENU prior, no survey
-anchor), its two passes of a street may sit tens of metres apart in the estimate; the fixed ``loop_radius_m`` misses
+anchor), its two passes of a street may sit tens of metres apart in the estimate; the fixed ``loops.radius_m`` misses
 them. Here the search region of a query pose is the estimate's uncertainty of the relative position
 (``uncertainty.ChainCovariance``): a target is a candidate when its estimated offset, less the fixed radius (the
 scans' overlap), lies within ``wide_sigmas`` Mahalanobis of zero, and only where that uncertainty's std exceeds
@@ -70,10 +70,10 @@ def capped_relative(chain: ChainCovariance, q: int, targets: np.ndarray, loops: 
 def find_wide_candidates(chain: ChainCovariance, stamps_s: np.ndarray, query: np.ndarray, travel: np.ndarray,
                          cfg: LoopConfig, loops: list[LoopRecord] = (), tried: set = frozenset()
                          ) -> list[WideCandidate]:
-    """Per query pose of a loosely held drive, up to ``cfg.wide_max_per_scan`` targets of other passes inside the
-    Mahalanobis gate (module docstring) where the relative std exceeds ``cfg.wide_min_sigma_m`` (within the fixed
+    """Per query pose of a loosely held drive, up to ``cfg.wide.max_per_scan`` targets of other passes inside the
+    Mahalanobis gate (module docstring) where the relative std exceeds ``cfg.wide.min_sigma_m`` (within the fixed
     radius too: the estimate is metres off there, the ordinary verification's correction envelope would refuse the
-    true loop), nearest in Mahalanobis distance first, at least ``cfg.wide_target_spacing_m`` of travel apart on
+    true loop), nearest in Mahalanobis distance first, at least ``cfg.wide.target_spacing_m`` of travel apart on
     their pass; pairs in ``tried`` are skipped."""
     pos = chain.positions_en
     n = len(pos)
@@ -93,19 +93,19 @@ def find_wide_candidates(chain: ChainCovariance, stamps_s: np.ndarray, query: np
         cov = capped_relative(chain, int(q), t, accepted)
         a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
         big = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)
-        wide = big >= cfg.wide_min_sigma_m ** 2
+        wide = big >= cfg.wide.min_sigma_m ** 2
         shrunk = v * np.maximum(0.0, 1.0 - cfg.radius_m / np.maximum(d, 1e-9))[:, None]
         det = a * c - b * b
         det = np.where(det > 1e-12, det, 1e-12)
         m2 = (c * shrunk[:, 0] ** 2 - 2 * b * shrunk[:, 0] * shrunk[:, 1] + a * shrunk[:, 1] ** 2) / det
-        keep = wide & (m2 <= cfg.wide_sigmas ** 2)
+        keep = wide & (m2 <= cfg.wide.sigmas ** 2)
         if not keep.any():
             continue
         order = np.argsort(m2[keep], kind="stable")
         t_k, d_k, cov_k = t[keep][order], d[keep][order], cov[keep][order]
         chosen: list[int] = []
         for tt, dd, cc in zip(t_k, d_k, cov_k):
-            if any(chain.group[tt] == chain.group[x] and abs(travel[tt] - travel[x]) < cfg.wide_target_spacing_m
+            if any(chain.group[tt] == chain.group[x] and abs(travel[tt] - travel[x]) < cfg.wide.target_spacing_m
                    for x in chosen):
                 continue
             chosen.append(int(tt))
@@ -116,7 +116,7 @@ def find_wide_candidates(chain: ChainCovariance, stamps_s: np.ndarray, query: np
                     else float(chain.s0[q] - chain.s0[chain.start[q]] + chain.s0[tt] - chain.s0[chain.start[tt]]
                                + chain.start_var_rad2[q] + chain.start_var_rad2[tt])
                 out.append(WideCandidate(pair[0], pair[1], float(dd), cc, yaw_var))
-            if len(chosen) >= cfg.wide_max_per_scan:
+            if len(chosen) >= cfg.wide.max_per_scan:
                 break
     return out
 
@@ -142,7 +142,7 @@ def verify_wide(points_i: np.ndarray, points_j: np.ndarray, T_i_j_prior: np.ndar
     v = cfg.verify
     structure = [split_road(np.asarray(p, np.float64), np.eye(4), v.ground_tolerance_m).structure_m
                  for p in (points_j, points_i)]
-    voxel = cfg.wide_global_voxel_m
+    voxel = cfg.wide.global_voxel_m
     gm = register_global(structure[0], structure[1], voxel_m=voxel, normal_radius_m=2 * voxel,
                          feature_radius_m=5 * voxel, max_corr_m=1.5 * voxel, seed=0)
     if gm.n_correspondences < 3:
@@ -154,8 +154,8 @@ def verify_wide(points_i: np.ndarray, points_j: np.ndarray, T_i_j_prior: np.ndar
     dyaw = np.arctan2(gm.T_target_source[1, 0], gm.T_target_source[0, 0]) - \
         np.arctan2(T_i_j_prior[1, 0], T_i_j_prior[0, 0])
     dyaw = float((dyaw + np.pi) % (2 * np.pi) - np.pi)
-    yaw_lim = cfg.wide_sigmas * np.sqrt(yaw_var_rad2 + np.radians(cfg.wide_yaw_slack_deg) ** 2)
-    if m2 > cfg.wide_sigmas ** 2 or abs(dyaw) > yaw_lim:
+    yaw_lim = cfg.wide.sigmas * np.sqrt(yaw_var_rad2 + np.radians(cfg.wide.yaw_slack_deg) ** 2)
+    if m2 > cfg.wide.sigmas ** 2 or abs(dyaw) > yaw_lim:
         return Verdict(False, f"global match outside the gate ({np.sqrt(m2):.1f} sigma, "
                               f"{np.degrees(dyaw):.1f} deg)", gm.T_target_source, gm.fitness, float("inf"), np.eye(6))
     return verify_loop(points_i, points_j, gm.T_target_source, v)
@@ -206,7 +206,7 @@ def close_wide_loops(problem, poses: np.ndarray, drives, load, cfg: LoopConfig, 
     say = say or (lambda *a, **k: None)
     loose = loose_drives(problem, drives)
     summary = {"rounds": 0, "wide_candidates": 0, "wide_accepted": 0, "fixed_candidates": 0, "pcm_rejected": 0}
-    if not cfg.wide or not loose.any():
+    if not cfg.wide.enabled or not loose.any():
         return loops, poses, summary
     offsets = np.cumsum([0] + [d.n for d in drives])
     if verify_wide_fn is None:
@@ -220,14 +220,14 @@ def close_wide_loops(problem, poses: np.ndarray, drives, load, cfg: LoopConfig, 
     loops = list(loops)
     tried = {(r.i, r.j) for r in loops}
     summary["pcm_rejected"] += apply_pcm(loops, pass1, chain1, loose[group], cfg)
-    for rnd in range(cfg.wide_rounds):
+    for rnd in range(cfg.wide.rounds):
         if any(r.accepted for r in loops):  # search from the estimate that holds the loops found so far
             base = list(problem.betweens)
             poses = solve(loops, poses)
             problem.betweens = base  # the solve leaves its loop factors in the problem: the caller adds them again
         chain = chain_covariance(problem, poses, offsets, ~loose)
         travel = travel_m(poses[:, :3, 3], group)
-        query = keyframes_by_travel(poses[:, :3, 3], group, cfg.wide_stride_m)
+        query = keyframes_by_travel(poses[:, :3, 3], group, cfg.wide.stride_m)
         query = query[loose[group[query]]]
         say(f"wide loop search, round {rnd + 1}")
         wide = find_wide_candidates(chain, stamps_s, query, travel, cfg, loops, tried)
@@ -235,7 +235,7 @@ def close_wide_loops(problem, poses: np.ndarray, drives, load, cfg: LoopConfig, 
         fixed = [c for c in find_candidates(poses[:, :3, 3], stamps_s, group, q2[loose[group[q2]]],
                                             radius_m=cfg.radius_m, min_separation_s=cfg.min_separation_s,
                                             max_per_scan=cfg.max_per_scan)
-                 if (c.i, c.j) not in tried and _held_pair(chain, c, loops, cfg.wide_min_sigma_m)]
+                 if (c.i, c.j) not in tried and _held_pair(chain, c, loops, cfg.wide.min_sigma_m)]
         tried |= {(c.i, c.j) for c in wide} | {(c.i, c.j) for c in fixed}
         new = verify_wide_fn(wide, poses) + (verify_fn(fixed, poses) if fixed else [])
         summary["rounds"] += 1
@@ -262,7 +262,7 @@ def _held_pair(chain: ChainCovariance, c: Candidate, loops: list[LoopRecord], mi
 def apply_pcm(loops: list[LoopRecord], pass1: np.ndarray, chain: ChainCovariance, loose_pose: np.ndarray,
               cfg: LoopConfig) -> int:
     """The pairwise consistency check over the accepted loops that touch a loosely held pose: those outside the
-    largest consistent set, or confirmed there by fewer than ``cfg.wide_min_consistent`` - 1 other loops within
+    largest consistent set, or confirmed there by fewer than ``cfg.wide.min_consistent`` - 1 other loops within
     ``cfg.pcm_window_m``, are rejected. Returns how many were rejected now."""
     idx = [k for k, r in enumerate(loops) if (r.accepted or r.reason.startswith("inconsistent with the other"))
            and (loose_pose[r.i] or loose_pose[r.j])]
@@ -270,7 +270,7 @@ def apply_pcm(loops: list[LoopRecord], pass1: np.ndarray, chain: ChainCovariance
         return 0
     travel = travel_m(np.column_stack([chain.positions_en, np.zeros(len(pass1))]), chain.group)
     keep = consistent_set([loops[k] for k in idx], pass1, chain, cfg.pcm_probability, travel, cfg.pcm_window_m,
-                          min_support=cfg.wide_min_consistent - 1)
+                          min_support=cfg.wide.min_consistent - 1)
     rejected = 0
     for m, k in enumerate(idx):
         r = loops[k]

@@ -82,7 +82,7 @@ def test_only_the_upper_layers_rows_are_read_with_every_column(tmp_path):
     full = [t for cols, t in served if "time_offset_s" in cols]
     assert len(full) == 1
     pts, ring = cast_scan(SCENE, POSES[0], seed=0, max_range_m=60.0)
-    upper = set(np.flatnonzero(np.bincount(ring))[::-1][:CornerParams().n_upper_layers].tolist())
+    upper = set(np.flatnonzero(np.bincount(ring))[::-1][:CornerParams().layers.n_upper_layers].tolist())
     assert set(full[0]["ring"].to_numpy().tolist()) <= upper
     assert full[0].num_rows < 0.5 * table.num_rows
     for i, sid in enumerate((100, 101)):
@@ -106,16 +106,17 @@ def test_params_reject_unknown_keys_and_inconsistent_values():
     with pytest.raises(ValidationError, match="split_dist"):
         CornerParams(split_dist=0.1)
     with pytest.raises(ValidationError, match="min_range_m"):
-        CornerParams(min_range_m=90.0, max_range_m=80.0)
+        CornerParams(layers={"min_range_m": 90.0, "max_range_m": 80.0})
     with pytest.raises(ValidationError, match="min_layers"):
-        CornerParams(n_upper_layers=2, min_layers=3)
+        CornerParams(layers={"n_upper_layers": 2}, clusters={"min_layers": 3})
     with pytest.raises(ValidationError, match="interior"):
-        CornerParams(min_interior_angle_deg=120.0, max_interior_angle_deg=100.0)
+        CornerParams(candidates={"min_interior_angle_deg": 120.0, "max_interior_angle_deg": 100.0})
 
 
 def test_every_param_documents_its_unit_and_the_declaration_is_consistent():
-    for name, field in CornerParams.model_fields.items():
-        assert field.description and "[" in field.description or name == "layer_selection", name
+    for section in CornerParams.model_fields.values():
+        for name, field in section.annotation.model_fields.items():
+            assert field.description and "[" in field.description or name == "layer_selection", name
     assert STAGE.name == "corners" and STAGE.partition is Partitioning.PER_SCAN_CHUNK
     assert STAGE.inputs["scans"] == "scans_raw" and STAGE.outputs == {"corners": "corners_per_scan"}
     assert set(STAGE.inputs) - STAGE.optional_inputs == {"scans"}

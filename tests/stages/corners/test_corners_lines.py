@@ -11,6 +11,7 @@ from stages.corners.candidates import CornerCandidates, find_corner_candidates
 from stages.corners.determine import determine_corners, floor_covariance
 from stages.corners.layers import estimate_ring_elevation_deg, find_run_starts, order_rings_by_azimuth, select_layers
 from stages.corners.lines import extract_lines, fit_lines_tls, split_iepf
+from stages.corners.params import CornerParams
 
 
 def polyline_points(vertices, spacing_m=0.05):
@@ -77,17 +78,27 @@ def test_rings_are_ordered_by_azimuth_starting_after_the_widest_gap():
         assert np.all(np.diff(np.unwrap(np.radians(a))) > 0)
 
 
+LAYERS = CornerParams().layers  # the stage's layer selection
+
+
+def layer_args(**changes) -> dict:
+    """``select_layers``' settings: the stage's, some changed."""
+    return {"mode": LAYERS.layer_selection, "n_upper_layers": LAYERS.n_upper_layers,
+            "min_elevation_deg": LAYERS.min_elevation_deg, "min_range_m": LAYERS.min_range_m, **changes}
+
+
 def test_layer_selection_by_elevation_and_by_index():
     pts, ring = cast_scan(Scene([box_building((15, 0), (30, 60), 0.0, 40.0)]), (0, 0, 0), seed=1)
-    ids, elev = estimate_ring_elevation_deg(pts, ring)
+    ids, elev = estimate_ring_elevation_deg(pts, ring, min_range_m=LAYERS.min_range_m)
     np.testing.assert_allclose(elev, HDL32E_ELEVATION_DEG[ids], atol=0.05)
-    np.testing.assert_array_equal(select_layers(pts, ring), np.arange(31, 23, -1))
-    np.testing.assert_array_equal(select_layers(pts, ring, min_elevation_deg=5.5), [31, 30, 29, 28])
-    np.testing.assert_array_equal(select_layers(pts, ring, mode="top_n", n_upper_layers=3), [31, 30, 29])
+    np.testing.assert_array_equal(select_layers(pts, ring, **layer_args()), np.arange(31, 23, -1))
+    np.testing.assert_array_equal(select_layers(pts, ring, **layer_args(min_elevation_deg=5.5)), [31, 30, 29, 28])
+    np.testing.assert_array_equal(select_layers(pts, ring, **layer_args(mode="top_n", n_upper_layers=3)),
+                                  [31, 30, 29])
     with pytest.raises(ValueError, match="ring indices must be >= 0"):
-        select_layers(pts, np.full(len(ring), -1))
+        select_layers(pts, np.full(len(ring), -1), **layer_args())
     with pytest.raises(ValueError, match="'elevation' or 'top_n'"):
-        select_layers(pts, ring, mode="median")
+        select_layers(pts, ring, **layer_args(mode="median"))
 
 
 def test_ring_elevation_from_a_sample_equals_the_full_estimate_and_keeps_sparse_rings():
@@ -99,13 +110,13 @@ def test_ring_elevation_from_a_sample_equals_the_full_estimate_and_keeps_sparse_
     keep[np.flatnonzero(ring == 30)] = False
     keep[sparse] = True
     pts, ring = pts[keep], ring[keep]
-    ids_full, elev_full = estimate_ring_elevation_deg(pts, ring, max_points=0)
-    ids, elev = estimate_ring_elevation_deg(pts, ring, max_points=3000)
+    ids_full, elev_full = estimate_ring_elevation_deg(pts, ring, min_range_m=LAYERS.min_range_m, max_points=0)
+    ids, elev = estimate_ring_elevation_deg(pts, ring, min_range_m=LAYERS.min_range_m, max_points=3000)
     np.testing.assert_array_equal(ids, ids_full)
     np.testing.assert_allclose(elev, elev_full, atol=0.05)
     np.testing.assert_allclose(elev[ids == 30], elev_full[ids_full == 30], atol=1e-12)  # from all of its points
     np.testing.assert_allclose(elev, HDL32E_ELEVATION_DEG[ids], atol=0.1)
-    np.testing.assert_array_equal(select_layers(pts, ring), np.arange(31, 23, -1))
+    np.testing.assert_array_equal(select_layers(pts, ring, **layer_args()), np.arange(31, 23, -1))
 
 
 def _candidates(xy, layer, cov_sigma):

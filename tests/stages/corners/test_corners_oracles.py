@@ -79,8 +79,8 @@ def test_outlier_test_rejects_rough_line_that_a_loose_threshold_keeps():
     trees = []
     rough = Scene([LONG_WALL], trees)
     pts, ring = cast_scan(rough, (0.0, 0.0, 0.0), range_sigma_m=0.08, seed=5)
-    loose = CornerParams(split_distance_m=0.5, max_residual_var_m2=1.0)
-    strict = CornerParams(split_distance_m=0.5)
+    loose = CornerParams(lines={"split_distance_m": 0.5, "max_residual_var_m2": 1.0})
+    strict = CornerParams(lines={"split_distance_m": 0.5})
     lab_loose = trace_corners(pts, ring, loose).line_label
     lab_strict = trace_corners(pts, ring, strict).line_label
     assert np.count_nonzero(lab_loose == LINE) > 0
@@ -115,7 +115,7 @@ def test_concave_inner_corner_is_told_apart():
 
 def test_near_flat_corner_has_large_elongated_covariance():
     # a 160 deg corner vs a 90 deg corner seen from the same distance (paper Figure 26)
-    params = CornerParams(max_interior_angle_deg=170.0)
+    params = CornerParams(candidates={"max_interior_angle_deg": 170.0})
     a = np.radians(10.0)
     flat = np.array([[15.0, -10.0], [15.0, 0.0], [15.0 + 10 * np.sin(2 * a), 10 * np.cos(2 * a)], [30.0, 10.0],
                      [30.0, -10.0]])
@@ -152,7 +152,7 @@ def test_a_truck_sized_box_gives_no_corner_but_a_building_of_the_same_footprint_
     seen = near(trace.candidates.x_m, trace.candidates.y_m)
     assert seen.sum() >= 3 and (trace.candidate_corner[seen] < 0).all()  # candidates were seen ...
     assert not near(trace.corners.x_m, trace.corners.y_m).any()  # ... but a higher beam passed over the box
-    unchecked = extract_corners(*scan, CornerParams(max_passover_height_m=0))
+    unchecked = extract_corners(*scan, CornerParams(checks={"max_passover_height_m": 0}))
     assert near(unchecked.x_m, unchecked.y_m).any()
     house = extract_corners(*cast_scan(Scene([house, behind]), pose, seed=1))
     assert near(house.x_m, house.y_m).any()

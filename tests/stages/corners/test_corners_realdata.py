@@ -33,7 +33,7 @@ def read_kitti(path: Path):
 
 
 NO_WALL_GATE = CornerParams(
-    min_wall_length_m=0.0, min_long_wall_length_m=0.0, min_obtuse_wall_length_m=0.0
+    checks={"min_wall_length_m": 0.0, "min_long_wall_length_m": 0.0, "min_obtuse_wall_length_m": 0.0}
 )  # the extraction chain itself, without the small-structure gate
 
 

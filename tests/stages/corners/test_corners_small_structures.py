@@ -17,7 +17,8 @@ from fixtures.corners import (
 from stages.corners.core import extract_corners
 from stages.corners.params import CornerParams
 
-NO_GATE = CornerParams(min_wall_length_m=0.0, min_long_wall_length_m=0.0, min_obtuse_wall_length_m=0.0)
+NO_GATE = CornerParams(checks={"min_wall_length_m": 0.0, "min_long_wall_length_m": 0.0,
+                               "min_obtuse_wall_length_m": 0.0})
 HDL64E_ELEVATION_DEG = np.linspace(-24.9, 2.0, 64)
 SENSORS = {"hdl32e": HDL32E_ELEVATION_DEG, "hdl64e": HDL64E_ELEVATION_DEG}
 # (distance m, bearing rad) of the sensor from the rounded corner at (16, 12), looking at it
@@ -94,6 +95,6 @@ def _arc_corners(radius_m, dist, bearing_deg, seed, params):
 
 @pytest.mark.parametrize("view", CHORD_VIEWS)
 def test_a_chord_meeting_a_wall_past_a_left_out_arc_piece_gives_no_corner(view):
-    loose = _arc_corners(*view, CornerParams(max_vertex_gap_spacings=0.0))
+    loose = _arc_corners(*view, CornerParams(checks={"max_vertex_gap_spacings": 0.0}))
     assert len(loose) == 1 and 100.0 < loose[0] < 120.0  # the mechanism: a non-obtuse chord-to-wall corner
     assert len(_arc_corners(*view, CornerParams())) == 0  # vertex support removes it

@@ -123,7 +123,7 @@ def stage_context(tmp_path, monkeypatch):
     write_tum(truth_path, stamps * 1e-9, np.stack([se3_from_xyz_rpy(x, y, 0, 0, 0, a) for x, y, a in truth]),
               header=frame_header(MAP_ORIGIN))
     monkeypatch.setattr(compute_mod, "open_published_map", lambda ctx: FakeMap(corners, dirs, mask, origin))
-    ctx = make_context("evaluate", EvaluateParams(n_particles=300), tables, partition=compute_mod.PartitionKey(
+    ctx = make_context("evaluate", EvaluateParams(mcl={"n_particles": 300}), tables, partition=compute_mod.PartitionKey(
         drive=DRIVE), settings={"references": {DRIVE: str(truth_path)}, "eval_drives": [DRIVE]},
         outputs=("report",), workdir=tmp_path)
     return ctx, truth
@@ -134,7 +134,10 @@ def _rerun(ctx, tmp_path, **changes):
     from dataclasses import replace
 
     out = tmp_path / f"run{len(list(tmp_path.glob('run*')))}"
-    return replace(ctx, params=ctx.params.model_copy(update=changes.pop("params", {})),
+    data = ctx.params.model_dump()
+    for key, value in changes.pop("params", {}).items():  # a section's fields merge into it
+        data[key] = {**data[key], **value} if isinstance(value, dict) else value
+    return replace(ctx, params=type(ctx.params).model_validate(data),
                    settings={**ctx.settings, **changes.pop("settings", {})}, artifact_dirs={"report": out})
 
 
@@ -176,11 +179,11 @@ def test_icp_increments_fall_back_on_wheel_when_failed_or_off_in_heading():
 def test_the_ekf_uses_the_correlation_the_map_states_unless_told_otherwise():
     from types import SimpleNamespace
 
-    p = EvaluateParams(ekf_map_corr_share=0.1, ekf_map_corr_length_m=20.0)
+    p = EvaluateParams(ekf={"map": {"corr_share": 0.1, "corr_length_m": 20.0}})
     stated = SimpleNamespace(corner_error_correlation=(0.73, 47.7))
     used = compute_mod.with_map_correlation(p, stated)
-    assert (used.ekf_map_corr_share, used.ekf_map_corr_length_m) == (0.73, 47.7)
-    assert used.ekf_config().map_corr_share == 0.73 and used.ekf_config().map_corr_length_m == 47.7
+    assert (used.ekf.map.corr_share, used.ekf.map.corr_length_m) == (0.73, 47.7)
+    assert used.ekf.map.corr_share == 0.73 and used.ekf.map.corr_length_m == 47.7
     assert compute_mod.with_map_correlation(p, SimpleNamespace(corner_error_correlation=None)) is p
-    own = p.model_copy(update={"ekf_map_corr_source": "params"})
+    own = p.model_copy(update={"ekf": p.ekf.replace(map={"corr_source": "params"})})
     assert compute_mod.with_map_correlation(own, stated) is own

@@ -85,7 +85,7 @@ def test_map_inputs_give_windows_with_the_tiles_coverage(tmp_path):
     """Through the published map: the fetched window's coverage is the tiles' point_count, shrunk by the margin,
     on the raster's lattice (tile (0, 2) of the synthetic map saw no ground east of 80 m)."""
     from mapformat.loader import open_map
-    from stages.evaluate.config import FieldConfig
+    from stages.evaluate.mcl_params import MarkingLikelihood
     from stages.tiles.compute import compute
     from tests.stages.tiles.tiles_synth import (
         UNSURVEYED_EAST_M,
@@ -99,11 +99,11 @@ def test_map_inputs_give_windows_with_the_tiles_coverage(tmp_path):
     compute(city_context(tmp_path, corner_table(xy, dirs, seed=2, noise_m=0.0)))
     reader = open_map(tmp_path / "maps" / "city")
     gnss = np.array([[50.0, 250.0, 0.0]])
-    _, fetch = map_inputs(reader, gnss, sensor_range_m=30.0, field=FieldConfig(), coverage_margin_m=2.0)
+    _, fetch = map_inputs(reader, gnss, sensor_range_m=30.0, field=MarkingLikelihood(), coverage_margin_m=2.0)
     raster = fetch(60.0, 220.0, 100.0, 260.0)
     assert raster.observed.shape == raster.values.shape
     east = raster.origin_en_m[0] + (np.arange(raster.values.shape[1]) + 0.5) * raster.cell_m
     assert raster.observed[:, east < UNSURVEYED_EAST_M - 2.0 - reader.cell_m].all()
     assert not raster.observed[:, east > UNSURVEYED_EAST_M - 2.0 + reader.cell_m].any()
-    _, plain = map_inputs(reader, gnss, sensor_range_m=30.0, field=FieldConfig())
+    _, plain = map_inputs(reader, gnss, sensor_range_m=30.0, field=MarkingLikelihood())
     assert plain(60.0, 220.0, 100.0, 260.0).observed is None

@@ -19,7 +19,7 @@ def outage_evaluation():
     rng = np.random.default_rng(21)
     d, cmap, fetch, truth, stamps = synthetic_drive(600, rng, outage_s=(20.0, 30.0))
     refs = {"truth": (stamps, truth), "map": (stamps, truth + [0.02, -0.01, 0.0])}
-    return evaluate_drive(d, cmap, fetch, refs, EvaluateParams(n_particles=500).evaluation_config()), d, cmap
+    return evaluate_drive(d, cmap, fetch, refs, EvaluateParams(mcl={"n_particles": 500})), d, cmap
 
 
 def test_gnss_outage_of_30_s_breaks_neither_localizer(outage_evaluation):
@@ -40,7 +40,7 @@ def test_gnss_outage_of_30_s_breaks_neither_localizer(outage_evaluation):
 def test_filters_start_at_the_first_valid_fix():
     rng = np.random.default_rng(4)
     d, cmap, fetch, truth, stamps = synthetic_drive(120, rng, outage_s=(0.0, 3.0))
-    ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth)}, EvaluateParams(n_particles=200).evaluation_config())
+    ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth)}, EvaluateParams(mcl={"n_particles": 200}))
     for m in ("ekf", "mcl", "icp_dr"):
         assert np.all(np.isnan(ev.runs[m].q[:30])) and np.all(np.isfinite(ev.runs[m].q[30:])), m
 
@@ -48,9 +48,9 @@ def test_filters_start_at_the_first_valid_fix():
 def test_outputs_metrics_tum_report_and_epochs(outage_evaluation, tmp_path):
     ev, d, cmap = outage_evaluation
     p = EvaluateParams()
-    cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ev.runs["ekf"].n_associated, 0, p.sensor_range_m,
-                   p.coverage_min_in_range, p.coverage_min_associated)
-    v = verdict(ev.metrics, cov, p.target_config())
+    cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ev.runs["ekf"].n_associated, 0, p.ekf.corners.sensor_range_m,
+                   p.coverage.min_in_range, p.coverage.min_associated)
+    v = verdict(ev.metrics, cov, p.targets)
     doc = write_report(tmp_path, ev, cmap, None, drive="drive_1", map_info={"version": 1}, verdict=v)
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
     assert on_disk == json.loads(json.dumps(doc))

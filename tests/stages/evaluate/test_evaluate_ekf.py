@@ -8,6 +8,7 @@ from stages.common.geometry import wrap_angle_rad
 from stages.evaluate import ekf
 from stages.evaluate.association import associate, direction_set_difference_rad
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, dead_reckon, run_ekf
+from tests.stages.evaluate.ekf_settings import bare_ekf
 
 
 def _straight_truth(n: int, step_m: float = 1.0) -> np.ndarray:
@@ -66,7 +67,7 @@ def test_straight_drive_past_two_corners_converges():
     obs = _observe(truth, corners, dirs)
     q0 = truth[0] + [0.8, -0.6, np.deg2rad(2.0)]
     P0 = np.diag([1.0, 1.0, np.deg2rad(3.0) ** 2])
-    paper = EkfConfig(wall_heading_sigma_rad=0.0)  # range/bearing only, as in eqs. 3-5
+    paper = bare_ekf(corners={"wall_heading_sigma_deg": 0.0})  # range/bearing only, as in eqs. 3-5
     run = run_ekf(_increments(truth), obs, _map(corners, dirs), q0, P0, 0, paper)
     err = run.q - truth
     assert np.all(run.n_associated == 2)
@@ -75,15 +76,19 @@ def test_straight_drive_past_two_corners_converges():
     assert np.all(np.linalg.eigvalsh(run.P[-1]) < np.linalg.eigvalsh(P0).min())
 
 
+# the association's gates: 60 m, chi-square 2 dof at 99 %, 15 deg between wall directions, global nearest neighbour
+GATES = {"sensor_range_m": 60.0, "gate_chi2": 9.21, "angle_tol_rad": np.deg2rad(15.0), "method": "gnn"}
+
+
 def test_mirrored_corner_is_rejected_by_the_angle_gate():
     q, P = np.array([0.0, 0.0, 0.0]), np.diag([1.0, 1.0, np.deg2rad(2.0) ** 2])
     map_en = np.array([[15.0, 8.0]])
     map_dirs = np.array([[0.0, np.pi / 2]])  # walls east and north of the corner
     xy = np.array([[15.0, 8.0]])
     cov = np.eye(2)[None] * 0.01
-    good = associate(q, P, xy, cov, map_dirs, map_en, cov, map_dirs)
-    mirrored = associate(q, P, xy, cov, map_dirs + np.pi, map_en, cov, map_dirs)
-    swapped = associate(q, P, xy, cov, map_dirs[:, ::-1], map_en, cov, map_dirs)  # unordered walls
+    good = associate(q, P, xy, cov, map_dirs, map_en, cov, map_dirs, **GATES)
+    mirrored = associate(q, P, xy, cov, map_dirs + np.pi, map_en, cov, map_dirs, **GATES)
+    swapped = associate(q, P, xy, cov, map_dirs[:, ::-1], map_en, cov, map_dirs, **GATES)  # unordered walls
     assert len(good.meas_idx) == 1 and len(swapped.meas_idx) == 1
     assert len(mirrored.meas_idx) == 0
 
@@ -97,10 +102,10 @@ def test_angle_gate_picks_the_right_of_two_close_corners():
     map_dirs = np.array([[np.pi, -np.pi / 2], [0.0, -np.pi / 2]])  # A's walls west+south, B's east+south
     xy_a = map_en[:1] - q_true[:2]
     cov = np.eye(2)[None] * 0.01
-    a = associate(q_est, P, xy_a, cov, map_dirs[:1], map_en, np.tile(cov, (2, 1, 1)), map_dirs)
+    a = associate(q_est, P, xy_a, cov, map_dirs[:1], map_en, np.tile(cov, (2, 1, 1)), map_dirs, **GATES)
     assert a.map_idx.tolist() == [0]
     blind = associate(q_est, P, xy_a, cov, map_dirs[:1], map_en, np.tile(cov, (2, 1, 1)), map_dirs,
-                      angle_tol_rad=np.pi)
+                      **{**GATES, "angle_tol_rad": np.pi})
     assert blind.map_idx.tolist() == [1]  # without the angle gate, position alone picks the wrong one
 
 
@@ -124,7 +129,7 @@ def _one_corner_run(cfg: EkfConfig):
 
 def test_one_corner_in_view_keeps_the_filter_observable():
     """Section 4.3: a single corner while moving fixes x, y and heading (with the wall-direction heading)."""
-    truth, _, P0, run = _one_corner_run(EkfConfig())
+    truth, _, P0, run = _one_corner_run(bare_ekf())
     assert np.all(run.n_associated == 1)
     err = run.q - truth
     assert np.all(np.hypot(err[20:, 0], err[20:, 1]) < 0.01)
@@ -136,7 +141,7 @@ def test_one_corner_range_bearing_only_leaves_rotation_about_the_corner():
     """With eqs. 3-5 alone, rotating the whole trajectory about the corner changes no measurement and no ICP
     increment: the residual error after convergence is exactly such a rotation (the paper's s.4.3 claim
     needs the heading from the prior or from the wall directions)."""
-    truth, corner, _, run = _one_corner_run(EkfConfig(wall_heading_sigma_rad=0.0))
+    truth, corner, _, run = _one_corner_run(bare_ekf(corners={"wall_heading_sigma_deg": 0.0}))
     err = run.q - truth
     delta = err[-1, 2]
     assert abs(np.rad2deg(delta)) > 0.05  # heading not recovered
@@ -152,7 +157,7 @@ def test_without_corners_the_filter_dead_reckons_and_covariance_grows():
     inc = _increments(truth)
     empty = CornerObservations(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2)))
     P0 = np.diag([0.01, 0.01, 1e-6])
-    run = run_ekf(inc, empty, _map(np.array([[5.0, 5.0]]), np.array([[0.0, 1.0]])), truth[0], P0, 0)
+    run = run_ekf(inc, empty, _map(np.array([[5.0, 5.0]]), np.array([[0.0, 1.0]])), truth[0], P0, 0, bare_ekf())
     np.testing.assert_allclose(run.q, dead_reckon(inc, truth[0], 0), atol=1e-12)
     assert np.all(np.diff(np.trace(run.P, axis1=1, axis2=2)) > 0)
 
@@ -165,12 +170,12 @@ def test_nees_is_consistent_on_noisy_measurements():
     sigma = 0.05
     obs = _observe(truth, corners, dirs, range_m=30.0, sigma_m=sigma, rng=rng)
     inc = _increments(truth)
-    cfg = EkfConfig(icp_sigma_frac=0.02, icp_sigma_xy_m=0.005, icp_sigma_yaw_rad=np.deg2rad(0.05),
-                    range_sigma_floor_m=0.0, bearing_sigma_floor_rad=0.0)
-    s_xy = cfg.icp_sigma_frac * 1.0 + cfg.icp_sigma_xy_m
+    cfg = bare_ekf(icp={"sigma_frac": 0.02, "sigma_xy_m": 0.005, "sigma_yaw_deg": 0.05},
+                   corners={"range_sigma_floor_m": 0.0, "bearing_sigma_floor_deg": 0.0})
+    s_xy = cfg.icp.sigma_frac * 1.0 + cfg.icp.sigma_xy_m
     noisy = inc.copy()
     noisy[1:, :2] += s_xy * rng.standard_normal((199, 2))
-    noisy[1:, 2] += cfg.icp_sigma_yaw_rad * rng.standard_normal(199)
+    noisy[1:, 2] += cfg.icp.sigma_yaw_rad * rng.standard_normal(199)
     P0 = np.diag([0.04, 0.04, np.deg2rad(0.5) ** 2])
     q0 = truth[0] + rng.standard_normal(3) * np.sqrt(np.diag(P0))
     run = run_ekf(noisy, obs, _map(corners, dirs, 1e-4), q0, P0, 0, cfg)

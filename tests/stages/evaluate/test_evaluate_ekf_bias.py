@@ -7,7 +7,8 @@ from scipy.stats import chi2
 
 from fixtures.evaluate import relative_increments
 from stages.evaluate import ekf
-from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, run_ekf
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, run_ekf
+from tests.stages.evaluate.ekf_settings import bare_ekf
 
 RATE_HZ = 10.0
 BIAS_RAD_S = np.deg2rad(-0.147)  # the gyro bias of the diagnosed drive
@@ -28,7 +29,7 @@ def empty_map() -> CornerMap:
 
 
 # The model the filter states, exactly (ICP's covariance is the registration's, without extra floors).
-CFG = EkfConfig(icp_sigma_frac=0.0, icp_sigma_xy_m=0.0, icp_sigma_yaw_rad=0.0)
+CFG = bare_ekf(icp={"sigma_frac": 0.0, "sigma_xy_m": 0.0, "sigma_yaw_deg": 0.0})
 
 
 def scripted_drive(truth: np.ndarray, rng: np.random.Generator, icp_until: int, degenerate_along: bool = False,
@@ -43,8 +44,8 @@ def scripted_drive(truth: np.ndarray, rng: np.random.Generator, icp_until: int, 
     dt = 1.0 / RATE_HZ
     true_inc = relative_increments(truth)
     dist = np.hypot(true_inc[:, 0], true_inc[:, 1])
-    bias = bias_rad_s + np.cumsum(rng.normal(0, CFG.gyro_bias_rw_rad_s_per_sqrt_s * np.sqrt(dt), n))
-    sc = scale - 1.0 + np.cumsum(rng.normal(0, CFG.wheel_scale_rw_per_sqrt_m * np.sqrt(dist)))
+    bias = bias_rad_s + np.cumsum(rng.normal(0, CFG.wheel.gyro_bias_rw_rad_s_per_sqrt_s * np.sqrt(dt), n))
+    sc = scale - 1.0 + np.cumsum(rng.normal(0, CFG.wheel.scale_rw_per_sqrt_m * np.sqrt(dist)))
     wheel = true_inc.copy()
     wheel[:, :2] *= (1.0 + sc)[:, None]
     for k in range(1, n):
@@ -88,8 +89,8 @@ def test_straight_without_corners_and_with_a_gyro_bias_keeps_nees_consistent():
     nees_5, nees_3 = [], []
     for i in range(runs):
         rng = np.random.default_rng(100 + i)
-        bias = rng.normal(0, CFG.gyro_bias_sigma_rad_s)  # a draw of the prior the filter states
-        scale = 1.0 + rng.normal(0, CFG.wheel_scale_sigma)
+        bias = rng.normal(0, CFG.wheel.gyro_bias_sigma_rad_s)  # a draw of the prior the filter states
+        scale = 1.0 + rng.normal(0, CFG.wheel.scale_sigma)
         wheel, icp, cov, stamps, _, _ = scripted_drive(truth, rng, icp_until=100, bias_rad_s=bias, scale=scale)
         q0 = truth[0] + rng.multivariate_normal(np.zeros(3), P0)
         r5 = run_ekf(icp, empty_obs(), empty_map(), q0, P0, 0, CFG, wheel_increments=wheel,
@@ -97,7 +98,7 @@ def test_straight_without_corners_and_with_a_gyro_bias_keeps_nees_consistent():
         nees_5.append(errors_and_nees(r5, truth)[1][1:])
         # The paper's model with the failed ICP increments replaced by the wheel/gyro ones (the old fallback).
         fallback = np.where(np.isfinite(icp), icp, wheel)
-        r3 = run_ekf(fallback, empty_obs(), empty_map(), q0, P0, 0, EkfConfig(icp_sigma_yaw_rad=np.deg2rad(0.004)))
+        r3 = run_ekf(fallback, empty_obs(), empty_map(), q0, P0, 0, bare_ekf(icp={"sigma_yaw_deg": 0.004}))
         nees_3.append(errors_and_nees(r3, truth)[1][1:])
     hi = assert_consistent_and_band_top(np.array(nees_5))
     # The ICP-only model claims ICP-grade heading after the fallback: its NEES leaves the band by far.
@@ -115,12 +116,12 @@ def test_gyro_bias_is_estimated_while_icp_holds():
     from stages.evaluate.localize_ekf import icp_covariance, wheel_covariance
 
     chis = []
-    Q_bias = np.diag([cfg.gyro_bias_rw_rad_s_per_sqrt_s**2 * 0.1, cfg.wheel_scale_rw_per_sqrt_m**2 * 0.8])
+    Q_bias = np.diag([cfg.wheel.gyro_bias_rw_rad_s_per_sqrt_s**2 * 0.1, cfg.wheel.scale_rw_per_sqrt_m**2 * 0.8])
     for k in range(1, n):
         state, chi = ekf.predict_wheel_icp(state, wheel[k], 0.1, wheel_covariance(wheel[k], cfg), icp[k],
-                                           icp_covariance(icp[k], cov[k], cfg), Q_bias, cfg.icp_gate_chi2)
+                                           icp_covariance(icp[k], cov[k], cfg), Q_bias, cfg.icp.gate_chi2)
         chis.append(chi)
-    assert np.mean(np.array(chis) > cfg.icp_gate_chi2) < 0.01  # consistent ICP passes its 99.9 % gate
+    assert np.mean(np.array(chis) > cfg.icp.gate_chi2) < 0.01  # consistent ICP passes its 99.9 % gate
     sb, ss = np.sqrt(state.P[3, 3]), np.sqrt(state.P[4, 4])
     assert abs(state.q[3] - bias_true[-1]) < 3 * sb and sb < np.deg2rad(0.03)
     assert abs(state.q[4] - scale_true[-1]) < 3 * ss and ss < 0.005
@@ -142,9 +143,8 @@ def test_degenerate_icp_direction_weighs_nothing():
     assert np.mean(nees <= chi2.ppf(0.99, 3)) >= 0.95
 
 
-# The ICP motion model with the gyro bias as a 4th state (``icp_gyro_bias_state``), on its own stated model.
-CFG_ICP = EkfConfig(icp_sigma_frac=0.01, icp_sigma_xy_m=0.005, icp_sigma_yaw_rad=np.deg2rad(0.01),
-                    icp_gyro_bias_state=True)
+# The ICP motion model with the gyro bias as a 4th state (``icp.gyro_bias_state``), on its own stated model.
+CFG_ICP = bare_ekf(icp={"sigma_frac": 0.01, "sigma_xy_m": 0.005, "sigma_yaw_deg": 0.01, "gyro_bias_state": True})
 
 
 def icp_model_drive(truth: np.ndarray, rng: np.random.Generator, icp_until: int, bias_rad_s: float):
@@ -156,8 +156,8 @@ def icp_model_drive(truth: np.ndarray, rng: np.random.Generator, icp_until: int,
 
     n, dt = len(truth), 1.0 / RATE_HZ
     true_inc = relative_increments(truth)
-    bias = bias_rad_s + np.cumsum(rng.normal(0, CFG_ICP.gyro_bias_rw_rad_s_per_sqrt_s * np.sqrt(dt), n))
-    gyro = true_inc[:, 2] + bias * dt + rng.normal(0, CFG_ICP.gyro_sigma_yaw_rad, n)
+    bias = bias_rad_s + np.cumsum(rng.normal(0, CFG_ICP.wheel.gyro_bias_rw_rad_s_per_sqrt_s * np.sqrt(dt), n))
+    gyro = true_inc[:, 2] + bias * dt + rng.normal(0, CFG_ICP.wheel.gyro_sigma_yaw_rad, n)
     inc = true_inc.copy()
     for k in range(1, n):
         inc[k] += rng.multivariate_normal(np.zeros(3), increment_covariance(true_inc[k], CFG_ICP))
@@ -177,11 +177,11 @@ def test_icp_model_with_the_gyro_bias_state_keeps_nees_consistent_on_a_straight_
     nees_4, nees_3 = [], []
     for i in range(runs):
         rng = np.random.default_rng(500 + i)
-        inc, from_gyro, stamps, _ = icp_model_drive(truth, rng, 100, rng.normal(0, CFG_ICP.gyro_bias_sigma_rad_s))
+        inc, from_gyro, stamps, _ = icp_model_drive(truth, rng, 100, rng.normal(0, CFG_ICP.wheel.gyro_bias_sigma_rad_s))
         q0 = truth[0] + rng.multivariate_normal(np.zeros(3), P0)
         r4 = run_ekf(inc, empty_obs(), empty_map(), q0, P0, 0, CFG_ICP, stamps_ns=stamps, from_gyro=from_gyro)
         nees_4.append(errors_and_nees(r4, truth)[1][1:])
-        cfg3 = EkfConfig(icp_sigma_frac=0.01, icp_sigma_xy_m=0.005, icp_sigma_yaw_rad=np.deg2rad(0.01))
+        cfg3 = bare_ekf(icp={"sigma_frac": 0.01, "sigma_xy_m": 0.005, "sigma_yaw_deg": 0.01})
         r3 = run_ekf(inc, empty_obs(), empty_map(), q0, P0, 0, cfg3, stamps_ns=stamps, from_gyro=from_gyro)
         nees_3.append(errors_and_nees(r3, truth)[1][1:])
     hi = assert_consistent_and_band_top(np.array(nees_4))
@@ -203,7 +203,7 @@ def test_corners_seen_during_the_fallback_correct_the_bias_drift():
     cmap = CornerMap(corners, np.tile(np.eye(2) * 1e-6, (len(corners), 1, 1)), dirs)
     P0 = np.diag([0.05**2, 0.05**2, np.deg2rad(0.05) ** 2])
     r4 = run_ekf(inc, obs, cmap, truth[0], P0, 0, CFG_ICP, stamps_ns=stamps, from_gyro=from_gyro)
-    cfg3 = EkfConfig(icp_sigma_frac=0.01, icp_sigma_xy_m=0.005, icp_sigma_yaw_rad=np.deg2rad(0.01))
+    cfg3 = bare_ekf(icp={"sigma_frac": 0.01, "sigma_xy_m": 0.005, "sigma_yaw_deg": 0.01})
     r3 = run_ekf(inc, obs, cmap, truth[0], P0, 0, cfg3, stamps_ns=stamps, from_gyro=from_gyro)
     e4, e3 = errors_and_nees(r4, truth)[0], errors_and_nees(r3, truth)[0]
     assert np.all(np.abs(e4[:, 2]) <= 3 * np.sqrt(r4.P[:, 2, 2]))
@@ -267,16 +267,15 @@ def test_gyro_fused_with_icp_learns_the_bias_and_stays_consistent():
     """``icp_gyro_fusion``: the gyro's heading change measures each ICP increment's too, so 10 s of ICP estimate
     the bias; over the next 20 s of fallback without corners the Monte-Carlo mean NEES stays in its band and the
     heading error is at least three times smaller than with the bias at its prior."""
-    from dataclasses import replace
-
     n, runs = 300, 40
     truth = straight(n)
     P0 = np.diag([0.05**2, 0.05**2, np.deg2rad(0.05) ** 2])
-    fused = replace(CFG_ICP, icp_gyro_fusion=True)
+    fused = CFG_ICP.replace(icp={"gyro_fusion": True})
     nees_f, yaw_f, yaw_b = [], [], []
     for i in range(runs):
         rng = np.random.default_rng(900 + i)
-        inc, from_gyro, stamps, gyro = icp_model_drive(truth, rng, 100, rng.normal(0, CFG_ICP.gyro_bias_sigma_rad_s))
+        bias = rng.normal(0, CFG_ICP.wheel.gyro_bias_sigma_rad_s)
+        inc, from_gyro, stamps, gyro = icp_model_drive(truth, rng, 100, bias)
         q0 = truth[0] + rng.multivariate_normal(np.zeros(3), P0)
         rf = run_ekf(inc, empty_obs(), empty_map(), q0, P0, 0, fused, stamps_ns=stamps, from_gyro=from_gyro,
                      gyro_yaw_rad=gyro)
@@ -290,14 +289,12 @@ def test_gyro_fused_with_icp_learns_the_bias_and_stays_consistent():
 
 
 def test_icp_gated_against_the_bias_corrected_gyro():
-    """``icp_gyro_gate_chi2``: with the bias known to be 0.3 deg/s (0.03 deg per scan), a true ICP increment
+    """``icp.gyro_gate``: with the bias known to be 0.3 deg/s (0.03 deg per scan), a true ICP increment
     that a fixed 0.05 deg gate around the raw gyro would keep is kept; one 0.1 deg off is replaced by the
     wheel/gyro increment (the motion then carries the bias)."""
-    from dataclasses import replace
-
     from stages.evaluate.localize_ekf import _motion
 
-    cfg = replace(CFG_ICP, icp_gyro_fusion=True, icp_gyro_gate_chi2=float(chi2.ppf(0.999, 1)))
+    cfg = CFG_ICP.replace(icp={"gyro_fusion": True, "gyro_gate": True})  # chi-square 1 dof at 0.999
     b, dt = np.deg2rad(0.3), 0.1
     state = ekf.EkfState(np.array([0.0, 0.0, 0.0, b]), np.diag([0.01, 0.01, 1e-6, np.deg2rad(0.001) ** 2]))
     true_inc = np.array([0.8, 0.0, np.deg2rad(0.2)])

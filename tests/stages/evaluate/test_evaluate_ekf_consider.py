@@ -11,10 +11,12 @@ from fixtures.evaluate import relative_increments, road_trajectory, roadside_cor
 from stages.common.geometry import wrap_angle_rad
 from stages.evaluate import consider, ekf
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, run_ekf
+from tests.stages.evaluate.ekf_settings import bare_ekf
 
 MAP_SIGMA_M = 0.08  # per corner, fixed for a whole run: dominates the extraction noise below
 EXTRACT_SIGMA_M = 0.01
-ICP_XY, ICP_YAW = 0.01, np.deg2rad(0.01)
+ICP_XY, ICP_YAW_DEG = 0.01, 0.01
+ICP_YAW = np.deg2rad(ICP_YAW_DEG)
 N_EPOCHS, N_RUNS = 300, 30
 
 
@@ -60,9 +62,10 @@ def one_run(rng: np.random.Generator, cfg: EkfConfig, map_share: float = 0.0, ma
 
 
 def mc_nees(map_consider: bool) -> tuple[np.ndarray, np.ndarray]:
-    cfg = EkfConfig(icp_sigma_frac=0.0, icp_sigma_xy_m=ICP_XY, icp_sigma_yaw_rad=ICP_YAW, sensor_range_m=40.0,
-                    range_sigma_floor_m=0.0, bearing_sigma_floor_rad=0.0, wall_heading_sigma_rad=0.0,
-                    gate_chi2=chi2.ppf(0.9999, 2), map_consider=map_consider)
+    cfg = bare_ekf(icp={"sigma_frac": 0.0, "sigma_xy_m": ICP_XY, "sigma_yaw_deg": ICP_YAW_DEG},
+                   corners={"sensor_range_m": 40.0, "range_sigma_floor_m": 0.0, "bearing_sigma_floor_deg": 0.0,
+                            "wall_heading_sigma_deg": 0.0, "gate_probability": 0.9999},
+                   map={"consider": map_consider})
     rng = np.random.default_rng(11)
     runs = [one_run(rng, cfg) for _ in range(N_RUNS)]
     return np.mean([r[0] for r in runs], axis=0), np.min([r[1] for r in runs], axis=0)
@@ -86,12 +89,12 @@ def test_correlated_map_errors_need_the_correlation_in_the_consider_states():
     """Map errors correlated 0.6 exp(-d^2 / 2 (50 m)^2) between corners (the demo maps against the truth): the
     consider states that know the correlation keep the Monte-Carlo NEES near 3; independent ones average the
     shared part away over the 2-4 corners in view and are overconfident."""
-    base = dict(icp_sigma_frac=0.0, icp_sigma_xy_m=ICP_XY, icp_sigma_yaw_rad=ICP_YAW, sensor_range_m=40.0,
-                range_sigma_floor_m=0.0, bearing_sigma_floor_rad=0.0, wall_heading_sigma_rad=0.0,
-                gate_chi2=chi2.ppf(0.9999, 2), map_consider=True)
+    base = bare_ekf(icp={"sigma_frac": 0.0, "sigma_xy_m": ICP_XY, "sigma_yaw_deg": ICP_YAW_DEG},
+                    corners={"sensor_range_m": 40.0, "range_sigma_floor_m": 0.0, "bearing_sigma_floor_deg": 0.0,
+                             "wall_heading_sigma_deg": 0.0, "gate_probability": 0.9999}, map={"consider": True})
     out = {}
     for share in (0.0, 0.6):
-        cfg = EkfConfig(**base, map_corr_share=share, map_corr_length_m=50.0)
+        cfg = base.replace(map={"corr_share": share, "corr_length_m": 50.0})
         rng = np.random.default_rng(12)
         out[share] = np.mean([one_run(rng, cfg, 0.6, 50.0)[0] for _ in range(N_RUNS)], axis=0)
     sel = np.arange(N_EPOCHS) >= 20
@@ -104,10 +107,10 @@ def test_correlated_map_errors_need_the_correlation_in_the_consider_states():
 def test_uncorrelated_consider_states_are_unchanged_by_the_correlation_code():
     """share 0 and a share with a vanishing length give the same filter (the joint covariance is block
     diagonal either way)."""
-    base = dict(icp_sigma_frac=0.0, icp_sigma_xy_m=ICP_XY, icp_sigma_yaw_rad=ICP_YAW, sensor_range_m=40.0,
-                gate_chi2=chi2.ppf(0.9999, 2), map_consider=True)
-    a = one_run(np.random.default_rng(4), EkfConfig(**base))[0]
-    b = one_run(np.random.default_rng(4), EkfConfig(**base, map_corr_share=0.5, map_corr_length_m=1e-6))[0]
+    base = bare_ekf(icp={"sigma_frac": 0.0, "sigma_xy_m": ICP_XY, "sigma_yaw_deg": ICP_YAW_DEG},
+                    corners={"sensor_range_m": 40.0, "gate_probability": 0.9999}, map={"consider": True})
+    a = one_run(np.random.default_rng(4), base)[0]
+    b = one_run(np.random.default_rng(4), base.replace(map={"corr_share": 0.5, "corr_length_m": 1e-6}))[0]
     np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 

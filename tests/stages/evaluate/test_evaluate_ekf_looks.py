@@ -7,17 +7,18 @@ its expectation. The weights themselves are checked on a hand-made sequence of l
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
 
 from fixtures.evaluate import relative_increments, road_trajectory, roadside_corners
 from stages.common.geometry import wrap_angle_rad
 from stages.evaluate import ekf
 from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, _Looks, run_ekf
+from tests.stages.evaluate.ekf_settings import bare_ekf
 
 EXTRACT_SIGMA_M = 0.05  # per scan, all of it correlated along the road
 CORR_LENGTH_M = 0.5
 SPEED_MPS = 0.5  # 0.05 m per scan: ten scans share most of a corner's error
-ICP_XY, ICP_YAW = 0.005, np.deg2rad(0.01)
+ICP_XY, ICP_YAW_DEG = 0.005, 0.01
+ICP_YAW = np.deg2rad(ICP_YAW_DEG)
 N_EPOCHS, N_RUNS = 400, 30
 
 
@@ -49,9 +50,10 @@ def one_run(rng: np.random.Generator, cfg: EkfConfig) -> np.ndarray:
 
 
 def mc_nees(decorrelation_m: float) -> np.ndarray:
-    cfg = EkfConfig(icp_sigma_frac=0.0, icp_sigma_xy_m=ICP_XY, icp_sigma_yaw_rad=ICP_YAW, sensor_range_m=40.0,
-                    range_sigma_floor_m=0.0, bearing_sigma_floor_rad=0.0, wall_heading_sigma_rad=0.0,
-                    gate_chi2=chi2.ppf(0.9999, 2), corner_decorrelation_m=decorrelation_m)
+    cfg = bare_ekf(icp={"sigma_frac": 0.0, "sigma_xy_m": ICP_XY, "sigma_yaw_deg": ICP_YAW_DEG},
+                   corners={"sensor_range_m": 40.0, "range_sigma_floor_m": 0.0, "bearing_sigma_floor_deg": 0.0,
+                            "wall_heading_sigma_deg": 0.0, "gate_probability": 0.9999,
+                            "decorrelation_m": decorrelation_m})
     rng = np.random.default_rng(3)
     return np.mean([one_run(rng, cfg) for _ in range(N_RUNS)], axis=0)
 

@@ -10,7 +10,8 @@ from fixtures.evaluate import paint_markings, relative_increments
 from stages.common.geometry import wrap_angle_rad
 from stages.evaluate import consider, ekf, mcl
 from stages.evaluate.ekf_markings import equivalent_measurement, grid_posterior, marking_measurement
-from stages.evaluate.localize_ekf import CornerMap, CornerObservations, EkfConfig, run_ekf
+from stages.evaluate.localize_ekf import CornerMap, CornerObservations, run_ekf
+from tests.stages.evaluate.ekf_settings import bare_ekf
 
 CELL = 0.1
 GAIN = 300.0  # the MCL's sharpness * effective points
@@ -165,11 +166,11 @@ def test_markings_hold_a_straight_without_corners_where_icp_failed_and_the_gyro_
     cmap = CornerMap(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2)))
     P0 = np.diag([0.2**2, 0.2**2, np.deg2rad(0.3) ** 2])
     q0 = truth[0] + np.array([0.1, -0.15, np.deg2rad(0.2)])
-    cfg = EkfConfig(icp_gyro_bias_state=True, markings=True)
+    cfg = bare_ekf(icp={"gyro_bias_state": True}, markings={"enabled": True})
     common = dict(stamps_ns=stamps, from_gyro=from_gyro, gyro_yaw_rad=gyro)
     with_m = run_ekf(inc, obs, cmap, q0, P0, 0, cfg, feature_epoch=f_ep, features_vehicle_m=f_xy, fetch=fetch,
                      **common)
-    without = run_ekf(inc, obs, cmap, q0, P0, 0, EkfConfig(icp_gyro_bias_state=True), **common)
+    without = run_ekf(inc, obs, cmap, q0, P0, 0, bare_ekf(icp={"gyro_bias_state": True}), **common)
     e_with = with_m.q - truth
     e_without = without.q - truth
     assert np.abs(e_without[-1, 1]) > 0.5 and np.degrees(np.abs(e_without[-1, 2])) > 2.0
@@ -185,7 +186,7 @@ def test_markings_hold_a_straight_without_corners_where_icp_failed_and_the_gyro_
 def test_a_raster_offset_shared_by_every_scan_is_not_averaged_away():
     """The raster sits a constant lateral offset (drawn per run from N(0, 0.05 m)) from the truth, as a mapping
     drive's local pose error puts it; 10 s on solid lines with no corner. Held as a consider parameter
-    (``marking_map_sigma_m``), the lateral error stays inside its stated std (mean squared normalised error ~1);
+    (``ekf.markings.map_sigma_m``), the lateral error stays inside its stated std (mean squared normalised error ~1);
     taken as exact, the filter claims a few centimetres and its normalised error is tenfold."""
     mask, origin = solid_lines_mask(300.0)
     n, v, sigma_map = 100, 10.0, 0.05
@@ -194,8 +195,8 @@ def test_a_raster_offset_shared_by_every_scan_is_not_averaged_away():
     obs = CornerObservations(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2)))
     cmap = CornerMap(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2)))
     P0 = np.diag([0.1**2, 0.1**2, np.deg2rad(0.1) ** 2])
-    held = EkfConfig(markings=True, marking_map_sigma_m=sigma_map, marking_map_length_m=1e6)
-    exact = EkfConfig(markings=True)
+    held = bare_ekf(markings={"enabled": True, "map_sigma_m": sigma_map, "map_length_m": 1e6})
+    exact = bare_ekf(markings={"enabled": True})
     z_held, z_exact = [], []
     for i in range(12):
         rng = np.random.default_rng(100 + i)

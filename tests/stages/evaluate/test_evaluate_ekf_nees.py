@@ -9,8 +9,6 @@ the params' 0.036 m / 0.092 deg taken as a floor above the stated error (the mod
 (pessimistic) at nearly every epoch."""
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 from scipy.stats import chi2
 
@@ -53,19 +51,20 @@ def real_paint_seen_from(q: np.ndarray, shift_m: float, rot_rad: float, pivot_en
 
 def test_the_raster_offset_the_map_states_keeps_the_filter_consistent_and_a_floor_above_it_does_not():
     runs, n, v = 24, 100, 10.0
-    sigma_m, sigma_rad = 0.012, np.radians(0.03)  # what the calibration maps state (tiny 201-203: 0.011-0.021 m)
+    sigma_m, sigma_deg = 0.012, 0.03
+    sigma_rad = np.radians(sigma_deg)  # what the calibration maps state (tiny 201-203: 0.011-0.021 m)
     truth = np.column_stack([50.0 + np.arange(n) * v / 10.0, np.full(n, ROAD_Y_M), np.zeros(n)])
     stamps = (np.arange(n) * 1e8).astype(np.int64)
     raster = lines_raster(300.0)
     obs = CornerObservations(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2)))
     cmap = CornerMap(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2)))
-    cfg = dataclasses.replace(EvaluateParams().ekf_config(), marking_map_length_m=1e6)
-    frame = FrameError(np.zeros(2), np.zeros((3, 3)), relative_std_m=sigma_m, relative_std_rad=sigma_rad)
+    cfg = EvaluateParams().ekf.replace(markings={"map_length_m": 1e6})
+    frame = FrameError(np.zeros(2), np.zeros((3, 3)), relative_std_m=sigma_m, relative_std_deg=sigma_deg)
     stated = frame.marking_offset(cfg)
-    assert stated.marking_map_sigma_m == sigma_m and stated.marking_map_sigma_yaw_rad == sigma_rad
-    floored = dataclasses.replace(cfg, marking_map_sigma_m=max(cfg.marking_map_sigma_m, sigma_m),
-                                  marking_map_sigma_yaw_rad=max(cfg.marking_map_sigma_yaw_rad, sigma_rad))
-    assert floored.marking_map_sigma_m > 2 * sigma_m  # the params' value is the old floor, above the stated error
+    assert stated.markings.map_sigma_m == sigma_m and stated.markings.map_sigma_yaw_rad == sigma_rad
+    floored = cfg.replace(markings={"map_sigma_m": max(cfg.markings.map_sigma_m, sigma_m),
+                                    "map_sigma_deg": max(cfg.markings.map_sigma_deg, sigma_deg)})
+    assert floored.markings.map_sigma_m > 2 * sigma_m  # the params' value is the old floor, above the stated error
     P0 = np.diag([0.1**2, 0.1**2, np.deg2rad(0.1) ** 2])
     inc_true = relative_increments(truth)
     nees = {"stated": [], "floored": []}

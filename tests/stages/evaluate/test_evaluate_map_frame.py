@@ -25,10 +25,10 @@ def test_the_frame_error_grows_with_the_distance_from_its_reference_point():
     np.testing.assert_allclose(FrameError.from_map(doc).cov, cov)
     # the raster's local error: the map's stated relative pose error, above or below the params' value; the params'
     # value where the map states none
-    ekf = EvaluateParams().ekf_config()
+    ekf = EvaluateParams().ekf
     stated = FrameError.from_map({**doc, "relative_std_m": 0.05, "relative_std_deg": 0.01}).marking_offset(ekf)
-    assert stated.marking_map_sigma_m == pytest.approx(0.05)
-    assert stated.marking_map_sigma_yaw_rad == pytest.approx(np.radians(0.01))
+    assert stated.markings.map_sigma_m == pytest.approx(0.05)
+    assert stated.markings.map_sigma_yaw_rad == pytest.approx(np.radians(0.01))
     assert FrameError.from_map(doc).marking_offset(ekf) == ekf
 
 
@@ -50,10 +50,10 @@ def test_a_localizer_starting_off_the_maps_frame_converges_onto_it_when_the_fram
     cov = np.diag([0.8**2, 0.8**2, np.radians(0.8) ** 2])
     frame = FrameError(reference, cov)
     p = EvaluateParams(methods=["ekf"])
-    cfg = p.evaluation_config()
+    cfg = p
     k0 = first_fix(d)
-    P0 = initial_covariance(d, k0, cfg, frame)
-    np.testing.assert_allclose(P0 - initial_covariance(d, k0, cfg, None), frame.at(d.gnss_q[k0, :2]))
+    P0 = initial_covariance(d, k0, cfg.ekf, frame)
+    np.testing.assert_allclose(P0 - initial_covariance(d, k0, cfg.ekf, None), frame.at(d.gnss_q[k0, :2]))
     start = np.hypot(*(d.gnss_q[k0, :2] - truth[k0, :2]))
     assert start > 2.0 and abs(d.gnss_q[k0, 2] - truth[k0, 2]) > np.radians(0.8)
     ev = evaluate_drive(d, cmap, fetch, refs, cfg, frame)

@@ -5,8 +5,6 @@ read in the order of the paper's sections.
 """
 from __future__ import annotations
 
-from dataclasses import fields, replace
-
 import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
@@ -222,8 +220,7 @@ def test_mcl_absorbs_a_two_percent_wheel_scale_error_along_and_across(ring_drive
     assert np.mean(np.abs(np.rad2deg(e.err_yaw_rad[after]))) < 0.05
     assert run.calibration[-1, 0] == pytest.approx(1 / 1.02, abs=0.006)  # the wheel scale it found
     # the same filter without the scale state (and the along-track noise of the true odometry) drifts along track
-    no_scale = replace(MclConfig(), init_sigma_scale=0.0, sigma_scale_per_sqrt_m=0.0, sigma_frac=0.002,
-                       sigma_xy_m=0.005)
+    no_scale = MclConfig(init_sigma_scale=0.0, sigma_scale_per_sqrt_m=0.0, sigma_frac=0.002, sigma_xy_m=0.005)
     run0 = run_mcl(odo, ep, pts, _distance_fetch(mask, origin), q0, 0, np.random.default_rng(3), no_scale)
     e0 = compute_errors(run0.q, truth)
     assert np.mean(np.abs(e0.err_longitudinal_m[after])) > 5 * np.mean(np.abs(e.err_longitudinal_m[after]))
@@ -238,7 +235,7 @@ def test_injection_recovers_from_a_sideways_slip_that_reweighting_cannot(ring_dr
     err = {}
     for share in (0.3, 0.0):
         run = run_mcl(slipped, ep, pts, _distance_fetch(mask, origin), q0, 0, np.random.default_rng(3),
-                      replace(MclConfig(), max_inject=share))
+                      MclConfig(recovery={"max_inject": share}))
         err[share] = np.hypot(*compute_errors(run.q, truth).err_xy_m.T)
         assert (run.injected[:70] == 0).all()  # never while the particles fit the scans
     assert err[0.3][71] > 0.5 and err[0.0][71] > 0.5
@@ -258,7 +255,7 @@ def test_standstill_holds_the_pose_despite_the_gyro_bias():
     odo = np.zeros((len(truth), 3))
     odo[1:, 2] = np.deg2rad(0.05)  # a gyro bias of 0.5 deg/s, speed 0: 2 deg of phantom turn over 4 s
     run = run_mcl(odo, np.concatenate(ep), np.concatenate(pts), _distance_fetch(mask, origin), truth[0], 0,
-                  np.random.default_rng(1), MclConfig(init_sigma_xy_m=0.1, init_sigma_yaw_rad=np.deg2rad(0.1)))
+                  np.random.default_rng(1), MclConfig(init_sigma_xy_m=0.1, init_sigma_yaw_deg=0.1))
     np.testing.assert_allclose(run.q[1:], np.repeat(run.q[:1], len(truth) - 1, axis=0), atol=1e-12)
     assert np.isnan(run.ess[1:]).all()  # one update: a scan repeated without moving brings nothing new
 
@@ -310,7 +307,7 @@ def test_extract_features_deskews_each_scan_with_the_wheel_odometry():
 
     found = {}
     for deskew in (True, False):
-        p = EvaluateParams(feature_deskew=deskew)
+        p = EvaluateParams(features={"deskew": deskew})
         ctx = make_context("evaluate", p, {"scans": scans})
         ep, feats = compute_mod.extract_features(ctx, "d1", np.array([0]), T_VEHICLE_LIDAR, p,
                                                  track if deskew else None)
@@ -321,18 +318,18 @@ def test_extract_features_deskews_each_scan_with_the_wheel_odometry():
     assert found[False] == pytest.approx(speed * 0.05, abs=0.15)
 
 
-def test_mcl_config_of_the_params_maps_every_mcl_field():
+def test_the_mcl_section_states_degrees_and_the_filter_reads_radians():
     from stages.evaluate.params import EvaluateParams
 
-    p = EvaluateParams(mcl_sigma_yaw_deg=0.5, mcl_init_sigma_gyro_bias_deg_s=1.0, mcl_init_sigma_scale=0.03,
-                       mcl_max_inject=0.0, mcl_decorrelation_m=2.0, feature_max_range_m=25.0)
-    cfg = p.mcl_config()
+    p = EvaluateParams(mcl={"sigma_yaw_deg": 0.5, "init_sigma_gyro_bias_deg_s": 1.0, "init_sigma_scale": 0.03,
+                            "recovery": {"max_inject": 0.0}},
+                       markings={"decorrelation_m": 2.0, "feature_range_m": 25.0})
+    cfg = p.mcl
     assert cfg.sigma_yaw_rad == pytest.approx(np.deg2rad(0.5))
     assert cfg.init_sigma_gyro_bias_radps == pytest.approx(np.deg2rad(1.0))
-    assert (cfg.init_sigma_scale, cfg.max_inject, cfg.decorrelation_m, cfg.feature_range_m) == (0.03, 0.0, 2.0, 25.0)
-    default = EvaluateParams().mcl_config()
-    for f in fields(MclConfig):  # the params' defaults are the config's defaults
-        assert getattr(default, f.name) == pytest.approx(getattr(MclConfig(), f.name), rel=1e-9), f.name
+    assert (cfg.init_sigma_scale, cfg.recovery.max_inject, p.markings.decorrelation_m,
+            p.markings.feature_range_m) == (0.03, 0.0, 2.0, 25.0)
+    assert EvaluateParams().mcl == MclConfig()  # the stage's section is the filter's default
 
 
 def test_regularize_spreads_by_the_optimal_bandwidth_of_the_cloud():

@@ -31,7 +31,7 @@ def test_the_band_is_two_sided(mean, share, state, ok):
 
 def test_the_verdict_line_says_pessimistic():
     v = verdict({"ekf": {"truth": {**_ekf(0.41, 1.0), "epochs": 600}}}, {"ok": True},
-                __import__("stages.evaluate.params", fromlist=["EvaluateParams"]).EvaluateParams().target_config())
+                __import__("stages.evaluate.params", fromlist=["EvaluateParams"]).EvaluateParams().targets)
     [missed] = [m for m in v["missed"] if "nees" in m]
     assert "pessimistic: 7.3x" in missed and v["status"] == "fail"
 
@@ -44,7 +44,7 @@ def test_the_report_states_the_nees_and_labels_the_ellipse_axes(monkeypatch):
 
     rng = np.random.default_rng(3)
     d, cmap, fetch, truth, stamps = synthetic_drive(200, rng)
-    ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth)}, EvaluateParams(n_particles=100).evaluation_config())
+    ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth)}, EvaluateParams(mcl={"n_particles": 100}))
     figures = []
     monkeypatch.setattr(report, "_png", lambda fig: figures.append(fig) or "")
     import matplotlib
@@ -56,7 +56,7 @@ def test_the_report_states_the_nees_and_labels_the_ellipse_axes(monkeypatch):
     doc = {"verdict": verdict({"ekf": {"truth": {**_ekf(0.41, 1.0), "epochs": 600}}},
                               {"ok": True, "share_corner_in_range": 1.0, "min_share_in_range": 0.5,
                                "share_associated": 1.0, "min_share_associated": 0.1, "sensor_range_m": 60.0},
-                              EvaluateParams().target_config())}
+                              EvaluateParams().targets)}
     page = report._verdict_html(doc)
     assert "pessimistic: 7.3x" in page and "two-sided" in page
 

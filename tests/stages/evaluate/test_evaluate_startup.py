@@ -44,7 +44,7 @@ def test_a_filter_that_never_associates_scores_nothing_and_misses_its_start_up_t
     assert s["all_epochs"]["epochs"] == n
     metrics = {"ekf": {"truth": s}}
     cov = {"ok": True}
-    v = verdict(metrics, cov, EvaluateParams().target_config())
+    v = verdict(metrics, cov, EvaluateParams().targets)
     assert not v["targets"]["ekf"]["startup_s"]["ok"] and v["status"] == "fail"
 
 
@@ -54,9 +54,9 @@ def test_truth_fitted_onto_the_map_judges_before_the_pose_graphs_poses():
             "startup_s": 1.0, "nees_mean": 3.0, "nees_band95": [2.5, 3.5], "nees_share_below_q95": 1.0}
     bad = dict(good, rms_2d_m=0.3)
     v = verdict({"ekf": {"map": bad, "truth_in_map": good, "truth": bad}}, {"ok": True},
-                EvaluateParams().target_config())
+                EvaluateParams().targets)
     assert v["judged_against"] == {"ekf": "truth_in_map"} and v["status"] == "pass"
-    v = verdict({"ekf": {"map": bad, "truth": good}}, {"ok": True}, EvaluateParams().target_config())
+    v = verdict({"ekf": {"map": bad, "truth": good}}, {"ok": True}, EvaluateParams().targets)
     assert v["judged_against"] == {"ekf": "map"} and v["status"] == "fail"
 
 
@@ -76,8 +76,9 @@ def late_start():
 
 def test_a_late_first_association_is_the_start_up_and_the_drive_is_scored_after_it(late_start):
     d, cmap, fetch, refs, stamps = late_start
-    p = EvaluateParams(methods=["ekf"], ekf_markings=False)  # the corners alone: the markings localize earlier (below)
-    ev = evaluate_drive(d, cmap, fetch, refs, p.evaluation_config())
+    # the corners alone: the markings localize earlier (below)
+    p = EvaluateParams(methods=["ekf"], ekf={"markings": {"enabled": False}})
+    ev = evaluate_drive(d, cmap, fetch, refs, p)
     assert ev.primary == "truth_in_map"
     s = ev.metrics["ekf"]["truth_in_map"]
     k_loc = s["localized_from_epoch"]
@@ -86,29 +87,30 @@ def test_a_late_first_association_is_the_start_up_and_the_drive_is_scored_after_
     # the first update (one corner) halves the 1.6 m start-up error; the next ones take it to centimetres
     assert s["startup"]["max_2d_m"] > 1.5 > 2 * s["max_2d_m"] and s["p95_2d_m"] < 0.1
     assert s["all_epochs"]["max_2d_m"] == pytest.approx(s["startup"]["max_2d_m"])
-    cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ev.runs["ekf"].n_associated, 0, p.sensor_range_m,
-                   p.coverage_min_in_range, p.coverage_min_associated)
-    v = verdict(ev.metrics, cov, p.target_config())
+    cov = coverage(d.gnss_q, d.gnss_valid, cmap.en_m, ev.runs["ekf"].n_associated, 0, p.ekf.corners.sensor_range_m,
+                   p.coverage.min_in_range, p.coverage.min_associated)
+    v = verdict(ev.metrics, cov, p.targets)
     assert v["targets"]["ekf"]["startup_s"]["ok"] and v["targets"]["ekf"]["rms_2d_m"]["ok"]
     # the epoch of the first (partial) update counts: it is the scored maximum
     err = np.hypot(*(ev.runs["ekf"].q[k_loc, :2] - refs["truth_in_map"][1][k_loc, :2]))
     assert s["max_2d_m"] == pytest.approx(err)
     # with the start-up counted, as before, the 1.6 m start is the maximum
-    p_all = EvaluateParams(methods=["ekf"], ekf_judge_after_startup=False, ekf_markings=False)
-    ev_all = evaluate_drive(d, cmap, fetch, refs, p_all.evaluation_config())
-    v_all = verdict(ev_all.metrics, cov, p_all.target_config())
+    p_all = EvaluateParams(methods=["ekf"], targets={"ekf_judge_after_startup": False},
+                           ekf={"markings": {"enabled": False}})
+    ev_all = evaluate_drive(d, cmap, fetch, refs, p_all)
+    v_all = verdict(ev_all.metrics, cov, p_all.targets)
     assert not v_all["targets"]["ekf"]["max_2d_m"]["ok"] and "startup_s" not in v_all["targets"]["ekf"]
     assert ev_all.metrics["ekf"]["truth_in_map"]["max_2d_m"] == pytest.approx(s["all_epochs"]["max_2d_m"])
     # a target of 2 s is missed by a 3 s start-up
-    p_strict = EvaluateParams(methods=["ekf"], target_ekf_startup_s=2.0)
-    assert not verdict(ev.metrics, cov, p_strict.target_config())["targets"]["ekf"]["startup_s"]["ok"]
+    p_strict = EvaluateParams(methods=["ekf"], targets={"ekf_startup_s": 2.0})
+    assert not verdict(ev.metrics, cov, p_strict.targets)["targets"]["ekf"]["startup_s"]["ok"]
 
 
 def test_road_markings_localize_the_ekf_before_its_first_corner(late_start):
     """The same late start with the road-marking measurement (the default): the 1.4 m first-fix error is taken out by
     the markings within the first second, before any corner is seen."""
     d, cmap, fetch, refs, stamps = late_start
-    ev = evaluate_drive(d, cmap, fetch, refs, EvaluateParams(methods=["ekf"]).evaluation_config())
+    ev = evaluate_drive(d, cmap, fetch, refs, EvaluateParams(methods=["ekf"]))
     r = ev.runs["ekf"]
     err = np.hypot(*(r.q[:, :2] - refs["truth_in_map"][1][:, :2]).T)
     assert np.hypot(*(d.gnss_q[0, :2] - refs["truth_in_map"][1][0, :2])) > 1.4  # where the filter starts
@@ -121,6 +123,6 @@ def test_features_that_are_not_deskewed_do_not_measure_the_ekf(late_start):
     then runs on its corners alone, exactly as with the markings off."""
     d, cmap, fetch, refs, _ = late_start
     raw = dataclasses.replace(d, features_deskewed=False)
-    on = evaluate_drive(raw, cmap, fetch, refs, EvaluateParams(methods=["ekf"]).evaluation_config())
-    off = evaluate_drive(d, cmap, fetch, refs, EvaluateParams(methods=["ekf"], ekf_markings=False).evaluation_config())
+    on = evaluate_drive(raw, cmap, fetch, refs, EvaluateParams(methods=["ekf"]))
+    off = evaluate_drive(d, cmap, fetch, refs, EvaluateParams(methods=["ekf"], ekf={"markings": {"enabled": False}}))
     np.testing.assert_array_equal(on.runs["ekf"].q, off.runs["ekf"].q)

@@ -30,7 +30,7 @@ def report(tmp_path_factory):
     ref_map = truth + np.column_stack([rng.normal(0, 0.03, len(truth)), rng.normal(0, 0.03, len(truth)),
                                        np.full(len(truth), np.radians(0.3))])
     ev = evaluate_drive(d, cmap, fetch, {"truth": (stamps, truth), "map": (stamps, ref_map)},
-                        EvaluateParams(n_particles=300).evaluation_config())
+                        EvaluateParams(mcl={"n_particles": 300}))
     out = tmp_path_factory.mktemp("eval")
     doc = write_report(out, ev, cmap, None, drive="drive_1", map_info={"version": 1, "enu_origin": ORIGIN.as_dict()})
     return out, doc

@@ -61,12 +61,12 @@ def test_truth_in_another_frame_gives_the_same_numbers(stage_context, tmp_path):
                 assert got[k] == (None if want[k] is None else pytest.approx(want[k], abs=2e-5, rel=1e-5)), \
                     (path.name, m, k)
     # the same file told it is in the map frame is compared as is: the errors are the 3.7 km offset
-    wrong = _metrics(_rerun(ctx, tmp_path, params={"methods": ["ekf"], "reference_frame": "map"},
+    wrong = _metrics(_rerun(ctx, tmp_path, params={"methods": ["ekf"], "reference": {"frame": "map"}},
                             settings={"references": {"drive_1": str(with_header)}}))
     assert wrong["methods"]["ekf"]["absolute"]["rms_2d_m"] > 3000.0
     # ... and told the origin explicitly, it matches again
     given = ",".join(str(v) for v in (OTHER_ORIGIN.lat_deg, OTHER_ORIGIN.lon_deg, OTHER_ORIGIN.h_m))
-    doc = _metrics(_rerun(ctx, tmp_path, params={"methods": ["ekf"], "reference_frame": given},
+    doc = _metrics(_rerun(ctx, tmp_path, params={"methods": ["ekf"], "reference": {"frame": given}},
                           settings={"references": {"drive_1": str(with_sidecar)}}))
     assert doc["methods"]["ekf"]["absolute"]["rms_2d_m"] == pytest.approx(
         base["methods"]["ekf"]["absolute"]["rms_2d_m"], abs=2e-5
@@ -82,7 +82,7 @@ def test_reference_that_states_no_frame_is_refused_unless_told(stage_context, tm
     with pytest.raises(ReferenceFrameError, match=r"bare.txt: the reference trajectory does not state its frame"):
         compute_mod.compute(_rerun(ctx, tmp_path, params={"methods": ["ekf"]},
                                    settings={"references": {"drive_1": str(bare)}}))
-    doc = _metrics(_rerun(ctx, tmp_path, params={"methods": ["ekf"], "reference_frame": "map"},
+    doc = _metrics(_rerun(ctx, tmp_path, params={"methods": ["ekf"], "reference": {"frame": "map"}},
                           settings={"references": {"drive_1": str(bare)}}))
     assert doc["methods"]["ekf"]["absolute"]["rms_2d_m"] < 0.1
 
@@ -140,7 +140,7 @@ def test_foreign_drive_has_no_coverage(stage_context, tmp_path, monkeypatch):
 
 def test_missed_target_fails_only_when_asked(stage_context, tmp_path):
     ctx, _ = stage_context
-    tight = {"methods": ["ekf"], "target_ekf_rms_2d_m": 1e-6}
+    tight = {"methods": ["ekf"], "targets": {"ekf_rms_2d_m": 1e-6}}
     doc = _metrics(_rerun(ctx, tmp_path, params=tight))
     v = doc["verdict"]
     assert v["status"] == "fail" and v["coverage"]["ok"]

@@ -101,7 +101,7 @@ def test_params_reject_unknown_and_inconsistent_keys():
     with pytest.raises(ValueError):
         OdometryParams(voxel=0.5)
     with pytest.raises(ValueError, match="min_range_m"):
-        OdometryParams(min_range_m=90.0, max_range_m=80.0)
+        OdometryParams(prepare={"min_range_m": 90.0, "max_range_m": 80.0})
 
 
 def test_scans_from_table_same_scans_whatever_the_row_order():

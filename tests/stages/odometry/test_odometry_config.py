@@ -1,36 +1,56 @@
-"""Every odometry param reaches the algorithm's config (a param that changes nothing is a lie), and flat settings
-are checked by name."""
+"""The odometry params are nested sections and what ``estimate_edges`` receives: every key of the flat params of
+before is refused with its new place, that place exists and a value written there changes the params."""
+
 from __future__ import annotations
 
-import pytest
+import functools
 
-from stages.odometry.config import EdgeConfig
+import pytest
+from pydantic import ValidationError
+
 from stages.odometry.params import OdometryParams
 
-CHANGED = {"method": "point_to_plane", "deskew": "none", "ground_split": False, "span_scans": [5],
-           "knn": 7, "max_iterations": 3, "min_fitness": 0.5, "keyframe_stages": [(2.0, 3.0)]}
-NOT_IN_CONFIG = set()  # fields the stage's compute uses but the algorithm does not (none today)
+CHANGED = {
+    "method": "point_to_plane",
+    "ground_split": False,
+    "knn": 7,
+    "max_iterations": 3,
+    "min_fitness": 0.5,
+    "stages": ((2.0, 3.0),),
+}
 
 
-@pytest.mark.parametrize("name", sorted(OdometryParams.model_fields))
-def test_every_param_changes_the_edge_config(name):
+def _at(obj, place: str):
+    return functools.reduce(getattr, place.split("."), obj)
+
+
+@pytest.mark.parametrize("old", sorted(OdometryParams.renamed))
+def test_an_old_flat_key_is_refused_with_its_new_place(old):
+    new = OdometryParams.renamed[old]
+    with pytest.raises(ValidationError) as err:
+        OdometryParams.model_validate({old: 1})
+    assert f"{old!r} has moved: write it as {new!r}" in str(err.value)
+
+
+@pytest.mark.parametrize("old", sorted(OdometryParams.renamed))
+def test_the_new_place_reaches_its_section(old):
+    place = OdometryParams.renamed[old]
     base = OdometryParams()
-    value = CHANGED.get(name, getattr(base, name) * 1.5 if isinstance(getattr(base, name), float) else None)
-    if name in NOT_IN_CONFIG:
-        pytest.skip("not an algorithm setting")
-    assert value is not None, f"add a changed value for {name!r} to CHANGED"
-    changed = OdometryParams(**{name: value})
-    assert changed.edge_config() != base.edge_config(), f"{name} does not reach estimate_edges"
+    default = _at(base, place)
+    value = CHANGED.get(place.rsplit(".", 1)[-1], default * 1.5 if isinstance(default, float) else None)
+    assert value is not None, f"add a changed value for {place!r} to CHANGED"
+    changed = base.updated({place: value})
+    assert _at(changed, place) == value and changed != base
 
 
-def test_flat_settings_are_named_and_complete():
-    kw = dict(method="gicp", voxel_m=0.5, knn=20, max_corr_m=0.7, max_iterations=30, relative_tolerance=1e-6,
-              min_range_m=2.0, max_range_m=80.0, min_fitness=0.3, max_deviation_m=0.3, max_deviation_rad=0.0175,
-              point_sigma_m=0.15, min_sigma_m=0.01, min_sigma_rad=0.0003)
-    cfg = EdgeConfig.flat(deskew=True, span_scans=[3], **kw)
-    assert cfg.prepare.voxel_m == 0.5 and cfg.icp.max_corr_m == 0.7 and cfg.gate.min_fitness == 0.3
-    assert cfg.span_scans == (3,) and cfg.registration_kwargs()["point_sigma_m"] == 0.15
-    with pytest.raises(TypeError, match="unknown settings.*voxel_size"):
-        EdgeConfig.flat(deskew=True, voxel_size=1.0, **kw)
-    with pytest.raises(TypeError):
-        EdgeConfig.flat(deskew=True, **{k: v for k, v in kw.items() if k != "knn"})
+def test_registration_keywords_and_spans():
+    p = OdometryParams(
+        icp={"guided_relative_tolerance": 2e-3}, information={"point_sigma_m": 0.15}, span_scans=[3], deskew="none"
+    )
+    assert p.registration_kwargs(guided=True)["relative_tolerance"] == 2e-3
+    assert p.registration_kwargs()["relative_tolerance"] == p.icp.relative_tolerance
+    assert p.registration_kwargs()["point_sigma_m"] == 0.15 and p.span_scans == (3,) and not p.own_sweep_deskew
+    with pytest.raises(ValidationError, match="every span must be >= 2"):
+        OdometryParams(span_scans=[1])
+    with pytest.raises(ValidationError, match="min_range_m"):
+        OdometryParams(prepare={"min_range_m": 90.0, "max_range_m": 80.0})

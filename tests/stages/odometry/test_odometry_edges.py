@@ -9,14 +9,22 @@ from scipy.spatial.transform import Rotation
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import prepare_cloud, register_clouds
-from stages.odometry.config import EdgeConfig
 from stages.odometry.core import Scan, estimate_edges, gate_edge
+from stages.odometry.params import OdometryParams
 from tests.stages.odometry.conftest import hdl32_rays
 
 PERIOD_S = 0.1
-EDGE_KW = dict(method="gicp", voxel_m=0.5, knn=20, max_corr_m=0.7, max_iterations=30, relative_tolerance=1e-6,
-               min_range_m=2.0, max_range_m=80.0, min_fitness=0.3, max_deviation_m=0.3, max_deviation_rad=0.0175,
-               point_sigma_m=0.15, min_sigma_m=0.01, min_sigma_rad=0.0003)
+# registrations run to full convergence (guided pairs too), edges' information without the turn term
+EDGE = {"icp": {"method": "gicp", "max_corr_m": 0.7, "max_iterations": 30, "relative_tolerance": 1e-6,
+                "guided_relative_tolerance": 1e-6},
+        "prepare": {"voxel_m": 0.5, "knn": 20, "min_range_m": 2.0, "max_range_m": 80.0},
+        "gate": {"min_fitness": 0.3, "max_deviation_m": 0.3, "max_deviation_rad": 0.0175},
+        "information": {"point_sigma_m": 0.15, "min_sigma_m": 0.01, "min_sigma_rad": 0.0003, "rot_sigma_per_rad": 0.0}}
+
+
+def _cfg(deskew: bool, span_scans: tuple[int, ...] = (), **changes) -> OdometryParams:
+    """The tests' odometry settings (own-sweep deskew or none, these spans) with ``changes`` (dotted keys)."""
+    return OdometryParams(deskew="own_sweep" if deskew else "none", span_scans=span_scans, **EDGE).updated(changes)
 
 
 def _poses_along(T0: np.ndarray, step: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -69,7 +77,7 @@ def test_swept_scans_give_accurate_edges_without_feedback(swept_sequence, deskew
     2 cm / 0.05 deg. The first deskew (source with the last motion, target with an older one) fed each edge's
     error into the next and diverged on the simulator (1.7 m after 20 scans)."""
     scans, step = swept_sequence
-    edges = estimate_edges(scans, np.eye(4), {}, EdgeConfig.flat(deskew=deskew, **EDGE_KW))
+    edges = estimate_edges(scans, np.eye(4), {}, _cfg(deskew))
     assert len(edges) == 5
     errs = np.array([_err(e.T_prev_curr, step) for e in edges])
     assert all(e.accepted for e in edges)
@@ -151,7 +159,7 @@ def test_structure_only_registration_with_road_planes_and_own_sweep_deskew(swept
     # the wheel model drives an arc, the sequence a chord (1.3 cm apart after 1.2 m): a guide, not the answer
     assert len(guides) == 5 and g_err[:, 0].max() < 0.02 and g_err[:, 1].max() < 0.01
     for seq in (wheel_scans, scans):  # wheel-deskewed, then own-sweep deskew inside estimate_edges
-        cfg = EdgeConfig.flat(deskew=True, ground_split=True, **{**EDGE_KW, "voxel_m": 1.0, "max_corr_m": 1.0})
+        cfg = _cfg(True, **{"prepare.ground_split": True, "prepare.voxel_m": 1.0, "icp.max_corr_m": 1.0})
         edges = estimate_edges(seq, T_vl, {}, cfg, guide_increments=guides)
         errs = np.array([_err(e.T_prev_curr, step) for e in edges])
         assert all(e.accepted for e in edges)
@@ -176,8 +184,8 @@ def test_span_edges_register_scans_n_apart_from_the_chain(swept_sequence):
     """Span edges over 2 and 5 scans of the rolling sequence recover step^N (within the consecutive edges'
     tolerance), come after the unchanged consecutive edges, and name their earlier scan."""
     scans, step = swept_sequence
-    plain = estimate_edges(scans, np.eye(4), {}, EdgeConfig.flat(deskew=True, **EDGE_KW))
-    edges = estimate_edges(scans, np.eye(4), {}, EdgeConfig.flat(deskew=True, span_scans=(5, 2), **EDGE_KW))
+    plain = estimate_edges(scans, np.eye(4), {}, _cfg(True))
+    edges = estimate_edges(scans, np.eye(4), {}, _cfg(True, (5, 2)))
     assert [e.span for e in edges] == [1] * 5 + [2, 2, 5]
     for a, b in zip(plain, edges[:5]):
         np.testing.assert_allclose(a.T_prev_curr, b.T_prev_curr, atol=1e-6)
@@ -191,6 +199,6 @@ def test_span_edges_register_scans_n_apart_from_the_chain(swept_sequence):
 def test_span_edge_rejected_when_a_consecutive_edge_inside_is_missing(swept_sequence):
     scans, _ = swept_sequence
     gap = scans[:2] + scans[3:]  # scan 2 quarantined: ids 0 1 3 4 5
-    edges = estimate_edges(gap, np.eye(4), {}, EdgeConfig.flat(deskew=False, span_scans=(2,), **EDGE_KW))
+    edges = estimate_edges(gap, np.eye(4), {}, _cfg(False, (2,)))
     spans = [(e.scan_id_from, e.scan_id) for e in edges if e.span > 1]
     assert spans == [(3, 5)]  # position 2 (scan 3) would span the gap from scan 0: skipped; 4 (scan 5) from 3

@@ -8,13 +8,9 @@ import pytest
 import stages.odometry.core as core
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
 from stages.common.registration import RegistrationResult
-from stages.odometry.config import EdgeConfig
 from stages.odometry.params import OdometryParams
 
-CFG = EdgeConfig.flat(deskew=False, method="gicp", voxel_m=1.0, knn=20, max_corr_m=1.0, max_iterations=15,
-                      relative_tolerance=1e-4, guided_relative_tolerance=3e-3, min_range_m=2.0, max_range_m=80.0,
-                      min_fitness=0.3, max_deviation_m=0.3, max_deviation_rad=0.0175, point_sigma_m=0.05,
-                      min_sigma_m=0.003, min_sigma_rad=1e-4)
+CFG = OdometryParams(deskew="none", span_scans=(), information={"rot_sigma_per_rad": 0.0})  # else the stage's
 T_VL = se3_from_xyz_rpy(0.3, 0.0, 1.8, 0.0, 0.0, np.deg2rad(1.0))  # lidar in the vehicle frame
 T_LV = se3_inverse(T_VL)
 
@@ -90,6 +86,6 @@ def test_guide_correction_gate_is_planar():
 
 
 def test_params_carry_the_guided_tolerance():
-    cfg = OdometryParams(guided_relative_tolerance=2e-3).edge_config()
+    cfg = OdometryParams(icp={"guided_relative_tolerance": 2e-3})
     assert cfg.registration_kwargs(guided=True)["relative_tolerance"] == 2e-3
-    assert cfg.registration_kwargs()["relative_tolerance"] == OdometryParams().relative_tolerance
+    assert cfg.registration_kwargs()["relative_tolerance"] == OdometryParams().icp.relative_tolerance

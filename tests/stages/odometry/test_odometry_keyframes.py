@@ -44,7 +44,7 @@ def street_keyframes(street_scene):
 
 
 def test_pairs_seconds_apart_are_keyframe_pairs_and_a_sweep_apart_are_not():
-    cfg = OdometryParams().edge_config()
+    cfg = OdometryParams()
     scans = [Scan(i, int(t * 1e9), np.zeros((0, 3)), None) for i, t in enumerate((0.0, 0.1, 0.2, 1.4, 1.5))]
     pairs = pair_scans(scans, {}, None, None, cfg)
     assert sorted(pairs.keyframe) == [3]
@@ -52,13 +52,13 @@ def test_pairs_seconds_apart_are_keyframe_pairs_and_a_sweep_apart_are_not():
 
 def test_keyframes_without_any_reference_start_from_a_global_registration(street_keyframes):
     poses, scans = street_keyframes
-    cfg = OdometryParams(span_scans=[]).edge_config()
+    cfg = OdometryParams(span_scans=[])
     edges = estimate_edges(list(scans), T_VL, {}, cfg)
     err = _errors(edges, poses)
     assert all(e.accepted for e in edges)
     assert err[:, 0].max() < 0.15 and err[:, 1].max() < 0.5, err
     # the same pairs as a dense drive's (constant velocity from the last pair, one-stage GICP) go wrong
-    dense = OdometryParams(span_scans=[], keyframe_min_dt_s=10.0).edge_config()
+    dense = OdometryParams(span_scans=[], keyframe={"min_dt_s": 10.0})
     err_dense = _errors(estimate_edges(list(scans), T_VL, {}, dense), poses)
     assert err_dense[:, 0].max() > 1.0, err_dense
 
@@ -68,7 +68,7 @@ def test_keyframes_start_from_the_prior_and_its_gate_rejects_a_prior_off_by_two_
     rng = np.random.default_rng(5)
     noisy = {i: T @ se3_from_xyz_rpy(*rng.normal(0, 0.03, 3), 0.0, 0.0, np.radians(rng.normal(0, 0.1)))
              for i, T in enumerate(poses)}
-    cfg = OdometryParams(span_scans=[]).edge_config()
+    cfg = OdometryParams(span_scans=[])
     prior = PriorPoses(noisy, sigma_m=0.05, sigma_rad=np.radians(0.2))
     edges = estimate_edges(list(scans), T_VL, {}, cfg, prior=prior)
     err = _errors(edges, poses)

@@ -6,25 +6,24 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stages.common.geometry import se3_from_xyz_rpy, se3_inverse
-from stages.posegraph.config import PosegraphConfig
 from stages.posegraph.factors.drive import DriveInput
 from stages.posegraph.params import PosegraphParams
 
 # The synthetic drives' registrations state their own noise exactly; the registration noise the stage adds by default
 # (real ICP's information is overconfident, docs/posegraph.md Known limits) would misstate them. A test that models
 # overconfident registrations asks for it.
-HONEST_REGISTRATIONS = {"icp_edge_sigma_along_m": 0.0, "icp_edge_sigma_cross_m": 0.0, "icp_edge_sigma_yaw_deg": 0.0}
+HONEST_REGISTRATIONS = {"factors": {"registration": {"along_m": 0.0, "cross_m": 0.0, "yaw_deg": 0.0}}}
 
 
-def posegraph_config(**overrides) -> PosegraphConfig:
-    """The pose graph's config sections, built from the stage's params with ``overrides`` as the stage does (the
-    registrations taken as honest unless ``overrides`` say otherwise)."""
-    return PosegraphConfig.from_params(PosegraphParams(**{**HONEST_REGISTRATIONS, **overrides}))
+def posegraph_config(overrides: dict | None = None) -> PosegraphParams:
+    """The pose graph's params (its config sections) with ``overrides`` (dotted keys, ``{"loops.stride_m": 4.0}``)
+    over the stage's defaults (the registrations taken as honest unless ``overrides`` say otherwise)."""
+    return PosegraphParams.model_validate(HONEST_REGISTRATIONS).updated(overrides or {})
 
 
-def base_sections(**overrides):
+def base_sections(overrides: dict | None = None):
     """The two sections ``base_problem`` takes: odometry factors and GNSS/INS priors."""
-    cfg = posegraph_config(**overrides)
+    cfg = posegraph_config(overrides)
     return cfg.factors, cfg.gnss
 
 

@@ -12,16 +12,15 @@ from stages.posegraph.params import PosegraphParams
 from tests.stages.posegraph.test_posegraph_compute import _map_and_reference_street
 
 
-def _setup(tmp_path, **params):
+def _setup(tmp_path, params: dict | None = None):
     from stages.posegraph.compute import read_drive_inputs, scan_loader
-    from stages.posegraph.config import PosegraphConfig
 
     tables, T0, T1 = _map_and_reference_street()
-    p = PosegraphParams(loop_stride_m=4.0, gnss_every_s=0.5, **params)
+    p = PosegraphParams(loops={"stride_m": 4.0}, gnss={"every_s": 0.5}).updated(params or {})
     ctx = make_context("posegraph", p, tables, settings={"map_drives": ["d0", "d1"]}, outputs=("report",),
                        workdir=tmp_path)
     drives, _ = read_drive_inputs(ctx)
-    return ctx, drives, PosegraphConfig.from_params(p), scan_loader(ctx), T0, T1
+    return ctx, drives, p, scan_loader(ctx), T0, T1
 
 
 def _offset_error_m(P0, P1, T0, T1) -> float:
@@ -53,7 +52,7 @@ def test_without_loops_the_new_drive_is_its_gnss_solution(tmp_path):
     odometry + GNSS solution, its bias 0.8 m off d0's (the oracle above can fail)."""
     from stages.posegraph.incremental import solve_increment
 
-    ctx, (d0, d1), cfg, load, T0, T1 = _setup(tmp_path, loop_radius_m=0.1)
+    ctx, (d0, d1), cfg, load, T0, T1 = _setup(tmp_path, {"loops.radius_m": 0.1})
     from stages.posegraph.solve import solve_map
 
     held = solve_map([d0], load, cfg).poses

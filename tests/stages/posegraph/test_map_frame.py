@@ -25,7 +25,7 @@ def _solved(seed: int, side_m: float = 40.0):
     T_true = circuit_truth(n_laps=1, side_m=side_m)
     drive = make_drive(T_true, np.random.default_rng(seed), gnss_sigma_m=0.9, gnss_tau_s=60.0, reported_std_m=0.3)
     drive.stamps_ns = drive.stamps_ns.astype(np.int64)
-    factors, gnss = base_sections(gnss_bias_tau_s=60.0, gnss_std_inflation=3.0)
+    factors, gnss = base_sections({"gnss.bias_tau_s": 60.0, "gnss.std_inflation": 3.0})
     problem, _ = base_problem([drive], factors, gnss)
     poses = optimize(problem)
     return T_true, problem, poses

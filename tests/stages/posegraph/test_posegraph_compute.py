@@ -89,7 +89,7 @@ def _reference_offset_error_m(opt: pa.Table, T0: np.ndarray, T1: np.ndarray) -> 
 
 def test_compute_map_and_reference_drive(tmp_path):
     tables, T0, T1 = _map_and_reference_street()
-    p = PosegraphParams(loop_stride_m=4.0, loop_reference_stride_m=4.0, gnss_every_s=0.5)
+    p = PosegraphParams(loops={"stride_m": 4.0, "reference_stride_m": 4.0}, gnss={"every_s": 0.5})
     ctx = make_context("posegraph", p, tables, settings={"map_drives": ["d0"], "eval_drives": ["d1"]},
                        outputs=("report",), workdir=tmp_path)
     from stages.posegraph.compute import compute
@@ -115,13 +115,13 @@ def test_compute_map_and_reference_drive(tmp_path):
 
 
 def test_reference_drive_queries_follow_their_own_stride(tmp_path):
-    """``loop_reference_stride_m`` spaces the reference drive's loop queries onto the map (the map drives keep
-    ``loop_stride_m``): at 10 m on a 30 m drive, the loops' reference scans lie >= 10 m of travel apart (1 m a scan),
+    """``loops.reference_stride_m`` spaces the reference drive's loop queries onto the map (the map drives keep
+    ``loops.stride_m``): at 10 m on a 30 m drive, the loops' reference scans lie >= 10 m of travel apart (1 m a scan),
     three queries at most; the drive still lands on the map to a few cm."""
     from stages.posegraph.compute import compute
 
     tables, T0, T1 = _map_and_reference_street()
-    p = PosegraphParams(loop_stride_m=4.0, loop_reference_stride_m=10.0, gnss_every_s=0.5)
+    p = PosegraphParams(loops={"stride_m": 4.0, "reference_stride_m": 10.0}, gnss={"every_s": 0.5})
     ctx = make_context("posegraph", p, tables, settings={"map_drives": ["d0"], "eval_drives": ["d1"]},
                        outputs=("report",), workdir=tmp_path)
     out = compute(ctx)

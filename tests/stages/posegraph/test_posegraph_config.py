@@ -1,53 +1,83 @@
-"""Every posegraph param reaches the algorithm's config sections (a param that changes nothing is a lie), each
-into the section of its step, and the sections carry the params' values unchanged."""
+"""The posegraph params are nested sections: every key of the flat params of before is refused with its new place,
+that place exists and a value written there reaches the section the algorithm receives; dotted keys and nested
+mappings say the same."""
+
 from __future__ import annotations
 
-import pytest
+import functools
 
-from stages.posegraph.config import PosegraphConfig
+import pytest
+from pydantic import ValidationError
+
 from stages.posegraph.params import PosegraphParams
 
-CHANGED = {"span_edge_kernel": "cauchy", "gnss_kernel": "cauchy", "loop_kernel": "gnc", "prior_kernel": "cauchy",
-           "gnss_lever_arm_m": (0.1, -0.2, 1.5), "icp_edge_sigma_along_m": 0.005,
-           "icp_edge_sigma_cross_m": 0.005, "icp_edge_sigma_yaw_deg": 0.03}
-# the section each param's prefix belongs to (the first match wins)
-SECTION = [("wheel_", "factors"), ("failed_edge_", "factors"), ("span_edge", "factors"), ("gnss_", "gnss"),
-           ("attitude_", "gnss"), ("unknown_roll_pitch", "gnss"), ("heading_", "gnss"), ("loop_", "loops"),
-           ("survey_", "anchors"), ("parallel_min_items", "loops"), ("max_iterations", "solve"),
-           ("lm_", "solve"), ("fixed_prior", "solve"), ("compute_marginals", "solve"),
-           ("error_kernel", "solve"), ("icp_edge_", "factors"), ("prior_", "prior"), ("region_", "regions")]
+CHANGED = {"kernel": "cauchy", "span_edge_kernel": "cauchy", "lever_arm_m": (0.1, -0.2, 1.5)}
 
 
-def _changed(name: str, default):
-    if name in CHANGED:
+def _at(obj, place: str):
+    return functools.reduce(getattr, place.split("."), obj)
+
+
+def _changed(place: str, default):
+    name = place.rsplit(".", 1)[-1]
+    if name in CHANGED and CHANGED[name] != default:
         return CHANGED[name]
+    if place == "loops.kernel":
+        return "gnc"
     if isinstance(default, bool):
         return not default
     if isinstance(default, int):
         return default + 1
     if isinstance(default, float):
-        return default * 0.5
-    if name == "survey_marking_raster":
-        return default.model_copy(update={"cell_m": default.cell_m * 0.5})
-    raise AssertionError(f"add a changed value for {name!r} to CHANGED")
+        return default * 0.5 if default else 0.01
+    if name == "raster":
+        return {"cell_m": default.cell_m * 0.5}
+    raise AssertionError(f"add a changed value for {place!r} to CHANGED")
 
 
-@pytest.mark.parametrize("name", sorted(PosegraphParams.model_fields))
-def test_every_param_changes_its_section_of_the_config(name):
-    base = PosegraphParams()
-    changed = PosegraphParams(**{name: _changed(name, getattr(base, name))})
-    a, b = PosegraphConfig.from_params(base), PosegraphConfig.from_params(changed)
-    assert a != b, f"{name} does not reach the pose graph's config"
-    section = next(s for prefix, s in SECTION if name.startswith(prefix))
-    assert getattr(a, section) != getattr(b, section), f"{name} does not reach the {section} section"
+@pytest.mark.parametrize("old", sorted(PosegraphParams.renamed))
+def test_an_old_flat_key_is_refused_with_its_new_place(old):
+    new = PosegraphParams.renamed[old]
+    with pytest.raises(ValidationError) as err:
+        PosegraphParams.model_validate({old: 1})
+    assert f"{old!r} has moved: write it as {new!r}" in str(err.value)
 
 
-def test_sections_carry_the_params_values():
-    p = PosegraphParams(loop_voxel_m=0.3, wheel_bridges=False, survey_markings=False, gnss_lever_arm_m=(0.5, 0, 1))
-    cfg = PosegraphConfig.from_params(p)
-    assert cfg.factors.wheel_bridge is None and cfg.factors.wheel_fusion is not None and cfg.factors.uses_wheel
-    assert cfg.factors.wheel_fusion.height_sigma_m == p.wheel_height_sigma_m
-    assert cfg.loops.verify.voxel_m == 0.3 and cfg.anchors.ground.voxel_m == 0.15  # the survey works at half
-    assert cfg.gnss.lever_arm_m == (0.5, 0.0, 1.0) and not cfg.anchors.use_markings
-    assert cfg.solve.lm_kwargs() == {"max_iterations": 100, "relative_error_tol": p.lm_relative_error_tol}
-    assert cfg.loops.workers(p.parallel_min_items) is None and cfg.loops.workers(p.parallel_min_items - 1) == 1
+@pytest.mark.parametrize("old", sorted(PosegraphParams.renamed))
+def test_the_new_place_reaches_its_section(old):
+    for place in PosegraphParams.renamed[old].replace("(and ", "").replace(")", "").split():
+        if "." not in place:
+            continue  # words of the message
+        base = PosegraphParams()
+        value = _changed(place, _at(base, place))
+        changed = base.updated({place: value})
+        section = place.split(".")[0]
+        assert _at(changed, section) != _at(base, section), f"{place} does not reach the {section} section"
+        expected = value if not isinstance(value, dict) else _at(base, place).model_copy(update=value)
+        assert _at(changed, place) == expected
+
+
+def test_sections_derive_the_algorithm_values():
+    p = PosegraphParams(
+        factors={"wheel": {"bridges": False}, "registration": {"yaw_deg": 0.5}},
+        anchors={"use_markings": False},
+        gnss={"lever_arm_m": [0.5, 0, 1]},
+    )
+    assert p.factors.wheel_bridge is None and p.factors.wheel_fusion is not None and p.factors.uses_wheel
+    assert p.factors.wheel_fusion.height_sigma_m == p.factors.wheel.height_sigma_m
+    assert p.factors.registration_sigma.yaw_rad == pytest.approx(0.5 * 3.141592653589793 / 180)
+    assert p.gnss.lever_arm_m == (0.5, 0.0, 1.0) and not p.anchors.use_markings
+    assert p.solve.lm_kwargs() == {"max_iterations": 100, "relative_error_tol": p.solve.lm_relative_error_tol}
+    n = p.loops.parallel_min_items
+    assert p.loops.workers(n) is None and p.loops.workers(n - 1) == 1
+
+
+def test_dotted_keys_and_nested_mappings_are_the_same_params():
+    a = PosegraphParams().updated({"loops.radius_m": 20.0, "loops.wide.enabled": False})
+    b = PosegraphParams(loops={"radius_m": 20.0, "wide": {"enabled": False}})
+    assert a == b and a.loops.radius_m == 20.0 and a.loops.stride_m == PosegraphParams().loops.stride_m
+
+
+def test_a_misspelt_section_key_names_the_nearest():
+    with pytest.raises(ValidationError, match="did you mean 'radius_m'"):
+        PosegraphParams(loops={"radus_m": 20.0})

@@ -64,7 +64,7 @@ def test_gnss_and_odometry_recover_truth_better_than_gnss(two_lap_drive):
 def test_loops_make_passes_agree_and_planted_false_loop_is_rejected(two_lap_drive, kernel):
     T_true, drive = two_lap_drive
     rng = np.random.default_rng(5)
-    cfg = posegraph_config(loop_kernel=kernel)  # GNC with the GNSS bias chain (built-in factors clone)
+    cfg = posegraph_config({"loops.kernel": kernel})  # GNC with the GNSS bias chain (built-in factors clone)
     problem, _ = base_problem([drive], cfg.factors, cfg.gnss)
     lap = _lap_len(T_true)
     loops = _true_loops(T_true, rng, lap)
@@ -93,7 +93,7 @@ def test_marginal_covariances_positive_definite_and_grow_in_outage(two_lap_drive
     drive.stamps_ns = drive.stamps_ns.astype(np.int64)
     # this synthetic INS heading is white (0.1 deg, no bias), which a heading prior fits: with a 100-epoch
     # outage on a 60 m square it is what holds the trajectory's rotation
-    problem, _ = base_problem([drive], *base_sections(gnss_bias_tau_s=bias_tau_s, heading_prior=True))
+    problem, _ = base_problem([drive], *base_sections({"gnss.bias_tau_s": bias_tau_s, "gnss.heading_prior": True}))
     assert not any(80 <= g.i < 180 for g in problem.positions)  # outages have no factor
     poses = optimize(problem)
     cov = marginal_cov_xy_yaw(problem, poses).reshape(-1, 3, 3)
@@ -180,7 +180,7 @@ def test_unknown_roll_pitch_is_not_a_firm_level_prior():
             level[k][:3, :3] = se3_from_xyz_rpy(0, 0, 0, 0.0, 0.0, 0.0)[:3, :3]
         drive.gnss_T = level
         drive.gnss_roll_pitch_known = np.full(len(level), known)
-        problem, _ = base_problem([drive], *base_sections(gnss_every_s=0.5))
+        problem, _ = base_problem([drive], *base_sections({"gnss.every_s": 0.5}))
         poses = optimize(problem)
         est_pitch = np.arctan2(-poses[:, 2, 0], np.hypot(poses[:, 0, 0], poses[:, 1, 0]))
         errors[known] = float(np.degrees(np.abs(est_pitch - pitch).mean()))

@@ -61,8 +61,8 @@ def test_candidates_verified_in_parallel_processes_give_the_serial_verdicts(lane
     poses = np.stack([np.eye(4), T_a_b @ se3_from_xyz_rpy(1.0, 0.6, 0.2, 0.0, 0.0, 0.01),
                       T_a_b @ se3_from_xyz_rpy(1.0, 0.6, 0.2, 0.0, 0.0, 0.01)])
     cands = [Candidate(0, 1, 1.2), Candidate(0, 2, 1.2), Candidate(1, 0, 1.2)] * 2
-    serial = verify_candidates(cands, poses, clouds, posegraph_config(parallel_min_items=100).loops)
-    parallel = verify_candidates(cands, poses, clouds, posegraph_config(parallel_min_items=2).loops)
+    serial = verify_candidates(cands, poses, clouds, posegraph_config({"loops.parallel_min_items": 100}).loops)
+    parallel = verify_candidates(cands, poses, clouds, posegraph_config({"loops.parallel_min_items": 2}).loops)
     assert [r.accepted for r in serial] == [True, False, True] * 2
     for a, b in zip(serial, parallel):
         assert (a.accepted, a.reason) == (b.accepted, b.reason)
@@ -194,8 +194,6 @@ def test_loop_ground_split_measures_a_close_revisit_without_the_roads_pull():
     registered whole, the sensor-centred spread of the road pulls the measured offset towards zero (-1.2 cm here;
     demo seed 2's end onto its start: -12 cm); with ``ground_split`` (the structure, height/roll/pitch from the road
     planes) it is measured to a few millimetres, height included."""
-    from dataclasses import replace
-
     scene = build_street_scene(seed=11)
     T_vl = se3_from_xyz_rpy(0.0, 0.0, 1.8, 0.0, 0.0, 0.0)  # lidar 1.8 m above the vehicle's ground point
     rng = np.random.default_rng(5)
@@ -204,7 +202,7 @@ def test_loop_ground_split_measures_a_close_revisit_without_the_roads_pull():
     cfg = posegraph_config().loops.verify
     assert not cfg.ground_split  # an experiment, off by default (docs/posegraph.md)
     whole = verify_loop(scans[0], scans[1], T_b, cfg)
-    split = verify_loop(scans[0], scans[1], T_b, replace(cfg, ground_split=True))
+    split = verify_loop(scans[0], scans[1], T_b, cfg.updated({"ground_split": True}))
     assert whole.accepted and split.accepted
     assert whole.T_i_j[0, 3] - 0.15 < -0.008  # pulled towards zero offset
     assert np.linalg.norm(split.T_i_j[:3, 3] - T_b[:3, 3]) < 0.005

@@ -66,7 +66,7 @@ def test_wheel_fusion_corrects_icp_edges_biased_along_track(two_lap_drive):
     drive.wheel_T = calibrated_wheel_increments(drive, calibrate_wheel(drive))
     errors = {}
     for fusion in (False, True):
-        problem, _ = base_problem([drive], *base_sections(wheel_fusion=fusion))
+        problem, _ = base_problem([drive], *base_sections({"factors.wheel.fusion": fusion}))
         kinds = [b.kind for b in problem.betweens]
         assert kinds.count("wheel_fused") == (int(drive.edge_ok.sum()) if fusion else 0)
         poses = optimize(problem)
@@ -104,7 +104,7 @@ def test_span_edges_cut_a_per_edge_heading_bias_and_a_wrong_span_stays_local(two
     drive.spans = SpanEdges(i, j, T_ij, info)
     out = {}
     for use in (False, True):
-        problem, _ = base_problem([drive], *base_sections(span_edges=use))
+        problem, _ = base_problem([drive], *base_sections({"factors.span_edges": use}))
         assert sum(b.kind == "span" for b in problem.betweens) == (len(i) if use else 0)
         assert all(b.robust == "huber" for b in problem.betweens if b.kind == "span")
         poses = optimize(problem)
@@ -159,7 +159,8 @@ def test_registration_noise_makes_the_marginals_hold_edges_noisier_than_their_in
         drive.stamps_ns = drive.stamps_ns.astype(np.int64)
         drive.edge_info[:] = np.diag([stated_rad ** -2] * 3 + [0.005 ** -2] * 3)
         for use in (False, True):
-            problem, _ = base_problem([drive], *base_sections(icp_edge_sigma_yaw_deg=extra_deg if use else 0.0))
+            yaw_deg = extra_deg if use else 0.0
+            problem, _ = base_problem([drive], *base_sections({"factors.registration.yaw_deg": yaw_deg}))
             poses = optimize(problem)
             cov = marginal_cov_xy_yaw(problem, poses).reshape(-1, 3, 3)
             err = np.angle(np.exp(1j * (np.arctan2(poses[:, 1, 0], poses[:, 0, 0])

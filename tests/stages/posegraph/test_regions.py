@@ -97,7 +97,7 @@ def test_partition_bounds_region_size_and_is_spatial():
 def test_regions_converge_to_the_joint_solution():
     problem, truth = synthetic()
     joint = optimize(problem, relative_error_tol=1e-10)
-    params = regions.RegionParams(max_poses=120, rounds=30, tol_m=1e-6, tol_rad=1e-7)
+    params = regions.RegionParams(max_poses=120, rounds=30, tol_m=1e-6)
     sol = regions.optimize_regions(problem, params, relative_error_tol=1e-10, map_fn=serial)
     assert sol.stats["regions"] >= 4 and sol.stats["largest_region_poses"] <= 120 + sol.stats["separator_poses"]
     diff = np.linalg.norm(sol.poses[:, :3, 3] - joint[:, :3, 3], axis=1)
@@ -146,7 +146,7 @@ def test_a_region_touches_only_its_poses_and_boundary():
 def test_partitioned_block_routes_optimize_through_regions():
     problem, _ = synthetic(n_per_side=40)
     joint = optimize(problem, relative_error_tol=1e-10)
-    with regions.partitioned(regions.RegionParams(max_poses=100, rounds=30, tol_m=1e-6, tol_rad=1e-7, workers=1)):
+    with regions.partitioned(regions.RegionParams(max_poses=100, rounds=30, tol_m=1e-6, workers=1)):
         split = optimize(problem, relative_error_tol=1e-10)
     assert np.abs(split[:, :3, 3] - joint[:, :3, 3]).max() < 1e-4
     assert regions.active() is None

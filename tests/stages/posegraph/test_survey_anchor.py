@@ -132,7 +132,7 @@ def test_anchoring_rounds_match_again_from_the_anchored_estimate(two_lap_drive):
 
     errors, records = {}, {}
     for n_rounds in (1, 4):
-        cfg = posegraph_config(survey_rounds=n_rounds, survey_round_tol_m=0.09, survey_round_tol_deg=0.5)
+        cfg = posegraph_config({"anchors.rounds": n_rounds, "anchors.round_tol_m": 0.09, "anchors.round_tol_deg": 0.5})
         problem, offsets = base_problem([drive], cfg.factors, cfg.gnss)
         start = optimize(problem)
         rounds: list[dict] = []

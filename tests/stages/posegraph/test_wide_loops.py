@@ -129,7 +129,7 @@ def test_chain_covariance_matches_monte_carlo(case):
 def test_fixed_radius_misses_the_drifted_passes_and_the_wide_search_closes_them(case):
     T_true, problem, drive = case
     verify, _ = oracle(T_true)
-    loops, poses, _ = run(problem, drive, T_true, posegraph_config(loop_wide=False), verify)
+    loops, poses, _ = run(problem, drive, T_true, posegraph_config({"loops.wide.enabled": False}), verify)
     before = passes_gap_error(poses, T_true)
     assert before > 20.0  # the drifted passes: tens of metres (47 m)
     problem, drive = drifting_problem(T_true)
