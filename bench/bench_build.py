@@ -115,7 +115,7 @@ def simulated(cache: Path, preset: str, seed: int, max_scans: int | None = None)
         tmp = out.with_name(out.name + ".tmp")
         shutil.rmtree(tmp, ignore_errors=True)
         cap = ["--max-scans", str(max_scans)] if max_scans else []
-        subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--preset", preset, "--seed", str(seed),
+        subprocess.run([sys.executable, "-m", "mapservice", "simulate", "--preset", preset, "--seed", str(seed),
                         "--out", str(tmp), "--quiet", *cap], check=True)
         tmp.replace(out)
     return out

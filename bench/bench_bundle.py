@@ -72,8 +72,9 @@ def main() -> None:
         sim = simulator_dir(root)
         shutil.rmtree(root / "maps" / "grow", ignore_errors=True)
         for drives in (["drive_0"], ["drive_0", "drive_1"]):
-            subprocess.run([sys.executable, "-m", "pipeline", "build", "--map", "grow", "--root", str(root), "--origin",
-                            ORIGIN, "-q"] + [a for d in drives for a in ("--drive", str(sim / d / "drive.yaml"))],
+            subprocess.run([sys.executable, "-m", "mapservice", "build", "--map", "grow", "--root", str(root),
+                            "--origin", ORIGIN, "-q"]
+                           + [a for d in drives for a in ("--drive", str(sim / d / "drive.yaml"))],
                            check=True)
         print(json.dumps({"seed": seed, **measure(root)}))
 

@@ -79,8 +79,8 @@ def build_maps(root: Path, sim: Path) -> None:
     for name, drives in MAPS.items():
         shutil.rmtree(root / "maps" / name, ignore_errors=True)
         for d in drives:
-            subprocess.run([sys.executable, "-m", "pipeline", "build", "--drive", str(sim / d / "drive.yaml"), "--map",
-                            name, "--root", str(root), "--origin", ORIGIN, "-q"], check=True)
+            subprocess.run([sys.executable, "-m", "mapservice", "build", "--drive", str(sim / d / "drive.yaml"),
+                            "--map", name, "--root", str(root), "--origin", ORIGIN, "-q"], check=True)
 
 
 def score(root: Path, sim: Path, radius_m: float = 1.0) -> dict:
@@ -142,7 +142,7 @@ def main() -> None:
         root = (args.root / f"{args.preset}-{seed}").resolve()
         if not args.no_build:
             if not (root / "datasets" / "raw_drives").is_dir():
-                subprocess.run([sys.executable, "-m", "pipeline", "run", str(workflow_for(args.preset, seed, root)),
+                subprocess.run([sys.executable, "-m", "mapservice", "run", str(workflow_for(args.preset, seed, root)),
                                 "-q", "--only", "simulate"], check=True)
             build_maps(root, simulator_dir(root))
         r = {"seed": seed, **score(root, simulator_dir(root))}

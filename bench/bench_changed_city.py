@@ -81,7 +81,7 @@ def run_seed(preset: str, seed: int, work: Path, scheduler: str) -> dict:
     from mapformat.loader import open_map
 
     sim, root = work / f"sim_{preset}_{seed}", work / f"root_{preset}_{seed}"
-    cli = [sys.executable, "-m", "pipeline"]
+    cli = [sys.executable, "-m", "mapservice"]
     t0 = time.perf_counter()
     if not (sim / "truth" / "changes.json").is_file():
         subprocess.run(cli + ["simulate", "--preset", preset, "--seed", str(seed), "--drives", "3", "--changes",

@@ -29,7 +29,7 @@ SIM_ORIGIN = "37.4979,127.0276,57.0"  # the tiny preset's
 
 def cornermap(args: list[str], cwd: Path, allow: tuple[int, ...] = ()) -> str:
     """Run a cornermap command; its last error line when it exits with a code in ``allow`` (else it must pass)."""
-    run = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=cwd, capture_output=True, text=True)
+    run = subprocess.run([sys.executable, "-m", "mapservice", *args], cwd=cwd, capture_output=True, text=True)
     if run.returncode in allow:
         return " ".join(ln.strip() for ln in run.stderr.strip().splitlines()[-2:])
     if run.returncode != 0:

@@ -7,7 +7,7 @@ Simulates ``--drives`` N drives of the ``growing`` preset (``stages/simulate/pre
 blocks, drive k loops around its own window of one block row and two block columns, the first 12 drives sweeping
 the grid west to east, later ones revisiting; ``--changes`` from drive ``--changes-from``: a building demolished,
 one built, a crosswalk moved along that drive's window), or takes them from ``--sim``. Makes a map (``maps create``,
-``--tile-size-m``) and on night k delivers drive k-1 to the inbox and runs ``python -m pipeline rebuild --no-gate``
+``--tile-size-m``) and on night k delivers drive k-1 to the inbox and runs ``python -m mapservice rebuild --no-gate``
 as a child process (the incremental default; ``bench.bench_incremental.rebuild_night``), with the tiles stage's
 quality gates off (``--params``: ``tiles: {gates_enabled: false}``; ``--tiles-gates`` keeps them).
 
@@ -72,7 +72,7 @@ def simulate(out: Path, seed: int, drives: int, changes_from: int | None) -> Pat
     cmd = [
         sys.executable,
         "-m",
-        "pipeline",
+        "mapservice",
         "simulate",
         "--preset",
         "growing",
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--figure", type=Path)
     ap.add_argument("--markdown", type=Path, help="the per-night table as Markdown (docs/maintenance.md)")
     a = ap.parse_args(argv)
-    from pipeline.maps import create_map
+    from mapservice.maps import create_map
 
     ref = a.drives - 1 if a.ref_drive is None else min(a.ref_drive, a.drives - 1)
     changes_from = (a.drives * 3) // 4 if a.changes_from is None else a.changes_from
@@ -298,7 +298,7 @@ def main(argv: list[str] | None = None) -> dict:
 def reference_builds(a, out: dict, sim: Path, work: Path, params: Path | None, ref: int) -> None:
     """Drive ``ref`` as a one-drive build and added to a one-drive map of the earlier drive of its window (drive
     ref - 12, else drive 0); the ratios of night ref+1 (drive ``ref`` added to the grown map) to both."""
-    from pipeline.maps import create_map
+    from mapservice.maps import create_map
 
     base = ref - WINDOWS if ref >= WINDOWS else 0
     refs = out["refs"] = {"base_drive": f"drive_{base}", "drive": f"drive_{ref}"}

@@ -4,7 +4,7 @@
         [--json out.json]
 
 Simulates ``--drives`` N drives of one city (or takes them from ``--sim``), makes a map (``maps create``) and adds
-drive k on night k (an inbox holding drives 0..k), each night a ``python -m pipeline rebuild`` child process.
+drive k on night k (an inbox holding drives 0..k), each night a ``python -m mapservice rebuild`` child process.
 ``--full`` runs every night with ``rebuild --full`` (the joint re-solve) instead of the incremental default; then
 drive N-1 alone is built as a one-drive map (night 1's cost for that drive).
 
@@ -39,7 +39,7 @@ def rebuild_night(root: Path, inbox: Path, full: bool, params: Path | None = Non
     import resource
 
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cmd = [sys.executable, "-m", "pipeline", "rebuild", "--root", str(root), "--map", "city", "--inbox", str(inbox),
+    cmd = [sys.executable, "-m", "mapservice", "rebuild", "--root", str(root), "--map", "city", "--inbox", str(inbox),
            "--no-gate", "--quiet-period-min", "0", "--min-free-gib", "0.5", "--json", "-q"] \
         + (["--full"] if full else []) + (["--params", str(params)] if params else [])
     t0 = time.perf_counter()
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
                     "joint solve of the same drives) and score its corners: the incremental map's reference")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
-    from pipeline.maps import create_map
+    from mapservice.maps import create_map
 
     work = a.work or Path(tempfile.mkdtemp(prefix="bench-incremental-"))
     try:
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> dict:
 def drift_summary(mdir: Path) -> dict | None:
     """LATEST's drift statistic (``maps show``'s): the frame test of the window and the largest region's share of
     its threshold."""
-    from pipeline.maps_show import latest_drift
+    from mapservice.maps_show import latest_drift
 
     d = latest_drift(mdir)
     if not d:

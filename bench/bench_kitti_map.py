@@ -46,13 +46,14 @@ def build(work: Path) -> tuple[Path, Path]:
 def rerun_markings(root: Path, workflow: Path, params: dict) -> dict:
     """Bring every stage up to date with this code, then run the markings stage alone in a child process under
     /usr/bin/time: its wall time and peak RSS."""
-    subprocess.run([sys.executable, "-m", "pipeline", "run", str(workflow), "--root", str(root), "--scheduler", "sync",
-                    "-q"], check=False, cwd=REPO, capture_output=True)  # upstream refresh (tiles' gate may refuse)
+    subprocess.run([sys.executable, "-m", "mapservice", "run", str(workflow), "--root", str(root), "--scheduler",
+                    "sync", "-q"], check=False, cwd=REPO,
+                   capture_output=True)  # upstream refresh (tiles' gate may refuse)
     markings = dict(params.get("markings") or {})
     markings["pose_buffer_m"] = float(markings.get("pose_buffer_m", 30.0)) + (time.time_ns() % 1000) * 1e-9  # new fp
     override = root.parent / "markings_override.yaml"
     override.write_text(yaml.safe_dump({**params, "markings": markings}))
-    run = subprocess.run(["/usr/bin/time", "-f", "peak_kb=%M wall_s=%e", sys.executable, "-m", "pipeline", "run",
+    run = subprocess.run(["/usr/bin/time", "-f", "peak_kb=%M wall_s=%e", sys.executable, "-m", "mapservice", "run",
                           str(workflow), "--root", str(root), "--only", "markings", "--scheduler", "sync", "-q",
                           "--params", str(override)], cwd=REPO, capture_output=True, text=True)
     if run.returncode != 0:
@@ -147,7 +148,7 @@ def self_evaluate(work: Path, root: Path) -> dict:
     """``cornermap evaluate`` of the map's own drive against its own map (reference: its pose-graph poses)."""
     drive = work / "drive" / "k0048" / "drive.yaml"
     out = work / "self_eval"
-    run = subprocess.run([sys.executable, "-m", "pipeline", "evaluate", "--root", str(root), "--map", "kitti",
+    run = subprocess.run([sys.executable, "-m", "mapservice", "evaluate", "--root", str(root), "--map", "kitti",
                           "--drive", str(drive), "--reference", "map", "--method", "ekf", "--out", str(out), "-q"],
                          cwd=REPO, capture_output=True, text=True)
     metrics = out / "metrics.json"

@@ -30,7 +30,7 @@ FACADE_Z_M = (1.0, 4.0)  # points this far above the vehicle's ground plane: wal
 
 
 def cornermap(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    run = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=cwd, capture_output=True, text=True)
+    run = subprocess.run([sys.executable, "-m", "mapservice", *args], cwd=cwd, capture_output=True, text=True)
     if run.returncode != 0:
         raise SystemExit(f"cornermap {' '.join(args[:2])} failed (exit {run.returncode}): {run.stderr.strip()}")
     return run

@@ -152,7 +152,7 @@ def main() -> None:
         root = (args.root / f"{args.preset}-{seed}").resolve()
         if not args.no_run:
             wf = workflow_for(args.preset, seed, root)
-            subprocess.run([sys.executable, "-m", "pipeline", "run", str(wf), "-q"], check=True)
+            subprocess.run([sys.executable, "-m", "mapservice", "run", str(wf), "-q"], check=True)
         row = {"seed": seed, **score_seed(root)}
         if args.figure:
             figure(root, args.figure / f"localizability_{args.preset}_{seed}.png")

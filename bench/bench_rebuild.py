@@ -42,7 +42,7 @@ def simulated(sim: Path | None, work: Path, preset: str, seed: int, drives: int)
     if sim is not None:
         return sim
     out = work / "sim"
-    subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--preset", preset, "--seed", str(seed),
+    subprocess.run([sys.executable, "-m", "mapservice", "simulate", "--preset", preset, "--seed", str(seed),
                     "--drives", str(drives), "--out", str(out)], check=True, capture_output=True)
     return out
 
@@ -82,7 +82,7 @@ def deliver_s3(sim: Path, names: list[str], inbox: str) -> str:
 def _rebuild(root, inbox, gate: bool, server=None) -> tuple[dict, float, list[str], float]:
     """(summary, wall s, lines, CPU s of this process tree less the S3 server's)."""
     from bench.bench_build import _cpu_of, tree_cpu_s
-    from pipeline.rebuild import RebuildParams, rebuild
+    from mapservice.rebuild import RebuildParams, rebuild
 
     t0, cpu0 = time.perf_counter(), tree_cpu_s() - _cpu_of(server)
     res = rebuild(root, "city", inbox, RebuildParams(gate=gate, min_free_gib=0.5, quiet_period_s=0.0))  # copied now
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 def _bench(a, server) -> dict:
     from bench.bench_build import _cpu_of
-    from pipeline.maps import create_map
+    from mapservice.maps import create_map
 
     work = a.work or Path(tempfile.mkdtemp(prefix="bench-rebuild-"))
     server_cpu0 = _cpu_of(server)

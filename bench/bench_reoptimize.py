@@ -33,7 +33,7 @@ from bench.bench_incremental import _machine, corner_accuracy
 
 def reoptimize_run(root: Path, workers: int, region_max_poses: int) -> dict:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cmd = [sys.executable, "-m", "pipeline", "maps", "reoptimize", "--root", str(root), "--map", "city", "--no-gate",
+    cmd = [sys.executable, "-m", "mapservice", "maps", "reoptimize", "--root", str(root), "--map", "city", "--no-gate",
            "--min-free-gib", "0.5", "--scheduler", "distributed", "--workers", str(workers),
            "--region-max-poses", str(region_max_poses), "--json", "-q"]
     t0 = time.perf_counter()

@@ -31,7 +31,7 @@ SIM_ORIGIN = "37.4979,127.0276,57.0"
 
 
 def cornermap(args: list[str], cwd: Path, allow: tuple[int, ...] = ()) -> None:
-    run = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=cwd, capture_output=True, text=True)
+    run = subprocess.run([sys.executable, "-m", "mapservice", *args], cwd=cwd, capture_output=True, text=True)
     if run.returncode != 0 and run.returncode not in allow:
         raise SystemExit(f"cornermap {' '.join(args[:3])} failed (exit {run.returncode}): {run.stderr.strip()}")
 

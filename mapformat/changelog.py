@@ -25,13 +25,9 @@ CHANGELOG_FORMAT = "cornermap-changelog"
 CHANGELOG_FORMAT_VERSION = 2  # 2: kept corners tested by chi-square, markings per cell (1 still read)
 MARKING_CELL_M = 10.0  # the markings' change regions
 MARKING_TOLERANCE_PX = 2  # paint within this many raster cells in the other version is not a change
-ORIGIN_TOL_DEG, ORIGIN_TOL_M = 1e-9, 1e-3  # 1e-9 deg is ~0.1 mm on the ground
-
-
 def same_frame(origin_a: EnuOrigin, size_a: float, origin_b: EnuOrigin, size_b: float) -> bool:
-    return (abs(origin_a.lat_deg - origin_b.lat_deg) <= ORIGIN_TOL_DEG
-            and abs(origin_a.lon_deg - origin_b.lon_deg) <= ORIGIN_TOL_DEG
-            and abs(origin_a.h_m - origin_b.h_m) <= ORIGIN_TOL_M and float(size_a) == float(size_b))
+    """One tiling of one frame: the same origin (``EnuOrigin.same_frame``) and the same tile size."""
+    return origin_a.same_frame(origin_b) and float(size_a) == float(size_b)
 
 
 def describe_origin(o: EnuOrigin) -> str:

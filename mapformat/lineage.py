@@ -4,7 +4,7 @@ A version's manifest records each input of the tiles stage as ``{dataset, finger
 committed dataset's ``_manifest.json`` records its own inputs the same way, and a stage writes all its outputs
 under the one fingerprint of its run (``ROOT/datasets/<dataset>/<fp16>``). So the scans a version's poses were
 optimised from are the ``scans_raw`` its ``poses`` input's manifest names, and the outputs of one stage run are
-siblings under the same fingerprint (``pipeline/gc.py`` keeps them together for the same reason).
+siblings under the same fingerprint (``mapservice/gc.py`` keeps them together for the same reason).
 
 An export that needs more than the version directory (the Autoware point cloud: scans, poses, extrinsics) asks a
 ``VersionLineage`` for them: it walks the recorded inputs breadth-first from the version's and never looks for the

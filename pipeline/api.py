@@ -4,7 +4,6 @@
 - ``stage_context``: the ``StageContext`` a stage's task would receive for a planned stage (params resolved, inputs
   reading the committed fingerprints), so a bench can call the stage's own functions on a committed root.
 - ``load_param_file``: a ``--params`` YAML file ``{stage: {param: value}}``.
-- ``published_version``: the map version a run's tiles stage published.
 
 Heavy imports happen inside the functions so ``cornermap --help`` stays instant.
 """
@@ -21,7 +20,7 @@ if TYPE_CHECKING:
     from pipeline.declare import PartitionKey, StageContext
     from pipeline.plan import Plan
 
-__all__ = ["execute_workflow", "load_param_file", "published_version", "stage_context"]
+__all__ = ["execute_workflow", "load_param_file", "stage_context"]
 
 
 def load_param_file(path: Optional[Path]) -> dict:
@@ -61,7 +60,7 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
     wf = load_workflow(workflow_path, param_overrides=load_param_file(params_file))
     if only:
         from pipeline.errors import UnknownNameError
-        from pipeline.registry import suggest
+        from pipeline.names import suggest
 
         for name in only:
             if name not in wf.stages:
@@ -120,29 +119,6 @@ def _cpu_s() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-def published_version(plan: "Plan") -> int | None:
-    """The map version the plan's tiles stage published (its committed ``map_tiles`` dataset), None without one."""
-    import pyarrow.parquet as pq
-
-    from pipeline.names import inside
-    from pipeline.store import data_root
-
-    sp = next((sp for sp in plan.stages.values() if "map_tiles" in sp.outputs.values()), None)
-    if sp is None:
-        return None
-    droot = data_root(plan.uri)
-    m = droot.manifest("map_tiles", sp.fingerprint)
-    if not m:
-        return None
-    droot.fetch("map_tiles", sp.fingerprint, [(f["path"], f.get("bytes")) for f in m["files"]])
-    d = droot.dir("map_tiles", sp.fingerprint)
-    for f in m["files"]:
-        rows = pq.read_table(inside(d, f["path"]), columns=["version"]).to_pylist()
-        if rows:
-            return int(rows[0]["version"])
-    return None
-
-
 def stage_context(plan: "Plan", stage: str, scratch_dir: Path, *, partition: "PartitionKey | None" = None,
                   artifact_dirs: dict[str, Path] | None = None) -> "StageContext":
     """The context a task of ``stage`` gets in ``plan``: validated params, a reader of the committed inputs (the
@@ -153,7 +129,7 @@ def stage_context(plan: "Plan", stage: str, scratch_dir: Path, *, partition: "Pa
 
     if stage not in plan.stages:
         from pipeline.errors import UnknownNameError
-        from pipeline.registry import suggest
+        from pipeline.names import suggest
 
         raise UnknownNameError(f"stage {stage!r} is not in the plan of {plan.root}{suggest(stage, plan.stages)}")
     return _context(_task_spec(plan, plan.stages[stage]), partition or PartitionKey(), Path(scratch_dir),

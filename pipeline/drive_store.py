@@ -215,9 +215,22 @@ def preflight_path(drive: "str | Path") -> Path | None:
     for (_, local), staged in _STAGED.items():
         if staged == uri:
             return Path(local)
-    from pipeline.inbox import _COPIES
-
     for local, source in _COPIES.items():
         if source == uri:
             return Path(local)
     return None
+
+
+_COPIES: dict[str, str] = {}  # local copy of a delivered drive.yaml -> its s3:// URI, this process
+
+
+def remember_copy(drive_yaml: "str | Path", uri: str) -> None:
+    """This process's local copy ``drive_yaml`` of a drive fetched from an object store stands for ``uri``."""
+    _COPIES[os.path.abspath(drive_yaml)] = uri
+
+
+def source_of_copy(drive_yaml: "str | Path") -> str | None:
+    """The ``s3://`` URI of a drive file this process fetched from an object-store inbox into its local copy
+    (``mapservice.inbox.StoreInbox.fetch``), None for any other path: a build names the drive by it, so that its
+    tasks read the drive from the bucket, never from this process's copy."""
+    return _COPIES.get(os.path.abspath(drive_yaml))

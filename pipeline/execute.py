@@ -5,7 +5,6 @@ threaded or multiprocessing scheduler, or on a dask.distributed cluster (``tcp:/
 """
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 import logging
 import os
@@ -270,41 +269,6 @@ def set_step_progress(stage: str, display: Callable[[str, int, int], None] | Non
         _STEP_PROGRESS.pop(stage, None)
     else:
         _STEP_PROGRESS[stage] = display
-
-
-# Native thread pools of the libraries a task may call (OpenMP: open3d; BLAS). A pool of one process per core
-# with each process also starting a thread per core oversubscribes the machine; dask.distributed's nanny sets the
-# same variables for its workers (``distributed.nanny.pre-spawn-environ``).
-THREAD_POOL_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-# The cores a pool's process may use (``pipeline.parallel.task_threads``), for the native pools that ignore the
-# variables above (Open3D's oneTBB); set by ``one_thread_per_process`` for the processes it starts.
-TASK_THREADS_VARIABLE = "CORNERMAP_TASK_THREADS"
-
-
-@contextlib.contextmanager
-def one_thread_per_process(processes: int | None = None):
-    """Within the block, newly spawned processes start their native thread pools with one thread, unless the
-    user set the variable; the parent's environment is restored afterwards. ``processes``: how many the block's
-    pool starts; each is then told its share of the usable cores (at least 1) in ``TASK_THREADS_VARIABLE``."""
-    from pipeline.parallel import default_workers
-
-    names = THREAD_POOL_VARIABLES + ((TASK_THREADS_VARIABLE,) if processes else ())
-    saved = {v: os.environ.get(v) for v in names}
-    for v, value in saved.items():
-        if value is None:
-            os.environ[v] = "1"
-    if processes:
-        os.environ[TASK_THREADS_VARIABLE] = str(max(1, default_workers() // max(1, int(processes))))
-    try:
-        yield
-    finally:
-        for v, value in saved.items():
-            if value is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = value
 
 
 class Scheduler:

@@ -42,12 +42,11 @@ from pipeline.execute import (
     _task_spec,
     commit_stage,
     enumerate_partitions,
-    one_thread_per_process,
     run_partition,
     set_step_progress,
     task_key,
 )
-from pipeline.parallel import process_pool
+from pipeline.parallel import one_thread_per_process, process_pool
 from pipeline.plan import Plan, StagePlan
 from pipeline.store import data_root
 

@@ -37,6 +37,7 @@ from pathlib import PurePath
 from typing import Iterator
 
 from pipeline.errors import RunLockedError
+from pipeline.holds import reentrant_hold, this_command
 from pipeline.storage import Store, locks_dir
 
 log = logging.getLogger(__name__)
@@ -108,8 +109,6 @@ class LeaseLocks:
 
     @contextmanager
     def hold(self, key: str, *, exclusive: bool, what: str | None = None) -> Iterator[None]:
-        from pipeline.locks import reentrant_hold, this_command
-
         what = what or this_command()
 
         def acquire() -> _Lease:

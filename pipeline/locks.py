@@ -31,15 +31,15 @@ import fcntl
 import os
 import secrets
 import socket
-import sys
 import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable, ContextManager, Iterator, Protocol
+from typing import ContextManager, Iterator, Protocol
 
 from pipeline.errors import RunLockedError
+from pipeline.holds import reentrant_hold, this_command
 from pipeline.names import check_name
 from pipeline.storage import Store, locks_dir, root_of_map
 
@@ -68,43 +68,6 @@ class _Held:
 
 _HELD: dict[Path, _Held] = {}  # this process's locks, by lock file
 _HELD_LOCK = threading.Lock()
-
-
-@contextmanager
-def reentrant_hold(held: dict, guard: threading.Lock, ident: object, exclusive: bool, label: str,
-                   acquire: Callable[[], Any], release: Callable[[Any], None]) -> Iterator[None]:
-    """A process's holds of one lock nest: a second hold of ``ident`` (``held[ident]``, an object with ``exclusive``
-    and ``count``) inside the first shares it (a shared inside an exclusive one too; an exclusive inside a shared one
-    is a RuntimeError); the first one acquires (``acquire()``) and, at its end, releases (``release(h)``). Used by the
-    flock locks and by the lease locks (``pipeline.leases``)."""
-    with guard:
-        h = held.get(ident)
-        if h is not None:
-            if exclusive and not h.exclusive:
-                raise RuntimeError(f"{label}: held shared by this process; it cannot be made exclusive")
-            h.count += 1
-    if h is not None:
-        try:
-            yield
-        finally:
-            with guard:
-                h.count -= 1
-        return
-    h = acquire()
-    with guard:
-        held[ident] = h
-    try:
-        yield
-    finally:
-        with guard:
-            held.pop(ident, None)
-        release(h)
-
-
-def this_command() -> str:
-    """What this process is, for a holder record: its command line (``cornermap build --map city ...``)."""
-    argv = [Path(sys.argv[0]).name] + sys.argv[1:] if sys.argv and sys.argv[0] else ["python"]
-    return " ".join(argv)[:300]
 
 
 class FileLocks:

@@ -5,19 +5,27 @@ One pattern for every name that ends up in a path::
     NAME_PATTERN = ^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$   and no ".." anywhere
 
 so a name is one path component: no separator, not "." or "..", no leading dot or dash (hidden files,
-options), at most 64 characters. ``inside(root, *parts)`` resolves a path built from input (a name, a
-manifest entry) and raises ``PathEscapeError`` unless it stays under ``root`` after resolving ``..`` and
-symlinks.
+options), at most 64 characters. ``inside(root, *parts)`` (defined beside the layout, ``pipeline.storage``)
+resolves a path built from input (a name, a manifest entry) and raises ``PathEscapeError`` unless it stays under
+``root`` after resolving ``..`` and symlinks. ``suggest``: the "did you mean" of every unknown name.
 """
 from __future__ import annotations
 
+import difflib
 import re
 from pathlib import Path
 
-from pipeline.errors import ConfigError, OptionError, PathEscapeError
+from pipeline.errors import ConfigError, OptionError, UnknownNameError
+from pipeline.storage import inside, maps_dir  # noqa: F401 - inside: the path rule, imported from here by its callers
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 _NAME_RE = re.compile(NAME_PATTERN)
+
+
+def suggest(name: str, known) -> str:
+    """`` (did you mean 'x'?)`` for the closest of ``known`` to ``name``, or ``""``."""
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def name_problem(name: object, kind: str) -> str | None:
@@ -37,30 +45,11 @@ def check_name(name: object, kind: str, where: str = "name") -> str:
     return name  # type: ignore[return-value]
 
 
-def inside(root: Path | str, *parts: str | Path) -> Path:
-    """``root/parts...`` resolved (``..`` and symlinks); PathEscapeError unless it stays under ``root``."""
-    base = Path(root).resolve()
-    for p in parts:
-        if Path(p).is_absolute():
-            raise PathEscapeError(f"{p!s}: an absolute path where a path relative to {base} was expected")
-    path = base.joinpath(*parts).resolve()
-    if path != base and base not in path.parents:
-        rel = "/".join(str(p) for p in parts)
-        raise PathEscapeError(f"{rel!r} resolves to {path}, outside {base}; hint: paths from input must stay "
-                              "inside their root")
-    return path
-
-
 def published_map_dir(root: Path | str | None, name: str | None, hint: str = "pass --root ROOT --map NAME") -> Path:
     """``ROOT/maps/NAME`` of a published map, the one naming rule of every command (``--root ROOT --map NAME``);
     with no name, the only map under ``ROOT/maps``. UnknownNameError (with "did you mean") otherwise."""
-    from pipeline.errors import UnknownNameError
-    from pipeline.registry import suggest
-
     if name is not None:
         check_name(name, "map", "--map")
-    from pipeline.storage import maps_dir
-
     maps = maps_dir(Path(root if root is not None else "."))
     have = sorted(p.name for p in maps.iterdir() if p.is_dir()) if maps.is_dir() else []
     if name is None:

@@ -26,7 +26,7 @@ started them is gone (``ORPHAN_POLL_S``). Why: a run stopped by SIGKILL (a job s
 or by a SIGTERM that reaches only the engine's process, otherwise leaves its pool processes waiting in a queue read
 that never ends, with their memory (a demo build killed in its pose graph: 4 processes, 2.35 GB). They ignore
 SIGINT: a terminal's Ctrl-C reaches the whole process group, and the process that started them ends them
-(``pipeline.cli``: exit 130, one line) where each would otherwise print a KeyboardInterrupt traceback. Their log
+(``mapservice.cli``: exit 130, one line) where each would otherwise print a KeyboardInterrupt traceback. Their log
 records go to the starting process, which shows them as its own (``_log_relay``).
 """
 from __future__ import annotations
@@ -114,12 +114,12 @@ def exit_when_orphaned(parent_pid: int, poll_s: float = ORPHAN_POLL_S) -> None:
     os._exit(ORPHAN_EXIT_CODE)
 
 
-EXIT_WITH_PARENT_VARIABLE = "CORNERMAP_EXIT_WITH_PARENT"  # set by pipeline.progress.run_cornermap for its child
+EXIT_WITH_PARENT_VARIABLE = "CORNERMAP_EXIT_WITH_PARENT"  # set by mapservice.child.run_cornermap for its child
 
 
 def exit_with_parent_from_env(variable: str = EXIT_WITH_PARENT_VARIABLE) -> None:
     """When ``variable`` names this process's parent pid, watch it like a pool process does (``exit_when_orphaned``,
-    in a daemon thread): the command a parent started (``pipeline.progress.run_cornermap``: the rebuild's drive
+    in a daemon thread): the command a parent started (``mapservice.child.run_cornermap``: the rebuild's drive
     checks, the regression gate's evaluations)
     ends within ``ORPHAN_POLL_S`` once that parent is gone, and its own pool processes follow it."""
     value = os.environ.pop(variable, "")
@@ -262,6 +262,39 @@ def _forget_on_cluster(block: str) -> None:
         log.warning("parallel_map: could not drop a block's cached values on every worker (%s)", exc)
 
 
+# Native thread pools of the libraries a task may call (OpenMP: open3d; BLAS). A pool of one process per core
+# with each process also starting a thread per core oversubscribes the machine; dask.distributed's nanny sets the
+# same variables for its workers (``distributed.nanny.pre-spawn-environ``).
+THREAD_POOL_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+# The cores a pool's process may use (``pipeline.parallel.task_threads``), for the native pools that ignore the
+# variables above (Open3D's oneTBB); set by ``one_thread_per_process`` for the processes it starts.
+TASK_THREADS_VARIABLE = "CORNERMAP_TASK_THREADS"
+
+
+@contextlib.contextmanager
+def one_thread_per_process(processes: int | None = None):
+    """Within the block, newly spawned processes start their native thread pools with one thread, unless the
+    user set the variable; the parent's environment is restored afterwards. ``processes``: how many the block's
+    pool starts; each is then told its share of the usable cores (at least 1) in ``TASK_THREADS_VARIABLE``."""
+    names = THREAD_POOL_VARIABLES + ((TASK_THREADS_VARIABLE,) if processes else ())
+    saved = {v: os.environ.get(v) for v in names}
+    for v, value in saved.items():
+        if value is None:
+            os.environ[v] = "1"
+    if processes:
+        os.environ[TASK_THREADS_VARIABLE] = str(max(1, default_workers() // max(1, int(processes))))
+    try:
+        yield
+    finally:
+        for v, value in saved.items():
+            if value is None:
+                os.environ.pop(v, None)
+            else:
+                os.environ[v] = value
+
+
 def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
@@ -269,15 +302,13 @@ def default_workers() -> int:
 def task_threads() -> int | None:
     """The cores the current task may use: the threads of the dask worker running it (its ``nthreads``: the cores
     the cluster counts it for); in a process of a local pool (the engine's, ``parallel_map``'s), its share of the
-    usable cores (``pipeline.execute.one_thread_per_process``); None elsewhere (this process decides). A library
+    usable cores (``one_thread_per_process``); None elsewhere (this process decides). A library
     whose thread pool ignores ``OMP_NUM_THREADS`` is bounded to this by its caller (Open3D's oneTBB:
     ``stages.common.registration``). Measured on demo seed 1's odometry, 2 pool processes on 2 cores: 62.5-63.4 s
     with each process's oneTBB on both cores, 59.9-60.7 s bounded to one."""
     cluster = _cluster_task_threads()
     if cluster is not None:
         return cluster
-    from pipeline.execute import TASK_THREADS_VARIABLE
-
     share = os.environ.get(TASK_THREADS_VARIABLE, "")
     return int(share) if share.isdigit() and int(share) > 0 else None
 
@@ -329,8 +360,6 @@ def parallel_map(fn: Callable[[Any], Any], items: Sequence[Any], *, workers: int
 
 
 def _on_pool(fn, items, workers, initializer, initargs, progress) -> list[Any]:
-    from pipeline.execute import one_thread_per_process
-
     with one_thread_per_process(workers):  # the spawned processes inherit the environment at start
         with process_pool(workers, initializer, initargs) as pool:
             return _gathered({pool.submit(fn, x): n for n, x in enumerate(items)}, progress)
@@ -415,8 +444,6 @@ def _on_shared_pool(holder: dict[str, Any], fn, items, initializer, initargs, pr
     import pickle
     import uuid
     from pathlib import Path
-
-    from pipeline.execute import one_thread_per_process
 
     token = uuid.uuid4().hex
     init_path = None

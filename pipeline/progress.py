@@ -335,15 +335,15 @@ def event(text: str) -> None:
 _PLAIN_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d (.+)$")  # what a plain display writes
 
 
-def run_cornermap(args: list[str], label: str | None = None, step: str = "") -> subprocess.CompletedProcess:
-    """``cornermap ARGS`` in a child process (``python -m pipeline``), its output captured (text). With a display
-    open and a ``label``, the child's own progress shows live as that row's step (after ``step``), and the child's
-    other stderr lines (its error line) are the result's ``stderr``; without, the child shows none. The child ends
-    itself within a second once this process is gone (``pipeline.parallel.exit_with_parent_from_env``, started by
-    ``python -m pipeline``): a SIGKILLed rebuild leaves no evaluation running."""
+def run_child(cmd: list[str], label: str | None = None, step: str = "") -> subprocess.CompletedProcess:
+    """Command ``cmd`` (a command line of this package's app, ``mapservice.child.run_cornermap``) in a child process,
+    its output captured (text). With a display open and a ``label``, the child's own progress shows live as that
+    row's step (after ``step``), and the child's other stderr lines (its error line) are the result's ``stderr``;
+    without, the child shows none. The child ends itself within a second once this process is gone
+    (``pipeline.parallel.exit_with_parent_from_env``, which the app's ``__main__`` starts): a SIGKILLed parent leaves
+    no child running."""
     from pipeline.parallel import EXIT_WITH_PARENT_VARIABLE
 
-    cmd = [sys.executable, "-m", "pipeline", *args]
     own = {**os.environ, EXIT_WITH_PARENT_VARIABLE: str(os.getpid())}  # the child ends once this process is gone
     display = active()
     if display is None or label is None:

@@ -5,7 +5,6 @@ Only declarations are imported here (they import nothing heavy), so ``cornermap 
 """
 from __future__ import annotations
 
-import difflib
 import logging
 import os
 from functools import lru_cache
@@ -13,10 +12,9 @@ from importlib.metadata import entry_points
 
 from pipeline.declare import StageDecl, resolve
 from pipeline.errors import ConfigError, UnknownNameError
-from pipeline.names import name_problem
+from pipeline.names import name_problem, suggest
 
 log = logging.getLogger(__name__)
-STAGE_ORDER = ("simulate", "ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "tiles", "evaluate")
 
 
 @lru_cache(maxsize=1)
@@ -43,13 +41,7 @@ def load_stages() -> dict[str, StageDecl]:
         stages[decl.name] = decl
     if problems:
         raise ConfigError("stage declarations", problems)
-    order = {n: i for i, n in enumerate(STAGE_ORDER)}
-    return dict(sorted(stages.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
-
-
-def suggest(name: str, known) -> str:
-    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
-    return f" (did you mean {close[0]!r}?)" if close else ""
+    return dict(sorted(stages.items()))  # by name; the app lists them in its own order (``register_stages``)
 
 
 def get_stage(name: str) -> StageDecl:

@@ -10,7 +10,7 @@ from importlib import resources
 from pathlib import Path
 
 from pipeline.errors import ConfigError
-from pipeline.registry import suggest
+from pipeline.names import suggest
 
 CATALOG_PACKAGE = "data_catalog"
 WORKFLOW_PACKAGE = "workflows"

@@ -215,6 +215,22 @@ _URI_RE = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*):/")  # "s3://b/p", and "s3:/b/
 SCHEMES = ("s3",)  # object stores a root may live on
 
 
+def inside(root: Path | str, *parts: str | Path) -> Path:
+    """``root/parts...`` resolved (``..`` and symlinks); PathEscapeError unless it stays under ``root``."""
+    from pipeline.errors import PathEscapeError
+
+    base = Path(root).resolve()
+    for p in parts:
+        if Path(p).is_absolute():
+            raise PathEscapeError(f"{p!s}: an absolute path where a path relative to {base} was expected")
+    path = base.joinpath(*parts).resolve()
+    if path != base and base not in path.parents:
+        rel = "/".join(str(p) for p in parts)
+        raise PathEscapeError(f"{rel!r} resolves to {path}, outside {base}; hint: paths from input must stay "
+                              "inside their root")
+    return path
+
+
 def uri_scheme(value: object) -> str | None:
     """The scheme of a URI (``"s3"`` for ``s3://bucket/prefix``), None for a local path. A ``Path`` made from a URI
     (``Path("s3://b/p")`` is ``s3:/b/p``) is still recognised: it was never meant as a local folder."""
@@ -528,8 +544,6 @@ class Store:
 
     def download_tree(self, loc: PurePath, dest: Path) -> list[str]:
         """Copy every object under ``loc`` into the local folder ``dest``; returns the relative paths."""
-        from pipeline.names import inside
-
         rels = [rel for rel, _ in self.walk_files(loc)]
         if not rels:
             return []

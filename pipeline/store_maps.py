@@ -45,8 +45,7 @@ def map_names(store: Store) -> list[str]:
 
 def resolve_map(store: Store, name: str | None, hint: str = "pass --map NAME (and --root ROOT)") -> str:
     """``name`` when the map exists on ``store``; the only map with no name; UnknownNameError otherwise."""
-    from pipeline.names import check_name
-    from pipeline.registry import suggest
+    from pipeline.names import check_name, suggest
 
     have = map_names(store)
     where = store.url(storage.maps_dir(store.root))

@@ -68,7 +68,7 @@ def make_context(stage: str, params: Params, tables: Mapping[str, pa.Table] | No
         workdir = tempfile.mkdtemp(prefix=f"cornermap-{stage}-")
         atexit.register(shutil.rmtree, workdir, True)
     workdir = Path(workdir)
-    base_settings = {"map_name": "test", "enu_origin": None, "tile_size_m": 100.0, "map_drives": [],
+    base_settings = {"map_name": "test", "enu_origin": None, "tile_size_m": None, "map_drives": [],
                      "eval_drives": [], "root": str(workdir), "references": {}}
     base_settings.update(settings or {})
     return StageContext(

@@ -195,3 +195,36 @@ def check_version(version_dir: Path) -> None:
     if problems:
         raise ChecksumError(f"{version_dir}: {len(problems)} problem(s):\n" + "\n".join(f"  - {p}" for p in problems)
                             + "\nhint: the version is corrupt; republish it or restore it from backup")
+
+
+def version_states(mdir: Path) -> dict[int, str]:
+    """Each version's standing: ``LATEST``; ``refused`` when the regression gate refused it (``gate/vNNNN.json`` with
+    ``ok`` false: ``cornermap rebuild`` left LATEST on its parent); ``candidate`` when it is newer than LATEST and was
+    never gated (a rebuild stopped before its gate); ``""`` otherwise (an older version LATEST once named)."""
+    latest = read_latest(mdir) if storage.latest_file(Path(mdir)).exists() else None
+    out = {}
+    for v in list_versions(mdir):
+        gate = storage.gate_file(Path(mdir), v)
+        try:
+            ok = json.loads(gate.read_text(encoding="utf-8")).get("ok") if gate.is_file() else None
+        except (OSError, ValueError, AttributeError):
+            ok = None
+        if v == latest:
+            out[v] = "LATEST"
+        elif ok is False:
+            out[v] = "refused"
+        elif latest is not None and v > latest and ok is None:
+            out[v] = "candidate"
+        else:
+            out[v] = ""
+    return out
+
+
+def state_note(mdir: Path, version: int, state: str) -> str:
+    """The words ``tiles ls`` and ``maps show`` print after a version in that standing."""
+
+    if state == "refused":
+        return f"REFUSED by the regression gate ({storage.gate_file(Path(mdir), version)}); never LATEST"
+    if state == "candidate":
+        return "candidate, not gated (a rebuild stopped before its gate); never LATEST"
+    return ""

@@ -221,3 +221,23 @@ def publish_version(collection_dir: Path, write: Callable[[Path], Mapping[str, A
             apply_retention(collection_dir, keep_last)
         log.info("published %s (%d files)", final, len(files))
         return PublishedVersion(number, final, hashlib.sha256(raw).hexdigest(), manifest, created=True)
+
+
+def rollback_latest(mdir: Path, to: str) -> tuple[int | None, int]:
+    """Point LATEST at an older complete, verified version (a new LATEST write; nothing is deleted).
+    Returns (previous LATEST, new LATEST)."""
+    from pipeline.errors import ChecksumError, UnknownNameError
+    from pipeline.locks import map_lock
+
+    number = parse_version(to)
+    vdir = Path(mdir) / version_name(number)
+    if not vdir.is_dir():
+        have = ", ".join(version_name(v) for v in list_versions(mdir)) or "none"
+        raise UnknownNameError(f"{mdir}: no version {version_name(number)}; have {have}")
+    with map_lock(Path(mdir)), publish_lock(Path(mdir)):
+        problems = verify_version(vdir)
+        if problems:
+            raise ChecksumError(f"{vdir}: {len(problems)} integrity problem(s), not rolled back to: {problems[0]}")
+        before = read_latest(mdir)
+        write_latest(Path(mdir), number)
+    return before, number

@@ -14,8 +14,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pipeline.catalog import Catalog, load_catalog
 from pipeline.declare import Params, StageDecl, merged, nested, unknown_key_problem
 from pipeline.errors import ConfigError
-from pipeline.names import name_problem
-from pipeline.registry import load_stages, suggest
+from pipeline.names import name_problem, suggest
+from pipeline.registry import load_stages
 from pipeline.safe_yaml import load_yaml_file
 
 TEMPLATE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
@@ -30,14 +30,6 @@ class DriveEntry(BaseModel):
     reference: str | None = None  # truth trajectory (TUM) for evaluation
 
 
-class EnuOriginSpec(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    lat_deg: float
-    lon_deg: float
-    h_m: float = 0.0
-
-
 class WorkflowSpec(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -47,8 +39,10 @@ class WorkflowSpec(BaseModel):
     root: str | None = None  # default: runs/<name> under the current directory
     map_name: str = "map"
     scheduler: str = "local"
-    enu_origin: EnuOriginSpec | None = None
-    tile_size_m: float = 100.0
+    # the map's frame ({lat_deg, lon_deg, h_m}): carried, not interpreted; the stages that read it validate it
+    # (``stages.common.geodesy.EnuOrigin.validate``); null: the stages choose it (ingest: the first GNSS fix)
+    enu_origin: dict[str, float] | None = None
+    tile_size_m: float | None = Field(None, gt=0)  # null: the stages' default (stages.common.tiling)
     # the map's area: a map drive with a GNSS fix farther from enu_origin is refused (exit 3); null: unbounded
     max_radius_m: float | None = Field(10_000.0, gt=0)
     hold_latest: bool = False  # publish the new map version without moving LATEST (a later gate moves it)
@@ -106,7 +100,7 @@ class Workflow:
         s = self.spec
         return {
             "map_name": s.map_name,
-            "enu_origin": s.enu_origin.model_dump() if s.enu_origin else None,
+            "enu_origin": dict(s.enu_origin) if s.enu_origin else None,
             "tile_size_m": s.tile_size_m,
             "map_drives": [d.name for d in s.drives if d.role == "map"],
             "eval_drives": [d.name for d in s.drives if d.role == "eval"],

@@ -31,8 +31,8 @@ def published_documents_problems(base: Path) -> list[str]:
     on purpose fail verification and are left alone."""
     from mapformat.schemas import problems
     from mapformat.verify import verify_map
+    from mapservice.maps import read_identity
     from pipeline.errors import CornermapError
-    from pipeline.maps import read_identity
     from pipeline.versioned import read_manifest, trusted_manifest_digests
 
     out = []

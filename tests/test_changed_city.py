@@ -33,7 +33,7 @@ def test_change_detection_with_statistics_against_the_truth_and_an_unchanged_red
     from bench.roots import simulator_dir
 
     root = tmp_path / "tiny-221"
-    subprocess.run([sys.executable, "-m", "pipeline", "run", str(workflow_for("tiny", 221, root)), "-q", "--only",
+    subprocess.run([sys.executable, "-m", "mapservice", "run", str(workflow_for("tiny", 221, root)), "-q", "--only",
                     "simulate"], check=True)
     build_maps(root, simulator_dir(root))
     r = score(root, simulator_dir(root))

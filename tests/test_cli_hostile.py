@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
+from mapservice.cli import main
 from pipeline.versioned import read_manifest
 
 REPO = Path(__file__).resolve().parents[1]

@@ -226,7 +226,7 @@ def test_an_interrupted_command_leaves_no_resource_tracker_warning(quiet):
     computes in a thread): the tracker process unlinks them without a warning on the user's stderr (and, the oracle,
     with one when the filter is not set)."""
     code = ("import os, multiprocessing as mp\n"
-            "from pipeline.cli import quiet_resource_tracker\n"
+            "from mapservice.cli import quiet_resource_tracker\n"
             f"{'quiet_resource_tracker()' if quiet else 'pass'}\n"
             "lock = mp.get_context('spawn').Lock()\n"
             "os._exit(130)\n")

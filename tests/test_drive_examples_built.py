@@ -23,7 +23,7 @@ from stages.common.records import Trajectory
 from stages.common.trajectory_frame import move_poses
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "drive-file.md"
-CORNERMAP = [sys.executable, "-m", "pipeline"]
+CORNERMAP = [sys.executable, "-m", "mapservice"]
 SIM_ORIGIN = EnuOrigin(37.4979, 127.0276, 57.0)  # the tiny preset's
 
 

@@ -12,7 +12,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def run(root: Path, scheduler: str):
-    from pipeline.cli import execute_workflow
+    from mapservice.cli import execute_workflow
 
     return execute_workflow(REPO / "workflows" / "tiny.yaml", root=root, scheduler=scheduler, only=None,
                             dry_run=False, quiet=True)
@@ -234,7 +234,7 @@ def _evaluate(root: Path, *args: str):
     import subprocess
     import sys
 
-    return subprocess.run([sys.executable, "-m", "pipeline", "evaluate", "--root", str(root), "--map", "tiny", "-q",
+    return subprocess.run([sys.executable, "-m", "mapservice", "evaluate", "--root", str(root), "--map", "tiny", "-q",
                            *args], capture_output=True, text=True, cwd=REPO)
 
 

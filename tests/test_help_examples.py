@@ -37,7 +37,7 @@ def readme_examples() -> list[str]:
 def help_examples() -> list[str]:
     import typer
 
-    from pipeline.cli import _register_stages, app
+    from mapservice.cli import _register_stages, app
 
     _register_stages()
 
@@ -82,7 +82,7 @@ def _parse(command, info_name: str, args: list[str]) -> None:
 def test_every_example_parses_against_the_cli():
     import typer
 
-    from pipeline.cli import _register_stages, app
+    from mapservice.cli import _register_stages, app
 
     _register_stages()
     root = typer.main.get_command(app)

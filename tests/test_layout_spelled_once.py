@@ -8,7 +8,7 @@ import re
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGES = ("pipeline", "mapformat", "stages", "schemas")
+PACKAGES = ("pipeline", "mapservice", "mapformat", "stages", "schemas")
 STORE = {"pipeline/storage.py"}
 NAMES = r"(datasets|maps|locks|tmp|gate|artifacts|_parts|LATEST|manifest\.json|_manifest\.json|map\.json|workflows)"
 PATTERNS = {

@@ -22,7 +22,7 @@ import pytest
 import yaml
 
 from fixtures.cli import one_error_line
-from pipeline.maps import create_map, read_identity
+from mapservice.maps import create_map, read_identity
 from pipeline.versioned import list_versions, read_latest, write_latest
 
 REPO = Path(__file__).resolve().parents[1]

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from fixtures.cli import one_error_line
-from pipeline.maps import create_map, read_identity
+from mapservice.maps import create_map, read_identity
 from pipeline.versioned import list_versions, publish_version, read_latest
 from tests.pipeline.toy_stages import EXTRA
 
@@ -183,10 +183,10 @@ def _children_running(pid: int) -> list[int]:
 
 
 def test_a_command_the_rebuild_started_ends_when_the_rebuild_is_killed(tmp_path):
-    """The regression gate runs ``cornermap evaluate`` through ``pipeline.rebuild.cli``; a SIGKILLed rebuild must not
+    """The regression gate runs ``cornermap evaluate`` through ``mapservice.rebuild.cli``; a SIGKILLed rebuild must not
     leave it running (it outlived the rebuild by 10-20 s). Here the child is a toy run sleeping 30 s per partition."""
     wf = _toy(tmp_path, sleep_s=30.0)
-    code = (f"from pipeline.rebuild import cli\ncli('run', {str(wf)!r}, '--root', {str(tmp_path / 'root')!r}, "
+    code = (f"from mapservice.rebuild import cli\ncli('run', {str(wf)!r}, '--root', {str(tmp_path / 'root')!r}, "
             "'--quiet')\n")
     parent = subprocess.Popen([sys.executable, "-c", code], env=_env(), start_new_session=True)
     try:
@@ -213,8 +213,8 @@ def test_a_command_the_rebuild_started_ends_when_the_rebuild_is_killed(tmp_path)
 def test_tiles_ls_and_maps_show_mark_a_refused_candidate(monkeypatch, tmp_path):
     """A real gate refusal (the rebuild's orchestration with the build and the evaluations replaced, as in
     tests/pipeline/test_maps.py), then the listings as processes."""
-    from pipeline.rebuild import RebuildParams, rebuild
-    from tests.pipeline.test_maps import _fake_build
+    from mapservice.rebuild import RebuildParams, rebuild
+    from tests.mapservice.test_maps import _fake_build
 
     create_map(tmp_path, "city", ORIGIN)
     _publish(tmp_path / "maps" / "city", b"v1")

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from mapformat.verify import verify_map
-from pipeline.maps import create_map, read_identity
+from mapservice.maps import create_map, read_identity
 from pipeline.versioned import read_latest, trusted_manifest_digests, version_name
 
 pytestmark = pytest.mark.slow
@@ -30,7 +30,7 @@ ORIGIN = {"lat_deg": 37.4979, "lon_deg": 127.0276, "h_m": 57.0}
 
 
 def _cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "pipeline", *args]
+    return [sys.executable, "-m", "mapservice", *args]
 
 
 def _env() -> dict:

@@ -20,7 +20,7 @@ import numpy as np
 import pyarrow.dataset as pads
 import pytest
 
-from pipeline.maps import create_map
+from mapservice.maps import create_map
 from schemas.registry import schema_of
 
 pytestmark = pytest.mark.slow
@@ -29,7 +29,7 @@ ORIGIN = {"lat_deg": 37.4979, "lon_deg": 127.0276, "h_m": 57.0}
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "mapservice", *args], capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.maps import create_map
+from mapservice.maps import create_map
 from tests.test_rebuild import _latest_is_verified
 from tests.test_rebuild_incremental import ORIGIN, _drive, _poses, _report
 
@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "mapservice", *args], capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
 
 
@@ -60,7 +60,7 @@ def test_reoptimize_publishes_the_joint_solution_region_by_region(tmp_path):
     assert show.returncode == 0 and ("reoptimize advised" in show.stdout or "drift: " in show.stdout), show.stdout
 
     # another writer holds the map: 75, nothing written
-    from pipeline.maps import run_lock
+    from mapservice.maps import run_lock
 
     with run_lock(mdir):
         locked = _run("maps", "reoptimize", "--root", str(root), "--map", "city", "--no-gate", "--min-free-gib", "0")
@@ -74,7 +74,7 @@ def test_reoptimize_publishes_the_joint_solution_region_by_region(tmp_path):
             "--min-free-gib", "0")
     rng = random.Random(59)
     for _ in range(2):
-        p = subprocess.Popen([sys.executable, "-m", "pipeline", *args], stdout=subprocess.DEVNULL,
+        p = subprocess.Popen([sys.executable, "-m", "mapservice", *args], stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL, env={**os.environ, "PYTHONPATH": str(REPO)},
                              start_new_session=True)
         time.sleep(rng.uniform(5.0, 40.0))

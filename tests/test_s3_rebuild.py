@@ -137,9 +137,9 @@ def test_two_nights_on_a_bucket(s3_env, s3_root, sim, tmp_path):
 
 
 def test_a_lease_held_on_the_bucket_is_exit_75(s3_env, s3_root, sim, tmp_path):
+    from mapservice.maps import create_map
     from pipeline.leases import LeaseLocks
     from pipeline.locks import map_key
-    from pipeline.maps import create_map
     from pipeline.storage import Store
 
     bucket = s3_root.rsplit("/", 1)[0]
@@ -158,7 +158,7 @@ def test_a_lease_held_on_the_bucket_is_exit_75(s3_env, s3_root, sim, tmp_path):
 
 def test_a_drive_still_arriving_waits_and_one_naming_files_outside_the_inbox_is_quarantined(s3_env, s3_root, sim,
                                                                                             tmp_path, monkeypatch):
-    from pipeline.inbox import StoreInbox
+    from mapservice.inbox import StoreInbox
     from pipeline.storage import SCRATCH_ENV, Store
 
     monkeypatch.setenv(SCRATCH_ENV, str(tmp_path / "scratch"))  # the inbox's local copy
@@ -218,7 +218,7 @@ def test_killed_rebuilds_on_a_bucket_leave_latest_complete(s3_env, s3_root, sim,
 
     rng = random.Random(58)
     for _ in range(3):
-        p = subprocess.Popen([sys.executable, "-m", "pipeline", *args], stdout=subprocess.DEVNULL,
+        p = subprocess.Popen([sys.executable, "-m", "mapservice", *args], stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL, env={**os.environ, **env, "PYTHONPATH": str(REPO)}, cwd=cwd,
                              start_new_session=True)
         time.sleep(rng.uniform(5.0, 45.0))

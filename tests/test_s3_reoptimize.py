@@ -1,6 +1,6 @@
 """``cornermap maps reoptimize`` with its root in a bucket, against a real S3 API (moto's server, started by the test
 session: ``tests/conftest.py::s3_env``), run as processes: the re-optimization publishes through the rebuild's own
-gate-and-publish flow (``pipeline.rebuild.gate_and_publish``) on an object store.
+gate-and-publish flow (``mapservice.rebuild.gate_and_publish``) on an object store.
 
 - ``test_reoptimize_on_a_bucket`` (slow): two nights of ``rebuild`` (v0001 drive_0, v0002 drive_1 added
   incrementally), then ``maps reoptimize --region-max-poses 30`` with the gate on -> v0003: LATEST in the bucket names
@@ -82,9 +82,9 @@ def test_reoptimize_on_a_bucket(s3_env, s3_root, sim, tmp_path):  # noqa: F811 -
 
 
 def test_a_lease_held_on_the_bucket_stops_reoptimize_with_75(s3_env, s3_root, tmp_path):
+    from mapservice.maps import create_map
     from pipeline.leases import LeaseLocks
     from pipeline.locks import map_key
-    from pipeline.maps import create_map
     from pipeline.storage import Store
 
     bucket = s3_root.rsplit("/", 1)[0]

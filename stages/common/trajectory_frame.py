@@ -20,7 +20,6 @@ from stages.common.geodesy import EnuOrigin
 
 HEADER_PREFIX = "frame: ENU"
 _HEADER_RE = re.compile(r"^#\s*frame:\s*ENU\s+lat_deg=(\S+)\s+lon_deg=(\S+)\s+h_m=(\S+)")
-_CLOSE_DEG, _CLOSE_M = 1e-9, 1e-4  # two statements of the same origin agree within these
 
 
 def frame_header(origin: EnuOrigin) -> str:
@@ -87,15 +86,10 @@ def read_trajectory_origin(path: Path) -> EnuOrigin | None:
 
     path = Path(path)
     head, side = _origin_from_header(path), _origin_from_sidecar(path)
-    if head is not None and side is not None and not same_origin(head, side):
+    if head is not None and side is not None and not head.same_frame(side):
         raise FormatError(f"{path}: its header names origin {head} but {sidecar_path(path).name} names {side}; "
                           "hint: one of them is stale")
     return head if head is not None else side
-
-
-def same_origin(a: EnuOrigin, b: EnuOrigin) -> bool:
-    return (abs(a.lat_deg - b.lat_deg) < _CLOSE_DEG and abs(a.lon_deg - b.lon_deg) < _CLOSE_DEG
-            and abs(a.h_m - b.h_m) < _CLOSE_M)
 
 
 def R_ecef_enu(origin: EnuOrigin) -> np.ndarray:

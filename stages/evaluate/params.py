@@ -17,16 +17,12 @@ def parse_reference_frame(value: str):
     """'auto' | 'map' | an EnuOrigin from 'LAT,LON,H' (ValueError otherwise)."""
     if value in ("auto", "map"):
         return value
-    from stages.common.geodesy import EnuOrigin
+    from stages.common.geodesy import EnuOrigin, OriginError
 
     try:
-        lat, lon, h = (float(v) for v in value.split(","))
-    except ValueError:
-        raise ValueError(f"reference_frame: expected 'auto', 'map' or 'LAT,LON,H' (degrees, degrees, metres); "
-                         f"got {value!r}") from None
-    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-        raise ValueError(f"reference_frame: latitude/longitude out of range in {value!r}")
-    return EnuOrigin(lat, lon, h)
+        return EnuOrigin.parse(value)
+    except OriginError as exc:
+        raise ValueError(f"reference_frame: expected 'auto', 'map' or 'LAT,LON,H'; {exc}") from None
 
 
 class FeatureParams(Params):

@@ -29,13 +29,13 @@ class Reference:
 def reference_origin(path: Path, frame) -> tuple[EnuOrigin | None, str]:
     """The ENU origin of a reference file under ``frame`` ('auto', 'map' or an EnuOrigin): (origin, how)."""
     from pipeline.errors import ReferenceFrameError
-    from stages.common.trajectory_frame import read_trajectory_origin, same_origin, sidecar_path
+    from stages.common.trajectory_frame import read_trajectory_origin, sidecar_path
 
     if frame == "map":
         return None, "map"
     stated = read_trajectory_origin(path)
     if isinstance(frame, EnuOrigin):
-        if stated is not None and not same_origin(stated, frame):
+        if stated is not None and not stated.same_frame(frame):
             log.warning("%s states origin %s; using the given %s", path, stated, frame)
         return frame, "given"
     if stated is None:

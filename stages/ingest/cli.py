@@ -33,7 +33,7 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from pipeline.errors import OptionError
-        from pipeline.registry import suggest
+        from pipeline.names import suggest
         from stages.ingest.pcd import read_pcd
         from stages.ingest.scan_formats import drop_invalid_points, read_scan
         from stages.ingest.sensors import SENSORS, ring_coverage, rings_from_elevation_voted, rings_from_point_order

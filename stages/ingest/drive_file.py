@@ -162,7 +162,7 @@ class DriveSpec(_Strict):
     @field_validator("sensor")
     @classmethod
     def _known_sensor(cls, v):
-        from pipeline.registry import suggest
+        from pipeline.names import suggest
         from stages.ingest.sensors import SENSORS
 
         if v not in SENSORS:

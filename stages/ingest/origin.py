@@ -7,7 +7,8 @@ import logging
 from pathlib import Path
 from typing import Iterable, Mapping
 
-from stages.common.geodesy import EnuOrigin
+from pipeline.errors import ConfigError
+from stages.common.geodesy import EnuOrigin, OriginError
 from stages.ingest.drive_file import load_drive_file
 from stages.ingest.gnss_csv import read_first_fix
 
@@ -17,7 +18,10 @@ log = logging.getLogger(__name__)
 def resolve_enu_origin(settings_origin: Mapping | None, drive_paths_in_order: Iterable[str | Path]
                        ) -> EnuOrigin | None:
     if settings_origin:
-        return EnuOrigin.from_dict(dict(settings_origin))
+        try:
+            return EnuOrigin.validate(dict(settings_origin))
+        except OriginError as exc:
+            raise ConfigError("workflow enu_origin", exc.problems) from None
     specs = [(path, load_drive_file(path)) for path in drive_paths_in_order]
     for path, spec in specs:
         if spec.gnss is None:

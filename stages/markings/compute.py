@@ -18,6 +18,7 @@ from pipeline.declare import PartitionKey
 from pipeline.errors import ConfigError
 from schemas import SCHEMAS
 from stages.common.drive_tables import select_drives
+from stages.common.geodesy import EnuOrigin
 from stages.common.marking_raster.elevation_grid import GridAccumulator
 from stages.common.marking_raster.rasterize import halo_px_for, rasterize_grid
 from stages.common.records import Extrinsics, decode_scans_raw, pose_matrices
@@ -158,6 +159,7 @@ def compute(ctx) -> dict[str, Any]:
     grid = layer.grid
     n_points = int(grid.count.sum())
     origin = ctx.settings.get("enu_origin")
+    origin = EnuOrigin.validate(origin).plain() if origin else None  # the workflow's, as the engine carries it
     meta = {
         "tile_i": key.tile_i,
         "tile_j": key.tile_j,

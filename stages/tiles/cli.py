@@ -52,7 +52,7 @@ def ls(root: Path = opts.ROOT_OR_URI, map_name: Optional[str] = MAP_OPT, as_json
 
 def _ls(root: Path, map_name: Optional[str], as_json: bool, shown) -> None:
     from pipeline.errors import MapFormatError
-    from pipeline.maps_show import state_note, version_states
+    from pipeline.version_read import state_note, version_states
     from pipeline.versioned import list_versions, read_latest, read_manifest, version_name
 
     d = map_dir_of(root, map_name)
@@ -464,9 +464,8 @@ def rollback(to: str = typer.Option(..., "--to", help="The version LATEST should
 
     Example: [b]cornermap tiles rollback --to v0001 --map city --root runs/maps[/b]
     """
-    from pipeline.maps import rollback as rollback_latest
     from pipeline.storage import Store, uri_scheme
-    from pipeline.versioned import version_name
+    from pipeline.versioned import rollback_latest, version_name
 
     if uri_scheme(root) is not None:
         from pipeline.store_maps import rollback as rollback_remote

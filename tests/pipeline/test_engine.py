@@ -150,7 +150,7 @@ def test_sigkill_mid_stage_then_rerun_equals_uninterrupted(tmp_path):
                     params={"squares": {"sleep_s": 0.0}})
     run(ref, root=tmp_path / "ref_root")
     env = dict(os.environ)
-    cmd = [sys.executable, "-m", "pipeline", "run", str(path), "--scheduler", "sync", "--quiet"]
+    cmd = [sys.executable, "-m", "mapservice", "run", str(path), "--scheduler", "sync", "--quiet"]
     proc = subprocess.Popen(cmd, env=env, cwd=REPO, start_new_session=True)
     squares_root = tmp_path / "root" / "datasets" / "toy_squares"
     deadline = time.time() + 60
@@ -201,7 +201,7 @@ def _start_mid_squares(tmp_path) -> tuple[subprocess.Popen, list[int], Path]:
     """A toy run on the local process pool, stopped in the middle of squares (each partition sleeps 30 s): the
     process and its pool processes."""
     path = write_toy(tmp_path, params={"squares": {"sleep_s": 30.0}})
-    cmd = [sys.executable, "-m", "pipeline", "run", str(path), "--scheduler", "local", "--workers", "2", "--quiet"]
+    cmd = [sys.executable, "-m", "mapservice", "run", str(path), "--scheduler", "local", "--workers", "2", "--quiet"]
     proc = subprocess.Popen(cmd, cwd=REPO, start_new_session=True, stderr=subprocess.PIPE, text=True)
     numbers = tmp_path / "root" / "datasets" / "toy_numbers"
     deadline = time.time() + 90
@@ -249,7 +249,7 @@ def test_sigterm_ends_the_run_with_one_line_exit_143_and_no_pool_left(tmp_path):
     finally:  # whatever outlived it (its own session's group)
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
-    from pipeline.cli import EXIT_TERMINATED
+    from mapservice.cli import EXIT_TERMINATED
 
     assert proc.returncode == EXIT_TERMINATED, err
     assert time.time() - t0 < 20, "a SIGTERM must not wait for the sleeping partitions (30 s)"
@@ -262,7 +262,7 @@ def test_sigterm_ends_the_run_with_one_line_exit_143_and_no_pool_left(tmp_path):
 def test_three_mistakes_reported_at_once_exit_1_no_traceback(tmp_path):
     path = write_toy(tmp_path, params={"numbers": {"n_chunk": 3}}, stages=("numbers", "squarez", "total"))
     env = dict(os.environ)
-    out = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path)], env=env, cwd=REPO,
+    out = subprocess.run([sys.executable, "-m", "mapservice", "run", str(path)], env=env, cwd=REPO,
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 1, out.stderr
     err = out.stderr
@@ -275,7 +275,7 @@ def test_three_mistakes_reported_at_once_exit_1_no_traceback(tmp_path):
 
 def test_dry_run_prints_order_and_decisions(tmp_path):
     path = write_toy(tmp_path)
-    out = subprocess.run([sys.executable, "-m", "pipeline", "run", str(path), "--dry-run"], cwd=REPO,
+    out = subprocess.run([sys.executable, "-m", "mapservice", "run", str(path), "--dry-run"], cwd=REPO,
                          capture_output=True, text=True, timeout=120, env=dict(os.environ, COLUMNS="200"))
     assert out.returncode == 0, out.stderr
     text = out.stdout

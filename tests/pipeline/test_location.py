@@ -85,7 +85,7 @@ def test_settings_a_stage_does_not_read_do_not_move_its_fingerprint(tmp_path, mo
 
 
 def test_build_origin_is_validated():
-    from pipeline.build import parse_origin
+    from mapservice.build import parse_origin
     from pipeline.errors import ConfigError
 
     assert parse_origin("37.5, 127.0, 57") == {"lat_deg": 37.5, "lon_deg": 127.0, "h_m": 57.0}

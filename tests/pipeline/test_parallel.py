@@ -139,8 +139,7 @@ def test_task_threads_is_the_workers_thread_count_inside_a_cluster_task_and_none
 def test_task_threads_in_a_local_pool_is_each_process_share_of_the_cores(monkeypatch):
     """A pool's processes are told their share of the usable cores (Open3D's oneTBB ignores OMP_NUM_THREADS and
     is bounded to it); the calling process is not, and its environment is restored after the pool."""
-    from pipeline.execute import TASK_THREADS_VARIABLE
-    from pipeline.parallel import default_workers, shared_pool, task_threads
+    from pipeline.parallel import TASK_THREADS_VARIABLE, default_workers, shared_pool, task_threads
     from tests.pipeline.toy_parallel import threads_of_this_task
 
     monkeypatch.delenv(TASK_THREADS_VARIABLE, raising=False)
@@ -153,8 +152,7 @@ def test_task_threads_in_a_local_pool_is_each_process_share_of_the_cores(monkeyp
 
 
 def test_one_thread_per_process_sets_the_share_for_the_block_and_restores_a_callers_value(monkeypatch):
-    from pipeline.execute import TASK_THREADS_VARIABLE, one_thread_per_process
-    from pipeline.parallel import default_workers
+    from pipeline.parallel import TASK_THREADS_VARIABLE, default_workers, one_thread_per_process
 
     monkeypatch.setenv(TASK_THREADS_VARIABLE, "7")
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)

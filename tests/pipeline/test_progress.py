@@ -82,16 +82,19 @@ def test_off_writes_nothing(monkeypatch):
 
 
 def test_a_child_commands_progress_is_a_step_of_the_parents_row(tmp_path):
-    """``run_cornermap`` relays the plain lines of the child's stderr to the row; its other lines are its stderr."""
+    """``run_child`` (here through ``mapservice.child.run_cornermap``, ``python -m mapservice``) relays the plain lines
+    of the child's stderr to the row; its other lines are its stderr."""
+    from mapservice.child import run_cornermap
+
     out = io.StringIO()
     args = ["simulate", "--preset", "tiny", "--seed", "1", "--drives", "1", "--max-scans", "20", "--out"]
     with StageProgress(stream=out, mode="plain", every_s=0.0):
-        res = pg.run_cornermap(args + [str(tmp_path / "a")], label="sim", step="drive_0")
-        failed = pg.run_cornermap(["tiles", "ls", "--root", str(tmp_path / "nothing")], label="ls")
+        res = run_cornermap(args + [str(tmp_path / "a")], label="sim", step="drive_0")
+        failed = run_cornermap(["tiles", "ls", "--root", str(tmp_path / "nothing")], label="ls")
     assert res.returncode == 0 and res.stdout.startswith("drive_0: 20 scans") and res.stderr == "", res.stderr
     got = lines(out)
     assert got[0] == "sim: started, drive_0: drive_0 scans: started, 10/20", got
     assert any(ln.startswith("sim: drive_0: drive_0 scans: done 20/20 in ") for ln in got), got
     assert failed.returncode == 1 and failed.stderr.startswith("error: ") and len(failed.stderr.splitlines()) == 1
-    quiet = pg.run_cornermap(args + [str(tmp_path / "b")], label="sim")  # no display: the child shows none
+    quiet = run_cornermap(args + [str(tmp_path / "b")], label="sim")  # no display: the child shows none
     assert quiet.returncode == 0 and quiet.stderr == ""

@@ -26,8 +26,8 @@ def make_drive(folder: Path, kitti: Path, skip: set[int] = frozenset()) -> Path:
 
 
 def init_check_build(folder: Path, root: Path) -> Path:
-    from pipeline.build import write_build_workflow
-    from pipeline.cli import execute_workflow
+    from mapservice.build import write_build_workflow
+    from mapservice.cli import execute_workflow
     from stages.ingest.drive_check import check_drive
     from stages.ingest.drive_init import draft_drive_file
 

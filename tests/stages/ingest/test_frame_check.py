@@ -15,7 +15,7 @@ from fixtures.ingest import write_synthetic_drive
 from stages.ingest.drive_file import load_drive_file
 from stages.ingest.frame import frame_source
 
-CORNERMAP = [sys.executable, "-m", "pipeline"]
+CORNERMAP = [sys.executable, "-m", "mapservice"]
 
 
 def _without_gnss(tmp_path, **extra) -> Path:

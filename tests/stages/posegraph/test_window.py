@@ -118,7 +118,7 @@ def test_the_window_is_capped_nearest_first():
 
 
 def test_maps_show_prints_the_frame_test():
-    from pipeline.maps_show import drift_lines
+    from mapservice.maps_show import drift_lines
 
     frame = {"shift_en_m": [0.12, -0.03], "rotation_deg": 0.01, "chi2": 40.0, "dof": 3, "threshold": 16.27,
              "advised": True, "window_poses": 250}

@@ -136,7 +136,7 @@ def test_packaged_workflows_of_the_new_presets_plan_from_any_folder(name, tmp_pa
     import subprocess
     import sys
 
-    run = subprocess.run([sys.executable, "-m", "pipeline", "run", name, "--root", str(tmp_path / "r"), "--dry-run"],
+    run = subprocess.run([sys.executable, "-m", "mapservice", "run", name, "--root", str(tmp_path / "r"), "--dry-run"],
                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-800:]
     for stage in ("simulate", "ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "evaluate"):

@@ -152,7 +152,7 @@ def test_a_failure_mid_apply_leaves_no_staging_and_latest_on_the_base(two, tmp_p
 
 def test_the_cli_bundles_applies_and_refuses_in_one_line(two, tmp_path):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    cli = [sys.executable, "-m", "pipeline", "tiles"]
+    cli = [sys.executable, "-m", "mapservice", "tiles"]
     root = two.parent.parent
     res = subprocess.run(cli + ["bundle", "--root", str(root), "--map", "city", "--from", "v0001", "--to", "LATEST",
                                 "--out", str(tmp_path / "d")], capture_output=True, text=True, env=env)

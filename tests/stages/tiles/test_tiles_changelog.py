@@ -164,7 +164,7 @@ def test_diff_refuses_two_frames_with_one_line_naming_both_origins(tmp_path, mon
     assert log["frame"]["unchanged"] is False and log["corners"]["kept"] == 0
     repo = Path(__file__).resolve().parents[3]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")])}
-    res = subprocess.run([sys.executable, "-m", "pipeline", "tiles", "diff", "v1", "v2", "--root", str(tmp_path),
+    res = subprocess.run([sys.executable, "-m", "mapservice", "tiles", "diff", "v1", "v2", "--root", str(tmp_path),
                           "--map", "city"], capture_output=True, text=True, env=env, timeout=120)
     assert res.returncode == 1 and res.stdout == ""
     msg = [s for s in res.stderr.splitlines() if s.strip()]

@@ -48,7 +48,7 @@ def test_published_manifest_and_changelog_conform_and_a_broken_one_is_named(publ
 
 
 def test_identity_written_by_maps_create_conforms(tmp_path):
-    from pipeline.maps import create_map
+    from mapservice.maps import create_map
 
     ident = create_map(tmp_path, "kept", {"lat_deg": 37.5, "lon_deg": 127.0, "h_m": 40.0})
     doc = json.loads((tmp_path / "maps" / "kept" / "map.json").read_text())

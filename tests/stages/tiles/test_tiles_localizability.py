@@ -78,7 +78,7 @@ def test_the_layer_can_be_turned_off_and_such_a_version_reads_as_before(tmp_path
 
 
 def test_maps_show_names_the_weak_cells_of_latest(city):
-    from pipeline.maps_show import show_lines
+    from mapservice.maps_show import show_lines
 
     lines = show_lines(city.path.parent)
     head = next(s for s in lines if s.startswith("localizability of v0001"))

@@ -76,7 +76,7 @@ def test_the_cli_answers_in_json_and_refuses_bad_input_in_one_line(city):
     root, m = city
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
     lat, lon = _latlon(150.0, 120.0)
-    cli = [sys.executable, "-m", "pipeline", "tiles", "query", "--root", str(root), "--map", "city"]
+    cli = [sys.executable, "-m", "mapservice", "tiles", "query", "--root", str(root), "--map", "city"]
     res = subprocess.run(cli + ["--at", f"{lat:.10f},{lon:.10f}", "--radius", "60", "--json"], capture_output=True,
                          text=True, env=env)
     assert res.returncode == 0, res.stderr

@@ -56,8 +56,8 @@ def compare(candidate: dict | None, previous: dict | None, tol_m: float, tol_rel
 
 
 def _evaluate(mdir: Path, version: int, drive: Path, reference: str | None, out: Path) -> dict | None:
+    from mapservice.child import run_cornermap
     from pipeline.errors import StageError
-    from pipeline.progress import run_cornermap
     from pipeline.versioned import version_name
 
     res = run_cornermap(["evaluate", "--root", str(mdir.parent.parent), "--map", mdir.name, "--map-version",

@@ -93,7 +93,7 @@ def _map_tiles_roots(root: Path, versions: set[tuple[str, int]]) -> set[str]:
 
 def _drive_set_roots(root: Path) -> set[str]:
     """Every stage fingerprint of the newest build workflow of each map that lists the map's current drives."""
-    from pipeline.maps import read_identity
+    from mapservice.maps import read_identity
     from pipeline.plan import make_plan
     from pipeline.safe_yaml import load_yaml_file
     from pipeline.workflow import load_workflow

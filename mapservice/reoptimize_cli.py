@@ -1,4 +1,4 @@
-"""``cornermap maps reoptimize``: the map's drives re-solved region by region (pipeline/reoptimize.py). Heavy imports
+"""``cornermap maps reoptimize``: the map's drives re-solved region by region (mapservice/reoptimize.py). Heavy imports
 inside."""
 from __future__ import annotations
 
@@ -38,9 +38,9 @@ def reoptimize_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = opts.MAP,
     """
     import math
 
+    from mapservice.reoptimize import ReoptimizeParams, reoptimize
     from pipeline.errors import OptionError
     from pipeline.progress import StageProgress
-    from pipeline.reoptimize import ReoptimizeParams, reoptimize
 
     for opt, v in (("--min-free-gib", min_free_gib), ("--gate-tol-m", gate_tol_m), ("--gate-tol-rel", gate_tol_rel)):
         if not (math.isfinite(v) and v >= 0):

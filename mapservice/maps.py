@@ -16,19 +16,20 @@ Knows nothing about LiDAR: a drive is a ``drive.yaml`` path and its ``pipeline.f
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, ContextManager, Iterable, Iterator
+from typing import Annotated, Any, ContextManager, Iterable, Iterator
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
 
 from pipeline import storage
 from pipeline.errors import ConfigError, DatasetIOError, UnknownNameError
 from pipeline.names import check_name
+from stages.common.geodesy import EnuOrigin
+from stages.common.tiling import DEFAULT_TILE_SIZE_M
 
 IDENTITY_NAME = storage.IDENTITY
 IDENTITY_SCHEMA = "cornermap.map-identity/1"
@@ -38,16 +39,8 @@ GATE_DIR = storage.GATE
 # its horizontal plane (R = 6371 km): 10 km -> 0.09 deg and 7.8 m; 70 km -> 0.63 deg and 385 m (docs/maintenance.md).
 DEFAULT_MAX_RADIUS_KM = 10.0
 MAX_RADIUS_LIMIT_KM = 100.0
-ORIGIN_TOL_DEG = 1e-9  # ~0.1 mm: two origins closer than this are the same frame
-ORIGIN_TOL_M = 1e-3
-
-
-class Origin(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    lat_deg: float = Field(ge=-90, le=90)
-    lon_deg: float = Field(ge=-180, le=180)
-    h_m: float = Field(ge=-1000, le=10000)
+# The pinned frame: parsed, validated and compared by the one origin type (its ranges, its same-frame tolerance).
+Origin = Annotated[EnuOrigin, BeforeValidator(EnuOrigin.validate)]
 
 
 class MapDrive(BaseModel):
@@ -74,7 +67,7 @@ class MapIdentity(BaseModel):
     schema_: str = Field(IDENTITY_SCHEMA, alias="schema")
     name: str
     enu_origin: Origin
-    tile_size_m: float = Field(100.0, gt=0, le=10000)
+    tile_size_m: float = Field(DEFAULT_TILE_SIZE_M, gt=0, le=10000)
     max_radius_km: float = Field(DEFAULT_MAX_RADIUS_KM, gt=0, le=MAX_RADIUS_LIMIT_KM)
     created_utc: str
     check_drive: CheckDrive | None = None
@@ -137,7 +130,7 @@ def write_identity(mdir: Path, ident: MapIdentity) -> None:
     os.replace(tmp, mdir / IDENTITY_NAME)
 
 
-def create_map(root: "Path | str", name: str, origin: dict[str, float], tile_size_m: float = 100.0,
+def create_map(root: "Path | str", name: str, origin: dict[str, float], tile_size_m: float = DEFAULT_TILE_SIZE_M,
                check_drive: CheckDrive | None = None, max_radius_km: float = DEFAULT_MAX_RADIUS_KM) -> MapIdentity:
     """Write a new map's identity (a local root or an ``s3://`` one: ``MapHome``); refuses a map that already has
     one, or versions in another frame."""
@@ -146,29 +139,19 @@ def create_map(root: "Path | str", name: str, origin: dict[str, float], tile_siz
     if home.identity() is not None:
         raise ConfigError(f"cornermap maps create --map {name}", [f"{where} exists; a map's frame is never changed "
                                                                   "(make a new map)"])
-    ident = MapIdentity(name=name, enu_origin=Origin(**origin), tile_size_m=tile_size_m, created_utc=utc_now(),
+    ident = MapIdentity(name=name, enu_origin=origin, tile_size_m=tile_size_m, created_utc=utc_now(),
                         check_drive=check_drive, max_radius_km=max_radius_km)
     with home.view(whole=()) as view:
         published = latest_origin(view)
-    if published is not None and not same_origin(published, ident.enu_origin.model_dump()):
+    if published is not None and not EnuOrigin.validate(published).same_frame(ident.enu_origin):
         raise ConfigError(f"cornermap maps create --map {name}",
-                          [f"its published versions are in the frame {fmt_origin(published)}, not "
-                           f"{fmt_origin(origin)}; pass that origin or make a new map"])
+                          [f"its published versions are in the frame {EnuOrigin.validate(published).text()}, not "
+                           f"{ident.enu_origin.text()}; pass that origin or make a new map"])
     if home.local:
         write_identity(Path(home.mdir), ident)
     elif not home.store.create(storage.identity_file(home.mdir), (json.dumps(ident.dump(), indent=1) + "\n").encode()):
         raise ConfigError(f"cornermap maps create --map {name}", [f"{where} exists; a map's frame is never changed"])
     return ident
-
-
-def same_origin(a: dict[str, float], b: dict[str, float]) -> bool:
-    return (math.isclose(a["lat_deg"], b["lat_deg"], abs_tol=ORIGIN_TOL_DEG)
-            and math.isclose(a["lon_deg"], b["lon_deg"], abs_tol=ORIGIN_TOL_DEG)
-            and math.isclose(a.get("h_m", 0.0), b.get("h_m", 0.0), abs_tol=ORIGIN_TOL_M))
-
-
-def fmt_origin(o: dict[str, float]) -> str:
-    return f"{o['lat_deg']:.9f},{o['lon_deg']:.9f},{o.get('h_m', 0.0):.3f}"
 
 
 def latest_origin(mdir: Path) -> dict[str, float] | None:
@@ -195,14 +178,14 @@ def pinned_frame(root: Path, name: str, origin: dict[str, float] | None) -> tupl
     ident = read_identity(mdir)
     pinned, source, tile = None, "", None
     if ident is not None:
-        pinned, source, tile = ident.enu_origin.model_dump(), f"its identity {mdir / IDENTITY_NAME}", ident.tile_size_m
+        pinned, source, tile = ident.enu_origin.plain(), f"its identity {mdir / IDENTITY_NAME}", ident.tile_size_m
     else:
         pinned, source = latest_origin(mdir), f"its LATEST version in {mdir}"
     if pinned is None:
         return origin, None
-    if origin is not None and not same_origin(origin, pinned):
-        raise ConfigError("--origin", [f"map {name!r} is pinned to {fmt_origin(pinned)} by {source}; "
-                                       f"--origin {fmt_origin(origin)} would move its frame (refused)"])
+    if origin is not None and not EnuOrigin.validate(origin).same_frame(EnuOrigin.validate(pinned)):
+        raise ConfigError("--origin", [f"map {name!r} is pinned to {EnuOrigin.validate(pinned).text()} by {source}; "
+                                       f"--origin {EnuOrigin.validate(origin).text()} would move its frame (refused)"])
     return pinned, tile
 
 
@@ -229,28 +212,27 @@ def check_free_disk(root: Path, min_free_gib: float) -> None:
                              "hint: cornermap gc --root ROOT --apply, or free space, or lower --min-free-gib")
 
 
-def rollback(mdir: Path, to: str) -> tuple[int | None, int]:
-    """Point LATEST at an older complete, verified version (a new LATEST write; nothing is deleted).
-    Returns (previous LATEST, new LATEST)."""
-    from pipeline.errors import ChecksumError
-    from pipeline.versioned import parse_version, publish_lock, read_latest, verify_version, version_name, write_latest
+def published_version(plan: Any) -> int | None:
+    """The map version the plan's tiles stage published (its committed ``map_tiles`` dataset), None without one."""
+    import pyarrow.parquet as pq
 
-    number = parse_version(to)
-    vdir = Path(mdir) / version_name(number)
-    if not vdir.is_dir():
-        from pipeline.version_read import list_versions
+    from pipeline.names import inside
+    from pipeline.store import data_root
 
-        have = ", ".join(version_name(v) for v in list_versions(mdir)) or "none"
-        raise UnknownNameError(f"{mdir}: no version {version_name(number)}; have {have}")
-    from pipeline.locks import map_lock
-
-    with map_lock(Path(mdir)), publish_lock(Path(mdir)):
-        problems = verify_version(vdir)
-        if problems:
-            raise ChecksumError(f"{vdir}: {len(problems)} integrity problem(s), not rolled back to: {problems[0]}")
-        before = read_latest(mdir)
-        write_latest(Path(mdir), number)
-    return before, number
+    sp = next((sp for sp in plan.stages.values() if "map_tiles" in sp.outputs.values()), None)
+    if sp is None:
+        return None
+    droot = data_root(plan.uri)
+    m = droot.manifest("map_tiles", sp.fingerprint)
+    if not m:
+        return None
+    droot.fetch("map_tiles", sp.fingerprint, [(f["path"], f.get("bytes")) for f in m["files"]])
+    d = droot.dir("map_tiles", sp.fingerprint)
+    for f in m["files"]:
+        rows = pq.read_table(inside(d, f["path"]), columns=["version"]).to_pylist()
+        if rows:
+            return int(rows[0]["version"])
+    return None
 
 
 def stale_latest_note(plan: Any, name: str) -> str | None:

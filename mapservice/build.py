@@ -11,23 +11,14 @@ from pipeline.errors import ConfigError, OptionError
 
 
 def parse_origin(text: str) -> dict[str, float]:
-    """``LAT,LON,H`` (degrees, degrees, metres above the WGS84 ellipsoid) -> an ``enu_origin`` mapping."""
-    parts = [p.strip() for p in text.split(",")]
+    """``--origin LAT,LON,H`` (degrees, degrees, metres above the WGS84 ellipsoid) -> an ``enu_origin`` mapping;
+    OptionError (exit 2) naming every problem (``stages.common.geodesy.EnuOrigin.parse``)."""
+    from stages.common.geodesy import EnuOrigin, OriginError
+
     try:
-        lat, lon, h = (float(p) for p in parts)
-    except ValueError:
-        raise OptionError("--origin", [f"expected LAT,LON,H (three numbers: degrees, degrees, metres), got "
-                                       f"{text!r}"]) from None
-    problems = []
-    if not -90.0 <= lat <= 90.0:
-        problems.append(f"latitude {lat} is outside -90..90 degrees")
-    if not -180.0 <= lon <= 180.0:
-        problems.append(f"longitude {lon} is outside -180..180 degrees")
-    if not -1000.0 <= h <= 10000.0:
-        problems.append(f"height {h} m is outside -1000..10000 m")
-    if problems:
-        raise OptionError("--origin", problems)
-    return {"lat_deg": lat, "lon_deg": lon, "h_m": h}
+        return EnuOrigin.parse(text).plain()
+    except OriginError as exc:
+        raise OptionError("--origin", exc.problems) from None
 
 
 def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: str, root: Path | str,
@@ -72,7 +63,7 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
     if held_poses:  # incremental pose graph: these published poses are held (stages/posegraph/incremental.py)
         doc["held_poses"] = dict(held_poses)
     if max_radius_m is None:
-        from pipeline.maps import map_dir, read_identity
+        from mapservice.maps import map_dir, read_identity
 
         ident = read_identity(map_dir(map_root if map_root is not None else root, map_name))
         max_radius_m = ident.max_radius_km * 1000.0 if ident is not None else None
@@ -95,11 +86,10 @@ def write_build_workflow(template: str | Path, *, drives: list[Path], map_name: 
 
 def _drive_path(drive: "str | Path", root: "str | Path") -> str:
     """What the workflow of a build names a drive by when its tasks must read it from the store: a drive given by
-    URI as is; a local copy of a drive delivered to a bucket (``pipeline.inbox``) by its URI; any other local drive
+    URI as is; a local copy of a drive delivered to a bucket (``mapservice.inbox``) by its URI; any other local drive
     (on an object-store root) staged into the root (``pipeline.drive_store.stage_drive``: uploaded once, by
     content)."""
-    from pipeline.drive_store import is_uri, stage_drive
-    from pipeline.inbox import source_of_copy
+    from pipeline.drive_store import is_uri, source_of_copy, stage_drive
     from pipeline.storage import normalise_uri
 
     if is_uri(drive):

@@ -23,6 +23,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline.drive_store import remember_copy
+
 QUARANTINE = "quarantine"
 READY_MARKER = "READY"
 DEFAULT_QUIET_PERIOD_S = 600.0
@@ -182,7 +184,7 @@ def waiting_reason(delivery: Delivery, quiet_period_s: float, now: float | None 
 def quarantine(entry: Path, inbox: Path, reason: str) -> Path:
     """Move an inbox entry (a folder, or a link: never its target) to INBOX/quarantine/ (a new name if taken) and write
     its reason file beside it (in cornermap's own words: never a line of the drive's files)."""
-    from pipeline.maps import utc_now
+    from mapservice.maps import utc_now
 
     qdir = inbox / QUARANTINE
     qdir.mkdir(exist_ok=True)
@@ -382,10 +384,10 @@ class StoreInbox:
         self.store.download_files(pairs)
         for target, stamp in stamps.items():
             os.utime(target, (time.time(), stamp))
-        _COPIES[os.path.abspath(delivery.drive_yaml)] = self.recorded(delivery)
+        remember_copy(delivery.drive_yaml, self.recorded(delivery))
 
     def quarantine(self, entry: str, reason: str) -> str:
-        from pipeline.maps import utc_now
+        from mapservice.maps import utc_now
 
         name = entry.rstrip("/").rsplit("/", 1)[-1]
         qbase = self.base / QUARANTINE
@@ -401,16 +403,6 @@ class StoreInbox:
         for key in keys:
             self.store.delete(self.base / key)
         return self.store.url(qbase / dst)
-
-
-_COPIES: dict[str, str] = {}  # local copy of a delivered drive.yaml -> its s3:// URI, this process
-
-
-def source_of_copy(drive_yaml: Path) -> str | None:
-    """The ``s3://`` URI of a drive file this process fetched from an object-store inbox into its local copy
-    (``StoreInbox.fetch``), None for any other path: a build names the drive by it, so that its tasks read the
-    drive from the bucket, never from this process's copy."""
-    return _COPIES.get(os.path.abspath(drive_yaml))
 
 
 def open_inbox(value: "str | Path") -> "LocalInbox | StoreInbox":

@@ -12,6 +12,7 @@ from typing import Optional
 import typer
 
 from pipeline import cli_options as opts
+from stages.common.tiling import DEFAULT_TILE_SIZE_M
 
 maps_app = typer.Typer(no_args_is_help=True, help="A map's identity: pinned frame, tile size, drive set.\n\n"
                        "Examples:\n\n  cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57"
@@ -25,7 +26,8 @@ MAP_REQ = opts.MAP
 def create_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ,
                origin: str = typer.Option(..., "--origin", help="The map's ENU origin LAT,LON,H (degrees, degrees, "
                                           "metres WGS84), fixed for every version."),
-               tile_size_m: float = typer.Option(100.0, "--tile-size-m", help="Tile edge in metres, fixed."),
+               tile_size_m: float = typer.Option(DEFAULT_TILE_SIZE_M, "--tile-size-m",
+                                                 help="Tile edge in metres, fixed."),
                max_radius_km: float = typer.Option(10.0, "--max-radius-km", help="The map's area: drives with a GNSS "
                                                    "fix farther from the origin are refused (exit 3). 10 km: the ENU "
                                                    "up axis leans 0.09 deg there and the ground lies 7.8 m below its "
@@ -39,9 +41,9 @@ def create_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ,
 
     Example: [b]cornermap maps create --root runs/maps --map kept --origin 37.4979,127.0276,57[/b]
     """
-    from pipeline.build import parse_origin
+    from mapservice.build import parse_origin
+    from mapservice.maps import MAX_RADIUS_LIMIT_KM, CheckDrive, create_map
     from pipeline.errors import ConfigError, OptionError
-    from pipeline.maps import MAX_RADIUS_LIMIT_KM, CheckDrive, create_map
 
     if not (0 < tile_size_m <= 10000):
         raise OptionError("--tile-size-m", [f"expected 0 < S <= 10000 m; got {tile_size_m}"])
@@ -56,7 +58,7 @@ def create_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ,
                            reference=str(check_reference.resolve()) if check_reference else None)
     elif check_reference is not None:
         raise OptionError("--check-reference", ["applies to --check-drive only"])
-    from pipeline.maps import MapHome
+    from mapservice.maps import MapHome
     from pipeline.storage import identity_file
 
     ident = create_map(root, map_name, parse_origin(origin), tile_size_m, check, max_radius_km)
@@ -74,8 +76,8 @@ def show_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ, as_json: bo
 
     Example: [b]cornermap maps show --root runs/maps --map kept[/b]
     """
-    from pipeline.maps import map_dir
-    from pipeline.maps_show import show_doc, show_lines
+    from mapservice.maps import map_dir
+    from mapservice.maps_show import show_doc, show_lines
     from pipeline.store_maps import readable_root
 
     trajectories = lambda m: [str(d["trajectory"]) for d in m.get("source_drives", [])]  # noqa: E731
@@ -125,9 +127,9 @@ def rebuild_cmd(root: Path = opts.ROOT_OR_URI, map_name: str = MAP_REQ,
     """
     import math
 
+    from mapservice.rebuild import RebuildParams, rebuild
     from pipeline.errors import OptionError
     from pipeline.progress import StageProgress
-    from pipeline.rebuild import RebuildParams, rebuild
 
     for opt, v in (("--min-free-gib", min_free_gib), ("--gate-tol-m", gate_tol_m), ("--gate-tol-rel", gate_tol_rel),
                    ("--quiet-period-min", quiet_period_min)):
@@ -170,12 +172,12 @@ def gc_cmd(root: Path = opts.ROOT_OR_URI,
 
     Example: [b]cornermap gc --root runs/maps[/b] (a dry run; add --apply to delete)
     """
+    from mapservice.gc import apply_gc, plan_gc
     from pipeline.errors import ConfigError
-    from pipeline.gc import apply_gc, plan_gc
     from pipeline.storage import is_root_dir, uri_scheme
 
     if uri_scheme(root) is not None:  # an object-store root: datasets, map versions, leases
-        from pipeline.gc import apply_gc_store, plan_gc_store
+        from mapservice.gc import apply_gc_store, plan_gc_store
         from pipeline.storage import Store
         from pipeline.store_maps import gc_uncommitted
 
@@ -210,7 +212,7 @@ def gc_cmd(root: Path = opts.ROOT_OR_URI,
 
 
 def register(app: typer.Typer) -> None:
-    from pipeline.reoptimize_cli import reoptimize_cmd  # issue 59 item 2: maps reoptimize
+    from mapservice.reoptimize_cli import reoptimize_cmd  # issue 59 item 2: maps reoptimize
 
     maps_app.command("reoptimize")(reoptimize_cmd)
     app.add_typer(maps_app, name="maps")

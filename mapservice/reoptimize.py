@@ -5,11 +5,11 @@ poses are re-solved as ``rebuild --full`` solves them (pass 1, survey anchors, l
 passes 2-3), but each solve of the pose graph runs region by region (``stages/posegraph/regions.py``: regions of at
 most ``region_max_poses`` poses, a condensed separator between them, the regions of a round as tasks side by side on
 the build's dask workers or pool) to the same optimum. The version then goes through what a rebuild does:
-``hold_latest`` publishing, then the rebuild's own publishing (``pipeline.rebuild.gate_and_publish``: the regression
+``hold_latest`` publishing, then the rebuild's own publishing (``mapservice.rebuild.gate_and_publish``: the regression
 gate, LATEST moved to the verified version under the publish lock); a run killed anywhere leaves LATEST a complete
 version and the next run completes from what was committed (the workflow and its params are named by content). No
 drive is added; the identity is unchanged. The root may be an ``s3://`` URI as for ``rebuild``
-(``pipeline.maps.MapHome``: identity, LATEST, gate records and leases in the bucket, the free-disk check on the
+(``mapservice.maps.MapHome``: identity, LATEST, gate records and leases in the bucket, the free-disk check on the
 local scratch folder, drives delivered to a bucket read from their local copies).
 Exit codes: 0 published (or LATEST already the result), 3 refused by the gate, 1 error, 75 locked.
 """
@@ -22,10 +22,10 @@ from typing import Callable
 
 import yaml
 
+from mapservice.maps import MapHome
+from mapservice.rebuild import RebuildResult, checked_identity, gate_and_publish, reuse_line
 from pipeline import storage
 from pipeline.errors import ConfigError
-from pipeline.maps import MapHome
-from pipeline.rebuild import RebuildResult, checked_identity, gate_and_publish, reuse_line
 
 DEFAULT_REGION_MAX_POSES = 600  # tiny (5 drives, ~3000 poses): 6-8 regions; a region's solve stays a few seconds
 
@@ -70,9 +70,9 @@ def reoptimize(root: "Path | str", name: str, params: ReoptimizeParams = Reoptim
                say: Callable[[str], None] | None = None) -> RebuildResult:
     """One re-optimization of map ``name`` (module docstring); ``say(line)`` gets each line as it is made. ``root``:
     a local folder or an ``s3://`` URI."""
+    from mapservice.build import write_build_workflow
+    from mapservice.inbox import local_drive_file
     from pipeline.api import execute_workflow
-    from pipeline.build import write_build_workflow
-    from pipeline.inbox import local_drive_file
     from pipeline.versioned import version_name
 
     if params.region_max_poses < 0:
@@ -91,7 +91,7 @@ def reoptimize(root: "Path | str", name: str, params: ReoptimizeParams = Reoptim
         drives = [local_drive_file(d.path) for d in ident.drives]
         pfile = region_params_file(home.root, name, params)
         wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=home.root,
-                                  origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
+                                  origin=ident.enu_origin.plain(), tile_size_m=ident.tile_size_m,
                                   hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0, held_poses=None)
         run = execute_workflow(wf, root=home.root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
                                params_file=pfile, workers=params.workers, dask_host=params.dask_host)

@@ -1,8 +1,8 @@
 """What a build says when its drive set's version is not LATEST (fast: no build)."""
 from __future__ import annotations
 
-from pipeline.maps import rollback
-from tests.pipeline.test_maps import _publish
+from pipeline.versioned import rollback_latest as rollback
+from tests.mapservice.test_maps import _publish
 
 
 def test_a_drive_set_published_earlier_is_named_when_latest_is_another(tmp_path):
@@ -13,7 +13,7 @@ def test_a_drive_set_published_earlier_is_named_when_latest_is_another(tmp_path)
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from pipeline.maps import stale_latest_note
+    from mapservice.maps import stale_latest_note
     from pipeline.store import atomic_write_json, dataset_dir
 
     mdir = tmp_path / "maps" / "city"

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from pipeline import storage
 from pipeline.names import inside
+from pipeline.version_read import state_note, version_states
 
 
 def _first_last_s(path: Path) -> tuple[float, float] | None:
@@ -51,43 +52,6 @@ def _when(t_s: float | None, base: str) -> str:
     return t.strftime("%Y-%m-%d %H:%M") + (" GPS" if base == "gps" else " UTC")
 
 
-def version_states(mdir: Path) -> dict[int, str]:
-    """Each version's standing: ``LATEST``; ``refused`` when the regression gate refused it (``gate/vNNNN.json`` with
-    ``ok`` false: ``cornermap rebuild`` left LATEST on its parent); ``candidate`` when it is newer than LATEST and was
-    never gated (a rebuild stopped before its gate); ``""`` otherwise (an older version LATEST once named)."""
-    import json
-
-    from pipeline.version_read import list_versions, read_latest
-
-    latest = read_latest(mdir) if storage.latest_file(Path(mdir)).exists() else None
-    out = {}
-    for v in list_versions(mdir):
-        gate = storage.gate_file(Path(mdir), v)
-        try:
-            ok = json.loads(gate.read_text(encoding="utf-8")).get("ok") if gate.is_file() else None
-        except (OSError, ValueError, AttributeError):
-            ok = None
-        if v == latest:
-            out[v] = "LATEST"
-        elif ok is False:
-            out[v] = "refused"
-        elif latest is not None and v > latest and ok is None:
-            out[v] = "candidate"
-        else:
-            out[v] = ""
-    return out
-
-
-def state_note(mdir: Path, version: int, state: str) -> str:
-    """The words ``tiles ls`` and ``maps show`` print after a version in that standing."""
-
-    if state == "refused":
-        return f"REFUSED by the regression gate ({storage.gate_file(Path(mdir), version)}); never LATEST"
-    if state == "candidate":
-        return "candidate, not gated (a rebuild stopped before its gate); never LATEST"
-    return ""
-
-
 def _mark(version: int, state: str) -> str:
     from pipeline.version_read import version_name
 
@@ -99,8 +63,8 @@ def show_doc(mdir: Path, root: "str | Path | None" = None) -> dict:
     ``cornermap build``), each version with its standing, each drive; UnknownNameError for a folder with neither an
     identity nor a version. ``root``: the output root the datasets are read from when ``mdir`` is a local view of a
     map on an object store (default: the root holding ``mdir``)."""
+    from mapservice.maps import latest_origin, read_identity
     from pipeline.errors import CornermapError, UnknownNameError
-    from pipeline.maps import latest_origin, read_identity
     from pipeline.version_read import list_versions, read_latest, read_manifest, version_name
 
     ident = read_identity(mdir)
@@ -114,7 +78,7 @@ def show_doc(mdir: Path, root: "str | Path | None" = None) -> dict:
         doc["identity"] = {"tile_size_m": ident.tile_size_m, "max_radius_km": ident.max_radius_km,
                            "created_utc": ident.created_utc,
                            "check_drive": ident.check_drive.model_dump() if ident.check_drive else None}
-        doc["enu_origin"] = ident.enu_origin.model_dump()
+        doc["enu_origin"] = ident.enu_origin.plain()
     elif storage.latest_file(Path(mdir)).exists():
         doc["enu_origin"] = latest_origin(mdir)
     if storage.latest_file(Path(mdir)).exists():
@@ -144,11 +108,12 @@ def show_lines(mdir: Path, root: "str | Path | None" = None) -> list[str]:
                      f"{ident['created_utc']}"
                      + (f", check drive {ident['check_drive']['path']}" if ident["check_drive"] else ""))
     else:
-        from pipeline.maps import fmt_origin
+        from stages.common.geodesy import EnuOrigin
 
         lines.append(f"map {doc['map']}: no identity (made by `cornermap build`; `cornermap maps create` pins "
-                     "its frame for rebuilds)" + (f"; origin {fmt_origin(o)} (WGS84) of LATEST {doc['latest']}"
-                                                  if o and doc["latest"] else ""))
+                     "its frame for rebuilds)"
+                     + (f"; origin {EnuOrigin.validate(o).text()} (WGS84) of LATEST {doc['latest']}"
+                        if o and doc["latest"] else ""))
     lines.append(f"{'version':9s} {'created (UTC)':20s} {'drives':>6s}  standing")
     for v in doc["versions"]:
         note = "LATEST" if v["standing"] == "LATEST" else (v["note"] or "")

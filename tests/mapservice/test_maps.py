@@ -9,10 +9,11 @@ from pathlib import Path
 
 import pytest
 
+from mapservice.gate import compare
+from mapservice.maps import check_free_disk, create_map, pinned_frame, read_identity, run_lock
 from pipeline.errors import ChecksumError, ConfigError, DatasetIOError, RunLockedError, UnknownNameError
-from pipeline.gate import compare
-from pipeline.maps import check_free_disk, create_map, pinned_frame, read_identity, rollback, run_lock
 from pipeline.versioned import publish_version, read_latest
+from pipeline.versioned import rollback_latest as rollback
 
 ORIGIN = {"lat_deg": 37.4979, "lon_deg": 127.0276, "h_m": 57.0}
 REPO = Path(__file__).resolve().parents[2]
@@ -20,7 +21,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def cornermap(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True, env=env,
+    return subprocess.run([sys.executable, "-m", "mapservice", *args], capture_output=True, text=True, env=env,
                           cwd=cwd)
 
 
@@ -101,7 +102,7 @@ def test_lock_held_second_run_exits_75_and_names_the_holder(tmp_path):
 
 def test_lock_is_released_when_its_holder_is_killed(tmp_path):
     create_map(tmp_path, "city", ORIGIN)
-    code = ("import sys, time; sys.path.insert(0, sys.argv[2]); from pipeline.maps import run_lock; "
+    code = ("import sys, time; sys.path.insert(0, sys.argv[2]); from mapservice.maps import run_lock; "
             "from pathlib import Path\nwith run_lock(Path(sys.argv[1])):\n print('held', flush=True); time.sleep(60)")
     proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "maps/city"), str(REPO)],
                             stdout=subprocess.PIPE, text=True)
@@ -198,7 +199,7 @@ def _dataset(root: Path, ds: str, fp: str, inputs: dict, payload: bytes | None =
 
 
 def test_gc_keeps_what_kept_versions_reference_and_counts_links_once(tmp_path):
-    from pipeline.gc import apply_gc, plan_gc
+    from mapservice.gc import apply_gc, plan_gc
 
     scans = _dataset(tmp_path, "scans_raw", "a" * 16, {})
     corners = _dataset(tmp_path, "corner_map", "b" * 16, {"scans": "a" * 16})
@@ -242,7 +243,7 @@ def test_gc_refuses_a_folder_that_is_no_output_root(tmp_path):
 def test_gc_keeps_the_dataset_a_kept_one_read_by_path(tmp_path):
     """The simulator's drives are read by the ingest through drive.yaml paths, not as a manifest input: a kept
     scans dataset keeps them (and a reference trajectory's folder), an unreferenced raw drive folder goes."""
-    from pipeline.gc import plan_gc
+    from mapservice.gc import plan_gc
 
     raw = _dataset(tmp_path, "raw_drives", "7" * 16, {})
     (raw / "artifacts/all/drive_0").mkdir(parents=True)
@@ -268,7 +269,7 @@ def test_gc_keeps_the_dataset_a_kept_one_read_by_path(tmp_path):
 def test_gc_removes_the_scratch_of_killed_runs_and_keeps_a_live_runs(tmp_path):
     """ROOT/tmp entries a killed run left (a ledger, a task's scratch) go once nothing in them changed for
     --min-age-h; one with a recent file inside (a run in progress) stays, and so does its folder."""
-    from pipeline.gc import apply_gc, plan_gc
+    from mapservice.gc import apply_gc, plan_gc
 
     tmp = tmp_path / "tmp"
     ledger = tmp / "verified-0123456789ab"
@@ -322,9 +323,10 @@ def test_rebuild_quarantines_a_bad_drive_with_its_reason_and_goes_on(tmp_path):
 def _fake_build(monkeypatch, tmp_path, cand_ekf_rms: float, prev_ekf_rms: float = 0.10):
     """rebuild's orchestration with the build and the evaluations replaced: the build publishes a held candidate
     (real publisher), the evaluations return known figures; the gate's comparison, LATEST and identity are real."""
+    import mapservice.gate
+    import mapservice.maps
+    import mapservice.rebuild
     import pipeline.api
-    import pipeline.gate
-    import pipeline.rebuild
 
     drive = tmp_path / "inbox" / "drive_new" / "drive.yaml"
     drive.parent.mkdir(parents=True, exist_ok=True)
@@ -338,16 +340,16 @@ def _fake_build(monkeypatch, tmp_path, cand_ekf_rms: float, prev_ekf_rms: float 
     def evaluate(mdir, version, drive, reference, out):
         return _metrics(cand_ekf_rms if version == published["v"] else prev_ekf_rms)
 
-    new = pipeline.rebuild.Selection(good=[(pipeline.rebuild.Delivery(drive.parent, drive.parent), "f" * 64, None)])
-    monkeypatch.setattr(pipeline.rebuild, "select_new_drives", lambda ident, inbox, quiet_s: (new, ident))
+    new = mapservice.rebuild.Selection(good=[(mapservice.rebuild.Delivery(drive.parent, drive.parent), "f" * 64, None)])
+    monkeypatch.setattr(mapservice.rebuild, "select_new_drives", lambda ident, inbox, quiet_s: (new, ident))
     monkeypatch.setattr(pipeline.api, "execute_workflow", execute_workflow)
-    monkeypatch.setattr(pipeline.api, "published_version", lambda plan: published["v"])
-    monkeypatch.setattr(pipeline.gate, "_evaluate", evaluate)
+    monkeypatch.setattr(mapservice.maps, "published_version", lambda plan: published["v"])
+    monkeypatch.setattr(mapservice.gate, "_evaluate", evaluate)
 
 
 @pytest.mark.parametrize("cand_rms, status, latest", [(0.30, "refused", 1), (0.11, "published", 2)])
 def test_rebuild_gate_moves_latest_only_when_not_worse(monkeypatch, tmp_path, cand_rms, status, latest):
-    from pipeline.rebuild import RebuildParams, rebuild
+    from mapservice.rebuild import RebuildParams, rebuild
 
     create_map(tmp_path, "city", ORIGIN)
     _publish(tmp_path / "maps/city", b"v1")

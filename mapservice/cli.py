@@ -1,6 +1,9 @@
 """The typer root app ``cornermap`` and its entry point ``main``: the exit codes of every command.
 
-Heavy imports happen inside commands so ``--help`` is instant. Shared options: ``pipeline.cli_options``.
+The app is assembled here, above the engine and the stages: the engine's commands (``run``, ``catalog``, every
+stage's, ``pipeline.engine_cli``), then the map service's (``build`` here, ``maps ...``, ``rebuild``,
+``mapservice.maps_cli``). Heavy imports happen inside commands so ``--help`` is instant. Shared options:
+``pipeline.cli_options``.
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ import typer
 
 from pipeline import cli_options as opts
 from pipeline.api import execute_workflow
+from pipeline.engine_cli import catalog_app, register_stages, report_run, run_cmd
 from pipeline.errors import CornermapError
 
 app = typer.Typer(
@@ -34,8 +38,8 @@ app = typer.Typer(
     "  cornermap run tiny --root runs/tiny --dry-run\n\n"
     "  cornermap corners params",
 )
-catalog_app = typer.Typer(no_args_is_help=True, help="Inspect and validate the data catalog.")
 app.add_typer(catalog_app, name="catalog")
+app.command("run")(run_cmd)
 
 
 def _version_callback(value: bool) -> None:
@@ -57,51 +61,6 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version_cal
           verbose: bool = typer.Option(False, "--verbose", "-v", help="Log at INFO level.")) -> None:
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-
-
-def report_run(result: dict, as_json: bool, *, extra: dict | None = None, notes: list[str] = ()) -> None:
-    """The closing summary of a run (``execute_workflow``'s result): what the stages published, then per stage its
-    decision, partitions, wall and CPU seconds and peak memory, and the run's totals; with ``as_json`` all of it as
-    one JSON document on stdout. ``notes`` go to stderr."""
-    from pipeline.progress import outcome_lines, summary_lines
-
-    plan = result["plan"]
-    outcomes = outcome_lines(plan)
-    if as_json:
-        opts.echo_json({"root": plan.uri, "workflow": plan.workflow.spec.name, **(extra or {}),
-                        "outcomes": outcomes, "wall_s": result["wall_s"], "cpu_s": result["cpu_s"],
-                        "stages": result["summary"], "dask_dashboard": result.get("dashboard"),
-                        "dask_log": result.get("dask_log")})
-    else:
-        for line in outcomes + summary_lines(result["summary"], plan.uri, result["wall_s"], result["cpu_s"]):
-            typer.echo(line)
-    for line in notes:
-        typer.echo(line, err=True)
-
-
-@app.command("run")
-def run_cmd(workflow: Path = typer.Argument(..., help="Workflow YAML file, or a packaged workflow's name "
-                                                     "(demo, tiny, gangnam, map_rebuild)"),
-            root: Optional[Path] = opts.ROOT_OF_WORKFLOW_OR_URI, scheduler: Optional[str] = opts.SCHEDULER,
-            only: Optional[list[str]] = typer.Option(None, "--only", help="Run only these stages (repeatable)."),
-            dry_run: bool = typer.Option(False, "--dry-run", help="Print order, partitions, fingerprints, decisions."),
-            quiet: bool = opts.QUIET, params: Optional[Path] = opts.PARAMS,
-            workers: Optional[int] = opts.WORKERS, dask_host: str = opts.DASK_HOST,
-            as_json: bool = opts.JSON) -> None:
-    """Run a workflow: stages in dependency order; unchanged stages are skipped.
-
-    Relative paths inside a workflow file resolve against the file's folder; the output root is --root, else the
-    workflow's root, else runs/NAME in the current directory.
-
-    Examples: [b]cornermap run tiny --root runs/tiny[/b]; [b]cornermap run tiny --root runs/tiny --only corners[/b];
-    [b]cornermap run tiny --root runs/tiny --scheduler tcp://127.0.0.1:8786[/b] (a dask.distributed scheduler)
-    """
-    result = execute_workflow(workflow, root=root, scheduler=scheduler, only=only, dry_run=dry_run, quiet=quiet,
-                              params_file=params, workers=workers, dask_host=dask_host, quiet_plan=as_json)
-    if dry_run and as_json:
-        opts.echo_json({"root": result["root"], "dry_run": True, "stages": result["stages"]})
-    elif not dry_run:
-        report_run(result, as_json)
 
 
 @app.command("build")
@@ -136,9 +95,8 @@ def build_cmd(
     Example:
     [b]cornermap build --drive runs/sim/drive_0/drive.yaml --map city --root runs/maps --origin 37.4979,127.0276,57[/b]
     """
-    from pipeline.api import published_version
-    from pipeline.build import parse_origin, write_build_workflow
-    from pipeline.maps import pinned_frame, stale_latest_note
+    from mapservice.build import parse_origin, write_build_workflow
+    from mapservice.maps import pinned_frame, published_version, stale_latest_note
     from pipeline.names import check_name
     from pipeline.store_maps import map_view
 
@@ -155,41 +113,8 @@ def build_cmd(
                extra={"map": map_name, "map_version": f"v{version:04d}" if version is not None else None})
 
 
-@catalog_app.command("ls")
-def catalog_ls(catalog: Optional[Path] = typer.Argument(None, help="Catalog folder or file (default: the packaged "
-                                                                  "catalog).")) -> None:
-    """List every dataset with kind, schema, partitioning and versioning.
-
-    Example: [b]cornermap catalog ls[/b]
-    """
-    from pipeline.catalog import load_catalog
-    from pipeline.resources import packaged_catalog_dir
-
-    cat = load_catalog([catalog or packaged_catalog_dir()])
-    for name, spec in cat.datasets.items():
-        typer.echo(f"{name:22s} {spec.kind:9s} schema={spec.schema_ref or '-':22s} "
-                   f"partitioning={','.join(spec.partitioning) or '-':14s} {spec.versioning}")
-
-
-@catalog_app.command("validate")
-def catalog_validate(
-    catalog: Optional[Path] = typer.Argument(None, help="default: the packaged catalog"),
-    workflows: list[Path] = typer.Option([], "--workflow", help="Also validate these workflows."),
-) -> None:
-    """Validate the catalog (and workflows): every problem is listed at once.
-
-    Example: [b]cornermap catalog validate --workflow tiny[/b]
-    """
-    from pipeline.catalog import load_catalog
-    from pipeline.resources import packaged_catalog_dir
-    from pipeline.workflow import load_workflow
-
-    cat = load_catalog([catalog or packaged_catalog_dir()])
-    for wf in workflows:
-        load_workflow(wf)
-    typer.echo(f"ok: {len(cat.datasets)} datasets" + (f", {len(workflows)} workflow(s)" if workflows else ""))
-
-
+# The stages in the order data flows through them: the order `cornermap --help` lists their commands.
+STAGE_ORDER = ("simulate", "ingest", "odometry", "posegraph", "corners", "cornermap", "markings", "tiles", "evaluate")
 _REGISTERED: list[bool] = []
 
 
@@ -197,24 +122,10 @@ def _register_stages() -> None:
     if _REGISTERED:  # main() may run more than once in one process (tests)
         return
     _REGISTERED.append(True)
-    from pipeline.maps_cli import register as register_maps
+    from mapservice.maps_cli import register as register_maps
 
     register_maps(app)
-    from pipeline.registry import load_stages
-    from pipeline.stage_cli import stage_app
-
-    for name, decl in load_stages().items():
-        sub = stage_app(decl)
-        if decl.cli:
-            import importlib
-            import inspect
-
-            register = importlib.import_module(decl.cli).register
-            # register(app) adds top-level commands; register(app, stage_app) may also extend the stage's group.
-            register(app, sub) if len(inspect.signature(register).parameters) >= 2 else register(app)
-        # A stage whose CLI module adds a top-level command of its own name (simulate, evaluate) is used that way.
-        if not any(c.name == name for c in app.registered_commands):
-            app.add_typer(sub, name=name, help=sub.info.help or decl.summary)
+    register_stages(app, STAGE_ORDER)
 
 
 EXIT_USAGE = 2  # the command line is wrong (click's and argparse's code)

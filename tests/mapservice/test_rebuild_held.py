@@ -1,10 +1,10 @@
-"""``pipeline.rebuild.held_solution``: what an incremental rebuild holds, read from LATEST's manifest."""
+"""``mapservice.rebuild.held_solution``: what an incremental rebuild holds, read from LATEST's manifest."""
 from __future__ import annotations
 
 import json
 
+from mapservice.rebuild import held_solution
 from pipeline import storage
-from pipeline.rebuild import held_solution
 from pipeline.store import dataset_dir
 from pipeline.versioned import publish_version
 

@@ -1,29 +1,29 @@
 """``cornermap rebuild``: new drives from an inbox in, a checked new map version out, in the map's pinned frame.
 
-One run, under the map's writer locks (``pipeline.maps.run_lock``: the root shared, the map exclusive; exit 75 when
+One run, under the map's writer locks (``mapservice.maps.run_lock``: the root shared, the map exclusive; exit 75 when
 another writer holds either):
   1. free-disk check (``min_free_gib``, exit 1 with the numbers);
   2. every map drive must still be where the identity says with what it references unchanged (the fingerprint, or,
      when only that changed, the content of what its drive file references: ``drive check --content``; exit 1);
-  3. the inbox's drive folders (``pipeline.inbox``: complete by the delivery protocol, links resolved and kept
+  3. the inbox's drive folders (``mapservice.inbox``: complete by the delivery protocol, links resolved and kept
      inside the inbox) not already in the map, by fingerprint or by content, are new; a second delivery of the same
      content is left alone; each new one is checked (``cornermap drive check``); a bad one is moved to
      ``INBOX/quarantine/`` with ``<folder>.reason.txt`` (in cornermap's words: never a line of the drive's files);
   4. no new good drive: one line, exit 0, nothing written;
   5. the map workflow runs on all the map's drives in the pinned frame with ``hold_latest``: the candidate is
      published as version N+1 but LATEST stays (per-drive work of old drives is reused: pipeline/reuse.py);
-  6. the regression gate (``pipeline.gate``) localizes the check drive (the identity's, else the newest new
+  6. the regression gate (``mapservice.gate``) localizes the check drive (the identity's, else the newest new
      drive) on the candidate and on LATEST; worse beyond tolerance: exit 3, LATEST unchanged;
   7. LATEST moves to the verified candidate, then the identity records the new drives.
-Steps 6-7 are ``gate_and_publish``, which ``maps reoptimize`` (pipeline/reoptimize.py) publishes through too.
+Steps 6-7 are ``gate_and_publish``, which ``maps reoptimize`` (mapservice/reoptimize.py) publishes through too.
 A run killed at any point leaves LATEST naming a complete version; the next run finds the same drives new
 and completes from the committed work (a candidate LATEST already names is only recorded).
 The root and the inbox may be ``s3://`` URIs: the map's identity, LATEST, gate records and locks (leases) are then
-the bucket's (``pipeline.maps.MapHome``), the free-disk check is the local scratch folder's, the gate evaluates on a
+the bucket's (``mapservice.maps.MapHome``), the free-disk check is the local scratch folder's, the gate evaluates on a
 local snapshot of both versions, and drives delivered to a bucket are read from a local copy
-(``pipeline.inbox.StoreInbox``; docs/maintenance.md).
-This module calls the stages through the command line (``python -m pipeline ...``), never by import; those child
-processes end themselves when the rebuild is gone (``pipeline.progress.run_cornermap``).
+(``mapservice.inbox.StoreInbox``; docs/maintenance.md).
+This module calls the stages through the command line (``python -m mapservice ...``), never by import; those child
+processes end themselves when the rebuild is gone (``mapservice.child.run_cornermap``).
 """
 from __future__ import annotations
 
@@ -34,10 +34,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from mapservice.inbox import DEFAULT_QUIET_PERIOD_S, QUARANTINE, Delivery, quarantine  # noqa: F401 - re-exported
+from mapservice.maps import MapDrive, check_free_disk, utc_now
 from pipeline import storage
 from pipeline.errors import ConfigError, StageError
-from pipeline.inbox import DEFAULT_QUIET_PERIOD_S, QUARANTINE, Delivery, quarantine  # noqa: F401 - re-exported
-from pipeline.maps import MapDrive, check_free_disk, utc_now
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +83,8 @@ class RebuildResult:
 
 def cli(*args: str) -> subprocess.CompletedProcess:
     """Run ``cornermap ARGS`` in a child process (the stages' own commands, without importing them), which ends itself
-    once this process is gone (``pipeline.progress.run_cornermap``)."""
-    from pipeline.progress import run_cornermap
+    once this process is gone (``mapservice.child.run_cornermap``)."""
+    from mapservice.child import run_cornermap
 
     return run_cornermap(list(args))
 
@@ -128,9 +128,9 @@ def check_map_drives(ident) -> tuple[object, list[str], list[str]]:
     """(identity, problems, notes): every map drive must be where it was with the fingerprint it had, or, when only
     the fingerprint changed (files around it touched, copied or added), the same content of what its drive file
     references; such a drive's fingerprint is updated in the returned identity. A drive delivered to a bucket
-    (``s3://.../NAME/drive.yaml``) is checked on its local copy (``pipeline.inbox.local_drive_file``)."""
+    (``s3://.../NAME/drive.yaml``) is checked on its local copy (``mapservice.inbox.local_drive_file``)."""
+    from mapservice.inbox import local_drive_file
     from pipeline.fingerprint import drive_fingerprint
-    from pipeline.inbox import local_drive_file
 
     problems, notes, drives = [], [], []
     for d in ident.drives:
@@ -171,10 +171,10 @@ class Selection:
 
 def select_new_drives(ident, inbox, quiet_period_s: float = DEFAULT_QUIET_PERIOD_S):
     """(Selection, identity with the content of older map drives filled in where it had to be computed). ``inbox``:
-    a folder, or a ``pipeline.inbox.LocalInbox`` / ``StoreInbox`` (a bucket: a drive is fetched into its local copy
+    a folder, or a ``mapservice.inbox.LocalInbox`` / ``StoreInbox`` (a bucket: a drive is fetched into its local copy
     once it is complete and stays inside the inbox)."""
+    from mapservice.inbox import LocalInbox
     from pipeline.fingerprint import drive_fingerprint
-    from pipeline.inbox import LocalInbox
     from pipeline.names import name_problem
     from pipeline.progress import finish, report
 
@@ -247,7 +247,7 @@ def select_new_drives(ident, inbox, quiet_period_s: float = DEFAULT_QUIET_PERIOD
 
 def _map_contents(ident) -> dict[str, str]:
     """Map drive name -> content: the identity's, else computed now (identities written before it was recorded)."""
-    from pipeline.inbox import local_drive_file
+    from mapservice.inbox import local_drive_file
 
     out = {}
     for d in ident.drives:
@@ -264,11 +264,11 @@ def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildP
             say: Callable[[str], None] | None = None) -> RebuildResult:
     """One rebuild (module docstring); ``say(line)`` gets each line of the result as it is made, so that what was
     quarantined or left alone is told even when the build then fails. ``root`` and ``inbox`` are local folders or
-    ``s3://`` URIs (``pipeline.maps.MapHome``, ``pipeline.inbox.StoreInbox``)."""
+    ``s3://`` URIs (``mapservice.maps.MapHome``, ``mapservice.inbox.StoreInbox``)."""
+    from mapservice.build import write_build_workflow
+    from mapservice.inbox import open_inbox
+    from mapservice.maps import MapHome
     from pipeline.api import execute_workflow
-    from pipeline.build import write_build_workflow
-    from pipeline.inbox import open_inbox
-    from pipeline.maps import MapHome
     from pipeline.versioned import version_name
 
     home = MapHome(root, name)
@@ -292,7 +292,7 @@ def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildP
             result.add(f"nothing to do: no new drive in {box} for map {name!r} "
                        f"({len(ident.drives)} drive(s), LATEST {_latest_text(home)})")
             return result
-        from pipeline.inbox import local_drive_file
+        from mapservice.inbox import local_drive_file
 
         drives = [local_drive_file(d.path) for d in ident.drives] + [dlv.drive_yaml for dlv, _, _ in sel.good]
         with home.view(whole=()) as view:
@@ -301,7 +301,7 @@ def rebuild(root: "Path | str", name: str, inbox: "Path | str", params: RebuildP
             result.add("note: no published pose-graph solution to hold (LATEST none or its poses gone): every "
                        "drive is solved jointly")
         wf = write_build_workflow(params.workflow, drives=drives, map_name=name, root=home.root,
-                                  origin=ident.enu_origin.model_dump(), tile_size_m=ident.tile_size_m,
+                                  origin=ident.enu_origin.plain(), tile_size_m=ident.tile_size_m,
                                   hold_latest=True, max_radius_m=ident.max_radius_km * 1000.0, held_poses=held)
         run = execute_workflow(wf, root=home.root, scheduler=params.scheduler, only=None, dry_run=False, quiet=True,
                                params_file=params.params_file, workers=params.workers, dask_host=params.dask_host)
@@ -325,15 +325,15 @@ def gate_and_publish(home, run: dict, ident, before, params, result: RebuildResu
     """The publishing half of a run that wrote a candidate version with ``hold_latest`` (``rebuild``, ``maps
     reoptimize``), on a local root or an ``s3://`` one alike (``MapHome``), under the map's lock the caller holds:
     the candidate is the version the run's plan published (StageError naming ``what`` when it committed none); when it
-    is not already LATEST and a LATEST exists, the regression gate (``pipeline.gate.run_gate`` on a local view of both
+    is not already LATEST and a LATEST exists, the regression gate (``mapservice.gate.run_gate`` on a local view of both
     versions; its record written to the map) localizes the identity's check drive (else ``fallback_drive``) on both;
     a refusal sets ``result`` refused (exit 3), writes ``ident`` when it differs from ``before`` (fingerprints brought
     up to date) and leaves LATEST; otherwise LATEST moves to the candidate (``MapHome.move_latest``: verified under
     the publish lock). Returns (candidate, the LATEST before); the caller records what the run adds to the
     identity."""
-    from pipeline.api import published_version
-    from pipeline.gate import run_gate
-    from pipeline.inbox import local_drive_file
+    from mapservice.gate import run_gate
+    from mapservice.inbox import local_drive_file
+    from mapservice.maps import published_version
     from pipeline.versioned import version_name
 
     candidate = published_version(run["plan"])

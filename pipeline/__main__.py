@@ -1,5 +1,0 @@
-from pipeline.cli import main
-from pipeline.parallel import exit_with_parent_from_env
-
-exit_with_parent_from_env()  # a child a command started ends with it (pipeline.progress.run_cornermap)
-main()
