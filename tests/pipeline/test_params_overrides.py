@@ -52,8 +52,8 @@ def test_an_old_flat_key_in_a_workflow_names_its_new_place(tmp_path):
 
 
 def test_the_stage_params_listing_shows_the_sections():
-    from pipeline.registry import get_stage
     from pipeline.engine_cli import format_params
+    from pipeline.registry import get_stage
 
     text = format_params(get_stage("posegraph"))
     loops = text[text.index("\nloops: # loop closures\n") : text.index("\nanchors:")]
