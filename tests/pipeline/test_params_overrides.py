@@ -58,3 +58,23 @@ def test_the_stage_params_listing_shows_the_sections():
     text = format_params(get_stage("posegraph"))
     loops = text[text.index("\nloops: # loop closures\n") : text.index("\nanchors:")]
     assert "\n  radius_m: 12.0 # " in loops and "\n  wide:\n    enabled: True" in loops
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("posegraph:\n  loop_radius_m: 20\n",
+     "params of 'posegraph': 'loop_radius_m' has moved: write it as 'loops.radius_m'"),
+    ("posegraph:\n  loops:\n    radus_m: 20\n",
+     "params of 'posegraph': loops: unknown key 'radus_m' (did you mean 'radius_m'?)"),
+    ("posegrph:\n  x: 1\n", "unknown stage 'posegrph' (did you mean 'posegraph'?)"),
+])
+def test_a_params_files_problem_names_that_file_not_the_workflow(tmp_path, text, expected):
+    """Run as a process from a folder outside the checkout: one line naming the --params file, exit 1."""
+    import subprocess
+    import sys
+
+    (tmp_path / "p.yaml").write_text(text)
+    res = subprocess.run([sys.executable, "-m", "mapservice", "run", "tiny", "--root", str(tmp_path / "r"),
+                          "--params", "p.yaml", "--dry-run"], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 1, res.stderr
+    assert f"p.yaml: {expected}" in res.stderr and "tiny.yaml" not in res.stderr and "Traceback" not in res.stderr
