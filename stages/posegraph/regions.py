@@ -31,9 +31,11 @@ from typing import Callable, Iterator
 import gtsam
 import numpy as np
 
-from stages.posegraph.config import RegionConfig
+from stages.posegraph.config import RegionConfig, SolveConfig
 from stages.posegraph.factors import graph as fg
 from stages.posegraph.factors.graph import Problem
+
+SOLVE_DEFAULTS = SolveConfig()  # the solve section's defaults, for callers that pass none (tests)
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +206,7 @@ def _region_graph(spec: RegionSpec, poses: np.ndarray, biases: np.ndarray, lever
 
 
 def solve_region(spec: RegionSpec, poses: np.ndarray, biases: np.ndarray, levers: dict,
-                 max_iterations: int = 100, relative_error_tol: float = 1e-7) -> RegionResult:
+                 max_iterations: int = SOLVE_DEFAULTS.max_iterations, relative_error_tol: float = 1e-7) -> RegionResult:
     """One region's round: its interior by LM with its separators held at ``poses`` / ``biases`` / ``levers``
     (local poses (P,4,4), local biases (B,3), lever value -> current (3,)), then the Schur complement of its
     linearised factors on the separators. Touches only the region's poses and its separators."""
@@ -290,7 +292,7 @@ class RegionSolve:
 
 
 def optimize_regions(problem: Problem, params: RegionParams, *, initial: np.ndarray | None = None,
-                     max_iterations: int = 100, relative_error_tol: float = 1e-7,
+                     max_iterations: int = SOLVE_DEFAULTS.max_iterations, relative_error_tol: float = 1e-7,
                      map_fn: Callable | None = None) -> RegionSolve:
     """The joint optimum of ``problem`` (as ``factors.graph.optimize`` finds it) solved region by region (module
     docstring). ``map_fn(fn, items)``: how the regions of a round run side by side (default

@@ -24,25 +24,6 @@ def _at(obj, place: str):
     return functools.reduce(getattr, place.split("."), obj)
 
 
-@pytest.mark.parametrize("old", sorted(OdometryParams.renamed))
-def test_an_old_flat_key_is_refused_with_its_new_place(old):
-    new = OdometryParams.renamed[old]
-    with pytest.raises(ValidationError) as err:
-        OdometryParams.model_validate({old: 1})
-    assert f"{old!r} has moved: write it as {new!r}" in str(err.value)
-
-
-@pytest.mark.parametrize("old", sorted(OdometryParams.renamed))
-def test_the_new_place_reaches_its_section(old):
-    place = OdometryParams.renamed[old]
-    base = OdometryParams()
-    default = _at(base, place)
-    value = CHANGED.get(place.rsplit(".", 1)[-1], default * 1.5 if isinstance(default, float) else None)
-    assert value is not None, f"add a changed value for {place!r} to CHANGED"
-    changed = base.updated({place: value})
-    assert _at(changed, place) == value and changed != base
-
-
 def test_registration_keywords_and_spans():
     p = OdometryParams(
         icp={"guided_relative_tolerance": 2e-3}, information={"point_sigma_m": 0.15}, span_scans=[3], deskew="none"

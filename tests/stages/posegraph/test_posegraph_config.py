@@ -35,28 +35,6 @@ def _changed(place: str, default):
     raise AssertionError(f"add a changed value for {place!r} to CHANGED")
 
 
-@pytest.mark.parametrize("old", sorted(PosegraphParams.renamed))
-def test_an_old_flat_key_is_refused_with_its_new_place(old):
-    new = PosegraphParams.renamed[old]
-    with pytest.raises(ValidationError) as err:
-        PosegraphParams.model_validate({old: 1})
-    assert f"{old!r} has moved: write it as {new!r}" in str(err.value)
-
-
-@pytest.mark.parametrize("old", sorted(PosegraphParams.renamed))
-def test_the_new_place_reaches_its_section(old):
-    for place in PosegraphParams.renamed[old].replace("(and ", "").replace(")", "").split():
-        if "." not in place:
-            continue  # words of the message
-        base = PosegraphParams()
-        value = _changed(place, _at(base, place))
-        changed = base.updated({place: value})
-        section = place.split(".")[0]
-        assert _at(changed, section) != _at(base, section), f"{place} does not reach the {section} section"
-        expected = value if not isinstance(value, dict) else _at(base, place).model_copy(update=value)
-        assert _at(changed, place) == expected
-
-
 def test_sections_derive_the_algorithm_values():
     p = PosegraphParams(
         factors={"wheel": {"bridges": False}, "registration": {"yaw_deg": 0.5}},
