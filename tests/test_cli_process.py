@@ -206,11 +206,13 @@ def test_a_refused_rebuild_exits_3_and_keeps_latest(tmp_path):
         (sim / name).rename(inbox / name)
     args = ("--root", "maps", "--map", "city")
     assert cornermap("maps", "create", *args, "--origin", "37.4979,127.0276,57", cwd=tmp_path).returncode == 0
-    first = cornermap("rebuild", *args, "--inbox", str(inbox), "--json", cwd=tmp_path, timeout=1200)
+    # delivered just now: taken at once (no quiet period to wait out; operators use it or a READY marker)
+    first = cornermap("rebuild", *args, "--inbox", str(inbox), "--quiet-period-min", "0", "--json", cwd=tmp_path,
+                      timeout=1200)
     assert first.returncode == 0 and json.loads(first.stdout)["status"] == "published", first.stderr
     (sim / "drive_1").rename(inbox / "drive_1")
-    res = cornermap("rebuild", *args, "--inbox", str(inbox), "--gate-tol-m", "0", "--gate-tol-rel", "0", "--json",
-                    cwd=tmp_path, timeout=1800)
+    res = cornermap("rebuild", *args, "--inbox", str(inbox), "--quiet-period-min", "0", "--gate-tol-m", "0",
+                    "--gate-tol-rel", "0", "--json", cwd=tmp_path, timeout=1800)
     doc = json.loads(res.stdout)
     if doc["status"] == "published":  # the candidate was not worse by a single figure: nothing to refuse
         pytest.skip("the second drive made no figure worse; the gate had nothing to refuse")
