@@ -34,14 +34,13 @@ def load_param_file(path: Optional[Path]) -> dict:
     if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
         raise ConfigError(str(path), ["expected a mapping {stage: {param: value}}"])
     from pipeline.declare import nested
-    from pipeline.names import suggest
-    from pipeline.registry import load_stages
+    from pipeline.registry import load_stages, unknown_stage_problem
     from pipeline.workflow import validate_params
 
     stages, problems = load_stages(), []
     for name, values in data.items():  # checked alone, so that a problem names this file, not the workflow
         if name not in stages:
-            problems.append(f"unknown stage {name!r}{suggest(name, stages)}; known: {', '.join(stages)}")
+            problems.append(unknown_stage_problem(name, stages))
         else:
             found = validate_params(stages[name], nested(values), str(path))[1]
             problems += [p.removeprefix(f"{path}: ") for p in found]

@@ -7,7 +7,6 @@ column of its dataset.
 """
 from __future__ import annotations
 
-import difflib
 import importlib
 from dataclasses import dataclass, field
 from enum import Enum
@@ -47,10 +46,10 @@ def unknown_key_problem(params: type[Params], key: Any) -> str:
     """One line for a key ``params`` does not have: where it moved, or the nearest known key."""
     if key in params.renamed:
         return f"{key!r} has moved: write it as {params.renamed[key]!r}"
+    from pipeline.names import suggest
+
     known = sorted(params.model_fields)
-    close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return f"unknown key {key!r}{hint}; known: {', '.join(known) or '(none)'}"
+    return f"unknown key {key!r}{suggest(str(key), known)}; known: {', '.join(known) or '(none)'}"
 
 
 def nested(values: Mapping[str, Any]) -> dict[str, Any]:
@@ -62,9 +61,7 @@ def nested(values: Mapping[str, Any]) -> dict[str, Any]:
         if isinstance(key, str) and "." in key:
             head, _, rest = key.partition(".")
             value, key = {rest: value}, head
-        value = nested(value) if isinstance(value, Mapping) else value
-        out[key] = merged(out[key], value) if isinstance(out.get(key), Mapping) and isinstance(value, Mapping) \
-            else value
+        out = merged(out, {key: nested(value) if isinstance(value, Mapping) else value})
     return out
 
 

@@ -44,8 +44,13 @@ def load_stages() -> dict[str, StageDecl]:
     return dict(sorted(stages.items()))  # by name; the app lists them in its own order (``register_stages``)
 
 
+def unknown_stage_problem(name: str, stages) -> str:
+    """One line for a stage name that is not among ``stages``: the nearest one and the known ones."""
+    return f"unknown stage {name!r}{suggest(name, stages)}; known: {', '.join(stages)}"
+
+
 def get_stage(name: str) -> StageDecl:
     stages = load_stages()
     if name not in stages:
-        raise UnknownNameError(f"unknown stage {name!r}{suggest(name, stages)}; known: {', '.join(stages)}")
+        raise UnknownNameError(unknown_stage_problem(name, stages))
     return stages[name]

@@ -15,7 +15,7 @@ from pipeline.catalog import Catalog, load_catalog
 from pipeline.declare import Params, StageDecl, merged, nested, unknown_key_problem
 from pipeline.errors import ConfigError
 from pipeline.names import name_problem, suggest
-from pipeline.registry import load_stages
+from pipeline.registry import load_stages, unknown_stage_problem
 from pipeline.safe_yaml import load_yaml_file
 
 TEMPLATE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
@@ -160,7 +160,7 @@ def load_workflow(path: Path | str, *, param_overrides: dict[str, dict[str, Any]
     stages: dict[str, StageDecl] = {}
     for name in spec.stages:
         if name not in registry:
-            problems.append(f"unknown stage {name!r}{suggest(name, registry)}; known: {', '.join(registry)}")
+            problems.append(unknown_stage_problem(name, registry))
         elif name in stages:
             problems.append(f"stage {name!r} is listed twice")
         else:
