@@ -11,13 +11,17 @@ Method:
    runs; a run shorter than ``min_run_m`` is dropped.
 3. The painted lane lines (``lane_solid`` / ``lane_dashed`` vectors, points every 0.25 m) beside each sample are
    found across the heading: on the left the nearest at 0.5 to ``default_width_m`` m, on the right likewise.
-4. A run is cut into lanelets of about ``segment_m``. Each side of a lanelet lies at the median of the lines
-   found on that side when at least ``min_line_share`` of its samples found one (a dashed line is found in about
-   a third of them), with the line type of the most found (``solid``, ``dashed``, ``solid_solid`` for a double
-   centre line, i.e. a solid line at least 0.55 m wide); else at half of ``default_width_m`` as a ``virtual`` line.
-   Consecutive lanelets share their end points (the mean of their two offsets), so Lanelet2's routing graph
-   connects them; a boundary point that would step backwards along the lane (the inside of a tight turn) is
-   dropped, so no boundary folds over itself.
+4. Each side's paint is the samples that found a line, with gaps of at most ``paint_gap_m`` between two of them
+   filled (a dashed line's gaps) and painted stretches shorter than ``min_paint_m`` dropped. A run is cut where the
+   paint of either side begins or ends (at its first and last sample that found a line, so no painted boundary
+   runs on past the paint, e.g. into an intersection), and each piece into lanelets of about ``segment_m``.
+   Each side of a lanelet lies at the median of the lines found on that side when most of its samples are
+   painted and at least ``min_line_share`` of them found one (a dashed line is found in about a third of them),
+   with the line type of the most found (``solid``, ``dashed``, ``solid_solid`` for a double centre line, i.e. a
+   solid line at least 0.55 m wide); else at half of ``default_width_m`` as a ``virtual`` line.
+   Consecutive lanelets share their end points (the mean of their two offsets; the painted one's where only one
+   is painted), so Lanelet2's routing graph connects them; a boundary point that would step backwards along the
+   lane (the inside of a tight turn) is dropped, so no boundary folds over itself.
 Heights are the caller's (``height_of``): the road surface of the map under each point.
 """
 from __future__ import annotations
@@ -43,6 +47,8 @@ class LaneParams:
     dedup_deg: float = 30.0
     min_line_share: float = 0.2
     max_gap_m: float = 5.0  # a trajectory that jumps further between two poses is two pieces
+    paint_gap_m: float = 10.0  # a gap in a side's paint this short is a dashed line's (US dashes: 9.1 m gaps)
+    min_paint_m: float = 2.0  # a painted stretch this short is not a line of its own
 
 
 @dataclass(frozen=True)
@@ -127,7 +133,7 @@ def _lines_beside(pts: np.ndarray, heading: np.ndarray, line_xy: np.ndarray, lin
         c, s = np.cos(heading[i]), np.sin(heading[i])
         along, lateral = q @ np.array([c, s]), q @ np.array([-s, c])
         for side in (+1, -1):
-            ok = (np.abs(along) <= 0.3) & (side * lateral >= 0.5) & (side * lateral <= max_m)
+            ok = (np.abs(along) <= 0.2) & (side * lateral >= 0.5) & (side * lateral <= max_m)
             if ok.any():
                 j = np.flatnonzero(ok)[np.argmin(side * lateral[ok])]
                 off[side][i], kind[side][i] = lateral[j], line_kind[near[j]]
@@ -145,12 +151,43 @@ def _forward_only(xy: np.ndarray, heading: np.ndarray, a: int, b: int) -> list[i
     return keep + [b]
 
 
+def _painted(found: np.ndarray, gap_n: int, min_n: int) -> np.ndarray:
+    """Samples on a side's paint: ``found`` with interior gaps of at most ``gap_n`` samples filled, and painted
+    stretches of fewer than ``min_n`` samples dropped."""
+    painted = found.copy()
+    idx = np.flatnonzero(found)
+    for a, b in zip(idx[:-1], idx[1:]):
+        if 1 < b - a <= gap_n + 1:
+            painted[a:b] = True
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], painted.astype(int), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a < min_n:
+            painted[a:b] = False
+    return painted
+
+
+def _lanelet_cuts(painted: list[np.ndarray], m: int, p: LaneParams) -> np.ndarray:
+    """Sample indices where lanelets start/end: where either side's paint begins or ends, and every
+    ``segment_m`` or so between."""
+    ends = {0, m - 1}
+    for side in painted:
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], side.astype(int), [0]])))
+        ends.update(edges[::2].tolist())  # the first painted sample of a stretch
+        ends.update((edges[1::2] - 1).tolist())  # its last
+    cuts = [0]
+    for a, b in zip(sorted(ends)[:-1], sorted(ends)[1:]):
+        n_cut = max(1, int(round((b - a) * p.step_m / p.segment_m)))
+        cuts += np.round(np.linspace(a, b, n_cut + 1)).astype(int)[1:].tolist()
+    return np.unique(cuts)
+
+
 def _run_lanes(drive: str, pts: np.ndarray, heading: np.ndarray, lines: tuple[np.ndarray, np.ndarray],
                p: LaneParams, height_of: Callable[[np.ndarray], np.ndarray]) -> LaneRun:
     m = len(pts)
-    n_cut = max(1, int(round((m - 1) * p.step_m / p.segment_m)))
-    cuts = np.unique(np.round(np.linspace(0, m - 1, n_cut + 1)).astype(int))
     lo, lk, ro, rk = _lines_beside(pts, heading, *lines, max_m=p.default_width_m)
+    gap_n, min_n = int(p.paint_gap_m / p.step_m), int(np.ceil(p.min_paint_m / p.step_m))
+    painted = [_painted(np.isfinite(off), gap_n, min_n) for off in (lo, ro)]
+    cuts = _lanelet_cuts(painted, m, p)
     offsets = np.zeros((len(cuts) - 1, 2))
     subtypes = []
     for k in range(len(cuts) - 1):
@@ -158,7 +195,7 @@ def _run_lanes(drive: str, pts: np.ndarray, heading: np.ndarray, lines: tuple[np
         kinds = []
         for col, (off, kind, sign) in enumerate(((lo, lk, +1), (ro, rk, -1))):
             found = np.isfinite(off[sl])
-            if found.mean() >= p.min_line_share:
+            if painted[col][sl].mean() > 0.5 and found.any() and found.mean() >= p.min_line_share:
                 offsets[k, col] = float(np.median(off[sl][found]))
                 names, counts = np.unique(kind[sl][found].astype(str), return_counts=True)
                 kinds.append(str(names[np.argmax(counts)]))
@@ -170,7 +207,11 @@ def _run_lanes(drive: str, pts: np.ndarray, heading: np.ndarray, lines: tuple[np
     for k in range(len(cuts) - 1):
         per_sample[cuts[k]:cuts[k + 1] + 1] = offsets[k]
     for k in range(1, len(cuts) - 1):  # a shared end point: between the two lanelets' offsets
-        per_sample[cuts[k]] = offsets[k - 1:k + 1].mean(axis=0)
+        for col in (0, 1):  # on the paint where only one of the two is painted (where the paint ends)
+            virtual = [subtypes[k - 1][col] == "virtual", subtypes[k][col] == "virtual"]
+            per_sample[cuts[k], col] = (offsets[k - 1, col] if virtual[1] and not virtual[0] else
+                                        offsets[k, col] if virtual[0] and not virtual[1] else
+                                        offsets[k - 1:k + 1, col].mean())
     normal = np.column_stack([-np.sin(heading), np.cos(heading)])
     sides = []
     for col in (0, 1):

@@ -124,3 +124,35 @@ def test_marking_nodes_carry_the_road_height():
         enu = geodetic_to_enu(float(node.get("lat")), float(node.get("lon")), tags["ele"], ORIGIN)[0]
         assert abs(enu[0] - tags["local_x"]) < 1e-3 and abs(enu[1] - tags["local_y"]) < 1e-3
         assert abs(enu[2] - road_z(enu[:2])[0]) < 1e-3
+
+
+def test_a_painted_boundary_ends_where_its_paint_ends():
+    """The double centre line stops at east 100 m (an intersection) while the drive goes on to 200 m: the left
+    boundary is ``solid_solid`` up to the paint's end, no painted boundary point lies beyond it, and the rest is
+    ``virtual``; the edge line on the right runs through."""
+    rng = np.random.default_rng(6)
+    feats = [MarkingFeature("lane_solid", np.array([[-10.0, 0.0], [100.0, 0.0]]), 0.62, 110.0),
+             MarkingFeature("lane_solid", np.array([[-10.0, -3.5], [210.0, -3.5]]), 0.18, 220.0)]
+    [run] = driven_lanes({"d": path(0.0, 200.0, -1.75, rng)}, feats, road_z)
+    lefts = [t for t, _ in run.subtypes]
+    n = lefts.count("solid_solid")
+    assert 0 < n < len(lefts) and lefts == ["solid_solid"] * n + ["virtual"] * (len(lefts) - n), lefts
+    assert {t for _, t in run.subtypes} == {"solid"}
+    for k, (left_type, _) in enumerate(run.subtypes):
+        li, _ = run.lanelet_bounds(k)
+        xy = run.left[li, :2]
+        if left_type == "solid_solid":
+            assert xy[:, 0].max() <= 100.25 and np.abs(xy[:, 1]).max() <= 0.15, xy
+    ends = [run.left[run.lanelet_bounds(k)[0][-1], 0] for k, (t, _) in enumerate(run.subtypes) if t == "solid_solid"]
+    assert max(ends) >= 99.0  # the painted boundary reaches the paint's end
+
+
+def test_a_dashed_line_is_one_painted_boundary_not_a_lanelet_per_dash():
+    """3 m dashes every 8 m (the simulator's and Korea's pattern): the gaps are filled, so the lanelets are cut every
+    ~25 m as on a solid line, all of them ``dashed`` on the left."""
+    rng = np.random.default_rng(7)
+    dashes = [MarkingFeature("lane_dashed", np.array([[x, 0.0], [x + 3.0, 0.0]]), 0.15, 3.0)
+              for x in np.arange(-10.0, 210.0, 8.0)]
+    edge = MarkingFeature("lane_solid", np.array([[-10.0, -3.5], [210.0, -3.5]]), 0.18, 220.0)
+    [run] = driven_lanes({"d": path(0.0, 200.0, -1.75, rng)}, dashes + [edge], road_z)
+    assert run.subtypes == [("dashed", "solid")] * 8
