@@ -4,6 +4,7 @@ inputs and its parent version), and the published corner table that goes with th
 I/O edge of the tiles stage: reads the parent's trajectories, cells and raster files, hashes the raster files this
 version would publish.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -50,20 +51,37 @@ class TilePlan:
 def corner_set(table: pa.Table) -> CornerSet:
     col = lambda c: table[c].to_numpy()  # noqa: E731
     n = table.num_rows
-    return CornerSet(col("corner_id").astype(np.int64) if n else np.zeros(0, np.int64),
-                     np.column_stack([col("east_m"), col("north_m")]) if n else np.zeros((0, 2)),
-                     np.column_stack([col("cov_ee_m2"), col("cov_en_m2"), col("cov_nn_m2")]) if n else np.zeros((0, 3)),
-                     col("n_obs") if n else np.zeros(0, np.int64), table["drives"].to_pylist() if n else [])
+    return CornerSet(
+        col("corner_id").astype(np.int64) if n else np.zeros(0, np.int64),
+        np.column_stack([col("east_m"), col("north_m")]) if n else np.zeros((0, 2)),
+        np.column_stack([col("cov_ee_m2"), col("cov_en_m2"), col("cov_nn_m2")]) if n else np.zeros((0, 3)),
+        col("n_obs") if n else np.zeros(0, np.int64),
+        table["drives"].to_pylist() if n else [],
+    )
 
 
-def plan_tiles(prev, corners: pa.Table, trajectories: list, rasters: list, cells: dict[Key, pa.Table] | None,
-               size_m: float, tol: Tolerances, same_derivation: bool) -> TilePlan:
+def plan_tiles(
+    prev,
+    corners: pa.Table,
+    trajectories: list,
+    rasters: list,
+    cells: dict[Key, pa.Table] | None,
+    size_m: float,
+    tol: Tolerances,
+    same_derivation: bool,
+) -> TilePlan:
     """Which tiles of the new version keep the parent's (``prev``, a ``MapReader``) files. ``corners``: the new
     derivation with the parent's ids carried; ``cells``: the new localizability layer by tile; ``same_derivation``:
     the parent was published by this stage's code and params (else nothing is kept)."""
-    record: dict[str, Any] = {"tolerances": {"corner_tol_m": tol.corner_tol_m, "cov_tol_rel": tol.cov_tol_rel,
-                                             "pose_tol_m": tol.pose_tol_m, "pose_reach_m": tol.pose_reach_m},
-                              "parent_version": int(prev.manifest.get("version", 0) or 0)}
+    record: dict[str, Any] = {
+        "tolerances": {
+            "corner_tol_m": tol.corner_tol_m,
+            "cov_tol_rel": tol.cov_tol_rel,
+            "pose_tol_m": tol.pose_tol_m,
+            "pose_reach_m": tol.pose_reach_m,
+        },
+        "parent_version": int(prev.manifest.get("version", 0) or 0),
+    }
     prev_tiles = {(int(t["i"]), int(t["j"])): t for t in prev.manifest.get("tiles", [])}
     if not same_derivation:
         return TilePlan({}, {**record, "n_kept": 0, "reason": "the parent was published with other code or params"})
@@ -90,18 +108,21 @@ def plan_tiles(prev, corners: pa.Table, trajectories: list, rasters: list, cells
         kept[key] = KeptTile(entry, Path(prev.path) / str(entry["dir"]))
     shifts = shift[np.isfinite(shift)]
     in_kept = _in_tiles(corners, kept, size_m) & np.isfinite(shift)
-    record.update({
-        "n_kept": len(kept), "n_rederived": len(set(prev_tiles) - set(kept)),
-        "touched": {"corners": len(touched_corners), "paths": len(touched_paths), "rasters": len(touched_rasters)},
-        "kept_corner_shift_max_m": round(float(shift[in_kept].max()), 6) if in_kept.any() else None,
-        "within_tol_corner_shift_max_m": round(float(shifts.max()), 6) if len(shifts) else None,
-        "kept_pose_move_max_m": round(max(within.values()), 6) if within else None,
-        "kept_cells_sigma_diff_max_m": round(cell_diff, 6) if kept else None})
+    record.update(
+        {
+            "n_kept": len(kept),
+            "n_rederived": len(set(prev_tiles) - set(kept)),
+            "touched": {"corners": len(touched_corners), "paths": len(touched_paths), "rasters": len(touched_rasters)},
+            "kept_corner_shift_max_m": round(float(shift[in_kept].max()), 6) if in_kept.any() else None,
+            "within_tol_corner_shift_max_m": round(float(shifts.max()), 6) if len(shifts) else None,
+            "kept_pose_move_max_m": round(max(within.values()), 6) if within else None,
+            "kept_cells_sigma_diff_max_m": round(cell_diff, 6) if kept else None,
+        }
+    )
     return TilePlan(kept, record)
 
 
-def published_corners(corners: pa.Table, prev_corners: pa.Table, kept: dict[Key, KeptTile], size_m: float
-                      ) -> pa.Table:
+def published_corners(corners: pa.Table, prev_corners: pa.Table, kept: dict[Key, KeptTile], size_m: float) -> pa.Table:
     """``corners`` (the new derivation, ids carried) with the rows of the kept tiles replaced by the parent's rows
     of the same id, row order unchanged (a kept tile holds exactly the parent's ids)."""
     corners = corners.select(list(layout.CORNER_COLUMNS))
@@ -178,8 +199,12 @@ def _cell_sigma_diff(prev_cells: pa.Table | None, new_cells: pa.Table) -> float:
         return 0.0
 
     def index(t: pa.Table) -> dict:
-        return {(a, b, m): s for a, b, m, s in zip(t["cell_i"].to_pylist(), t["cell_j"].to_pylist(),
-                                                    t["method"].to_pylist(), t["sigma_2d_m"].to_pylist())}
+        return {
+            (a, b, m): s
+            for a, b, m, s in zip(
+                t["cell_i"].to_pylist(), t["cell_j"].to_pylist(), t["method"].to_pylist(), t["sigma_2d_m"].to_pylist()
+            )
+        }
 
     a, b = index(prev_cells), index(new_cells)
     common = set(a) & set(b)

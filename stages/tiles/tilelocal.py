@@ -16,6 +16,7 @@ incremental rebuild"). A tile present in both versions is **touched** when any o
 
 Pure numpy: arrays in, sets of tile keys out.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -44,8 +45,9 @@ class Tolerances:
     pose_reach_m: float
 
 
-def corner_changed_tiles(prev: CornerSet, new: CornerSet, size_m: float, tol: Tolerances
-                         ) -> tuple[set[tuple[int, int]], np.ndarray]:
+def corner_changed_tiles(
+    prev: CornerSet, new: CornerSet, size_m: float, tol: Tolerances
+) -> tuple[set[tuple[int, int]], np.ndarray]:
     """(tiles touched by rule 1, (M,) displacement in metres of the new corners whose id the parent holds in the
     same tile without any other change, the shift a kept tile leaves unpublished; NaN for the others)."""
     pi, pj = tile_key_of(prev.en_m[:, 0], prev.en_m[:, 1], size_m) if len(prev.ids) else (np.zeros(0, int),) * 2
@@ -68,8 +70,12 @@ def corner_changed_tiles(prev: CornerSet, new: CornerSet, size_m: float, tol: To
         d = float(np.hypot(*(new.en_m[r] - prev.en_m[p])))
         c_new, c_prev = new.cov_m2[r], prev.cov_m2[p]
         cov_rel = float(np.linalg.norm(_full(c_new) - _full(c_prev)) / max(np.linalg.norm(_full(c_prev)), 1e-30))
-        if (d > tol.corner_tol_m or cov_rel > tol.cov_tol_rel or int(new.n_obs[r]) != int(prev.n_obs[p])
-                or _drives(new.drives[r]) != _drives(prev.drives[p])):
+        if (
+            d > tol.corner_tol_m
+            or cov_rel > tol.cov_tol_rel
+            or int(new.n_obs[r]) != int(prev.n_obs[p])
+            or _drives(new.drives[r]) != _drives(prev.drives[p])
+        ):
             touched.add(key)
         else:
             shift[r] = d
@@ -87,8 +93,9 @@ def _drives(value) -> tuple:
     return tuple(sorted(value)) if isinstance(value, (list, tuple, np.ndarray)) else (value,)
 
 
-def changed_poses(prev: dict[str, tuple[np.ndarray, np.ndarray]], new: dict[str, tuple[np.ndarray, np.ndarray]],
-                  tol: Tolerances) -> tuple[np.ndarray, dict[str, float]]:
+def changed_poses(
+    prev: dict[str, tuple[np.ndarray, np.ndarray]], new: dict[str, tuple[np.ndarray, np.ndarray]], tol: Tolerances
+) -> tuple[np.ndarray, dict[str, float]]:
     """((N,2) positions of the poses that are new, gone or moved beyond ``pose_tol_m`` (moved: ``|dt| + reach
     |dtheta|``, the rotation angle between the two orientations), {drive: its largest such displacement of a pose
     kept within the tolerance}). ``prev`` / ``new``: drive -> (stamp_ns (N,), x y z qx qy qz qw (N,7))."""
@@ -110,9 +117,12 @@ def changed_poses(prev: dict[str, tuple[np.ndarray, np.ndarray]], new: dict[str,
         if hit.any():
             a, b = poses[hit], p_poses[order][pos[hit]]
             dt = np.linalg.norm(a[:, :3] - b[:, :3], axis=1)
-            dot = np.clip(np.abs(np.sum(a[:, 3:7] * b[:, 3:7], axis=1)) /
-                          np.maximum(np.linalg.norm(a[:, 3:7], axis=1) * np.linalg.norm(b[:, 3:7], axis=1), 1e-300),
-                          0.0, 1.0)
+            dot = np.clip(
+                np.abs(np.sum(a[:, 3:7] * b[:, 3:7], axis=1))
+                / np.maximum(np.linalg.norm(a[:, 3:7], axis=1) * np.linalg.norm(b[:, 3:7], axis=1), 1e-300),
+                0.0,
+                1.0,
+            )
             moved[hit] = dt + tol.pose_reach_m * 2.0 * np.arccos(dot)
         bad = moved > tol.pose_tol_m
         out.append(poses[bad, :2])

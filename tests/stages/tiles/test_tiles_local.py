@@ -4,6 +4,7 @@ The synthetic city of ``tiles_synth`` (3 x 3 tiles of 100 m, drive_a along every
 drive_b along the street at east = 250 m only (tiles (2, *)), whose observations reach the corners east of 200 m.
 The truth of which tiles it touches is known by construction.
 """
+
 from __future__ import annotations
 
 import json
@@ -40,9 +41,16 @@ def _context(root, corners, drives: dict[str, np.ndarray], fingerprint: str, par
     tables = {"corner_map": corners, "poses": poses, "drive_info": info, "raster": write_rasters(base)}
     meta = {arg: {"fingerprint": f"{fingerprint}-{arg}"} for arg in [*tables, "rasters"]}
     meta["drive_info"]["enu_origin"] = ORIGIN.as_dict()
-    ctx = make_context("tiles", params or TilesParams(), tables, metadata=meta, input_artifacts={"rasters": base},
-                       settings={"map_name": "city", "root": str(root), "tile_size_m": TILE_M,
-                                 "enu_origin": ORIGIN.as_dict()}, outputs=("published",), workdir=root / "work")
+    ctx = make_context(
+        "tiles",
+        params or TilesParams(),
+        tables,
+        metadata=meta,
+        input_artifacts={"rasters": base},
+        settings={"map_name": "city", "root": str(root), "tile_size_m": TILE_M, "enu_origin": ORIGIN.as_dict()},
+        outputs=("published",),
+        workdir=root / "work",
+    )
     ctx.inputs.artifact_dir = lambda arg, partition=None: base / partition.label
     return ctx
 
@@ -173,8 +181,9 @@ def test_changed_poses_new_gone_and_moved_beyond_the_tolerance():
     turned[2, 0] += 0.004  # 4 mm
     other = poses.copy()
     other[:, 1] += 100.0
-    pts, within = changed_poses({"a": (stamps, poses), "gone": (stamps, poses + 10)},
-                                {"a": (stamps, turned), "b": (stamps, other)}, tol)
+    pts, within = changed_poses(
+        {"a": (stamps, poses), "gone": (stamps, poses + 10)}, {"a": (stamps, turned), "b": (stamps, other)}, tol
+    )
     expect = np.vstack([poses[3:4, :2], other[:, :2], poses[:, :2] + 10])  # a's pose 3, b's (new), gone's
     assert sorted(map(tuple, np.round(pts, 6))) == sorted(map(tuple, np.round(expect, 6)))
     assert within["a"] == pytest.approx(0.004, abs=1e-6)  # the largest move left within the tolerance
