@@ -187,3 +187,16 @@ def test_changed_poses_new_gone_and_moved_beyond_the_tolerance():
     expect = np.vstack([poses[3:4, :2], other[:, :2], poses[:, :2] + 10])  # a's pose 3, b's (new), gone's
     assert sorted(map(tuple, np.round(pts, 6))) == sorted(map(tuple, np.round(expect, 6)))
     assert within["a"] == pytest.approx(0.004, abs=1e-6)  # the largest move left within the tolerance
+
+
+def test_tiles_verify_passes_on_the_mixed_version(two_versions):
+    import typer
+    from typer.testing import CliRunner
+
+    from stages.tiles.cli import register
+
+    mdir, _, _ = two_versions
+    app = typer.Typer()
+    register(app)
+    res = CliRunner().invoke(app, ["tiles", "verify", "--all", "--root", str(mdir.parent.parent)])
+    assert res.exit_code == 0 and "v0001: ok" in res.output and "v0002: ok" in res.output, res.output
