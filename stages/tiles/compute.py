@@ -133,8 +133,10 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         "manifest_sha256": pa.array([pub.manifest_sha256], pa.string())}, schema=schema_of("map_tiles"))
     held = ctx.settings.get("hold_latest", False)
     what = "wrote candidate (LATEST not moved)" if held else "published"
+    local = pub.manifest.get("tile_local") or {}
+    kept = f", {local['n_kept']} kept from v{local['parent_version']:04d}" if local.get("n_kept") else ""
     outcome = [f"{what} map {name!r} version {pub.name}: {{root}}/{rel} "
-               f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles)"]
+               f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles{kept})"]
     return {"published": table, "_extra": {"outcome": outcome}}
 
 

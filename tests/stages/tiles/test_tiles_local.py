@@ -95,12 +95,13 @@ def two_versions(tmp_path_factory):
     v1 = corner_table(xy, dirs, seed=1)
     compute(_context(root, v1, {"drive_a": drive_path()}, "fp1"))
     v2 = _v2_corners(v1, {(1, 1): 0.02, (0, 0): 0.002})
-    compute(_context(root, v2, {"drive_a": drive_path(), "drive_b": _b_path()}, "fp2"))
-    return root / "maps" / "city", v1, v2
+    out = compute(_context(root, v2, {"drive_a": drive_path(), "drive_b": _b_path()}, "fp2"))
+    return root / "maps" / "city", v1, v2, out["_extra"]["outcome"][0]
 
 
 def test_untouched_tiles_keep_their_sha256_and_touched_ones_change(two_versions):
-    mdir, _, _ = two_versions
+    mdir, _, _, outcome = two_versions
+    assert "(144 corners, 9 tiles, 5 kept from v0001)" in outcome
     f1, f2 = _files(mdir / "v0001"), _files(mdir / "v0002")
     touched = {(2, 0), (2, 1), (2, 2), (1, 1)}  # drive_b's path and observations; the 0.02 m move
     assert set(f1) == set(f2) == {(i, j) for i in range(3) for j in range(3)}
@@ -115,7 +116,7 @@ def test_untouched_tiles_keep_their_sha256_and_touched_ones_change(two_versions)
 
 
 def test_mixed_version_verifies_and_the_loader_reads_each_tile_from_its_derivation(two_versions):
-    mdir, v1, v2 = two_versions
+    mdir, v1, v2, _ = two_versions
     assert verify_map(mdir / "v0002") == []
     new, old = open_map(mdir, 2).all_corners(), open_map(mdir, 1).all_corners()
     assert new.num_rows == v2.num_rows and len(set(new["corner_id"].to_pylist())) == new.num_rows
@@ -135,7 +136,7 @@ def test_mixed_version_verifies_and_the_loader_reads_each_tile_from_its_derivati
 
 
 def test_kept_files_are_linked_not_copied(two_versions):
-    mdir, _, _ = two_versions
+    mdir, _, _, _ = two_versions
     a, b = mdir / "v0001" / "tiles" / "0_1" / "corners.parquet", mdir / "v0002" / "tiles" / "0_1" / "corners.parquet"
     assert a.stat().st_ino == b.stat().st_ino
 
@@ -195,7 +196,7 @@ def test_tiles_verify_passes_on_the_mixed_version(two_versions):
 
     from stages.tiles.cli import register
 
-    mdir, _, _ = two_versions
+    mdir, _, _, _ = two_versions
     app = typer.Typer()
     register(app)
     res = CliRunner().invoke(app, ["tiles", "verify", "--all", "--root", str(mdir.parent.parent)])
