@@ -91,15 +91,31 @@ def compute(ctx: StageContext) -> dict[str, Any]:
     def write(staging: Path) -> dict[str, Any]:  # runs under the map's publish lock: LATEST cannot move
         # the map's folder (its parent version): ROOT/maps/NAME, or its local copy when the root is an object store
         _, doc = carry_history(staging.parent, corners, origin, size_m, staging,
-                               lambda table: write_map_files(staging, table, size_m, rasters, trajectories, by_tile),
+                               lambda table, kept: write_map_files(staging, table, size_m, rasters, trajectories,
+                                                                   by_tile, kept),
                                gates=IdGates(params.id_max_dist_m, params.id_max_angle_deg),
                                move_threshold_m=params.changelog_move_threshold_m,
                                new_paths=[t.pose_xyz_qxyzw[:, :2] for t in trajectories],
                                significance=params.changelog_significance,
-                               min_obs=params.changelog_min_obs)
-        return {**fields, "n_tiles": len(doc["files"]["tiles"]), **doc["files"],
+                               min_obs=params.changelog_min_obs, plan=plan if params.tile_local else None)
+        out = dict(fields)
+        if doc["plan"] is not None:
+            out["tile_local"] = doc["plan"].record
+            if doc["plan"].kept and cells is not None:  # the layer as published: the kept tiles' cells are the parent's
+                out["localizability"] = summary(_published_cells(staging, doc["files"]["tiles"]),
+                                                params.localizability_cell_m)
+        return {**out, "n_tiles": len(doc["files"]["tiles"]), **doc["files"],
                 "next_corner_id": doc["changelog"]["corners"]["next_corner_id"],
                 "changelog": write_changelog(staging, doc["changelog"])}
+
+    def plan(prev, ided: pa.Table):
+        from stages.tiles.keep import plan_tiles
+        from stages.tiles.tilelocal import Tolerances
+
+        same = prev.manifest.get("params") == resolved and prev.manifest.get("code_version") == decl.code_version
+        tol = Tolerances(params.tile_local_corner_tol_m, params.tile_local_cov_tol_rel, params.tile_local_pose_tol_m,
+                         params.tile_local_reach_m)
+        return plan_tiles(prev, ided, trajectories, rasters, by_tile, size_m, tol, same)
 
     def unchanged(latest: dict[str, Any]) -> bool:
         fps = [v["fingerprint"] for v in inputs.values()]
@@ -117,8 +133,10 @@ def compute(ctx: StageContext) -> dict[str, Any]:
         "manifest_sha256": pa.array([pub.manifest_sha256], pa.string())}, schema=schema_of("map_tiles"))
     held = ctx.settings.get("hold_latest", False)
     what = "wrote candidate (LATEST not moved)" if held else "published"
+    local = pub.manifest.get("tile_local") or {}
+    kept = f", {local['n_kept']} kept from v{local['parent_version']:04d}" if local.get("n_kept") else ""
     outcome = [f"{what} map {name!r} version {pub.name}: {{root}}/{rel} "
-               f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles)"]
+               f"({pub.manifest['n_corners']} corners, {pub.manifest['n_tiles']} tiles{kept})"]
     return {"published": table, "_extra": {"outcome": outcome}}
 
 
@@ -140,6 +158,17 @@ def _localizability(params, size_m: float, corners: pa.Table, trajectories: list
                                fail_sigma_m=params.localizability_fail_sigma_m)
     corr = (correlation["share"], correlation["length_m"]) if correlation else None
     return localizability_table(corners, trajectories, rasters, corr, cfg)
+
+
+def _published_cells(staging: Path, tiles: list[dict[str, Any]]) -> pa.Table:
+    """Every cell of the localizability layer as written into ``staging`` (kept tiles hold the parent's)."""
+    import pyarrow.parquet as pq
+
+    from mapformat.localizability import LOCALIZABILITY_FILE, SCHEMA
+
+    parts = [pq.read_table(staging / t["dir"] / LOCALIZABILITY_FILE).select(SCHEMA.names).cast(SCHEMA)
+             for t in tiles if LOCALIZABILITY_FILE in (t.get("files") or {})]
+    return pa.concat_tables(parts) if parts else SCHEMA.empty_table()
 
 
 def _schema_problems(table: pa.Table, expected: pa.Schema) -> list[str]:

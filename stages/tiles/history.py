@@ -29,10 +29,13 @@ log = logging.getLogger(__name__)
 def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: float, staging: Path,
                   write_files: Callable[[pa.Table], dict[str, Any]], *, gates: IdGates,
                   move_threshold_m: float, new_paths: list | None = None, significance: float = 0.001,
-                  min_obs: int = 8) -> tuple[pa.Table, dict[str, Any]]:
-    """(corners with stable ids, {"files": write_files' fields, "changelog": the changelog document}). A corner
-    within ``gates`` of a parent corner keeps its id; one that kept its id but moved more than
-    ``move_threshold_m`` is listed as moved."""
+                  min_obs: int = 8, plan: Callable[[Any, pa.Table], Any] | None = None
+                  ) -> tuple[pa.Table, dict[str, Any]]:
+    """(corners with stable ids, {"files": write_files' fields, "changelog": the changelog document, "plan": the
+    tile plan or None}). A corner within ``gates`` of a parent corner keeps its id; one that kept its id but moved
+    more than ``move_threshold_m`` is listed as moved. ``plan(parent reader, corners with ids)`` -> a
+    ``stages.tiles.keep.TilePlan``: the tiles that keep the parent's files (their corners are the parent's rows);
+    ``write_files(corners, kept)``."""
     from mapformat.loader import open_map
 
     parent = read_latest(map_dir) if map_dir.is_dir() else None
@@ -47,7 +50,12 @@ def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: f
     if prev is not None and prev_next is None:  # a parent from before the counter: never reuse its ids
         prev_next = int(prev_corners["corner_id"].to_numpy().max()) + 1 if prev_corners.num_rows else 1
     ided, match, next_id = carry_ids(prev_corners if frame_unchanged else None, prev_next, corners, gates)
-    files = write_files(ided)
+    tiles = plan(prev, ided) if plan is not None and prev is not None and frame_unchanged else None
+    if tiles is not None and tiles.kept:
+        from stages.tiles.keep import published_corners
+
+        ided = published_corners(ided, prev_corners, tiles.kept, size_m)
+    files = write_files(ided, tiles.kept if tiles is not None else {})
     markings = marking_changes(files["tiles"], staging, prev if frame_unchanged else None)
     cells = marking_cell_changes(files["tiles"], staging, prev if frame_unchanged else None, significance)
     doc = build_changelog(parent_version=parent, parent_manifest=prev.manifest if prev is not None else None,
@@ -59,7 +67,7 @@ def carry_history(map_dir: Path, corners: pa.Table, origin: EnuOrigin, size_m: f
                           min_obs=min_obs)
     if prev_corners is not None and not frame_unchanged:  # every old corner is gone from this frame's view
         doc["corners"]["n_before"] = prev_corners.num_rows
-    return ided, {"files": files, "changelog": doc}
+    return ided, {"files": files, "changelog": doc, "plan": tiles}
 
 
 def _paths(reader) -> list | None:

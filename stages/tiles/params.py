@@ -53,3 +53,16 @@ class TilesParams(Params):
                                                "'weak' (the EKF's RMS target)")
     localizability_fail_sigma_m: float = Field(0.40, gt=0, description="... above this 'fail' (the EKF's max "
                                                "target)")
+    # Tile-local re-derivation (stages/tiles/tilelocal.py; docs/maintenance.md, "Tiles of an incremental rebuild")
+    tile_local: bool = Field(True, description="a tile the new version does not touch keeps its parent's files byte "
+                             "for byte (same sha256); false: every tile is written from this version's derivation")
+    tile_local_corner_tol_m: float = Field(0.005, ge=0, description="a corner of an untouched tile is kept as "
+                                           "published when the re-derivation places it within this (and it has the "
+                                           "same observations); farther: its tile is re-derived")
+    tile_local_cov_tol_rel: float = Field(0.1, ge=0, description="... and its covariance changed by at most this "
+                                          "share (Frobenius norm)")
+    tile_local_pose_tol_m: float = Field(0.005, ge=0, description="a map pose moved by more than this (|dt| + "
+                                         "tile_local_reach_m x rotation angle) is a changed pose: the tile holding "
+                                         "it is re-derived (the localizability layer samples the drives' paths)")
+    tile_local_reach_m: float = Field(25.0, gt=0, description="lever arm of a pose's rotation in its move: the "
+                                      "markings stage's max_range_m (how far a pose paints the rasters)")

@@ -6,6 +6,7 @@ the LATEST pointer.
 """
 from __future__ import annotations
 
+import logging
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,8 @@ from pipeline.fingerprint import file_sha256
 from pipeline.names import inside
 from stages.common.tiling import tile_bounds
 from stages.tiles.core import group_by_tile
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -78,8 +81,10 @@ def transcode_mask_png(src: Path, dst: Path) -> None:
     dst.write_bytes(buf.tobytes())
 
 
-def _vectorize(by_key: dict[tuple[int, int], RasterTile], tile_size_m: float) -> dict[tuple[int, int], pa.Table]:
-    """Vector markings of every raster tile (mapformat/vectors.py), masks decoded once each."""
+def _vectorize(by_key: dict[tuple[int, int], RasterTile], tile_size_m: float,
+               skip: Any = ()) -> dict[tuple[int, int], pa.Table]:
+    """Vector markings of every raster tile but those in ``skip`` (mapformat/vectors.py), masks decoded once
+    each."""
     import cv2
 
     masks: dict[tuple[int, int], Any] = {}
@@ -93,29 +98,58 @@ def _vectorize(by_key: dict[tuple[int, int], RasterTile], tile_size_m: float) ->
                                                    float(raster.meta["origin_north_m"]), float(raster.meta["cell_m"]))
         return masks[key]
 
-    return {key: features_table(tile_features(key, tile_size_m, mask_of)) for key in sorted(by_key)}
+    return {key: features_table(tile_features(key, tile_size_m, mask_of)) for key in sorted(by_key) if key not in skip}
+
+
+def _bring_kept(src_dir: Path, tile_dir: Path, files: dict[str, str]) -> bool:
+    """The parent's tile files into ``tile_dir``: a hard link where the file system allows one (the bytes are not
+    copied), else a copy; each checked against the parent's sha256. False (``tile_dir`` emptied) when one differs."""
+    import os
+
+    for name, sha in sorted(files.items()):
+        src, dst = inside(src_dir, name), inside(tile_dir, name)
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copyfile(src, dst)
+        if file_sha256(dst) != sha:
+            for p in tile_dir.iterdir():
+                p.unlink()
+            return False
+    return True
 
 
 def write_map_files(staging: Path, corners: pa.Table, tile_size_m: float, rasters: list[RasterTile],
                     trajectories: list[DriveTrajectory],
-                    localizability: dict[tuple[int, int], pa.Table] | None = None) -> dict[str, Any]:
+                    localizability: dict[tuple[int, int], pa.Table] | None = None,
+                    kept: dict[tuple[int, int], Any] | None = None) -> dict[str, Any]:
     """Write tiles/ and trajectories/ under ``staging``; return the ``tiles`` and ``source_drives`` fields.
     ``localizability``: each tile's cells of the localizability layer (a tile holding only cells gets an empty
-    corners.parquet, as a raster-only tile does)."""
+    corners.parquet, as a raster-only tile does). ``kept``: tiles published with their parent's files and manifest
+    entry (``stages.tiles.keep.KeptTile``); one whose parent file does not match its sha256 is written anew."""
     corners = corners.select(list(layout.CORNER_COLUMNS)).sort_by("corner_id")
     east = corners["east_m"].to_numpy()
     north = corners["north_m"].to_numpy()
     groups = group_by_tile(east, north, tile_size_m)
     by_key = {(r.i, r.j): r for r in rasters}
-    vectors = _vectorize(by_key, tile_size_m)
+    kept = kept or {}
+    vectors = _vectorize(by_key, tile_size_m, skip=kept)
     empty = corners.slice(0, 0)
     tiles = []
     localizability = localizability or {}
-    for key in sorted(set(groups) | set(by_key) | set(localizability)):
+    for key in sorted(set(groups) | set(by_key) | set(localizability) | set(kept)):
         i, j = key
         rel_dir = layout.tile_dir_name(i, j)
         tile_dir = staging / rel_dir
         tile_dir.mkdir(parents=True)
+        if key in kept:
+            if _bring_kept(kept[key].src_dir, tile_dir, dict(kept[key].entry["files"])):
+                tiles.append(dict(kept[key].entry))
+                continue
+            log.warning("tiles: tile (%d,%d) of the parent version does not match its sha256; written anew "
+                        "(hint: run `cornermap tiles verify` on the parent)", i, j)
+            if key in by_key and key not in vectors:
+                vectors.update(_vectorize(by_key, tile_size_m, skip=set(by_key) - {key}))
         idx = groups.get(key)
         part = corners.take(pa.array(idx)) if idx is not None else empty
         _write_corners(tile_dir / layout.CORNERS_FILE, part)
