@@ -343,11 +343,12 @@ def after_nights(a, out: dict, rows: list[dict], sim: Path, work: Path, params: 
 
     root, mdir = work / "root", work / "root" / "maps" / "city"
     last = out["nights"][-1]["version"] if out["nights"] else version_name(read_latest(mdir))
-    for night in out["nights"]:
-        if "drift" not in night:
-            night["drift"] = version_drift(root, mdir / night["version"])
-        if "posegraph" not in night:
-            night["posegraph"] = posegraph_record(root, mdir / night["version"])
+    for night in out["nights"]:  # a rebuild keeps the last versions only: an older night's are gone (None)
+        vdir = mdir / night["version"]
+        if night.get("drift") is None and (vdir / "manifest.json").is_file():
+            night["drift"] = version_drift(root, vdir)
+        if not night.get("posegraph") and (vdir / "manifest.json").is_file():
+            night["posegraph"] = posegraph_record(root, vdir)
     _save(a, out, rows, load0)
     if a.eval_drive is not None:
         out.setdefault("eval", {})["nights"] = evaluate_drive(root, last, sim, a.eval_drive, work / "eval-nights")
