@@ -312,6 +312,8 @@ def main(argv: list[str] | None = None) -> dict:
             night["tiles"] = tiles
             acc = corner_accuracy(vdir, sim)
             night["corners"] = {key: v for key, v in acc.items() if key not in ("ids", "en")}
+            night["drift"] = version_drift(root, vdir) if k else None  # now: a rebuild keeps the last versions only
+            night["posegraph"] = posegraph_record(root, vdir) if k else {}
             night["night"], night["drive"] = k + 1, drive
             night["sees_changed_city"] = changes_from is not None and k >= changes_from
             nights.append(night)
