@@ -90,14 +90,22 @@ def simulate(out: Path, seed: int, drives: int, changes_from: int | None) -> Pat
     return out
 
 
+def _link_or_copy(src: str, dst: str) -> None:
+    """A hard link (a 20-drive simulation is ~6 GB: the inbox must not double it), else a copy."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
 def deliver(sim: Path, name: str, inbox: Path) -> None:
-    """Copy drive ``name`` into the inbox with a READY file; the survey folders (``survey/``, ``survey_changed/``)
-    once, as the drive files name them (../survey*/survey.las)."""
+    """Drive ``name`` into the inbox (hard-linked files) with a READY file; the survey folders (``survey/``,
+    ``survey_changed/``) once, as the drive files name them (../survey*/survey.las)."""
     inbox.mkdir(parents=True, exist_ok=True)
     for sub in ("survey", "survey_changed"):
         if (sim / sub).is_dir() and not (inbox / sub).exists():
-            shutil.copytree(sim / sub, inbox / sub)
-    shutil.copytree(sim / name, inbox / name)
+            shutil.copytree(sim / sub, inbox / sub, copy_function=_link_or_copy)
+    shutil.copytree(sim / name, inbox / name, copy_function=_link_or_copy)
     (inbox / name / "READY").touch()
 
 
@@ -217,7 +225,32 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--csv", type=Path)
     ap.add_argument("--figure", type=Path)
     ap.add_argument("--markdown", type=Path, help="the per-night table as Markdown (docs/maintenance.md)")
+    ap.add_argument(
+        "--joint",
+        action="store_true",
+        help="after the nights, the joint solve of the same drives (`maps reoptimize --region-max-poses 0`, "
+        "= rebuild --full's solve) published as the next version; its corners against the truth",
+    )
+    ap.add_argument(
+        "--eval-drive",
+        type=int,
+        help="a drive of --sim that is not in the map (e.g. N): `cornermap evaluate --method ekf` against its truth "
+        "on the last night's version and (--joint) on the joint version",
+    )
+    ap.add_argument(
+        "--post-only",
+        action="store_true",
+        help="skip the nights: --work holds them and --json their results; run --joint / --eval-drive only",
+    )
+    ap.add_argument(
+        "--joint-only",
+        action="store_true",
+        help="no nights: the N drives built in one rebuild on a fresh map in --work (their joint solve; can run "
+        "beside a nights run on another --work), then --eval-drive on it; written to --json",
+    )
     a = ap.parse_args(argv)
+    if a.post_only and not (a.work and a.json and a.json.is_file()):
+        ap.error("--post-only needs --work and the --json of the nights")
     from mapservice.maps import create_map
 
     ref = a.drives - 1 if a.ref_drive is None else min(a.ref_drive, a.drives - 1)
@@ -234,8 +267,15 @@ def main(argv: list[str] | None = None) -> dict:
         if not a.tiles_gates:
             params = work / "params.yaml"
             params.write_text("tiles: {gates_enabled: false}\n")
-        create_map(root, "city", ORIGIN, tile_size_m=a.tile_size_m)
         mdir = root / "maps" / "city"
+        if a.joint_only:
+            return joint_build(a, sim, work, params, load_before)
+        if a.post_only:
+            out = json.loads(a.json.read_text())
+            rows = [night_row(n) for n in out["nights"]]
+            after_nights(a, out, rows, sim, work, params, load_before)
+            return out
+        create_map(root, "city", ORIGIN, tile_size_m=a.tile_size_m)
         out = {
             "preset": sim_doc.get("preset"),
             "seed": sim_doc.get("seed"),
@@ -272,6 +312,8 @@ def main(argv: list[str] | None = None) -> dict:
             night["tiles"] = tiles
             acc = corner_accuracy(vdir, sim)
             night["corners"] = {key: v for key, v in acc.items() if key not in ("ids", "en")}
+            night["drift"] = version_drift(root, vdir) if k else None  # now: a rebuild keeps the last versions only
+            night["posegraph"] = posegraph_record(root, vdir) if k else {}
             night["night"], night["drive"] = k + 1, drive
             night["sees_changed_city"] = changes_from is not None and k >= changes_from
             nights.append(night)
@@ -282,6 +324,7 @@ def main(argv: list[str] | None = None) -> dict:
                 reference_builds(a, out, sim, work, params, ref)
                 _save(a, out, rows, load_before)
         _save(a, out, rows, load_before)
+        after_nights(a, out, rows, sim, work, params, load_before)
         keys = (
             "ref_over_added_to_one",
             "ref_over_one_drive_build",
@@ -293,6 +336,152 @@ def main(argv: list[str] | None = None) -> dict:
     finally:
         if a.work is None:
             shutil.rmtree(work, ignore_errors=True)
+
+
+def after_nights(a, out: dict, rows: list[dict], sim: Path, work: Path, params: Path | None, load0: float) -> None:
+    """--eval-drive on the last night's version, then --joint (published as the next version), then --eval-drive on
+    it; the JSON is rewritten after each."""
+    from pipeline.versioned import read_latest, version_name
+
+    root, mdir = work / "root", work / "root" / "maps" / "city"
+    last = out["nights"][-1]["version"] if out["nights"] else version_name(read_latest(mdir))
+    for night in out["nights"]:  # a rebuild keeps the last versions only: an older night's are gone (None)
+        vdir = mdir / night["version"]
+        if night.get("drift") is None and (vdir / "manifest.json").is_file():
+            night["drift"] = version_drift(root, vdir)
+        if not night.get("posegraph") and (vdir / "manifest.json").is_file():
+            night["posegraph"] = posegraph_record(root, vdir)
+    _save(a, out, rows, load0)
+    if a.eval_drive is not None:
+        out.setdefault("eval", {})["nights"] = evaluate_drive(root, last, sim, a.eval_drive, work / "eval-nights")
+        print(json.dumps({"eval_nights": out["eval"]["nights"]}), flush=True)
+        _save(a, out, rows, load0)
+    if a.joint:
+        from bench.bench_reoptimize import reoptimize_run
+
+        run = reoptimize_run(root, 1, 0, params)  # one joint solve (--region-max-poses 0) of every map drive
+        acc = corner_accuracy(mdir / run["version"], sim)
+        run["corners"] = {key: v for key, v in acc.items() if key not in ("ids", "en")}
+        run["load_1min_after"] = round(os.getloadavg()[0], 1)
+        out["joint"] = run
+        c_inc, c_joint = out["nights"][-1]["corners"]["rms_m"], run["corners"]["rms_m"]
+        if c_inc is not None and c_joint is not None:
+            out["rms_last_over_joint"] = round(c_inc / c_joint, 3)
+            out["rms_last_minus_joint_mm"] = round(1000 * (c_inc - c_joint), 1)
+        print(json.dumps({"joint": run}), flush=True)
+        _save(a, out, rows, load0)
+        if a.eval_drive is not None:
+            out["eval"]["joint"] = evaluate_drive(root, run["version"], sim, a.eval_drive, work / "eval-joint")
+            print(json.dumps({"eval_joint": out["eval"]["joint"]}), flush=True)
+            _save(a, out, rows, load0)
+
+
+def joint_build(a, sim: Path, work: Path, params: Path | None, load0: float) -> dict:
+    """``--joint-only``: drives 0..N-1 delivered at once to a fresh map, one ``rebuild`` (a first version: the joint
+    solve, as ``cornermap build``), its corners against the truth; then ``--eval-drive`` on it."""
+    from mapservice.maps import create_map
+
+    root, inbox = work / "root", work / "inbox"
+    if not (root / "maps" / "city").is_dir():
+        create_map(root, "city", ORIGIN, tile_size_m=a.tile_size_m)
+    for k in range(a.drives):
+        if not (inbox / f"drive_{k}").is_dir():
+            deliver(sim, f"drive_{k}", inbox)
+    for k in range(a.drives):  # a hard link changes its inode's ctime: READY is written again after every link
+        (inbox / f"drive_{k}" / "READY").touch()
+    load_start = os.getloadavg()[0]
+    run = rebuild_night(root, inbox, True, params)  # --full: the joint solve even when a LATEST exists
+    run["load_1min"] = [round(load_start, 1), round(os.getloadavg()[0], 1)]
+    acc = corner_accuracy(root / "maps" / "city" / run["version"], sim)
+    run["corners"] = {key: v for key, v in acc.items() if key not in ("ids", "en")}
+    out = {"seed": json.loads((sim / "simulation.json").read_text()).get("seed"), "drives": a.drives,
+           "mode": "joint: every drive in one rebuild on a fresh map", "joint": run,
+           "machine": {**_machine(), "load_1min_before": load0}}
+    print(json.dumps({"joint": run}), flush=True)
+    if a.json:
+        a.json.write_text(json.dumps(out, indent=1))
+    if a.eval_drive is not None:
+        out["eval"] = {"joint": evaluate_drive(root, run["version"], sim, a.eval_drive, work / "eval-joint")}
+        print(json.dumps({"eval_joint": out["eval"]["joint"]}), flush=True)
+        if a.json:
+            a.json.write_text(json.dumps(out, indent=1))
+    return out
+
+
+def version_drift(root: Path, vdir: Path) -> dict | None:
+    """The drift statistic a version's incremental solve wrote (``poses_optimized`` metadata, as ``maps show``): the
+    frame test and, per region with loops, loops / chi2 / dof / threshold; None for a first or joint solve."""
+    from pipeline.store import dataset_dir, read_manifest
+
+    fp = json.loads((vdir / "manifest.json").read_text())["inputs"]["poses"]["fingerprint"]
+    m = read_manifest(dataset_dir(root, "poses_optimized", fp)) or {}
+    d = ((m.get("extra") or {}).get("incremental") or {}).get("drift")
+    if not isinstance(d, dict):
+        return None
+    f = d.get("frame") or {}
+    return {
+        "frame_chi2": f.get("chi2"),
+        "frame_threshold": f.get("threshold"),
+        "advised": d.get("advised"),
+        "regions": [
+            {k: r.get(k) for k in ("region", "loops", "chi2", "dof", "threshold")}
+            for r in d.get("regions", [])
+            if r.get("loops")
+        ],
+    }
+
+
+def posegraph_record(root: Path, vdir: Path) -> dict:
+    """The incremental solve's own figures from the version's pose-graph report (``incremental``: wall seconds of
+    pass 1, survey anchoring, loops, passes 2-3; held poses, map poses the loops reached, window poses)."""
+    from pipeline.store import dataset_dir
+
+    fp = json.loads((vdir / "manifest.json").read_text())["inputs"]["poses"]["fingerprint"]
+    path = dataset_dir(root, "posegraph_report", fp) / "artifacts" / "all" / "posegraph_report.json"
+    inc = (json.loads(path.read_text()).get("incremental") or {}) if path.is_file() else {}
+    return {k: (round(v, 2) if isinstance(v, float) else v) for k, v in inc.items() if not isinstance(v, (dict, list))}
+
+
+EVAL_KEYS = ("rms_2d_m", "p99_2d_m", "max_2d_m", "heading_rms_deg", "nees_mean", "startup_s", "epochs")
+
+
+def evaluate_drive(root: Path, version: str, sim: Path, k: int, out_dir: Path) -> dict:
+    """``cornermap evaluate --method ekf`` of drive ``k`` of ``sim`` on ``version``, against its true trajectory (a
+    child process; exit 3 = a missed target or no coverage is a result). The EKF's figures per reference frame
+    (``truth_in_map``, ``absolute``), the verdict, CPU and wall seconds."""
+    import resource
+    import time
+
+    drive = sim / f"drive_{k}" / "drive.yaml"
+    ref = sim / "truth" / f"drive_{k}_poses_tum.txt"
+    cmd = [sys.executable, "-m", "mapservice", "evaluate", "--root", str(root), "--map", "city", "--map-version",
+           version, "--drive", str(drive), "--reference", str(ref), "--method", "ekf", "--out", str(out_dir),
+           "--json", "-q"]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if res.returncode not in (0, 3) or not res.stdout.strip():
+        raise SystemExit(f"evaluate exited {res.returncode}: {res.stderr.strip()[-2000:]}")
+    doc = json.loads(res.stdout)
+    ekf = (doc.get("methods") or {}).get("ekf") or {}
+    verdict = doc.get("verdict") or {}
+    return {
+        "drive": f"drive_{k}",
+        "map_version": version,
+        "exit_code": res.returncode,
+        "cpu_s": round((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), 2),
+        "wall_s": round(wall, 2),
+        "status": verdict.get("status"),
+        "judged_against": (verdict.get("judged_against") or {}).get("ekf"),
+        "missed": verdict.get("missed"),
+        "coverage": verdict.get("coverage"),
+        **{
+            frame: {key: (ekf.get(frame) or {}).get(key) for key in EVAL_KEYS}
+            for frame in ("truth_in_map", "absolute")
+        },
+    }
 
 
 def reference_builds(a, out: dict, sim: Path, work: Path, params: Path | None, ref: int) -> None:

@@ -202,7 +202,73 @@ def drift_summary(mdir: Path) -> dict | None:
             "frame_chi2": f.get("chi2"), "frame_threshold": f.get("threshold"), "frame_dof": f.get("dof"),
             "window_poses": f.get("window_poses"), "held_poses": f.get("held_poses"),
             "anchor_moved_m": f.get("anchor_moved_m"), "prior_std_en_m": f.get("prior_std_en_m"),
-            "posterior_std_en_m": f.get("posterior_std_en_m"), "advised": d.get("advised")}
+            "posterior_std_en_m": f.get("posterior_std_en_m"), "advised": d.get("advised"),
+            "quantile": d.get("quantile"), "scale": d.get("scale"),
+            "regions": [{k: r.get(k) for k in ("region", "loops", "chi2", "dof", "threshold")} for r in rows]}
+
+
+def region_nights(path: Path) -> list[dict]:
+    """Every (night, region with loops) of a bench JSON: the seed, night, loops k, T, dof = 6 k and the number m of
+    regions with loops that night."""
+    doc = json.loads(Path(path).read_text())
+    out = []
+    for n in doc["nights"]:
+        regions = [r for r in ((n.get("drift") or {}).get("regions") or []) if r.get("loops")]
+        out += [{"seed": doc["seed"], "night": n["night"], "loops": r["loops"], "chi2": r["chi2"], "dof": r["dof"],
+                 "m": len(regions)} for r in regions]
+    return out
+
+
+def drift_threshold(argv: list[str] | None = None) -> dict:
+    """``python -m bench.bench_incremental drift-threshold --calibration A.json ... --validation B.json ...``: the
+    drift trigger's scale from the calibration seeds' nights, and its false alarms on the validation seeds'.
+
+    Test (``stages/posegraph/drift.py``): under a map that agrees with the new drives' loops, a region's T is
+    ``s x chi2(6 k)``, ``s`` the loops' variance factor (ICP's information is optimistic by it); a night is one
+    test per region its loops reach (m of them), at a family-wise level ``alpha`` (Bonferroni: each at alpha / m):
+    threshold ``s x chi2.ppf(1 - alpha / m, 6 k)``. ``s`` from calibration: each clean region-night's one-sided
+    ``conf`` upper confidence bound of its variance factor, ``T / chi2.ppf(1 - conf, 6 k)``; the scale is the
+    largest of them, rounded up to 0.1. Every night of these benches is clean (its map as close to the truth as the
+    joint solve), so every flag is a false alarm."""
+    from scipy.stats import chi2
+
+    ap = argparse.ArgumentParser(prog="bench.bench_incremental drift-threshold")
+    ap.add_argument("--calibration", type=Path, nargs="+", required=True)
+    ap.add_argument("--validation", type=Path, nargs="*", default=[])
+    ap.add_argument("--alpha", type=float, default=0.001, help="false-alarm rate of a night (all its regions)")
+    ap.add_argument("--conf", type=float, default=0.99, help="confidence of each calibration night's bound")
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args(argv)
+    cal = [r for f in a.calibration for r in region_nights(f)]
+    val = [r for f in a.validation for r in region_nights(f)]
+    for r in cal + val:
+        r["variance_factor"] = round(r["chi2"] / r["dof"], 3)
+        r["upper_bound"] = round(r["chi2"] / chi2.ppf(1.0 - a.conf, r["dof"]), 3)
+    scale = float(np.ceil(10.0 * max(r["upper_bound"] for r in cal)) / 10.0)
+
+    def share(r: dict, s: float, bonferroni: bool) -> float:
+        q = 1.0 - (a.alpha / r["m"] if bonferroni else a.alpha)
+        return round(r["chi2"] / (s * chi2.ppf(q, r["dof"])), 3)
+
+    for r in cal + val:
+        r["share_old"] = share(r, 1.0, False)  # DRIFT_SCALE 1.0, chi2.ppf(0.999, 6 k) per region
+        r["share_new"] = share(r, scale, True)
+    out = {"alpha": a.alpha, "conf": a.conf, "scale": scale, "calibration": cal, "validation": val}
+    for name, rows in (("calibration", cal), ("validation", val)):
+        nights = {(r["seed"], r["night"]) for r in rows}
+        out[f"{name}_nights"] = len(nights)
+        out[f"{name}_false_alarms_old"] = sorted({(r["seed"], r["night"]) for r in rows if r["share_old"] > 1})
+        out[f"{name}_false_alarms_new"] = sorted({(r["seed"], r["night"]) for r in rows if r["share_new"] > 1})
+    print("| set | seed | night | regions | loops | T | dof | T/dof | share, old | share, new |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, rows in (("calibration", cal), ("validation", val)):
+        for r in rows:
+            print(f"| {name} | {r['seed']} | {r['night']} | {r['m']} | {r['loops']} | {r['chi2']:.1f} | {r['dof']} | "
+                  f"{r['variance_factor']:.2f} | {r['share_old']:.2f} | {r['share_new']:.2f} |")
+    print(json.dumps({k: v for k, v in out.items() if k not in ("calibration", "validation")}))
+    if a.json:
+        a.json.write_text(json.dumps(out, indent=1))
+    return out
 
 
 def _machine() -> dict:
@@ -216,4 +282,7 @@ def _machine() -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:2] == ["drift-threshold"]:
+        drift_threshold(sys.argv[2:])
+    else:
+        main()

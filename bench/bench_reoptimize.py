@@ -31,11 +31,12 @@ import numpy as np
 from bench.bench_incremental import _machine, corner_accuracy
 
 
-def reoptimize_run(root: Path, workers: int, region_max_poses: int) -> dict:
+def reoptimize_run(root: Path, workers: int, region_max_poses: int, params: Path | None = None) -> dict:
+    """One ``maps reoptimize`` child process (``--params``: a params file, e.g. the nights' own)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     cmd = [sys.executable, "-m", "mapservice", "maps", "reoptimize", "--root", str(root), "--map", "city", "--no-gate",
            "--min-free-gib", "0.5", "--scheduler", "distributed", "--workers", str(workers),
-           "--region-max-poses", str(region_max_poses), "--json", "-q"]
+           "--region-max-poses", str(region_max_poses), "--json", "-q"] + (["--params", str(params)] if params else [])
     t0 = time.perf_counter()
     res = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0

@@ -7,10 +7,14 @@ drives onto held poses of the region, whitened by their information, at the incr
 
     T = sum over those k loops of |e|^2,   e = L^T Log(T_ij^-1 T_i^-1 T_j)   (6 per loop)
 
-against ``scale x chi2.ppf(quantile, 6 k)``. Under a consistent map with correctly weighted loops T is chi-square
-with 6 k degrees of freedom (fewer: the new poses were fitted to the same loops, so the test is conservative);
-``scale`` is the loops' measured over-dispersion on clean nights of the calibration seeds (their information is
-ICP's, optimistic). ``advised``: the regions whose T exceeds it. Pure: factor lists and arrays in, a dict out.
+against ``scale x chi2.ppf(1 - (1 - quantile) / m, 6 k)``, m the regions the night's loops reach. The test: under a
+map that agrees with the loops, T is ``s x chi2(6 k)``, ``s`` the loops' variance factor (their information is
+ICP's, optimistic by ``s``; 6 k is an upper bound of the degrees of freedom: the new poses were fitted to the same
+loops, which only lowers T); one night tests m regions, so each is tested at ``(1 - quantile) / m`` (Bonferroni) and
+``1 - quantile`` bounds the night's false-alarm rate. ``scale`` bounds ``s``: the largest one-sided 99 % upper
+confidence bound of ``s`` (``T / chi2.ppf(0.01, 6 k)``) over the clean nights of the calibration seeds
+(``bench.bench_incremental drift-threshold``; docs/maintenance.md "The drift trigger's threshold"). ``advised``: the
+regions whose T exceeds it. Pure: factor lists and arrays in, a dict out.
 """
 from __future__ import annotations
 
@@ -20,7 +24,7 @@ from stages.posegraph.factors.graph import Problem
 from stages.posegraph.regions import partition_poses
 
 DRIFT_QUANTILE = 0.999
-DRIFT_SCALE = 1.0  # chosen on calibration seeds tiny 211 and 353 (docs/maintenance.md "Reoptimize")
+DRIFT_SCALE = 1.6  # the loops' variance factor bound, calibration seeds tiny 211, 353 (module docstring)
 DRIFT_REGION_MAX_POSES = 600  # = ``maps reoptimize``'s default region size
 
 
@@ -50,6 +54,7 @@ def loop_drift(problem: Problem, poses: np.ndarray, n_new: int, held_rows: dict[
     region_of = np.array([labels[held_rows[b.j if b.j >= n_new else b.i]] for b in loops], np.int64)
     sq = np.sum(whitened_loop_errors(loops, poses) ** 2, axis=1) if loops else np.zeros(0)
     rows = []
+    tested = len(set(region_of.tolist()))  # m: the regions this night's loops reach (Bonferroni)
     for r in range(int(labels.max()) + 1 if len(labels) else 0):
         sel = region_of == r
         k = int(sel.sum())
@@ -59,9 +64,10 @@ def loop_drift(problem: Problem, poses: np.ndarray, n_new: int, held_rows: dict[
                          "chi2": 0.0, "dof": 0, "threshold": None, "advised": False})
             continue
         t, dof = float(sq[sel].sum()), 6 * k
-        threshold = float(scale * chi2.ppf(quantile, dof))
+        threshold = float(scale * chi2.ppf(1.0 - (1.0 - quantile) / tested, dof))
         rows.append({"region": r, "center_en_m": [round(float(c), 1) for c in centre], "loops": k,
                      "chi2": round(t, 2), "dof": dof, "threshold": round(threshold, 2), "advised": t > threshold})
     return {"statistic": "chi2 of the new drives' loops onto the held map (whitened, at the incremental solution)",
-            "quantile": quantile, "scale": scale, "region_max_poses": max_poses, "regions": rows,
+            "quantile": quantile, "scale": scale, "regions_tested": tested, "region_max_poses": max_poses,
+            "regions": rows,
             "advised": [row["region"] for row in rows if row["advised"]]}

@@ -64,3 +64,23 @@ def test_region_rows_follow_the_held_map_partition():
     doc = loop_drift(sol.problem, np.concatenate([sol.poses, sol.problem.initial[n:]]), n,
                      {n + m: g for m, g in enumerate(range(0, len(held), 4))}, held[:, :2, 3], max_poses=60)
     assert len(doc["regions"]) == 4 and doc["region_max_poses"] == 60
+
+
+def test_each_region_is_tested_at_the_nights_level_over_the_regions_its_loops_reach():
+    """Bonferroni: with m regions holding loops, a region's threshold is scale x chi2.ppf(1 - (1 - q) / m, 6 k)
+    (scipy's quantile, computed here independently); regions without a loop are not tested and do not count."""
+    from scipy.stats import chi2
+
+    from stages.posegraph.drift import DRIFT_QUANTILE, DRIFT_SCALE
+
+    sol, n, held = incremental(0.0)
+    doc = increment_drift(sol, n, held, max_poses=60)
+    tested = [r for r in doc["regions"] if r["loops"]]
+    assert doc["regions_tested"] == len(tested) >= 2
+    for r in tested:
+        expected = DRIFT_SCALE * chi2.ppf(1.0 - (1.0 - DRIFT_QUANTILE) / len(tested), 6 * r["loops"])
+        assert r["dof"] == 6 * r["loops"] and abs(r["threshold"] - expected) < 0.01
+    one = increment_drift(sol, n, held, max_poses=10_000)  # one region: no correction
+    assert one["regions_tested"] == 1
+    r = one["regions"][0]
+    assert abs(r["threshold"] - DRIFT_SCALE * chi2.ppf(DRIFT_QUANTILE, r["dof"])) < 0.01
