@@ -58,7 +58,7 @@ def read_root(root: Path):
     from pipeline.reader import StoreInputReader
     from pipeline.workflow import load_workflow
     from stages.evaluate.compute import read_drive, read_references
-    from stages.evaluate.map_access import map_inputs, open_published_map
+    from stages.evaluate.map_access import map_inputs
     from stages.evaluate.run import FrameError
 
     wf_path = sorted(Path(root).glob("workflow-*.yaml"), key=lambda p: p.stat().st_mtime)[-1]
@@ -70,9 +70,10 @@ def read_root(root: Path):
     drive = next(d["name"] for d in yaml.safe_load(wf_path.read_text())["drives"] if d.get("role") == "eval")
     settings = dict(sp.settings)
     settings.setdefault("root", str(plan.root))
-    ctx = SimpleNamespace(inputs=ins, params=params, settings=settings, partition=PartitionKey(drive=drive))
+    ctx = SimpleNamespace(inputs=ins, params=params, settings=settings, partition=PartitionKey(drive=drive),
+                          report_step=lambda *a, **k: None)
     d, scan_ids = read_drive(ctx, drive, params)
-    reader = open_published_map(ctx)
+    reader = published_map(root)
     where_q, where_ok = d.roughly
     cmap, _ = map_inputs(
         reader,
@@ -89,6 +90,16 @@ def read_root(root: Path):
     good = (k < len(rmse)) & (scan_ids[np.minimum(k, len(rmse) - 1)] == edges["scan_id"])
     rmse[k[good]] = edges["inlier_rmse_m"][good]
     return d, refs, params, frame, str(reader.path), rmse
+
+
+def published_map(root: Path):
+    """The newest committed map_tiles version's published map (not through the plan: a change of the tiles' code,
+    e.g. of the localizer defaults, does not hide the committed map)."""
+    from bench.roots import read
+    from mapformat.loader import open_map
+
+    path = read(root, "map_tiles").to_pylist()[-1]["path"]
+    return open_map(path if Path(path).is_absolute() else Path(root) / path)
 
 
 def scan_table(root: Path, dataset: str, drive: str) -> dict:

@@ -178,6 +178,10 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
         cmap = CornerMap(cmap.en_m, cmap.cov_m2 * cfg.map.cov_scale, cmap.dirs_enu_rad)
     tree = cKDTree(cmap.en_m) if len(cmap.en_m) else None
     floor = np.diag([cfg.corners.range_sigma_floor_m**2, cfg.corners.bearing_sigma_floor_rad**2])
+    # until the first corner update: the start-up floors (a start from a fix metres off linearises badly)
+    startup = np.maximum(floor, np.diag([cfg.corners.startup_range_sigma_floor_m**2,
+                                         cfg.corners.startup_bearing_sigma_floor_rad**2]))
+    localized = False
     q_init, P_init = np.asarray(q0, dtype=float).copy(), np.asarray(P0, dtype=float).copy()
     dt_s = None if stamps_ns is None else np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, np.int64)) * 1e-9])
     # extra states beside (x, y, yaw), with their initial variances: the gyro bias, and the wheel scale error
@@ -225,7 +229,7 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
                               cmap.cov_m2[near], cmap.dirs_enu_rad[near], sensor_range_m=cfg.corners.sensor_range_m,
                               gate_chi2=cfg.corners.gate_chi2, angle_tol_rad=cfg.corners.angle_tol_rad,
                               method=cfg.corners.association,
-                              noise_floor_rb=floor)
+                              noise_floor_rb=floor if localized else startup)
                 if len(a.meas_idx):
                     idx = near[a.map_idx]
                     n_assoc[k] = len(idx)
@@ -234,6 +238,7 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
                     use = alpha >= MIN_LOOK_WEIGHT
                     idx, alpha = idx[use], alpha[use]
                     if len(idx):
+                        localized = True
                         looks.used(idx, odometer_m)
                         yaw_walls, yaw_sigma = None, 0.0
                         if cfg.corners.wall_heading_sigma_rad > 0:
