@@ -39,6 +39,7 @@ def load(root: Path, cache: Path | None = None):
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(pickle.dumps(saved))
     d, refs, params, frame, map_path, edges = saved
+    params = type(params).model_validate(params.model_dump())  # a pickle of older code: today's fields and defaults
     reader = open_map(map_path)
     p_map = with_map_correlation(params, reader)
     where_q, where_ok = d.roughly
