@@ -71,8 +71,13 @@ def read_root(root: Path):
     drive = next(d["name"] for d in yaml.safe_load(wf_path.read_text())["drives"] if d.get("role") == "eval")
     settings = dict(sp.settings)
     settings.setdefault("root", str(plan.root))
-    ctx = SimpleNamespace(inputs=ins, params=params, settings=settings, partition=PartitionKey(drive=drive),
-                          report_step=lambda *a, **k: None)
+    ctx = SimpleNamespace(
+        inputs=ins,
+        params=params,
+        settings=settings,
+        partition=PartitionKey(drive=drive),
+        report_step=lambda *a, **k: None,
+    )
     d, scan_ids = read_drive(ctx, drive, params)
     reader = published_map(root)
     where_q, where_ok = d.roughly
