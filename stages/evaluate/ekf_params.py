@@ -30,7 +30,16 @@ class EkfIcpMotion(Params):
 
     sigma_frac: float = Field(CORNER_EKF.icp_sigma_frac, ge=0, description="ICP translation std per metre travelled")
     sigma_xy_m: float = Field(CORNER_EKF.icp_sigma_xy_m, ge=0, description="ICP translation std floor per scan")
-    sigma_yaw_deg: float = Field(CORNER_EKF.icp_sigma_yaw_deg, ge=0, description="ICP heading std per scan")
+    sigma_yaw_deg: float = Field(CORNER_EKF.icp_sigma_yaw_deg, ge=0, description="ICP heading std per scan where "
+                                 "the registration states none (or registration_yaw_scale is 0)")
+    registration_yaw_scale: float = Field(2.7, ge=0, description="each scan's ICP heading std is this times the "
+                                          "registration's own stated std (the planar marginal of the edge's "
+                                          "information, odometry's point-to-plane Hessian, its floor taken out); "
+                                          "0: sigma_yaw_deg for every scan")
+    registration_yaw_floor_deg: float = Field(float(np.degrees(1e-4)), ge=0,
+                                              description="the floor odometry adds to every edge's rotation "
+                                              "std (its information.min_sigma_rad, 1e-4 rad), taken out of the "
+                                              "stated heading variance before the scale: not the scene's")
     sigma_yaw_frac: float = Field(0.0, ge=0, description="ICP heading std per radian turned (0: turns no worse)")
     wheel_gate_deg: float = Field(0.05, ge=0, description="an ICP increment whose heading change differs from the "
                                   "wheel/gyro increment's by more than this is replaced by the wheel/gyro increment, "
@@ -49,6 +58,10 @@ class EkfIcpMotion(Params):
     @property
     def sigma_yaw_rad(self) -> float:
         return np.deg2rad(self.sigma_yaw_deg)
+
+    @property
+    def registration_yaw_floor_rad(self) -> float:
+        return np.deg2rad(self.registration_yaw_floor_deg)
 
     @property
     def heading_rw_rad_per_sqrt_s(self) -> float:
@@ -104,6 +117,11 @@ class EkfCorners(Params):
                                        description="added to extracted corners' range std")
     bearing_sigma_floor_deg: float = Field(CORNER_EKF.bearing_sigma_floor_deg, ge=0,
                                            description="added to extracted corners' bearing std")
+    startup_range_sigma_floor_m: float = Field(0.05, ge=0, description="the range floor (at least) until the "
+                                               "filter's first corner update: from a GNSS fix metres off, its "
+                                               "linearisation errs beyond the extraction's scatter")
+    startup_bearing_sigma_floor_deg: float = Field(0.15, ge=0, description="the bearing floor (at least) until the "
+                                                   "first corner update")
     wall_heading_sigma_deg: float = Field(CORNER_EKF.wall_heading_sigma_deg, ge=0,
                                           description="heading from wall directions; 0 = off (range/bearing only)")
     decorrelation_m: float = Field(CORNER_EKF.corner_decorrelation_m, ge=0,
@@ -122,6 +140,10 @@ class EkfCorners(Params):
     @property
     def bearing_sigma_floor_rad(self) -> float:
         return np.deg2rad(self.bearing_sigma_floor_deg)
+
+    @property
+    def startup_bearing_sigma_floor_rad(self) -> float:
+        return np.deg2rad(self.startup_bearing_sigma_floor_deg)
 
     @property
     def wall_heading_sigma_rad(self) -> float:

@@ -60,11 +60,27 @@ def corners_to_vehicle(T_vehicle_lidar: np.ndarray, xy_lidar_m: np.ndarray, cov_
     return xy, cov, wrap_angle_rad(np.asarray(dirs_lidar_rad, dtype=float).reshape(-1, 2) + yaw)
 
 
-def increment_covariance(increment: np.ndarray, cfg: EkfConfig) -> np.ndarray:
-    """Diagonal covariance of one ICP increment, growing with distance and turn."""
+def icp_yaw_sigma_rad(cov_info: np.ndarray | None, cfg: EkfConfig) -> float:
+    """One ICP increment's heading std: ``cfg.icp.registration_yaw_scale`` times the registration's own stated std
+    (``cov_info[2, 2]``, the planar marginal of the edge's information, less the floor odometry adds to every edge,
+    ``registration_yaw_floor_deg``) when both are there, else ``cfg.icp.sigma_yaw_deg``. The registration's figure
+    follows the scene and the sensor scan by scan (demo's dense facades register 2-3x better in heading than
+    tiny's); its scale is not the truth's (the point-to-plane Hessian at a fixed point std ignores the residuals'
+    correlation), hence one global factor chosen on calibration seeds."""
+    scale = cfg.icp.registration_yaw_scale
+    if scale > 0 and cov_info is not None:
+        v = float(np.asarray(cov_info)[2, 2])
+        if np.isfinite(v) and v > 0:
+            return scale * float(np.sqrt(max(v - cfg.icp.registration_yaw_floor_rad**2, 0.0)))
+    return cfg.icp.sigma_yaw_rad
+
+
+def increment_covariance(increment: np.ndarray, cfg: EkfConfig, cov_info: np.ndarray | None = None) -> np.ndarray:
+    """Diagonal covariance of one ICP increment, growing with distance and turn; its heading part from the
+    registration's own covariance ``cov_info`` (3,3) when given (``icp_yaw_sigma_rad``)."""
     dist = float(np.hypot(increment[0], increment[1]))
     s_xy = cfg.icp.sigma_frac * dist + cfg.icp.sigma_xy_m
-    s_yaw = cfg.icp.sigma_yaw_frac * abs(float(increment[2])) + cfg.icp.sigma_yaw_rad
+    s_yaw = cfg.icp.sigma_yaw_frac * abs(float(increment[2])) + icp_yaw_sigma_rad(cov_info, cfg)
     return np.diag([s_xy**2, s_xy**2, s_yaw**2])
 
 
@@ -97,16 +113,17 @@ def _motion(state: ekf.EkfState, k: int, increments: np.ndarray, wheel: np.ndarr
     """One motion update; returns the state, whether an ICP increment was used and the errors' transition."""
     inc = increments[k]
     fg = None if from_gyro is None else bool(from_gyro[k])
+    own = None if icp_cov is None or fg else icp_cov[k]  # the registration's covariance of an ICP increment
     if (len(state.q) == 4 and wheel_fallback is not None and not fg and gyro_yaw is not None
             and cfg.icp.gyro_gate_chi2 > 0 and np.all(np.isfinite(inc))):
         # ICP against the bias-corrected gyro, with the innovation's own variance (instead of a fixed angle)
         dt = float(dt_s[k])
         nu = float(wrap_angle_rad(gyro_yaw[k] - inc[2] - state.q[3] * dt))
-        S = increment_covariance(inc, cfg)[2, 2] + dt**2 * state.P[3, 3] + gyro_sigma_yaw_rad(inc[2], cfg) ** 2
+        S = increment_covariance(inc, cfg, own)[2, 2] + dt**2 * state.P[3, 3] + gyro_sigma_yaw_rad(inc[2], cfg) ** 2
         if nu**2 > cfg.icp.gyro_gate_chi2 * S:
-            inc, fg = wheel_fallback[k], True
+            inc, fg, own = wheel_fallback[k], True, None
     if wheel is None and np.all(np.isfinite(inc)):
-        Q = increment_covariance(inc, cfg)
+        Q = increment_covariance(inc, cfg, own)
         if dt_s is not None:  # the heading random walk (cfg.icp.heading_rw_rad_per_sqrt_s)
             Q[2, 2] += cfg.icp.heading_rw_rad_per_sqrt_s**2 * float(dt_s[k])
         if len(state.q) == 4:  # with the gyro bias state
@@ -143,7 +160,8 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
     (``ekf.predict_wheel_icp``): ICP increments (NaN = failed; ``icp_cov`` (E,3,3) their registration covariance)
     are fused with the bias-corrected wheel/gyro increments. Without them: the paper's ICP-only motion model; with
     ``cfg.icp.gyro_bias_state``, ``from_gyro`` (E,) (the epochs whose increment is the wheel/gyro one, ICP having
-    failed or been gated) and ``stamps_ns``, the state carries the gyro bias those increments drift with.
+    failed or been gated) and ``stamps_ns``, the state carries the gyro bias those increments drift with; ``icp_cov``
+    then gives each ICP increment's heading std (``icp_yaw_sigma_rad``).
     With ``cfg.markings.enabled``, ``feature_epoch`` (F,) sorted, ``features_vehicle_m`` (F,2) and ``fetch`` (a
     marking raster fetcher, as the MCL's), every scan's road features also measure the pose (``ekf_markings``) with the
     MCL's ``likelihood``.
@@ -160,6 +178,10 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
         cmap = CornerMap(cmap.en_m, cmap.cov_m2 * cfg.map.cov_scale, cmap.dirs_enu_rad)
     tree = cKDTree(cmap.en_m) if len(cmap.en_m) else None
     floor = np.diag([cfg.corners.range_sigma_floor_m**2, cfg.corners.bearing_sigma_floor_rad**2])
+    # until the first corner update: the start-up floors (a start from a fix metres off linearises badly)
+    startup = np.maximum(floor, np.diag([cfg.corners.startup_range_sigma_floor_m**2,
+                                         cfg.corners.startup_bearing_sigma_floor_rad**2]))
+    localized = False
     q_init, P_init = np.asarray(q0, dtype=float).copy(), np.asarray(P0, dtype=float).copy()
     dt_s = None if stamps_ns is None else np.concatenate([[0.0], np.diff(np.asarray(stamps_ns, np.int64)) * 1e-9])
     # extra states beside (x, y, yaw), with their initial variances: the gyro bias, and the wheel scale error
@@ -207,7 +229,7 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
                               cmap.cov_m2[near], cmap.dirs_enu_rad[near], sensor_range_m=cfg.corners.sensor_range_m,
                               gate_chi2=cfg.corners.gate_chi2, angle_tol_rad=cfg.corners.angle_tol_rad,
                               method=cfg.corners.association,
-                              noise_floor_rb=floor)
+                              noise_floor_rb=floor if localized else startup)
                 if len(a.meas_idx):
                     idx = near[a.map_idx]
                     n_assoc[k] = len(idx)
@@ -216,6 +238,7 @@ def run_ekf(increments: np.ndarray, obs: CornerObservations, cmap: CornerMap, q0
                     use = alpha >= MIN_LOOK_WEIGHT
                     idx, alpha = idx[use], alpha[use]
                     if len(idx):
+                        localized = True
                         looks.used(idx, odometer_m)
                         yaw_walls, yaw_sigma = None, 0.0
                         if cfg.corners.wall_heading_sigma_rad > 0:

@@ -171,10 +171,12 @@ def run_methods(d: DriveArrays, cmap: CornerMap | None, fetch: RasterFetcher | N
             failed = ~np.all(np.isfinite(d.icp_raw_increments), axis=1)  # the gate is the filter's, not the angle
             inc = np.where(failed[:, None], d.odo_increments, d.icp_raw_increments)
             r = run_ekf(inc, d.corners, cmap, q0, P0, k0, ekf_cfg, stamps_ns=d.stamps_ns, from_gyro=failed,
-                        gyro_yaw_rad=d.odo_increments[:, 2], wheel_fallback=d.odo_increments, **marks)
+                        gyro_yaw_rad=d.odo_increments[:, 2], wheel_fallback=d.odo_increments, icp_cov=d.icp_cov,
+                        **marks)
         else:
             r = run_ekf(d.icp_increments, d.corners, cmap, q0, P0, k0, ekf_cfg, stamps_ns=d.stamps_ns,
-                        from_gyro=gyro_increments(d), gyro_yaw_rad=d.odo_increments[:, 2], **marks)
+                        from_gyro=gyro_increments(d), gyro_yaw_rad=d.odo_increments[:, 2], icp_cov=d.icp_cov,
+                        **marks)
         runs["ekf"] = MethodRun(r.q, r.P, r.n_associated, time.perf_counter() - t0, r.assoc_epoch, r.assoc_map_idx,
                                 r.marking_rows)
         log.info("ekf: %d epochs in %.2f s, %d associations", n - k0, runs["ekf"].seconds, len(r.assoc_epoch))
