@@ -36,7 +36,7 @@ class EkfIcpMotion(Params):
                                           "registration's own stated std (the planar marginal of the edge's "
                                           "information, odometry's point-to-plane Hessian, its floor taken out); "
                                           "0: sigma_yaw_deg for every scan")
-    registration_yaw_floor_deg: float = Field(0.00573, ge=0,
+    registration_yaw_floor_deg: float = Field(float(np.degrees(1e-4)), ge=0,
                                               description="the floor odometry adds to every edge's rotation "
                                               "std (its information.min_sigma_rad, 1e-4 rad = 0.00573 deg), "
                                               "taken out of the stated heading variance before the scale: "
