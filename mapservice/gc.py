@@ -294,14 +294,12 @@ def plan_gc_store(store, min_age_h: float = 24.0) -> tuple[list, int, list]:
         for name in map_names(store):
             snapshot_map(store, name, local, whole=())
         wf = storage.workflows_dir(store.root)
-        found = store.fs.find(wf.as_posix(), detail=True, withdirs=False) if not store.local else {}
-        for key, info in found.items():
-            target = storage.workflows_dir(local) / PurePosixPath(key).name
+        for rel, (_, stamp) in store.walk_objects(wf).items():
+            target = storage.workflows_dir(local) / PurePosixPath(rel).name
             target.parent.mkdir(parents=True, exist_ok=True)
-            target.write_bytes(store.read_bytes(PurePosixPath(key)))
-            stamp = info.get("LastModified")
-            if stamp is not None:  # the newest build workflow of a map is the one that counts
-                os.utime(target, (stamp.timestamp(), stamp.timestamp()))
+            target.write_bytes(store.read_bytes(wf / rel))
+            if stamp:  # the newest build workflow of a map is the one that counts
+                os.utime(target, (stamp, stamp))
         plan = plan_gc(local, min_age_h)
         to_loc = lambda d: store.root / d.relative_to(local).as_posix()  # noqa: E731
         remove = [to_loc(d) for d in plan.remove]

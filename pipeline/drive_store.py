@@ -205,10 +205,14 @@ def stage_drive(root: "str | storage.Store", drive_yaml: Path) -> str:
     return _STAGED[key]
 
 
-def preflight_path(drive: "str | Path") -> Path | None:
+CHECK_FILE_MAX_BYTES = 16 * 2**20  # a check copy fetches a drive's files up to this size (larger: the name only)
+CHECK_MANY_FILES = 16  # a folder's files of one suffix beyond this many (scans) are copied by name only
+
+
+def preflight_path(drive: "str | Path", scratch: Path | None = None) -> Path | None:
     """The local drive file a client-side check (a stage's ``preflight``) may read for a drive of the plan: a local
-    path as is; a URI this process staged, or fetched from an inbox, by its local file; any other URI None (its
-    tasks check it where they fetch it)."""
+    path as is; a URI this process staged, or fetched from an inbox, by its local file; any other URI its check copy
+    made in ``scratch`` (``check_copy``; None without ``scratch``)."""
     if not is_uri(drive):
         return Path(drive)
     uri = storage.normalise_uri(drive)
@@ -218,7 +222,43 @@ def preflight_path(drive: "str | Path") -> Path | None:
     for local, source in _COPIES.items():
         if source == uri:
             return Path(local)
-    return None
+    if scratch is None:
+        return None
+    return check_copy(uri, scratch / hashlib.sha256(uri.encode()).hexdigest()[:16])
+
+
+def check_copy(uri: str, folder: Path) -> Path:
+    """What a client-side check of a drive named only by URI reads, copied into ``folder`` without the drive's bulk:
+    the drive file, and every object it names in its places relative to the drive file, fetched when at most
+    ``CHECK_FILE_MAX_BYTES`` and not one of a folder's many files of one suffix (more than ``CHECK_MANY_FILES``: the
+    scans), which are empty files of their names (a check lists them; it does not read them). Returns the local
+    ``drive.yaml``; ConfigError naming the URI when the drive file is absent, DatasetIOError when an object
+    vanished while it was fetched. The build's tasks fetch the drive whole (``local_drive``), as before."""
+    from collections import Counter
+
+    store, loc, raw = _read_drive_yaml(uri)
+    fetch: dict[Path, PurePosixPath] = {}
+    names: set[Path] = set()
+    for value, objects in _referenced(store, loc, raw).items():
+        base = PurePosixPath(posixpath.normpath(posixpath.join(loc.parent.as_posix(), value)))
+        kinds = Counter(PurePosixPath(rel).suffix.lower() for rel in objects if rel)
+        for rel, (size, _, _) in objects.items():
+            src = base / rel if rel else base
+            target = storage.inside(folder, *src.parts[1:])
+            if (rel and kinds[PurePosixPath(rel).suffix.lower()] > CHECK_MANY_FILES) or size > CHECK_FILE_MAX_BYTES:
+                names.add(target)
+            else:
+                fetch[target] = src
+    for target in sorted(names - set(fetch)):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.touch()
+    try:
+        store.download_files([(src, target) for target, src in fetch.items()])
+    except FileNotFoundError as exc:
+        raise DatasetIOError(f"{uri}: an object the drive file names vanished while it was fetched ({exc})") from exc
+    local_yaml = storage.inside(folder, *loc.parts[1:])
+    storage.atomic_write_bytes(local_yaml, raw)
+    return local_yaml
 
 
 _COPIES: dict[str, str] = {}  # local copy of a delivered drive.yaml -> its s3:// URI, this process

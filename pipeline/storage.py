@@ -566,6 +566,64 @@ class Store:
         return {"Bucket": bucket, "Key": key}
 
 
+def _named_errors(method):
+    """``method`` of ``Store`` with the object-store client's own errors (botocore, aiobotocore, aiohttp: an endpoint
+    down, credentials missing or refused, a bucket absent) raised as one ``ObjectStoreError`` naming the location's
+    URI and the endpoint (``object_store_error_line``). A local root calls the method as it is."""
+    import functools
+    import inspect
+
+    def named(self: "Store", args: tuple, exc: Exception) -> Exception | None:
+        line = object_store_error_line(exc)
+        if line is None:
+            return None
+        from pipeline.errors import ObjectStoreError
+
+        return ObjectStoreError.at(self.url(_asked_for(self, args)), line)
+
+    if inspect.isgeneratorfunction(method):
+        @functools.wraps(method)
+        def walker(self: "Store", *args, **kwargs):
+            try:
+                yield from method(self, *args, **kwargs)
+            except Exception as exc:
+                err = named(self, args, exc) if self.fs is not None else None
+                if err is None:
+                    raise
+                raise err from exc
+
+        return walker
+
+    @functools.wraps(method)
+    def wrapper(self: "Store", *args, **kwargs):
+        if self.fs is None:
+            return method(self, *args, **kwargs)
+        try:
+            return method(self, *args, **kwargs)
+        except Exception as exc:
+            err = named(self, args, exc)
+            if err is None:
+                raise
+            raise err from exc
+
+    return wrapper
+
+
+def _asked_for(store: "Store", args: tuple) -> PurePath:
+    """The store location a call of a ``Store`` method names: its first argument, or the first store location of a
+    list of (local, store) / (store, local) pairs; the root when none."""
+    first = args[0] if args else None
+    if isinstance(first, list) and first and isinstance(first[0], tuple):
+        first = next((p for p in first[0] if not isinstance(p, Path)), first[0][0])
+    return first if isinstance(first, PurePath) else store.root
+
+
+for _name in ("read_bytes", "exists", "listdir", "walk_files", "objects_under", "walk_objects", "put_bytes", "create",
+              "etag", "replace_if", "delete_if", "delete", "delete_tree", "upload_file", "upload_files",
+              "download_files", "copy", "download_tree"):
+    setattr(Store, _name, _named_errors(getattr(Store, _name)))
+
+
 def _precondition_failed(exc: BaseException) -> bool:
     text = f"{exc} {getattr(exc, '__cause__', '')}"
     return "PreconditionFailed" in text or "pre-condition" in text.lower() or "412" in text \
