@@ -136,7 +136,7 @@ def run_preflights(plan: "Plan") -> None:
                                          if drives[n] is not None and str(drives[n]).startswith(copies)}) from None
 
 
-def _renamed(exc: "CornermapError", names: dict[str, str]) -> "CornermapError":
+def _renamed(exc: Exception, names: dict[str, str]) -> Exception:
     """``exc`` with each local path of ``names`` in its message replaced by what it stands for (a drive's URI)."""
     from pipeline.errors import ConfigError
 
