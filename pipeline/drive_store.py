@@ -170,21 +170,34 @@ def stage_drive(root: "str | storage.Store", drive_yaml: Path) -> str:
     """Upload a local drive into the object-store root ``root`` once (``ROOT/drives/<fp16>/``, by its drive
     fingerprint) and return the URI of its staged ``drive.yaml``. The drive file and every file or folder it names
     keep their places relative to each other (the common folder of them all is the staged folder); the marker is
-    written last, so a drive whose marker is there is complete and is not uploaded again."""
-    from pipeline.fingerprint import _referenced_paths, drive_fingerprint
+    written last, so a drive whose marker is there is complete and is not uploaded again (its marker is rewritten:
+    ``cornermap gc`` dates a staged drive by it). Staging holds the root's lock shared, so that ``gc --apply`` (which
+    holds it exclusive) never removes a drive while it is staged or found (RunLockedError, exit 75, meanwhile)."""
+    from pipeline.fingerprint import drive_fingerprint
 
     store = storage.Store.open(root)
     drive_yaml = Path(os.path.abspath(drive_yaml))
     key = (store.uri, str(drive_yaml))
     if key in _STAGED:
         return _STAGED[key]
+    from pipeline.locks import ROOT_KEY, locks_for
+
     fp = drive_fingerprint(drive_yaml)
+    with locks_for(store).hold(ROOT_KEY, exclusive=False, what=f"stage drive {drive_yaml}"):  # gc waits
+        _STAGED[key] = _stage(store, drive_yaml, fp)
+    return _STAGED[key]
+
+
+def _stage(store: storage.Store, drive_yaml: Path, fp: str) -> str:
+    from pipeline.fingerprint import _referenced_paths
+
     sdir = storage.staged_drive_dir(store.root, fp)
     marker = storage.staged_marker(sdir)
     try:
-        doc = json.loads(store.read_bytes(marker))
-        _STAGED[key] = store.url(sdir / doc["drive_file"])
-        return _STAGED[key]
+        raw_marker = store.read_bytes(marker)
+        doc = json.loads(raw_marker)
+        store.put_bytes(marker, raw_marker)  # its time renewed: gc keeps a drive staged less than --min-age-h ago
+        return store.url(sdir / doc["drive_file"])
     except (FileNotFoundError, ValueError, KeyError):
         pass
     raw = drive_yaml.read_bytes()
@@ -201,8 +214,7 @@ def stage_drive(root: "str | storage.Store", drive_yaml: Path) -> str:
     rel_yaml = drive_yaml.relative_to(top).as_posix()
     doc = {"drive_file": rel_yaml, "fingerprint": fp, "source": str(drive_yaml), "files": rels}
     store.create(marker, json.dumps(doc, indent=1, sort_keys=True).encode("utf-8"))
-    _STAGED[key] = store.url(sdir / rel_yaml)
-    return _STAGED[key]
+    return store.url(sdir / rel_yaml)
 
 
 CHECK_FILE_MAX_BYTES = 16 * 2**20  # a check copy fetches a drive's files up to this size (larger: the name only)

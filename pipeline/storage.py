@@ -146,9 +146,35 @@ def workflows_dir(root: P) -> P:
     return root / WORKFLOWS
 
 
+def drives_dir(root: P) -> P:
+    """The drives staged into a root (``drives/``), one folder each."""
+    return root / DRIVES
+
+
 def staged_drive_dir(root: P, fingerprint: str) -> P:
     """Where a local drive staged into an object-store root lives: ``drives/<fp16>`` (its drive fingerprint)."""
-    return root / DRIVES / fingerprint[:FP_LEN]
+    return drives_dir(root) / fingerprint[:FP_LEN]
+
+
+def staged_drive_of(value: object, root: "Path | str") -> str | None:
+    """The ``fp16`` of the staged drive ``ROOT/drives/<fp16>/`` that a drive path or URI ``value`` lies in (``root``
+    a local folder or an ``s3://`` URI); None when it lies elsewhere."""
+    if not isinstance(value, (str, PurePath)) or not str(value):
+        return None
+    if uri_scheme(root) is not None:
+        if uri_scheme(value) is None:
+            return None
+        base, text = normalise_uri(root).rstrip("/") + f"/{DRIVES}/", normalise_uri(value)
+        rest = text[len(base):] if text.startswith(base) else None
+    else:
+        if uri_scheme(value) is not None:
+            return None
+        try:
+            rest = Path(os.path.abspath(value)).relative_to(Path(os.path.abspath(root)) / DRIVES).as_posix()
+        except ValueError:
+            rest = None
+    fp = rest.split("/", 1)[0] if rest else ""
+    return fp if len(fp) == FP_LEN else None
 
 
 def staged_marker(sdir: P) -> P:
