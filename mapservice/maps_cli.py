@@ -207,10 +207,10 @@ def gc_cmd(root: Path = opts.ROOT_OR_URI,
             typer.echo(f"keep (staged drive, younger than {min_age_h} h) {store.url(loc)}")
         for uri, why in found:
             typer.echo(f"{verb} {uri} ({why})")
-        typer.echo(f"{len(plan.remove)} dataset folder(s), {mib(plan.remove_bytes)} {'freed' if apply else 'to free'}; "
-                   f"{len(plan.keep)} kept; {len(plan.drives_remove)} staged drive(s), {mib(plan.drives_bytes)} "
-                   f"{'freed' if apply else 'to free'}; {len(found)} other object prefix(es) "
-                   f"{'removed' if apply else 'to remove'}")
+        freed, kept = ("freed" if apply else "to free"), len(plan.keep) + len(plan.young_uncommitted)
+        typer.echo(f"{len(plan.remove)} dataset folder(s), {mib(plan.remove_bytes)} {freed}; {kept} kept; "
+                   f"{len(plan.drives_remove)} staged drive(s), {mib(plan.drives_bytes)} {freed}; {len(found)} other "
+                   f"object prefix(es) {'removed' if apply else 'to remove'}")
         return
     if not is_root_dir(root):  # a typo: "nothing to free", exit 0
         raise ConfigError("--root", [f"{root} holds no datasets/, maps/ or tmp/ folder: not an output root"])
