@@ -512,11 +512,13 @@ def _open_remote(uri: str, version: str | int, cache_tiles: int, trust_files: bo
     latest = isinstance(version, str) and version.upper() == "LATEST"
     try:
         mdir = snapshot_map(store, loc.name, Path(tmp.name), "latest" if latest else [parse_version(version)])
-    except Exception as exc:  # the client's own errors (botocore, aiohttp) are no OSError: name them
+    except ObjectStoreError as exc:  # the store names the object it asked for; a user asked for the map
+        raise ObjectStoreError.at(uri, exc.line or str(exc)) from exc
+    except Exception as exc:  # a client error raised outside the store's operations: named the same way
         line = object_store_error_line(exc)
         if line is None:
             raise
-        raise ObjectStoreError(f"{uri}: {line}") from exc
+        raise ObjectStoreError.at(uri, line) from exc
     return open_map(mdir, version, cache_tiles, trust_files=trust_files)
 
 

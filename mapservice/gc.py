@@ -18,6 +18,14 @@ remove goes (a run that ended between the dry plan and the lock keeps what it ma
 between dataset
 directories by drive-scoped reuse (pipeline/reuse.py), so the bytes freed are counted per inode: a removed directory
 whose files live on in a kept one frees nothing.
+
+Staged drives (``ROOT/drives/<fp16>/``: local drives a build or rebuild uploaded into an object-store root,
+``pipeline.drive_store.stage_drive``) are removed when nothing live names them: no kept dataset's manifest (its
+``drives``), no map identity (its drives and check drive). A staged drive named by nothing is kept while its marker
+``_staged.json`` (rewritten each time a build stages or finds the drive) is younger than ``min_age_h`` (a build
+staged it and has not yet started its run); a folder without its marker (an upload in progress or killed) is dated
+by its newest file. Deleting holds the root's lock exclusive, as for datasets (staging holds it shared), and removes
+the marker first, then the folder.
 """
 from __future__ import annotations
 
@@ -44,6 +52,20 @@ class GcPlan:
     young_uncommitted: list[Path] = field(default_factory=list)
     stale_scratch: list[Path] = field(default_factory=list)  # ROOT/tmp entries of killed runs
     scratch_bytes: int = 0
+    drives_keep: list[Path] = field(default_factory=list)  # ROOT/drives/<fp16> named by a kept dataset or a map
+    drives_young: list[Path] = field(default_factory=list)  # named by nothing, staged less than min_age_h ago
+    drives_remove: list[Path] = field(default_factory=list)  # named by nothing, older
+    drives_bytes: int = 0  # bytes of drives_remove
+
+    def as_json(self, root: Path, url=None) -> dict:
+        """The plan as ``cornermap gc --json`` prints it (``url``: a location as the user writes it)."""
+        name = url or (lambda p: Path(p).relative_to(root).as_posix())
+        return {"datasets": {"remove": [name(d) for d in self.remove], "remove_bytes": self.remove_bytes,
+                             "kept": len(self.keep), "keep_bytes": self.keep_bytes,
+                             "young_uncommitted": [name(d) for d in self.young_uncommitted]},
+                "drives": {"remove": [name(d) for d in self.drives_remove], "remove_bytes": self.drives_bytes,
+                           "young": [name(d) for d in self.drives_young], "kept": [name(d) for d in self.drives_keep]},
+                "scratch": {"remove": [name(d) for d in self.stale_scratch], "remove_bytes": self.scratch_bytes}}
 
 
 def _manifest(d: Path) -> dict | None:
@@ -166,6 +188,48 @@ def _read_by_path(manifest: dict, root: Path) -> set[str]:
     return out
 
 
+def _named_drives(root: Path, kept: list[dict], store_uri: str | None) -> set[str]:
+    """The ``fp16`` of every staged drive (``ROOT/drives/<fp16>/``) a kept dataset's manifest (``kept``) or a map's
+    identity names (``store_uri``: the root's URI when ``root`` is a local snapshot of an object-store root)."""
+    from mapservice.maps import read_identity
+
+    base = store_uri or root
+    values = [v for m in kept for v in (m.get("drives") or {}).values()]
+    maps = storage.maps_dir(root)
+    for mdir in sorted(maps.iterdir()) if maps.is_dir() else []:
+        try:
+            ident = read_identity(mdir) if mdir.is_dir() else None
+        except Exception:  # noqa: BLE001 - an identity that does not read names nothing gc may remove on its word
+            ident = None
+        if ident is not None:
+            values += [d.path for d in ident.drives]
+            values += [ident.check_drive.path] if ident.check_drive is not None else []
+    return {fp for v in values for fp in (storage.staged_drive_of(v, base),) if fp}
+
+
+def _staged_drives(root: Path, named: set[str], min_age_h: float, plan: "GcPlan", now: float) -> None:
+    """Sort ``ROOT/drives/*`` into the plan: named (kept), young (kept), or to remove (with their bytes)."""
+    sd = storage.drives_dir(root)
+    for d in sorted(sd.iterdir()) if sd.is_dir() else []:
+        if not d.is_dir() or d.name.startswith("."):
+            continue
+        if d.name in named:
+            plan.drives_keep.append(d)
+            continue
+        try:
+            newest, size = _newest_mtime_and_bytes(d)
+            marker = storage.staged_marker(d)
+            if marker.is_file():  # the marker's time: when a build last staged or found the drive
+                newest = marker.stat().st_mtime
+        except OSError:  # gone while we looked
+            continue
+        if now - newest < min_age_h * 3600:
+            plan.drives_young.append(d)
+        else:
+            plan.drives_remove.append(d)
+            plan.drives_bytes += size
+
+
 def check_min_age_h(min_age_h: float) -> float:
     """``min_age_h`` when it is a finite number >= 0; ConfigError otherwise (a negative age would remove the folders
     of runs in progress)."""
@@ -178,7 +242,10 @@ def check_min_age_h(min_age_h: float) -> float:
     return float(min_age_h)
 
 
-def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
+def plan_gc(root: Path, min_age_h: float = 24.0, store_uri: str | None = None, now: float | None = None) -> GcPlan:
+    """What ``cornermap gc`` removes from the local root ``root`` (the module's rules); ``store_uri``: ``root`` is a
+    local snapshot of that object-store root (``plan_gc_store``); ``now``: the time ages are judged at (unix s,
+    default the clock's)."""
     root = Path(root)
     check_min_age_h(min_age_h)
     dirs = sorted(d for d in storage.datasets_dir(root).glob("*/*") if d.is_dir())
@@ -203,7 +270,7 @@ def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
                 kept.add(d.name)
                 changed = True
     plan = GcPlan()
-    now = time.time()
+    now = time.time() if now is None else now
     for d in dirs:
         if d.name in kept:
             plan.keep.append(d)
@@ -213,6 +280,8 @@ def plan_gc(root: Path, min_age_h: float = 24.0) -> GcPlan:
             plan.remove.append(d)
     plan.remove_bytes, plan.keep_bytes = _bytes(plan.remove, plan.keep + plan.young_uncommitted)
     plan.stale_scratch, plan.scratch_bytes = _stale_scratch(root, min_age_h)
+    kept_manifests = [manifests[d] for d in plan.keep if manifests[d] is not None]
+    _staged_drives(root, _named_drives(root, kept_manifests, store_uri), min_age_h, plan, now)
     return plan
 
 
@@ -234,19 +303,29 @@ def _bytes(remove: list[Path], keep: list[Path]) -> tuple[int, int]:
     return freed, sum(kept_sizes.values())
 
 
-def apply_gc(root: Path, plan: GcPlan, min_age_h: float = 24.0) -> GcPlan:
+def apply_gc(root: Path, plan: GcPlan, min_age_h: float = 24.0, at_s: float | None = None) -> GcPlan:
     """Delete what ``plan`` lists and a plan made now, under the root's exclusive lock, still lists; returns what
     was deleted. RunLockedError (exit 75) naming a holder while a run writes in the root: nothing is deleted then."""
     from pipeline.locks import root_exclusive
 
     root = Path(root)
     with root_exclusive(root):
-        now = plan_gc(root, min_age_h)
+        now = plan_gc(root, min_age_h, now=at_s)
         done = GcPlan(keep=now.keep, young_uncommitted=now.young_uncommitted, keep_bytes=now.keep_bytes)
         done.remove = [d for d in plan.remove if d in set(now.remove)]
         done.stale_scratch = [e for e in plan.stale_scratch if e in set(now.stale_scratch)]
         done.remove_bytes = now.remove_bytes if done.remove == now.remove else _bytes(done.remove, now.keep)[0]
         done.scratch_bytes = now.scratch_bytes if done.stale_scratch == now.stale_scratch else 0
+        done.drives_keep, done.drives_young = now.drives_keep, now.drives_young
+        done.drives_remove = [d for d in plan.drives_remove if d in set(now.drives_remove)]
+        done.drives_bytes = now.drives_bytes if done.drives_remove == now.drives_remove else \
+            sum(_newest_mtime_and_bytes(d)[1] for d in done.drives_remove)
+        for d in done.drives_remove:
+            storage.staged_marker(d).unlink(missing_ok=True)  # the drive stops being staged at once
+            trash = d.with_name(f".gc-{d.name}")
+            d.rename(trash)
+            shutil.rmtree(trash)
+            log.info("gc: removed %s", d)
         for d in done.remove:
             trash = d.with_name(f".gc-{d.name}")
             d.rename(trash)  # the dataset vanishes atomically, then its files go
@@ -261,11 +340,12 @@ def apply_gc(root: Path, plan: GcPlan, min_age_h: float = 24.0) -> GcPlan:
     return done
 
 
-def plan_gc_store(store, min_age_h: float = 24.0) -> tuple[list, int, list]:
+def plan_gc_store(store, min_age_h: float = 24.0, now: float | None = None) -> GcPlan:
     """``plan_gc`` on an object-store root: the same rules, judged on a local snapshot of what they read (every
-    dataset manifest, the ``map_tiles`` files, every map's manifests and identity, the build workflows), each
-    uncommitted dataset folder dated by its newest object. Returns (locations to remove, their bytes, locations
-    kept)."""
+    dataset manifest, the ``map_tiles`` files, every map's manifests and identity, the build workflows, each staged
+    drive's marker), each uncommitted dataset folder and each staged drive without its marker dated by its newest
+    object. Returns the plan with the store's locations (``PurePosixPath``) in place of the snapshot's folders and
+    the bytes of what it removes counted in the bucket (no hard links there; ``keep_bytes`` is not counted: 0)."""
     import os
     import tempfile
     from pathlib import PurePosixPath
@@ -294,32 +374,58 @@ def plan_gc_store(store, min_age_h: float = 24.0) -> tuple[list, int, list]:
         for name in map_names(store):
             snapshot_map(store, name, local, whole=())
         wf = storage.workflows_dir(store.root)
-        found = store.fs.find(wf.as_posix(), detail=True, withdirs=False) if not store.local else {}
-        for key, info in found.items():
-            target = storage.workflows_dir(local) / PurePosixPath(key).name
+        for rel, (_, stamp) in store.walk_objects(wf).items():
+            target = storage.workflows_dir(local) / PurePosixPath(rel).name
             target.parent.mkdir(parents=True, exist_ok=True)
-            target.write_bytes(store.read_bytes(PurePosixPath(key)))
-            stamp = info.get("LastModified")
-            if stamp is not None:  # the newest build workflow of a map is the one that counts
-                os.utime(target, (stamp.timestamp(), stamp.timestamp()))
-        plan = plan_gc(local, min_age_h)
+            target.write_bytes(store.read_bytes(wf / rel))
+            if stamp:  # the newest build workflow of a map is the one that counts
+                os.utime(target, (stamp, stamp))
+        sizes: dict[str, int] = {}
+        for fp in store.listdir(storage.drives_dir(store.root)):  # each staged drive: dated by its marker
+            objects = store.walk_objects(storage.drives_dir(store.root) / fp)
+            d = storage.drives_dir(local) / fp
+            d.mkdir(parents=True)
+            marker = objects.get(storage.STAGED_MARKER)
+            stamp = marker[1] if marker else max((t for _, t in objects.values()), default=0.0) or time.time()
+            if marker:
+                storage.staged_marker(d).write_bytes(b"")
+                os.utime(storage.staged_marker(d), (stamp, stamp))
+            os.utime(d, (stamp, stamp))
+            sizes[fp] = sum(size for size, _ in objects.values())
+        plan = plan_gc(local, min_age_h, store_uri=store.uri, now=now)
         to_loc = lambda d: store.root / d.relative_to(local).as_posix()  # noqa: E731
-        remove = [to_loc(d) for d in plan.remove]
-        keep = [to_loc(d) for d in plan.keep + plan.young_uncommitted]
-    freed = sum(size for loc in remove for _, size in store.walk_files(loc))
-    return remove, freed, keep
+        out = GcPlan(keep=[to_loc(d) for d in plan.keep], remove=[to_loc(d) for d in plan.remove],
+                     young_uncommitted=[to_loc(d) for d in plan.young_uncommitted],
+                     drives_keep=[to_loc(d) for d in plan.drives_keep],
+                     drives_young=[to_loc(d) for d in plan.drives_young],
+                     drives_remove=[to_loc(d) for d in plan.drives_remove])
+    out.remove_bytes = sum(size for loc in out.remove for _, size in store.walk_files(loc))
+    out.drives_bytes = sum(sizes.get(loc.name, 0) for loc in out.drives_remove)
+    return out
 
 
-def apply_gc_store(store, remove: list, min_age_h: float = 24.0) -> list:
-    """Delete the dataset folders ``remove`` lists that a plan made now, under the root's exclusive lease, still
-    lists: each manifest first (the dataset stops being committed at once), then its objects. Returns what went."""
+def apply_gc_store(store, plan: GcPlan, min_age_h: float = 24.0, at_s: float | None = None) -> GcPlan:
+    """Delete the dataset folders and staged drives ``plan`` lists that a plan made now, under the root's exclusive
+    lease, still lists: each manifest (marker) first (the dataset stops being committed, the drive being staged, at
+    once), then its objects. Returns what went."""
     from pipeline.locks import root_exclusive
 
     with root_exclusive(store, what="cornermap gc --apply"):
-        now = set(plan_gc_store(store, min_age_h)[0])
-        done = [loc for loc in remove if loc in now]
-        for loc in done:
+        now = plan_gc_store(store, min_age_h, now=at_s)
+        done = GcPlan(keep=now.keep, young_uncommitted=now.young_uncommitted, drives_keep=now.drives_keep,
+                      drives_young=now.drives_young)
+        done.remove = [loc for loc in plan.remove if loc in set(now.remove)]
+        done.drives_remove = [loc for loc in plan.drives_remove if loc in set(now.drives_remove)]
+        done.remove_bytes = now.remove_bytes if done.remove == now.remove else \
+            sum(size for loc in done.remove for _, size in store.walk_files(loc))
+        done.drives_bytes = now.drives_bytes if done.drives_remove == now.drives_remove else \
+            sum(size for loc in done.drives_remove for _, size in store.walk_files(loc))
+        for loc in done.remove:
             store.delete(storage.dataset_manifest(loc))
+            store.delete_tree(loc)
+            log.info("gc: removed %s", store.url(loc))
+        for loc in done.drives_remove:
+            store.delete(storage.staged_marker(loc))
             store.delete_tree(loc)
             log.info("gc: removed %s", store.url(loc))
     return done

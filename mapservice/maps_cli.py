@@ -166,49 +166,77 @@ def _hours(value: float) -> float:
 def gc_cmd(root: Path = opts.ROOT_OR_URI,
            apply: bool = typer.Option(False, "--apply", help="Delete (default: a dry run that only prints)."),
            min_age_h: float = typer.Option(24.0, "--min-age-h", callback=_hours, help="Uncommitted dataset "
-                                           "folders and scratch (ROOT/tmp) entries younger than this (runs in "
-                                           "progress) are kept; >= 0.")) -> None:
-    """Remove intermediates no kept map version and no current drive set references (dry run by default).
+                                           "folders, scratch (ROOT/tmp) entries and staged drives (ROOT/drives) "
+                                           "younger than this (runs in progress) are kept; >= 0."),
+           as_json: bool = typer.Option(False, "--json", help="Print the plan (or what was removed) as one JSON "
+                                        "document.")) -> None:
+    """Remove intermediates and staged drives no kept map version and no current drive set references (dry run by
+    default).
 
     Example: [b]cornermap gc --root runs/maps[/b] (a dry run; add --apply to delete)
     """
+    import json
+
     from mapservice.gc import apply_gc, plan_gc
     from pipeline.errors import ConfigError
     from pipeline.storage import is_root_dir, uri_scheme
 
-    if uri_scheme(root) is not None:  # an object-store root: datasets, map versions, leases
+    verb = "remove" if apply else "would remove"
+    mib = lambda b: f"{b / 2**20:.1f} MiB"  # noqa: E731
+    if uri_scheme(root) is not None:  # an object-store root: datasets, staged drives, map versions, leases
         from mapservice.gc import apply_gc_store, plan_gc_store
         from pipeline.storage import Store
         from pipeline.store_maps import gc_uncommitted
 
         store = Store.open(root)
-        remove, freed, keep = plan_gc_store(store, min_age_h)
-        if apply and remove:
-            remove = apply_gc_store(store, remove, min_age_h)
-        for loc in remove:
-            typer.echo(f"{'remove' if apply else 'would remove'} {store.url(loc)}")
+        plan = plan_gc_store(store, min_age_h)
+        if apply and (plan.remove or plan.drives_remove):
+            plan = apply_gc_store(store, plan, min_age_h)
         found = gc_uncommitted(store, min_age_h, apply)
+        if as_json:
+            doc = plan.as_json(store.root, url=store.url)
+            doc.pop("scratch")
+            doc.update(root=store.uri, applied=apply, other=[{"uri": uri, "why": why} for uri, why in found])
+            typer.echo(json.dumps(doc, indent=1))
+            return
+        for loc in plan.remove:
+            typer.echo(f"{verb} {store.url(loc)}")
+        for loc in plan.drives_remove:
+            typer.echo(f"{verb} {store.url(loc)} (a staged drive nothing kept names)")
+        for loc in plan.drives_young:
+            typer.echo(f"keep (staged drive, younger than {min_age_h} h) {store.url(loc)}")
         for uri, why in found:
-            typer.echo(f"{'remove' if apply else 'would remove'} {uri} ({why})")
-        typer.echo(f"{len(remove)} dataset folder(s), {freed / 2**20:.1f} MiB {'freed' if apply else 'to free'}; "
-                   f"{len(keep)} kept; {len(found)} other object prefix(es) {'removed' if apply else 'to remove'}")
+            typer.echo(f"{verb} {uri} ({why})")
+        freed, kept = ("freed" if apply else "to free"), len(plan.keep) + len(plan.young_uncommitted)
+        typer.echo(f"{len(plan.remove)} dataset folder(s), {mib(plan.remove_bytes)} {freed}; {kept} kept; "
+                   f"{len(plan.drives_remove)} staged drive(s), {mib(plan.drives_bytes)} {freed}; {len(found)} other "
+                   f"object prefix(es) {'removed' if apply else 'to remove'}")
         return
     if not is_root_dir(root):  # a typo: "nothing to free", exit 0
         raise ConfigError("--root", [f"{root} holds no datasets/, maps/ or tmp/ folder: not an output root"])
     plan = plan_gc(root, min_age_h)
     if apply:  # under the root's exclusive lock (exit 75 while a run writes): what a plan made there still lists
         plan = apply_gc(root, plan, min_age_h)
-    gib = lambda b: f"{b / 2**20:.1f} MiB"  # noqa: E731
+    if as_json:
+        doc = plan.as_json(Path(root))
+        doc.update(root=str(root), applied=apply)
+        typer.echo(json.dumps(doc, indent=1))
+        return
     for d in plan.remove:
-        typer.echo(f"{'remove' if apply else 'would remove'} {d.relative_to(root)}")
+        typer.echo(f"{verb} {d.relative_to(root)}")
     for d in plan.young_uncommitted:
         typer.echo(f"keep (uncommitted, younger than {min_age_h} h) {d.relative_to(root)}")
     for entry in plan.stale_scratch:
-        typer.echo(f"{'remove' if apply else 'would remove'} {entry.relative_to(root)} (scratch of a killed run)")
-    scratch = (f"; {len(plan.stale_scratch)} scratch folder(s) of killed runs, {gib(plan.scratch_bytes)}"
+        typer.echo(f"{verb} {entry.relative_to(root)} (scratch of a killed run)")
+    for d in plan.drives_remove:
+        typer.echo(f"{verb} {d.relative_to(root)} (a staged drive nothing kept names)")
+    for d in plan.drives_young:
+        typer.echo(f"keep (staged drive, younger than {min_age_h} h) {d.relative_to(root)}")
+    scratch = (f"; {len(plan.stale_scratch)} scratch folder(s) of killed runs, {mib(plan.scratch_bytes)}"
                if plan.stale_scratch else "")
-    typer.echo(f"{len(plan.remove)} dataset folder(s), {gib(plan.remove_bytes)} "
-               f"{'freed' if apply else 'to free'}; {len(plan.keep)} kept ({gib(plan.keep_bytes)}){scratch}")
+    drives = (f"; {len(plan.drives_remove)} staged drive(s), {mib(plan.drives_bytes)}" if plan.drives_remove else "")
+    typer.echo(f"{len(plan.remove)} dataset folder(s), {mib(plan.remove_bytes)} "
+               f"{'freed' if apply else 'to free'}; {len(plan.keep)} kept ({mib(plan.keep_bytes)}){scratch}{drives}")
 
 
 def register(app: typer.Typer) -> None:

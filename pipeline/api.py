@@ -114,15 +114,46 @@ def execute_workflow(workflow_path: Path | str, *, root: Optional[Path] = None, 
 def run_preflights(plan: "Plan") -> None:
     """Each selected stage's ``preflight`` on its drives that exist and its settings, before any stage runs: a run
     that cannot succeed on its inputs stops here, in one line, with nothing computed."""
+    import tempfile
+
     from pipeline.declare import resolve
+    from pipeline.errors import CornermapError
 
     for sp in plan.stages.values():
         if sp.selected and not sp.committed and sp.decl.preflight:
             from pipeline.drive_store import preflight_path
 
-            drives = {n: preflight_path(p) for n, p in sp.drives.items()}
-            resolve(sp.decl.preflight)({n: p for n, p in drives.items() if p is not None and p.is_file()},
-                                       dict(sp.settings))
+            # a drive named only by URI: checked on its check copy (the drive file and its small files, the names
+            # of its scans) in a temporary folder, as a local drive is on its own files
+            with tempfile.TemporaryDirectory(prefix="cornermap-check-") as tmp:
+                copies = str(Path(tmp).resolve())
+                drives = {n: preflight_path(p, Path(copies)) for n, p in sp.drives.items()}
+                try:
+                    resolve(sp.decl.preflight)({n: p for n, p in drives.items() if p is not None and p.is_file()},
+                                               dict(sp.settings))
+                except CornermapError as exc:  # a check copy's file is named by the drive's URI
+                    raise _renamed(exc, {str(drives[n]): storage.normalise_uri(p) for n, p in sp.drives.items()
+                                         if drives[n] is not None and str(drives[n]).startswith(copies)}) from None
+
+
+def _renamed(exc: Exception, names: dict[str, str]) -> Exception:
+    """``exc`` with each local path of ``names`` in its message replaced by what it stands for (a drive's URI)."""
+    from pipeline.errors import ConfigError
+
+    if not names:
+        return exc
+
+    def sub(text: str) -> str:
+        for old, new in names.items():
+            text = text.replace(old, new)
+        return text
+
+    try:
+        if isinstance(exc, ConfigError):
+            return type(exc)(sub(exc.where), [sub(p) for p in exc.problems])
+        return type(exc)(sub(str(exc)))
+    except TypeError:  # an error of another shape: as it is
+        return exc
 
 
 def _cpu_s() -> float:

@@ -170,21 +170,34 @@ def stage_drive(root: "str | storage.Store", drive_yaml: Path) -> str:
     """Upload a local drive into the object-store root ``root`` once (``ROOT/drives/<fp16>/``, by its drive
     fingerprint) and return the URI of its staged ``drive.yaml``. The drive file and every file or folder it names
     keep their places relative to each other (the common folder of them all is the staged folder); the marker is
-    written last, so a drive whose marker is there is complete and is not uploaded again."""
-    from pipeline.fingerprint import _referenced_paths, drive_fingerprint
+    written last, so a drive whose marker is there is complete and is not uploaded again (its marker is rewritten:
+    ``cornermap gc`` dates a staged drive by it). Staging holds the root's lock shared, so that ``gc --apply`` (which
+    holds it exclusive) never removes a drive while it is staged or found (RunLockedError, exit 75, meanwhile)."""
+    from pipeline.fingerprint import drive_fingerprint
 
     store = storage.Store.open(root)
     drive_yaml = Path(os.path.abspath(drive_yaml))
     key = (store.uri, str(drive_yaml))
     if key in _STAGED:
         return _STAGED[key]
+    from pipeline.locks import ROOT_KEY, locks_for
+
     fp = drive_fingerprint(drive_yaml)
+    with locks_for(store).hold(ROOT_KEY, exclusive=False, what=f"stage drive {drive_yaml}"):  # gc waits
+        _STAGED[key] = _stage(store, drive_yaml, fp)
+    return _STAGED[key]
+
+
+def _stage(store: storage.Store, drive_yaml: Path, fp: str) -> str:
+    from pipeline.fingerprint import _referenced_paths
+
     sdir = storage.staged_drive_dir(store.root, fp)
     marker = storage.staged_marker(sdir)
     try:
-        doc = json.loads(store.read_bytes(marker))
-        _STAGED[key] = store.url(sdir / doc["drive_file"])
-        return _STAGED[key]
+        raw_marker = store.read_bytes(marker)
+        doc = json.loads(raw_marker)
+        store.put_bytes(marker, raw_marker)  # its time renewed: gc keeps a drive staged less than --min-age-h ago
+        return store.url(sdir / doc["drive_file"])
     except (FileNotFoundError, ValueError, KeyError):
         pass
     raw = drive_yaml.read_bytes()
@@ -201,14 +214,17 @@ def stage_drive(root: "str | storage.Store", drive_yaml: Path) -> str:
     rel_yaml = drive_yaml.relative_to(top).as_posix()
     doc = {"drive_file": rel_yaml, "fingerprint": fp, "source": str(drive_yaml), "files": rels}
     store.create(marker, json.dumps(doc, indent=1, sort_keys=True).encode("utf-8"))
-    _STAGED[key] = store.url(sdir / rel_yaml)
-    return _STAGED[key]
+    return store.url(sdir / rel_yaml)
 
 
-def preflight_path(drive: "str | Path") -> Path | None:
+CHECK_FILE_MAX_BYTES = 16 * 2**20  # a check copy fetches a drive's files up to this size (larger: the name only)
+CHECK_MANY_FILES = 16  # a folder's files of one suffix beyond this many (scans) are copied by name only
+
+
+def preflight_path(drive: "str | Path", scratch: Path | None = None) -> Path | None:
     """The local drive file a client-side check (a stage's ``preflight``) may read for a drive of the plan: a local
-    path as is; a URI this process staged, or fetched from an inbox, by its local file; any other URI None (its
-    tasks check it where they fetch it)."""
+    path as is; a URI this process staged, or fetched from an inbox, by its local file; any other URI its check copy
+    made in ``scratch`` (``check_copy``; None without ``scratch``)."""
     if not is_uri(drive):
         return Path(drive)
     uri = storage.normalise_uri(drive)
@@ -218,7 +234,43 @@ def preflight_path(drive: "str | Path") -> Path | None:
     for local, source in _COPIES.items():
         if source == uri:
             return Path(local)
-    return None
+    if scratch is None:
+        return None
+    return check_copy(uri, scratch / hashlib.sha256(uri.encode()).hexdigest()[:16])
+
+
+def check_copy(uri: str, folder: Path) -> Path:
+    """What a client-side check of a drive named only by URI reads, copied into ``folder`` without the drive's bulk:
+    the drive file, and every object it names in its places relative to the drive file, fetched when at most
+    ``CHECK_FILE_MAX_BYTES`` and not one of a folder's many files of one suffix (more than ``CHECK_MANY_FILES``: the
+    scans), which are empty files of their names (a check lists them; it does not read them). Returns the local
+    ``drive.yaml``; ConfigError naming the URI when the drive file is absent, DatasetIOError when an object
+    vanished while it was fetched. The build's tasks fetch the drive whole (``local_drive``), as before."""
+    from collections import Counter
+
+    store, loc, raw = _read_drive_yaml(uri)
+    fetch: dict[Path, PurePosixPath] = {}
+    names: set[Path] = set()
+    for value, objects in _referenced(store, loc, raw).items():
+        base = PurePosixPath(posixpath.normpath(posixpath.join(loc.parent.as_posix(), value)))
+        kinds = Counter(PurePosixPath(rel).suffix.lower() for rel in objects if rel)
+        for rel, (size, _, _) in objects.items():
+            src = base / rel if rel else base
+            target = storage.inside(folder, *src.parts[1:])
+            if (rel and kinds[PurePosixPath(rel).suffix.lower()] > CHECK_MANY_FILES) or size > CHECK_FILE_MAX_BYTES:
+                names.add(target)
+            else:
+                fetch[target] = src
+    for target in sorted(names - set(fetch)):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.touch()
+    try:
+        store.download_files([(src, target) for target, src in fetch.items()])
+    except FileNotFoundError as exc:
+        raise DatasetIOError(f"{uri}: an object the drive file names vanished while it was fetched ({exc})") from exc
+    local_yaml = storage.inside(folder, *loc.parts[1:])
+    storage.atomic_write_bytes(local_yaml, raw)
+    return local_yaml
 
 
 _COPIES: dict[str, str] = {}  # local copy of a delivered drive.yaml -> its s3:// URI, this process

@@ -49,7 +49,18 @@ class DatasetIOError(CornermapError, OSError):
 
 class ObjectStoreError(DatasetIOError):
     """The object store could not be reached or refused the request (endpoint down, credentials missing or
-    refused, bucket absent); the message names the URI and the endpoint."""
+    refused, bucket absent); the message names the URI and the endpoint. Raised by every operation of
+    ``pipeline.storage.Store`` on an object-store root in place of the client's own exception (botocore, aiohttp);
+    ``uri`` is the location asked for and ``line`` the part of the message after it (the endpoint and the cause)."""
+
+    uri: str | None = None
+    line: str | None = None
+
+    @classmethod
+    def at(cls, uri: str, line: str) -> "ObjectStoreError":
+        err = cls(f"{uri}: {line}")
+        err.uri, err.line = uri, line
+        return err
 
 
 class FormatError(CornermapError, ValueError):

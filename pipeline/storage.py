@@ -146,9 +146,35 @@ def workflows_dir(root: P) -> P:
     return root / WORKFLOWS
 
 
+def drives_dir(root: P) -> P:
+    """The drives staged into a root (``drives/``), one folder each."""
+    return root / DRIVES
+
+
 def staged_drive_dir(root: P, fingerprint: str) -> P:
     """Where a local drive staged into an object-store root lives: ``drives/<fp16>`` (its drive fingerprint)."""
-    return root / DRIVES / fingerprint[:FP_LEN]
+    return drives_dir(root) / fingerprint[:FP_LEN]
+
+
+def staged_drive_of(value: object, root: "Path | str") -> str | None:
+    """The ``fp16`` of the staged drive ``ROOT/drives/<fp16>/`` that a drive path or URI ``value`` lies in (``root``
+    a local folder or an ``s3://`` URI); None when it lies elsewhere."""
+    if not isinstance(value, (str, PurePath)) or not str(value):
+        return None
+    if uri_scheme(root) is not None:
+        if uri_scheme(value) is None:
+            return None
+        base, text = normalise_uri(root).rstrip("/") + f"/{DRIVES}/", normalise_uri(value)
+        rest = text[len(base):] if text.startswith(base) else None
+    else:
+        if uri_scheme(value) is not None:
+            return None
+        try:
+            rest = Path(os.path.abspath(value)).relative_to(Path(os.path.abspath(root)) / DRIVES).as_posix()
+        except ValueError:
+            rest = None
+    fp = rest.split("/", 1)[0] if rest else ""
+    return fp if len(fp) == FP_LEN else None
 
 
 def staged_marker(sdir: P) -> P:
@@ -564,6 +590,64 @@ class Store:
     def _bk(self, loc: PurePath) -> dict[str, str]:
         bucket, _, key = loc.as_posix().partition("/")
         return {"Bucket": bucket, "Key": key}
+
+
+def _named_errors(method):
+    """``method`` of ``Store`` with the object-store client's own errors (botocore, aiobotocore, aiohttp: an endpoint
+    down, credentials missing or refused, a bucket absent) raised as one ``ObjectStoreError`` naming the location's
+    URI and the endpoint (``object_store_error_line``). A local root calls the method as it is."""
+    import functools
+    import inspect
+
+    def named(self: "Store", args: tuple, exc: Exception) -> Exception | None:
+        line = object_store_error_line(exc)
+        if line is None:
+            return None
+        from pipeline.errors import ObjectStoreError
+
+        return ObjectStoreError.at(self.url(_asked_for(self, args)), line)
+
+    if inspect.isgeneratorfunction(method):
+        @functools.wraps(method)
+        def walker(self: "Store", *args, **kwargs):
+            try:
+                yield from method(self, *args, **kwargs)
+            except Exception as exc:
+                err = named(self, args, exc) if self.fs is not None else None
+                if err is None:
+                    raise
+                raise err from exc
+
+        return walker
+
+    @functools.wraps(method)
+    def wrapper(self: "Store", *args, **kwargs):
+        if self.fs is None:
+            return method(self, *args, **kwargs)
+        try:
+            return method(self, *args, **kwargs)
+        except Exception as exc:
+            err = named(self, args, exc)
+            if err is None:
+                raise
+            raise err from exc
+
+    return wrapper
+
+
+def _asked_for(store: "Store", args: tuple) -> PurePath:
+    """The store location a call of a ``Store`` method names: its first argument, or the first store location of a
+    list of (local, store) / (store, local) pairs; the root when none."""
+    first = args[0] if args else None
+    if isinstance(first, list) and first and isinstance(first[0], tuple):
+        first = next((p for p in first[0] if not isinstance(p, Path)), first[0][0])
+    return first if isinstance(first, PurePath) else store.root
+
+
+for _name in ("read_bytes", "exists", "listdir", "walk_files", "objects_under", "walk_objects", "put_bytes", "create",
+              "etag", "replace_if", "delete_if", "delete", "delete_tree", "upload_file", "upload_files",
+              "download_files", "copy", "download_tree"):
+    setattr(Store, _name, _named_errors(getattr(Store, _name)))
 
 
 def _precondition_failed(exc: BaseException) -> bool:

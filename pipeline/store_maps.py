@@ -225,9 +225,7 @@ def _newest_modified(store: Store, loc: PurePath) -> float:
     if store.local:
         times = [p.stat().st_mtime for p in Path(loc).rglob("*") if p.is_file()]
         return max(times, default=0.0) if times else (_os.stat(loc).st_mtime if Path(loc).exists() else 0.0)
-    found = store.fs.find(loc.as_posix(), detail=True, withdirs=False)
-    stamps = [info.get("LastModified") for info in found.values()]
-    return max((s.timestamp() for s in stamps if s is not None), default=0.0)
+    return max((stamp for _, stamp in store.walk_objects(loc).values()), default=0.0)
 
 
 def gc_uncommitted(store: Store, min_age_h: float, apply: bool) -> list[tuple[str, str]]:

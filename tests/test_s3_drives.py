@@ -72,10 +72,16 @@ def test_a_local_drive_is_staged_once_by_content_and_fetched_whole(s3_env, s3_ro
     local = {rel for rel in _files(sim) if rel.startswith(("drive_0/", "survey/"))}
     assert staged == local | {"_staged.json"}, sorted(staged ^ (local | {"_staged.json"}))
     store = Store.open(s3_root)
-    before = store.walk_objects(store.root)
+    marker = f"drives/{fp[:16]}/_staged.json"
+    files = lambda: {k: v for k, v in store.walk_objects(store.root).items() if not k.startswith("locks/")}  # noqa: E731
+    before = files()
     drive_store._STAGED.clear()  # another process: only the bucket's marker says it is staged
     assert drive_store.stage_drive(s3_root, short_drive) == uri
-    assert store.walk_objects(store.root) == before, "a staged drive was uploaded again"
+    after = files()
+    assert {k: v for k, v in after.items() if k != marker} == {k: v for k, v in before.items() if k != marker}, (
+        "a staged drive was uploaded again"
+    )
+    assert after[marker][0] == before[marker][0] and after[marker][1] >= before[marker][1]  # the marker renewed
     # a worker's scratch: the drive fetched from the bucket, every file as the client has it
     fp_uri = drive_store.remote_drive_fingerprint(uri)
     monkeypatch.setenv("CORNERMAP_SCRATCH", str(tmp_path / "worker"))
@@ -164,3 +170,50 @@ def test_workers_build_a_drive_only_the_bucket_holds(s3_env, s3_root, short_driv
     assert not any(k.startswith("drives/") for k in _objects(s3_root)), "a drive given by URI was staged again"
     for folder in folders:
         _no_local_root(folder)
+
+
+def test_a_drive_given_only_by_uri_gets_the_clients_frame_check(s3_env, s3_root, tmp_path):
+    """``cornermap build --drive s3://.../drive.yaml`` of drives nothing places in the map's frame: the client's
+    check refuses them as it refuses local drives (exit 3, one line naming each drive by its URI and what to add),
+    before any stage runs: nothing committed in the bucket, and the client read the drive file, its stamps and the
+    names of its scans, not the scans (no scan file left in its scratch or elsewhere in its folder)."""
+    import yaml
+
+    from fixtures.ingest import write_synthetic_drive
+    from pipeline.storage import Store
+
+    local = tmp_path / "delivered"
+    for name, n_scans in (("bare", 3), ("keyframes", 24)):  # 24 scans: more than a check copy fetches
+        drive = write_synthetic_drive(local, name=name, n_scans=n_scans).drive_file
+        doc = yaml.safe_load(drive.read_text())
+        del doc["gnss"]
+        doc["scan_times"] = {"source": "stamps_csv"}
+        if name == "keyframes":  # a start heading alone, scans 1.5 s apart: a keyframe drive nothing checks
+            doc["start"] = {"heading_deg": 30.0, "heading_convention": "azimuth_cw_from_north"}
+            stamps = drive.parent / "scans" / "stamps.csv"
+            lines = stamps.read_text().splitlines()
+            col = lines[0].split(",").index("gps_seconds")
+            rows = [ln.split(",") for ln in lines[1:]]
+            for k, r in enumerate(rows):
+                r[col] = f"{float(rows[0][col]) + 1.5 * k:.6f}"
+            stamps.write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+        drive.write_text(yaml.safe_dump(doc))
+    store = Store.open(s3_root)
+    base = store.root.parent / "deliveries"
+    store.upload_files([(p, base / p.relative_to(local).as_posix()) for p in sorted(local.rglob("*")) if p.is_file()])
+    shutil.rmtree(local)
+    uris = [f"s3://{base.as_posix()}/{name}/drive.yaml" for name in ("bare", "keyframes")]
+    client = tmp_path / "client"
+    client.mkdir()
+    res = cornermap("build", "--drive", uris[0], "--drive", uris[1], "--map", "city", "--root", s3_root, "--origin",
+                    ORIGIN, "--quiet", cwd=client, CORNERMAP_SCRATCH=str(client / "scratch"), **s3_env)
+    assert res.returncode == 3, (res.stdout, res.stderr)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in res.stderr, lines
+    assert "drive bare: its frame cannot be fixed" in lines[0] and f"({uris[0]})" in lines[0], lines[0]
+    assert "add one of: a gnss section" in lines[0], lines[0]
+    assert "drive keyframes: a keyframe drive (median 1.50 s between scans)" in lines[0], lines[0]
+    assert f"({uris[1]})" in lines[0] and "cornermap-check-" not in lines[0], lines[0]
+    assert not [k for k in _objects(s3_root) if k.endswith("_manifest.json")], "a dataset was committed"
+    assert not list(client.rglob("*.pcd")), "the client fetched scans"
+    _no_local_root(client)

@@ -221,3 +221,56 @@ def test_nested_holds_of_one_process_share_the_lock_on_both_backends(tmp_path, s
         assert not pipeline.locks._HELD and not pipeline.leases._HELD  # the outer holds released them
     with LeaseLocks(Store.open(s3_root), ttl_s=30, holder="B").hold("map-city", exclusive=True):  # free for another
         pass
+
+
+def test_every_store_operation_on_an_unreachable_store_raises_one_named_error(monkeypatch, tmp_path):
+    """An endpoint nobody listens on: each operation of an S3 ``Store`` (reads, listings, a walk, writes, a
+    conditional put, transfers) raises ``ObjectStoreError`` (a ``DatasetIOError``, an ``OSError``), one line that
+    starts with the URI of the location asked for and names the endpoint, never the client's own exception."""
+    import socket
+
+    import s3fs
+
+    from pipeline.errors import DatasetIOError, ObjectStoreError
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{port}")
+    monkeypatch.setenv("AWS_ACCESS_KEY_ID", "testing")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "testing")
+    monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
+    local = tmp_path / "f.bin"
+    local.write_bytes(b"x")
+    s3fs.S3FileSystem.clear_instance_cache()  # fsspec caches a file system per process: one of this test's env
+    try:
+        store = Store.open("s3://hcmaps/root")
+        loc = store.root / "maps" / "city" / "LATEST"
+        calls = {
+            "read_bytes": lambda: store.read_bytes(loc),
+            "exists": lambda: store.exists(loc),
+            "listdir": lambda: store.listdir(loc),
+            "walk_files": lambda: list(store.walk_files(loc)),
+            "objects_under": lambda: store.objects_under(loc),
+            "put_bytes": lambda: store.put_bytes(loc, b"v0001"),
+            "create": lambda: store.create(loc, b"v0001"),
+            "upload_files": lambda: store.upload_files([(local, loc), (local, loc.with_name("B"))]),
+            "download_files": lambda: store.download_files([(loc, tmp_path / "got")]),
+        }
+        for name, call in calls.items():
+            with pytest.raises(ObjectStoreError) as err:
+                call()
+            text = str(err.value)
+            assert isinstance(err.value, (DatasetIOError, OSError)), name
+            assert text.startswith("s3://hcmaps/root/maps/city/LATEST: the object store"), (name, text)
+            assert f"127.0.0.1:{port}" in text and "\n" not in text, (name, text)
+            assert err.value.uri == "s3://hcmaps/root/maps/city/LATEST" and err.value.line in text, name
+    finally:
+        s3fs.S3FileSystem.clear_instance_cache()  # the next test's env gets its own
+
+
+def test_a_local_store_raises_the_file_systems_own_errors(tmp_path):
+    """A local root is the file system: an absent file is FileNotFoundError, as before (no wrapping)."""
+    store = Store.open(tmp_path / "root")
+    with pytest.raises(FileNotFoundError):
+        store.read_bytes(store.root / "maps" / "city" / "LATEST")
